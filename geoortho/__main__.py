@@ -1,0 +1,8 @@
+"""``python -m geoortho``."""
+
+import sys
+
+from .processing.cli import main
+
+if __name__ == "__main__":
+    sys.exit(main())

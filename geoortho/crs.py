@@ -1,0 +1,85 @@
+"""CRS parsing at the edges, UTM zone choice and cached pyproj transformers.
+
+``always_xy=True`` everywhere: easting/longitude first.
+"""
+
+from __future__ import annotations
+
+import re
+from functools import lru_cache
+from typing import Any
+
+from pyproj import CRS, Transformer
+from pyproj.exceptions import CRSError
+
+__all__ = ["WGS84", "parse_crs", "utm_crs_for", "transformer", "crs_to_text", "horizontal_unit_m"]
+
+WGS84 = CRS.from_epsg(4326)
+WGS84_3D = CRS.from_epsg(4979)
+
+_UTM_WORDS = re.compile(r"^\s*WGS\s*-?\s*84\s+UTM\s+(?:zone\s+)?(\d{1,2})\s*([NS])\s*$", re.I)
+
+
+def parse_crs(value: Any) -> CRS:
+    """A pyproj CRS from what users write.
+
+    Accepts anything ``CRS.from_user_input`` does (``EPSG:32629``, ``32629``,
+    a PROJ string, WKT) plus ODM's legacy ``WGS84 UTM 29N``.
+
+    Raises
+    ------
+    ValueError
+        The text is not a CRS pyproj knows.
+
+    >>> parse_crs("WGS84 UTM 29N").to_epsg()
+    32629
+    """
+    if isinstance(value, CRS):
+        return value
+    text = str(value).strip()
+    m = _UTM_WORDS.match(text)
+    if m:
+        zone, hemi = int(m.group(1)), m.group(2).upper()
+        if not 1 <= zone <= 60:
+            raise ValueError(f"UTM zone {zone} out of range 1..60")
+        return CRS.from_epsg((32600 if hemi == "N" else 32700) + zone)
+    try:
+        return CRS.from_user_input(text)
+    except CRSError:
+        raise ValueError(f"unknown CRS {text!r} (expected e.g. EPSG:32629, a PROJ string or WKT)") from None
+
+
+def utm_crs_for(lon_deg: float, lat_deg: float) -> CRS:
+    """The WGS84 UTM zone containing a point (Norway/Svalbard exceptions ignored).
+
+    >>> utm_crs_for(-9.14, 38.72).to_epsg()
+    32629
+    """
+    zone = int((lon_deg + 180.0) // 6.0) % 60 + 1
+    return CRS.from_epsg((32600 if lat_deg >= 0 else 32700) + zone)
+
+
+@lru_cache(maxsize=64)
+def _transformer(src_wkt: str, dst_wkt: str) -> Transformer:
+    return Transformer.from_crs(CRS.from_wkt(src_wkt), CRS.from_wkt(dst_wkt), always_xy=True)
+
+
+def transformer(src: CRS, dst: CRS) -> Transformer:
+    """A cached ``Transformer`` with ``always_xy=True``."""
+    return _transformer(src.to_wkt(), dst.to_wkt())
+
+
+def crs_to_text(crs: CRS) -> str:
+    """``EPSG:xxxx`` when the CRS has a code, else a PROJ string (ODM's gcp_list header)."""
+    code = crs.to_epsg()
+    if code is not None:
+        return f"EPSG:{code}"
+    return crs.to_proj4()
+
+
+def horizontal_unit_m(crs: CRS) -> float:
+    """Metres per horizontal unit of a projected CRS (1.0 for metres, 0.3048 for feet)."""
+    axis = crs.axis_info[0] if crs.axis_info else None
+    if axis is None or axis.unit_conversion_factor in (None, 0):
+        return 1.0
+    return float(axis.unit_conversion_factor)

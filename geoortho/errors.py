@@ -1,0 +1,71 @@
+"""One exception hierarchy for geoortho.
+
+Only the faces (CLI, QGIS provider) translate these: the CLI exits 2 with one
+stderr line for an :class:`InputError`, and 1 for anything else.
+"""
+
+from __future__ import annotations
+
+from os import PathLike
+
+__all__ = [
+    "GeoorthoError",
+    "InputError",
+    "ParameterError",
+    "CanceledError",
+    "DependencyError",
+    "GeoorthoWarning",
+]
+
+
+class GeoorthoError(Exception):
+    """Root of every error geoortho raises on purpose."""
+
+
+class InputError(GeoorthoError, ValueError):
+    """Bad input: a file, a line of it, or a parameter value.
+
+    The message names where the problem is, ``path:line: reason``, so a user
+    can go straight to it.
+
+    Parameters
+    ----------
+    message
+        What is wrong and, where it helps, what was expected.
+    path
+        The offending file, if any.
+    line
+        1-based line number in ``path``, if the input is a text file.
+    """
+
+    def __init__(
+        self, message: str, *, path: str | PathLike[str] | None = None, line: int | None = None
+    ) -> None:
+        self.reason = message
+        self.path = None if path is None else str(path)
+        self.line = line
+        where = ""
+        if self.path is not None:
+            where = self.path if line is None else f"{self.path}:{line}"
+            where += ": "
+        super().__init__(where + message)
+
+
+class ParameterError(InputError):
+    """A parameter value that does not fit its spec (type, range, choices)."""
+
+    def __init__(self, name: str, message: str) -> None:
+        self.name = name
+        super().__init__(f"{name}: {message}")
+
+
+class CanceledError(GeoorthoError):
+    """The user asked to stop; raised from the feedback's progress callback."""
+
+
+class DependencyError(GeoorthoError, ImportError):
+    """An optional dependency (pdal, dask.distributed) is missing."""
+
+
+class GeoorthoWarning(UserWarning):
+    """Root of geoortho's warning classes."""

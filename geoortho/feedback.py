@@ -1,0 +1,217 @@
+"""Progress, messages and cancellation, injected into every core function.
+
+Core functions take ``feedback: Feedback | None``; they report progress as a
+fraction 0..1, and the callback raises :class:`~geoortho.errors.CanceledError`
+when the user asked to stop, so a cancel needs no check beyond reporting
+progress.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import threading
+from collections.abc import Iterable, Iterator, Sequence
+from typing import IO, TypeVar
+
+from .errors import CanceledError
+
+__all__ = [
+    "Feedback",
+    "NullFeedback",
+    "TerminalFeedback",
+    "JsonLinesFeedback",
+    "as_feedback",
+    "split",
+    "track",
+]
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+class Feedback:
+    """Base feedback: logs messages, ignores progress, can be canceled.
+
+    Subclasses override :meth:`set_progress` and the message methods; callers
+    use :meth:`progress`, which also raises when canceled.
+    """
+
+    def __init__(self) -> None:
+        self._cancel = threading.Event()
+
+    # --- what core code calls -------------------------------------------------
+    def progress(self, fraction: float) -> None:
+        """Report progress (0..1); raise CanceledError if a cancel was asked."""
+        self.check_canceled()
+        self.set_progress(min(1.0, max(0.0, float(fraction))))
+
+    def info(self, message: str) -> None:
+        log.info(message)
+
+    def warning(self, message: str) -> None:
+        log.warning(message)
+
+    def is_canceled(self) -> bool:
+        return self._cancel.is_set()
+
+    def check_canceled(self) -> None:
+        if self.is_canceled():
+            raise CanceledError("canceled by the user")
+
+    # --- what faces call ------------------------------------------------------
+    def cancel(self) -> None:
+        self._cancel.set()
+
+    def set_progress(self, fraction: float) -> None:
+        """Show progress; the base class shows nothing."""
+
+    def close(self) -> None:
+        """Finish any display (progress bar)."""
+
+
+class NullFeedback(Feedback):
+    """Feedback that shows nothing and logs nothing."""
+
+    def info(self, message: str) -> None:
+        pass
+
+    def warning(self, message: str) -> None:
+        pass
+
+
+def as_feedback(feedback: Feedback | None) -> Feedback:
+    """The given feedback, or a :class:`NullFeedback` for None."""
+    return NullFeedback() if feedback is None else feedback
+
+
+class _SubFeedback(Feedback):
+    """Maps 0..1 of a sub-step onto [start, start+width] of its parent."""
+
+    def __init__(self, parent: Feedback, start: float, width: float) -> None:
+        super().__init__()
+        self._parent = parent
+        self._start = start
+        self._width = width
+
+    def set_progress(self, fraction: float) -> None:
+        self._parent.progress(self._start + self._width * fraction)
+
+    def info(self, message: str) -> None:
+        self._parent.info(message)
+
+    def warning(self, message: str) -> None:
+        self._parent.warning(message)
+
+    def is_canceled(self) -> bool:
+        return self._parent.is_canceled() or super().is_canceled()
+
+    def cancel(self) -> None:
+        self._parent.cancel()
+
+
+def split(feedback: Feedback | None, weights: Sequence[float]) -> list[Feedback]:
+    """Split one run into sub-steps with relative weights.
+
+    >>> steps = split(None, [1, 3])
+    >>> len(steps)
+    2
+    """
+    parent = as_feedback(feedback)
+    total = float(sum(weights))
+    if total <= 0:
+        raise ValueError("weights must sum to a positive number")
+    out: list[Feedback] = []
+    start = 0.0
+    for w in weights:
+        out.append(_SubFeedback(parent, start / total, w / total))
+        start += w
+    return out
+
+
+def track(items: Iterable[T], feedback: Feedback | None, total: int | None = None) -> Iterator[T]:
+    """Yield items, reporting progress after each (and checking for cancel)."""
+    fb = as_feedback(feedback)
+    if total is None:
+        try:
+            total = len(items)  # type: ignore[arg-type]
+        except TypeError:
+            total = None
+    fb.progress(0.0)
+    for i, item in enumerate(items, 1):
+        yield item
+        if total:
+            fb.progress(i / total)
+
+
+class TerminalFeedback(Feedback):
+    """A tqdm progress bar on stderr and messages through logging."""
+
+    def __init__(self, description: str = "", *, quiet: bool = False, stream: IO[str] | None = None) -> None:
+        super().__init__()
+        self._quiet = quiet
+        self._stream = stream if stream is not None else sys.stderr
+        self._bar = None
+        self._description = description
+
+    def set_progress(self, fraction: float) -> None:
+        if self._quiet or not getattr(self._stream, "isatty", lambda: False)():
+            return
+        if self._bar is None:
+            from tqdm import tqdm
+
+            self._bar = tqdm(
+                total=1000, desc=self._description, file=self._stream, leave=False,
+                bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining}",
+            )
+        self._bar.n = int(round(fraction * 1000))
+        self._bar.refresh()
+
+    def _write(self, message: str) -> None:
+        if self._bar is not None:
+            self._bar.write(message, file=self._stream)
+        else:
+            print(message, file=self._stream)
+
+    def info(self, message: str) -> None:
+        log.info(message)
+        if not self._quiet:
+            self._write(message)
+
+    def warning(self, message: str) -> None:
+        log.warning(message)
+        self._write(f"warning: {message}")
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
+class JsonLinesFeedback(Feedback):
+    """Machine-readable feedback: one JSON object a line (for the QGIS provider).
+
+    ``{"progress": 0.42}``, ``{"info": "..."}``, ``{"warning": "..."}``.
+    Progress lines are written only when the value moved by 0.1 % or more.
+    """
+
+    def __init__(self, stream: IO[str] | None = None) -> None:
+        super().__init__()
+        self._stream = stream if stream is not None else sys.stderr
+        self._last = -1.0
+
+    def _emit(self, obj: dict[str, object]) -> None:
+        self._stream.write(json.dumps(obj) + "\n")
+        self._stream.flush()
+
+    def set_progress(self, fraction: float) -> None:
+        if abs(fraction - self._last) >= 0.001 or fraction == 1.0:
+            self._last = fraction
+            self._emit({"progress": round(fraction, 4)})
+
+    def info(self, message: str) -> None:
+        self._emit({"info": message})
+
+    def warning(self, message: str) -> None:
+        self._emit({"warning": message})

@@ -1,0 +1,154 @@
+"""Atomic writers: every product is written to a temporary name beside its
+target and renamed when complete, so an interrupted run leaves no half file.
+
+This module owns raster (COG) and vector writing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["atomic_path", "write_cog", "write_vector", "write_text", "write_json", "VECTOR_DRIVERS"]
+
+
+@contextlib.contextmanager
+def atomic_path(target: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path beside ``target``; rename it onto ``target`` on success.
+
+    The temporary name keeps the extension so that drivers chosen by extension
+    (GDAL, OGR) still work. On any exception the temporary file is removed.
+    """
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.stem}.tmp-", suffix=target.suffix, dir=target.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    tmp.unlink()  # let the writer create it (some drivers refuse an existing file)
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise RuntimeError(f"writer produced no file for {target}")
+        os.replace(tmp, target)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+        aux = tmp.with_name(tmp.name + ".aux.xml")
+        if aux.exists():
+            aux.unlink()
+
+
+def write_text(target: str | os.PathLike[str], text: str) -> Path:
+    with atomic_path(target) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(target)
+
+
+def write_json(target: str | os.PathLike[str], obj: Any) -> Path:
+    return write_text(target, json.dumps(obj, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_cog(
+    target: str | os.PathLike[str],
+    array: np.ndarray,
+    *,
+    transform: Any,
+    crs: Any,
+    nodata: float | None = None,
+    compress: str = "DEFLATE",
+    alpha: np.ndarray | None = None,
+    band_names: tuple[str, ...] = (),
+    overview_resampling: str | None = None,
+) -> Path:
+    """Write a (bands, rows, cols) or (rows, cols) array as a Cloud-Optimized GeoTIFF.
+
+    Float rasters get the floating-point predictor; ``alpha`` (uint8, 0/255)
+    is added as a last band flagged as alpha.
+    """
+    import rasterio
+    from rasterio.enums import ColorInterp
+    from rasterio.io import MemoryFile
+    from rasterio.shutil import copy as rio_copy
+
+    data = array[np.newaxis] if array.ndim == 2 else array
+    if alpha is not None:
+        data = np.concatenate([data, alpha[np.newaxis].astype(data.dtype)], axis=0)
+    count, rows, cols = data.shape
+    is_float = np.issubdtype(data.dtype, np.floating)
+    profile = {
+        "driver": "GTiff", "width": cols, "height": rows, "count": count,
+        "dtype": data.dtype.name, "crs": crs, "transform": transform,
+    }
+    if nodata is not None:
+        profile["nodata"] = nodata
+    with MemoryFile() as mem:
+        with mem.open(**profile) as ds:
+            ds.write(data)
+            if alpha is not None:
+                interp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue][: count - 1] if count == 4 else \
+                    [ColorInterp.gray] * (count - 1)
+                ds.colorinterp = [*interp, ColorInterp.alpha]
+            for i, name in enumerate(band_names, 1):
+                ds.set_band_description(i, name)
+        with mem.open() as src, atomic_path(target) as tmp:
+            options: dict[str, Any] = {
+                "compress": compress,
+                "overview_resampling": overview_resampling or ("average" if not is_float else "nearest"),
+                "BIGTIFF": "IF_SAFER",
+            }
+            if compress.upper() in ("DEFLATE", "LZW", "ZSTD"):
+                options["predictor"] = 3 if is_float else 2
+            rio_copy(src, tmp, driver="COG", **options)
+    return Path(target)
+
+
+#: OGR driver by file extension.
+VECTOR_DRIVERS = {
+    ".gpkg": "GPKG", ".geojson": "GeoJSON", ".json": "GeoJSON", ".shp": "ESRI Shapefile",
+    ".fgb": "FlatGeobuf", ".csv": "CSV", ".kml": "KML", ".gml": "GML",
+}
+
+
+def write_vector(target: str | os.PathLike[str], layers: dict[str, Any]) -> Path:
+    """Write one or more GeoDataFrames (layer name → frame) atomically.
+
+    The format follows the extension; several layers need a multi-layer format
+    (GeoPackage).
+    """
+    target = Path(target)
+    driver = VECTOR_DRIVERS.get(target.suffix.lower())
+    if driver is None:
+        from .errors import InputError
+
+        raise InputError(
+            f"unknown vector format {target.suffix!r}; use one of {', '.join(sorted(VECTOR_DRIVERS))}",
+            path=target,
+        )
+    with atomic_path(target) as tmp:
+        for i, (name, frame) in enumerate(layers.items()):
+            if driver != "GPKG" and i > 0:
+                break  # single-layer formats keep the first (main) layer
+            kwargs: dict[str, Any] = {"driver": driver, "engine": "pyogrio"}
+            if driver == "GPKG":
+                kwargs["layer"] = name
+            if i > 0:
+                kwargs["mode"] = "a"
+            frame.to_file(tmp, **kwargs)
+    return target

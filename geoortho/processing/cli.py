@@ -1,0 +1,205 @@
+"""``python -m geoortho``: argparse generated from the registry.
+
+Exit codes: 0 done, 1 unexpected failure, 2 bad input (one line on stderr),
+130 canceled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn
+
+from ..errors import CanceledError, GeoorthoError, InputError
+from ..feedback import Feedback, JsonLinesFeedback, TerminalFeedback
+from .registry import describe_json, list_algorithms, run_algorithm
+from .spec import PARAM_TYPES, Algorithm, Param
+
+__all__ = ["ARGPARSE_OPTIONS", "build_parser", "main"]
+
+PROG = "geoortho"
+
+
+def _metavar(word: str) -> Callable[[Param], dict[str, Any]]:
+    return lambda p: {"metavar": word}
+
+
+def _number_opts(p: Param) -> dict[str, Any]:
+    return {"metavar": (p.unit or "NUMBER").upper().replace(" ", "_")}
+
+
+#: One entry per parameter type: the extra argparse keywords for its option.
+#: Values stay strings here; the registry's converters do the typing, so the
+#: CLI and the Python API validate alike.
+ARGPARSE_OPTIONS: dict[str, Callable[[Param], dict[str, Any]]] = {
+    "folder": _metavar("DIR"),
+    "file": _metavar("FILE"),
+    "raster": _metavar("RASTER"),
+    "vector": _metavar("VECTOR"),
+    "pointcloud": _metavar("POINTS"),
+    "number": _number_opts,
+    "integer": _metavar("N"),
+    "enum": lambda p: {"choices": list(p.choices), "metavar": "{" + ",".join(p.choices) + "}"},
+    "bool": lambda p: {"action": argparse.BooleanOptionalAction},
+    "crs": _metavar("CRS"),
+    "string": _metavar("TEXT"),
+}
+assert set(ARGPARSE_OPTIONS) == set(PARAM_TYPES)
+
+
+class _Parser(argparse.ArgumentParser):
+    """Bad usage: one line on stderr and exit 2 (no usage dump)."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        sys.exit(2)
+
+
+def _option_help(p: Param) -> str:
+    bits = [p.help.rstrip(".") if p.help else p.name]
+    extra = []
+    if p.unit:
+        extra.append(f"unit: {p.unit}")
+    if p.minimum is not None or p.maximum is not None:
+        lo = "" if p.minimum is None else f"{p.minimum:g}"
+        hi = "" if p.maximum is None else f"{p.maximum:g}"
+        extra.append(f"range: {lo}..{hi}")
+    if p.required:
+        extra.append("required")
+    elif p.default is not None and p.type != "bool":
+        extra.append(f"default: {p.default}")
+    elif p.type == "bool":
+        extra.append(f"default: {'on' if p.default else 'off'}")
+    if extra:
+        bits.append("(" + "; ".join(extra) + ")")
+    return " ".join(bits).replace("%", "%%")
+
+
+def _add_common(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("output control")
+    g.add_argument("--quiet", action="store_true", help="no progress bar, no info messages")
+    g.add_argument("--json", action="store_true", help="print the outputs as JSON on stdout when done")
+    g.add_argument(
+        "--progress-json", action="store_true",
+        help="machine-readable progress and messages on stderr, one JSON object a line",
+    )
+    g.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+
+
+def _add_algorithm(sub: Any, alg: Algorithm) -> None:
+    p = sub.add_parser(
+        alg.id, help=alg.short_help, description=alg.help, prog=f"{PROG} {alg.id}",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    req = p.add_argument_group("required")
+    opt = p.add_argument_group("options")
+    for param in alg.params:
+        group = req if param.required else opt
+        kwargs = ARGPARSE_OPTIONS[param.type](param)
+        group.add_argument(
+            param.cli_flag, dest=param.name, default=None, required=param.required,
+            help=_option_help(param), **kwargs,
+        )
+    _add_common(p)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog=PROG,
+        description="geoortho: drone photos to survey products, georeference first.",
+        epilog=f"Run '{PROG} <algorithm> --help' for its options.",
+    )
+    from .. import __version__
+
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="<algorithm>", parser_class=_Parser)
+    for alg in list_algorithms():
+        _add_algorithm(sub, alg)
+    d = sub.add_parser("describe", help="describe every algorithm (use --json for the machine form)",
+                       prog=f"{PROG} describe")
+    d.add_argument("--json", action="store_true", help="print the registry as JSON")
+    return parser
+
+
+def _describe_text() -> str:
+    lines = []
+    for a in list_algorithms():
+        lines.append(f"{a.id}: {a.title} [{a.group}]")
+        for p in a.params:
+            lines.append(f"  {p.cli_flag} ({p.type}) {_option_help(p)}")
+    return "\n".join(lines)
+
+
+def _install_sigterm(feedback: Feedback) -> None:
+    # A terminated run (QGIS Cancel) stops at the next progress call, so temporary
+    # outputs are removed rather than left half-written.
+    def handler(signum: int, frame: Any) -> None:
+        feedback.cancel()
+
+    try:
+        signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        pass
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return 2
+    if args.command == "describe":
+        print(describe_json() if args.json else _describe_text())
+        return 0
+    alg = next(a for a in list_algorithms() if a.id == args.command)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.debug:
+        logging.getLogger("geoortho").setLevel(logging.DEBUG)
+    values = {p.name: getattr(args, p.name) for p in alg.params}
+    feedback: Feedback
+    if args.progress_json:
+        feedback = JsonLinesFeedback(sys.stderr)
+    else:
+        feedback = TerminalFeedback(alg.id, quiet=args.quiet)
+    _install_sigterm(feedback)
+    prog = f"{PROG} {alg.id}"
+    try:
+        outputs = run_algorithm(alg, values, feedback)
+    except InputError as e:
+        feedback.close()
+        sys.stderr.write(f"{prog}: error: {_one_line(e)}\n")
+        return 2
+    except (CanceledError, KeyboardInterrupt):
+        feedback.close()
+        sys.stderr.write(f"{prog}: canceled\n")
+        return 130
+    except GeoorthoError as e:
+        feedback.close()
+        if args.debug:
+            raise
+        sys.stderr.write(f"{prog}: error: {_one_line(e)}\n")
+        return 1
+    except Exception as e:  # unexpected: a bug or an environment problem
+        feedback.close()
+        if args.debug:
+            raise
+        sys.stderr.write(
+            f"{prog}: unexpected error: {type(e).__name__}: {_one_line(e)} (run with --debug for details)\n"
+        )
+        return 1
+    feedback.close()
+    if args.json:
+        print(json.dumps(outputs, indent=2))
+    elif not args.quiet:
+        for k, v in outputs.items():
+            if not isinstance(v, (dict, list)):
+                print(f"{k}: {v}")
+    return 0
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())

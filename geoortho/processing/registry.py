@@ -1,0 +1,232 @@
+"""Validate and convert parameter values, run algorithms, describe the registry."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from ..errors import ParameterError
+from ..feedback import Feedback, as_feedback
+from .spec import PARAM_TYPES, Algorithm, Param
+
+__all__ = ["CONVERTERS", "convert_value", "get_algorithm", "list_algorithms", "run_algorithm", "describe"]
+
+
+def _path_in(p: Param, v: Any, *, want_dir: bool) -> Path:
+    path = Path(v).expanduser()
+    if p.output:
+        return path
+    if not path.exists():
+        raise ParameterError(p.name, f"no such {'folder' if want_dir else 'file'}: {path}")
+    if want_dir and not path.is_dir():
+        raise ParameterError(p.name, f"not a folder: {path}")
+    if not want_dir and path.is_dir():
+        raise ParameterError(p.name, f"is a folder, expected a file: {path}")
+    return path
+
+
+def _number(p: Param, v: Any) -> float:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise ParameterError(p.name, f"expected a number, got {v!r}") from None
+    if not math.isfinite(x):
+        raise ParameterError(p.name, f"expected a finite number, got {v!r}")
+    _check_range(p, x)
+    return x
+
+
+def _integer(p: Param, v: Any) -> int:
+    if isinstance(v, bool):
+        raise ParameterError(p.name, f"expected an integer, got {v!r}")
+    try:
+        x = int(v) if not isinstance(v, float) or v.is_integer() else None
+    except (TypeError, ValueError):
+        x = None
+    if x is None:
+        raise ParameterError(p.name, f"expected an integer, got {v!r}")
+    _check_range(p, x)
+    return x
+
+
+def _check_range(p: Param, x: float) -> None:
+    unit = f" {p.unit}" if p.unit else ""
+    if p.minimum is not None and x < p.minimum:
+        raise ParameterError(p.name, f"{x:g}{unit} is below the minimum {p.minimum:g}{unit}")
+    if p.maximum is not None and x > p.maximum:
+        raise ParameterError(p.name, f"{x:g}{unit} is above the maximum {p.maximum:g}{unit}")
+
+
+def _enum(p: Param, v: Any) -> str:
+    s = str(v)
+    if s not in p.choices:
+        raise ParameterError(p.name, f"{s!r} is not one of {', '.join(p.choices)}")
+    return s
+
+
+_TRUE = {"1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+
+
+def _bool(p: Param, v: Any) -> bool:
+    if isinstance(v, bool):
+        return v
+    s = str(v).strip().lower()
+    if s in _TRUE:
+        return True
+    if s in _FALSE:
+        return False
+    raise ParameterError(p.name, f"expected true or false, got {v!r}")
+
+
+def _crs(p: Param, v: Any) -> Any:
+    from ..crs import parse_crs
+
+    try:
+        return parse_crs(v)
+    except ValueError as e:
+        raise ParameterError(p.name, str(e)) from None
+
+
+#: One converter per parameter type (a test checks that every type has one).
+CONVERTERS: dict[str, Callable[[Param, Any], Any]] = {
+    "folder": lambda p, v: _path_in(p, v, want_dir=True),
+    "file": lambda p, v: _path_in(p, v, want_dir=False),
+    "raster": lambda p, v: _path_in(p, v, want_dir=False),
+    "vector": lambda p, v: _path_in(p, v, want_dir=False),
+    "pointcloud": lambda p, v: _path_in(p, v, want_dir=False),
+    "number": _number,
+    "integer": _integer,
+    "enum": _enum,
+    "bool": _bool,
+    "crs": _crs,
+    "string": lambda p, v: str(v),
+}
+assert set(CONVERTERS) == set(PARAM_TYPES)
+
+
+def convert_value(p: Param, value: Any) -> Any:
+    """Convert one value to the param's Python type, or raise ParameterError."""
+    if value is None:
+        if p.required:
+            raise ParameterError(p.name, "is required")
+        return None
+    return CONVERTERS[p.type](p, value)
+
+
+def list_algorithms() -> list[Algorithm]:
+    """Every registered algorithm, in registry order."""
+    from .algorithms import ALGORITHMS
+
+    return list(ALGORITHMS)
+
+
+def get_algorithm(algorithm_id: str) -> Algorithm:
+    for alg in list_algorithms():
+        if alg.id == algorithm_id:
+            return alg
+    raise ParameterError("algorithm", f"unknown algorithm {algorithm_id!r}")
+
+
+def convert_values(alg: Algorithm, values: dict[str, Any]) -> dict[str, Any]:
+    """Validate a dict of raw values (strings, numbers) against the spec."""
+    unknown = set(values) - {p.name for p in alg.params}
+    if unknown:
+        raise ParameterError(sorted(unknown)[0], f"not a parameter of {alg.id}")
+    kwargs: dict[str, Any] = {}
+    for p in alg.params:
+        if p.name in values and values[p.name] is not None:
+            kwargs[p.name] = convert_value(p, values[p.name])
+        elif p.required:
+            raise ParameterError(p.name, "is required")
+        else:
+            kwargs[p.name] = p.default
+    return kwargs
+
+
+def outputs_of(alg: Algorithm, result: Any) -> dict[str, Any]:
+    """The outputs dict of a core function's result, JSON-ready."""
+    out: dict[str, Any] = {}
+    for o in alg.outputs:
+        v = result[o.name] if isinstance(result, dict) else getattr(result, o.name)
+        out[o.name] = _jsonable(v)
+    return out
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, Path):
+        return str(v)
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return _jsonable(dataclasses.asdict(v))
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if hasattr(v, "item") and callable(v.item):  # numpy scalars
+        return v.item()
+    return v
+
+
+def run_algorithm(
+    algorithm_id: str | Algorithm, values: dict[str, Any], feedback: Feedback | None = None
+) -> dict[str, Any]:
+    """Validate ``values``, call the core function with a feedback, return its outputs."""
+    alg = algorithm_id if isinstance(algorithm_id, Algorithm) else get_algorithm(algorithm_id)
+    kwargs = convert_values(alg, values)
+    fb = as_feedback(feedback)
+    result = alg.function(**kwargs, feedback=fb)
+    fb.progress(1.0)
+    return outputs_of(alg, result)
+
+
+def _param_json(p: Param) -> dict[str, Any]:
+    default = None if p.required else _jsonable(p.default)
+    if default is not None and p.type == "crs":
+        default = str(default)
+    return {
+        "name": p.name,
+        "cli": p.cli_flag,
+        "qgis_name": p.qgis_name,
+        "type": p.type,
+        "help": p.help,
+        "required": p.required,
+        "default": default,
+        "unit": p.unit,
+        "minimum": p.minimum,
+        "maximum": p.maximum,
+        "choices": list(p.choices),
+        "extensions": list(p.extensions),
+        "output": p.output,
+        "advanced": p.advanced,
+    }
+
+
+def describe() -> dict[str, Any]:
+    """The whole registry as a JSON-ready dict (the contract other faces build on)."""
+    from .. import __version__
+
+    return {
+        "name": "geoortho",
+        "version": __version__,
+        "param_types": list(PARAM_TYPES),
+        "algorithms": [
+            {
+                "id": a.id,
+                "title": a.title,
+                "group": a.group,
+                "short_help": a.short_help,
+                "help": a.help,
+                "parameters": [_param_json(p) for p in a.params],
+                "outputs": [{"name": o.name, "type": o.type, "help": o.help} for o in a.outputs],
+            }
+            for a in list_algorithms()
+        ],
+    }
+
+
+def describe_json(indent: int | None = 2) -> str:
+    return json.dumps(describe(), indent=indent)

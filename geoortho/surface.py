@@ -1,0 +1,312 @@
+"""Surfaces rays land on: flat ground or a DSM grid; ray–surface intersection."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from affine import Affine
+from pyproj import CRS
+
+from .errors import InputError
+
+__all__ = ["Surface", "FlatSurface", "GridSurface", "RayHits", "read_surface", "sample_grid"]
+
+_REMAP_COLS = 4096  # cv2.remap wants both map sides below SHRT_MAX
+
+
+def sample_grid(grid: np.ndarray, cols: np.ndarray, rows: np.ndarray, *, nearest: bool = False) -> np.ndarray:
+    """Bilinear samples of a 2-D float32 grid at fractional (col, row) cell-centre coordinates.
+
+    Outside the grid → NaN. Any input shape; cv2.remap does the work.
+    """
+    shape = np.shape(cols)
+    c = np.asarray(cols, dtype=np.float32).ravel()
+    r = np.asarray(rows, dtype=np.float32).ravel()
+    n = c.size
+    if n == 0:
+        return np.empty(shape, dtype=np.float32)
+    pad = (-n) % _REMAP_COLS if n > _REMAP_COLS else 0
+    width = _REMAP_COLS if n > _REMAP_COLS else n
+    if pad:
+        c = np.concatenate([c, np.full(pad, -1e6, np.float32)])
+        r = np.concatenate([r, np.full(pad, -1e6, np.float32)])
+    out = cv2.remap(
+        grid, c.reshape(-1, width), r.reshape(-1, width),
+        cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"),
+    )
+    return out.ravel()[:n].reshape(shape)
+
+
+@dataclass(frozen=True, eq=False)
+class RayHits:
+    """Where rays met the surface. ``hit`` False → ray clipped at max range."""
+
+    points: np.ndarray  # (N, 3)
+    hit: np.ndarray  # (N,) bool
+    range_m: np.ndarray  # (N,) distance from the origin
+
+
+class Surface:
+    """A height field z(x, y) in the world CRS."""
+
+    z_min: float
+    z_max: float
+
+    def elevation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0,
+                  step_m: float | None = None) -> RayHits:
+        """First intersection of each ray with the surface (rays from above it)."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True, eq=False)
+class FlatSurface(Surface):
+    """Level ground at one elevation."""
+
+    elevation_m: float
+
+    @property
+    def z_min(self) -> float:  # type: ignore[override]
+        return self.elevation_m
+
+    @property
+    def z_max(self) -> float:  # type: ignore[override]
+        return self.elevation_m
+
+    def elevation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.full(np.broadcast(x, y).shape, self.elevation_m, dtype=float)
+
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0,
+                  step_m: float | None = None) -> RayHits:
+        o = np.asarray(origins, float).reshape(-1, 3)
+        d = np.asarray(dirs, float).reshape(-1, 3)
+        o = np.broadcast_to(o, d.shape)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (self.elevation_m - o[:, 2]) / d[:, 2]
+        hit = (d[:, 2] < 0) & (t >= 0) & (t <= max_range_m)
+        t = np.where(hit, t, max_range_m)
+        return RayHits(o + d * t[:, None], hit, t)
+
+
+@dataclass(frozen=True, eq=False)
+class GridSurface(Surface):
+    """A north-up elevation grid (DSM/DTM); NaN where there is no data.
+
+    ``transform`` maps (col, row) of cell corners to world x, y (rasterio's Affine).
+    """
+
+    grid: np.ndarray
+    transform: Affine
+    crs: CRS | None = None
+
+    def __post_init__(self) -> None:
+        g = np.ascontiguousarray(self.grid, dtype=np.float32)
+        object.__setattr__(self, "grid", g)
+        if self.transform.b != 0 or self.transform.d != 0 or self.transform.e >= 0:
+            raise ValueError("GridSurface needs a north-up grid")
+        finite = g[np.isfinite(g)]
+        if finite.size == 0:
+            raise ValueError("the elevation grid has no data")
+        object.__setattr__(self, "_zmin", float(finite.min()))
+        object.__setattr__(self, "_zmax", float(finite.max()))
+
+    @property
+    def z_min(self) -> float:  # type: ignore[override]
+        return self._zmin  # type: ignore[attr-defined]
+
+    @property
+    def z_max(self) -> float:  # type: ignore[override]
+        return self._zmax  # type: ignore[attr-defined]
+
+    @property
+    def cell_m(self) -> float:
+        return float(min(abs(self.transform.a), abs(self.transform.e)))
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        rows, cols = self.grid.shape
+        x0, y0 = self.transform.c, self.transform.f
+        return x0, y0 + rows * self.transform.e, x0 + cols * self.transform.a, y0
+
+    def colrow(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fractional (col, row) with integers at cell centres."""
+        t = self.transform
+        return (np.asarray(x) - t.c) / t.a - 0.5, (np.asarray(y) - t.f) / t.e - 0.5
+
+    def elevation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        c, r = self.colrow(x, y)
+        return sample_grid(self.grid, c, r).astype(float)
+
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0,
+                  step_m: float | None = None) -> RayHits:
+        """March each ray through the height range of the grid, then refine by bisection.
+
+        ``step_m`` (default two cells) bounds how thin a feature can be missed.
+        Cells without data let rays pass. Rays that meet nothing within
+        ``max_range_m`` end there with ``hit`` False.
+        """
+        d = np.asarray(dirs, float).reshape(-1, 3)
+        o = np.broadcast_to(np.asarray(origins, float).reshape(-1, 3), d.shape)
+        n = len(d)
+        step = step_m if step_m is not None else 2.0 * self.cell_m
+        dz = d[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_top = np.where(dz < 0, (self.z_max - o[:, 2]) / dz, np.where(o[:, 2] <= self.z_max, 0.0, np.inf))
+            t_bot = np.where(dz < 0, (self.z_min - o[:, 2]) / dz, np.inf)
+        t0 = np.clip(t_top, 0.0, None)
+        t1 = np.minimum(t_bot, max_range_m)
+        t_end = np.full(n, float(max_range_m))
+        hit = np.zeros(n, bool)
+        active = np.nonzero(t1 > t0)[0]
+        if active.size:
+            self._march(o, d, t0, t1, active, step, t_end, hit)
+        pts = o + d * t_end[:, None]
+        if hit.any():
+            # Snap z onto the surface (removes the bisection residue).
+            hz = self.elevation(pts[hit, 0], pts[hit, 1])
+            pts[hit, 2] = np.where(np.isnan(hz), pts[hit, 2], hz)
+        return RayHits(pts, hit, t_end)
+
+    def _coarse_max(self) -> tuple[np.ndarray, int]:
+        """Block maximum of the grid (8×8 cells), dilated by one block; cached."""
+        cached = getattr(self, "_coarse", None)
+        if cached is not None:
+            return cached
+        from scipy.ndimage import maximum_filter
+
+        block = 8
+        rows, cols = self.grid.shape
+        if min(rows, cols) < 4 * block:
+            out: tuple[np.ndarray, int] = (self.grid, 1)
+        else:
+            pr, pc = (-rows) % block, (-cols) % block
+            g = np.pad(np.nan_to_num(self.grid, nan=-np.inf), ((0, pr), (0, pc)), constant_values=-np.inf)
+            m = g.reshape(g.shape[0] // block, block, g.shape[1] // block, block).max(axis=(1, 3))
+            m = maximum_filter(m, size=3, mode="nearest")
+            out = (np.where(np.isinf(m), np.nan, m).astype(np.float32), block)
+        object.__setattr__(self, "_coarse", out)
+        return out
+
+    def _march(self, o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, active: np.ndarray,
+               step: float, t_end: np.ndarray, hit: np.ndarray) -> None:
+        """Fill ``t_end``/``hit`` for the ``active`` rays (those with t0 < t1)."""
+        tr = self.transform
+        # Per-ray state in grid units, float32 and contiguous: each step is then three
+        # multiply-adds and one cv2.remap, with no gathers of (N, 3) arrays.
+        sub_o, sub_d = o[active], d[active]
+        oc = ((sub_o[:, 0] - tr.c) / tr.a - 0.5).astype(np.float32)
+        orr = ((sub_o[:, 1] - tr.f) / tr.e - 0.5).astype(np.float32)
+        oz = sub_o[:, 2].astype(np.float32)
+        dc = (sub_d[:, 0] / tr.a).astype(np.float32)
+        dr = (sub_d[:, 1] / tr.e).astype(np.float32)
+        dzz = sub_d[:, 2].astype(np.float32)
+        grid = self.grid
+
+        def f(i: np.ndarray | slice, t: np.ndarray) -> np.ndarray:
+            h = sample_grid(grid, oc[i] + t * dc[i], orr[i] + t * dr[i])
+            return np.where(np.isnan(h), np.float32(1.0), oz[i] + t * dzz[i] - h)  # >0 above
+
+        lo = t0[active].astype(np.float32)
+        t_stop = t1[active].astype(np.float32)
+        below = f(slice(None), lo) <= 0  # origin already under the surface
+        t_end[active[below]] = lo[below]
+        hit[active[below]] = True
+        idx = np.nonzero(~below)[0]  # positions into the active arrays
+        lo = lo[idx]
+        # Coarse pass: skip air in strides of one coarse cell against a dilated
+        # block maximum, which bounds the DSM along the whole stride.
+        coarse, block = self._coarse_max()
+        if block > 1 and idx.size:
+            c_step = np.float32(block * self.cell_m)
+            cidx, clo = idx, lo
+            skip = np.zeros(idx.size, np.float32)
+            pos = np.arange(idx.size)
+            while cidx.size:
+                t = np.minimum(clo + c_step, t_stop[cidx])
+                hb = sample_grid(coarse, (oc[cidx] + t * dc[cidx]) / block - 0.5 + 0.5 / block,
+                                 (orr[cidx] + t * dr[cidx]) / block - 0.5 + 0.5 / block, nearest=True)
+                clear = (oz[cidx] + t * dzz[cidx] > hb) | np.isnan(hb)
+                go_on = clear & (t < t_stop[cidx])
+                done = ~go_on
+                skip[pos[done]] = np.where(clear[done], t[done], clo[done]) - lo[pos[done]]
+                cidx, clo, pos = cidx[go_on], t[go_on], pos[go_on]
+            lo = lo + skip
+            keep = lo < t_stop[idx]
+            idx, lo = idx[keep], lo[keep]
+        span = t_stop[idx] - lo
+        n_steps = np.zeros(oz.size, np.int32)
+        n_steps[idx] = np.maximum(1, np.ceil(span / step)).astype(np.int32)
+        start = np.zeros(oz.size, np.float32)
+        start[idx] = lo
+        span_all = np.zeros(oz.size, np.float32)
+        span_all[idx] = span
+        k = 0
+        found: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        while idx.size:
+            k += 1
+            hi = start[idx] + span_all[idx] * np.minimum(np.float32(k) / n_steps[idx], 1)
+            crossed = f(idx, hi) <= 0
+            if crossed.any():
+                found.append((idx[crossed], lo[crossed], hi[crossed]))
+            alive = ~crossed & (k < n_steps[idx])
+            idx, lo = idx[alive], hi[alive]
+        if not found:
+            return
+        fi = np.concatenate([a for a, _, _ in found])
+        a = np.concatenate([b for _, b, _ in found])
+        b = np.concatenate([c for _, _, c in found])
+        for _ in range(6):  # bisection to step/64, then one secant step
+            m = 0.5 * (a + b)
+            above = f(fi, m) > 0
+            a = np.where(above, m, a)
+            b = np.where(above, b, m)
+        fa, fb = f(fi, a), f(fi, b)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = np.where(fa - fb > 0, fa / (fa - fb), 0.5)
+        t_end[active[fi]] = a + np.clip(w, 0, 1) * (b - a)
+        hit[active[fi]] = True
+
+
+def read_surface(path: str | os.PathLike[str], crs: CRS | None = None, *, band: int = 1) -> GridSurface:
+    """Read a DSM/DTM raster into a north-up :class:`GridSurface`, in ``crs`` if given.
+
+    Vertical units are taken as metres; a raster in another CRS is warped
+    (bilinear) into ``crs``.
+
+    Raises
+    ------
+    InputError
+        The file cannot be read or has no CRS.
+    """
+    import rasterio
+    from rasterio.errors import RasterioIOError
+    from rasterio.vrt import WarpedVRT
+    from rasterio.enums import Resampling
+
+    try:
+        with rasterio.open(path) as src:
+            if src.crs is None:
+                raise InputError("the elevation raster has no CRS", path=path)
+            src_crs = CRS.from_user_input(src.crs)
+            if crs is not None and not src_crs.equals(crs):
+                with WarpedVRT(src, crs=crs.to_wkt(), resampling=Resampling.bilinear,
+                               src_nodata=src.nodata, nodata=float("nan")) as vrt:
+                    grid = vrt.read(band, out_dtype="float32")
+                    transform = vrt.transform
+                out_crs = crs
+            else:
+                grid = src.read(band, out_dtype="float32", masked=True).filled(np.nan)
+                transform = src.transform
+                out_crs = src_crs
+    except RasterioIOError as e:
+        raise InputError(f"cannot read elevation raster: {e}", path=path) from None
+    try:
+        return GridSurface(grid, transform, out_crs)
+    except ValueError as e:
+        raise InputError(str(e), path=path) from None

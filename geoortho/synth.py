@@ -1,0 +1,954 @@
+"""A synthetic drone survey with exact ground truth.
+
+The scene lives in a real UTM zone: a DTM (gentle terrain and a ridge), a DSM
+(the DTM plus buildings and trees), a procedural ground texture of unlimited
+resolution (fields, roads, multi-scale noise) and flat ArUco markers on pads.
+A lawnmower flight is rendered by casting every pixel's ray onto the DSM; the
+photos carry EXIF and DJI XMP as a real DJI camera writes them, with realistic
+GPS and attitude errors, while ``truth/`` keeps the exact values.
+
+Conventions of the truth files (also written to ``truth/survey.json``):
+
+* Heights are ellipsoidal (WGS84), in metres; the scene CRS is the WGS84 UTM
+  zone of the scene centre. GCP files give the same points as EPSG:4979
+  lat/lon/h and as UTM easting/northing/h.
+* Pixels: (0, 0) is the centre of the top-left pixel (OpenCV; what
+  OpenDroneMap/OpenSfM read in gcp_list.txt).
+* Attitude: yaw clockwise from north, pitch −90 = nadir, roll right-down
+  positive (see :mod:`geoortho.camera`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import datetime as dt
+import io
+import math
+import multiprocessing
+import os
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from affine import Affine
+from pyproj import CRS
+
+from .camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_ypr
+from .crs import WGS84_3D, transformer, utm_crs_for
+from .errors import InputError
+from .feedback import Feedback, as_feedback, split
+from .markers import get_dictionary, marker_cells
+from .surface import GridSurface, sample_grid
+
+__all__ = ["PRESETS", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
+
+Preset = Literal["tiny", "small", "medium", "oblique", "hard"]
+
+
+@dataclass(frozen=True)
+class SynthPreset:
+    """Everything that differs between presets."""
+
+    name: str
+    area_m: tuple[float, float] = (80.0, 60.0)  # flown area, east × north
+    altitude_m: float = 40.0  # above the take-off point
+    image_px: tuple[int, int] = (1600, 1067)
+    front_overlap: float = 0.75
+    side_overlap: float = 0.65
+    n_buildings: int = 4
+    n_trees: int = 6
+    n_markers: int = 8
+    n_decoys: int = 1  # markers on the ground whose ids are in no GCP file
+    n_oblique: int = 0
+    cell_m: float = 0.25  # DSM/DTM grid
+    ortho_cell_m: float = 0.05
+    points_per_m2: float = 12.0
+    hard: bool = False
+    distortion: tuple[float, ...] = ()
+
+
+PRESETS: dict[str, SynthPreset] = {
+    "tiny": SynthPreset("tiny", area_m=(32.0, 24.0), altitude_m=30.0, image_px=(960, 640),
+                        front_overlap=0.6, side_overlap=0.5, n_buildings=1, n_trees=1, n_markers=4,
+                        n_decoys=1, ortho_cell_m=0.1, points_per_m2=4.0),
+    "small": SynthPreset("small"),
+    "medium": SynthPreset("medium", area_m=(160.0, 120.0), altitude_m=50.0, image_px=(2400, 1600),
+                          n_buildings=10, n_trees=16, n_markers=16, n_decoys=2, ortho_cell_m=0.1),
+    "oblique": SynthPreset("oblique", n_oblique=12),
+    "hard": SynthPreset("hard", hard=True, distortion=(-0.02, 0.01, 0.0, 0.0, 0.0)),
+}
+
+# Modelled on the DJI Phantom 4 Pro camera (FC6310): 1" sensor, 8.8 mm lens.
+CAMERA_MAKE = "DJI"
+CAMERA_MODEL = "FC6310"
+SENSOR_WIDTH_MM = 13.2
+SENSOR_HEIGHT_MM = 8.8
+FOCAL_MM = 8.8
+FOCAL_35MM = 24
+
+# Error model of the recorded metadata (the truth keeps exact values).
+GPS_BIAS_SIGMA_M = 0.5  # per axis, common to the flight
+GPS_NOISE_SIGMA_M = 0.2  # per axis, per photo
+GPS_ALT_BIAS_SIGMA_M = 3.0  # GPSAltitude is poor on consumer drones
+REL_ALT_NOISE_SIGMA_M = 0.1  # barometric height above take-off is good
+ATTITUDE_NOISE_SIGMA_DEG = 0.2  # recorded gimbal angles vs the true ones
+TRUE_ATTITUDE_JITTER_DEG = 1.5  # how far the real camera wanders from the plan
+
+DEFAULT_LAT = 38.7476  # Lisbon, Monsanto park
+DEFAULT_LON = -9.1887
+
+
+# ---------------------------------------------------------------------------------------------
+# Scene
+
+
+@dataclass(frozen=True)
+class Marker:
+    marker_id: int
+    name: str
+    x: float
+    y: float
+    z: float
+    angle_deg: float
+    decoy: bool = False
+
+
+@dataclass(eq=False)
+class Scene:
+    crs: CRS
+    transform: Affine  # of the DSM/DTM grids (cell corners)
+    dsm: np.ndarray
+    dtm: np.ndarray
+    landcover: np.ndarray  # (rows, cols, 3) float32 colours on the DSM grid, 0..1
+    objects: np.ndarray  # (rows, cols, 3) float32 colours of roofs/trees
+    noise: tuple[np.ndarray, ...]
+    noise_cells_m: tuple[float, ...]
+    markers: tuple[Marker, ...]
+    marker_size_m: float
+    dictionary: str
+    flight_box: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax
+    home: tuple[float, float, float]  # take-off point (x, y, ground z)
+    marker_cells: dict[int, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def surface(self) -> GridSurface:
+        return GridSurface(self.dsm, self.transform, self.crs)
+
+    def colrow(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = self.transform
+        return (x - t.c) / t.a - 0.5, (y - t.f) / t.e - 0.5
+
+    def color(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Ground colour (N, 3) float 0..1 at world points: the procedural texture."""
+        c, r = self.colrow(x, y)
+        c32, r32 = c.astype(np.float32), r.astype(np.float32)
+        base = _remap3(self.landcover, c32, r32)
+        ground = sample_grid(self.dtm, c32, r32)
+        above = (z - ground) > 0.25
+        if above.any():
+            base[above] = _remap3(self.objects, c32[above], r32[above])
+        detail = np.ones(len(x), np.float32)
+        for grid, cell, amp in zip(self.noise, self.noise_cells_m, (0.22, 0.18, 0.14)):
+            detail += amp * _wrap_sample(grid, x / cell, y / cell)
+        out = base * detail[:, None]
+        self._paint_markers(x, y, z, out)
+        return np.clip(out, 0.0, 1.0)
+
+    def _paint_markers(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
+        s = self.marker_size_m
+        quiet = s * 0.5 + s / 6.0  # half side of the white square (one cell of quiet zone)
+        for m in self.markers:
+            near = (np.abs(x - m.x) < quiet * 1.5) & (np.abs(y - m.y) < quiet * 1.5) & (np.abs(z - m.z) < 0.2)
+            if not near.any():
+                continue
+            a = math.radians(m.angle_deg)
+            dx, dy = x[near] - m.x, y[near] - m.y
+            # marker frame: u to the marker's right, v to its top (rotated by angle, clockwise)
+            u = dx * math.cos(a) - dy * math.sin(a)
+            v = dx * math.sin(a) + dy * math.cos(a)
+            inside_quiet = (np.abs(u) <= quiet) & (np.abs(v) <= quiet)
+            val = np.full(u.shape, 0.92, np.float32)
+            cells = self.marker_cells[m.marker_id]
+            n = cells.shape[0]
+            ci = np.floor((u / s + 0.5) * n).astype(int)
+            ri = np.floor((0.5 - v / s) * n).astype(int)
+            in_marker = (ci >= 0) & (ci < n) & (ri >= 0) & (ri < n)
+            val[in_marker] = np.where(cells[ri[in_marker], ci[in_marker]], 0.92, 0.08)
+            idx = np.nonzero(near)[0][inside_quiet]
+            out[idx] = val[inside_quiet, None]
+
+
+def _remap3(img: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
+    out = np.empty((len(c), 3), np.float32)
+    for k in range(3):
+        v = sample_grid(img[..., k], c, r)
+        out[:, k] = np.nan_to_num(v, nan=0.5)
+    return out
+
+
+def _wrap_sample(grid: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
+    n0, n1 = grid.shape[0] - 1, grid.shape[1] - 1  # the grid carries one wrapped row/column
+    c = np.mod(fx, n1).astype(np.float32)
+    r = np.mod(-fy, n0).astype(np.float32)
+    v = sample_grid(grid, c, r)
+    return np.nan_to_num(v)
+
+
+def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], blur: float) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter
+
+    n = gaussian_filter(rng.standard_normal(shape), blur, mode="wrap").astype(np.float32)
+    n /= n.std() + 1e-9
+    # One wrapped row/column extra so bilinear sampling never reads past the edge.
+    return np.pad(n, ((0, 1), (0, 1)), mode="wrap")
+
+
+def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lon: float,
+                dictionary: str, marker_size_m: float) -> Scene:
+    """The DTM, DSM, texture layers and marker layout for a preset."""
+    crs = utm_crs_for(lon, lat)
+    e0, n0 = transformer(CRS.from_epsg(4326), crs).transform(lon, lat)
+    e0, n0 = round(e0 / 10) * 10, round(n0 / 10) * 10
+    aw, ah = preset.area_m
+    fw, fh = _footprint_size_m(preset)
+    margin = max(fw, fh) * 0.6 + 25.0
+    if preset.n_oblique:
+        margin = max(margin, preset.altitude_m / math.tan(math.radians(16.0)) + 20.0)
+    cell = preset.cell_m
+    xmin, ymin = e0 - aw / 2 - margin, n0 - ah / 2 - margin
+    cols = int(math.ceil((aw + 2 * margin) / cell))
+    rows = int(math.ceil((ah + 2 * margin) / cell))
+    transform = Affine(cell, 0, xmin, 0, -cell, ymin + rows * cell)
+    xs = xmin + (np.arange(cols) + 0.5) * cell
+    ys = ymin + rows * cell - (np.arange(rows) + 0.5) * cell
+    X, Y = np.meshgrid(xs, ys)
+    lx, ly = X - e0, Y - n0
+
+    # Terrain: gentle slopes and a ridge (metres, ellipsoidal).
+    base_z = 110.0
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    dtm = (base_z + 2.5 * np.sin(lx / 70 + ph[0]) * np.cos(ly / 90 + ph[1])
+           + 1.2 * np.sin(lx / 31 + ph[2]) + 0.02 * lx - 0.015 * ly)
+    ang = rng.uniform(0, np.pi)
+    d_ridge = (lx * np.cos(ang) + ly * np.sin(ang)) - rng.uniform(-0.3, 0.3) * aw
+    dtm = dtm + 4.0 * np.exp(-0.5 * (d_ridge / 12.0) ** 2)
+
+    # Landcover colours: Voronoi fields with stripes, roads, paths and clutter.
+    palette = np.array([[0.42, 0.55, 0.25], [0.55, 0.60, 0.30], [0.70, 0.65, 0.38], [0.52, 0.40, 0.28],
+                        [0.35, 0.48, 0.22], [0.62, 0.52, 0.35], [0.47, 0.58, 0.36]], np.float32)
+    n_fields = max(6, int((aw + 2 * margin) * (ah + 2 * margin) / 700))
+    seeds = np.c_[rng.uniform(0, cols, n_fields), rng.uniform(0, rows, n_fields)]
+    from scipy.spatial import cKDTree
+
+    _, label = cKDTree(seeds).query(np.c_[np.repeat(np.arange(cols)[None], rows, 0).ravel(),
+                                          np.repeat(np.arange(rows)[:, None], cols, 1).ravel()])
+    label = label.reshape(rows, cols)
+    field_col = palette[rng.integers(0, len(palette), n_fields)]
+    landcover = field_col[label].copy()
+    stripe_angle = rng.uniform(0, np.pi, n_fields)[label]
+    stripe_period = rng.uniform(1.2, 3.5, n_fields)[label]
+    stripes = np.sin(2 * np.pi * (lx * np.cos(stripe_angle) + ly * np.sin(stripe_angle)) / stripe_period)
+    landcover *= (1.0 + 0.10 * stripes)[..., None].astype(np.float32)
+    canvas = np.ascontiguousarray(landcover)
+    px_per_m = 1.0 / cell
+
+    def to_px(x: float, y: float) -> tuple[int, int]:
+        return int(round((x - xmin) * px_per_m * 16)), int(round((ymin + rows * cell - y) * px_per_m * 16))
+
+    for _ in range(2):  # roads through the scene
+        a = rng.uniform(0, np.pi)
+        off = rng.uniform(-0.4, 0.4) * np.array([aw, ah])
+        c = np.array([e0, n0]) + off
+        d = np.array([np.cos(a), np.sin(a)]) * 2000
+        p1, p2 = to_px(*(c - d)), to_px(*(c + d))
+        cv2.line(canvas, p1, p2, (0.36, 0.36, 0.38), int(5.0 * px_per_m), cv2.LINE_AA, shift=4)
+        cv2.line(canvas, p1, p2, (0.85, 0.85, 0.80), max(1, int(0.15 * px_per_m)), cv2.LINE_AA, shift=4)
+    for _ in range(int(n_fields * 1.5)):  # clutter: sheds, cars, bushes, patches
+        x, y = rng.uniform(xmin, xmin + cols * cell), rng.uniform(ymin, ymin + rows * cell)
+        colr = tuple(float(v) for v in rng.uniform(0.1, 0.9, 3))
+        if rng.random() < 0.5:
+            cv2.circle(canvas, to_px(x, y), int(rng.uniform(0.4, 2.0) * px_per_m * 16), colr, -1,
+                       cv2.LINE_AA, shift=4)
+        else:
+            w, h, an = rng.uniform(0.8, 4.0), rng.uniform(0.6, 2.5), rng.uniform(0, 180)
+            box = cv2.boxPoints(((x, y), (w, h), an))
+            pts = np.array([to_px(*p) for p in box], np.int32)
+            cv2.fillPoly(canvas, [pts], colr, cv2.LINE_AA, shift=4)
+    landcover = canvas
+
+    fx0, fy0, fx1, fy1 = e0 - aw / 2, n0 - ah / 2, e0 + aw / 2, n0 + ah / 2
+    occupied: list[tuple[float, float, float]] = []
+
+    def free(x: float, y: float, r: float) -> bool:
+        return all(math.hypot(x - ox, y - oy) > r + orad for ox, oy, orad in occupied)
+
+    # Markers on flat pads, then decoys (ids never in a GCP file).
+    dictionary_obj = get_dictionary(dictionary)
+    n_ids = dictionary_obj.bytesList.shape[0]
+    n_total = preset.n_markers + preset.n_decoys
+    if n_total * 2 > n_ids:
+        raise InputError(f"dictionary {dictionary} has too few ids for {n_total} markers")
+    ids = rng.permutation(np.arange(1, n_ids))[: n_total]  # id 0 is never placed
+    markers: list[Marker] = []
+    pad_r = marker_size_m * 0.95 + 0.6
+    spacing_m = min(8.0, math.sqrt(aw * ah / n_total) * 0.6)
+    for k, mid in enumerate(ids):
+        for _try in range(500):
+            mx = rng.uniform(fx0 + 3, fx1 - 3)
+            my = rng.uniform(fy0 + 3, fy1 - 3)
+            if free(mx, my, pad_r + 2.0) and all(math.hypot(mx - m.x, my - m.y) > spacing_m for m in markers):
+                break
+        else:
+            raise InputError("could not place all markers; use fewer or a larger area")
+        occupied.append((mx, my, pad_r))
+        decoy = k >= preset.n_markers
+        markers.append(Marker(int(mid), f"GCP{int(mid):02d}", float(mx), float(my), 0.0,
+                              float(rng.uniform(0, 360)), decoy))
+
+    # Buildings (gabled or flat) and trees, kept clear of each other and of the markers.
+    objects = np.zeros_like(landcover)
+    height = np.zeros((rows, cols), np.float32)
+    for _ in range(preset.n_buildings):
+        for _try in range(50):
+            bx, by = rng.uniform(fx0 - 5, fx1 + 5), rng.uniform(fy0 - 5, fy1 + 5)
+            bl, bw = rng.uniform(9, 16), rng.uniform(7, 11)
+            if free(bx, by, math.hypot(bl, bw) / 2 + 2):
+                break
+        else:
+            continue
+        occupied.append((bx, by, math.hypot(bl, bw) / 2))
+        ba = rng.uniform(0, np.pi)
+        u = (X - bx) * np.cos(ba) + (Y - by) * np.sin(ba)
+        v = -(X - bx) * np.sin(ba) + (Y - by) * np.cos(ba)
+        inside = (np.abs(u) <= bl / 2) & (np.abs(v) <= bw / 2)
+        eave = rng.uniform(4.5, 9.0)
+        if rng.random() < 0.6:
+            roof = eave + rng.uniform(1.5, 3.0) * (1 - np.abs(v) / (bw / 2))
+        else:
+            roof = np.full_like(u, eave)
+        ground_top = float(dtm[inside].max()) if inside.any() else base_z
+        h = (ground_top + roof - dtm)
+        height = np.where(inside, np.maximum(height, h), height)
+        rc = np.array(rng.choice([[0.62, 0.30, 0.22], [0.45, 0.45, 0.48], [0.70, 0.68, 0.62],
+                                  [0.35, 0.30, 0.28]]), np.float32)
+        shade = np.where(v > 0, 1.0, 0.82)[..., None].astype(np.float32)  # gable sides lit differently
+        objects = np.where(inside[..., None], rc * shade, objects)
+    for _ in range(preset.n_trees):
+        for _try in range(50):
+            tx, ty = rng.uniform(fx0 - 10, fx1 + 10), rng.uniform(fy0 - 10, fy1 + 10)
+            tr = rng.uniform(2.0, 3.5)
+            if free(tx, ty, tr + 1):
+                break
+        else:
+            continue
+        occupied.append((tx, ty, tr))
+        th = rng.uniform(5, 9)
+        bump = th * np.exp(-0.5 * ((X - tx) ** 2 + (Y - ty) ** 2) / (tr / 1.6) ** 2)
+        crown = bump > 0.3
+        height = np.where(crown, np.maximum(height, bump), height)
+        objects = np.where(crown[..., None], np.array([0.20, 0.34, 0.14], np.float32), objects)
+
+    # Flat pads under the markers, blending into the terrain over 2 m.
+    for i, m in enumerate(markers):
+        r = np.hypot(X - m.x, Y - m.y)
+        z_pad = float(sample_grid(dtm.astype(np.float32), *_cr(transform, m.x, m.y))[0])
+        w = np.clip((r - pad_r) / 2.0, 0.0, 1.0)
+        w = w * w * (3 - 2 * w)
+        dtm = np.where(r < pad_r + 2.0, z_pad * (1 - w) + dtm * w, dtm)
+        markers[i] = replace(m, z=z_pad)
+    dtm = dtm.astype(np.float32)
+    dsm = (dtm + height).astype(np.float32)
+    noise_cells = (0.02, 0.09, 0.45)
+    noise = tuple(_smooth_noise(rng, (s, s), 1.0) for s in (1021, 1031, 1009))
+    hx, hy = fx0 - 5.0, fy0 - 5.0
+    home_z = float(sample_grid(dtm, *_cr(transform, hx, hy))[0])
+    scene = Scene(crs, transform, dsm, dtm, landcover.astype(np.float32), objects.astype(np.float32),
+                  noise, noise_cells, tuple(markers), marker_size_m, dictionary, (fx0, fy0, fx1, fy1),
+                  (hx, hy, home_z))
+    scene.marker_cells = {m.marker_id: marker_cells(dictionary, m.marker_id) for m in markers}
+    return scene
+
+
+def _cr(transform: Affine, x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([(x - transform.c) / transform.a - 0.5]), np.array([(y - transform.f) / transform.e - 0.5])
+
+
+def _footprint_size_m(preset: SynthPreset) -> tuple[float, float]:
+    w = preset.altitude_m * SENSOR_WIDTH_MM / FOCAL_MM
+    return w, w * preset.image_px[1] / preset.image_px[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# Flight
+
+
+@dataclass(frozen=True)
+class Shot:
+    """One planned and flown photo: the true pose and what the drone recorded."""
+
+    name: str
+    x: float
+    y: float
+    z: float
+    yaw_deg: float
+    pitch_deg: float
+    roll_deg: float
+    rec_lat: float = float("nan")
+    rec_lon: float = float("nan")
+    rec_gps_alt_m: float = float("nan")
+    rec_rel_alt_m: float = float("nan")
+    rec_abs_alt_m: float = float("nan")
+    rec_yaw_deg: float = 0.0
+    rec_pitch_deg: float = 0.0
+    rec_roll_deg: float = 0.0
+    flight_yaw_deg: float = 0.0
+    flight_pitch_deg: float = 0.0
+    flight_roll_deg: float = 0.0
+    time: str = ""
+    oblique: bool = False
+    has_xmp: bool = True
+    has_gps: bool = True
+    corrupt: bool = False
+    blur_px: float = 0.0
+    exposure_gain: float = 1.0
+
+
+def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
+    """Lawnmower lines north–south across the flown area, yaw alternating; obliques around it."""
+    fw, fh = _footprint_size_m(preset)
+    along = fh * (1 - preset.front_overlap)
+    across = fw * (1 - preset.side_overlap)
+    fx0, fy0, fx1, fy1 = scene.flight_box
+    n_lines = max(2, int(math.ceil((fx1 - fx0) / across)) + 1)
+    n_along = max(2, int(math.ceil((fy1 - fy0) / along)) + 1)
+    xs = (fx0 + fx1) / 2 + (np.arange(n_lines) - (n_lines - 1) / 2) * across
+    ys = (fy0 + fy1) / 2 + (np.arange(n_along) - (n_along - 1) / 2) * along
+    z = scene.home[2] + preset.altitude_m
+    j = TRUE_ATTITUDE_JITTER_DEG
+    shots: list[Shot] = []
+    for li, x in enumerate(xs):
+        heading = 0.0 if li % 2 == 0 else 180.0
+        line_ys = ys if heading == 0.0 else ys[::-1]
+        for y in line_ys:
+            shots.append(Shot(
+                "", float(x + rng.normal(0, 0.3)), float(y + rng.normal(0, 0.3)), float(z + rng.normal(0, 0.2)),
+                float(heading + rng.normal(0, j)), float(-90.0 + rng.normal(0, j)), float(rng.normal(0, j / 2)),
+            ))
+    for k in range(preset.n_oblique):
+        a = 2 * np.pi * k / preset.n_oblique + rng.uniform(-0.2, 0.2)
+        r = max(fx1 - fx0, fy1 - fy0) * 0.55
+        cx, cy = (fx0 + fx1) / 2 + r * np.sin(a), (fy0 + fy1) / 2 + r * np.cos(a)
+        look = (np.degrees(a) + 180.0 + rng.uniform(-40, 40)) % 360.0
+        shots.append(Shot("", float(cx), float(cy), float(z + rng.normal(0, 0.3)),
+                          float((look + 180) % 360 - 180), float(rng.uniform(-70.0, -45.0)),
+                          float(rng.normal(0, 1.0)), oblique=True))
+    return shots
+
+
+def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random.Generator) -> list[Shot]:
+    """Add what the drone writes: noisy GPS, heights, gimbal and aircraft attitude, time."""
+    to_ll = transformer(scene.crs, CRS.from_epsg(4326))
+    bias = rng.normal(0, GPS_BIAS_SIGMA_M, 2)
+    alt_bias = rng.normal(0, GPS_ALT_BIAS_SIGMA_M)
+    t0 = dt.datetime(2026, 5, 14, 10, 0, 0)
+    out = []
+    for i, s in enumerate(shots):
+        ex, ey = s.x + bias[0] + rng.normal(0, GPS_NOISE_SIGMA_M), s.y + bias[1] + rng.normal(0, GPS_NOISE_SIGMA_M)
+        lon, lat = to_ll.transform(ex, ey)
+        n = ATTITUDE_NOISE_SIGMA_DEG
+        fyaw = s.yaw_deg + rng.normal(0, 2.0)  # the aircraft points a little off the gimbal
+        out.append(replace(
+            s, name=f"DJI_{i + 1:04d}.JPG", rec_lat=lat, rec_lon=lon,
+            rec_gps_alt_m=s.z + alt_bias + rng.normal(0, 0.3),
+            rec_rel_alt_m=s.z - scene.home[2] + rng.normal(0, REL_ALT_NOISE_SIGMA_M),
+            rec_abs_alt_m=s.z + alt_bias + rng.normal(0, 0.3),
+            rec_yaw_deg=_wrap180(s.yaw_deg + rng.normal(0, n)), rec_pitch_deg=s.pitch_deg + rng.normal(0, n),
+            rec_roll_deg=s.roll_deg + rng.normal(0, n),
+            flight_yaw_deg=_wrap180(fyaw), flight_pitch_deg=float(rng.uniform(-8, -3)),
+            flight_roll_deg=float(rng.normal(0, 2)),
+            time=(t0 + dt.timedelta(seconds=2 * i)).strftime("%Y:%m:%d %H:%M:%S"),
+            exposure_gain=float(rng.uniform(0.9, 1.1)),
+        ))
+    if preset.hard:
+        idx = rng.permutation(len(out))
+        for k in idx[:3]:
+            out[k] = replace(out[k], has_xmp=False)
+        out[idx[3]] = replace(out[idx[3]], has_gps=False)
+        out[idx[4]] = replace(out[idx[4]], corrupt=True)
+        for k in idx[5:9]:
+            out[k] = replace(out[k], blur_px=float(rng.uniform(3, 6)))
+    return out
+
+
+def _wrap180(a: float) -> float:
+    return float((a + 180.0) % 360.0 - 180.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendering
+
+_SCENE: Scene | None = None
+
+
+def _init_worker(scene: Scene) -> None:
+    global _SCENE
+    _SCENE = scene
+    cv2.setNumThreads(1)
+
+
+def _render_task(args: tuple[Shot, Intrinsics, bool, int, str]) -> dict[str, Any]:
+    shot, intr, hard, seed, path = args
+    assert _SCENE is not None
+    return render_photo(_SCENE, shot, intr, hard=hard, seed=seed, path=Path(path))
+
+
+def render_photo(scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed: int,
+                 path: Path | None) -> dict[str, Any]:
+    """Render one photo (and write it when ``path`` is given); return its marker truth."""
+    rng = np.random.default_rng(seed)
+    pose = Pose.from_ypr((shot.x, shot.y, shot.z), shot.yaw_deg, shot.pitch_deg, shot.roll_deg)
+    w, h = intr.width_px, intr.height_px
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = pixel_rays(np.c_[uu.ravel(), vv.ravel()], intr, pose)
+    surf = scene.surface
+    hits = surf.intersect(pose.center, rays, max_range_m=2000.0, step_m=0.6)
+    pts = hits.points
+    rgb = np.full((len(rays), 3), (0.75, 0.80, 0.88), np.float32)  # sky / off-scene haze
+    good = hits.hit
+    rgb[good] = scene.color(pts[good, 0], pts[good, 1], pts[good, 2])
+    img = rgb.reshape(h, w, 3)
+    markers = _marker_truth_and_antialias(scene, shot, intr, pose, img, pts.reshape(h, w, 3))
+
+    # Camera effects: vignetting, exposure, glare, blur, noise.
+    r2 = ((uu - intr.cx_px) ** 2 + (vv - intr.cy_px) ** 2) / (intr.cx_px ** 2 + intr.cy_px ** 2)
+    img = img * (1.0 - 0.25 * r2)[..., None].astype(np.float32) * shot.exposure_gain
+    if hard:
+        for m in markers:
+            if m["inside"] and rng.random() < 0.3:  # sun glare on the marker
+                gx, gy = m["x_px"] + rng.normal(0, 4), m["y_px"] + rng.normal(0, 4)
+                g = np.exp(-((uu - gx) ** 2 + (vv - gy) ** 2) / (2 * (m["size_px"] * 0.35) ** 2))
+                img = img + 0.45 * g[..., None].astype(np.float32)
+                m["glare"] = True
+        if shot.blur_px > 0:
+            k = int(round(shot.blur_px)) | 1
+            kernel = np.zeros((k, k), np.float32)
+            kernel[k // 2, :] = 1.0 / k
+            rot = cv2.getRotationMatrix2D((k / 2 - 0.5, k / 2 - 0.5), float(rng.uniform(0, 180)), 1.0)
+            kernel = cv2.warpAffine(kernel, rot, (k, k))
+            kernel /= kernel.sum()
+            img = cv2.filter2D(img, -1, kernel)
+    img = img + rng.normal(0, 0.008, img.shape).astype(np.float32)
+    out = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if path is not None:
+        _write_jpeg(path, out, shot, intr)
+    return {"image": shot.name, "markers": markers}
+
+
+def _marker_truth_and_antialias(scene: Scene, shot: Shot, intr: Intrinsics, pose: Pose,
+                                img: np.ndarray, pts: np.ndarray) -> list[dict[str, Any]]:
+    """Exact projected marker centres, and 4×4 supersampled marker pixels (markers lie on flat pads)."""
+    s = scene.marker_size_m
+    quiet = s * 0.5 + s / 6.0
+    h, w = img.shape[:2]
+    out = []
+    sub = (np.arange(4) + 0.5) / 4 - 0.5
+    for m in scene.markers:
+        a = math.radians(m.angle_deg)
+        ca, sa = math.cos(a), math.sin(a)
+
+        def world(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+            return np.c_[m.x + u * ca + v * sa, m.y - u * sa + v * ca, np.full(len(u), m.z)]
+
+        centre_px, depth = project_points(np.array([[m.x, m.y, m.z]]), intr, pose)
+        if not np.isfinite(centre_px).all() or depth[0] <= 0:
+            continue
+        cx, cy = centre_px[0]
+        corners = world(np.array([-s / 2, s / 2, s / 2, -s / 2]), np.array([s / 2, s / 2, -s / 2, -s / 2]))
+        cpx, _ = project_points(corners, intr, pose)
+        if not np.isfinite(cpx).all():
+            continue
+        margin = 2.0 * max(np.ptp(cpx[:, 0]), np.ptp(cpx[:, 1]))
+        if not (-margin < cx < w + margin and -margin < cy < h + margin):
+            continue
+        inside = bool(((cpx[:, 0] >= 0) & (cpx[:, 0] <= w - 1) & (cpx[:, 1] >= 0) & (cpx[:, 1] <= h - 1)).all())
+        # Occlusion: the ray to the centre must reach the pad.
+        centre_visible = False
+        if 0 <= cx <= w - 1 and 0 <= cy <= h - 1:
+            p = pts[int(round(cy)), int(round(cx))]
+            centre_visible = bool(abs(p[2] - m.z) < 0.1 and math.hypot(p[0] - m.x, p[1] - m.y) < s)
+        qc = world(np.array([-quiet, quiet, quiet, -quiet]), np.array([quiet, quiet, -quiet, -quiet]))
+        qpx, _ = project_points(qc, intr, pose)
+        x0, x1 = int(max(0, np.floor(qpx[:, 0].min()) - 1)), int(min(w - 1, np.ceil(qpx[:, 0].max()) + 1))
+        y0, y1 = int(max(0, np.floor(qpx[:, 1].min()) - 1)), int(min(h - 1, np.ceil(qpx[:, 1].max()) + 1))
+        if x1 >= x0 and y1 >= y0:
+            gu, gv = np.meshgrid(np.arange(x0, x1 + 1, dtype=float), np.arange(y0, y1 + 1, dtype=float))
+            on_pad = np.abs(pts[y0:y1 + 1, x0:x1 + 1, 2] - m.z) < 0.15
+            su = (gu.ravel()[:, None, None] + sub[None, None, :]).repeat(4, 1)
+            sv = (gv.ravel()[:, None, None] + sub[None, :, None]).repeat(4, 2)
+            rays = pixel_rays(np.c_[su.ravel(), sv.ravel()], intr, pose)
+            t = (m.z - pose.center[2]) / rays[:, 2]
+            sp = pose.center + rays * t[:, None]
+            col = scene.color(sp[:, 0], sp[:, 1], sp[:, 2]).reshape(-1, 16, 3).mean(axis=1)
+            patch = img[y0:y1 + 1, x0:x1 + 1].reshape(-1, 3)
+            mask = on_pad.ravel()
+            patch[mask] = col[mask]
+            img[y0:y1 + 1, x0:x1 + 1] = patch.reshape(y1 - y0 + 1, x1 - x0 + 1, 3)
+        out.append({
+            "gcp": m.name, "marker_id": m.marker_id, "decoy": m.decoy,
+            "x_px": float(cx), "y_px": float(cy),
+            "corners_px": cpx.tolist(), "inside": inside and centre_visible,
+            "in_frame": inside, "occluded": not centre_visible and 0 <= cx <= w - 1 and 0 <= cy <= h - 1,
+            "size_px": float(np.sqrt(abs(cv2.contourArea(cpx.astype(np.float32))))),
+            "glare": False,
+        })
+    return out
+
+
+def _dms(value: float) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int]]:
+    v = abs(value)
+    d = int(v)
+    m = int((v - d) * 60)
+    s = (v - d - m / 60) * 3600
+    return (d, 1), (m, 1), (int(round(s * 1_000_000)), 1_000_000)
+
+
+def _xmp(shot: Shot) -> bytes:
+    def f(v: float) -> str:
+        return f"{v:+.2f}"
+
+    return (
+        '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
+        ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
+        '  <rdf:Description rdf:about="DJI Meta Data"\n'
+        '    xmlns:tiff="http://ns.adobe.com/tiff/1.0/"\n'
+        '    xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"\n'
+        f'    tiff:Make="{CAMERA_MAKE}" tiff:Model="{CAMERA_MODEL}"\n'
+        f'    drone-dji:AbsoluteAltitude="{f(shot.rec_abs_alt_m)}"\n'
+        f'    drone-dji:RelativeAltitude="{f(shot.rec_rel_alt_m)}"\n'
+        f'    drone-dji:GimbalRollDegree="{f(shot.rec_roll_deg)}"\n'
+        f'    drone-dji:GimbalYawDegree="{f(shot.rec_yaw_deg)}"\n'
+        f'    drone-dji:GimbalPitchDegree="{f(shot.rec_pitch_deg)}"\n'
+        f'    drone-dji:FlightRollDegree="{f(shot.flight_roll_deg)}"\n'
+        f'    drone-dji:FlightYawDegree="{f(shot.flight_yaw_deg)}"\n'
+        f'    drone-dji:FlightPitchDegree="{f(shot.flight_pitch_deg)}">\n'
+        '  </rdf:Description>\n'
+        ' </rdf:RDF>\n'
+        '</x:xmpmeta>\n'
+        '<?xpacket end="w"?>'
+    ).encode("utf-8")
+
+
+def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) -> None:
+    import piexif
+    from PIL import Image
+
+    from .outputs import atomic_path
+
+    zeroth = {
+        piexif.ImageIFD.Make: CAMERA_MAKE.encode(), piexif.ImageIFD.Model: CAMERA_MODEL.encode(),
+        piexif.ImageIFD.Orientation: 1, piexif.ImageIFD.Software: b"geoortho.synth",
+        piexif.ImageIFD.DateTime: shot.time.encode(),
+    }
+    exif = {
+        piexif.ExifIFD.DateTimeOriginal: shot.time.encode(),
+        piexif.ExifIFD.FocalLength: (int(round(FOCAL_MM * 100)), 100),
+        piexif.ExifIFD.FocalLengthIn35mmFilm: FOCAL_35MM,
+        piexif.ExifIFD.PixelXDimension: intr.width_px,
+        piexif.ExifIFD.PixelYDimension: intr.height_px,
+        piexif.ExifIFD.ExposureTime: (1, 800),
+        piexif.ExifIFD.FNumber: (28, 10),
+        piexif.ExifIFD.ISOSpeedRatings: 100,
+    }
+    gps: dict[int, Any] = {}
+    if shot.has_gps:
+        gps = {
+            piexif.GPSIFD.GPSVersionID: (2, 3, 0, 0),
+            piexif.GPSIFD.GPSLatitudeRef: b"N" if shot.rec_lat >= 0 else b"S",
+            piexif.GPSIFD.GPSLatitude: _dms(shot.rec_lat),
+            piexif.GPSIFD.GPSLongitudeRef: b"E" if shot.rec_lon >= 0 else b"W",
+            piexif.GPSIFD.GPSLongitude: _dms(shot.rec_lon),
+            piexif.GPSIFD.GPSAltitudeRef: 0 if shot.rec_gps_alt_m >= 0 else 1,
+            piexif.GPSIFD.GPSAltitude: (int(round(abs(shot.rec_gps_alt_m) * 1000)), 1000),
+        }
+    exif_bytes = piexif.dump({"0th": zeroth, "Exif": exif, "GPS": gps})
+    buf = io.BytesIO()
+    kwargs: dict[str, Any] = {"exif": exif_bytes, "quality": 92}
+    if shot.has_xmp:
+        kwargs["xmp"] = _xmp(shot)
+    Image.fromarray(pixels).save(buf, format="JPEG", **kwargs)
+    data = buf.getvalue()
+    if shot.corrupt:
+        data = data[: len(data) // 3]  # truncated mid-scan, as an interrupted copy leaves it
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+# ---------------------------------------------------------------------------------------------
+# The algorithm
+
+
+@dataclass(frozen=True)
+class SynthResult:
+    """Where the synthetic survey was written."""
+
+    output: Path
+    images: Path
+    truth: Path
+    gcp_file: Path
+    dsm: Path
+    dtm: Path
+    ortho: Path
+    points: Path
+    n_photos: int
+    crs: str
+
+
+def synth(
+    output: Path,
+    preset: Preset = "small",
+    seed: int = 0,
+    latitude_deg: float = DEFAULT_LAT,
+    longitude_deg: float = DEFAULT_LON,
+    dictionary: str = "DICT_4X4_50",
+    marker_size_m: float = 1.0,
+    workers: int = 0,
+    *,
+    feedback: Feedback | None = None,
+) -> SynthResult:
+    """Make a synthetic drone survey with its exact ground truth.
+
+    Renders a lawnmower flight over a scene with terrain, buildings, trees and
+    coded ground markers; writes DJI-like JPEGs (EXIF GPS, DJI XMP) to
+    ``images/`` and the truth (poses, footprints, marker pixels, DSM, DTM, true
+    ortho, point cloud, GCP files) to ``truth/``. Deterministic for a seed.
+
+    Parameters
+    ----------
+    output : Path
+        Folder to write the survey into (created; existing files are replaced).
+    preset : str
+        tiny (a handful of small photos, unit tests), small (the demo), medium
+        (benchmarks), oblique (adds oblique photos) or hard (glare, blur, cut
+        markers, missing metadata, a corrupt file).
+    seed : int
+        Random seed; the same seed gives the same survey.
+    latitude_deg : float
+        Latitude of the scene centre, WGS84 degrees.
+    longitude_deg : float
+        Longitude of the scene centre, WGS84 degrees.
+    dictionary : str
+        OpenCV marker dictionary of the ground markers.
+    marker_size_m : float
+        Side of each marker's black square, metres (a white quiet zone of one
+        cell surrounds it).
+    workers : int
+        Processes for rendering; 0 uses every core.
+
+    Returns
+    -------
+    SynthResult
+        Paths of the images, the truth folder and its main files.
+    """
+    fb = as_feedback(feedback)
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if not -80 <= latitude_deg <= 84 or not -180 <= longitude_deg <= 180:
+        raise InputError("latitude/longitude outside the UTM domain")
+    p = replace(PRESETS[preset])
+    output = Path(output)
+    images_dir = output / "images"
+    truth_dir = output / "truth"
+    images_dir.mkdir(parents=True, exist_ok=True)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    for old in images_dir.glob("*.JPG"):
+        old.unlink()
+    step_scene, step_render, step_truth = split(fb, [1, 8, 2])
+    rng = np.random.default_rng(seed)
+    scene = build_scene(p, rng, lat=latitude_deg, lon=longitude_deg, dictionary=dictionary,
+                        marker_size_m=marker_size_m)
+    step_scene.progress(0.5)
+    shots = _record(plan_flight(p, scene, rng), scene, p, rng)
+    w, h = p.image_px
+    intr = Intrinsics.from_sensor(w, h, FOCAL_MM, SENSOR_WIDTH_MM, distortion=p.distortion)
+    fb.info(f"synth {preset}: {len(shots)} photos of {w}x{h} px over {p.area_m[0]:.0f}x{p.area_m[1]:.0f} m "
+            f"in {scene.crs.name}")
+    step_scene.progress(1.0)
+
+    n_workers = workers or os.cpu_count() or 1
+    tasks = [(s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name)) for i, s in enumerate(shots)]
+    results: list[dict[str, Any]] = []
+    if n_workers <= 1:
+        _init_worker(scene)
+        for i, t in enumerate(tasks):
+            results.append(_render_task(t))
+            step_render.progress((i + 1) / len(tasks))
+    else:
+        ctx = multiprocessing.get_context("spawn")  # fork and OpenCV's thread pool do not mix
+        with cf.ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=_init_worker,
+                                    initargs=(scene,)) as ex:
+            futures = [ex.submit(_render_task, t) for t in tasks]
+            try:
+                for i, fut in enumerate(futures):
+                    results.append(fut.result())
+                    step_render.progress((i + 1) / len(tasks))
+            except BaseException:
+                for f_ in futures:
+                    f_.cancel()
+                raise
+    _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth)
+    return SynthResult(
+        output=output, images=images_dir, truth=truth_dir, gcp_file=truth_dir / "gcp_utm.txt",
+        dsm=truth_dir / "dsm.tif", dtm=truth_dir / "dtm.tif", ortho=truth_dir / "ortho.tif",
+        points=truth_dir / "points.laz", n_photos=len(shots), crs=f"EPSG:{scene.crs.to_epsg()}",
+    )
+
+
+def true_footprint(scene: Scene, shot: Shot, intr: Intrinsics, per_side: int = 40,
+                   max_range_m: float = 1000.0) -> tuple[np.ndarray, bool]:
+    """The image border cast onto the DSM: polygon vertices (N, 2) and whether any ray missed."""
+    pose = Pose.from_ypr((shot.x, shot.y, shot.z), shot.yaw_deg, shot.pitch_deg, shot.roll_deg)
+    border = intr.border_pixels(per_side)
+    hits = scene.surface.intersect(pose.center, pixel_rays(border, intr, pose), max_range_m=max_range_m,
+                                   step_m=scene.transform.a)
+    return hits.points[:, :2], not bool(hits.hit.all())
+
+
+def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics, p: SynthPreset,
+                 results: list[dict[str, Any]], seed: int, fb: Feedback) -> None:
+    import geopandas as gpd
+    import shapely
+
+    from .outputs import write_cog, write_json, write_text, write_vector
+
+    steps = split(fb, [1, 1, 3, 2, 1])
+    epsg = scene.crs.to_epsg()
+    # Rasters
+    write_cog(truth / "dsm.tif", scene.dsm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
+    write_cog(truth / "dtm.tif", scene.dtm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
+    steps[0].progress(1.0)
+
+    # Poses and footprints
+    poses, polys, clipped = [], [], []
+    for s in shots:
+        R = rotation_from_ypr(s.yaw_deg, s.pitch_deg, s.roll_deg)
+        poses.append({
+            "image": s.name, "x": s.x, "y": s.y, "z": s.z,
+            "yaw_deg": s.yaw_deg, "pitch_deg": s.pitch_deg, "roll_deg": s.roll_deg,
+            "rotation_world_from_camera": R.tolist(),
+            "recorded": {
+                "latitude_deg": s.rec_lat, "longitude_deg": s.rec_lon, "gps_altitude_m": s.rec_gps_alt_m,
+                "relative_altitude_m": s.rec_rel_alt_m, "absolute_altitude_m": s.rec_abs_alt_m,
+                "gimbal_yaw_deg": s.rec_yaw_deg, "gimbal_pitch_deg": s.rec_pitch_deg,
+                "gimbal_roll_deg": s.rec_roll_deg, "flight_yaw_deg": s.flight_yaw_deg,
+            },
+            "oblique": s.oblique, "has_xmp": s.has_xmp, "has_gps": s.has_gps, "corrupt": s.corrupt,
+            "blur_px": s.blur_px, "exposure_gain": s.exposure_gain,
+        })
+        ring, clip = true_footprint(scene, s, intr)
+        polys.append(shapely.make_valid(shapely.Polygon(ring)))
+        clipped.append(clip)
+    steps[1].progress(1.0)
+    gdf = gpd.GeoDataFrame({"image": [s.name for s in shots], "clipped": clipped,
+                            "oblique": [s.oblique for s in shots]}, geometry=polys, crs=scene.crs)
+    write_vector(truth / "footprints.gpkg", {"footprints": gdf})
+    write_json(truth / "poses.json", poses)
+    write_json(truth / "markers.json", results)
+
+    # GCP files as a surveyor hands them over.
+    gcps = [m for m in scene.markers if not m.decoy]
+    to_ll = transformer(scene.crs, CRS.from_epsg(4326))
+    utm_lines = [f"EPSG:{epsg}"] + [f"{m.name} {m.x:.4f} {m.y:.4f} {m.z:.4f}" for m in gcps]
+    write_text(truth / "gcp_utm.txt", "\n".join(utm_lines) + "\n")
+    ll_lines = ["EPSG:4979"]
+    csv_lines = ["name,lat,lon,alt"]
+    for m in gcps:
+        lon, lat = to_ll.transform(m.x, m.y)
+        ll_lines.append(f"{m.name} {lat:.9f} {lon:.9f} {m.z:.4f}")
+        csv_lines.append(f"{m.name},{lat:.9f},{lon:.9f},{m.z:.4f}")
+    write_text(truth / "gcp_wgs84.txt", "\n".join(ll_lines) + "\n")
+    write_text(truth / "gcp_wgs84.csv", "\n".join(csv_lines) + "\n")
+    write_json(truth / "survey.json", {
+        "preset": asdict(p), "seed": seed, "crs": f"EPSG:{epsg}", "vertical": "WGS84 ellipsoidal height, m",
+        "pixel_convention": "(0,0) is the centre of the top-left pixel (OpenCV, OpenDroneMap gcp_list.txt)",
+        "attitude_convention": "yaw clockwise from north, pitch -90 nadir, roll right-down positive",
+        "camera": {"make": CAMERA_MAKE, "model": CAMERA_MODEL, "sensor_width_mm": SENSOR_WIDTH_MM,
+                   "sensor_height_mm": SENSOR_HEIGHT_MM, "focal_mm": FOCAL_MM, "focal_35mm": FOCAL_35MM,
+                   "width_px": intr.width_px, "height_px": intr.height_px, "focal_px": intr.focal_px,
+                   "cx_px": intr.cx_px, "cy_px": intr.cy_px, "distortion": list(p.distortion)},
+        "home": {"x": scene.home[0], "y": scene.home[1], "ground_z": scene.home[2]},
+        "flight_box": list(scene.flight_box),
+        "gsd_cm_at_home_height": p.altitude_m * SENSOR_WIDTH_MM / FOCAL_MM / intr.width_px * 100,
+        "marker_size_m": scene.marker_size_m, "dictionary": scene.dictionary,
+        "markers": [asdict(m) for m in scene.markers],
+        "error_model": {"gps_bias_sigma_m": GPS_BIAS_SIGMA_M, "gps_noise_sigma_m": GPS_NOISE_SIGMA_M,
+                        "gps_alt_bias_sigma_m": GPS_ALT_BIAS_SIGMA_M,
+                        "relative_altitude_sigma_m": REL_ALT_NOISE_SIGMA_M,
+                        "attitude_sigma_deg": ATTITUDE_NOISE_SIGMA_DEG},
+    })
+    steps[2].progress(1.0)
+
+    # True ortho over the flown area (plus a little), at the preset's ortho cell.
+    fx0, fy0, fx1, fy1 = scene.flight_box
+    pad = 15.0
+    oc = p.ortho_cell_m
+    ox0, oy1 = math.floor((fx0 - pad) / oc) * oc, math.ceil((fy1 + pad) / oc) * oc
+    ocols = int(round((fx1 + pad - ox0) / oc))
+    orows = int(round((oy1 - (fy0 - pad)) / oc))
+    ot = Affine(oc, 0, ox0, 0, -oc, oy1)
+    ortho = np.empty((3, orows, ocols), np.uint8)
+    band = max(1, 2_000_000 // ocols)
+    surf = scene.surface
+    for r0 in range(0, orows, band):
+        r1 = min(orows, r0 + band)
+        cc, rr = np.meshgrid(np.arange(ocols) + 0.5, np.arange(r0, r1) + 0.5)
+        x = ox0 + cc.ravel() * oc
+        y = oy1 - rr.ravel() * oc
+        z = surf.elevation(x, y)
+        col = scene.color(x, y, z)
+        ortho[:, r0:r1] = np.clip(col.T.reshape(3, r1 - r0, ocols) * 255 + 0.5, 0, 255).astype(np.uint8)
+        steps[3].progress(r1 / orows)
+    write_cog(truth / "ortho.tif", ortho, transform=ot, crs=scene.crs, compress="DEFLATE",
+              band_names=("red", "green", "blue"))
+
+    # Point cloud sampled from the DSM, ground classified.
+    _write_points(truth / "points.laz", scene, p, np.random.default_rng(seed + 7))
+    steps[4].progress(1.0)
+
+
+def _write_points(path: Path, scene: Scene, p: SynthPreset, rng: np.random.Generator) -> None:
+    import laspy
+
+    from .outputs import atomic_path
+
+    fx0, fy0, fx1, fy1 = scene.flight_box
+    pad = 20.0
+    area = (fx1 - fx0 + 2 * pad) * (fy1 - fy0 + 2 * pad)
+    n = int(area * p.points_per_m2)
+    x = rng.uniform(fx0 - pad, fx1 + pad, n)
+    y = rng.uniform(fy0 - pad, fy1 + pad, n)
+    surf = scene.surface
+    z = surf.elevation(x, y)
+    ground = scene.dtm
+    c, r = scene.colrow(x, y)
+    g = sample_grid(ground, c, r)
+    hag = z - g
+    cls = np.where(hag < 0.15, 2, np.where(hag > 2.0, 6, 1)).astype(np.uint8)
+    # Trees are objects with the tree colour: class 5 (high vegetation).
+    obj = _remap3(scene.objects, c.astype(np.float32), r.astype(np.float32))
+    tree = (cls != 2) & (np.abs(obj[:, 1] - 0.34) < 0.02) & (np.abs(obj[:, 0] - 0.20) < 0.02)
+    cls[tree] = 5
+    rgb = scene.color(x, y, z)
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.offsets = [math.floor(x.min()), math.floor(y.min()), math.floor(z.min())]
+    header.scales = [0.001, 0.001, 0.001]
+    header.add_crs(scene.crs)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = x, y, z
+    las.classification = cls
+    col16 = (rgb * 65535).astype(np.uint16)
+    las.red, las.green, las.blue = col16[:, 0], col16[:, 1], col16[:, 2]
+    with atomic_path(path) as tmp:
+        las.write(str(tmp))

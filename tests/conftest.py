@@ -1,0 +1,48 @@
+"""Shared fixtures: synthetic surveys are made once per session."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+if not REAL_DATA.exists():  # CI clones main with shared/ beside it
+    REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+
+def real_data(name: str) -> Path:
+    """A folder of ../shared/data/real, or skip with the reason."""
+    path = REAL_DATA / name
+    if not path.exists():
+        pytest.skip(f"real data folder {path} is absent")
+    return path
+
+
+@pytest.fixture(scope="session")
+def tiny_survey(tmp_path_factory: pytest.TempPathFactory):
+    from geoortho.synth import synth
+
+    return synth(tmp_path_factory.mktemp("tiny"), preset="tiny", seed=3, workers=os.cpu_count() or 1)
+
+
+@pytest.fixture(scope="session")
+def small_survey(tmp_path_factory: pytest.TempPathFactory):
+    from geoortho.synth import synth
+
+    return synth(tmp_path_factory.mktemp("small"), preset="small", seed=1)
+
+
+@pytest.fixture(scope="session")
+def oblique_survey(tmp_path_factory: pytest.TempPathFactory):
+    from geoortho.synth import synth
+
+    return synth(tmp_path_factory.mktemp("oblique"), preset="oblique", seed=2)
+
+
+@pytest.fixture(scope="session")
+def hard_survey(tmp_path_factory: pytest.TempPathFactory):
+    from geoortho.synth import synth
+
+    return synth(tmp_path_factory.mktemp("hard"), preset="hard", seed=4)

@@ -1,0 +1,140 @@
+"""The registry, the generated CLI and describe --json."""
+
+from __future__ import annotations
+
+import inspect
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from geoortho.errors import ParameterError
+from geoortho.processing import PARAM_TYPES, list_algorithms, run_algorithm
+from geoortho.processing.cli import ARGPARSE_OPTIONS, main
+from geoortho.processing.registry import CONVERTERS, convert_value
+from geoortho.processing.spec import Param, parse_docstring
+
+
+def cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "geoortho", *args], capture_output=True, text=True, timeout=120)
+
+
+def test_every_param_type_has_cli_and_converter_mapping():
+    assert set(ARGPARSE_OPTIONS) == set(PARAM_TYPES)
+    assert set(CONVERTERS) == set(PARAM_TYPES)
+
+
+def test_unknown_param_type_is_refused():
+    with pytest.raises(ValueError, match="unknown type"):
+        Param("x", "colour")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("alg", list_algorithms(), ids=lambda a: a.id)
+def test_spec_matches_function_signature(alg):
+    sig = inspect.signature(alg.function)
+    assert "feedback" in sig.parameters and sig.parameters["feedback"].kind is inspect.Parameter.KEYWORD_ONLY
+    spec_names = {p.name for p in alg.params}
+    fn_names = {n for n in sig.parameters if n != "feedback"}
+    assert spec_names == fn_names, f"{alg.id}: spec {spec_names ^ fn_names} differ from the function"
+    for p in alg.params:
+        fp = sig.parameters[p.name]
+        if p.required:
+            assert fp.default is inspect.Parameter.empty, f"{alg.id}.{p.name}: required in spec only"
+        else:
+            assert fp.default is not inspect.Parameter.empty, f"{alg.id}.{p.name}: required in function only"
+            assert fp.default == p.default or (p.type == "folder" and str(fp.default) == str(p.default)), \
+                f"{alg.id}.{p.name}: default {p.default!r} != {fp.default!r}"
+        assert p.help, f"{alg.id}.{p.name} has no help (docstring Parameters section)"
+    assert alg.short_help and alg.title
+
+
+def test_outputs_are_attributes_of_the_result_type():
+    for alg in list_algorithms():
+        ret = inspect.signature(alg.function).return_annotation
+        hints = __import__("typing").get_type_hints(alg.function)
+        result_type = hints.get("return", ret)
+        fields = set(getattr(result_type, "__dataclass_fields__", {}))
+        assert {o.name for o in alg.outputs} <= fields, alg.id
+
+
+def test_converters_validate_ranges_and_types(tmp_path):
+    assert convert_value(Param("n", "integer", 0, minimum=0), "3") == 3
+    with pytest.raises(ParameterError, match="n: 3.5"):
+        convert_value(Param("n", "number", 0, minimum=0, maximum=2, unit="m"), "3.5")
+    with pytest.raises(ParameterError, match="expected an integer"):
+        convert_value(Param("n", "integer", 0), "2.5")
+    with pytest.raises(ParameterError, match="not one of"):
+        convert_value(Param("e", "enum", "a", choices=("a", "b")), "c")
+    assert convert_value(Param("b", "bool", False), "yes") is True
+    with pytest.raises(ParameterError, match="no such file"):
+        convert_value(Param("f", "file"), tmp_path / "missing.txt")
+    assert convert_value(Param("f", "file", output=True), tmp_path / "new.txt") == tmp_path / "new.txt"
+    assert convert_value(Param("c", "crs", None), "WGS84 UTM 29N").to_epsg() == 32629
+    with pytest.raises(ParameterError, match="unknown CRS"):
+        convert_value(Param("c", "crs", None), "EPSG:999999")
+
+
+def test_parse_docstring_reads_numpydoc():
+    d = parse_docstring(run_algorithm.__doc__ or "")
+    assert d["summary"].startswith("Validate")
+
+
+def test_help_lists_every_algorithm():
+    r = cli("--help")
+    assert r.returncode == 0
+    for alg in list_algorithms():
+        assert alg.id in r.stdout
+
+
+def test_algorithm_help_shows_units_defaults_and_choices():
+    r = cli("synth", "--help")
+    assert r.returncode == 0
+    assert "--marker-size-m" in r.stdout and "unit: m" in r.stdout
+    assert "tiny,small,medium,oblique,hard" in r.stdout
+    assert "default: 0" in r.stdout
+
+
+def test_describe_json_round_trips():
+    r = cli("describe", "--json")
+    assert r.returncode == 0
+    d = json.loads(r.stdout)
+    assert json.loads(json.dumps(d)) == d
+    ids = [a["id"] for a in d["algorithms"]]
+    assert ids == [a.id for a in list_algorithms()]
+    synth = next(a for a in d["algorithms"] if a["id"] == "synth")
+    preset = next(p for p in synth["parameters"] if p["name"] == "preset")
+    assert preset["type"] == "enum" and "tiny" in preset["choices"] and preset["qgis_name"] == "PRESET"
+    assert preset["cli"] == "--preset"
+    assert set(d["param_types"]) == set(PARAM_TYPES)
+
+
+def test_made_up_option_exits_2_with_one_line():
+    r = cli("synth", "--output", "x", "--no-such-option", "1")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--no-such-option" in lines[0]
+
+
+def test_bad_value_exits_2_naming_the_option(tmp_path):
+    r = cli("synth", "--output", str(tmp_path / "s"), "--seed", "-3")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "seed" in lines[0] and "minimum" in lines[0]
+    r = cli("synth", "--output", str(tmp_path / "s"), "--marker-size-m", "big")
+    assert r.returncode == 2 and "marker_size_m" in r.stderr and "number" in r.stderr
+
+
+def test_missing_required_option_exits_2():
+    r = cli("synth")
+    assert r.returncode == 2 and "--output" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_main_json_output(tmp_path, capsys):
+    rc = main(["synth", "--output", str(tmp_path / "t"), "--preset", "tiny", "--seed", "5", "--json",
+               "--quiet", "--workers", "1"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["n_photos"] == len(list(Path(out["images"]).glob("*.JPG")))
+    assert out["crs"] == "EPSG:32629"
