@@ -179,8 +179,13 @@ def undistort_pixels(pixels: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     if not intrinsics.has_distortion:
         return (px - [intrinsics.cx_px, intrinsics.cy_px]) / intrinsics.focal_px
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
-    und = cv2.undistortPointsIter(px.reshape(-1, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs,
-                                  None, None, crit)
+    # OpenCV 4 spells the variant with termination criteria undistortPointsIter; 5 folds it in.
+    und_fn = getattr(cv2, "undistortPointsIter", None)
+    if und_fn is not None:
+        und = und_fn(px.reshape(-1, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs, None, None, crit)
+    else:
+        und = cv2.undistortPoints(px.reshape(-1, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs,
+                                  None, None, None, crit)
     return und.reshape(-1, 2)
 
 

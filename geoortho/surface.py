@@ -160,7 +160,9 @@ class GridSurface(Surface):
             t_top = np.where(dz < 0, (self.z_max - o[:, 2]) / dz, np.where(o[:, 2] <= self.z_max, 0.0, np.inf))
             t_bot = np.where(dz < 0, (self.z_min - o[:, 2]) / dz, np.inf)
         t0 = np.clip(t_top, 0.0, None)
-        t1 = np.minimum(t_bot, max_range_m)
+        # March a step past the lowest cell: in float32 a ray that ends exactly on the
+        # lowest ground could otherwise stop a hair above it and miss.
+        t1 = np.minimum(t_bot + step, max_range_m)
         t_end = np.full(n, float(max_range_m))
         hit = np.zeros(n, bool)
         active = np.nonzero(t1 > t0)[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ..demo import demo
+from ..footprint import footprints
 from ..markers import DICTIONARIES
 from ..synth import PRESETS, synth
 from .spec import Algorithm, Output, Param
@@ -35,6 +36,30 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("points", "pointcloud", "point cloud sampled from the DSM"),
             Output("n_photos", "integer", "number of photos"),
             Output("crs", "string", "CRS of the scene"),
+        ),
+    ),
+    Algorithm(
+        id="footprints", title="Photo footprints and GSD", group="Photos", function=footprints,
+        params=(
+            Param("images", "folder"),
+            Param("output", "vector", output=True, extensions=(".gpkg", ".geojson", ".shp", ".fgb")),
+            Param("dsm", "raster", None),
+            Param("ground_elevation_m", "number", None, unit="m"),
+            Param("takeoff_elevation_m", "number", None, unit="m"),
+            Param("crs", "crs", None),
+            Param("sensor_width_mm", "number", None, unit="mm", minimum=0.5, maximum=100.0, advanced=True),
+            Param("max_range_m", "number", 500.0, unit="m", minimum=1.0, advanced=True),
+            Param("overlap", "raster", None, output=True),
+            Param("overlap_cell_m", "number", 1.0, unit="m", minimum=0.01, advanced=True),
+        ),
+        outputs=(
+            Output("output", "vector", "footprints (layer footprints) and camera positions (layer cameras)"),
+            Output("overlap", "raster", "photos seeing each ground cell"),
+            Output("n_photos", "integer", "photos with a footprint"),
+            Output("n_skipped", "integer", "photos skipped"),
+            Output("median_gsd_cm", "number", "median GSD at the image centres, cm"),
+            Output("crs", "string", "CRS of the output"),
+            Output("height_source", "string", "how camera heights were found"),
         ),
     ),
     Algorithm(

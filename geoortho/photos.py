@@ -1,0 +1,472 @@
+"""Photo metadata: EXIF and XMP → :class:`Photo`, without decoding pixels.
+
+Pillow reads the JPEG/TIFF headers only (``Image.open`` is lazy), so the
+decoded pixel size is known without decoding — EXIF size tags lie on resized
+photos. XMP is read with a tolerant regular expression that accepts both the
+attribute form (``drone-dji:GimbalYawDegree="+12.3"``) and the element form
+(``<drone-dji:GimbalYawDegree>12.3</...>``) that editors rewrite it into.
+
+Attitude is returned in the drone makers' convention (camera.py): yaw
+clockwise from north, pitch −90 = nadir, roll right side down positive.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+import os
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .camera import Intrinsics
+from .errors import InputError
+from .feedback import Feedback, as_feedback
+
+__all__ = [
+    "Photo",
+    "PhotoSet",
+    "SENSOR_WIDTHS_MM",
+    "IMAGE_EXTENSIONS",
+    "read_photo",
+    "read_photos",
+    "list_images",
+    "parse_xmp",
+]
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff")
+
+# Sensor width (mm) by EXIF Model, lower case. Published sensor sizes; the
+# width spans the full image width, also for 16:9 crops of a 4:3 sensor.
+SENSOR_WIDTHS_MM: dict[str, float] = {
+    # Phantom 3 / 4 family, Inspire 1
+    "fc300s": 6.17, "fc300x": 6.17, "fc300c": 6.17, "fc300se": 6.17, "fc330": 6.17, "fc350": 6.17,
+    "fc6310": 13.2, "fc6310s": 13.2, "fc6310r": 13.2, "fc6360": 4.87,
+    # Mavic / Air / Mini family
+    "fc220": 6.17, "fc2103": 6.17, "fc2204": 6.17, "l1d-20c": 13.2, "fc3170": 6.4, "fc3411": 13.2,
+    "fc7203": 6.17, "fc7303": 6.17, "fc3582": 9.7, "fc3682": 9.7, "fc8482": 9.7, "fc4170": 17.3,
+    "l2d-20c": 17.3, "fc3682s": 9.7,
+    # Enterprise: Mavic 3E/3T, M30, Matrice 4E, Phantom 4 RTK
+    "m3e": 17.3, "m3t": 6.4, "m3m": 17.3, "m30": 6.4, "m30t": 6.4, "m4e": 17.3, "m4t": 9.7,
+    "fc6310r_rtk": 13.2,
+    # Zenmuse
+    "zenmusep1": 35.9, "zenmusel1": 13.2, "zenmusel2": 17.3, "fc6510": 13.2, "fc6520": 17.3,
+    "fc6540": 23.5, "fc550": 17.3, "fc550raw": 17.3, "zenmuseh20": 7.6, "zenmuseh20t": 7.6,
+}
+
+_XMP_ATTR = re.compile(rb"([A-Za-z][\w.-]*):([A-Za-z]\w*)\s*=\s*([\"'])(.*?)\3", re.S)
+_XMP_ELEM = re.compile(rb"<([A-Za-z][\w.-]*):([A-Za-z]\w*)>([^<]*)</\1:\2>")
+
+# XMP attitude tags, first found wins: (yaw, pitch, roll) names, pitch offset to our
+# convention, roll sign. DJI writes pitch −90 at nadir; the Camera: namespace
+# (MicaSense, Sentera, Parrot, senseFly, Pix4D) writes 0 at nadir.
+_GIMBAL = ("drone-dji:GimbalYawDegree", "drone-dji:GimbalPitchDegree", "drone-dji:GimbalRollDegree")
+_CAMERA = ("Camera:Yaw", "Camera:Pitch", "Camera:Roll")
+_FLIGHT = ("drone-dji:FlightYawDegree", "drone-dji:FlightPitchDegree", "drone-dji:FlightRollDegree")
+
+
+@dataclass(frozen=True)
+class Photo:
+    """What a photo's metadata says: where it was taken, where it looked, with what camera.
+
+    NaN marks a value the photo does not carry. ``sensor_width_mm`` spans the
+    image's longer side; ``focal_px`` follows from it and the decoded size.
+    """
+
+    path: Path
+    width_px: int
+    height_px: int
+    make: str = ""
+    model: str = ""
+    latitude_deg: float = math.nan
+    longitude_deg: float = math.nan
+    gps_altitude_m: float = math.nan  # EXIF GPSAltitude: roughly above sea level
+    relative_altitude_m: float = math.nan  # DJI RelativeAltitude: above the take-off point
+    absolute_altitude_m: float = math.nan  # DJI AbsoluteAltitude
+    yaw_deg: float = 0.0
+    pitch_deg: float = -90.0
+    roll_deg: float = 0.0
+    attitude_source: str = "assumed nadir"
+    flight_yaw_deg: float = math.nan
+    flight_pitch_deg: float = math.nan
+    flight_roll_deg: float = math.nan
+    focal_mm: float = math.nan
+    focal_35mm: float = math.nan
+    sensor_width_mm: float = math.nan
+    sensor_source: str = ""
+    taken_at: str = ""  # ISO 8601, camera clock
+    has_xmp: bool = False
+    warnings: tuple[str, ...] = field(default=(), compare=False)
+
+    @property
+    def image(self) -> str:
+        return self.path.name
+
+    @property
+    def has_gps(self) -> bool:
+        return math.isfinite(self.latitude_deg) and math.isfinite(self.longitude_deg)
+
+    @property
+    def focal_px(self) -> float:
+        return self.focal_mm / self.sensor_width_mm * max(self.width_px, self.height_px)
+
+    def intrinsics(self) -> Intrinsics:
+        """Pinhole intrinsics, principal point at the image centre."""
+        if not math.isfinite(self.focal_px):
+            raise InputError("no focal length or sensor size: give sensor_width_mm", path=self.path)
+        return Intrinsics(self.width_px, self.height_px, self.focal_px)
+
+    def as_record(self) -> dict[str, Any]:
+        """Flat dict for tables (path as text, warnings joined)."""
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        d["path"] = str(self.path)
+        d["warnings"] = "; ".join(self.warnings)
+        d["image"] = self.image
+        d["focal_px"] = self.focal_px
+        return d
+
+
+@dataclass
+class PhotoSet:
+    """Photos read from a folder, and those skipped with the reason."""
+
+    photos: list[Photo]
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+
+    def summary(self) -> str:
+        text = f"{len(self.photos)} photos read"
+        if self.skipped:
+            text += f", {len(self.skipped)} skipped: " + "; ".join(f"{n} ({r})" for n, r in self.skipped)
+        return text
+
+
+def parse_xmp(xmp: bytes | str | None) -> dict[str, str]:
+    """``prefix:Name`` → value text, attribute and element forms alike (first occurrence wins)."""
+    if not xmp:
+        return {}
+    data = xmp.encode("utf-8", "replace") if isinstance(xmp, str) else bytes(xmp)
+    out: dict[str, str] = {}
+    for rx in (_XMP_ATTR, _XMP_ELEM):
+        for m in rx.finditer(data):
+            prefix, name = m.group(1).decode(), m.group(2).decode()
+            if prefix in ("xmlns", "xml"):
+                continue
+            value = (m.group(4) if rx is _XMP_ATTR else m.group(3)).decode("utf-8", "replace").strip()
+            out.setdefault(f"{prefix}:{name}", value)
+    return out
+
+
+def _float(value: Any) -> float:
+    """EXIF rational / number / text → float; NaN when absent or malformed."""
+    if value is None:
+        return math.nan
+    try:
+        if isinstance(value, tuple) and len(value) == 2:  # raw (num, den)
+            return float(value[0]) / float(value[1]) if value[1] else math.nan
+        return float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return math.nan
+
+
+def _xmp_float(tags: dict[str, str], *names: str) -> float:
+    for n in names:
+        v = _float(tags.get(n))
+        if math.isfinite(v):
+            return v
+    return math.nan
+
+
+def _text(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    return str(value).replace("\x00", "").strip()
+
+
+def _dms_deg(value: Any, ref: Any, negative: str) -> float:
+    try:
+        d, m, s = (_float(v) for v in value)
+    except (TypeError, ValueError):
+        return math.nan
+    deg = d + m / 60.0 + s / 3600.0
+    if _text(ref).upper().startswith(negative):
+        deg = -deg
+    return deg
+
+
+def _sensor_width(model: str, focal_mm: float, focal_35mm: float, exif_ifd: dict[int, Any],
+                  longer_px: int, user_mm: float | None) -> tuple[float, str]:
+    """Sensor width: user option, then the camera database, 35 mm equivalent, focal-plane resolution."""
+    if user_mm:
+        return float(user_mm), "user"
+    key = model.lower().replace(" ", "")
+    if key in SENSOR_WIDTHS_MM:
+        return SENSOR_WIDTHS_MM[key], "database"
+    if math.isfinite(focal_35mm) and focal_35mm > 0 and math.isfinite(focal_mm):
+        # The 35 mm equivalent as drone makers compute it scales the 36 mm frame width.
+        return focal_mm * 36.0 / focal_35mm, "35mm equivalent"
+    xres = _float(exif_ifd.get(0xA20E))
+    unit = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}.get(int(_float(exif_ifd.get(0xA210)) or 2), 25.4)
+    exif_w = max(int(_float(exif_ifd.get(0xA002)) or 0), int(_float(exif_ifd.get(0xA003)) or 0)) or longer_px
+    if math.isfinite(xres) and xres > 0:
+        return exif_w / xres * unit, "focal plane resolution"
+    return math.nan, ""
+
+
+def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = None) -> Photo:
+    """Read one photo's metadata (headers only; pixels are not decoded).
+
+    Raises
+    ------
+    InputError
+        The file cannot be opened as an image, or is truncated before its pixels.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    warnings: list[str] = []
+    try:
+        with Image.open(path) as im:
+            width, height = im.size
+            exif = im.getexif()
+            xmp_raw = im.info.get("xmp")
+            if xmp_raw is None and hasattr(im, "tag_v2"):
+                xmp_raw = im.tag_v2.get(700)  # TIFF XMP tag
+            gps = exif.get_ifd(0x8825)
+            exif_ifd = exif.get_ifd(0x8769)
+            if im.format == "JPEG":
+                _check_jpeg_complete(path)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+        raise InputError(f"not a readable image ({e})", path=path) from None
+    tags = parse_xmp(xmp_raw)
+    make = _text(exif.get(271)) or tags.get("tiff:Make", "")
+    model = _text(exif.get(272)) or tags.get("tiff:Model", "")
+
+    lat = _dms_deg(gps.get(2), gps.get(1), "S") if gps else math.nan
+    lon = _dms_deg(gps.get(4), gps.get(3), "W") if gps else math.nan
+    if not (math.isfinite(lat) and math.isfinite(lon)):
+        lat = _xmp_float(tags, "drone-dji:GpsLatitude", "drone-dji:Latitude")
+        lon = _xmp_float(tags, "drone-dji:GpsLongitude", "drone-dji:GpsLongtitude", "drone-dji:Longitude")
+    if math.isfinite(lat) and math.isfinite(lon) and lat == 0.0 and lon == 0.0:
+        lat = lon = math.nan  # a GPS without a fix writes 0, 0
+    gps_alt = _float(gps.get(6)) if gps else math.nan
+    if gps and math.isfinite(gps_alt) and gps.get(5) in (1, b"\x01"):
+        gps_alt = -gps_alt
+
+    rel = _xmp_float(tags, "drone-dji:RelativeAltitude", "Camera:AboveGroundAltitude")
+    absolute = _xmp_float(tags, "drone-dji:AbsoluteAltitude")
+    yaw, pitch, roll, source = _attitude(tags, make, warnings)
+    focal_mm = _float(exif_ifd.get(0x920A))
+    focal_35 = _float(exif_ifd.get(0xA405))
+    sw, sw_source = _sensor_width(model, focal_mm, focal_35, exif_ifd, max(width, height), sensor_width_mm)
+    if not math.isfinite(focal_mm) and math.isfinite(focal_35):
+        # No true focal length: the 35 mm equivalent on a 36 mm-wide virtual sensor.
+        focal_mm, sw, sw_source = focal_35, 36.0, "35mm equivalent"
+    taken = _text(exif_ifd.get(0x9003)) or _text(exif.get(306))
+    if re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d.*", taken):
+        taken = taken[:10].replace(":", "-") + "T" + taken[11:19]
+    return Photo(
+        path=path, width_px=int(width), height_px=int(height), make=make, model=model,
+        latitude_deg=lat, longitude_deg=lon, gps_altitude_m=gps_alt, relative_altitude_m=rel,
+        absolute_altitude_m=absolute, yaw_deg=yaw, pitch_deg=pitch, roll_deg=roll, attitude_source=source,
+        flight_yaw_deg=_xmp_float(tags, _FLIGHT[0]), flight_pitch_deg=_xmp_float(tags, _FLIGHT[1]),
+        flight_roll_deg=_xmp_float(tags, _FLIGHT[2]), focal_mm=focal_mm, focal_35mm=focal_35,
+        sensor_width_mm=sw, sensor_source=sw_source, taken_at=taken, has_xmp=bool(tags),
+        warnings=tuple(warnings),
+    )
+
+
+def _check_jpeg_complete(path: Path) -> None:
+    """A JPEG ends with its EOI marker; a truncated copy does not. Phones append trailers
+    after it (Samsung's SEFT), so look in the last 64 KiB; FF D9 cannot occur inside
+    entropy-coded data, where every FF byte is stuffed."""
+    with open(path, "rb") as f:
+        f.seek(0, os.SEEK_END)
+        size = f.tell()
+        f.seek(max(0, size - 65536))
+        tail = f.read()
+    if b"\xff\xd9" not in tail:
+        raise OSError("truncated JPEG (no end-of-image marker)")
+
+
+def _attitude(tags: dict[str, str], make: str, warnings: list[str]) -> tuple[float, float, float, str]:
+    """Camera yaw/pitch/roll in our convention, and where they came from."""
+    g = [_xmp_float(tags, n) for n in _GIMBAL]
+    c = [_xmp_float(tags, n) for n in _CAMERA]
+    f = [_xmp_float(tags, n) for n in _FLIGHT]
+    if math.isfinite(c[1]) and not math.isfinite(g[1]):
+        # Camera: namespace, 0 = nadir; senseFly writes roll with the opposite sign.
+        sign = -1.0 if make.lower() == "sensefly" else 1.0
+        return (_wrap(c[0]) if math.isfinite(c[0]) else 0.0, c[1] - 90.0,
+                sign * c[2] if math.isfinite(c[2]) else 0.0, "camera")
+    if all(math.isfinite(v) for v in g):
+        return _wrap(g[0]), g[1], g[2], "gimbal"
+    if not any(math.isfinite(v) for v in g + f):
+        warnings.append("no attitude in the metadata: assumed nadir, image top to the north")
+        return 0.0, -90.0, 0.0, "assumed nadir"
+    # Partly known: take what the gimbal has, the aircraft's for the rest, nadir otherwise.
+    parts = []
+    yaw = g[0] if math.isfinite(g[0]) else f[0]
+    if not math.isfinite(g[0]):
+        parts.append("yaw from the aircraft" if math.isfinite(f[0]) else "yaw assumed 0")
+    pitch = g[1] if math.isfinite(g[1]) else -90.0
+    if not math.isfinite(g[1]):
+        parts.append("pitch assumed nadir")
+    roll = g[2] if math.isfinite(g[2]) else 0.0
+    warnings.append("incomplete gimbal attitude: " + ", ".join(parts or ["roll assumed 0"]))
+    return _wrap(yaw if math.isfinite(yaw) else 0.0), pitch, roll, "gimbal+flight" if math.isfinite(f[0]) else "partial"
+
+
+def _wrap(a: float) -> float:
+    return float((a + 180.0) % 360.0 - 180.0)
+
+
+def list_images(folder: str | os.PathLike[str]) -> list[Path]:
+    """Image files of a folder (not recursive), sorted by name; an error if there are none."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("not a folder", path=folder)
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
+    if not files:
+        raise InputError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in the folder", path=folder)
+    return files
+
+
+def _read_chunk(paths: Sequence[str], sensor_width_mm: float | None) -> list[Photo | tuple[str, str]]:
+    out: list[Photo | tuple[str, str]] = []
+    for p in paths:
+        try:
+            out.append(read_photo(p, sensor_width_mm))
+        except InputError as e:
+            out.append((Path(p).name, e.reason))
+    return out
+
+
+def read_photos(
+    images: str | os.PathLike[str] | Iterable[str | os.PathLike[str]],
+    sensor_width_mm: float | None = None,
+    *,
+    require_gps: bool = True,
+    require_camera: bool = True,
+    executor: cf.Executor | None = None,
+    feedback: Feedback | None = None,
+) -> PhotoSet:
+    """Read every photo of a folder (or a list of files); report and skip the bad ones.
+
+    Photos are read in chunks on ``executor`` (default: a process pool when
+    there are many, in-process otherwise). A photo that cannot be read, has no
+    GPS position (when ``require_gps``) or no usable camera model (when
+    ``require_camera``) is skipped with the reason; the run goes on.
+    """
+    fb = as_feedback(feedback)
+    paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
+    chunk = 64
+    chunks = [[str(p) for p in paths[i:i + chunk]] for i in range(0, len(paths), chunk)]
+    results: list[Photo | tuple[str, str]] = []
+    own = None
+    if executor is None and len(paths) >= 4 * chunk and (os.cpu_count() or 1) > 1:
+        own = executor = cf.ProcessPoolExecutor(min(os.cpu_count() or 1, len(chunks)))
+    try:
+        if executor is None:
+            for i, c in enumerate(chunks):
+                fb.check_canceled()
+                results.extend(_read_chunk(c, sensor_width_mm))
+                fb.progress((i + 1) / len(chunks))
+        else:
+            futures = [executor.submit(_read_chunk, c, sensor_width_mm) for c in chunks]
+            for i, fut in enumerate(futures):
+                if fb.is_canceled():
+                    for f_ in futures:
+                        f_.cancel()
+                    fb.check_canceled()
+                results.extend(fut.result())
+                fb.progress((i + 1) / len(chunks))
+    finally:
+        if own is not None:
+            own.shutdown(cancel_futures=True)
+    photos: list[Photo] = []
+    skipped: list[tuple[str, str]] = []
+    for r in results:
+        if isinstance(r, tuple):
+            skipped.append(r)
+        elif require_gps and not r.has_gps:
+            skipped.append((r.image, "no GPS position in EXIF or XMP"))
+        elif require_camera and not math.isfinite(r.focal_px):
+            skipped.append((r.image, f"unknown camera {r.make} {r.model!r}: no focal length or sensor "
+                                     "size; give sensor_width_mm"))
+        else:
+            photos.append(r)
+    photos = yaw_from_course(photos)
+    for name, reason in skipped:
+        fb.warning(f"skipped {name}: {reason}")
+    for p in photos:
+        for w in p.warnings:
+            fb.warning(f"{p.image}: {w}")
+    return PhotoSet(photos, skipped)
+
+
+def yaw_from_course(photos: Sequence[Photo], max_gap_s: float = 30.0, min_move_m: float = 1.0) -> list[Photo]:
+    """Photos without a yaw get the course over ground between their neighbours in time.
+
+    Mapping drones fly with the camera's top towards the direction of travel
+    unless told otherwise; the course is a far better guess than north. Photos
+    with a known yaw, or no neighbour within ``max_gap_s``, are left alone.
+    """
+    import datetime as dt
+
+    def t(p: Photo) -> float | None:
+        try:
+            return dt.datetime.fromisoformat(p.taken_at).timestamp()
+        except ValueError:
+            return None
+
+    unknown = {"assumed nadir", "partial"}
+    if not any(p.attitude_source in unknown for p in photos):
+        return list(photos)
+    timed = sorted((tt, i) for i, p in enumerate(photos) if (tt := t(p)) is not None and p.has_gps)
+    # Segment k joins timed photo k to k+1: its course, or None (gap in time, no movement).
+    courses: list[float | None] = []
+    for (ta, ia), (tb, ib) in zip(timed, timed[1:]):
+        a, b = photos[ia], photos[ib]
+        # local east/north metres (equirectangular; neighbours are metres apart)
+        de = (b.longitude_deg - a.longitude_deg) * 111_320.0 * math.cos(math.radians(a.latitude_deg))
+        dn = (b.latitude_deg - a.latitude_deg) * 110_540.0
+        ok = tb - ta <= max_gap_s and math.hypot(de, dn) >= min_move_m
+        courses.append(math.degrees(math.atan2(de, dn)) if ok else None)
+
+    def agree(a: float | None, b: float | None) -> bool:
+        return a is not None and b is not None and abs(_wrap(a - b)) < 30.0
+
+    out = list(photos)
+    for k, (_, i) in enumerate(timed):
+        p = photos[i]
+        if p.attitude_source not in unknown:
+            continue
+        c_in = courses[k - 1] if k > 0 else None
+        c_out = courses[k] if k < len(courses) else None
+        if agree(c_in, c_out):
+            yaw = c_in + _wrap(c_out - c_in) / 2  # type: ignore[operator]
+        elif c_in is not None and (c_out is None or agree(c_in, courses[k - 2] if k > 1 else None)):
+            yaw = c_in  # last photo of a line: the way in continues the line
+        elif c_out is not None:
+            yaw = c_out  # first photo of a line
+        else:
+            continue
+        yaw = _wrap(yaw)
+        out[i] = replace(p, yaw_deg=yaw, attitude_source=p.attitude_source + ", yaw from course",
+                         warnings=(*p.warnings, f"yaw {yaw:.0f} deg taken from the flight course"))
+    return out
+
+
+def with_sensor_width(photo: Photo, sensor_width_mm: float) -> Photo:
+    return replace(photo, sensor_width_mm=float(sensor_width_mm), sensor_source="user")
+
+
+def positions_lonlat(photos: Sequence[Photo]) -> np.ndarray:
+    """(N, 2) longitude, latitude in degrees."""
+    return np.array([[p.longitude_deg, p.latitude_deg] for p in photos], dtype=float).reshape(-1, 2)

@@ -1,0 +1,264 @@
+"""Photo metadata and footprints, against the synthetic truth and on real photos."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import geopandas as gpd
+import numpy as np
+import pytest
+from pyproj import CRS
+
+from conftest import real_data
+from geoortho.errors import InputError
+from geoortho.footprint import compute_footprints, footprints, photo_cameras
+from geoortho.photos import parse_xmp, read_photo, read_photos
+
+
+def _truth(survey):
+    poses = {p["image"]: p for p in json.loads((survey.truth / "poses.json").read_text())}
+    info = json.loads((survey.truth / "survey.json").read_text())
+    return poses, info
+
+
+def _iou(a, b) -> float:
+    return a.intersection(b).area / a.union(b).area
+
+
+# --- metadata ------------------------------------------------------------------------------
+
+
+def test_read_photo_matches_what_was_recorded(tiny_survey):
+    poses, info = _truth(tiny_survey)
+    for name, t in poses.items():
+        p = read_photo(tiny_survey.images / name)
+        rec = t["recorded"]
+        assert (p.width_px, p.height_px) == (info["camera"]["width_px"], info["camera"]["height_px"])
+        assert (p.make, p.model) == ("DJI", info["camera"]["model"])
+        assert p.latitude_deg == pytest.approx(rec["latitude_deg"], abs=1e-7)
+        assert p.longitude_deg == pytest.approx(rec["longitude_deg"], abs=1e-7)
+        assert p.relative_altitude_m == pytest.approx(rec["relative_altitude_m"], abs=0.01)
+        assert p.absolute_altitude_m == pytest.approx(rec["absolute_altitude_m"], abs=0.01)
+        assert p.gps_altitude_m == pytest.approx(rec["gps_altitude_m"], abs=0.01)
+        assert (p.yaw_deg, p.pitch_deg, p.roll_deg) == pytest.approx(
+            (rec["gimbal_yaw_deg"], rec["gimbal_pitch_deg"], rec["gimbal_roll_deg"]), abs=0.01)
+        assert p.attitude_source == "gimbal" and p.sensor_source == "database"
+        assert p.focal_px == pytest.approx(info["camera"]["focal_px"])
+        assert p.taken_at.startswith("2026-")
+
+
+def test_parse_xmp_attribute_and_element_forms():
+    attr = b'<rdf:Description drone-dji:GimbalYawDegree="+12.50" drone-dji:RelativeAltitude=\'+40.1\'/>'
+    elem = b"<drone-dji:GimbalPitchDegree>-80.00</drone-dji:GimbalPitchDegree><Camera:Yaw>33</Camera:Yaw>"
+    tags = parse_xmp(attr + elem)
+    assert tags["drone-dji:GimbalYawDegree"] == "+12.50"
+    assert tags["drone-dji:RelativeAltitude"] == "+40.1"
+    assert tags["drone-dji:GimbalPitchDegree"] == "-80.00"
+    assert tags["Camera:Yaw"] == "33"
+    assert parse_xmp(None) == {}
+
+
+def test_camera_namespace_pitch_is_converted(tmp_path, tiny_survey):
+    """MicaSense/Sentera-style Camera:Pitch 0 = nadir becomes our -90."""
+    from PIL import Image
+
+    src = next(tiny_survey.images.iterdir())
+    xmp = (b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF><rdf:Description Camera:Yaw="30" '
+           b'Camera:Pitch="10" Camera:Roll="2"/></rdf:RDF></x:xmpmeta>')
+    with Image.open(src) as im:
+        im.save(tmp_path / "m.jpg", exif=im.getexif(), xmp=xmp)
+    p = read_photo(tmp_path / "m.jpg")
+    assert (p.yaw_deg, p.pitch_deg, p.roll_deg, p.attitude_source) == (30.0, -80.0, 2.0, "camera")
+
+
+def test_bad_photos_are_named_and_skipped(hard_survey):
+    poses, _ = _truth(hard_survey)
+    ps = read_photos(hard_survey.images)
+    skipped = dict(ps.skipped)
+    corrupt = next(n for n, p in poses.items() if p["corrupt"])
+    no_gps = next(n for n, p in poses.items() if not p["has_gps"])
+    assert "truncated" in skipped[corrupt] or "readable" in skipped[corrupt]
+    assert "GPS" in skipped[no_gps]
+    assert len(ps.photos) == len(poses) - 2
+    # No XMP: attitude unknown, yaw from the flight course, close to the truth.
+    for p in ps.photos:
+        if not poses[p.image]["has_xmp"]:
+            assert "course" in p.attitude_source and p.warnings
+            assert abs((p.yaw_deg - poses[p.image]["yaw_deg"] + 180) % 360 - 180) < 10
+
+
+def test_not_a_folder_and_empty_folder(tmp_path):
+    with pytest.raises(InputError, match="no images"):
+        read_photos(tmp_path)
+    with pytest.raises(InputError, match="not a folder"):
+        read_photos(tmp_path / "missing")
+
+
+def test_real_brighton_dji_xmp():
+    folder = real_data("brighton_dji_xmp_pair") / "images"
+    p = read_photo(folder / "DJI_0018.JPG")
+    assert (p.model, p.width_px, p.height_px) == ("FC300S", 4000, 2250)  # 16:9 crop
+    assert (p.relative_altitude_m, p.yaw_deg, p.pitch_deg) == (39.8, 45.0, -89.9)
+    assert p.sensor_width_mm == 6.17 and p.attitude_source == "gimbal"
+    assert p.latitude_deg == pytest.approx(46.8426, abs=1e-4) and p.longitude_deg < 0
+
+
+def test_real_toledo_sizes_that_lie_and_no_xmp():
+    folder = real_data("toledo_dji") / "images"
+    ps = read_photos(folder)
+    assert len(ps.photos) == 57 and not ps.skipped
+    assert {p.model for p in ps.photos} == {"FC300X", "FC350"}
+    # EXIF says 1800 x 2400; the pixels are 2400 x 1800
+    assert all((p.width_px, p.height_px) == (2400, 1800) for p in ps.photos)
+    assert all(not p.has_xmp and "course" in p.attitude_source for p in ps.photos)
+
+
+def test_real_mini4pro_partial_xmp():
+    folder = real_data("dji_mini4pro_defects") / "images"
+    ps = read_photos(folder)
+    by = {p.image: p for p in ps.photos}
+    cap = by["DJI_20251027143608_0008_D_LENS_CAP.JPG"]
+    assert cap.pitch_deg == -80.0 and cap.yaw_deg == pytest.approx(89.6)
+    assert "aircraft" in " ".join(cap.warnings)
+    sharp = by["DJI_20251001132715_0396_D_POOR_SHARPNESS.JPG"]
+    assert sharp.attitude_source.startswith("assumed nadir") and sharp.sensor_width_mm == 9.7
+
+
+def test_real_phone_photo_with_trailer_is_not_truncated():
+    folder = real_data("findgcp_aruco") / "images"
+    ps = read_photos(folder, require_gps=False)
+    assert len(ps.photos) == 2 and ps.photos[0].sensor_source == "35mm equivalent"
+
+
+# --- footprints ----------------------------------------------------------------------------
+
+
+def test_footprints_with_true_poses_reproduce_the_truth(tiny_survey):
+    """With the exact poses and the DSM, our footprints are the true ones (geometry check)."""
+    from geoortho.camera import Intrinsics, Pose
+    from geoortho.footprint import PhotoCamera
+    from geoortho.surface import read_surface
+
+    poses, info = _truth(tiny_survey)
+    c = info["camera"]
+    intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"])
+    cams = [PhotoCamera(read_photo(tiny_survey.images / n), intr,
+                        Pose(np.array([t["x"], t["y"], t["z"]]), np.array(t["rotation_world_from_camera"])), "")
+            for n, t in poses.items()]
+    surface = read_surface(tiny_survey.dsm)
+    table = compute_footprints(cams, surface, per_side=40)
+    truth = gpd.read_file(tiny_survey.truth / "footprints.gpkg").set_index("image")
+    import shapely
+
+    ious = [_iou(shapely.Polygon(r), truth.loc[n].geometry) for n, r in zip(poses, table.rings)]
+    # 1.0 but where a border ray grazes a roof edge (our march steps 2 cells, the truth 1)
+    assert min(ious) > 0.99 and np.median(ious) > 0.9999
+    # nadir GSD at the centre is range / focal
+    assert np.allclose(table.gsd_cm / 100, table.altitude_m / c["focal_px"], rtol=0.05)
+
+
+def test_footprints_iou_on_dsm(tiny_survey, tmp_path):
+    poses, info = _truth(tiny_survey)
+    out = tmp_path / "fp.gpkg"
+    r = footprints(tiny_survey.images, out, dsm=tiny_survey.dsm, takeoff_elevation_m=info["home"]["ground_z"],
+                   overlap=tmp_path / "overlap.tif", overlap_cell_m=0.5)
+    fp = gpd.read_file(out, layer="footprints").set_index("image")
+    truth = gpd.read_file(tiny_survey.truth / "footprints.gpkg").set_index("image")
+    ious = [_iou(g, truth.loc[n].geometry) for n, g in fp.geometry.items()]
+    assert np.mean(ious) >= 0.93 and min(ious) >= 0.85
+    assert r.n_photos == len(poses) and fp.crs.to_epsg() == 32629
+    # GSD near the true one at the nadir
+    assert r.median_gsd_cm == pytest.approx(info["gsd_cm_at_home_height"], rel=0.1)
+    cams = gpd.read_file(out, layer="cameras").set_index("image")
+    for n, t in poses.items():
+        assert math.hypot(cams.loc[n].geometry.x - t["x"], cams.loc[n].geometry.y - t["y"]) < 3.0
+    import rasterio
+
+    with rasterio.open(r.overlap) as ov:
+        counts = ov.read(1)
+        assert counts.max() >= 4 and ov.nodata == 0
+        # a cell's count equals the number of footprints containing its centre
+        row, col = np.unravel_index(np.argmax(counts), counts.shape)
+        x, y = ov.xy(row, col)
+        import shapely
+
+        assert counts[row, col] == int(shapely.contains_xy(fp.geometry.values, x, y).sum())
+
+
+def test_flat_ground_worse_than_dsm_but_sane(tiny_survey, tmp_path):
+    out = tmp_path / "flat.gpkg"
+    footprints(tiny_survey.images, out)
+    fp = gpd.read_file(out, layer="footprints").set_index("image")
+    truth = gpd.read_file(tiny_survey.truth / "footprints.gpkg").set_index("image")
+    ious = [_iou(g, truth.loc[n].geometry) for n, g in fp.geometry.items()]
+    assert np.mean(ious) > 0.75
+    assert set(fp["height_source"].str.contains("relative altitude"))== {True}
+
+
+def test_oblique_footprints_iou(oblique_survey, tmp_path):
+    poses, info = _truth(oblique_survey)
+    out = tmp_path / "obl.gpkg"
+    footprints(oblique_survey.images, out, dsm=oblique_survey.dsm, takeoff_elevation_m=info["home"]["ground_z"])
+    fp = gpd.read_file(out, layer="footprints").set_index("image")
+    truth = gpd.read_file(oblique_survey.truth / "footprints.gpkg").set_index("image")
+    obl = [_iou(g, truth.loc[n].geometry) for n, g in fp.geometry.items() if poses[n]["oblique"]]
+    nadir = [_iou(g, truth.loc[n].geometry) for n, g in fp.geometry.items() if not poses[n]["oblique"]]
+    assert len(obl) >= 8
+    assert np.mean(obl) >= 0.85 and np.mean(nadir) >= 0.93
+    # oblique footprints are bigger and their GSD varies across the frame
+    o = fp[[poses[n]["oblique"] for n in fp.index]]
+    assert (o["gsd_max_cm"] / o["gsd_min_cm"]).min() > 1.5
+
+
+def test_rays_above_horizon_are_clipped():
+    from geoortho.camera import Intrinsics, Pose
+    from geoortho.footprint import PhotoCamera
+    from geoortho.surface import FlatSurface
+
+    photo = None
+    intr = Intrinsics(400, 300, 300.0)
+    cams = [PhotoCamera(photo, intr, Pose.from_ypr((0, 0, 50), 0, -10, 0), ""),  # type: ignore[arg-type]
+            PhotoCamera(photo, intr, Pose.from_ypr((0, 0, 50), 0, -90, 0), "")]  # type: ignore[arg-type]
+    t = compute_footprints(cams, FlatSurface(0.0), max_range_m=300.0)
+    assert t.clipped.tolist() == [True, False]
+    assert np.hypot(*t.rings[0].T).max() == pytest.approx(300.0, rel=0.01)
+
+
+def test_real_toledo_footprints_predict_annotated_gcp_pixels(tmp_path):
+    """Camera model + course yaw predict where the GCPs of ODM's toledo gcp_list.txt were clicked."""
+    folder = real_data("toledo_dji")
+    ps = read_photos(folder / "images")
+    cams, _, _ = photo_cameras(ps.photos, CRS.from_epsg(32617))
+    by = {c.photo.image: c for c in cams}
+    errors = []
+    for line in (folder / "gcp" / "gcp_list.txt").read_text().splitlines()[1:]:
+        f = line.split()
+        if len(f) < 6 or line.startswith("#"):
+            continue
+        x, y, _, px, py = map(float, f[:5])
+        pred = by[f[5]].project(np.array([[x, y, 0.0]]))[0]  # ground at the take-off height
+        if f[5] != "DJI_0068.JPG":
+            errors.append(math.hypot(pred[0] - px, pred[1] - py))
+    # GPS and the take-off height assumption bound this: metres, i.e. tens of pixels at 8 cm GSD.
+    # DJI_0068 is left out: the Inspire 1 turned its camera north-up there while flying east, and
+    # without XMP nothing in the file says so (its annotated GCPs show it).
+    assert len(errors) == 14
+    assert np.median(errors) < 100 and max(errors) < 200
+    out = tmp_path / "toledo.gpkg"
+    r = footprints(folder / "images", out)
+    fp = gpd.read_file(out, layer="footprints").sort_values("taken_at")
+    assert 5 < r.median_gsd_cm < 12  # published 6.17 mm sensor, 3.61 mm lens, ~110-120 m
+    # consecutive photos of a flight line overlap, as a survey plan implies
+    geoms = fp.geometry.values
+    overl = [_iou(a, b) for a, b in zip(geoms, geoms[1:])]
+    assert np.median(overl) > 0.4
+
+
+def test_footprints_cli_bad_input_exit_2(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "geoortho", "footprints", "--images", str(tmp_path),
+                        "--output", str(tmp_path / "x.gpkg")], capture_output=True, text=True)
+    assert r.returncode == 2
+    assert len(r.stderr.strip().splitlines()) == 1 and "no images" in r.stderr
