@@ -19,6 +19,9 @@ _EXPORTS = {
     "synth": "geoortho.synth",
     "demo": "geoortho.demo",
     "run_algorithm": "geoortho.processing.registry",
+    "footprints": "geoortho.footprint",
+    "read_photos": "geoortho.photos",
+    "read_photo": "geoortho.photos",
     "GeoorthoError": "geoortho.errors",
     "InputError": "geoortho.errors",
 }

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from .feedback import Feedback, as_feedback, split
+
+if TYPE_CHECKING:
+    from .synth import SynthResult
 
 __all__ = ["DemoResult", "demo"]
 
@@ -61,4 +65,19 @@ def demo(
 
 def _stages() -> list:
     """(name, weight, run(survey, output, feedback) -> products) for every stage that exists."""
-    return []
+    return [("footprints", 1, _footprints)]
+
+
+def _takeoff_elevation(survey: SynthResult) -> float:
+    """The field crew knows where they took off: the survey's home point elevation."""
+    return float(json.loads((survey.truth / "survey.json").read_text())["home"]["ground_z"])
+
+
+def _footprints(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
+    from .footprint import footprints
+
+    r = footprints(survey.images, output / "footprints.gpkg", dsm=survey.dsm,
+                   takeoff_elevation_m=_takeoff_elevation(survey), overlap=output / "overlap.tif",
+                   feedback=fb)
+    fb.info(f"footprints: {r.n_photos} photos, median GSD {r.median_gsd_cm:.2f} cm")
+    return {"footprints": str(r.output), "overlap": str(r.overlap)}

@@ -27,11 +27,11 @@ import numpy as np
 from pyproj import CRS
 
 from .camera import Intrinsics, Pose, project_points, rotation_from_ypr, undistort_pixels
-from .crs import parse_crs, transformer, utm_crs_for, WGS84
+from .crs import WGS84, parse_crs, transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
 from .photos import Photo, read_photos
-from .surface import FlatSurface, GridSurface, Surface, read_surface
+from .surface import FlatSurface, Surface, read_surface
 
 __all__ = [
     "PhotoCamera",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 
 import cv2
 import numpy as np
@@ -17,7 +17,7 @@ DICTIONARIES: tuple[str, ...] = tuple(
 )
 
 
-@lru_cache(maxsize=None)
+@cache
 def get_dictionary(name: str) -> cv2.aruco.Dictionary:
     """OpenCV dictionary by name (case-insensitive, ``DICT_`` prefix optional)."""
     key = name.strip().upper()

@@ -82,7 +82,6 @@ def write_cog(
     Float rasters get the floating-point predictor; ``alpha`` (uint8, 0/255)
     is added as a last band flagged as alpha.
     """
-    import rasterio
     from rasterio.enums import ColorInterp
     from rasterio.io import MemoryFile
     from rasterio.shutil import copy as rio_copy

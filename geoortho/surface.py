@@ -287,9 +287,9 @@ def read_surface(path: str | os.PathLike[str], crs: CRS | None = None, *, band: 
         The file cannot be read or has no CRS.
     """
     import rasterio
+    from rasterio.enums import Resampling
     from rasterio.errors import RasterioIOError
     from rasterio.vrt import WarpedVRT
-    from rasterio.enums import Resampling
 
     try:
         with rasterio.open(path) as src:

@@ -36,7 +36,7 @@ from affine import Affine
 from pyproj import CRS
 
 from .camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_ypr
-from .crs import WGS84_3D, transformer, utm_crs_for
+from .crs import transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
 from .markers import get_dictionary, marker_cells
@@ -558,7 +558,7 @@ def _marker_truth_and_antialias(scene: Scene, shot: Shot, intr: Intrinsics, pose
         a = math.radians(m.angle_deg)
         ca, sa = math.cos(a), math.sin(a)
 
-        def world(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        def world(u: np.ndarray, v: np.ndarray, m: Marker = m, ca: float = ca, sa: float = sa) -> np.ndarray:
             return np.c_[m.x + u * ca + v * sa, m.y - u * sa + v * ca, np.full(len(u), m.z)]
 
         centre_px, depth = project_points(np.array([[m.x, m.y, m.z]]), intr, pose)
@@ -638,7 +638,7 @@ def _xmp(shot: Shot) -> bytes:
         ' </rdf:RDF>\n'
         '</x:xmpmeta>\n'
         '<?xpacket end="w"?>'
-    ).encode("utf-8")
+    ).encode()
 
 
 def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) -> None:

@@ -10,9 +10,9 @@ import sys
 import geopandas as gpd
 import numpy as np
 import pytest
+from conftest import real_data
 from pyproj import CRS
 
-from conftest import real_data
 from geoortho.errors import InputError
 from geoortho.footprint import compute_footprints, footprints, photo_cameras
 from geoortho.photos import parse_xmp, read_photo, read_photos
