@@ -137,6 +137,16 @@ class PhotoSet:
     photos: list[Photo]
     skipped: list[tuple[str, str]] = field(default_factory=list)
 
+    def to_geodataframe(self, crs: Any = None) -> Any:
+        """Camera positions as points (WGS84, or ``crs``), one row per photo with every field."""
+        import geopandas as gpd
+        import shapely
+
+        records = [p.as_record() for p in self.photos]
+        xy = positions_lonlat(self.photos)
+        gdf = gpd.GeoDataFrame(records, geometry=shapely.points(xy), crs="EPSG:4326")
+        return gdf.to_crs(crs) if crs is not None else gdf
+
     def summary(self) -> str:
         text = f"{len(self.photos)} photos read"
         if self.skipped:

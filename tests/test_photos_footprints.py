@@ -114,6 +114,15 @@ def test_real_toledo_sizes_that_lie_and_no_xmp():
     # EXIF says 1800 x 2400; the pixels are 2400 x 1800
     assert all((p.width_px, p.height_px) == (2400, 1800) for p in ps.photos)
     assert all(not p.has_xmp and "course" in p.attitude_source for p in ps.photos)
+    table = ps.to_geodataframe("EPSG:32617")
+    assert len(table) == 57 and table.crs.to_epsg() == 32617
+    # ODM's own image-location file for this set agrees with our GPS reading and projection
+    listed = {}
+    for line in (folder.parent / "gcp" / "cameras_32617.txt").read_text().splitlines()[1:]:
+        x, y, name = line.split()
+        listed[name] = (float(x), float(y))
+    d = [math.hypot(g.x - listed[n][0], g.y - listed[n][1]) for n, g in zip(table["image"], table.geometry)]
+    assert max(d) < 0.5
 
 
 def test_real_mini4pro_partial_xmp():
