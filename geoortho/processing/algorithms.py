@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from ..demo import demo
 from ..footprint import footprints
+from ..gcp.find import gcp_find
 from ..markers import DICTIONARIES
 from ..synth import PRESETS, synth
 from .spec import Algorithm, Output, Param
@@ -60,6 +61,37 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("median_gsd_cm", "number", "median GSD at the image centres, cm"),
             Output("crs", "string", "CRS of the output"),
             Output("height_source", "string", "how camera heights were found"),
+        ),
+    ),
+    Algorithm(
+        id="gcp-find", title="Find GCP markers (gcp_list.txt)", group="Ground control", function=gcp_find,
+        params=(
+            Param("images", "folder"),
+            Param("gcp_file", "file", extensions=(".txt", ".csv", ".tsv", ".json")),
+            Param("output", "file", output=True, extensions=(".txt",)),
+            Param("dictionary", "enum", "DICT_4X4_50", choices=DICTIONARIES),
+            Param("margin", "number", 0.0, unit="%", minimum=-50.0, maximum=45.0),
+            Param("dsm", "raster", None),
+            Param("takeoff_elevation_m", "number", None, unit="m"),
+            Param("gcp_crs", "crs", None),
+            Param("crs", "crs", None),
+            Param("detections", "vector", None, output=True, extensions=(".gpkg", ".csv")),
+            Param("review", "file", None, output=True, extensions=(".png",)),
+            Param("marker_size_m", "number", 1.0, unit="m", minimum=0.05, maximum=10.0),
+            Param("position_uncertainty_m", "number", 5.0, unit="m", minimum=0.0, advanced=True),
+            Param("height_uncertainty_m", "number", 5.0, unit="m", minimum=0.0, advanced=True),
+            Param("attitude_uncertainty_deg", "number", 3.0, unit="deg", minimum=0.0, maximum=45.0,
+                  advanced=True),
+            Param("workers", "integer", 0, minimum=0, advanced=True),
+        ),
+        outputs=(
+            Output("output", "file", "OpenDroneMap gcp_list.txt"),
+            Output("detections", "vector", "every candidate and what became of it"),
+            Output("review", "file", "PNG contact sheet of the detections"),
+            Output("n_observations", "integer", "observations written"),
+            Output("n_gcps_found", "integer", "GCPs seen at least once"),
+            Output("n_candidates", "integer", "(photo, GCP) pairs searched"),
+            Output("crs", "string", "CRS of gcp_list.txt"),
         ),
     ),
     Algorithm(

@@ -156,8 +156,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(describe_json() if args.json else _describe_text())
         return 0
     alg = next(a for a in list_algorithms() if a.id == args.command)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if args.debug:
+    if args.debug:  # the feedback prints messages itself; logging only for debugging
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         logging.getLogger("geoortho").setLevel(logging.DEBUG)
     values = {p.name: getattr(args, p.name) for p in alg.params}
     feedback: Feedback

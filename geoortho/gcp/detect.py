@@ -1,0 +1,137 @@
+"""Coded-marker detection in a window of a photo, with retries, and the marker centre.
+
+Runs in worker processes: everything here takes and returns plain data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..markers import get_dictionary
+
+__all__ = ["Detection", "Window", "detect_in_image", "marker_centre", "ATTEMPTS"]
+
+#: Tried in order on each window until the expected marker is found.
+ATTEMPTS = ("plain", "clahe", "upscale", "glare")
+
+
+@dataclass(frozen=True)
+class Window:
+    """Where to look: a square around a predicted pixel. ``radius_px`` 0 = the whole photo."""
+
+    gcp: str
+    marker_id: int
+    x_px: float
+    y_px: float
+    radius_px: float
+
+
+@dataclass(frozen=True)
+class Detection:
+    marker_id: int
+    x_px: float  # centre, pixel-centre convention, whole-photo coordinates
+    y_px: float
+    corners_px: tuple[tuple[float, float], ...]
+    attempt: str
+    window: int  # index of the window it was found in (-1: whole photo)
+    side_px: float
+
+
+def marker_centre(corners: np.ndarray) -> np.ndarray:
+    """Centre of a planar square seen in perspective: where its diagonals cross.
+
+    The mean of the corners is off by a fraction of a pixel on tilted views;
+    the diagonals meet at the projection of the true centre.
+    """
+    c = np.asarray(corners, float).reshape(4, 2)
+    p, r = c[0], c[2] - c[0]
+    q, s = c[1], c[3] - c[1]
+    denom = r[0] * s[1] - r[1] * s[0]
+    if abs(denom) < 1e-12:
+        return c.mean(axis=0)
+    t = ((q[0] - p[0]) * s[1] - (q[1] - p[1]) * s[0]) / denom
+    return p + t * r
+
+
+def _detector(dictionary: str, glare: bool = False) -> cv2.aruco.ArucoDetector:
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementWinSize = 3
+    params.cornerRefinementMaxIterations = 50
+    params.cornerRefinementMinAccuracy = 0.01
+    if glare:
+        # A bright spot washes out part of the quiet zone and cells: look at more
+        # threshold scales, accept less contrast and a few more wrong border bits.
+        params.adaptiveThreshWinSizeMin = 5
+        params.adaptiveThreshWinSizeMax = 53
+        params.adaptiveThreshWinSizeStep = 4
+        params.adaptiveThreshConstant = 3
+        params.maxErroneousBitsInBorderRate = 0.5
+        params.minOtsuStdDev = 2.0
+    return cv2.aruco.ArucoDetector(get_dictionary(dictionary), params)
+
+
+def _run(gray: np.ndarray, attempt: str, dictionary: str) -> list[tuple[int, np.ndarray]]:
+    scale = 1.0
+    img = gray
+    if attempt == "clahe":
+        img = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(4, 4)).apply(gray)
+    elif attempt == "upscale":
+        scale = 2.0
+        img = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+    elif attempt == "glare":
+        # compress the highlights so a glare spot does not swamp the threshold
+        lut = (255.0 * (np.arange(256) / 255.0) ** 1.8).astype(np.uint8)
+        img = cv2.LUT(gray, lut)
+    corners, ids, _ = _detector(dictionary, glare=attempt == "glare").detectMarkers(img)
+    if ids is None:
+        return []
+    out = []
+    for i, c in zip(ids.ravel(), corners):
+        c = c.reshape(4, 2).astype(float)
+        if scale != 1.0:
+            # pixel centres: x_small = (x_big + 0.5) / s - 0.5
+            c = (c + 0.5) / scale - 0.5
+        out.append((int(i), c))
+    return out
+
+
+def detect_in_image(gray: np.ndarray, windows: list[Window], dictionary: str,
+                    attempts: tuple[str, ...] = ATTEMPTS) -> list[Detection]:
+    """Detect markers in each window (the whole image when ``radius_px`` is 0).
+
+    Retries go on until the window's expected id is found; every marker seen
+    on the way is returned, so the caller can judge wrong ids too.
+    """
+    h, w = gray.shape[:2]
+    found: list[Detection] = []
+    for k, win in enumerate(windows):
+        if win.radius_px <= 0:
+            x0, y0, x1, y1 = 0, 0, w, h
+        else:
+            x0 = int(max(0, np.floor(win.x_px - win.radius_px)))
+            y0 = int(max(0, np.floor(win.y_px - win.radius_px)))
+            x1 = int(min(w, np.ceil(win.x_px + win.radius_px) + 1))
+            y1 = int(min(h, np.ceil(win.y_px + win.radius_px) + 1))
+            if x1 - x0 < 8 or y1 - y0 < 8:
+                continue
+        crop = gray[y0:y1, x0:x1]
+        whole = win.radius_px <= 0
+        # A whole photo has no expected id: run the cheap attempts and keep all they see.
+        for attempt in (tuple(a for a in attempts if a in ("plain", "clahe")) if whole else attempts):
+            if attempt == "upscale" and crop.size > 4_000_000:
+                continue
+            hits = _run(crop, attempt, dictionary)
+            for mid, c in hits:
+                c = c + [x0, y0]
+                centre = marker_centre(c)
+                side = float(np.sqrt(abs(cv2.contourArea(c.astype(np.float32)))))
+                found.append(Detection(mid, float(centre[0]), float(centre[1]),
+                                       tuple(map(tuple, c.tolist())), attempt, -1 if whole else k,
+                                       side))
+            if not whole and any(mid == win.marker_id for mid, _ in hits):
+                break
+    return found

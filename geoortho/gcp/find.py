@@ -1,0 +1,437 @@
+"""Find GCP markers in photos and write OpenDroneMap's gcp_list.txt.
+
+1. Project every GCP into every photo with the metadata pose (footprint.py),
+   on the DSM's datum when one is given.
+2. Keep the (photo, GCP) pairs whose prediction is inside the frame minus a
+   margin; size a search window from the position, height and attitude
+   uncertainty at the photo's GSD.
+3. Detect the coded marker in that window at full resolution, retrying
+   harder cases (CLAHE, ×2 upscale, a glare-tolerant threshold).
+4. Keep only detections with the GCP's id within the window: a wrong id, an
+   id not in the GCP file, or a marker too far from its prediction is
+   reported, never written.
+
+Photos without a usable pose (no GPS, no altitude) are searched whole; there
+only ids of the GCP file are accepted. The take-off elevation, unless given,
+is taken as the median GCP elevation: GCPs lie on the ground of the surveyed
+area, which is a better guess than a consumer drone's GNSS height.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+import multiprocessing
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pyproj import CRS
+
+from ..crs import crs_to_text, parse_crs, transformer
+from ..errors import InputError
+from ..feedback import Feedback, as_feedback, split
+from ..footprint import PhotoCamera, photo_cameras, working_crs
+from ..markers import get_dictionary
+from ..photos import Photo, read_photos
+from ..surface import FlatSurface, Surface, read_surface
+from .detect import Detection, Window, detect_in_image
+from .io import GcpSet, marker_id_of, read_gcp_file
+
+__all__ = ["GcpFindResult", "gcp_find", "Observation", "predict_windows"]
+
+# Statuses of a candidate, as written to the detections table.
+DETECTED = "detected"
+NOT_FOUND = "not found"
+TOO_FAR = "too far from prediction"
+WRONG_ID = "id not in GCP file"
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One candidate (photo, GCP) pair and what became of it."""
+
+    image: str
+    gcp: str
+    marker_id: int
+    status: str
+    predicted_x_px: float = math.nan
+    predicted_y_px: float = math.nan
+    window_px: float = 0.0
+    x_px: float = math.nan
+    y_px: float = math.nan
+    error_px: float = math.nan  # detection − prediction
+    attempt: str = ""
+    side_px: float = math.nan
+    corners_px: tuple[tuple[float, float], ...] = ()
+
+
+@dataclass(frozen=True)
+class GcpFindResult:
+    output: Path
+    detections: Path | None
+    review: Path | None
+    n_observations: int
+    n_gcps_found: int
+    n_candidates: int
+    crs: str
+
+
+def _marker_ids(gcps: GcpSet, dictionary: str) -> dict[str, int]:
+    n_ids = get_dictionary(dictionary).bytesList.shape[0]
+    ids = {}
+    for p in gcps.points:
+        mid = marker_id_of(p.name)
+        if mid is None or mid >= n_ids:
+            continue
+        ids[p.name] = mid
+    if not ids:
+        raise InputError(f"no GCP name ends in a marker id of {dictionary} (e.g. GCP07 → id 7)", path=gcps.path)
+    return ids
+
+
+def predict_windows(
+    cams: Sequence[PhotoCamera], names: Sequence[str], xyz: np.ndarray, ids: dict[str, int], *,
+    margin_pct: float, position_uncertainty_m: float, height_uncertainty_m: float,
+    attitude_uncertainty_deg: float, marker_size_m: float,
+) -> dict[str, list[tuple[Window, float, float]]]:
+    """Per image: the windows to search (with the predicted pixel) for every GCP predicted in frame."""
+    out: dict[str, list[tuple[Window, float, float]]] = {}
+    tan_att = math.tan(math.radians(attitude_uncertainty_deg))
+    for cam in cams:
+        px = cam.project(xyz)
+        w, h = cam.intrinsics.width_px, cam.intrinsics.height_px
+        mx, my = w * margin_pct / 100.0, h * margin_pct / 100.0
+        d = xyz - cam.pose.center
+        rng = np.linalg.norm(d, axis=1)
+        depth = d @ cam.pose.rotation[:, 2]
+        gsd_m = rng / cam.intrinsics.focal_px * (rng / np.maximum(depth, 1e-9))  # off-axis stretch
+        # a height error moves the prediction by dz · (horizontal / vertical) of the ray
+        slope = np.hypot(d[:, 0], d[:, 1]) / np.maximum(np.abs(d[:, 2]), 1e-6)
+        err_m = position_uncertainty_m + height_uncertainty_m * slope + rng * tan_att
+        radius = err_m / gsd_m + 1.5 * marker_size_m / gsd_m
+        for j, name in enumerate(names):
+            x, y = px[j]
+            if not (np.isfinite(x) and np.isfinite(y)) or name not in ids:
+                continue
+            if -0.5 + mx <= x <= w - 0.5 - mx and -0.5 + my <= y <= h - 0.5 - my:
+                out.setdefault(cam.photo.image, []).append(
+                    (Window(name, ids[name], float(x), float(y), float(max(radius[j], 24.0))), x, y))
+    return out
+
+
+def _detect_task(args: tuple[str, list[Window], str]) -> tuple[str, list[Detection], str]:
+    import cv2
+
+    path, windows, dictionary = args
+    gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    if gray is None:
+        return path, [], "cannot decode the image"
+    return path, detect_in_image(gray, windows, dictionary), ""
+
+
+def _init_worker() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def gcp_find(
+    images: Path,
+    gcp_file: Path,
+    output: Path,
+    dictionary: str = "DICT_4X4_50",
+    margin: float = 0.0,
+    dsm: Path | None = None,
+    takeoff_elevation_m: float | None = None,
+    gcp_crs: str | None = None,
+    crs: str | None = None,
+    detections: Path | None = None,
+    review: Path | None = None,
+    marker_size_m: float = 1.0,
+    position_uncertainty_m: float = 5.0,
+    height_uncertainty_m: float = 5.0,
+    attitude_uncertainty_deg: float = 3.0,
+    workers: int = 0,
+    *,
+    feedback: Feedback | None = None,
+) -> GcpFindResult:
+    """Find coded GCP markers in the photos and write OpenDroneMap's gcp_list.txt.
+
+    Predicts where each GCP appears in each photo from the photo metadata,
+    detects the ArUco/AprilTag marker in a window there, and writes only
+    detections whose id and position agree with the prediction. GCP names end
+    in their marker id (``GCP07`` is marker 7).
+
+    Parameters
+    ----------
+    images : Path
+        Folder of photos.
+    gcp_file : Path
+        GCP coordinates: text with a CRS line, CSV with named columns,
+        gcp_list.txt or OpenSfM ground_control_points.json.
+    output : Path
+        gcp_list.txt to write.
+    dictionary : str
+        Marker dictionary (OpenCV name: ArUco DICT_4X4_50 … or AprilTag DICT_APRILTAG_36h11 …).
+    margin : float
+        Ignore predictions closer to the photo border than this, percent of its size.
+    dsm : Path
+        DSM or DTM (same vertical datum as the GCPs) for the camera heights.
+    takeoff_elevation_m : float
+        Ground elevation of the take-off point in the GCPs' datum. Default: the median GCP elevation.
+    gcp_crs : str
+        CRS of the GCP file when it does not say.
+    crs : str
+        CRS of gcp_list.txt. Default: the GCP file's, or the photos' UTM zone if that is geographic.
+    detections : Path
+        Also write every candidate, found or not and why (GeoPackage or CSV).
+    review : Path
+        Also write a PNG contact sheet of every detection for a person to check.
+    marker_size_m : float
+        Side of the markers' black square, metres.
+    position_uncertainty_m : float
+        How far the photos' GPS positions may be off, metres (sizes the search windows).
+    height_uncertainty_m : float
+        How far the camera heights may be off, metres.
+    attitude_uncertainty_deg : float
+        How far the recorded gimbal attitude may be off, degrees.
+    workers : int
+        Processes for detection; 0 uses every core.
+    """
+    fb = as_feedback(feedback)
+    s_read, s_detect, s_write = split(fb, [1, 8, 1])
+    get_dictionary(dictionary)  # fail early on a bad name
+    gcps = read_gcp_file(gcp_file, gcp_crs)
+    ids = _marker_ids(gcps, dictionary)
+    photos = read_photos(images, require_gps=False, require_camera=False, feedback=s_read)
+    if not photos.photos:
+        raise InputError(f"no readable photo ({photos.summary()})", path=images)
+    placed = [p for p in photos.photos if _has_pose(p)]
+    unplaced = [p for p in photos.photos if not _has_pose(p)]
+    for p in unplaced:
+        fb.warning(f"{p.image}: no usable position/altitude/camera: searched whole")
+
+    names = [p.name for p in gcps.points]
+    windows: dict[str, list[tuple[Window, float, float]]] = {}
+    work: CRS | None = None
+    if placed:
+        work = working_crs(placed, gcps.crs if gcps.crs.is_projected else None)
+        t = transformer(gcps.crs, work)
+        gx, gy = t.transform(np.array([p.x for p in gcps.points]), np.array([p.y for p in gcps.points]))
+        xyz = np.c_[gx, gy, [p.z for p in gcps.points]]
+        surface: Surface | None = read_surface(dsm, work) if dsm is not None else None
+        takeoff = takeoff_elevation_m if takeoff_elevation_m is not None else float(np.median(xyz[:, 2]))
+        if surface is None:
+            surface = FlatSurface(takeoff)
+        cams, _, how = photo_cameras(placed, work, surface, takeoff)
+        fb.info(f"camera heights: {how} ({takeoff:.2f} m)")
+        windows = predict_windows(
+            cams, names, xyz, ids, margin_pct=margin, position_uncertainty_m=position_uncertainty_m,
+            height_uncertainty_m=height_uncertainty_m, attitude_uncertainty_deg=attitude_uncertainty_deg,
+            marker_size_m=marker_size_m)
+    s_read.progress(1.0)
+
+    tasks: list[tuple[str, list[Window], str]] = []
+    for p in placed:
+        if p.image in windows:
+            tasks.append((str(p.path), [w for w, _, _ in windows[p.image]], dictionary))
+    for p in unplaced:
+        tasks.append((str(p.path), [Window("", -1, 0.0, 0.0, 0.0)], dictionary))
+    results = _run_tasks(tasks, workers, s_detect)
+
+    observations = _judge(results, windows, ids, fb)
+    s_detect.progress(1.0)
+    # ODM works in a projected CRS: a geographic GCP file is written in the photos' UTM zone.
+    out_crs = parse_crs(crs) if crs else (work if gcps.crs.is_geographic and work is not None else gcps.crs)
+    written = write_gcp_list(output, observations, gcps, out_crs)
+    det_path = write_detections(detections, observations, gcps) if detections is not None else None
+    review_path = write_review(review, observations, {p.image: p.path for p in photos.photos}) \
+        if review is not None else None
+    _warn_counts(observations, fb)
+    s_write.progress(1.0)
+    accepted = [o for o in observations if o.status == DETECTED]
+    fb.info(f"{len(accepted)} observations of {len({o.gcp for o in accepted})} GCPs in "
+            f"{len({o.image for o in accepted})} photos ({len(observations)} candidates); {photos.summary()}")
+    return GcpFindResult(written, det_path, review_path, len(accepted), len({o.gcp for o in accepted}),
+                         len(observations), crs_to_text(out_crs))
+
+
+def _has_pose(p: Photo) -> bool:
+    alt = any(math.isfinite(v) for v in (p.relative_altitude_m, p.absolute_altitude_m, p.gps_altitude_m))
+    return p.has_gps and alt and math.isfinite(p.focal_px)
+
+
+def _run_tasks(tasks: list[tuple[str, list[Window], str]], workers: int,
+               fb: Feedback) -> list[tuple[str, list[Detection], str]]:
+    n_workers = workers or os.cpu_count() or 1
+    results = []
+    if n_workers <= 1 or len(tasks) < 4:
+        for i, t in enumerate(tasks):
+            fb.check_canceled()
+            results.append(_detect_task(t))
+            fb.progress((i + 1) / max(1, len(tasks)))
+        return results
+    ctx = multiprocessing.get_context("spawn")  # OpenCV's threads and fork do not mix
+    with cf.ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=_init_worker) as ex:
+        futures = [ex.submit(_detect_task, t) for t in tasks]
+        try:
+            for i, fut in enumerate(futures):
+                if fb.is_canceled():
+                    fb.check_canceled()
+                results.append(fut.result())
+                fb.progress((i + 1) / len(tasks))
+        except BaseException:
+            for f_ in futures:
+                f_.cancel()
+            raise
+    return results
+
+
+def _judge(results: list[tuple[str, list[Detection], str]],
+           windows: dict[str, list[tuple[Window, float, float]]], ids: dict[str, int],
+           fb: Feedback) -> list[Observation]:
+    """Turn raw detections into accepted observations and rejected candidates."""
+    by_id = {v: k for k, v in ids.items()}
+    obs: list[Observation] = []
+    for path, dets, error in results:
+        image = Path(path).name
+        if error:
+            fb.warning(f"{image}: {error}")
+        wins = windows.get(image, [])
+        if not wins:  # searched whole: any id of the file, once
+            seen: dict[int, Detection] = {}
+            for d in dets:
+                if d.marker_id in by_id:
+                    seen.setdefault(d.marker_id, d)
+                else:
+                    obs.append(Observation(image, "", d.marker_id, WRONG_ID, x_px=d.x_px, y_px=d.y_px,
+                                           attempt=d.attempt))
+            for mid, d in sorted(seen.items()):
+                obs.append(Observation(image, by_id[mid], mid, DETECTED, x_px=d.x_px, y_px=d.y_px,
+                                       attempt=d.attempt, side_px=d.side_px, corners_px=d.corners_px))
+            continue
+        for k, (win, px, py) in enumerate(wins):
+            mine = [d for d in dets if d.window == k and d.marker_id == win.marker_id]
+            base = dict(image=image, gcp=win.gcp, marker_id=win.marker_id, predicted_x_px=px, predicted_y_px=py,
+                        window_px=win.radius_px)
+            if not mine:
+                obs.append(Observation(**base, status=NOT_FOUND))
+                continue
+            d = min(mine, key=lambda d: math.hypot(d.x_px - px, d.y_px - py))
+            err = math.hypot(d.x_px - px, d.y_px - py)
+            status = DETECTED if err <= win.radius_px else TOO_FAR
+            obs.append(Observation(**base, status=status, x_px=d.x_px, y_px=d.y_px, error_px=err,
+                                   attempt=d.attempt, side_px=d.side_px, corners_px=d.corners_px))
+        # markers seen whose id is in no GCP file: recorded, never written
+        for mid in sorted({d.marker_id for d in dets if d.marker_id not in by_id}):
+            d = next(d for d in dets if d.marker_id == mid)
+            obs.append(Observation(image, "", mid, WRONG_ID, x_px=d.x_px, y_px=d.y_px, attempt=d.attempt))
+    # one observation per (image, GCP): windows of two GCPs can overlap
+    seen_pairs: set[tuple[str, str]] = set()
+    unique = []
+    for o in obs:
+        key = (o.image, o.gcp)
+        if o.status == DETECTED:
+            if key in seen_pairs:
+                continue
+            seen_pairs.add(key)
+        unique.append(o)
+    return unique
+
+
+def _warn_counts(observations: list[Observation], fb: Feedback) -> None:
+    per_gcp: dict[str, int] = {}
+    for o in observations:
+        if o.status == DETECTED:
+            per_gcp[o.gcp] = per_gcp.get(o.gcp, 0) + 1
+    for g, n in sorted(per_gcp.items()):
+        if n < 3:
+            fb.warning(f"GCP {g} is seen in only {n} photo(s); OpenDroneMap wants at least 3")
+    if len(per_gcp) < 3:
+        fb.warning(f"only {len(per_gcp)} GCP(s) found; OpenDroneMap needs at least 3")
+
+
+def write_gcp_list(path: Path, observations: list[Observation], gcps: GcpSet, crs: CRS) -> Path:
+    """gcp_list.txt as OpenDroneMap reads it: CRS line, then ``x y z px py image name``."""
+    from ..outputs import write_text
+
+    t = transformer(gcps.crs, crs)
+    by_name = gcps.by_name()
+    lines = [crs_to_text(crs)]
+    geographic = crs.is_geographic
+    for o in sorted((o for o in observations if o.status == DETECTED), key=lambda o: (o.gcp, o.image)):
+        g = by_name[o.gcp]
+        x, y = t.transform(g.x, g.y)
+        fmt = "{:.9f} {:.9f}" if geographic else "{:.4f} {:.4f}"
+        lines.append(f"{fmt.format(x, y)} {g.z:.4f} {o.x_px:.3f} {o.y_px:.3f} {o.image} {o.gcp}")
+    return write_text(path, "\n".join(lines) + "\n")
+
+
+def write_detections(path: Path, observations: list[Observation], gcps: GcpSet) -> Path:
+    """Every candidate as a table: GeoPackage (points at the GCP) or CSV, by extension."""
+    import geopandas as gpd
+    import shapely
+
+    from ..outputs import write_text, write_vector
+
+    by_name = gcps.by_name()
+    rows: list[dict[str, Any]] = []
+    for o in observations:
+        r = {k: getattr(o, k) for k in Observation.__dataclass_fields__ if k != "corners_px"}
+        rows.append(r)
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        import csv
+        import io
+
+        buf = io.StringIO()
+        wr = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["image"])
+        wr.writeheader()
+        wr.writerows(rows)
+        return write_text(path, buf.getvalue())
+    geoms = [shapely.Point(by_name[o.gcp].x, by_name[o.gcp].y) if o.gcp in by_name else None
+             for o in observations]
+    gdf = gpd.GeoDataFrame(rows, geometry=geoms, crs=gcps.crs)
+    return write_vector(path, {"detections": gdf})
+
+
+def write_review(path: Path, observations: list[Observation], paths: dict[str, Path],
+                 crop_px: int = 128, columns: int = 8) -> Path:
+    """PNG contact sheet: a crop around each detection, centre marked, labelled GCP / image."""
+    import cv2
+
+    from ..outputs import atomic_path
+
+    accepted = [o for o in observations if o.status == DETECTED]
+    tiles = []
+    cache: dict[str, np.ndarray] = {}
+    half = crop_px // 2
+    for o in sorted(accepted, key=lambda o: (o.gcp, o.image)):
+        img = cache.get(o.image)
+        if img is None:
+            cache.clear()  # one photo in memory at a time (observations are sorted by GCP)
+            img = cache[o.image] = cv2.imread(str(paths[o.image]), cv2.IMREAD_COLOR)
+        # crop scaled so the marker fills about half the tile
+        scale = max(1.0, (crop_px * 0.5) / max(o.side_px, 1.0))
+        m = np.array([[scale, 0, half - scale * o.x_px], [0, scale, half - scale * o.y_px]])
+        tile = cv2.warpAffine(img, m, (crop_px, crop_px + 18), flags=cv2.INTER_LINEAR, borderValue=(40, 40, 40))
+        cv2.drawMarker(tile, (half, half), (0, 0, 255), cv2.MARKER_CROSS, 14, 1)
+        label = f"{o.gcp} {Path(o.image).stem}"[:22]
+        cv2.rectangle(tile, (0, crop_px), (crop_px, crop_px + 18), (0, 0, 0), -1)
+        cv2.putText(tile, label, (2, crop_px + 13), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(tile)
+    if not tiles:
+        tiles = [np.zeros((crop_px + 18, crop_px, 3), np.uint8)]
+    rows = [tiles[i:i + columns] for i in range(0, len(tiles), columns)]
+    blank = np.zeros_like(tiles[0])
+    sheet = np.vstack([np.hstack(r + [blank] * (columns - len(r))) for r in rows])
+    with atomic_path(path) as tmp:
+        ok, buf = cv2.imencode(".png", sheet)
+        if not ok:
+            raise InputError("cannot encode the review sheet", path=path)
+        Path(tmp).write_bytes(buf.tobytes())
+    return Path(path)
