@@ -65,7 +65,7 @@ def demo(
 
 def _stages() -> list:
     """(name, weight, run(survey, output, feedback) -> products) for every stage that exists."""
-    return [("footprints", 1, _footprints)]
+    return [("footprints", 1, _footprints), ("gcp-find", 2, _gcp_find)]
 
 
 def _takeoff_elevation(survey: SynthResult) -> float:
@@ -81,3 +81,12 @@ def _footprints(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, st
                    feedback=fb)
     fb.info(f"footprints: {r.n_photos} photos, median GSD {r.median_gsd_cm:.2f} cm")
     return {"footprints": str(r.output), "overlap": str(r.overlap)}
+
+
+def _gcp_find(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
+    from .gcp.find import gcp_find
+
+    r = gcp_find(survey.images, survey.gcp_file, output / "gcp_list.txt", dsm=survey.dsm,
+                 detections=output / "gcp_detections.gpkg", review=output / "gcp_review.png", feedback=fb)
+    fb.info(f"gcp-find: {r.n_observations} observations of {r.n_gcps_found} GCPs")
+    return {"gcp_list": str(r.output), "gcp_detections": str(r.detections), "gcp_review": str(r.review)}

@@ -12,7 +12,7 @@ import pytest
 from conftest import real_data
 
 from geoortho.gcp import read_gcp_file
-from geoortho.gcp.detect import marker_centre
+from geoortho.gcp.detect import diagonal_intersection, marker_centre
 from geoortho.gcp.find import gcp_find
 
 
@@ -124,17 +124,20 @@ def test_real_findgcp_photos_without_gps_match_upstream(tmp_path):
         assert abs(ours[k][0] - x) <= 2.5 and abs(ours[k][1] - y) <= 2.5, k
 
 
-def test_marker_centre_is_the_diagonal_intersection():
+def test_marker_centre_follows_the_diagonals_under_perspective():
     # a square seen in perspective: the projected centre is not the mean of the corners
     from geoortho.camera import Intrinsics, Pose, project_points
 
     intr = Intrinsics(1000, 800, 800.0)
-    pose = Pose.from_ypr((0, -20, 15), 0, -35, 0)
     square = np.array([[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0], [0, 0, 0]], float)
-    px, _ = project_points(square, intr, pose)
-    c = marker_centre(px[:4])
-    assert np.allclose(c, px[4], atol=1e-9)
-    assert np.hypot(*(px[:4].mean(axis=0) - px[4])) > 0.2
+    strong = Pose.from_ypr((0, -8, 6), 0, -30, 0)
+    px, _ = project_points(square, intr, strong)
+    assert np.allclose(diagonal_intersection(px[:4]), px[4], atol=1e-9)
+    assert np.hypot(*(px[:4].mean(axis=0) - px[4])) > 0.8
+    assert np.allclose(marker_centre(px[:4]), px[4], atol=1e-9)  # strong perspective: diagonals
+    nadir = Pose.from_ypr((0.3, 0.2, 40), 0, -90, 0)
+    px, _ = project_points(square, intr, nadir)
+    assert np.allclose(marker_centre(px[:4]), px[:4].mean(axis=0))  # no perspective: the mean
 
 
 def test_cli_bad_gcp_file_exit_2(tmp_path, tiny_survey):

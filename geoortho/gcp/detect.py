@@ -12,10 +12,11 @@ import numpy as np
 
 from ..markers import get_dictionary
 
-__all__ = ["Detection", "Window", "detect_in_image", "marker_centre", "ATTEMPTS"]
+__all__ = ["Detection", "Window", "detect_in_image", "marker_centre", "diagonal_intersection", "ATTEMPTS"]
 
-#: Tried in order on each window until the expected marker is found.
-ATTEMPTS = ("plain", "clahe", "upscale", "glare")
+#: Tried in order on each window until the expected marker is found. "fast" thresholds at the
+#: one scale the predicted marker size calls for (5x cheaper than OpenCV's three scales).
+ATTEMPTS = ("fast", "plain", "clahe", "upscale", "glare")
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,7 @@ class Window:
     x_px: float
     y_px: float
     radius_px: float
+    side_px: float = 0.0  # expected marker side; 0 = unknown
 
 
 @dataclass(frozen=True)
@@ -40,12 +42,8 @@ class Detection:
     side_px: float
 
 
-def marker_centre(corners: np.ndarray) -> np.ndarray:
-    """Centre of a planar square seen in perspective: where its diagonals cross.
-
-    The mean of the corners is off by a fraction of a pixel on tilted views;
-    the diagonals meet at the projection of the true centre.
-    """
+def diagonal_intersection(corners: np.ndarray) -> np.ndarray:
+    """Where the diagonals of a quadrilateral cross: the projection of a planar square's centre."""
     c = np.asarray(corners, float).reshape(4, 2)
     p, r = c[0], c[2] - c[0]
     q, s = c[1], c[3] - c[1]
@@ -56,8 +54,28 @@ def marker_centre(corners: np.ndarray) -> np.ndarray:
     return p + t * r
 
 
-def _detector(dictionary: str, glare: bool = False) -> cv2.aruco.ArucoDetector:
+def marker_centre(corners: np.ndarray) -> np.ndarray:
+    """Centre of a marker from its four refined corners.
+
+    The diagonals cross at the exact projected centre, but an intersection of
+    two lines magnifies corner noise; the mean of the corners halves the noise
+    but is biased by perspective. Measured on the synthetic ``small`` survey
+    (near nadir): mean 0.14 px, diagonals 0.25 px mean error. So: the mean,
+    moving to the diagonals as the two part (strong perspective, where the
+    mean's bias exceeds the noise).
+    """
+    c = np.asarray(corners, float).reshape(4, 2)
+    mean = c.mean(axis=0)
+    diag = diagonal_intersection(c)
+    gap = float(np.hypot(*(diag - mean)))
+    w = min(1.0, max(0.0, (gap - 0.2) / 0.6))
+    return mean + w * (diag - mean)
+
+
+def _detector(dictionary: str, glare: bool = False, threshold_win_px: int = 0) -> cv2.aruco.ArucoDetector:
     params = cv2.aruco.DetectorParameters()
+    if threshold_win_px:
+        params.adaptiveThreshWinSizeMin = params.adaptiveThreshWinSizeMax = threshold_win_px
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     params.cornerRefinementWinSize = 3
     params.cornerRefinementMaxIterations = 50
@@ -74,9 +92,13 @@ def _detector(dictionary: str, glare: bool = False) -> cv2.aruco.ArucoDetector:
     return cv2.aruco.ArucoDetector(get_dictionary(dictionary), params)
 
 
-def _run(gray: np.ndarray, attempt: str, dictionary: str) -> list[tuple[int, np.ndarray]]:
+def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) -> list[tuple[int, np.ndarray]]:
     scale = 1.0
     img = gray
+    win = 0
+    if attempt == "fast":
+        # about three marker cells (a 4x4 marker with its border is 6 cells wide)
+        win = int(np.clip(side_px / 2, 3, 51)) | 1
     if attempt == "clahe":
         img = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(4, 4)).apply(gray)
     elif attempt == "upscale":
@@ -86,7 +108,7 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str) -> list[tuple[int, np.
         # compress the highlights so a glare spot does not swamp the threshold
         lut = (255.0 * (np.arange(256) / 255.0) ** 1.8).astype(np.uint8)
         img = cv2.LUT(gray, lut)
-    corners, ids, _ = _detector(dictionary, glare=attempt == "glare").detectMarkers(img)
+    corners, ids, _ = _detector(dictionary, glare=attempt == "glare", threshold_win_px=win).detectMarkers(img)
     if ids is None:
         return []
     out = []
@@ -122,9 +144,9 @@ def detect_in_image(gray: np.ndarray, windows: list[Window], dictionary: str,
         whole = win.radius_px <= 0
         # A whole photo has no expected id: run the cheap attempts and keep all they see.
         for attempt in (tuple(a for a in attempts if a in ("plain", "clahe")) if whole else attempts):
-            if attempt == "upscale" and crop.size > 4_000_000:
+            if attempt == "upscale" and crop.size > 4_000_000 or attempt == "fast" and win.side_px <= 0:
                 continue
-            hits = _run(crop, attempt, dictionary)
+            hits = _run(crop, attempt, dictionary, win.side_px)
             for mid, c in hits:
                 c = c + [x0, y0]
                 centre = marker_centre(c)

@@ -119,7 +119,8 @@ def predict_windows(
                 continue
             if -0.5 + mx <= x <= w - 0.5 - mx and -0.5 + my <= y <= h - 0.5 - my:
                 out.setdefault(cam.photo.image, []).append(
-                    (Window(name, ids[name], float(x), float(y), float(max(radius[j], 24.0))), x, y))
+                    (Window(name, ids[name], float(x), float(y), float(max(radius[j], 24.0)),
+                            float(marker_size_m / gsd_m[j])), x, y))
     return out
 
 
@@ -382,6 +383,7 @@ def write_detections(path: Path, observations: list[Observation], gcps: GcpSet) 
     rows: list[dict[str, Any]] = []
     for o in observations:
         r = {k: getattr(o, k) for k in Observation.__dataclass_fields__ if k != "corners_px"}
+        r["corners_px"] = ";".join(f"{x:.3f} {y:.3f}" for x, y in o.corners_px)
         rows.append(r)
     path = Path(path)
     if path.suffix.lower() == ".csv":
