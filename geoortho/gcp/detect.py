@@ -12,7 +12,7 @@ import numpy as np
 
 from ..markers import get_dictionary
 
-__all__ = ["Detection", "Window", "detect_in_image", "marker_centre", "diagonal_intersection", "ATTEMPTS"]
+__all__ = ["Detection", "Window", "detect_in_image", "detect_task", "init_worker", "marker_centre", "diagonal_intersection", "ATTEMPTS"]
 
 #: Tried in order on each window until the expected marker is found. "fast" thresholds at the
 #: one scale the predicted marker size calls for (5x cheaper than OpenCV's three scales).
@@ -144,7 +144,13 @@ def detect_in_image(gray: np.ndarray, windows: list[Window], dictionary: str,
         whole = win.radius_px <= 0
         # A whole photo has no expected id: run the cheap attempts and keep all they see.
         for attempt in (tuple(a for a in attempts if a in ("plain", "clahe")) if whole else attempts):
-            if attempt == "upscale" and crop.size > 4_000_000 or attempt == "fast" and win.side_px <= 0:
+            if attempt == "fast" and win.side_px <= 0:
+                continue
+            # upscaling helps small markers only; a prediction outside the frame is a long
+            # shot (the marker is most likely out of view): do not spend the retries on it
+            if attempt == "upscale" and (crop.size > 4_000_000 or win.side_px >= 24):
+                continue
+            if attempt not in ("fast", "plain") and not (-0.5 <= win.x_px <= w - 0.5 and -0.5 <= win.y_px <= h - 0.5):
                 continue
             hits = _run(crop, attempt, dictionary, win.side_px)
             for mid, c in hits:
@@ -157,3 +163,16 @@ def detect_in_image(gray: np.ndarray, windows: list[Window], dictionary: str,
             if not whole and any(mid == win.marker_id for mid, _ in hits):
                 break
     return found
+
+
+def detect_task(args: tuple[str, list[Window], str]) -> tuple[str, list[Detection], str]:
+    """Worker entry: decode one photo (grey) and search its windows."""
+    path, windows, dictionary = args
+    gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    if gray is None:
+        return path, [], "cannot decode the image"
+    return path, detect_in_image(gray, windows, dictionary), ""
+
+
+def init_worker() -> None:
+    cv2.setNumThreads(1)  # one photo per process; OpenCV's own threads would oversubscribe

@@ -38,7 +38,7 @@ from ..footprint import PhotoCamera, photo_cameras, working_crs
 from ..markers import get_dictionary
 from ..photos import Photo, read_photos
 from ..surface import FlatSurface, Surface, read_surface
-from .detect import Detection, Window, detect_in_image
+from .detect import Detection, Window, detect_task, init_worker
 from .io import GcpSet, marker_id_of, read_gcp_file
 
 __all__ = ["GcpFindResult", "gcp_find", "Observation", "predict_windows"]
@@ -48,6 +48,7 @@ DETECTED = "detected"
 NOT_FOUND = "not found"
 TOO_FAR = "too far from prediction"
 WRONG_ID = "id not in GCP file"
+IN_MARGIN = "inside the margin"
 
 
 @dataclass(frozen=True)
@@ -117,27 +118,15 @@ def predict_windows(
             x, y = px[j]
             if not (np.isfinite(x) and np.isfinite(y)) or name not in ids:
                 continue
-            if -0.5 + mx <= x <= w - 0.5 - mx and -0.5 + my <= y <= h - 0.5 - my:
+            # The prediction may be off by the window's error part: a marker just inside the
+            # frame can be predicted just outside it. Search when the window reaches the frame;
+            # the margin is enforced on the detected centre (_judge).
+            slack = max(0.0, radius[j] - 1.5 * marker_size_m / gsd_m[j])
+            if -0.5 + mx - slack <= x <= w - 0.5 - mx + slack and -0.5 + my - slack <= y <= h - 0.5 - my + slack:
                 out.setdefault(cam.photo.image, []).append(
                     (Window(name, ids[name], float(x), float(y), float(max(radius[j], 24.0)),
                             float(marker_size_m / gsd_m[j])), x, y))
     return out
-
-
-def _detect_task(args: tuple[str, list[Window], str]) -> tuple[str, list[Detection], str]:
-    import cv2
-
-    path, windows, dictionary = args
-    gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
-    if gray is None:
-        return path, [], "cannot decode the image"
-    return path, detect_in_image(gray, windows, dictionary), ""
-
-
-def _init_worker() -> None:
-    import cv2
-
-    cv2.setNumThreads(1)
 
 
 def gcp_find(
@@ -244,7 +233,8 @@ def gcp_find(
         tasks.append((str(p.path), [Window("", -1, 0.0, 0.0, 0.0)], dictionary))
     results = _run_tasks(tasks, workers, s_detect)
 
-    observations = _judge(results, windows, ids, fb)
+    frames = {p.image: (p.width_px, p.height_px) for p in photos.photos}
+    observations = _judge(results, windows, ids, fb, frames, margin)
     s_detect.progress(1.0)
     # ODM works in a projected CRS: a geographic GCP file is written in the photos' UTM zone.
     out_crs = parse_crs(crs) if crs else (work if gcps.crs.is_geographic and work is not None else gcps.crs)
@@ -273,12 +263,14 @@ def _run_tasks(tasks: list[tuple[str, list[Window], str]], workers: int,
     if n_workers <= 1 or len(tasks) < 4:
         for i, t in enumerate(tasks):
             fb.check_canceled()
-            results.append(_detect_task(t))
+            results.append(detect_task(t))
             fb.progress((i + 1) / max(1, len(tasks)))
         return results
-    ctx = multiprocessing.get_context("spawn")  # OpenCV's threads and fork do not mix
-    with cf.ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=_init_worker) as ex:
-        futures = [ex.submit(_detect_task, t) for t in tasks]
+    # spawn, not fork: a caller may have started OpenCV's thread pool already. The workers
+    # run detect.py, which imports only OpenCV and NumPy, so they start quickly.
+    ctx = multiprocessing.get_context("spawn")
+    with cf.ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=init_worker) as ex:
+        futures = [ex.submit(detect_task, t) for t in tasks]
         try:
             for i, fut in enumerate(futures):
                 if fb.is_canceled():
@@ -294,9 +286,11 @@ def _run_tasks(tasks: list[tuple[str, list[Window], str]], workers: int,
 
 def _judge(results: list[tuple[str, list[Detection], str]],
            windows: dict[str, list[tuple[Window, float, float]]], ids: dict[str, int],
-           fb: Feedback) -> list[Observation]:
+           fb: Feedback, frames: dict[str, tuple[int, int]] | None = None,
+           margin_pct: float = 0.0) -> list[Observation]:
     """Turn raw detections into accepted observations and rejected candidates."""
     by_id = {v: k for k, v in ids.items()}
+    frames = frames or {}
     obs: list[Observation] = []
     for path, dets, error in results:
         image = Path(path).name
@@ -325,6 +319,10 @@ def _judge(results: list[tuple[str, list[Detection], str]],
             d = min(mine, key=lambda d: math.hypot(d.x_px - px, d.y_px - py))
             err = math.hypot(d.x_px - px, d.y_px - py)
             status = DETECTED if err <= win.radius_px else TOO_FAR
+            w, h = frames.get(image, (math.inf, math.inf))
+            mx, my = w * margin_pct / 100.0, h * margin_pct / 100.0
+            if status == DETECTED and not (-0.5 + mx <= d.x_px <= w - 0.5 - mx and -0.5 + my <= d.y_px <= h - 0.5 - my):
+                status = IN_MARGIN
             obs.append(Observation(**base, status=status, x_px=d.x_px, y_px=d.y_px, error_px=err,
                                    attempt=d.attempt, side_px=d.side_px, corners_px=d.corners_px))
         # markers seen whose id is in no GCP file: recorded, never written
