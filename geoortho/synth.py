@@ -20,12 +20,9 @@ Conventions of the truth files (also written to ``truth/survey.json``):
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import datetime as dt
 import io
 import math
-import multiprocessing
-import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -40,6 +37,7 @@ from .crs import transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
 from .markers import get_dictionary, marker_cells
+from .parallel import map_ordered
 from .surface import GridSurface, sample_grid
 
 __all__ = ["PRESETS", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
@@ -777,27 +775,9 @@ def synth(
             f"in {scene.crs.name}")
     step_scene.progress(1.0)
 
-    n_workers = workers or os.cpu_count() or 1
     tasks = [(s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name)) for i, s in enumerate(shots)]
-    results: list[dict[str, Any]] = []
-    if n_workers <= 1:
-        _init_worker(scene)
-        for i, t in enumerate(tasks):
-            results.append(_render_task(t))
-            step_render.progress((i + 1) / len(tasks))
-    else:
-        ctx = multiprocessing.get_context("spawn")  # fork and OpenCV's thread pool do not mix
-        with cf.ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=_init_worker,
-                                    initargs=(scene,)) as ex:
-            futures = [ex.submit(_render_task, t) for t in tasks]
-            try:
-                for i, fut in enumerate(futures):
-                    results.append(fut.result())
-                    step_render.progress((i + 1) / len(tasks))
-            except BaseException:
-                for f_ in futures:
-                    f_.cancel()
-                raise
+    results: list[dict[str, Any]] = map_ordered(_render_task, tasks, workers=workers, initializer=_init_worker,
+                                                initargs=(scene,), feedback=step_render)
     _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth)
     return SynthResult(
         output=output, images=images_dir, truth=truth_dir, gcp_file=truth_dir / "gcp_utm.txt",

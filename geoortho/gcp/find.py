@@ -19,10 +19,7 @@ area, which is a better guess than a consumer drone's GNSS height.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import math
-import multiprocessing
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +33,7 @@ from ..errors import InputError
 from ..feedback import Feedback, as_feedback, split
 from ..footprint import PhotoCamera, photo_cameras, working_crs
 from ..markers import get_dictionary
+from ..parallel import map_ordered
 from ..photos import Photo, read_photos
 from ..surface import FlatSurface, Surface, read_surface
 from .detect import Detection, Window, detect_task, init_worker
@@ -258,30 +256,9 @@ def _has_pose(p: Photo) -> bool:
 
 def _run_tasks(tasks: list[tuple[str, list[Window], str]], workers: int,
                fb: Feedback) -> list[tuple[str, list[Detection], str]]:
-    n_workers = workers or os.cpu_count() or 1
-    results = []
-    if n_workers <= 1 or len(tasks) < 4:
-        for i, t in enumerate(tasks):
-            fb.check_canceled()
-            results.append(detect_task(t))
-            fb.progress((i + 1) / max(1, len(tasks)))
-        return results
-    # spawn, not fork: a caller may have started OpenCV's thread pool already. The workers
-    # run detect.py, which imports only OpenCV and NumPy, so they start quickly.
-    ctx = multiprocessing.get_context("spawn")
-    with cf.ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=init_worker) as ex:
-        futures = [ex.submit(detect_task, t) for t in tasks]
-        try:
-            for i, fut in enumerate(futures):
-                if fb.is_canceled():
-                    fb.check_canceled()
-                results.append(fut.result())
-                fb.progress((i + 1) / len(tasks))
-        except BaseException:
-            for f_ in futures:
-                f_.cancel()
-            raise
-    return results
+    # Workers run detect.py, which imports only OpenCV and NumPy, so they start quickly.
+    return map_ordered(detect_task, tasks, workers=workers, initializer=init_worker, feedback=fb,
+                       min_items_for_pool=4)
 
 
 def _judge(results: list[tuple[str, list[Detection], str]],
