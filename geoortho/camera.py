@@ -29,6 +29,7 @@ __all__ = [
     "project_points",
     "pixel_rays",
     "undistort_pixels",
+    "in_frame",
 ]
 
 # Camera axes (x right, y down, z forward) expressed in the body frame
@@ -194,3 +195,11 @@ def pixel_rays(pixels: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> np.nda
     xn = undistort_pixels(pixels, intrinsics)
     d = np.c_[xn, np.ones(len(xn))] @ pose.rotation.T
     return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def in_frame(x: float | np.ndarray, y: float | np.ndarray, width_px: float, height_px: float,
+             margin_x_px: float = 0.0, margin_y_px: float = 0.0) -> bool | np.ndarray:
+    """Whether pixels lie in the image (−0.5 .. size−0.5, pixel-centre convention), ``margin``
+    pixels in from each side (a negative margin reaches outside)."""
+    return ((-0.5 + margin_x_px <= x) & (x <= width_px - 0.5 - margin_x_px)
+            & (-0.5 + margin_y_px <= y) & (y <= height_px - 0.5 - margin_y_px))

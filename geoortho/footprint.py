@@ -60,12 +60,6 @@ class PhotoCamera:
         px, _ = project_points(points_xyz, self.intrinsics, self.pose)
         return px
 
-    def in_frame(self, pixels: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
-        w, h = self.intrinsics.width_px, self.intrinsics.height_px
-        x, y = pixels[:, 0], pixels[:, 1]
-        return (x >= -0.5 + margin_px) & (y >= -0.5 + margin_px) & (x <= w - 0.5 - margin_px) & \
-            (y <= h - 0.5 - margin_px)
-
 
 def working_crs(photos: Sequence[Photo], crs: CRS | str | None = None) -> CRS:
     """The CRS to compute in: ``crs`` if projected, else the photos' UTM zone."""

@@ -10,9 +10,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..camera import in_frame
 from ..markers import get_dictionary
 
-__all__ = ["Detection", "Window", "detect_in_image", "detect_task", "init_worker", "marker_centre", "diagonal_intersection", "ATTEMPTS"]
+__all__ = [
+    "Detection", "Window", "detect_in_image", "detect_task", "init_worker", "marker_centre",
+    "diagonal_intersection", "ATTEMPTS",
+]
 
 #: Tried in order on each window until the expected marker is found. "fast" thresholds at the
 #: one scale the predicted marker size calls for (5x cheaper than OpenCV's three scales).
@@ -150,7 +154,7 @@ def detect_in_image(gray: np.ndarray, windows: list[Window], dictionary: str,
             # shot (the marker is most likely out of view): do not spend the retries on it
             if attempt == "upscale" and (crop.size > 4_000_000 or win.side_px >= 24):
                 continue
-            if attempt not in ("fast", "plain") and not (-0.5 <= win.x_px <= w - 0.5 and -0.5 <= win.y_px <= h - 0.5):
+            if attempt not in ("fast", "plain") and not in_frame(win.x_px, win.y_px, w, h):
                 continue
             hits = _run(crop, attempt, dictionary, win.side_px)
             for mid, c in hits:

@@ -2,9 +2,10 @@
 
 1. Project every GCP into every photo with the metadata pose (footprint.py),
    on the DSM's datum when one is given.
-2. Keep the (photo, GCP) pairs whose prediction is inside the frame minus a
-   margin; size a search window from the position, height and attitude
-   uncertainty at the photo's GSD.
+2. Size a search window around each prediction from the position, height
+   and attitude uncertainty at the photo's GSD; keep the (photo, GCP) pairs
+   whose window reaches the frame minus a margin (the margin is then checked
+   on the detected centre).
 3. Detect the coded marker in that window at full resolution, retrying
    harder cases (CLAHE, ×2 upscale, a glare-tolerant threshold).
 4. Keep only detections with the GCP's id within the window: a wrong id, an
@@ -28,6 +29,7 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
+from ..camera import in_frame
 from ..crs import crs_to_text, parse_crs, transformer
 from ..errors import InputError
 from ..feedback import Feedback, as_feedback, split
@@ -96,9 +98,9 @@ def predict_windows(
     cams: Sequence[PhotoCamera], names: Sequence[str], xyz: np.ndarray, ids: dict[str, int], *,
     margin_pct: float, position_uncertainty_m: float, height_uncertainty_m: float,
     attitude_uncertainty_deg: float, marker_size_m: float,
-) -> dict[str, list[tuple[Window, float, float]]]:
-    """Per image: the windows to search (with the predicted pixel) for every GCP predicted in frame."""
-    out: dict[str, list[tuple[Window, float, float]]] = {}
+) -> dict[str, list[Window]]:
+    """Per image: the windows to search, centred on each GCP's predicted pixel, that reach the frame."""
+    out: dict[str, list[Window]] = {}
     tan_att = math.tan(math.radians(attitude_uncertainty_deg))
     for cam in cams:
         px = cam.project(xyz)
@@ -111,7 +113,8 @@ def predict_windows(
         # a height error moves the prediction by dz · (horizontal / vertical) of the ray
         slope = np.hypot(d[:, 0], d[:, 1]) / np.maximum(np.abs(d[:, 2]), 1e-6)
         err_m = position_uncertainty_m + height_uncertainty_m * slope + rng * tan_att
-        radius = err_m / gsd_m + 1.5 * marker_size_m / gsd_m
+        marker_px = marker_size_m / gsd_m
+        radius = err_m / gsd_m + 1.5 * marker_px
         for j, name in enumerate(names):
             x, y = px[j]
             if not (np.isfinite(x) and np.isfinite(y)) or name not in ids:
@@ -119,11 +122,10 @@ def predict_windows(
             # The prediction may be off by the window's error part: a marker just inside the
             # frame can be predicted just outside it. Search when the window reaches the frame;
             # the margin is enforced on the detected centre (_judge).
-            slack = max(0.0, radius[j] - 1.5 * marker_size_m / gsd_m[j])
-            if -0.5 + mx - slack <= x <= w - 0.5 - mx + slack and -0.5 + my - slack <= y <= h - 0.5 - my + slack:
+            slack = max(0.0, radius[j] - 1.5 * marker_px[j])
+            if in_frame(x, y, w, h, mx - slack, my - slack):
                 out.setdefault(cam.photo.image, []).append(
-                    (Window(name, ids[name], float(x), float(y), float(max(radius[j], 24.0)),
-                            float(marker_size_m / gsd_m[j])), x, y))
+                    Window(name, ids[name], float(x), float(y), float(max(radius[j], 24.0)), float(marker_px[j])))
     return out
 
 
@@ -166,7 +168,7 @@ def gcp_find(
     dictionary : str
         Marker dictionary (OpenCV name: ArUco DICT_4X4_50 … or AprilTag DICT_APRILTAG_36h11 …).
     margin : float
-        Ignore predictions closer to the photo border than this, percent of its size.
+        Reject detections whose centre is closer to the photo border than this, percent of its size.
     dsm : Path
         DSM or DTM (same vertical datum as the GCPs) for the camera heights.
     takeoff_elevation_m : float
@@ -204,7 +206,7 @@ def gcp_find(
         fb.warning(f"{p.image}: no usable position/altitude/camera: searched whole")
 
     names = [p.name for p in gcps.points]
-    windows: dict[str, list[tuple[Window, float, float]]] = {}
+    windows: dict[str, list[Window]] = {}
     work: CRS | None = None
     if placed:
         work = working_crs(placed, gcps.crs if gcps.crs.is_projected else None)
@@ -226,7 +228,7 @@ def gcp_find(
     tasks: list[tuple[str, list[Window], str]] = []
     for p in placed:
         if p.image in windows:
-            tasks.append((str(p.path), [w for w, _, _ in windows[p.image]], dictionary))
+            tasks.append((str(p.path), windows[p.image], dictionary))
     for p in unplaced:
         tasks.append((str(p.path), [Window("", -1, 0.0, 0.0, 0.0)], dictionary))
     results = _run_tasks(tasks, workers, s_detect)
@@ -262,12 +264,10 @@ def _run_tasks(tasks: list[tuple[str, list[Window], str]], workers: int,
 
 
 def _judge(results: list[tuple[str, list[Detection], str]],
-           windows: dict[str, list[tuple[Window, float, float]]], ids: dict[str, int],
-           fb: Feedback, frames: dict[str, tuple[int, int]] | None = None,
-           margin_pct: float = 0.0) -> list[Observation]:
+           windows: dict[str, list[Window]], ids: dict[str, int],
+           fb: Feedback, frames: dict[str, tuple[int, int]], margin_pct: float) -> list[Observation]:
     """Turn raw detections into accepted observations and rejected candidates."""
     by_id = {v: k for k, v in ids.items()}
-    frames = frames or {}
     obs: list[Observation] = []
     for path, dets, error in results:
         image = Path(path).name
@@ -286,7 +286,8 @@ def _judge(results: list[tuple[str, list[Detection], str]],
                 obs.append(Observation(image, by_id[mid], mid, DETECTED, x_px=d.x_px, y_px=d.y_px,
                                        attempt=d.attempt, side_px=d.side_px, corners_px=d.corners_px))
             continue
-        for k, (win, px, py) in enumerate(wins):
+        for k, win in enumerate(wins):
+            px, py = win.x_px, win.y_px
             mine = [d for d in dets if d.window == k and d.marker_id == win.marker_id]
             base = dict(image=image, gcp=win.gcp, marker_id=win.marker_id, predicted_x_px=px, predicted_y_px=py,
                         window_px=win.radius_px)
@@ -296,9 +297,9 @@ def _judge(results: list[tuple[str, list[Detection], str]],
             d = min(mine, key=lambda d: math.hypot(d.x_px - px, d.y_px - py))
             err = math.hypot(d.x_px - px, d.y_px - py)
             status = DETECTED if err <= win.radius_px else TOO_FAR
-            w, h = frames.get(image, (math.inf, math.inf))
-            mx, my = w * margin_pct / 100.0, h * margin_pct / 100.0
-            if status == DETECTED and not (-0.5 + mx <= d.x_px <= w - 0.5 - mx and -0.5 + my <= d.y_px <= h - 0.5 - my):
+            w, h = frames[image]
+            if status == DETECTED and not in_frame(d.x_px, d.y_px, w, h, w * margin_pct / 100.0,
+                                                   h * margin_pct / 100.0):
                 status = IN_MARGIN
             obs.append(Observation(**base, status=status, x_px=d.x_px, y_px=d.y_px, error_px=err,
                                    attempt=d.attempt, side_px=d.side_px, corners_px=d.corners_px))
