@@ -27,7 +27,7 @@ import numpy as np
 from pyproj import CRS
 
 from .camera import Intrinsics, Pose, project_points, rotation_from_ypr, undistort_pixels
-from .crs import WGS84, parse_crs, transformer, utm_crs_for
+from .crs import WGS84, crs_to_text, parse_crs, transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
 from .photos import Photo, read_photos
@@ -97,20 +97,21 @@ def photo_cameras(
     lon = np.array([p.longitude_deg for p in photos], float)
     lat = np.array([p.latitude_deg for p in photos], float)
     x, y = to_xy.transform(lon, lat)
+    # The flight's absolute−relative offset: the take-off in the GNSS height datum. It also turns
+    # an absolute altitude into a relative one for photos that lack RelativeAltitude (XMP
+    # stripped by an editor).
+    offset = takeoff_elevation(photos)
     if takeoff_elevation_m is not None and math.isfinite(takeoff_elevation_m):
         takeoff, how = float(takeoff_elevation_m), "take-off elevation given"
     elif surface is None:
         takeoff, how = 0.0, "flat ground at the take-off point"
     else:
-        takeoff, how = takeoff_elevation(photos), "take-off from absolute−relative altitude"
+        takeoff, how = offset, "take-off from absolute−relative altitude"
         if not math.isfinite(takeoff):
             takeoff = float(surface.elevation(np.array([x[0]]), np.array([y[0]]))[0])
             how = "take-off assumed at the ground under the first photo"
     if surface is None:
         surface = FlatSurface(takeoff)
-    # The flight's absolute−relative offset turns an absolute altitude into a relative one
-    # for the photos that lack RelativeAltitude (e.g. XMP stripped by an editor).
-    offset = takeoff_elevation(photos)
     cams = []
     for i, p in enumerate(photos):
         if math.isfinite(p.relative_altitude_m):
@@ -272,10 +273,9 @@ def footprints(
     photos = read_photos(images, sensor_width_mm, feedback=s_read)
     if not photos.photos:
         raise InputError(f"no usable photo ({photos.summary()})", path=images)
-    usable = [p for p in photos.photos if any(math.isfinite(v) for v in (
-        p.relative_altitude_m, p.absolute_altitude_m, p.gps_altitude_m))]
+    usable = [p for p in photos.photos if p.has_altitude]
     for p in photos.photos:
-        if p not in usable:
+        if not p.has_altitude:
             photos.skipped.append((p.image, "no altitude (RelativeAltitude, AbsoluteAltitude or GPSAltitude)"))
             fb.warning(f"skipped {p.image}: no altitude in the metadata")
     photos.photos = usable
@@ -331,9 +331,8 @@ def footprints(
     median_gsd = float(np.nanmedian(table.gsd_cm))
     fb.info(f"{len(cams)} footprints, median GSD {median_gsd:.2f} cm, {int(table.clipped.sum())} clipped; "
             f"{photos.summary()}")
-    return FootprintResult(Path(output), f"EPSG:{(out_crs or work).to_epsg()}" if (out_crs or work).to_epsg()
-                           else (out_crs or work).to_wkt(), len(cams), len(photos.skipped), median_gsd,
-                           overlap_path, how)
+    return FootprintResult(Path(output), crs_to_text(out_crs or work), len(cams), len(photos.skipped),
+                           median_gsd, overlap_path, how)
 
 
 def write_overlap(path: str | os.PathLike[str], polygons: Sequence, crs: CRS, cell_m: float) -> Path:

@@ -111,6 +111,12 @@ class Photo:
         return math.isfinite(self.latitude_deg) and math.isfinite(self.longitude_deg)
 
     @property
+    def has_altitude(self) -> bool:
+        """Any of RelativeAltitude, AbsoluteAltitude or GPSAltitude."""
+        return any(math.isfinite(v) for v in (self.relative_altitude_m, self.absolute_altitude_m,
+                                              self.gps_altitude_m))
+
+    @property
     def focal_px(self) -> float:
         return self.focal_mm / self.sensor_width_mm * max(self.width_px, self.height_px)
 

@@ -252,8 +252,7 @@ def gcp_find(
 
 
 def _has_pose(p: Photo) -> bool:
-    alt = any(math.isfinite(v) for v in (p.relative_altitude_m, p.absolute_altitude_m, p.gps_altitude_m))
-    return p.has_gps and alt and math.isfinite(p.focal_px)
+    return p.has_gps and p.has_altitude and math.isfinite(p.focal_px)
 
 
 def _run_tasks(tasks: list[tuple[str, list[Window], str]], workers: int,
