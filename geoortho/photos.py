@@ -13,6 +13,7 @@ clockwise from north, pitch −90 = nadir, roll right side down positive.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import functools
 import math
 import os
 import re
@@ -26,6 +27,7 @@ import numpy as np
 from .camera import Intrinsics
 from .errors import InputError
 from .feedback import Feedback, as_feedback
+from .parallel import map_ordered
 
 __all__ = [
     "Photo",
@@ -383,28 +385,10 @@ def read_photos(
     paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
     chunk = 64
     chunks = [[str(p) for p in paths[i:i + chunk]] for i in range(0, len(paths), chunk)]
-    results: list[Photo | tuple[str, str]] = []
-    own = None
-    if executor is None and len(paths) >= 4 * chunk and (os.cpu_count() or 1) > 1:
-        own = executor = cf.ProcessPoolExecutor(min(os.cpu_count() or 1, len(chunks)))
-    try:
-        if executor is None:
-            for i, c in enumerate(chunks):
-                fb.check_canceled()
-                results.extend(_read_chunk(c, sensor_width_mm))
-                fb.progress((i + 1) / len(chunks))
-        else:
-            futures = [executor.submit(_read_chunk, c, sensor_width_mm) for c in chunks]
-            for i, fut in enumerate(futures):
-                if fb.is_canceled():
-                    for f_ in futures:
-                        f_.cancel()
-                    fb.check_canceled()
-                results.extend(fut.result())
-                fb.progress((i + 1) / len(chunks))
-    finally:
-        if own is not None:
-            own.shutdown(cancel_futures=True)
+    # a pool pays off from a few hundred photos on; below that, in-process
+    per_chunk = map_ordered(functools.partial(_read_chunk, sensor_width_mm=sensor_width_mm), chunks,
+                            executor=executor, min_items_for_pool=4, feedback=fb)
+    results = [r for c in per_chunk for r in c]
     photos: list[Photo] = []
     skipped: list[tuple[str, str]] = []
     for r in results:
