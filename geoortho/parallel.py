@@ -11,12 +11,13 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any, TypeVar
 
 from .feedback import Feedback, as_feedback
 
-__all__ = ["map_ordered"]
+__all__ = ["map_ordered", "process_pool"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -39,34 +40,58 @@ def map_ordered(
     ``min_items_for_pool`` items; on ``executor`` when one is given (e.g. a
     Dask ``Client.get_executor()``; ``initializer`` is then not run).
     """
-    fb = as_feedback(feedback)
-    n = len(items)
+    if executor is not None:
+        return _map_on(executor, fn, items, as_feedback(feedback))
+    with process_pool(workers, len(items), initializer=initializer, initargs=initargs,
+                      min_items_for_pool=min_items_for_pool) as pool:
+        if pool is not None:
+            return _map_on(pool, fn, items, as_feedback(feedback))
+        return _map_here(fn, items, as_feedback(feedback))
+
+
+@contextmanager
+def process_pool(
+    workers: int, n_items: int, *, initializer: Callable[..., Any] | None = None,
+    initargs: tuple[Any, ...] = (), min_items_for_pool: int = 2,
+) -> Iterator[cf.Executor | None]:
+    """A spawn pool to share between several ``map_ordered`` calls (one start-up), or None
+    (after running ``initializer`` here) when in-process is the better choice."""
     n_workers = workers or os.cpu_count() or 1
-    results: list[R] = []
-    if executor is None and (n_workers <= 1 or n < min_items_for_pool):
+    if n_workers <= 1 or n_items < min_items_for_pool:
         if initializer is not None:
             initializer(*initargs)
-        for i, item in enumerate(items):
-            fb.check_canceled()
-            results.append(fn(item))
-            fb.progress((i + 1) / n)
-        return results
-    own = None
-    if executor is None:
-        ctx = multiprocessing.get_context("spawn")
-        own = executor = cf.ProcessPoolExecutor(min(n_workers, n), mp_context=ctx, initializer=initializer,
-                                                initargs=initargs)
+        yield None
+        return
+    ctx = multiprocessing.get_context("spawn")
+    n_procs = min(n_workers, n_items)
+    pool = cf.ProcessPoolExecutor(n_procs, mp_context=ctx, initializer=initializer, initargs=initargs)
+    for _ in range(n_procs):
+        pool.submit(os.getpid)  # start the workers now: they import while the caller prepares
+    try:
+        yield pool
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def _map_here(fn: Callable[[T], R], items: Sequence[T], fb: Feedback) -> list[R]:
+    results: list[R] = []
+    for i, item in enumerate(items):
+        fb.check_canceled()
+        results.append(fn(item))
+        fb.progress((i + 1) / len(items))
+    return results
+
+
+def _map_on(executor: cf.Executor, fn: Callable[[T], R], items: Sequence[T], fb: Feedback) -> list[R]:
     futures = [executor.submit(fn, item) for item in items]
+    results: list[R] = []
     try:
         for i, fut in enumerate(futures):
             fb.check_canceled()
             results.append(fut.result())
-            fb.progress((i + 1) / n)
+            fb.progress((i + 1) / len(items))
     except BaseException:
         for f_ in futures:
             f_.cancel()
         raise
-    finally:
-        if own is not None:
-            own.shutdown(cancel_futures=True)
     return results

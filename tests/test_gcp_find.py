@@ -47,7 +47,7 @@ def test_small_precision_recall_and_centre_error(small_survey, tmp_path):
     assert s["n_visible"] >= 40
     assert s["precision"] == 1.0
     assert s["recall"] >= 0.98
-    assert s["mean_error_px"] <= 0.3
+    assert s["mean_error_px"] <= 0.1  # issue target 0.3; measured 0.03 with contour-refined corners
     assert r.n_observations == s["written"]
     # gcp_list.txt reads back as ODM's format with the file's coordinates
     lines = out.read_text().splitlines()
@@ -65,6 +65,31 @@ def test_small_precision_recall_and_centre_error(small_survey, tmp_path):
     sheet = cv2.imread(str(r.review))
     assert sheet is not None and sheet.shape[1] == 8 * 128
     assert sheet.shape[0] == -(-r.n_observations // 8) * (128 + 18)
+
+
+def test_flight_offset_is_measured_and_windows_follow_it(small_survey, tmp_path):
+    """GCP coordinates 3 m east and 2 m south of the markers look to the finder like a GPS bias
+    of (−3, +2) m on top of the real one: the pilot photos must measure it, and the narrow
+    windows placed with it must still find everything."""
+    from pyproj import Transformer
+
+    poses = json.loads((small_survey.truth / "poses.json").read_text())
+    to_utm = Transformer.from_crs("EPSG:4326", "EPSG:32629", always_xy=True)
+    gps_bias_m = np.mean([np.subtract(to_utm.transform(p["recorded"]["longitude_deg"], p["recorded"]["latitude_deg"]),
+                                      (p["x"], p["y"])) for p in poses if p["has_gps"]], axis=0)
+    lines = small_survey.gcp_file.read_text().splitlines()
+    moved = [lines[0]]
+    for ln in lines[1:]:
+        name, x, y, z = ln.split()
+        moved.append(f"{name} {float(x) + 3.0:.4f} {float(y) - 2.0:.4f} {z}")
+    gcps = tmp_path / "moved.txt"
+    gcps.write_text("\n".join(moved) + "\n")
+    out = tmp_path / "gcp_list.txt"
+    r = gcp_find(small_survey.images, gcps, out)
+    assert r.flight_offset_m is not None
+    assert np.hypot(*(np.array(r.flight_offset_m) - (gps_bias_m - [3.0, -2.0]))) < 0.75
+    s = _score(small_survey, out)
+    assert s["precision"] == 1.0 and s["recall"] >= 0.98
 
 
 def test_hard_preset(hard_survey, tmp_path):

@@ -25,7 +25,12 @@ ATTEMPTS = ("fast", "plain", "clahe", "upscale", "glare")
 
 @dataclass(frozen=True)
 class Window:
-    """Where to look: a square around a predicted pixel. ``radius_px`` 0 = the whole photo."""
+    """Where to look: a square around a predicted pixel. ``radius_px`` 0 = the whole photo.
+
+    ``wide_radius_px`` (when larger) is searched too if the marker is not in the
+    first square and the prediction lies in the frame: the first square is sized
+    from the flight's measured errors, the wide one from the stated uncertainty.
+    """
 
     gcp: str
     marker_id: int
@@ -33,6 +38,11 @@ class Window:
     y_px: float
     radius_px: float
     side_px: float = 0.0  # expected marker side; 0 = unknown
+    wide_radius_px: float = 0.0
+
+    @property
+    def max_radius_px(self) -> float:
+        return max(self.radius_px, self.wide_radius_px)
 
 
 @dataclass(frozen=True)
@@ -80,7 +90,7 @@ def _detector(dictionary: str, glare: bool = False, threshold_win_px: int = 0) -
     params = cv2.aruco.DetectorParameters()
     if threshold_win_px:
         params.adaptiveThreshWinSizeMin = params.adaptiveThreshWinSizeMax = threshold_win_px
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
     params.cornerRefinementWinSize = 3
     params.cornerRefinementMaxIterations = 50
     params.cornerRefinementMinAccuracy = 0.01
@@ -102,7 +112,7 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
     win = 0
     if attempt == "fast":
         # about three marker cells (a 4x4 marker with its border is 6 cells wide)
-        win = int(np.clip(side_px / 2, 3, 51)) | 1
+        win = int(np.clip(side_px / 4, 3, 51)) | 1
     if attempt == "clahe":
         img = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(4, 4)).apply(gray)
     elif attempt == "upscale":
@@ -136,37 +146,52 @@ def detect_in_image(gray: np.ndarray, windows: list[Window], dictionary: str,
     found: list[Detection] = []
     for k, win in enumerate(windows):
         if win.radius_px <= 0:
-            x0, y0, x1, y1 = 0, 0, w, h
-        else:
-            x0 = int(max(0, np.floor(win.x_px - win.radius_px)))
-            y0 = int(max(0, np.floor(win.y_px - win.radius_px)))
-            x1 = int(min(w, np.ceil(win.x_px + win.radius_px) + 1))
-            y1 = int(min(h, np.ceil(win.y_px + win.radius_px) + 1))
-            if x1 - x0 < 8 or y1 - y0 < 8:
-                continue
-        crop = gray[y0:y1, x0:x1]
-        whole = win.radius_px <= 0
-        # A whole photo has no expected id: run the cheap attempts and keep all they see.
-        for attempt in (tuple(a for a in attempts if a in ("plain", "clahe")) if whole else attempts):
-            if attempt == "fast" and win.side_px <= 0:
-                continue
-            # upscaling helps small markers only; a prediction outside the frame is a long
-            # shot (the marker is most likely out of view): do not spend the retries on it
-            if attempt == "upscale" and (crop.size > 4_000_000 or win.side_px >= 24):
-                continue
-            if attempt not in ("fast", "plain") and not in_frame(win.x_px, win.y_px, w, h):
-                continue
-            hits = _run(crop, attempt, dictionary, win.side_px)
-            for mid, c in hits:
-                c = c + [x0, y0]
-                centre = marker_centre(c)
-                side = float(np.sqrt(abs(cv2.contourArea(c.astype(np.float32)))))
-                found.append(Detection(mid, float(centre[0]), float(centre[1]),
-                                       tuple(map(tuple, c.tolist())), attempt, -1 if whole else k,
-                                       side))
-            if not whole and any(mid == win.marker_id for mid, _ in hits):
-                break
+            # A whole photo has no expected id: run the cheap attempts and keep all they see.
+            tries = tuple(a for a in attempts if a in ("plain", "clahe"))
+            _search(gray, (0, 0, w, h), win, tries, dictionary, -1, found, stop_at_id=False)
+            continue
+        if _search(gray, _square(win, win.radius_px, w, h), win, attempts, dictionary, k, found):
+            continue
+        if win.wide_radius_px > win.radius_px and in_frame(win.x_px, win.y_px, w, h):
+            _search(gray, _square(win, win.wide_radius_px, w, h), win, attempts, dictionary, k, found)
     return found
+
+
+def _square(win: Window, radius_px: float, w: int, h: int) -> tuple[int, int, int, int]:
+    x0 = int(max(0, np.floor(win.x_px - radius_px)))
+    y0 = int(max(0, np.floor(win.y_px - radius_px)))
+    x1 = int(min(w, np.ceil(win.x_px + radius_px) + 1))
+    y1 = int(min(h, np.ceil(win.y_px + radius_px) + 1))
+    return x0, y0, x1, y1
+
+
+def _search(gray: np.ndarray, box: tuple[int, int, int, int], win: Window, attempts: tuple[str, ...],
+            dictionary: str, k: int, found: list[Detection], *, stop_at_id: bool = True) -> bool:
+    """Run the attempts on one crop until the window's id is seen; True if it was."""
+    x0, y0, x1, y1 = box
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return False
+    h, w = gray.shape[:2]
+    crop = gray[y0:y1, x0:x1]
+    for attempt in attempts:
+        if attempt == "fast" and win.side_px <= 0:
+            continue
+        # upscaling helps small markers only; a prediction outside the frame is a long
+        # shot (the marker is most likely out of view): do not spend the retries on it
+        if attempt == "upscale" and (crop.size > 4_000_000 or win.side_px >= 48):
+            continue
+        if attempt not in ("fast", "plain") and not in_frame(win.x_px, win.y_px, w, h):
+            continue
+        hits = _run(crop, attempt, dictionary, win.side_px)
+        for mid, c in hits:
+            c = c + [x0, y0]
+            centre = marker_centre(c)
+            side = float(np.sqrt(abs(cv2.contourArea(c.astype(np.float32)))))
+            found.append(Detection(mid, float(centre[0]), float(centre[1]),
+                                   tuple(map(tuple, c.tolist())), attempt, k, side))
+        if stop_at_id and any(mid == win.marker_id for mid, _ in hits):
+            return True
+    return False
 
 
 def detect_task(args: tuple[str, list[Window], str]) -> tuple[str, list[Detection], str]:
