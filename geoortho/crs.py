@@ -74,7 +74,11 @@ def crs_to_text(crs: CRS) -> str:
     code = crs.to_epsg()
     if code is not None:
         return f"EPSG:{code}"
-    return crs.to_proj4()
+    import warnings
+
+    with warnings.catch_warnings():  # PROJ strings drop datum details; ODM reads nothing else
+        warnings.simplefilter("ignore", UserWarning)
+        return crs.to_proj4()
 
 
 def horizontal_unit_m(crs: CRS) -> float:

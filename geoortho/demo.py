@@ -65,7 +65,7 @@ def demo(
 
 def _stages() -> list:
     """(name, weight, run(survey, output, feedback) -> products) for every stage that exists."""
-    return [("footprints", 1, _footprints), ("gcp-find", 2, _gcp_find)]
+    return [("footprints", 1, _footprints), ("gcp-find", 2, _gcp_find), ("dem", 1, _dem)]
 
 
 def _takeoff_elevation(survey: SynthResult) -> float:
@@ -90,3 +90,13 @@ def _gcp_find(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]
                  detections=output / "gcp_detections.gpkg", review=output / "gcp_review.png", feedback=fb)
     fb.info(f"gcp-find: {r.n_observations} observations of {r.n_gcps_found} GCPs")
     return {"gcp_list": str(r.output), "gcp_detections": str(r.detections), "gcp_review": str(r.review)}
+
+
+def _dem(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
+    from .dem import dem
+
+    # The survey's point cloud until the sfm stage makes one from the photos.
+    r = dem(survey.points, output / "dsm.tif", dtm=output / "dtm.tif", hillshade=output / "dtm_hillshade.png",
+            feedback=fb)
+    fb.info(f"dem: {r.n_points} points, {r.n_ground} ground, cells of {r.resolution:g} ({r.units})")
+    return {"dsm": str(r.dsm), "dtm": str(r.dtm), "dtm_hillshade": str(r.hillshade)}

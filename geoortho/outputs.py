@@ -76,6 +76,7 @@ def write_cog(
     alpha: np.ndarray | None = None,
     band_names: tuple[str, ...] = (),
     overview_resampling: str | None = None,
+    units: str = "",
 ) -> Path:
     """Write a (bands, rows, cols) or (rows, cols) array as a Cloud-Optimized GeoTIFF.
 
@@ -106,6 +107,9 @@ def write_cog(
                 ds.colorinterp = [*interp, ColorInterp.alpha]
             for i, name in enumerate(band_names, 1):
                 ds.set_band_description(i, name)
+            if units:
+                for i in range(1, count + 1):
+                    ds.set_band_unit(i, units)
         with mem.open() as src, atomic_path(target) as tmp:
             options: dict[str, Any] = {
                 "compress": compress,

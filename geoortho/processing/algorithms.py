@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ..dem import GROUND_METHODS, METHODS, dem
 from ..demo import demo
 from ..footprint import footprints
 from ..gcp.find import gcp_find
@@ -92,6 +93,40 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("n_gcps_found", "integer", "GCPs seen at least once"),
             Output("n_candidates", "integer", "(photo, GCP) pairs searched"),
             Output("crs", "string", "CRS of gcp_list.txt"),
+        ),
+    ),
+    Algorithm(
+        id="dem", title="DSM and DTM from a point cloud", group="Elevation", function=dem,
+        params=(
+            Param("points", "pointcloud", extensions=(".las", ".laz", ".ply")),
+            Param("output", "raster", output=True, extensions=(".tif",)),
+            Param("dtm", "raster", None, output=True, extensions=(".tif",)),
+            Param("resolution_m", "number", 0.0, unit="m", minimum=0.0),
+            Param("method", "enum", "max", choices=METHODS),
+            Param("ground_method", "enum", "smrf", choices=GROUND_METHODS),
+            Param("crs", "crs", None),
+            Param("max_gap_m", "number", 25.0, unit="m", minimum=0.0),
+            Param("smooth_px", "integer", 0, minimum=0, maximum=20),
+            Param("classified", "pointcloud", None, output=True, extensions=(".laz", ".las")),
+            Param("hillshade", "file", None, output=True, extensions=(".png",)),
+            Param("smrf_cell_m", "number", 1.0, unit="m", minimum=0.05, advanced=True),
+            Param("smrf_slope", "number", 0.15, minimum=0.0, advanced=True),
+            Param("smrf_window_m", "number", 18.0, unit="m", minimum=0.5, advanced=True),
+            Param("smrf_threshold_m", "number", 0.5, unit="m", minimum=0.0, advanced=True),
+            Param("smrf_scalar", "number", 1.25, minimum=0.0, advanced=True),
+            Param("smrf_margin_m", "number", 1.0, unit="m", minimum=0.0, advanced=True),
+            Param("engine", "enum", "native", choices=("native", "pdal"), advanced=True),
+        ),
+        outputs=(
+            Output("dsm", "raster", "DSM (COG, float32, nodata -9999)"),
+            Output("dtm", "raster", "DTM from ground points"),
+            Output("classified", "pointcloud", "the cloud with ground as class 2"),
+            Output("hillshade", "file", "hillshade preview"),
+            Output("resolution", "number", "cell size in the CRS units"),
+            Output("crs", "string", "CRS of the rasters"),
+            Output("units", "string", "horizontal and vertical units"),
+            Output("n_points", "integer", "points used"),
+            Output("n_ground", "integer", "ground points"),
         ),
     ),
     Algorithm(

@@ -1,0 +1,543 @@
+"""DSM and DTM from a point cloud: grid, classify ground, fill gaps, write COGs.
+
+Two passes over the points in chunks (memory follows the grid, not the
+cloud): the first grids the DSM and the minimum surface the ground filter
+needs; the second classifies each point against the provisional ground and
+grids the ground points into the DTM (and writes the classified cloud when
+asked). Gaps are filled harmonically (:mod:`geoortho.gapfill`) — no ringing —
+up to ``max_gap_m`` from data on both sides; beyond that cells stay nodata.
+
+Grids stay in the cloud's CRS and units (feet stay feet, and the result says
+so); every distance parameter is in metres and converted.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .crs import crs_to_text
+from .errors import DependencyError, InputError, ParameterError
+from .feedback import Feedback, as_feedback, split
+from .gapfill import fill_harmonic, gap_mask
+from .ground import SmrfParams, ground_mask, smrf_surface
+from .pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points
+
+__all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
+
+METHODS = ("max", "min", "mean", "idw", "count")
+GROUND_METHODS = ("smrf", "csf", "classification")
+NODATA = -9999.0
+GROUND = 2
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A north-up grid: top-left corner, cell size and shape, in the cloud's units."""
+
+    x0: float
+    y0: float  # top edge
+    cell: float
+    rows: int
+    cols: int
+
+    @classmethod
+    def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float, cell: float) -> Grid:
+        x0 = math.floor(xmin / cell) * cell
+        y0 = math.ceil(ymax / cell) * cell
+        if y0 == ymax:  # a point on the top edge belongs to the row below it
+            y0 += cell
+        cols = int(math.floor((xmax - x0) / cell)) + 1
+        rows = int(math.floor((y0 - ymin) / cell)) + 1
+        return cls(x0, y0, cell, rows, cols)
+
+    def index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cell (row, col) of each point; -1 outside."""
+        c = np.floor((x - self.x0) / self.cell).astype(np.int64)
+        r = np.floor((self.y0 - y) / self.cell).astype(np.int64)
+        out = (c < 0) | (c >= self.cols) | (r < 0) | (r >= self.rows)
+        c[out] = -1
+        r[out] = -1
+        return r, c
+
+    @property
+    def transform(self) -> Any:
+        from rasterio.transform import from_origin
+
+        return from_origin(self.x0, self.y0, self.cell, self.cell)
+
+
+class _Accumulator:
+    """One statistic per cell, fed chunk by chunk."""
+
+    def __init__(self, grid: Grid, method: str):
+        if method not in METHODS:
+            raise ParameterError("method", f"unknown gridding method {method!r}; use one of {', '.join(METHODS)}")
+        self.grid, self.method = grid, method
+        n = grid.rows * grid.cols
+        if method == "max":
+            self.a = np.full(n, -np.inf)
+        elif method == "min":
+            self.a = np.full(n, np.inf)
+        else:
+            self.a = np.zeros(n)
+        self.w = np.zeros(n) if method in ("mean", "idw") else None
+        self.count = np.zeros(n, np.int64) if method == "count" else None
+
+    def add(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> None:
+        g = self.grid
+        r, c = g.index(x, y)
+        ok = r >= 0
+        r, c, x, y, z = r[ok], c[ok], x[ok], y[ok], z[ok]
+        idx = r * g.cols + c
+        n = g.rows * g.cols
+        if self.method == "max":
+            np.maximum.at(self.a, idx, z)
+        elif self.method == "min":
+            np.minimum.at(self.a, idx, z)
+        elif self.method == "count":
+            assert self.count is not None
+            self.count += np.bincount(idx, minlength=n)
+        elif self.method == "mean":
+            assert self.w is not None
+            self.a += np.bincount(idx, z, minlength=n)
+            self.w += np.bincount(idx, minlength=n)
+        else:  # idw: each point feeds the cells whose centre lies within cell·√2 (PDAL's default radius)
+            assert self.w is not None
+            radius = g.cell * math.sqrt(2.0)
+            for dr in (-1, 0, 1):
+                for dc in (-1, 0, 1):
+                    rr, cc = r + dr, c + dc
+                    inside = (rr >= 0) & (rr < g.rows) & (cc >= 0) & (cc < g.cols)
+                    cx = g.x0 + (cc + 0.5) * g.cell
+                    cy = g.y0 - (rr + 0.5) * g.cell
+                    d = np.hypot(x - cx, y - cy)
+                    use = inside & (d <= radius)
+                    wgt = 1.0 / np.maximum(d[use], 1e-3 * g.cell) ** 2
+                    k = rr[use] * g.cols + cc[use]
+                    self.a += np.bincount(k, wgt * z[use], minlength=n)
+                    self.w += np.bincount(k, wgt, minlength=n)
+
+    def result(self) -> np.ndarray:
+        """The grid (rows, cols), NaN where no point fell."""
+        if self.method == "count":
+            assert self.count is not None
+            out = self.count.astype(np.float64)
+            out[self.count == 0] = np.nan
+        elif self.method in ("max", "min"):
+            out = np.where(np.isfinite(self.a), self.a, np.nan)
+        else:
+            assert self.w is not None
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out = np.where(self.w > 0, self.a / self.w, np.nan)
+        return out.reshape(self.grid.rows, self.grid.cols)
+
+
+def grid_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: Grid, method: str = "max") -> np.ndarray:
+    """One statistic of the points per cell (NaN where none fell)."""
+    acc = _Accumulator(grid, method)
+    acc.add(np.asarray(x, float), np.asarray(y, float), np.asarray(z, float))
+    return acc.result()
+
+
+@dataclass(frozen=True)
+class DemResult:
+    dsm: Path
+    dtm: Path | None
+    classified: Path | None
+    hillshade: Path | None
+    resolution: float  # cell size in the CRS units
+    crs: str
+    units: str
+    n_points: int
+    n_ground: int
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def _auto_resolution_m(src: PointSource) -> float:
+    """About two points per cell on average, rounded to a 1-2-2.5-5 step."""
+    xmin, ymin, _, xmax, ymax, _ = src.bounds
+    area_m2 = max((xmax - xmin) * (ymax - ymin), 1e-9) * src.horizontal_m ** 2
+    raw = math.sqrt(2.0 * area_m2 / max(src.count, 1))
+    steps = [m * 10.0 ** e for e in range(-2, 3) for m in (1.0, 2.0, 2.5, 5.0)]
+    return min(steps, key=lambda s: abs(math.log(s / raw)))
+
+
+def _clean(ch: Chunk, bad: list[int]) -> Chunk:
+    ok = np.isfinite(ch.x) & np.isfinite(ch.y) & np.isfinite(ch.z)
+    if ok.all():
+        return ch
+    if not bad:
+        bad.append(ch.start + int(np.argmin(ok)))
+    bad.append(int((~ok).sum()))
+    cls = ch.classification[ok] if ch.classification is not None else None
+    return Chunk(ch.x[ok], ch.y[ok], ch.z[ok], cls, ch.start)
+
+
+def dem(
+    points: Path,
+    output: Path,
+    dtm: Path | None = None,
+    resolution_m: float = 0.0,
+    method: str = "max",
+    ground_method: str = "smrf",
+    crs: str | None = None,
+    max_gap_m: float = 25.0,
+    smooth_px: int = 0,
+    classified: Path | None = None,
+    hillshade: Path | None = None,
+    smrf_cell_m: float = 1.0,
+    smrf_slope: float = 0.15,
+    smrf_window_m: float = 18.0,
+    smrf_threshold_m: float = 0.5,
+    smrf_scalar: float = 1.25,
+    smrf_margin_m: float = 1.0,
+    engine: str = "native",
+    *,
+    feedback: Feedback | None = None,
+) -> DemResult:
+    """Make a DSM (and a DTM) from a point cloud as Cloud-Optimized GeoTIFFs.
+
+    Reads LAS/LAZ/PLY in chunks, grids the DSM, classifies ground with SMRF
+    (or CSF, or the file's class 2), grids the DTM from ground points, and
+    fills gaps harmonically (no ringing) up to ``max_gap_m`` from data.
+    Values stay in the cloud's units (feet stay feet; the result says which).
+
+    Parameters
+    ----------
+    points : Path
+        LAS/LAZ (CRS from the header) or PLY point cloud.
+    output : Path
+        DSM GeoTIFF to write.
+    dtm : Path
+        Also write a DTM (ground only) here.
+    resolution_m : float
+        Cell size in metres; 0 = from the point density (about two points per cell).
+    method : str
+        DSM statistic per cell: max, min, mean, idw or count.
+    ground_method : str
+        Ground points for the DTM: smrf (filter), csf (cloth simulation) or classification (the file's class 2).
+    crs : str
+        CRS of the points when the file has none (or to override a wrong one).
+    max_gap_m : float
+        Fill gaps up to this far from data (on both sides); farther cells stay nodata.
+    smooth_px : int
+        Median filter radius in cells after filling (0 = none).
+    classified : Path
+        Also write the cloud with ground as class 2 (LAS/LAZ input only).
+    hillshade : Path
+        Also write a hillshade PNG preview (of the DTM when made, else the DSM).
+    smrf_cell_m : float
+        SMRF grid cell, metres.
+    smrf_slope : float
+        SMRF slope threshold (rise over run).
+    smrf_window_m : float
+        SMRF largest opening window, metres (the widest object it removes is about twice this).
+    smrf_threshold_m : float
+        SMRF elevation threshold, metres.
+    smrf_scalar : float
+        SMRF elevation scalar (threshold grows by scalar × local slope).
+    smrf_margin_m : float
+        Objects found by SMRF are grown by this before the ground is refilled (0 = as published).
+    engine : str
+        native, or pdal (PDAL's pipeline, when the pdal module is installed).
+    """
+    fb = as_feedback(feedback)
+    if method not in METHODS:
+        raise ParameterError("method", f"unknown method {method!r}; use one of {', '.join(METHODS)}")
+    if ground_method not in GROUND_METHODS:
+        raise ParameterError("ground_method", f"unknown ground method {ground_method!r}; use one of {', '.join(GROUND_METHODS)}")
+    if resolution_m < 0 or max_gap_m < 0 or smooth_px < 0:
+        raise ParameterError("resolution_m", "resolution, max gap and smoothing must not be negative")
+    if engine not in ("native", "pdal"):
+        raise ParameterError("engine", f"unknown engine {engine!r}; use native or pdal")
+    src = open_points(points, crs)
+    if src.count == 0:
+        raise InputError("the point cloud is empty", path=src.path)
+    if classified is not None and (src.path is None or src.path.suffix.lower() not in (".las", ".laz")):
+        raise ParameterError("classified", "a classified cloud can be written for LAS/LAZ input only")
+    if ground_method == "classification" and not src.has_classification:
+        raise InputError("the points have no classification; use ground_method smrf or csf", path=src.path)
+    for n in src.notes:
+        fb.info(n)
+    res_m = resolution_m or _auto_resolution_m(src)
+    cell = res_m / src.horizontal_m
+    xmin, ymin, _, xmax, ymax, _ = src.bounds
+    if not all(map(math.isfinite, src.bounds)):
+        raise InputError("no point has finite coordinates", path=src.path)
+    if xmax - xmin < cell and ymax - ymin < cell:
+        raise InputError(f"all points fall in one {res_m:g} m cell (extent {xmax - xmin:g} x {ymax - ymin:g} "
+                         f"{src.horizontal_unit}): nothing to grid", path=src.path)
+    grid = Grid.covering(xmin, ymin, xmax, ymax, cell)
+    fb.info(f"grid {grid.cols} x {grid.rows} cells of {res_m:g} m ({cell:g} {src.horizontal_unit})"
+            + ("" if resolution_m else ", from the point density"))
+    params = SmrfParams(smrf_cell_m, smrf_slope, smrf_window_m, smrf_threshold_m, smrf_scalar, smrf_margin_m)
+    if engine == "pdal":
+        return _run_pdal(src, grid, output, dtm, method, ground_method, max_gap_m,
+                         params, fb)
+
+    want_ground = dtm is not None or classified is not None
+    s_pass1, s_pass2, s_write = split(fb, [4, 4 if want_ground else 0, 2])
+    dsm_acc = _Accumulator(grid, method)
+    smrf_grid = Grid.covering(xmin, ymin, xmax, ymax, params.cell_m / src.horizontal_m)
+    zmin_acc = _Accumulator(smrf_grid, "min") if want_ground and ground_method == "smrf" else None
+    dtm_acc = _Accumulator(grid, "idw") if dtm is not None else None
+    bad: list[int] = []
+    n_used = 0
+    n_ground = 0
+    csf_xyz: list[np.ndarray] = []
+    for ch in src.chunks():
+        fb.check_canceled()
+        ch = _clean(ch, bad)
+        n_used += len(ch.x)
+        dsm_acc.add(ch.x, ch.y, ch.z)
+        if zmin_acc is not None:
+            zmin_acc.add(ch.x, ch.y, ch.z)
+        if ground_method == "classification" and want_ground:
+            assert ch.classification is not None
+            g = ch.classification == GROUND
+            n_ground += int(g.sum())
+            if dtm_acc is not None:
+                dtm_acc.add(ch.x[g], ch.y[g], ch.z[g])
+        if ground_method == "csf" and want_ground:
+            csf_xyz.append(np.c_[ch.x, ch.y, ch.z])
+        s_pass1.progress(min(1.0, (ch.start + CHUNK_POINTS) / src.count))
+    if bad:
+        fb.warning(f"{sum(bad[1:])} points with non-finite coordinates skipped (first at index {bad[0]})")
+    if n_used == 0:
+        raise InputError("no point has finite coordinates", path=src.path)
+    if n_used < 3:
+        raise InputError(f"{n_used} point(s): too few to make a surface", path=src.path)
+
+    surface = None
+    csf_mask = None
+    if zmin_acc is not None:
+        surface = smrf_surface(zmin_acc.result(), smrf_grid.cell, params, src.horizontal_m, src.vertical_m)
+    if ground_method == "csf" and want_ground:
+        csf_mask = _csf(np.concatenate(csf_xyz), src, params)
+        csf_xyz.clear()
+    if want_ground and ground_method != "classification":
+        writer = _ClassifiedWriter(src, classified) if classified is not None else None
+        offset = 0
+        try:
+            for ch in src.chunks():
+                fb.check_canceled()
+                raw_n = len(ch.x)
+                keep = np.isfinite(ch.x) & np.isfinite(ch.y) & np.isfinite(ch.z)
+                g = np.zeros(raw_n, bool)
+                if surface is not None:
+                    g[keep] = ground_mask(ch.x[keep], ch.y[keep], ch.z[keep], surface, smrf_grid.x0, smrf_grid.y0,
+                                          smrf_grid.cell, params, src.horizontal_m, src.vertical_m)
+                else:
+                    assert csf_mask is not None
+                    k = int(keep.sum())
+                    g[keep] = csf_mask[offset:offset + k]
+                    offset += k
+                n_ground += int(g.sum())
+                if dtm_acc is not None:
+                    dtm_acc.add(ch.x[g], ch.y[g], ch.z[g])
+                if writer is not None:
+                    writer.write(g)
+                s_pass2.progress(min(1.0, (ch.start + CHUNK_POINTS) / src.count))
+            if writer is not None:
+                writer.close()
+        finally:
+            if writer is not None:
+                writer.abort()
+    elif classified is not None:
+        writer = _ClassifiedWriter(src, classified)
+        try:
+            for ch in src.chunks():
+                assert ch.classification is not None
+                writer.write(ch.classification == GROUND)
+            writer.close()
+        finally:
+            writer.abort()
+
+    max_gap_cells = max_gap_m / res_m
+    dsm_grid = _finish(dsm_acc.result(), max_gap_cells, smooth_px)
+    units = src.describe_units()
+    notes = [*src.notes, f"values in {src.vertical_unit}" if method != "count" else "values: points per cell"]
+    from .outputs import write_cog
+
+    unit_tag = _unit_tag(src.vertical_unit) if method != "count" else ""
+    dsm_path = write_cog(output, _nodata(dsm_grid), transform=grid.transform, crs=src.crs, nodata=NODATA,
+                         band_names=("dsm",), units=unit_tag)
+    dtm_path = None
+    dtm_grid = None
+    if dtm is not None:
+        assert dtm_acc is not None
+        dtm_grid = _finish(dtm_acc.result(), max_gap_cells, smooth_px)
+        dtm_path = write_cog(dtm, _nodata(dtm_grid), transform=grid.transform, crs=src.crs, nodata=NODATA,
+                             band_names=("dtm",), units=_unit_tag(src.vertical_unit))
+        fb.info(f"ground: {n_ground} of {n_used} points ({ground_method})")
+    shade_path = None
+    if hillshade is not None:
+        shade_path = write_hillshade(hillshade, dtm_grid if dtm_grid is not None else dsm_grid, cell,
+                                     src.vertical_m / src.horizontal_m)
+    s_write.progress(1.0)
+    return DemResult(dsm_path, dtm_path, Path(classified) if classified is not None else None, shade_path,
+                     cell, crs_to_text(src.crs), units, n_used, n_ground, tuple(notes))
+
+
+def _unit_tag(name: str) -> str:
+    return {"metre": "m", "foot": "ft", "US survey foot": "US survey foot"}.get(name, name)
+
+
+def _finish(grid: np.ndarray, max_gap_cells: float, smooth_px: int) -> np.ndarray:
+    known = np.isfinite(grid)
+    out = fill_harmonic(grid, known, gap_mask(known, max_gap_cells)) if max_gap_cells > 0 else grid
+    if smooth_px > 0:
+        from scipy import ndimage
+
+        valid = np.isfinite(out)
+        med = ndimage.median_filter(np.where(valid, out, np.nanmedian(out)), size=2 * smooth_px + 1)
+        out = np.where(valid, med, np.nan)
+    return out
+
+
+def _nodata(grid: np.ndarray) -> np.ndarray:
+    return np.where(np.isfinite(grid), grid, NODATA).astype(np.float32)
+
+
+def write_hillshade(path: str | os.PathLike[str], z: np.ndarray, cell: float, z_per_xy: float = 1.0,
+                    azimuth_deg: float = 315.0, altitude_deg: float = 45.0) -> Path:
+    """A greyscale hillshade PNG (sun from the north-west, 45° up); nodata transparent."""
+    import cv2
+
+    from .outputs import atomic_path
+
+    valid = np.isfinite(z)
+    zz = np.where(valid, z, np.nanmean(z) if valid.any() else 0.0) * z_per_xy
+    gy, gx = np.gradient(zz, cell)
+    slope = np.arctan(np.hypot(gx, gy))
+    aspect = np.arctan2(-gx, gy)  # downhill direction, clockwise from north (rows go south)
+    az, alt = math.radians(azimuth_deg), math.radians(altitude_deg)
+    shade = np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect)
+    grey = np.clip(shade * 255, 0, 255).astype(np.uint8)
+    rgba = np.dstack([grey, grey, grey, np.where(valid, 255, 0).astype(np.uint8)])
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), rgba):
+            raise InputError("cannot write an image there (use .png)", path=Path(path))
+    return Path(path)
+
+
+class _ClassifiedWriter:
+    """The source LAS/LAZ again, chunk by chunk, with ground set to class 2 (and former
+    ground that is not ground any more set to 1), written atomically."""
+
+    def __init__(self, src: PointSource, target: Path):
+        import contextlib
+
+        import laspy
+
+        from .outputs import atomic_path
+
+        assert src.path is not None
+        self._stack = contextlib.ExitStack()
+        tmp = self._stack.enter_context(atomic_path(target))
+        self._reader = self._stack.enter_context(laspy.open(str(src.path)))
+        self._chunks = self._reader.chunk_iterator(CHUNK_POINTS)
+        self._writer = self._stack.enter_context(
+            laspy.open(str(tmp), mode="w", header=self._reader.header,
+                       do_compress=Path(target).suffix.lower() == ".laz"))
+        self._done = False
+
+    def write(self, ground: np.ndarray) -> None:
+        pts = next(self._chunks)
+        cls = np.asarray(pts.classification).copy()
+        cls[(cls == GROUND) & ~ground] = 1
+        cls[ground] = GROUND
+        pts.classification = cls
+        self._writer.write_points(pts)
+
+    def close(self) -> None:
+        self._done = True
+        self._stack.close()  # writer, reader, then the rename
+
+    def abort(self) -> None:
+        if not self._done:
+            self._done = True
+            err = RuntimeError("aborted")
+            self._stack.__exit__(type(err), err, None)  # the temporary file is removed
+
+
+def _csf(xyz: np.ndarray, src: PointSource, params: SmrfParams) -> np.ndarray:
+    """Cloth simulation filter (Zhang et al. 2016; the ``cloth-simulation-filter`` package)."""
+    try:
+        import CSF
+    except ImportError as e:
+        raise DependencyError("ground_method csf needs the cloth-simulation-filter package "
+                              "(pip install cloth-simulation-filter)") from e
+    import contextlib
+    import io
+
+    c = CSF.CSF()
+    c.params.bSloopSmooth = True
+    c.params.cloth_resolution = params.cell_m / src.horizontal_m
+    c.params.class_threshold = params.threshold_m / src.vertical_m
+    c.params.rigidness = 2
+    c.setPointCloud(xyz - xyz.min(axis=0))  # CSF works in float; keep the numbers small
+    ground, other = CSF.VecInt(), CSF.VecInt()
+    with contextlib.redirect_stdout(io.StringIO()):  # it prints its progress
+        c.do_filtering(ground, other, exportCloth=False)
+    mask = np.zeros(len(xyz), bool)
+    mask[np.asarray(list(ground), np.int64)] = True
+    return mask
+
+
+def _run_pdal(src: PointSource, grid: Grid, output: Path, dtm: Path | None, method: str, ground_method: str,
+              max_gap_m: float, params: SmrfParams, fb: Feedback) -> DemResult:
+    """The same products through PDAL (readers.las, filters.smrf, writers.gdal), then our gap fill."""
+    try:
+        import pdal
+    except ImportError as e:
+        raise DependencyError("engine pdal needs the pdal Python package and PDAL itself "
+                              "(not installable on Debian 12; conda-forge has both)") from e
+    import json
+    import tempfile
+
+    import rasterio
+
+    from .outputs import write_cog
+
+    if src.path is None:
+        raise ParameterError("engine", "engine pdal reads files only")
+    out_type = {"max": "max", "min": "min", "mean": "mean", "idw": "idw", "count": "count"}[method]
+    with tempfile.TemporaryDirectory() as d:
+        raw_dsm, raw_dtm = Path(d) / "dsm.tif", Path(d) / "dtm.tif"
+        bounds = f"([{grid.x0}, {grid.x0 + grid.cols * grid.cell}], [{grid.y0 - grid.rows * grid.cell}, {grid.y0}])"
+        writer = {"type": "writers.gdal", "resolution": grid.cell, "output_type": out_type, "bounds": bounds,
+                  "data_type": "float32", "nodata": NODATA}
+        pdal.Pipeline(json.dumps([str(src.path), {**writer, "filename": str(raw_dsm)}])).execute()
+        stages: list[Any] = [str(src.path)]
+        if ground_method == "smrf":
+            stages.append({"type": "filters.smrf", "cell": params.cell_m / src.horizontal_m,
+                           "slope": params.slope, "window": params.window_m / src.horizontal_m,
+                           "threshold": params.threshold_m / src.vertical_m, "scalar": params.scalar})
+        elif ground_method == "csf":
+            stages.append({"type": "filters.csf"})
+        n_ground = 0
+        if dtm is not None:
+            stages += [{"type": "filters.range", "limits": "Classification[2:2]"},
+                       {**writer, "output_type": "idw", "filename": str(raw_dtm)}]
+            p = pdal.Pipeline(json.dumps(stages))
+            n_ground = int(p.execute())
+        outs = []
+        for raw, target, name in ((raw_dsm, output, "dsm"), (raw_dtm, dtm, "dtm")):
+            if target is None:
+                continue
+            with rasterio.open(raw) as ds:
+                z = ds.read(1).astype(np.float64)
+            z[z == NODATA] = np.nan
+            z = _finish(z, max_gap_m / (grid.cell * src.horizontal_m), 0)
+            outs.append(write_cog(target, _nodata(z), transform=grid.transform, crs=src.crs, nodata=NODATA,
+                                  band_names=(name,), units=_unit_tag(src.vertical_unit)))
+    fb.info("engine: PDAL")
+    return DemResult(outs[0], outs[1] if dtm is not None else None, None, None, grid.cell, crs_to_text(src.crs),
+                     src.describe_units(), src.count, n_ground, tuple(src.notes))

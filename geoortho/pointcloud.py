@@ -1,0 +1,245 @@
+"""Point clouds in bounded memory: LAS/LAZ (laspy + lazrs), PLY (plyfile), NumPy arrays.
+
+A :class:`PointSource` knows its CRS, units, bounds and count from the header
+and yields the points in chunks as often as asked (the DEM makes two passes),
+so memory follows the chunk size, not the cloud.
+
+Units: coordinates stay in the file's units. LAS files from the United States
+often carry feet, and sometimes say so only half-way — an EPSG code in metres
+next to a GeoTIFF ``ProjLinearUnits`` key in US survey feet (PDAL's
+``mvk-thin.las``). The key wins when the coordinates fall in the CRS's area of
+use only in its units; the reason is reported.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pyproj import CRS
+
+from .crs import horizontal_unit_m, parse_crs, transformer
+from .errors import InputError
+
+__all__ = ["Chunk", "PointSource", "open_points", "UNIT_CODES"]
+
+#: GeoTIFF linear unit codes (ProjLinearUnitsGeoKey / VerticalUnitsGeoKey) → (name, metres per unit)
+UNIT_CODES = {9001: ("metre", 1.0), 9002: ("foot", 0.3048), 9003: ("US survey foot", 1200 / 3937)}
+POINT_EXTENSIONS = (".las", ".laz", ".ply")
+CHUNK_POINTS = 2_000_000
+
+
+@dataclass
+class Chunk:
+    x: np.ndarray  # float64, CRS units
+    y: np.ndarray
+    z: np.ndarray  # vertical units
+    classification: np.ndarray | None  # uint8 ASPRS classes, when the source has them
+    start: int  # index of the first point in the source
+
+
+@dataclass
+class PointSource:
+    """Where the points come from and what they are, without reading them."""
+
+    path: Path | None
+    crs: CRS
+    count: int
+    bounds: tuple[float, float, float, float, float, float]  # xmin ymin zmin xmax ymax zmax
+    horizontal_unit: str
+    horizontal_m: float  # metres per horizontal unit
+    vertical_unit: str
+    vertical_m: float
+    has_classification: bool
+    notes: list[str] = field(default_factory=list)  # how the CRS and units were decided
+    _array: np.ndarray | None = None
+    _classes: np.ndarray | None = None
+
+    def chunks(self, size: int = CHUNK_POINTS) -> Iterator[Chunk]:
+        """The points, ``size`` at a time (NaN coordinates are the caller's to judge)."""
+        if self._array is not None:
+            for i in range(0, self.count, size):
+                a = self._array[i:i + size]
+                cls = self._classes[i:i + size] if self._classes is not None else None
+                yield Chunk(a[:, 0], a[:, 1], a[:, 2], cls, i)
+            return
+        assert self.path is not None
+        import laspy
+
+        start = 0
+        try:
+            with laspy.open(str(self.path)) as reader:
+                for pts in reader.chunk_iterator(size):
+                    n = len(pts)
+                    yield Chunk(np.asarray(pts.x, float), np.asarray(pts.y, float), np.asarray(pts.z, float),
+                                np.asarray(pts.classification, np.uint8), start)
+                    start += n
+        except (laspy.errors.LaspyException, ValueError, OSError) as e:
+            raise InputError(f"cannot read points after {start}: {e}", path=self.path) from e
+
+    def describe_units(self) -> str:
+        return f"horizontal {self.horizontal_unit}, vertical {self.vertical_unit}"
+
+
+def open_points(source: str | os.PathLike[str] | np.ndarray, crs: str | CRS | None = None, *,
+                classification: np.ndarray | None = None) -> PointSource:
+    """Open a LAS/LAZ/PLY file or wrap an (N, 3) array (x, y, z in ``crs``).
+
+    ``crs`` overrides the file's CRS (and is required when it has none).
+    """
+    override = parse_crs(crs) if crs is not None else None
+    if isinstance(source, np.ndarray):
+        return _from_array(source, override, classification, None, [])
+    path = Path(source)
+    if not path.is_file():
+        raise InputError("no such file", path=path)
+    ext = path.suffix.lower()
+    if ext in (".las", ".laz"):
+        return _open_las(path, override)
+    if ext == ".ply":
+        return _open_ply(path, override)
+    raise InputError(f"unknown point cloud format {ext!r} (use {', '.join(POINT_EXTENSIONS)})", path=path)
+
+
+def _units_of(crs: CRS) -> tuple[str, float]:
+    m = horizontal_unit_m(crs)
+    return (crs.axis_info[0].unit_name if m != 1.0 else "metre"), m
+
+
+def _vertical_of(crs: CRS) -> tuple[str, float] | None:
+    for sub in crs.sub_crs_list or []:
+        if sub.is_vertical and sub.axis_info:
+            return sub.axis_info[0].unit_name, float(sub.axis_info[0].unit_conversion_factor)
+    return None
+
+
+def with_linear_unit(crs: CRS, name: str, metres: float) -> CRS:
+    """The same projected CRS with its axes in another linear unit."""
+    d = copy.deepcopy(crs.to_json_dict())
+    target = d.get("components", [d])[0] if d.get("type") == "CompoundCRS" else d
+    for axis in target["coordinate_system"]["axis"]:
+        axis["unit"] = {"type": "LinearUnit", "name": name, "conversion_factor": metres}
+    target.pop("id", None)
+    target["name"] = f"{target['name']} ({name})"
+    d.pop("id", None)
+    return CRS.from_json_dict(d)
+
+
+def _inside_area(crs: CRS, x: float, y: float) -> bool | None:
+    aou = crs.area_of_use
+    if aou is None:
+        return None
+    lon, lat = transformer(crs, CRS.from_epsg(4326)).transform(x, y)
+    w, s, e, n = aou.bounds
+    pad = 1.0
+    return bool(w - pad <= lon <= e + pad and s - pad <= lat <= n + pad)
+
+
+def _geokeys(header: Any) -> dict[int, int]:
+    for v in header.vlrs:
+        if type(v).__name__ == "GeoKeyDirectoryVlr":
+            return {k.id: k.value_offset for k in v.geo_keys if k.tiff_tag_location == 0}
+    return {}
+
+
+def _open_las(path: Path, override: CRS | None) -> PointSource:
+    import laspy
+
+    try:
+        with laspy.open(str(path)) as reader:
+            h = reader.header
+            count = int(h.point_count)
+            mins, maxs = np.asarray(h.mins, float), np.asarray(h.maxs, float)
+            try:
+                file_crs = h.parse_crs()
+            except Exception as e:  # a broken CRS record is reported, not fatal when --crs is given
+                file_crs = None
+                if override is None:
+                    raise InputError(f"unreadable CRS in the LAS header ({e}); give the CRS (--crs)",
+                                     path=path) from e
+            keys = _geokeys(h)
+    except laspy.errors.LaspyException as e:
+        raise InputError(f"not a readable LAS/LAZ file: {e}", path=path) from e
+    notes: list[str] = []
+    if override is not None:
+        crs = override
+        notes.append(f"CRS given: {crs.name}")
+    elif file_crs is None:
+        raise InputError("no CRS in the LAS header; give the CRS (--crs)", path=path)
+    else:
+        crs = file_crs
+        notes.append(f"CRS from the LAS header: {crs.name}" + (f" (EPSG:{crs.to_epsg()})" if crs.to_epsg() else ""))
+        h_unit = UNIT_CODES.get(keys.get(3076, 0))
+        unit_name, unit_m = _units_of(crs)
+        if crs.is_projected and h_unit is not None and abs(h_unit[1] - unit_m) > 1e-9:
+            # The EPSG code and the unit key disagree: believe whichever puts the points in the CRS's area.
+            cx, cy = (mins[0] + maxs[0]) / 2, (mins[1] + maxs[1]) / 2
+            alt = with_linear_unit(crs, *h_unit)
+            if _inside_area(crs, cx, cy) is not True and _inside_area(alt, cx, cy) is not False:
+                notes.append(f"units: {h_unit[0]} from the GeoTIFF ProjLinearUnits key, not the {unit_name} of "
+                             f"the CRS code: only in {h_unit[0]} do the points fall in the CRS's area")
+                crs = alt
+            else:
+                notes.append(f"units: {unit_name} of the CRS code kept over the ProjLinearUnits key "
+                             f"({h_unit[0]}): the points fall in the CRS's area in {unit_name}")
+    h_name, h_m = _units_of(crs) if crs.is_projected else ("metre", 1.0)
+    if crs.is_geographic:
+        raise InputError("geographic coordinates (degrees): reproject the cloud to a projected CRS or give "
+                         "the projected CRS it is in (--crs)", path=path)
+    v_name, v_m = h_name, h_m
+    v_key = UNIT_CODES.get(keys.get(4099, 0)) if override is None else None
+    v_crs = _vertical_of(crs)
+    if v_crs is not None:
+        v_name, v_m = v_crs
+        notes.append(f"heights in {v_name} (vertical CRS)")
+    elif v_key is not None:
+        v_name, v_m = v_key
+        notes.append(f"heights in {v_name} (GeoTIFF VerticalUnits key)")
+    else:
+        notes.append(f"heights in {v_name}, as the horizontal units (no vertical unit stated)")
+    return PointSource(path, crs, count, (*mins, *maxs), h_name, h_m, v_name, v_m, True, notes)
+
+
+def _open_ply(path: Path, override: CRS | None) -> PointSource:
+    from plyfile import PlyData, PlyHeaderParseError
+
+    try:
+        ply = PlyData.read(str(path))
+        v = ply["vertex"]
+        xyz = np.c_[np.asarray(v["x"], float), np.asarray(v["y"], float), np.asarray(v["z"], float)]
+    except (PlyHeaderParseError, KeyError, ValueError, OSError) as e:
+        raise InputError(f"not a readable PLY point cloud with x, y, z vertices: {e}", path=path) from e
+    names = v.data.dtype.names or ()
+    cls = np.asarray(v["classification"], np.uint8) if "classification" in names else None
+    if override is None:
+        raise InputError("PLY files carry no CRS; give it (--crs)", path=path)
+    return _from_array(xyz, override, cls, path, [f"CRS given: {override.name}"])
+
+
+def _from_array(a: np.ndarray, crs: CRS | None, classification: np.ndarray | None, path: Path | None,
+                notes: list[str]) -> PointSource:
+    a = np.asarray(a, float)
+    if a.ndim != 2 or a.shape[1] < 3:
+        raise InputError(f"points must be an (N, 3) array of x, y, z, not {a.shape}", path=path)
+    if crs is None:
+        raise InputError("the points have no CRS; give one (crs=...)", path=path)
+    if crs.is_geographic:
+        raise InputError("geographic coordinates (degrees): give points in a projected CRS", path=path)
+    if classification is not None and len(classification) != len(a):
+        raise InputError(f"{len(classification)} classes for {len(a)} points", path=path)
+    finite = np.isfinite(a[:, :3]).all(axis=1)
+    if len(a) and finite.any():
+        mins, maxs = a[finite, :3].min(axis=0), a[finite, :3].max(axis=0)
+    else:
+        mins = maxs = np.full(3, np.nan)
+    h_name, h_m = _units_of(crs)
+    v = _vertical_of(crs)
+    v_name, v_m = v if v is not None else (h_name, h_m)
+    return PointSource(path, crs, len(a), (*mins, *maxs), h_name, h_m, v_name, v_m, classification is not None,
+                       notes or [f"CRS given: {crs.name}"], _array=a[:, :3],
+                       _classes=None if classification is None else np.asarray(classification, np.uint8))
