@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from geoortho.feedback import Feedback
+
 REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 if not REAL_DATA.exists():  # CI clones main with shared/ beside it
     REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
@@ -46,3 +48,23 @@ def hard_survey(tmp_path_factory: pytest.TempPathFactory):
     from geoortho.synth import synth
 
     return synth(tmp_path_factory.mktemp("hard"), preset="hard", seed=4)
+
+
+
+class RecordingFeedback(Feedback):
+    """A Feedback that keeps what it is told: progress fractions, infos, warnings."""
+
+    def __init__(self):
+        super().__init__()
+        self.values: list[float] = []
+        self.infos: list[str] = []
+        self.warnings: list[str] = []
+
+    def set_progress(self, fraction):
+        self.values.append(fraction)
+
+    def info(self, message):
+        self.infos.append(message)
+
+    def warning(self, message):
+        self.warnings.append(message)

@@ -10,7 +10,7 @@ import laspy
 import numpy as np
 import pytest
 import rasterio
-from conftest import real_data
+from conftest import RecordingFeedback, real_data
 from rasterio.warp import Resampling, reproject
 from scipy import ndimage
 
@@ -212,20 +212,10 @@ def test_bad_input_clear_errors_no_file(tmp_path, case):
 
 
 def test_some_nan_points_are_skipped_with_a_warning(tmp_path):
-    from geoortho.feedback import NullFeedback
-
-    class Rec(NullFeedback):
-        def __init__(self):
-            super().__init__()
-            self.warnings = []
-
-        def warning(self, m):
-            self.warnings.append(m)
-
     rng = np.random.default_rng(1)
     xyz = np.c_[rng.uniform(0, 20, 2000), rng.uniform(0, 20, 2000), rng.uniform(0, 1, 2000)]
     xyz[[5, 17], 2] = np.nan
-    fb = Rec()
+    fb = RecordingFeedback()
     r = dem(xyz, tmp_path / "d.tif", crs="EPSG:32629", resolution_m=1.0, feedback=fb)
     assert r.n_points == 1998 and any("2 points" in w and "index 5" in w for w in fb.warnings)
 

@@ -5,23 +5,15 @@ import json
 
 import numpy as np
 import pytest
+from conftest import RecordingFeedback
 
 from geoortho.errors import CanceledError, InputError
-from geoortho.feedback import Feedback, JsonLinesFeedback, split, track
+from geoortho.feedback import JsonLinesFeedback, split, track
 from geoortho.outputs import atomic_path, write_cog
 
 
-class Recorder(Feedback):
-    def __init__(self):
-        super().__init__()
-        self.values = []
-
-    def set_progress(self, fraction):
-        self.values.append(fraction)
-
-
 def test_split_maps_substeps_onto_weighted_ranges():
-    fb = Recorder()
+    fb = RecordingFeedback()
     a, b = split(fb, [1, 3])
     a.progress(1.0)
     b.progress(0.5)
@@ -30,7 +22,7 @@ def test_split_maps_substeps_onto_weighted_ranges():
 
 
 def test_cancel_raises_from_progress_even_in_substeps():
-    fb = Recorder()
+    fb = RecordingFeedback()
     (a,) = split(fb, [1])
     fb.cancel()
     with pytest.raises(CanceledError):
