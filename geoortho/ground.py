@@ -40,7 +40,8 @@ class SmrfParams:
 
 def _open(z: np.ndarray, radius_cells: int) -> np.ndarray:
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_cells + 1, 2 * radius_cells + 1))
-    return cv2.morphologyEx(z.astype(np.float32), cv2.MORPH_OPEN, k, borderType=cv2.BORDER_REPLICATE)
+    # default border: +inf for the erosion, -inf for the dilation, so the grid edge is neutral
+    return cv2.morphologyEx(z.astype(np.float32), cv2.MORPH_OPEN, k)
 
 
 def smrf_surface(zmin: np.ndarray, cell: float, params: SmrfParams, horizontal_m: float = 1.0,
