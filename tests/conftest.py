@@ -9,9 +9,10 @@ import pytest
 
 from geoortho.feedback import Feedback
 
-REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-if not REAL_DATA.exists():  # CI clones main with shared/ beside it
-    REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+# ../shared/data/real beside the checkout; GEOORTHO_REAL_DATA or the team's /work/shared when cloned elsewhere
+_CANDIDATES = [Path(os.environ["GEOORTHO_REAL_DATA"])] if os.environ.get("GEOORTHO_REAL_DATA") else []
+_CANDIDATES += [Path(__file__).resolve().parents[2] / "shared" / "data" / "real", Path("/work/shared/data/real")]
+REAL_DATA = next((p for p in _CANDIDATES if p.exists()), _CANDIDATES[0])
 
 
 def real_data(name: str) -> Path:
