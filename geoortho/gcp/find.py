@@ -226,8 +226,9 @@ def gcp_find(
                        height_uncertainty_m=height_uncertainty_m, attitude_uncertainty_deg=attitude_uncertainty_deg,
                        marker_size_m=marker_size_m)
     # The pool starts first: its workers import OpenCV while the metadata is read.
-    with process_pool(workers, len(list_images(images)), initializer=init_worker, min_items_for_pool=4) as pool:
-        photos = read_photos(images, require_gps=False, require_camera=False, feedback=s_read)
+    paths = list_images(images)
+    with process_pool(workers, len(paths), initializer=init_worker, min_items_for_pool=4) as pool:
+        photos = read_photos(paths, require_gps=False, require_camera=False, feedback=s_read)
         if not photos.photos:
             raise InputError(f"no readable photo ({photos.summary()})", path=images)
         plan = _plan(photos.photos, gcps, ids, dsm, takeoff_elevation_m, uncertainty, fb)
@@ -358,11 +359,10 @@ def _flight_offset(results: list[tuple[str, list[Detection], str]], windows: dic
         image = Path(path).name
         cam = cams[image]
         for k, win in enumerate(windows[image]):
-            mine = [d for d in dets if d.window == k and d.marker_id == win.marker_id
-                    and math.hypot(d.x_px - win.x_px, d.y_px - win.y_px) <= win.max_radius_px]
-            if not mine:
+            found = _nearest(dets, k, win)
+            if found is None or found[1] > win.max_radius_px:
                 continue
-            d = min(mine, key=lambda d: math.hypot(d.x_px - win.x_px, d.y_px - win.y_px))
+            d = found[0]
             ray = pixel_rays(np.array([[d.x_px, d.y_px]]), cam.intrinsics, cam.pose)[0]
             g = xyz_of[win.gcp]
             if ray[2] > -1e-3:
@@ -376,6 +376,13 @@ def _flight_offset(results: list[tuple[str, list[Detection], str]], windows: dic
     worst_m = float(np.linalg.norm(s - shift_m, axis=1).max())
     # half again the worst residual seen, never under a metre: the pilot photos are a sample
     return shift_m, max(1.0, 1.5 * worst_m), len(shifts)
+
+
+def _nearest(dets: list[Detection], k: int, win: Window) -> tuple[Detection, float] | None:
+    """The detection of window ``k``'s own id nearest its prediction, and how far it is (px)."""
+    mine = [(d, math.hypot(d.x_px - win.x_px, d.y_px - win.y_px)) for d in dets
+            if d.window == k and d.marker_id == win.marker_id]
+    return min(mine, key=lambda de: de[1]) if mine else None
 
 
 def _judge(results: list[tuple[str, list[Detection], str]],
@@ -403,14 +410,13 @@ def _judge(results: list[tuple[str, list[Detection], str]],
             continue
         for k, win in enumerate(wins):
             px, py = win.x_px, win.y_px
-            mine = [d for d in dets if d.window == k and d.marker_id == win.marker_id]
             base = dict(image=image, gcp=win.gcp, marker_id=win.marker_id, predicted_x_px=px, predicted_y_px=py,
                         window_px=win.max_radius_px)
-            if not mine:
+            found = _nearest(dets, k, win)
+            if found is None:
                 obs.append(Observation(**base, status=NOT_FOUND))
                 continue
-            d = min(mine, key=lambda d: math.hypot(d.x_px - px, d.y_px - py))
-            err = math.hypot(d.x_px - px, d.y_px - py)
+            d, err = found
             status = DETECTED if err <= win.max_radius_px else TOO_FAR
             w, h = frames[image]
             if status == DETECTED and not in_frame(d.x_px, d.y_px, w, h, w * margin_pct / 100.0,
