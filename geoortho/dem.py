@@ -168,15 +168,13 @@ def _auto_resolution_m(src: PointSource) -> float:
     return min(steps, key=lambda s: abs(math.log(s / raw)))
 
 
-def _clean(ch: Chunk, bad: list[int]) -> Chunk:
+def _finite(ch: Chunk) -> tuple[Chunk, np.ndarray]:
+    """The chunk's points with finite coordinates, and which of its points those are."""
     ok = np.isfinite(ch.x) & np.isfinite(ch.y) & np.isfinite(ch.z)
     if ok.all():
-        return ch
-    if not bad:
-        bad.append(ch.start + int(np.argmin(ok)))
-    bad.append(int((~ok).sum()))
+        return ch, ok
     cls = ch.classification[ok] if ch.classification is not None else None
-    return Chunk(ch.x[ok], ch.y[ok], ch.z[ok], cls, ch.start)
+    return Chunk(ch.x[ok], ch.y[ok], ch.z[ok], cls, ch.start), ok
 
 
 def dem(
@@ -287,13 +285,16 @@ def dem(
     smrf_grid = Grid.covering(xmin, ymin, xmax, ymax, params.cell_m / src.horizontal_m)
     zmin_acc = _Accumulator(smrf_grid, "min") if want_ground and ground_method == "smrf" else None
     dtm_acc = _Accumulator(grid, "idw") if dtm is not None else None
-    bad: list[int] = []
+    n_bad, first_bad = 0, -1
     n_used = 0
     n_ground = 0
     csf_xyz: list[np.ndarray] = []
     for ch in src.chunks():
         fb.check_canceled()
-        ch = _clean(ch, bad)
+        ch, ok = _finite(ch)
+        if not ok.all():
+            first_bad = first_bad if n_bad else ch.start + int(np.argmin(ok))
+            n_bad += int((~ok).sum())
         n_used += len(ch.x)
         dsm_acc.add(ch.x, ch.y, ch.z)
         if zmin_acc is not None:
@@ -307,12 +308,10 @@ def dem(
         if ground_method == "csf" and want_ground:
             csf_xyz.append(np.c_[ch.x, ch.y, ch.z])
         s_pass1.progress(min(1.0, (ch.start + CHUNK_POINTS) / src.count))
-    if bad:
-        fb.warning(f"{sum(bad[1:])} points with non-finite coordinates skipped (first at index {bad[0]})")
-    if n_used == 0:
-        raise InputError("no point has finite coordinates", path=src.path)
+    if n_bad:
+        fb.warning(f"{n_bad} points with non-finite coordinates skipped (first at index {first_bad})")
     if n_used < 3:
-        raise InputError(f"{n_used} point(s): too few to make a surface", path=src.path)
+        raise InputError(f"{n_used} point(s) with finite coordinates: too few to make a surface", path=src.path)
 
     surface = None
     csf_mask = None
@@ -321,26 +320,30 @@ def dem(
     if ground_method == "csf" and want_ground:
         csf_mask = _csf(np.concatenate(csf_xyz), src, params)
         csf_xyz.clear()
-    if want_ground and ground_method != "classification":
+    # Pass 2: classify against the provisional ground (the file's classes were gridded in pass 1)
+    # and write the classified cloud.
+    if classified is not None or (want_ground and ground_method != "classification"):
         writer = _ClassifiedWriter(src, classified) if classified is not None else None
         offset = 0
         try:
             for ch in src.chunks():
                 fb.check_canceled()
-                raw_n = len(ch.x)
-                keep = np.isfinite(ch.x) & np.isfinite(ch.y) & np.isfinite(ch.z)
-                g = np.zeros(raw_n, bool)
-                if surface is not None:
-                    g[keep] = ground_mask(ch.x[keep], ch.y[keep], ch.z[keep], surface, smrf_grid.x0, smrf_grid.y0,
+                fin, keep = _finite(ch)
+                g = np.zeros(len(ch.x), bool)
+                if ground_method == "classification":
+                    assert fin.classification is not None
+                    g[keep] = fin.classification == GROUND
+                elif surface is not None:
+                    g[keep] = ground_mask(fin.x, fin.y, fin.z, surface, smrf_grid.x0, smrf_grid.y0,
                                           smrf_grid.cell, params, src.horizontal_m, src.vertical_m)
                 else:
                     assert csf_mask is not None
-                    k = int(keep.sum())
-                    g[keep] = csf_mask[offset:offset + k]
-                    offset += k
-                n_ground += int(g.sum())
-                if dtm_acc is not None:
-                    dtm_acc.add(ch.x[g], ch.y[g], ch.z[g])
+                    g[keep] = csf_mask[offset:offset + len(fin.x)]
+                    offset += len(fin.x)
+                if ground_method != "classification":
+                    n_ground += int(g.sum())
+                    if dtm_acc is not None:
+                        dtm_acc.add(ch.x[g], ch.y[g], ch.z[g])
                 if writer is not None:
                     writer.write(g)
                 s_pass2.progress(min(1.0, (ch.start + CHUNK_POINTS) / src.count))
@@ -349,15 +352,6 @@ def dem(
         finally:
             if writer is not None:
                 writer.abort()
-    elif classified is not None:
-        writer = _ClassifiedWriter(src, classified)
-        try:
-            for ch in src.chunks():
-                assert ch.classification is not None
-                writer.write(ch.classification == GROUND)
-            writer.close()
-        finally:
-            writer.abort()
 
     max_gap_cells = max_gap_m / res_m
     dsm_grid = _finish(dsm_acc.result(), max_gap_cells, smooth_px)

@@ -23,9 +23,7 @@ OVERRELAX = 1.7  # measured best of 1.0-1.85 on a ramp through a 40-cell hole
 def gap_mask(known: np.ndarray, max_gap_cells: float) -> np.ndarray:
     """Unknown cells that are gaps inside the data: within ``max_gap_cells`` of known cells on
     both sides (a morphological closing by a disc), not the outside of the cloud's outline."""
-    if known.all():
-        return np.zeros_like(known)
-    if not known.any():
+    if known.all() or not known.any():
         return np.zeros_like(known)
     # closing with no data beyond the grid's edge: pad, dilate by the radius, erode by it
     pad = int(math.ceil(max_gap_cells)) + 2

@@ -187,10 +187,10 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
             else:
                 notes.append(f"units: {unit_name} of the CRS code kept over the ProjLinearUnits key "
                              f"({h_unit[0]}): the points fall in the CRS's area in {unit_name}")
-    h_name, h_m = _units_of(crs) if crs.is_projected else ("metre", 1.0)
     if crs.is_geographic:
         raise InputError("geographic coordinates (degrees): reproject the cloud to a projected CRS or give "
                          "the projected CRS it is in (--crs)", path=path)
+    h_name, h_m = _units_of(crs)
     v_name, v_m = h_name, h_m
     v_key = UNIT_CODES.get(keys.get(4099, 0)) if override is None else None
     v_crs = _vertical_of(crs)
