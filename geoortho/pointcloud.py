@@ -26,7 +26,7 @@ from pyproj import CRS
 from .crs import horizontal_unit_m, parse_crs, transformer
 from .errors import InputError
 
-__all__ = ["Chunk", "PointSource", "open_points", "UNIT_CODES"]
+__all__ = ["Chunk", "PointSource", "open_points", "write_las", "UNIT_CODES"]
 
 #: GeoTIFF linear unit codes (ProjLinearUnitsGeoKey / VerticalUnitsGeoKey) → (name, metres per unit)
 UNIT_CODES = {9001: ("metre", 1.0), 9002: ("foot", 0.3048), 9003: ("US survey foot", 1200 / 3937)}
@@ -104,6 +104,33 @@ def open_points(source: str | os.PathLike[str] | np.ndarray, crs: str | CRS | No
     if ext == ".ply":
         return _open_ply(path, override)
     raise InputError(f"unknown point cloud format {ext!r} (use {', '.join(POINT_EXTENSIONS)})", path=path)
+
+
+def write_las(path: str | os.PathLike[str], xyz: np.ndarray, crs: CRS | str, *,
+              rgb: np.ndarray | None = None, classification: np.ndarray | None = None) -> Path:
+    """Write points (N, 3) as LAS/LAZ 1.4 (by extension), millimetre scale, the CRS in the header.
+
+    ``rgb`` is (N, 3) in 0..1; written atomically.
+    """
+    import laspy
+
+    from .outputs import atomic_path
+
+    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
+    header.scales = [0.001, 0.001, 0.001]
+    header.add_crs(parse_crs(crs))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    if classification is not None:
+        las.classification = np.asarray(classification, np.uint8)
+    if rgb is not None:
+        col16 = np.clip(np.asarray(rgb, float) * 65535.0 + 0.5, 0, 65535).astype(np.uint16)
+        las.red, las.green, las.blue = col16[:, 0], col16[:, 1], col16[:, 2]
+    with atomic_path(path) as tmp:
+        las.write(str(tmp))
+    return Path(path)
 
 
 def _units_of(crs: CRS) -> tuple[str, float]:

@@ -899,9 +899,7 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
 
 
 def _write_points(path: Path, scene: Scene, p: SynthPreset, rng: np.random.Generator) -> None:
-    import laspy
-
-    from .outputs import atomic_path
+    from .pointcloud import write_las
 
     fx0, fy0, fx1, fy1 = scene.flight_box
     pad = 20.0
@@ -921,14 +919,4 @@ def _write_points(path: Path, scene: Scene, p: SynthPreset, rng: np.random.Gener
     tree = (cls != 2) & (np.abs(obj[:, 1] - 0.34) < 0.02) & (np.abs(obj[:, 0] - 0.20) < 0.02)
     cls[tree] = 5
     rgb = scene.color(x, y, z)
-    header = laspy.LasHeader(point_format=3, version="1.4")
-    header.offsets = [math.floor(x.min()), math.floor(y.min()), math.floor(z.min())]
-    header.scales = [0.001, 0.001, 0.001]
-    header.add_crs(scene.crs)
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = x, y, z
-    las.classification = cls
-    col16 = (rgb * 65535).astype(np.uint16)
-    las.red, las.green, las.blue = col16[:, 0], col16[:, 1], col16[:, 2]
-    with atomic_path(path) as tmp:
-        las.write(str(tmp))
+    write_las(path, np.c_[x, y, z], scene.crs, rgb=rgb, classification=cls)

@@ -31,7 +31,7 @@ from pyproj import CRS
 from ..crs import WGS84_3D, parse_crs
 from ..errors import InputError
 
-__all__ = ["GroundControlPoint", "GcpSet", "read_gcp_file", "marker_id_of"]
+__all__ = ["GroundControlPoint", "ImagePoint", "GcpSet", "read_gcp_file", "marker_id_of"]
 
 _NAME_COLS = ("name", "id", "label", "gcp", "gcp_name", "point", "point_id", "pointid")
 _COLS = {
@@ -56,12 +56,24 @@ class GroundControlPoint:
 
 
 @dataclass(frozen=True)
+class ImagePoint:
+    """Where a GCP is seen in a photo (a gcp_list.txt row); pixel (0, 0) is the top-left pixel's centre."""
+
+    gcp: str
+    image: str
+    x_px: float
+    y_px: float
+    line: int = 0
+
+
+@dataclass(frozen=True)
 class GcpSet:
-    """The points of a GCP file and its CRS."""
+    """The points of a GCP file and its CRS (and, for a gcp_list.txt, where photos see them)."""
 
     points: tuple[GroundControlPoint, ...]
     crs: CRS
     path: Path
+    observations: tuple[ImagePoint, ...] = ()
 
     def by_name(self) -> dict[str, GroundControlPoint]:
         return {p.name: p for p in self.points}
@@ -103,7 +115,8 @@ def _check_geographic(name: str, lat: float, lon: float, path: Path, line: int) 
         raise InputError(f"{name}: latitude {lat} / longitude {lon} out of range", path=path, line=line)
 
 
-def _finish(points: list[GroundControlPoint], crs: CRS, path: Path) -> GcpSet:
+def _finish(points: list[GroundControlPoint], crs: CRS, path: Path,
+            observations: tuple[ImagePoint, ...] = ()) -> GcpSet:
     if not points:
         raise InputError("no GCP in the file", path=path)
     seen: dict[str, GroundControlPoint] = {}
@@ -116,7 +129,7 @@ def _finish(points: list[GroundControlPoint], crs: CRS, path: Path) -> GcpSet:
         elif max(abs(p.x - q.x), abs(p.y - q.y), abs(p.z - q.z)) > 1e-6:
             raise InputError(f"GCP {p.name!r} appears again with other coordinates (first on line {q.line})",
                              path=path, line=p.line)
-    return GcpSet(tuple(unique), crs, path)
+    return GcpSet(tuple(unique), crs, path, observations)
 
 
 def read_gcp_file(path: str | os.PathLike[str], crs: CRS | str | None = None) -> GcpSet:
@@ -164,6 +177,7 @@ def _is_number(text: str) -> bool:
 
 def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSet:
     points = []
+    observations = []
     geographic = crs.is_geographic
     for i in range(start, len(lines)):
         raw = lines[i].split("#", 1)[0].strip()
@@ -178,6 +192,8 @@ def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSe
             if geographic:
                 _check_geographic(name, y, x, path, n)
             points.append(GroundControlPoint(name, x, y, z, n))
+            px, py = _num(f[3], path, n, "pixel x"), _num(f[4], path, n, "pixel y")
+            observations.append(ImagePoint(name, f[5], px, py, n))
             continue
         if len(f) < 3:
             raise InputError(f"expected 'name x y z' (or 'name lat lon h'), got {len(f)} fields",
@@ -191,7 +207,7 @@ def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSe
             points.append(GroundControlPoint(name, b, a, z, n))
         else:
             points.append(GroundControlPoint(name, a, b, z, n))
-    return _finish(points, crs, path)
+    return _finish(points, crs, path, tuple(observations))
 
 
 def _read_named_csv(lines: list[str], first: int, crs: CRS | None, path: Path) -> GcpSet:

@@ -1,0 +1,859 @@
+"""Structure from Motion with pycolmap, made into a survey: GPS-seeded, GCP-constrained, honestly reported.
+
+pycolmap does the photogrammetry (SIFT, matching, incremental mapping, bundle
+adjustment). This module does what makes the result a survey:
+
+* one COLMAP camera per camera body (make, model, image size, focal length),
+  started from the metadata's focal length in pixels of the decoded image
+  (EXIF size tags are not trusted);
+* photo pairs chosen from the GPS positions (spatial matching) on larger
+  blocks, all pairs on small ones;
+* GPS positions as pose priors in a local Cartesian frame (the output CRS
+  minus a round offset, so that coordinates stay small and single precision is
+  safe); the mapper's bundle adjustment weighs them, then a robust similarity
+  transform puts the model on them;
+* GCPs from a gcp_list.txt are triangulated from their image observations and
+  the model is moved onto them by a similarity (7 parameters), then refined by
+  a bundle adjustment in which the control points are fixed 3D points observed
+  in the photos; ``checkpoints`` are held out of both and reported separately.
+
+Heights follow :mod:`geoortho.footprint`: the take-off elevation (given, or the
+flight's absolute − relative altitude) plus each photo's relative altitude.
+GCP heights that are all equal are taken as placeholders: those GCPs then
+control the model horizontally only, and their vertical residuals are not
+reported.
+
+Outputs in ``output``: ``model/`` (COLMAP binary model in the local frame, with
+``georeference.json`` giving the CRS and offset), ``points.laz`` (georeferenced,
+coloured), ``cameras.gpkg`` (camera centres, orientation, residuals),
+``report.json``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .camera import ypr_from_rotation
+from .crs import WGS84, crs_to_text, parse_crs, transformer
+from .errors import InputError
+from .feedback import Feedback, as_feedback
+from .footprint import photo_cameras, takeoff_elevation, working_crs
+from .gcp.io import GcpSet, read_gcp_file
+from .outputs import write_json, write_vector
+from .photos import Photo, list_images, read_photos
+from .pointcloud import write_las
+
+__all__ = ["SfmResult", "sfm", "MATCHING", "CAMERA_MODELS", "ce90", "le90"]
+
+MATCHING = ("auto", "exhaustive", "spatial", "sequential")
+CAMERA_MODELS = ("RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE")
+# Up to this many photos every pair is matched; above, pairs come from the GPS positions.
+EXHAUSTIVE_MAX_PHOTOS = 40
+# CE90 / LE90 from RMSE, normal errors (NSSDA; what OpenSfM/ODM reports):
+# circular 90 % = 2.1460 σc with σc = sqrt((RMSEx² + RMSEy²) / 2); linear 90 % = 1.6449 RMSEz.
+_CE90_PER_SIGMA = 2.1460
+_LE90_PER_SIGMA = 1.6449
+
+
+@dataclass(frozen=True)
+class SfmResult:
+    output: Path
+    model: Path
+    points: Path
+    cameras: Path
+    report: Path
+    n_photos: int
+    n_registered: int
+    crs: str
+    mean_reprojection_error_px: float
+    gcp_rmse_m: float  # 3D RMSE over the control GCPs, NaN without
+    checkpoint_rmse_m: float  # 3D RMSE over the checkpoints, NaN without
+    georeferenced_by: str
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def ce90(dx: np.ndarray, dy: np.ndarray) -> float:
+    """Horizontal circular error at 90 % from the X and Y residuals (NaN if none)."""
+    if len(dx) == 0:
+        return math.nan
+    sigma_c = math.sqrt((np.mean(np.square(dx)) + np.mean(np.square(dy))) / 2.0)
+    return _CE90_PER_SIGMA * sigma_c
+
+
+def le90(dz: np.ndarray) -> float:
+    """Vertical linear error at 90 % from the Z residuals (NaN if none)."""
+    return _LE90_PER_SIGMA * math.sqrt(np.mean(np.square(dz))) if len(dz) else math.nan
+
+
+# ---------------------------------------------------------------------------------------------
+# inputs
+
+
+@dataclass(frozen=True)
+class _Body:
+    """Photos sharing one camera: same make, model, decoded size and focal length."""
+
+    key: tuple[str, str, int, int, float]
+    photos: tuple[Photo, ...]
+
+    @property
+    def label(self) -> str:
+        make, model, w, h, f = self.key
+        return f"{make} {model} {w}x{h}" + (f" f={f:g} mm" if math.isfinite(f) else "")
+
+
+def _bodies(photos: Sequence[Photo]) -> list[_Body]:
+    groups: dict[tuple[str, str, int, int, float], list[Photo]] = {}
+    for p in photos:
+        f = round(p.focal_mm, 2) if math.isfinite(p.focal_mm) else math.nan
+        groups.setdefault((p.make, p.model, p.width_px, p.height_px, f), []).append(p)
+    return [_Body(k, tuple(v)) for k, v in groups.items()]
+
+
+def _camera_params(body: _Body, model: str) -> str:
+    """Initial intrinsics for COLMAP: focal (px) and principal point from the metadata, no distortion."""
+    p = body.photos[0]
+    f = p.focal_px
+    if not math.isfinite(f):
+        return ""  # COLMAP then guesses 1.2 × the larger side and refines it
+    cx, cy = p.width_px / 2.0, p.height_px / 2.0  # COLMAP: pixel (0, 0) is the top-left corner
+    base = {"SIMPLE_PINHOLE": [f, cx, cy], "PINHOLE": [f, f, cx, cy], "SIMPLE_RADIAL": [f, cx, cy, 0.0],
+            "RADIAL": [f, cx, cy, 0.0, 0.0], "OPENCV": [f, f, cx, cy, 0.0, 0.0, 0.0, 0.0]}[model]
+    return ",".join(f"{v:.6f}" for v in base)
+
+
+@dataclass(frozen=True)
+class _Priors:
+    """GPS camera positions in the local frame (CRS minus ``offset``), by image name."""
+
+    crs: Any
+    offset: np.ndarray  # (3,) added back to local coordinates
+    positions: dict[str, np.ndarray]
+    heights: str
+
+
+def _gps_priors(photos: Sequence[Photo], crs: Any, takeoff_elevation_m: float | None) -> _Priors:
+    with_gps = [p for p in photos if p.has_gps and p.has_altitude]
+    if not with_gps:
+        return _Priors(crs, np.zeros(3), {}, "no GPS")
+    takeoff = takeoff_elevation_m
+    if takeoff is None or not math.isfinite(takeoff):
+        t = takeoff_elevation(with_gps)
+        takeoff = t if math.isfinite(t) else None
+    cams, _, how = photo_cameras(with_gps, crs, takeoff_elevation_m=takeoff)
+    centres = np.array([c.pose.center for c in cams])
+    offset = np.array([*np.round(np.median(centres[:, :2], axis=0), -2), 0.0])
+    positions = {_name(c.photo): c.pose.center - offset for c in cams}
+    heights = cams[0].height_source if len({c.height_source for c in cams}) == 1 else "mixed: " + how
+    return _Priors(crs, offset, positions, heights)
+
+
+_ROOT: dict[int, Path] = {}
+
+
+def _name(p: Photo) -> str:
+    """The photo's COLMAP image name: its path relative to the common image folder."""
+    root = _ROOT.get(id(p))
+    return p.path.name if root is None else str(p.path.relative_to(root))
+
+
+# ---------------------------------------------------------------------------------------------
+# the pycolmap stages
+
+
+@dataclass
+class _Timer:
+    stages: dict[str, float] = field(default_factory=dict)
+
+    def add(self, stage: str, t0: float) -> None:
+        self.stages[stage] = self.stages.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def _pycolmap() -> Any:
+    import pycolmap
+
+    return pycolmap
+
+
+def _import_and_extract(db: Path, image_root: Path, bodies: list[_Body], camera_model: str,
+                        max_image_size: int, max_features: int, workers: int) -> None:
+    pc = _pycolmap()
+    for body in bodies:
+        ro = pc.ImageReaderOptions()
+        ro.camera_model = camera_model
+        ro.camera_params = _camera_params(body, camera_model)
+        # One import per body in SINGLE mode: the body's photos share one camera.
+        pc.import_images(db, image_root, pc.CameraMode.SINGLE, [_name(p) for p in body.photos], ro)
+    eo = pc.FeatureExtractionOptions()
+    eo.max_image_size = max_image_size
+    eo.num_threads = workers or -1
+    eo.sift.max_num_features = max_features
+    # Drone photos are sharp and large: the upsampled first octave (COLMAP's default -1) costs
+    # about 3x the time for features too small to matter at survey scale.
+    eo.sift.first_octave = 0
+    names = [_name(p) for b in bodies for p in b.photos]
+    pc.extract_features(db, image_root, names, extraction_options=eo)
+
+
+def _write_priors(db: Path, priors: _Priors, sigma_h_m: float, sigma_v_m: float) -> int:
+    pc = _pycolmap()
+    cov = np.diag([sigma_h_m ** 2, sigma_h_m ** 2, sigma_v_m ** 2])
+    n = 0
+    with pc.Database.open(db) as d:
+        d.clear_pose_priors()  # COLMAP's own priors: raw EXIF latitude/longitude/altitude
+        for im in d.read_all_images():
+            pos = priors.positions.get(im.name)
+            if pos is not None:
+                d.write_pose_prior(pc.PosePrior(
+                    corr_data_id=im.data_id, position=np.asarray(pos, float), position_covariance=cov,
+                    coordinate_system=pc.PosePriorCoordinateSystem.CARTESIAN))
+                n += 1
+    return n
+
+
+def _spatial_distance_m(photos: Sequence[Photo], priors: _Priors) -> float:
+    """Centres closer than 1.5 footprints may overlap: the spatial matcher's radius."""
+    heights = [p.relative_altitude_m for p in photos if math.isfinite(p.relative_altitude_m)]
+    widths = [p.sensor_width_mm / p.focal_mm for p in photos
+              if math.isfinite(p.sensor_width_mm) and math.isfinite(p.focal_mm) and p.focal_mm > 0]
+    if heights and widths:
+        return 1.5 * float(np.median(heights)) * float(np.median(widths))
+    pos = np.array(list(priors.positions.values()))
+    # Without heights: 8 × the median spacing between neighbouring photos.
+    d = np.linalg.norm(pos[:, None, :2] - pos[None, :, :2], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return 8.0 * float(np.median(d.min(axis=1)))
+
+
+def _match(db: Path, how: str, photos: Sequence[Photo], priors: _Priors, workers: int) -> str:
+    pc = _pycolmap()
+    mo = pc.FeatureMatchingOptions()
+    mo.num_threads = workers or -1
+    if how == "auto":
+        enough_gps = len(priors.positions) >= 0.8 * len(photos)
+        how = "spatial" if enough_gps and len(photos) > EXHAUSTIVE_MAX_PHOTOS else "exhaustive"
+    if how == "spatial":
+        if not priors.positions:
+            raise InputError("spatial matching needs GPS positions; use exhaustive or sequential")
+        po = pc.SpatialPairingOptions()
+        po.ignore_z = True
+        po.max_distance = _spatial_distance_m(photos, priors)
+        po.max_num_neighbors = 30
+        pc.match_spatial(db, matching_options=mo, pairing_options=po)
+        return f"spatial (neighbours within {po.max_distance:.0f} m, at most {po.max_num_neighbors})"
+    if how == "sequential":
+        pc.match_sequential(db, matching_options=mo)
+        return "sequential"
+    pc.match_exhaustive(db, matching_options=mo)
+    return "exhaustive"
+
+
+def _map(db: Path, image_root: Path, work: Path, use_priors: bool, workers: int, seed: int) -> list[Any]:
+    pc = _pycolmap()
+    o = pc.IncrementalPipelineOptions()
+    o.use_prior_position = use_priors
+    o.use_robust_loss_on_prior_position = True
+    o.min_model_size = 3
+    o.num_threads = workers or -1
+    o.random_seed = seed
+    models = pc.incremental_mapping(db, image_root, work, o)
+    return sorted(models.values(), key=lambda r: -r.num_reg_images())
+
+
+# ---------------------------------------------------------------------------------------------
+# georeferencing
+
+
+def _centres(rec: Any) -> dict[str, np.ndarray]:
+    return {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+
+
+def _align_to_gps(rec: Any, priors: _Priors, sigma_h_m: float) -> tuple[Any, int]:
+    """Robust similarity from the model's camera centres onto their GPS positions."""
+    pc = _pycolmap()
+    names = [n for n in _centres(rec) if n in priors.positions]
+    if len(names) < 3:
+        return None, 0
+    ro = pc.RANSACOptions()
+    ro.max_error = 3.0 * sigma_h_m
+    ro.random_seed = 0
+    sim = pc.align_reconstruction_to_locations(rec, names, np.array([priors.positions[n] for n in names]),
+                                               3, ro)
+    if sim is not None:
+        rec.transform(sim)
+    return sim, len(names)
+
+
+@dataclass
+class _GcpState:
+    name: str
+    surveyed: np.ndarray  # local frame
+    observations: list[tuple[str, float, float]]  # (image, x, y) COLMAP pixels (corner origin)
+    role: str  # "control" | "checkpoint"
+    triangulated: np.ndarray | None = None
+    inliers: int = 0
+    reprojection_px: float = math.nan
+
+
+def _gcp_states(gcps: GcpSet, crs: Any, offset: np.ndarray, checkpoints: set[str],
+                registered: set[str], fb: Feedback) -> list[_GcpState]:
+    to_local = transformer(gcps.crs, crs)
+    by_name = gcps.by_name()
+    obs: dict[str, list[tuple[str, float, float]]] = {}
+    known = {Path(n).name: n for n in registered}
+    unmatched = set()
+    for o in gcps.observations:
+        image = o.image if o.image in registered else known.get(Path(o.image).name)
+        if image is None:
+            unmatched.add(o.image)
+            continue
+        # gcp_list.txt: (0, 0) is the centre of the top-left pixel; COLMAP: its top-left corner.
+        obs.setdefault(o.gcp, []).append((image, o.x_px + 0.5, o.y_px + 0.5))
+    if unmatched:
+        fb.warning(f"GCP observations in {len(unmatched)} photo(s) not in the model ignored: "
+                   + ", ".join(sorted(unmatched)[:5]) + (" ..." if len(unmatched) > 5 else ""))
+    unknown = checkpoints - set(by_name)
+    if unknown:
+        raise InputError(f"checkpoint(s) not in the GCP file: {', '.join(sorted(unknown))}", path=gcps.path)
+    states = []
+    for name, g in by_name.items():
+        x, y = to_local.transform(g.x, g.y)
+        local = np.array([x, y, g.z]) - offset
+        states.append(_GcpState(name, local, obs.get(name, []),
+                                "checkpoint" if name in checkpoints else "control"))
+    return states
+
+
+def _triangulate(rec: Any, states: list[_GcpState], max_error_px: float = 4.0) -> None:
+    """Each GCP from its observations in registered photos (robust; needs two or more)."""
+    pc = _pycolmap()
+    by_name = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
+    for s in states:
+        s.triangulated, s.inliers, s.reprojection_px = None, 0, math.nan
+        ims = [(by_name[n], x, y) for n, x, y in s.observations if n in by_name]
+        if len(ims) < 2:
+            continue
+        opts = pc.EstimateTriangulationOptions()
+        opts.residual_type = pc.TriangulationResidualType.REPROJECTION_ERROR
+        opts.ransac.max_error = max_error_px
+        opts.ransac.random_seed = 0
+        out = pc.estimate_triangulation(np.array([[x, y] for _, x, y in ims]),
+                                        [im.cam_from_world() for im, _, _ in ims],
+                                        [im.camera for im, _, _ in ims], opts)
+        if out is None:
+            continue
+        s.triangulated = np.asarray(out["xyz"], float).reshape(3)
+        s.inliers = int(np.sum(out["inliers"]))
+        s.reprojection_px = _reprojection_px(ims, s.surveyed)
+
+
+def _reprojection_px(ims: list[tuple[Any, float, float]], xyz: np.ndarray) -> float:
+    """Mean distance (px) between the observations and the surveyed point projected into the photos."""
+    errs = []
+    for im, x, y in ims:
+        p = im.project_point(xyz)
+        if p is not None:
+            errs.append(math.hypot(p[0] - x, p[1] - y))
+    return float(np.mean(errs)) if errs else math.nan
+
+
+def _align_to_gcps(rec: Any, states: list[_GcpState], heights_usable: bool) -> Any:
+    """Similarity from the triangulated control GCPs onto their surveyed positions."""
+    pc = _pycolmap()
+    use = [s for s in states if s.role == "control" and s.triangulated is not None]
+    if len(use) < 3:
+        return None
+    src = np.array([s.triangulated for s in use])
+    tgt = np.array([s.surveyed for s in use])
+    if not heights_usable:
+        tgt[:, 2] = src[:, 2]  # placeholder heights: control horizontally, keep the GPS heights
+    sim = pc.estimate_sim3d(src, tgt)
+    if sim is not None:
+        rec.transform(sim)
+    return sim
+
+
+def _gcp_bundle_adjust(rec: Any, states: list[_GcpState]) -> int:
+    """Bundle adjustment with the control GCPs as fixed 3D points observed in the photos.
+
+    A COLMAP image cannot take new 2D points once it has some, so each GCP
+    observation borrows a keypoint slot that no 3D point uses (its coordinates
+    are restored afterwards). The fixed points hold the datum: no gauge is left
+    free. Returns the number of GCP observations used.
+    """
+    pc = _pycolmap()
+    by_name = {rec.image(i).name: i for i in rec.reg_image_ids()}
+    borrowed: list[tuple[int, int, np.ndarray]] = []
+    gcp_points = []
+    free_slots: dict[int, list[int]] = {}
+    for s in states:
+        if s.role != "control" or s.triangulated is None:
+            continue
+        track = pc.Track()
+        for name, x, y in s.observations:
+            iid = by_name.get(name)
+            if iid is None:
+                continue
+            im = rec.image(iid)
+            if iid not in free_slots:
+                free_slots[iid] = [k for k, p in enumerate(im.points2D) if not p.has_point3D()]
+            if not free_slots[iid]:
+                continue
+            k = free_slots[iid].pop()
+            borrowed.append((iid, k, np.array(im.point2D(k).xy)))
+            im.points2D[k].xy = np.array([x, y])
+            track.add_element(iid, k)
+        if track.length() >= 2:
+            gcp_points.append(rec.add_point3D(s.surveyed, track, np.zeros(3, np.uint8)))
+    n_obs = sum(rec.point3D(p).track.length() for p in gcp_points)
+    if len(gcp_points) >= 3:
+        cfg = pc.BundleAdjustmentConfig()
+        for iid in rec.reg_image_ids():
+            cfg.add_image(iid)
+        for pid in gcp_points:
+            cfg.add_constant_point(pid)
+        opts = pc.BundleAdjustmentOptions()
+        opts.print_summary = False
+        opts.ceres.loss_function_type = pc.LossFunctionType.SOFT_L1
+        pc.create_default_bundle_adjuster(opts, cfg, rec).solve()
+    for pid in gcp_points:
+        rec.delete_point3D(pid)
+    for iid, k, xy in borrowed:
+        rec.image(iid).points2D[k].xy = xy
+    return n_obs if len(gcp_points) >= 3 else 0
+
+
+# ---------------------------------------------------------------------------------------------
+# report
+
+
+def _residual_table(states: list[_GcpState], heights_usable: bool) -> list[dict[str, Any]]:
+    rows = []
+    for s in states:
+        row: dict[str, Any] = {"name": s.name, "role": s.role, "observations": len(s.observations),
+                               "inliers": s.inliers}
+        if s.triangulated is None:
+            row.update(dx_m=None, dy_m=None, dz_m=None, reprojection_px=None,
+                       note="seen in fewer than two registered photos" if len(s.observations) < 2
+                       else "triangulation failed")
+        else:
+            d = s.triangulated - s.surveyed
+            row.update(dx_m=float(d[0]), dy_m=float(d[1]), dz_m=float(d[2]) if heights_usable else None,
+                       reprojection_px=s.reprojection_px if heights_usable else None)
+        rows.append(row)
+    return rows
+
+
+def _accuracy(rows: list[dict[str, Any]], role: str) -> dict[str, Any] | None:
+    use = [r for r in rows if r["role"] == role and r["dx_m"] is not None]
+    if not use:
+        return None
+    dx = np.array([r["dx_m"] for r in use])
+    dy = np.array([r["dy_m"] for r in use])
+    dz = np.array([r["dz_m"] for r in use if r["dz_m"] is not None])
+    out = {"n": len(use), "rmse_x_m": float(np.sqrt(np.mean(dx ** 2))), "rmse_y_m": float(np.sqrt(np.mean(dy ** 2))),
+           "rmse_horizontal_m": float(np.sqrt(np.mean(dx ** 2 + dy ** 2))), "ce90_m": ce90(dx, dy)}
+    if len(dz) == len(use):
+        out.update(rmse_z_m=float(np.sqrt(np.mean(dz ** 2))),
+                   rmse_3d_m=float(np.sqrt(np.mean(dx ** 2 + dy ** 2 + dz ** 2))), le90_m=le90(dz))
+    else:
+        out.update(rmse_z_m=None, rmse_3d_m=None, le90_m=None)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# outputs
+
+
+def _reprojection_errors(rec: Any) -> dict[int, tuple[float, int]]:
+    """Mean reprojection error (px) and number of tie points, per registered image."""
+    ids = list(rec.point3D_ids())
+    err = {pid: rec.point3D(pid).error for pid in ids}
+    out = {}
+    for iid in rec.reg_image_ids():
+        e = [err[p.point3D_id] for p in rec.image(iid).get_observation_points2D()]
+        out[iid] = (float(np.mean(e)) if e else math.nan, len(e))
+    return out
+
+
+def _gsd_m(rec: Any) -> float:
+    """Median over photos of (median depth of the photo's tie points) / focal length."""
+    values = []
+    for iid in rec.reg_image_ids():
+        im = rec.image(iid)
+        obs = im.get_observation_points2D()
+        if len(obs) < 10:
+            continue
+        xyz = np.array([rec.point3D(p.point3D_id).xyz for p in obs[:: max(1, len(obs) // 200)]])
+        m = im.cam_from_world().matrix()
+        depth = xyz @ m[:, :3].T[:, 2] + m[2, 3]
+        values.append(float(np.median(depth)) / im.camera.mean_focal_length())
+    return float(np.median(values)) if values else math.nan
+
+
+def _write_points(path: Path, rec: Any, offset: np.ndarray, crs: Any) -> int:
+    ids = list(rec.point3D_ids())
+    xyz = np.array([rec.point3D(p).xyz for p in ids]).reshape(-1, 3) + offset
+    rgb = np.array([rec.point3D(p).color for p in ids], float).reshape(-1, 3) / 255.0
+    write_las(path, xyz, crs, rgb=rgb)
+    return len(ids)
+
+
+def _write_cameras(path: Path, rec: Any | None, photos: Sequence[Photo], priors: _Priors, crs: Any,
+                   reasons: dict[str, str]) -> None:
+    import geopandas as gpd
+    import shapely
+
+    reg = {}
+    errs = _reprojection_errors(rec) if rec is not None else {}
+    if rec is not None:
+        for iid in rec.reg_image_ids():
+            reg[rec.image(iid).name] = iid
+    rows, geoms = [], []
+    for p in photos:
+        name = _name(p)
+        gps = priors.positions.get(name)
+        row: dict[str, Any] = {"image": name, "registered": name in reg, "reason": reasons.get(name, ""),
+                               "camera": f"{p.make} {p.model}".strip()}
+        if name in reg:
+            im = rec.image(reg[name])
+            c = im.projection_center()
+            yaw, pitch, roll = ypr_from_rotation(im.cam_from_world().rotation.matrix().T)
+            e, n = errs.get(reg[name], (math.nan, 0))
+            row.update(x=c[0] + priors.offset[0], y=c[1] + priors.offset[1], z=c[2] + priors.offset[2],
+                       yaw_deg=yaw, pitch_deg=pitch, roll_deg=roll, reprojection_px=e, tie_points=n)
+            if gps is not None:
+                d = c - gps
+                row.update(gps_dx_m=d[0], gps_dy_m=d[1], gps_dz_m=d[2])
+            geoms.append(shapely.Point(*(c + priors.offset)))
+        elif gps is not None:
+            g = gps + priors.offset
+            row.update(x=g[0], y=g[1], z=g[2])  # where the GPS put it
+            geoms.append(shapely.Point(*g))
+        else:
+            geoms.append(None)
+        rows.append(row)
+    gdf = gpd.GeoDataFrame(rows, geometry=geoms, crs=crs)
+    write_vector(path, {"cameras": gdf})
+
+
+def _why_unregistered(db: Path, names: list[str], registered: set[str], elsewhere: set[str]) -> dict[str, str]:
+    pc = _pycolmap()
+    reasons = {}
+    with pc.Database.open(db) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        pairs, tvgs = d.read_two_view_geometries()
+        matched: dict[int, int] = {}
+        for pair_id, tvg in zip(pairs, tvgs):
+            if len(tvg.inlier_matches) >= 15:
+                a, b = _pair_ids(pair_id)
+                matched[a] = matched.get(a, 0) + 1
+                matched[b] = matched.get(b, 0) + 1
+        for name in names:
+            if name in registered:
+                continue
+            iid = ids.get(name)
+            if iid is None or d.num_keypoints_for_image(iid) == 0:
+                reasons[name] = "no features (blank, blurred or unreadable photo)"
+            elif name in elsewhere:
+                reasons[name] = "registered only in a separate, smaller model (no overlap linking it)"
+            elif matched.get(iid, 0) == 0:
+                reasons[name] = "no verified matches with any other photo (no overlap?)"
+            else:
+                reasons[name] = f"matched {matched[iid]} photo(s) but registration failed"
+    return reasons
+
+
+def _pair_ids(pair: Any) -> tuple[int, int]:
+    if isinstance(pair, tuple):
+        return int(pair[0]), int(pair[1])
+    pair = int(pair)
+    b = pair % 2147483647
+    return (pair - b) // 2147483647, b
+
+
+# ---------------------------------------------------------------------------------------------
+# the algorithm
+
+
+def sfm(
+    images: Path,
+    output: Path,
+    gcp_list: Path | None = None,
+    checkpoints: str = "",
+    crs: str | None = None,
+    matching: str = "auto",
+    max_image_size: int = 2048,
+    max_features: int = 8192,
+    camera_model: str = "RADIAL",
+    takeoff_elevation_m: float | None = None,
+    gps_sigma_m: float = 2.0,
+    local_frame: bool = False,
+    seed: int = 0,
+    workers: int = 0,
+    *,
+    feedback: Feedback | None = None,
+) -> SfmResult:
+    """Reconstruct camera poses and sparse points with pycolmap, georeferenced by GPS and GCPs.
+
+    Parameters
+    ----------
+    images : Path
+        Folder of photos (or a list of photo paths).
+    output : Path
+        Folder for ``model/``, ``points.laz``, ``cameras.gpkg`` and ``report.json``.
+    gcp_list : Path
+        OpenDroneMap gcp_list.txt: GCP coordinates and where photos see them
+        (from ``gcp-find`` or typed in).
+    checkpoints : str
+        Comma-separated GCP names held out of the adjustment and only measured.
+    crs : str
+        Output CRS (projected). Default: the GCP file's if projected, else the photos' UTM zone.
+    matching : str
+        auto (exhaustive up to 40 photos, else spatial from GPS), exhaustive, spatial or sequential.
+    max_image_size : int
+        Photos are downscaled to this larger side for feature extraction (px).
+    max_features : int
+        SIFT features kept per photo.
+    camera_model : str
+        COLMAP camera model, one per camera body.
+    takeoff_elevation_m : float
+        Elevation of the take-off point in the output height datum; default: the
+        flight's absolute − relative altitude (GNSS heights, often metres off).
+    gps_sigma_m : float
+        Horizontal standard deviation of the photos' GPS positions (vertical: twice that).
+    local_frame : bool
+        Without GPS and GCPs, still write a model in an arbitrary local frame.
+    seed : int
+        Random seed of the mapper (repeatable runs).
+    workers : int
+        Threads for pycolmap (0 = every core).
+    """
+    fb = as_feedback(feedback)
+    t_start = time.perf_counter()
+    timer = _Timer()
+    output = Path(output)
+    if camera_model not in CAMERA_MODELS:
+        raise InputError(f"camera model {camera_model!r} is not one of {', '.join(CAMERA_MODELS)}")
+    if matching not in MATCHING:
+        raise InputError(f"matching {matching!r} is not one of {', '.join(MATCHING)}")
+    t0 = time.perf_counter()
+    paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
+    photoset = read_photos(paths, require_gps=False, require_camera=False, feedback=fb)
+    photos = photoset.photos
+    timer.add("metadata", t0)
+    if len(photos) < 3:
+        raise InputError(f"SfM needs at least 3 readable photos, found {len(photos)}", path=images)
+    root = Path(os.path.commonpath([str(p.path.parent.resolve()) for p in photos]))
+    for p in photos:
+        _ROOT[id(p)] = root
+    names = [_name(p) for p in photos]
+    gcps = read_gcp_file(gcp_list) if gcp_list else None
+    if gcps is not None and not gcps.observations:
+        raise InputError("the GCP file has no image observations: SfM needs a gcp_list.txt "
+                         "(x y z px py image name rows), e.g. from gcp-find", path=gcp_list)
+    held_out = {c.strip() for c in checkpoints.split(",") if c.strip()}
+    has_gps = sum(p.has_gps for p in photos)
+    if has_gps < 3 and gcps is None and not local_frame:
+        raise InputError("fewer than 3 photos with GPS and no GCPs: the model would be arbitrary in scale, "
+                         "position and orientation; give a gcp_list.txt, or local_frame to accept that",
+                         path=images)
+    notes: list[str] = []
+    out_crs = _output_crs(crs, photos, gcps)
+    priors = _gps_priors(photos, out_crs, takeoff_elevation_m) if out_crs is not None else \
+        _Priors(None, np.zeros(3), {}, "no GPS")
+    if gcps is not None and not priors.positions:
+        to_local = transformer(gcps.crs, out_crs)
+        xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
+        priors = _Priors(out_crs, np.array([*np.round(np.median(xy, axis=0), -2), 0.0]), {}, "no GPS")
+    bodies = _bodies(photos)
+    fb.info(f"{len(photos)} photos, {len(bodies)} camera bod{'y' if len(bodies) == 1 else 'ies'}: "
+            + "; ".join(f"{b.label} ({len(b.photos)})" for b in bodies))
+    if len({(b.key[2], b.key[3]) for b in bodies}) > 1:
+        notes.append("photos of several image sizes: each size is its own camera")
+    output.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".sfm-work-", dir=output))
+    try:
+        db = work / "database.db"
+        _pycolmap().Database.open(db).close()
+        t0 = time.perf_counter()
+        fb.info("features ...")
+        _import_and_extract(db, root, bodies, camera_model, max_image_size, max_features, workers)
+        timer.add("features", t0)
+        fb.set_progress(0.3)
+        fb.check_canceled()
+        n_priors = _write_priors(db, priors, gps_sigma_m, 2.0 * gps_sigma_m) if priors.positions else 0
+        t0 = time.perf_counter()
+        how = _match(db, matching, photos, priors, workers)
+        timer.add("matching", t0)
+        fb.info(f"matching: {how}")
+        fb.set_progress(0.55)
+        fb.check_canceled()
+        t0 = time.perf_counter()
+        models = _map(db, root, work / "sparse", n_priors >= 3, workers, seed)
+        timer.add("mapping", t0)
+        fb.set_progress(0.85)
+        if not models:
+            raise InputError("no model could be built: the photos do not overlap enough "
+                             "(or show no texture); see the log for matches", path=images)
+        rec = models[0]
+        registered = {rec.image(i).name for i in rec.reg_image_ids()}
+        elsewhere = {rec2.image(i).name for rec2 in models[1:] for i in rec2.reg_image_ids()}
+        if len(models) > 1:
+            notes.append(f"{len(models)} separate models; the largest ({len(registered)} photos) is kept, "
+                         f"{len(elsewhere)} photos are only in the others")
+        reasons = _why_unregistered(db, names, registered, elsewhere)
+        for name, why in sorted(reasons.items()):
+            fb.warning(f"not registered: {name}: {why}")
+
+        t0 = time.perf_counter()
+        georef, gps_sim, n_gps = "none (local frame)", None, 0
+        if priors.positions:
+            gps_sim, n_gps = _align_to_gps(rec, priors, gps_sigma_m)
+            if gps_sim is not None:
+                georef = f"GPS of {n_gps} photos"
+            else:
+                notes.append("the GPS positions did not fit the model (fewer than 3 consistent photos)")
+        states: list[_GcpState] = []
+        heights_usable = True
+        gcp_obs_used = 0
+        if gcps is not None:
+            states = _gcp_states(gcps, out_crs, priors.offset, held_out, registered, fb)
+            zs = np.array([s.surveyed[2] for s in states])
+            if len(zs) >= 2 and np.ptp(zs) < 1e-6:
+                heights_usable = False
+                notes.append(f"all GCP heights are {zs[0] + priors.offset[2]:g}: taken as placeholders; "
+                             "GCPs control the model horizontally only and their Z residuals are not reported")
+            _triangulate(rec, states)
+            if _align_to_gcps(rec, states, heights_usable) is not None:
+                georef = f"{sum(s.role == 'control' and s.triangulated is not None for s in states)} GCPs" + (
+                    " (horizontally; heights from GPS)" if not heights_usable else "") + (
+                    f" after GPS of {n_gps} photos" if gps_sim is not None else "")
+                if heights_usable:
+                    _triangulate(rec, states)
+                    gcp_obs_used = _gcp_bundle_adjust(rec, states)
+                    if gcp_obs_used:
+                        georef += f"; bundle adjustment with {gcp_obs_used} GCP observations fixed"
+            else:
+                n_ok = sum(s.role == "control" and s.triangulated is not None for s in states)
+                notes.append(f"only {n_ok} control GCP(s) triangulated (3 needed): GCPs not used for control")
+            _triangulate(rec, states)
+        timer.add("georeferencing", t0)
+        if gps_sim is None and not any(s.triangulated is not None for s in states) and not local_frame:
+            raise InputError("the model could not be georeferenced (GPS did not fit, GCPs not triangulated); "
+                             "use local_frame to keep it anyway", path=images)
+
+        t0 = time.perf_counter()
+        model_dir = output / "model"
+        tmp_model = work / "model"
+        tmp_model.mkdir()
+        rec.write(tmp_model)
+        crs_text = crs_to_text(out_crs) if out_crs is not None else ""
+        write_json(tmp_model / "georeference.json",
+                   {"crs": crs_text, "offset": priors.offset.tolist(),
+                    "note": "model coordinates + offset = coordinates in crs"})
+        if model_dir.exists():
+            shutil.rmtree(model_dir)
+        os.replace(tmp_model, model_dir)
+        os.replace(db, output / "database.db")
+        las_crs = out_crs if out_crs is not None else None
+        n_points = _write_points(output / "points.laz", rec, priors.offset, las_crs) if las_crs is not None \
+            else 0
+        if las_crs is None:
+            notes.append("no CRS: points.laz and cameras.gpkg are not written (local frame only)")
+        else:
+            _write_cameras(output / "cameras.gpkg", rec, photos, priors, las_crs, reasons)
+        timer.add("outputs", t0)
+        rows = _residual_table(states, heights_usable)
+        control = _accuracy(rows, "control")
+        check = _accuracy(rows, "checkpoint")
+        mean_reproj = float(rec.compute_mean_reprojection_error())
+        gps_res = _gps_residuals(rec, priors)
+        report = {
+            "photos": len(photos) + len(photoset.skipped), "photos_read": len(photos),
+            "registered": len(registered), "unregistered": reasons,
+            "skipped": dict(photoset.skipped),
+            "camera_bodies": [{"camera": b.label, "photos": len(b.photos)} for b in bodies],
+            "cameras": [_camera_record(c) for c in rec.cameras.values()],
+            "matching": how, "models": len(models), "points": rec.num_points3D(),
+            "mean_reprojection_error_px": mean_reproj,
+            "mean_track_length": float(rec.compute_mean_track_length()),
+            "gsd_cm": _gsd_m(rec) * 100.0,
+            "crs": crs_text, "offset": priors.offset.tolist(), "heights": priors.heights,
+            "georeferenced_by": georef, "gps": gps_res,
+            "gcps": rows, "gcp_accuracy": control, "checkpoint_accuracy": check,
+            "ce90_le90": "NSSDA from RMSE: CE90 = 2.1460·sqrt((RMSEx²+RMSEy²)/2), LE90 = 1.6449·RMSEz",
+            "seconds": {k: round(v, 2) for k, v in timer.stages.items()}
+            | {"total": round(time.perf_counter() - t_start, 2)},
+            "notes": notes,
+        }
+        write_json(output / "report.json", report)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    for n in notes:
+        fb.warning(n)
+    fb.info(f"registered {len(registered)}/{len(photos)} photos, {n_points} points, "
+            f"reprojection {mean_reproj:.2f} px; georeferenced by {georef}")
+    if check:
+        fb.info(f"checkpoints: RMSE horizontal {check['rmse_horizontal_m']:.3f} m"
+                + (f", vertical {check['rmse_z_m']:.3f} m" if check["rmse_z_m"] is not None else ""))
+    fb.set_progress(1.0)
+    return SfmResult(
+        output=output, model=output / "model", points=output / "points.laz", cameras=output / "cameras.gpkg",
+        report=output / "report.json", n_photos=len(photos), n_registered=len(registered), crs=crs_text,
+        mean_reprojection_error_px=mean_reproj,
+        gcp_rmse_m=_rmse3(control), checkpoint_rmse_m=_rmse3(check), georeferenced_by=georef,
+        notes=tuple(notes),
+    )
+
+
+def _rmse3(acc: dict[str, Any] | None) -> float:
+    if not acc:
+        return math.nan
+    v = acc.get("rmse_3d_m")
+    return float(v) if v is not None else float(acc["rmse_horizontal_m"])
+
+
+def _camera_record(cam: Any) -> dict[str, Any]:
+    return {"camera_id": int(cam.camera_id), "model": cam.model_name, "width": int(cam.width),
+            "height": int(cam.height), "params": [float(v) for v in cam.params],
+            "params_info": cam.params_info}
+
+
+def _gps_residuals(rec: Any, priors: _Priors) -> dict[str, Any] | None:
+    """Camera centre − GPS position, as ODM's report gives it (the GPS are not truth)."""
+    c = _centres(rec)
+    d = np.array([c[n] - priors.positions[n] for n in c if n in priors.positions])
+    if len(d) == 0:
+        return None
+    return {"n": len(d), "mean_m": d.mean(axis=0).tolist(), "rmse_m": np.sqrt((d ** 2).mean(axis=0)).tolist(),
+            "ce90_m": ce90(d[:, 0], d[:, 1]), "le90_m": le90(d[:, 2])}
+
+
+def _output_crs(crs: str | None, photos: Sequence[Photo], gcps: GcpSet | None) -> Any:
+    if crs is not None:
+        c = parse_crs(crs)
+        if not c.is_projected:
+            raise InputError(f"the output CRS must be projected (metres or feet), not {c.name}")
+        return c
+    if gcps is not None and gcps.crs.is_projected:
+        return gcps.crs
+    if any(p.has_gps for p in photos):
+        return working_crs([p for p in photos if p.has_gps])
+    if gcps is not None:
+        g = gcps.points[0]
+        lon, lat = transformer(gcps.crs, WGS84).transform(g.x, g.y)
+        from .crs import utm_crs_for
+
+        return utm_crs_for(lon, lat)
+    return None
