@@ -65,7 +65,7 @@ def demo(
 
 def _stages() -> list:
     """(name, weight, run(survey, output, feedback) -> products) for every stage that exists."""
-    return [("footprints", 1, _footprints), ("gcp-find", 2, _gcp_find), ("dem", 1, _dem)]
+    return [("footprints", 1, _footprints), ("gcp-find", 2, _gcp_find), ("sfm", 4, _sfm), ("dem", 1, _dem)]
 
 
 def _takeoff_elevation(survey: SynthResult) -> float:
@@ -90,6 +90,20 @@ def _gcp_find(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]
                  detections=output / "gcp_detections.gpkg", review=output / "gcp_review.png", feedback=fb)
     fb.info(f"gcp-find: {r.n_observations} observations of {r.n_gcps_found} GCPs")
     return {"gcp_list": str(r.output), "gcp_detections": str(r.detections), "gcp_review": str(r.review)}
+
+
+def _sfm(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
+    from .sfm import sfm
+
+    gcp_list = output / "gcp_list.txt"
+    names = sorted({ln.split()[6] for ln in gcp_list.read_text().splitlines()[1:] if len(ln.split()) >= 7})
+    # every third GCP is a checkpoint: held out, measured; 1024 px features keep the demo quick
+    r = sfm(survey.images, output / "sfm", gcp_list=gcp_list, checkpoints=",".join(names[::3]),
+            max_image_size=1024, max_features=4096, feedback=fb)
+    fb.info(f"sfm: {r.n_registered}/{r.n_photos} photos, reprojection {r.mean_reprojection_error_px:.2f} px, "
+            f"checkpoint RMSE {r.checkpoint_rmse_m * 100:.1f} cm")
+    return {"sfm_model": str(r.model), "sfm_points": str(r.points), "sfm_cameras": str(r.cameras),
+            "sfm_report": str(r.report)}
 
 
 def _dem(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:

@@ -229,10 +229,14 @@ def _sensor_width(model: str, focal_mm: float, focal_35mm: float, exif_ifd: dict
         # The 35 mm equivalent as drone makers compute it scales the 36 mm frame width.
         return focal_mm * 36.0 / focal_35mm, "35mm equivalent"
     xres = _float(exif_ifd.get(0xA20E))
-    unit = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}.get(int(_float(exif_ifd.get(0xA210)) or 2), 25.4)
-    exif_w = max(int(_float(exif_ifd.get(0xA002)) or 0), int(_float(exif_ifd.get(0xA003)) or 0)) or longer_px
-    if math.isfinite(xres) and xres > 0:
-        return exif_w / xres * unit, "focal plane resolution"
+    if not (math.isfinite(xres) and xres > 0):
+        return math.nan, ""
+    unit_code = _float(exif_ifd.get(0xA210))  # FocalPlaneResolutionUnit, inches when absent
+    unit = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}.get(int(unit_code) if math.isfinite(unit_code) else 2, 25.4)
+    # The resolution refers to the image size the camera wrote in EXIF (not a later downscale).
+    sizes = [_float(exif_ifd.get(t)) for t in (0xA002, 0xA003)]
+    exif_w = max((v for v in sizes if math.isfinite(v)), default=0.0) or longer_px
+    return exif_w / xres * unit, "focal plane resolution"
     return math.nan, ""
 
 

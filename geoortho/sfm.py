@@ -142,29 +142,30 @@ class _Priors:
     heights: str
 
 
-def _gps_priors(photos: Sequence[Photo], crs: Any, takeoff_elevation_m: float | None) -> _Priors:
+def _gps_priors(photos: Sequence[Photo], names: dict[Path, str], crs: Any,
+                takeoff_elevation_m: float | None) -> _Priors:
     with_gps = [p for p in photos if p.has_gps and p.has_altitude]
     if not with_gps:
         return _Priors(crs, np.zeros(3), {}, "no GPS")
-    takeoff = takeoff_elevation_m
+    takeoff, label = takeoff_elevation_m, "take-off elevation given"
     if takeoff is None or not math.isfinite(takeoff):
         t = takeoff_elevation(with_gps)
-        takeoff = t if math.isfinite(t) else None
-    cams, _, how = photo_cameras(with_gps, crs, takeoff_elevation_m=takeoff)
+        # GNSS heights of consumer drones are often metres off: GCPs or a given take-off fix that.
+        takeoff, label = (t, "take-off from absolute − relative altitude (GNSS heights)") if math.isfinite(t) \
+            else (None, "")
+    cams, _, _ = photo_cameras(with_gps, crs, takeoff_elevation_m=takeoff)
     centres = np.array([c.pose.center for c in cams])
     offset = np.array([*np.round(np.median(centres[:, :2], axis=0), -2), 0.0])
-    positions = {_name(c.photo): c.pose.center - offset for c in cams}
-    heights = cams[0].height_source if len({c.height_source for c in cams}) == 1 else "mixed: " + how
+    positions = {names[c.photo.path]: c.pose.center - offset for c in cams}
+    sources = sorted({c.height_source.split(";")[0] for c in cams})
+    heights = ", ".join(sources) + (f"; {label}" if label else "")
     return _Priors(crs, offset, positions, heights)
 
 
-_ROOT: dict[int, Path] = {}
-
-
-def _name(p: Photo) -> str:
-    """The photo's COLMAP image name: its path relative to the common image folder."""
-    root = _ROOT.get(id(p))
-    return p.path.name if root is None else str(p.path.relative_to(root))
+def _image_names(photos: Sequence[Photo]) -> tuple[Path, dict[Path, str]]:
+    """The photos' common folder and each photo's COLMAP image name (its path relative to that)."""
+    root = Path(os.path.commonpath([str(p.path.parent.resolve()) for p in photos]))
+    return root, {p.path: str(p.path.resolve().relative_to(root)) for p in photos}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -185,15 +186,15 @@ def _pycolmap() -> Any:
     return pycolmap
 
 
-def _import_and_extract(db: Path, image_root: Path, bodies: list[_Body], camera_model: str,
-                        max_image_size: int, max_features: int, workers: int) -> None:
+def _import_and_extract(db: Path, image_root: Path, names: dict[Path, str], bodies: list[_Body],
+                        camera_model: str, max_image_size: int, max_features: int, workers: int) -> None:
     pc = _pycolmap()
     for body in bodies:
         ro = pc.ImageReaderOptions()
         ro.camera_model = camera_model
         ro.camera_params = _camera_params(body, camera_model)
         # One import per body in SINGLE mode: the body's photos share one camera.
-        pc.import_images(db, image_root, pc.CameraMode.SINGLE, [_name(p) for p in body.photos], ro)
+        pc.import_images(db, image_root, pc.CameraMode.SINGLE, [names[p.path] for p in body.photos], ro)
     eo = pc.FeatureExtractionOptions()
     eo.max_image_size = max_image_size
     eo.num_threads = workers or -1
@@ -201,8 +202,8 @@ def _import_and_extract(db: Path, image_root: Path, bodies: list[_Body], camera_
     # Drone photos are sharp and large: the upsampled first octave (COLMAP's default -1) costs
     # about 3x the time for features too small to matter at survey scale.
     eo.sift.first_octave = 0
-    names = [_name(p) for b in bodies for p in b.photos]
-    pc.extract_features(db, image_root, names, extraction_options=eo)
+    pc.extract_features(db, image_root, [names[p.path] for b in bodies for p in b.photos],
+                        extraction_options=eo)
 
 
 def _write_priors(db: Path, priors: _Priors, sigma_h_m: float, sigma_v_m: float) -> int:
@@ -322,9 +323,6 @@ def _gcp_states(gcps: GcpSet, crs: Any, offset: np.ndarray, checkpoints: set[str
     if unmatched:
         fb.warning(f"GCP observations in {len(unmatched)} photo(s) not in the model ignored: "
                    + ", ".join(sorted(unmatched)[:5]) + (" ..." if len(unmatched) > 5 else ""))
-    unknown = checkpoints - set(by_name)
-    if unknown:
-        raise InputError(f"checkpoint(s) not in the GCP file: {', '.join(sorted(unknown))}", path=gcps.path)
     states = []
     for name, g in by_name.items():
         x, y = to_local.transform(g.x, g.y)
@@ -509,19 +507,18 @@ def _write_points(path: Path, rec: Any, offset: np.ndarray, crs: Any) -> int:
     return len(ids)
 
 
-def _write_cameras(path: Path, rec: Any | None, photos: Sequence[Photo], priors: _Priors, crs: Any,
-                   reasons: dict[str, str]) -> None:
+def _write_cameras(path: Path, rec: Any, photos: Sequence[Photo], names: dict[Path, str], priors: _Priors,
+                   crs: Any, reasons: dict[str, str]) -> None:
     import geopandas as gpd
     import shapely
 
     reg = {}
-    errs = _reprojection_errors(rec) if rec is not None else {}
-    if rec is not None:
-        for iid in rec.reg_image_ids():
-            reg[rec.image(iid).name] = iid
+    errs = _reprojection_errors(rec)
+    for iid in rec.reg_image_ids():
+        reg[rec.image(iid).name] = iid
     rows, geoms = [], []
     for p in photos:
-        name = _name(p)
+        name = names[p.path]
         gps = priors.positions.get(name)
         row: dict[str, Any] = {"image": name, "registered": name in reg, "reason": reasons.get(name, ""),
                                "camera": f"{p.make} {p.model}".strip()}
@@ -649,20 +646,25 @@ def sfm(
         raise InputError(f"matching {matching!r} is not one of {', '.join(MATCHING)}")
     t0 = time.perf_counter()
     paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
-    photoset = read_photos(paths, require_gps=False, require_camera=False, feedback=fb)
+    # No feedback: SfM does not use the attitude, so its per-photo warnings would be noise here.
+    photoset = read_photos(paths, require_gps=False, require_camera=False)
     photos = photoset.photos
+    for name, reason in photoset.skipped:
+        fb.warning(f"skipped {name}: {reason}")
     timer.add("metadata", t0)
     if len(photos) < 3:
         raise InputError(f"SfM needs at least 3 readable photos, found {len(photos)}", path=images)
-    root = Path(os.path.commonpath([str(p.path.parent.resolve()) for p in photos]))
-    for p in photos:
-        _ROOT[id(p)] = root
-    names = [_name(p) for p in photos]
+    root, names = _image_names(photos)
     gcps = read_gcp_file(gcp_list) if gcp_list else None
     if gcps is not None and not gcps.observations:
         raise InputError("the GCP file has no image observations: SfM needs a gcp_list.txt "
                          "(x y z px py image name rows), e.g. from gcp-find", path=gcp_list)
     held_out = {c.strip() for c in checkpoints.split(",") if c.strip()}
+    if held_out and gcps is None:
+        raise InputError("checkpoints are named but no gcp_list is given")
+    if gcps is not None and held_out - set(gcps.by_name()):
+        raise InputError(f"checkpoint(s) not in the GCP file: {', '.join(sorted(held_out - set(gcps.by_name())))}",
+                         path=gcp_list)
     has_gps = sum(p.has_gps for p in photos)
     if has_gps < 3 and gcps is None and not local_frame:
         raise InputError("fewer than 3 photos with GPS and no GCPs: the model would be arbitrary in scale, "
@@ -670,7 +672,7 @@ def sfm(
                          path=images)
     notes: list[str] = []
     out_crs = _output_crs(crs, photos, gcps)
-    priors = _gps_priors(photos, out_crs, takeoff_elevation_m) if out_crs is not None else \
+    priors = _gps_priors(photos, names, out_crs, takeoff_elevation_m) if out_crs is not None else \
         _Priors(None, np.zeros(3), {}, "no GPS")
     if gcps is not None and not priors.positions:
         to_local = transformer(gcps.crs, out_crs)
@@ -688,7 +690,7 @@ def sfm(
         _pycolmap().Database.open(db).close()
         t0 = time.perf_counter()
         fb.info("features ...")
-        _import_and_extract(db, root, bodies, camera_model, max_image_size, max_features, workers)
+        _import_and_extract(db, root, names, bodies, camera_model, max_image_size, max_features, workers)
         timer.add("features", t0)
         fb.set_progress(0.3)
         fb.check_canceled()
@@ -712,7 +714,7 @@ def sfm(
         if len(models) > 1:
             notes.append(f"{len(models)} separate models; the largest ({len(registered)} photos) is kept, "
                          f"{len(elsewhere)} photos are only in the others")
-        reasons = _why_unregistered(db, names, registered, elsewhere)
+        reasons = _why_unregistered(db, list(names.values()), registered, elsewhere)
         for name, why in sorted(reasons.items()):
             fb.warning(f"not registered: {name}: {why}")
 
@@ -772,7 +774,7 @@ def sfm(
         if las_crs is None:
             notes.append("no CRS: points.laz and cameras.gpkg are not written (local frame only)")
         else:
-            _write_cameras(output / "cameras.gpkg", rec, photos, priors, las_crs, reasons)
+            _write_cameras(output / "cameras.gpkg", rec, photos, names, priors, las_crs, reasons)
         timer.add("outputs", t0)
         rows = _residual_table(states, heights_usable)
         control = _accuracy(rows, "control")

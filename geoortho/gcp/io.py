@@ -23,7 +23,7 @@ import json
 import math
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from pyproj import CRS
@@ -178,6 +178,7 @@ def _is_number(text: str) -> bool:
 def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSet:
     points = []
     observations = []
+    unnamed: set[int] = set()
     geographic = crs.is_geographic
     for i in range(start, len(lines)):
         raw = lines[i].split("#", 1)[0].strip()
@@ -189,6 +190,8 @@ def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSe
             # an ODM gcp_list.txt row: geo_x geo_y geo_z im_x im_y image [name]
             x, y, z = (_num(v, path, n, w) for v, w in zip(f[:3], ("x", "y", "z")))
             name = f[6] if len(f) >= 7 else f"{x:.3f}_{y:.3f}"
+            if len(f) < 7:
+                unnamed.add(n)
             if geographic:
                 _check_geographic(name, y, x, path, n)
             points.append(GroundControlPoint(name, x, y, z, n))
@@ -207,6 +210,12 @@ def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSe
             points.append(GroundControlPoint(name, b, a, z, n))
         else:
             points.append(GroundControlPoint(name, a, b, z, n))
+    if unnamed:
+        # A row without a name belongs to the named GCP at the same coordinates, if there is one.
+        named = {(p.x, p.y, p.z): p.name for p in points if p.line not in unnamed}
+        points = [replace(p, name=named.get((p.x, p.y, p.z), p.name)) for p in points]
+        new_name = {p.line: p.name for p in points}
+        observations = [replace(o, gcp=new_name.get(o.line, o.gcp)) for o in observations]
     return _finish(points, crs, path, tuple(observations))
 
 

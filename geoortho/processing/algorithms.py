@@ -7,6 +7,7 @@ from ..demo import demo
 from ..footprint import footprints
 from ..gcp.find import gcp_find
 from ..markers import DICTIONARIES
+from ..sfm import CAMERA_MODELS, MATCHING, sfm
 from ..synth import PRESETS, synth
 from .spec import Algorithm, Output, Param
 
@@ -127,6 +128,39 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("units", "string", "horizontal and vertical units"),
             Output("n_points", "integer", "points used"),
             Output("n_ground", "integer", "ground points"),
+        ),
+    ),
+    Algorithm(
+        id="sfm", title="Structure from Motion (pycolmap), georeferenced", group="Photogrammetry", function=sfm,
+        params=(
+            Param("images", "folder"),
+            Param("output", "folder", output=True),
+            Param("gcp_list", "file", None, extensions=(".txt",)),
+            Param("checkpoints", "string", ""),
+            Param("crs", "crs", None),
+            Param("matching", "enum", "auto", choices=MATCHING),
+            Param("max_image_size", "integer", 2048, unit="px", minimum=256, maximum=16384),
+            Param("max_features", "integer", 8192, minimum=256, maximum=65536, advanced=True),
+            Param("camera_model", "enum", "RADIAL", choices=CAMERA_MODELS, advanced=True),
+            Param("takeoff_elevation_m", "number", None, unit="m"),
+            Param("gps_sigma_m", "number", 2.0, unit="m", minimum=0.01, maximum=100.0, advanced=True),
+            Param("local_frame", "bool", False, advanced=True),
+            Param("seed", "integer", 0, minimum=0, advanced=True),
+            Param("workers", "integer", 0, minimum=0, advanced=True),
+        ),
+        outputs=(
+            Output("output", "folder", "the SfM folder"),
+            Output("model", "folder", "COLMAP model (local frame; georeference.json gives CRS and offset)"),
+            Output("points", "pointcloud", "georeferenced sparse points, coloured"),
+            Output("cameras", "vector", "camera centres, orientation and residuals"),
+            Output("report", "file", "report.json: registration, reprojection, GCP/checkpoint residuals"),
+            Output("n_photos", "integer", "photos read"),
+            Output("n_registered", "integer", "photos registered"),
+            Output("mean_reprojection_error_px", "number", "mean reprojection error, px"),
+            Output("gcp_rmse_m", "number", "RMSE at the control GCPs"),
+            Output("checkpoint_rmse_m", "number", "RMSE at the checkpoints"),
+            Output("georeferenced_by", "string", "what put the model in the CRS"),
+            Output("crs", "string", "CRS of the outputs"),
         ),
     ),
     Algorithm(

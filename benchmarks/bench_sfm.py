@@ -1,0 +1,124 @@
+"""Benchmark: geoortho sfm against pycolmap's stages called directly, same photos, same run.
+
+Each side runs in its own child process (so peak memory is its own):
+
+* raw pycolmap: import_images (one camera), extract_features, match_exhaustive
+  or match_spatial (COLMAP's own GPS priors from EXIF), incremental_mapping;
+  the same SIFT settings as geoortho's;
+* geoortho: ``python -m geoortho sfm`` (metadata, per-body cameras, GPS priors
+  in the output CRS, mapping with prior-weighted bundle adjustment,
+  georeferencing, LAZ/GeoPackage/report writing).
+
+Prints wall time per stage and peak RSS of each, and geoortho's overhead over
+raw pycolmap (target <= 10 %).
+
+    python benchmarks/bench_sfm.py [--preset small|medium] [--survey DIR] [--max-image-size 1024]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RAW = r"""
+import json, resource, sys, time
+import pycolmap
+from pathlib import Path
+images, work, size, feats, how, dist = json.loads(sys.argv[1])
+work = Path(work); work.mkdir(parents=True, exist_ok=True)
+db = work / "database.db"
+pycolmap.Database.open(db).close()
+t = {}
+t0 = time.perf_counter()
+names = sorted(p.name for p in Path(images).iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))
+pycolmap.import_images(db, images, pycolmap.CameraMode.SINGLE, names)
+eo = pycolmap.FeatureExtractionOptions()
+eo.max_image_size = size; eo.sift.max_num_features = feats; eo.sift.first_octave = 0
+pycolmap.extract_features(db, images, names, extraction_options=eo)
+t["features"] = time.perf_counter() - t0
+t0 = time.perf_counter()
+if how == "spatial":
+    po = pycolmap.SpatialPairingOptions(); po.max_distance = dist; po.max_num_neighbors = 30
+    pycolmap.match_spatial(db, pairing_options=po)
+else:
+    pycolmap.match_exhaustive(db)
+t["matching"] = time.perf_counter() - t0
+t0 = time.perf_counter()
+o = pycolmap.IncrementalPipelineOptions(); o.min_model_size = 3; o.random_seed = 0
+recs = pycolmap.incremental_mapping(db, images, work / "sparse", o)
+t["mapping"] = time.perf_counter() - t0
+best = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
+t["registered"] = best.num_reg_images() if best else 0
+print(json.dumps(t))
+print("peak_rss_kb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
+"""
+
+OURS = r"""
+import json, resource, runpy, sys
+sys.argv = json.loads(sys.argv[1])
+try:
+    runpy.run_module("geoortho", run_name="__main__")
+finally:
+    print("peak_rss_kb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
+"""
+
+
+def _child(code: str, args: list) -> tuple[float, str, int]:
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", code, json.dumps(args)], capture_output=True, text=True)
+    dt = time.perf_counter() - t
+    if r.returncode:
+        sys.stderr.write(r.stderr[-3000:])
+        raise SystemExit(1)
+    peak_kb = int(r.stderr.strip().splitlines()[-1].split()[-1])
+    return dt, r.stdout, peak_kb
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", default="small")
+    ap.add_argument("--survey", type=Path, help="an existing synth folder (skips making one)")
+    ap.add_argument("--max-image-size", type=int, default=1024)
+    ap.add_argument("--max-features", type=int, default=4096)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as d:
+        survey = args.survey
+        if survey is None:
+            from geoortho.synth import synth
+
+            survey = synth(Path(d) / "survey", preset=args.preset).output
+        images = survey / "images"
+        n = sum(1 for p in images.iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))
+        # ours first: its report says which matcher and radius "auto" chose; raw uses the same
+        argv = ["geoortho", "sfm", "--images", str(images), "--output", str(Path(d) / "ours"),
+                "--max-image-size", str(args.max_image_size), "--max-features", str(args.max_features),
+                "--json", "--quiet"]
+        t_ours, out, peak_ours = _child(OURS, argv)
+        rep = json.loads((Path(d) / "ours" / "report.json").read_text())
+        how = rep["matching"].split()[0]
+        dist = float(rep["matching"].split("within ")[1].split()[0]) if how == "spatial" else 0.0
+        t_raw, out_raw, peak_raw = _child(RAW, [str(images), str(Path(d) / "raw"), args.max_image_size,
+                                                args.max_features, how, dist])
+        raw = json.loads(out_raw.strip().splitlines()[-1])
+        s = rep["seconds"]
+        print(f"{n} photos, SIFT at {args.max_image_size} px / {args.max_features} features, matching {how}")
+        print(f"{'stage':<16}{'pycolmap':>10}{'geoortho':>10}")
+        for k in ("features", "matching", "mapping"):
+            print(f"{k:<16}{raw[k]:>9.1f}s{s.get(k, 0):>9.1f}s")
+        extra = {k: v for k, v in s.items() if k not in ("features", "matching", "mapping", "total")}
+        print("geoortho only: " + ", ".join(f"{k} {v:.2f} s" for k, v in extra.items()))
+        print(f"{'wall (process)':<16}{t_raw:>9.1f}s{t_ours:>9.1f}s")
+        print(f"registered: pycolmap {raw['registered']}/{n}, geoortho {rep['registered']}/{n}")
+        print(f"peak RSS: pycolmap {peak_raw / 1024:.0f} MB, geoortho {peak_ours / 1024:.0f} MB")
+        print(f"geoortho overhead over raw pycolmap: {100 * (t_ours - t_raw) / t_raw:+.1f} % "
+              f"(target <= 10 %); georeferenced by {rep['georeferenced_by']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,193 @@
+"""SfM against the synthetic survey's true poses, and on real DJI photos (toledo)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import geopandas as gpd
+import laspy
+import numpy as np
+import pytest
+import rasterio
+from conftest import RecordingFeedback, real_data
+
+from geoortho.camera import rotation_from_ypr
+from geoortho.errors import InputError
+from geoortho.gcp.find import gcp_find
+from geoortho.photos import read_photos
+from geoortho.sfm import _bodies, ce90, le90, sfm
+
+FAST = {"max_image_size": 1024, "max_features": 4096}
+
+
+def _truth(survey):
+    poses = {p["image"]: p for p in json.loads((survey.truth / "poses.json").read_text())}
+    home = json.loads((survey.truth / "survey.json").read_text())["home"]
+    return poses, home
+
+
+def _centre_errors(result, poses):
+    cams = gpd.read_file(result.cameras)
+    reg = cams[cams.registered]
+    return np.array([[r.x - poses[r.image]["x"], r.y - poses[r.image]["y"], r.z - poses[r.image]["z"]]
+                     for r in reg.itertuples()])
+
+
+@pytest.fixture(scope="module")
+def gps_only(small_survey, tmp_path_factory):
+    _, home = _truth(small_survey)
+    fb = RecordingFeedback()
+    r = sfm(small_survey.images, tmp_path_factory.mktemp("sfm_gps"), takeoff_elevation_m=home["ground_z"],
+            feedback=fb, **FAST)
+    return r, fb
+
+
+@pytest.fixture(scope="module")
+def with_gcps(small_survey, tmp_path_factory):
+    d = tmp_path_factory.mktemp("sfm_gcp")
+    found = gcp_find(small_survey.images, small_survey.gcp_file, d / "gcp_list.txt")
+    seen = sorted({line.split()[6] for line in (d / "gcp_list.txt").read_text().splitlines()[1:]})
+    checkpoints = seen[::3]  # every third GCP held out
+    r = sfm(small_survey.images, d / "out", gcp_list=found.output, checkpoints=",".join(checkpoints), **FAST)
+    return r, checkpoints
+
+
+def test_gps_only_registers_and_places_cameras(gps_only, small_survey):
+    r, fb = gps_only
+    poses, _ = _truth(small_survey)
+    assert r.n_registered >= 0.95 * len(poses)
+    e = _centre_errors(r, poses)
+    rmse = np.sqrt((e ** 2).sum(axis=1).mean())
+    assert rmse <= 0.5, rmse  # issue: <= 0.5 m with GPS only
+    assert r.mean_reprojection_error_px < 0.5
+    assert any("registered" in m for m in fb.infos)
+    rep = json.loads(r.report.read_text())
+    assert rep["registered"] == r.n_registered and rep["photos"] == len(poses)
+    assert rep["georeferenced_by"].startswith("GPS")
+    assert 3.0 < rep["gsd_cm"] < 4.5  # the preset flies at 3.75 cm at the take-off height
+    assert rep["gps"]["n"] == r.n_registered and rep["gps"]["ce90_m"] < 1.0
+    assert rep["offset"][0] % 100 == 0 and rep["offset"][1] % 100 == 0
+    assert json.loads((r.model / "georeference.json").read_text())["crs"] == rep["crs"]
+
+
+def test_sparse_points_lie_on_the_true_dsm(gps_only, small_survey):
+    r, _ = gps_only
+    las = laspy.read(r.points)
+    assert las.header.parse_crs().to_epsg() == 32629
+    xyz = np.c_[las.x, las.y, las.z]
+    with rasterio.open(small_survey.dsm) as ds:
+        z_true = np.array([v[0] for v in ds.sample(xyz[:, :2])])
+    d = xyz[:, 2] - z_true
+    # Points on walls and roof edges differ from the cell's top; the bulk sits on the surface.
+    assert np.median(np.abs(d)) < 0.1, np.median(np.abs(d))
+    assert np.ptp(las.red) > 0  # coloured
+
+
+def test_cameras_layer(gps_only, small_survey):
+    r, _ = gps_only
+    poses, _ = _truth(small_survey)
+    cams = gpd.read_file(r.cameras)
+    assert cams.crs.to_epsg() == 32629 and len(cams) == len(poses)
+    reg = cams[cams.registered]
+    # Compare rotations, not angles: near pitch -90 yaw and roll trade off (gimbal lock).
+    for row in reg.itertuples():
+        ours = rotation_from_ypr(row.yaw_deg, row.pitch_deg, row.roll_deg)
+        true = np.array(poses[row.image]["rotation_world_from_camera"])
+        cos = (np.trace(ours.T @ true) - 1) / 2
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 0.2, row.image
+    assert (reg.reprojection_px < 1.0).all() and (reg.tie_points > 100).all()
+    assert {"gps_dx_m", "gps_dy_m", "gps_dz_m"} <= set(cams.columns)
+
+
+def test_gcps_pin_the_cameras_and_checkpoints_are_honest(with_gcps, small_survey):
+    r, checkpoints = with_gcps
+    poses, _ = _truth(small_survey)
+    e = _centre_errors(r, poses)
+    rmse = np.sqrt((e ** 2).sum(axis=1).mean())
+    assert rmse <= 0.05, rmse  # issue: <= 0.05 m with GCPs
+    rep = json.loads(r.report.read_text())
+    rows = {g["name"]: g for g in rep["gcps"]}
+    assert {n for n, g in rows.items() if g["role"] == "checkpoint"} == set(checkpoints)
+    check = rep["checkpoint_accuracy"]
+    assert check["n"] == len(checkpoints)
+    assert check["rmse_horizontal_m"] <= 2 * rep["gsd_cm"] / 100  # issue: <= 2 x GSD
+    assert check["rmse_z_m"] is not None and check["le90_m"] == pytest.approx(1.6449 * check["rmse_z_m"])
+    assert rep["gcp_accuracy"]["n"] >= 3
+    assert "GCP" in rep["georeferenced_by"] and "bundle adjustment" in rep["georeferenced_by"]
+    assert all(g["reprojection_px"] < 0.5 for g in rows.values())
+    assert r.checkpoint_rmse_m == pytest.approx(check["rmse_3d_m"])
+
+
+def test_ce90_le90_formulas():
+    dx, dy, dz = np.array([0.1, -0.1]), np.array([0.0, 0.0]), np.array([0.2, -0.2])
+    assert ce90(dx, dy) == pytest.approx(2.1460 * np.sqrt(0.01 / 2))
+    assert le90(dz) == pytest.approx(1.6449 * 0.2)
+    assert np.isnan(ce90(np.array([]), np.array([])))
+
+
+def test_toledo_two_bodies_utm17_placeholder_heights(tmp_path):
+    base = real_data("toledo_dji")
+    r = sfm(base / "images", tmp_path / "out", gcp_list=base / "gcp" / "gcp_list.txt", **FAST)
+    rep = json.loads(r.report.read_text())
+    assert r.n_registered >= 0.9 * 57, rep["unregistered"]
+    assert "32617" in r.crs
+    assert len(rep["camera_bodies"]) == 2 and len(rep["cameras"]) == 2
+    # EXIF says 1800 x 2400; the pixels are 2400 x 1800
+    assert all(c["width"] == 2400 and c["height"] == 1800 for c in rep["cameras"])
+    assert any("placeholders" in n for n in rep["notes"])
+    rows = [g for g in rep["gcps"] if g["dx_m"] is not None]
+    assert len(rows) >= 3
+    assert all(g["dz_m"] is None for g in rep["gcps"])
+    # The GCP XY were read off an ODM orthophoto of this flight: metres, not tens of metres.
+    assert rep["gcp_accuracy"]["rmse_horizontal_m"] < 3.0
+    las = laspy.read(r.points)
+    assert las.header.parse_crs().to_epsg() == 32617
+    assert abs(np.median(las.x) - 274900) < 300 and abs(np.median(las.y) - 4603300) < 300
+
+
+def test_camera_bodies_split_by_model_and_size(small_survey, tmp_path):
+    from PIL import Image
+
+    src = sorted(small_survey.images.iterdir())[:4]
+    for p in src[:2]:
+        shutil.copy(p, tmp_path / p.name)
+    for p in src[2:]:
+        with Image.open(p) as im:
+            im.resize((800, 533)).save(tmp_path / p.name, exif=im.info.get("exif", b""))
+    bodies = _bodies(read_photos(tmp_path, require_gps=False, require_camera=False).photos)
+    assert sorted(len(b.photos) for b in bodies) == [2, 2]
+
+
+def test_bad_input(small_survey, tmp_path):
+    from PIL import Image
+
+    two = tmp_path / "two"
+    two.mkdir()
+    for p in sorted(small_survey.images.iterdir())[:2]:
+        shutil.copy(p, two / p.name)
+    with pytest.raises(InputError, match="at least 3"):
+        sfm(two, tmp_path / "o1")
+    noise = tmp_path / "noise"
+    noise.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        Image.fromarray(rng.integers(0, 255, (400, 600, 3), dtype=np.uint8)).save(noise / f"n{i}.jpg")
+    with pytest.raises(InputError, match="arbitrary"):
+        sfm(noise, tmp_path / "o2")
+    with pytest.raises(InputError, match="do not overlap"):
+        sfm(noise, tmp_path / "o3", local_frame=True, **FAST)
+    with pytest.raises(InputError, match="checkpoint"):
+        sfm(small_survey.images, tmp_path / "o4", checkpoints="NOPE")
+    assert not (tmp_path / "o3" / "report.json").exists()
+    assert not list((tmp_path / "o3").glob(".sfm-work-*"))
+
+
+def test_cli_bad_checkpoint_exit_2(small_survey, tmp_path, capsys):
+    from geoortho.processing.cli import main
+
+    code = main(["sfm", "--images", str(small_survey.images), "--output", str(tmp_path / "o"),
+                 "--gcp-list", str(small_survey.gcp_file), "--checkpoints", "X"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gcp_list.txt" in err[0] or "observations" in err[0]
