@@ -34,11 +34,22 @@ def _centre_errors(result, poses):
                      for r in reg.itertuples()])
 
 
+NOISE = "ZZ_noise.jpg"
+
+
 @pytest.fixture(scope="module")
 def gps_only(small_survey, tmp_path_factory):
+    """The small survey plus one photo of noise (no EXIF, overlaps nothing)."""
+    from PIL import Image
+
     _, home = _truth(small_survey)
+    images = tmp_path_factory.mktemp("sfm_gps_images")
+    for p in small_survey.images.iterdir():
+        shutil.copy(p, images / p.name)
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 255, (1067, 1600, 3), dtype=np.uint8)).save(images / NOISE)
     fb = RecordingFeedback()
-    r = sfm(small_survey.images, tmp_path_factory.mktemp("sfm_gps"), takeoff_elevation_m=home["ground_z"],
+    r = sfm(images, tmp_path_factory.mktemp("sfm_gps"), takeoff_elevation_m=home["ground_z"],
             feedback=fb, **FAST)
     return r, fb
 
@@ -63,7 +74,10 @@ def test_gps_only_registers_and_places_cameras(gps_only, small_survey):
     assert r.mean_reprojection_error_px < 0.5
     assert any("registered" in m for m in fb.infos)
     rep = json.loads(r.report.read_text())
-    assert rep["registered"] == r.n_registered and rep["photos"] == len(poses)
+    assert rep["registered"] == r.n_registered and rep["photos"] == len(poses) + 1
+    assert set(rep["unregistered"]) == {NOISE}
+    assert "no verified matches" in rep["unregistered"][NOISE]
+    assert any(NOISE in w for w in fb.warnings)
     assert rep["georeferenced_by"].startswith("GPS")
     assert 3.0 < rep["gsd_cm"] < 4.5  # the preset flies at 3.75 cm at the take-off height
     assert rep["gps"]["n"] == r.n_registered and rep["gps"]["ce90_m"] < 1.0
@@ -88,7 +102,8 @@ def test_cameras_layer(gps_only, small_survey):
     r, _ = gps_only
     poses, _ = _truth(small_survey)
     cams = gpd.read_file(r.cameras)
-    assert cams.crs.to_epsg() == 32629 and len(cams) == len(poses)
+    assert cams.crs.to_epsg() == 32629 and len(cams) == len(poses) + 1
+    assert not cams[cams.image == NOISE].registered.any()
     reg = cams[cams.registered]
     # Compare rotations, not angles: near pitch -90 yaw and roll trade off (gimbal lock).
     for row in reg.itertuples():
