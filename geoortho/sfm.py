@@ -183,6 +183,9 @@ class _Timer:
 def _pycolmap() -> Any:
     import pycolmap
 
+    # COLMAP logs every image and iteration at INFO; geoortho's feedback says what matters.
+    if os.environ.get("GEOORTHO_COLMAP_LOG") is None:
+        pycolmap.logging.minloglevel = pycolmap.logging.WARNING
     return pycolmap
 
 
