@@ -8,7 +8,9 @@ Cancel or an error stopping what has not started.
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures as cf
+import itertools
 import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Sequence
@@ -17,7 +19,7 @@ from typing import Any, TypeVar
 
 from .feedback import Feedback, as_feedback
 
-__all__ = ["map_ordered", "process_pool"]
+__all__ = ["imap_ordered", "map_ordered", "process_pool"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -47,6 +49,58 @@ def map_ordered(
         if pool is not None:
             return _map_on(pool, fn, items, as_feedback(feedback))
         return _map_here(fn, items, as_feedback(feedback))
+
+
+def imap_ordered(
+    fn: Callable[[T], R],
+    items: Sequence[T],
+    *,
+    workers: int = 0,
+    initializer: Callable[..., Any] | None = None,
+    initargs: tuple[Any, ...] = (),
+    feedback: Feedback | None = None,
+    executor: cf.Executor | None = None,
+) -> Iterator[R]:
+    """Like :func:`map_ordered`, but yields each result as soon as it and those before it are done,
+    with at most a few items per worker in flight: memory stays bounded by the window, not by
+    the number of items (tiles of a mosaic)."""
+    fb = as_feedback(feedback)
+    if executor is not None:
+        yield from _imap_on(executor, fn, items, fb, 4 * (workers or os.cpu_count() or 1))
+        return
+    with process_pool(workers, len(items), initializer=initializer, initargs=initargs) as pool:
+        if pool is None:
+            for i, item in enumerate(items):
+                fb.check_canceled()
+                yield fn(item)
+                fb.progress((i + 1) / len(items))
+            return
+        yield from _imap_on(pool, fn, items, fb, 2 * (workers or os.cpu_count() or 1))
+
+
+def _imap_on(executor: cf.Executor, fn: Callable[[T], R], items: Sequence[T], fb: Feedback,
+             in_flight: int) -> Iterator[R]:
+    pending: collections.deque[cf.Future[R]] = collections.deque()
+    it = iter(items)
+    try:
+        for item in itertools.islice(it, in_flight):
+            pending.append(executor.submit(fn, item))
+        done = 0
+        while pending:
+            fb.check_canceled()
+            result = pending.popleft().result()
+            nxt = next(it, _END)
+            if nxt is not _END:
+                pending.append(executor.submit(fn, nxt))  # type: ignore[arg-type]
+            done += 1
+            fb.progress(done / len(items))
+            yield result
+    finally:
+        for f_ in pending:
+            f_.cancel()
+
+
+_END = object()
 
 
 @contextmanager

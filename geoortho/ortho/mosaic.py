@@ -1,0 +1,639 @@
+"""The orthophoto: photos rectified on the DSM tile by tile, seams, balance, blending, hole fill, COG.
+
+:func:`mosaic` works from posed cameras and a surface (tests give it the true
+poses); :func:`ortho` is the algorithm: poses from an ``sfm`` folder or from
+the photo metadata, surface from a DSM or flat ground.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from affine import Affine
+from pyproj import CRS
+
+from ..crs import crs_to_text
+from ..errors import InputError
+from ..feedback import Feedback, as_feedback, split
+from ..outputs import atomic_path, write_json
+from ..parallel import imap_ordered
+from ..surface import FlatSurface, GridSurface, Surface
+from .cameras import OrthoCamera, cameras_from_metadata, cameras_from_sfm, ground_sample_distance_m
+from .rectify import (
+    VisibilityGrid,
+    Window,
+    bounds_window,
+    footprint_bounds,
+    project_window,
+    remap_bgr,
+    visibility_grid,
+    window_xyz,
+)
+from .seams import BALANCE, SEAMS, SeamPlan, plan_seams, read_photo_bgr
+
+__all__ = ["OrthoResult", "ortho", "mosaic", "BLEND", "BALANCE", "SEAMS", "COMPRESS"]
+
+BLEND = ("multiband", "feather", "none")
+COMPRESS = ("DEFLATE", "JPEG")
+_BANDS = 5  # multi-band levels: the lowest spans 2**5 px on each side of a seam
+_CACHE_BYTES = 600 * 2**20  # decoded photos kept per worker
+
+
+@dataclass(frozen=True)
+class OrthoResult:
+    """The orthophoto and what was measured while making it."""
+
+    output: Path
+    preview: Path | None
+    report: Path
+    crs: str
+    resolution_m: float
+    median_gsd_m: float
+    width_px: int
+    height_px: int
+    n_photos: int
+    n_used: int
+    coverage_px: int
+    holes_filled_px: int
+    holes_left_px: int
+    seam_mismatch_raw: float
+    seam_mismatch_balanced: float
+    poses: str
+    surface: str
+    skipped: tuple[tuple[str, str], ...] = ()
+    notes: tuple[str, ...] = ()
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------
+# one tile (runs in a worker)
+
+
+@dataclass(frozen=True, eq=False)
+class _Context:
+    cams: tuple[OrthoCamera, ...]
+    boxes: tuple[Window | None, ...]  # each photo's footprint on the output grid
+    vis: tuple[VisibilityGrid | None, ...]
+    surface: Surface
+    transform: Affine
+    shape: tuple[int, int]
+    plan: SeamPlan
+    blend: str
+    max_hole_px: int
+    pad_px: int
+    interpolation: int
+
+
+_CTX: _Context | None = None
+_CACHE: OrderedDict[str, np.ndarray] = OrderedDict()
+
+
+def _init_worker(ctx: _Context) -> None:
+    global _CTX
+    _CTX = ctx
+    _CACHE.clear()
+    cv2.setNumThreads(1)
+
+
+def _photo(path: Path) -> np.ndarray:
+    key = str(path)
+    img = _CACHE.get(key)
+    if img is not None:
+        _CACHE.move_to_end(key)
+        return img
+    img = read_photo_bgr(key)
+    _CACHE[key] = img
+    while sum(a.nbytes for a in _CACHE.values()) > _CACHE_BYTES and len(_CACHE) > 1:
+        _CACHE.popitem(last=False)
+    return img
+
+
+@dataclass
+class _Patch:
+    """A photo's rectified pixels over part of a padded tile."""
+
+    sl: tuple[slice, slice]  # where in the padded tile
+    bgr: np.ndarray  # float32, gains not applied
+    valid: np.ndarray
+
+
+def _gather(patches: dict[int, _Patch], idx: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Photo ``idx[k]``'s colour at (rows[k], cols[k]) of the padded tile, and whether it has one."""
+    out = np.zeros((len(idx), 3), np.float32)
+    ok = np.zeros(len(idx), bool)
+    for i in np.unique(idx):
+        p = patches.get(int(i))
+        if p is None:
+            continue
+        k = np.flatnonzero(idx == i)
+        r, c = rows[k] - p.sl[0].start, cols[k] - p.sl[1].start
+        inside = (r >= 0) & (c >= 0) & (r < p.bgr.shape[0]) & (c < p.bgr.shape[1])
+        k, r, c = k[inside], r[inside], c[inside]
+        good = p.valid[r, c]
+        out[k[good]] = p.bgr[r[good], c[good]]
+        ok[k[good]] = True
+    return out, ok
+
+
+def _seam_stats(lab: np.ndarray, patches: dict[int, _Patch], gains: np.ndarray, result: np.ndarray,
+                core: tuple[slice, slice]) -> dict[str, float]:
+    """Across each seam (neighbouring pixels owned by different photos, in the tile's core): how far
+    the two photos' colours at the same ground point differ before and after the gains, and the
+    output's step across seams against its step between other neighbours (texture)."""
+    stats = {"seam_n": 0.0, "seam_raw": 0.0, "seam_bal": 0.0, "step_seam": 0.0, "step_n": 0.0,
+             "step_other": 0.0, "other_n": 0.0}
+    sub = lab[core]
+    res = result[core].astype(np.float32)
+    # Seams show as colour steps, not as noise or texture resampled differently: compare low-passed colours.
+    smooth = {i: _Patch(p.sl, cv2.GaussianBlur(p.bgr, (0, 0), 2.0), p.valid) for i, p in patches.items()}
+    r0, c0 = core[0].start, core[1].start
+    for a, b, ra, rb in ((sub[:, :-1], sub[:, 1:], res[:, :-1], res[:, 1:]),
+                         (sub[:-1, :], sub[1:, :], res[:-1, :], res[1:, :])):
+        both = (a >= 0) & (b >= 0)
+        seam = both & (a != b)
+        other = both & (a == b)
+        if other.any():
+            stats["step_other"] += float(np.abs(ra[other] - rb[other]).mean(axis=1).sum())
+            stats["other_n"] += float(other.sum())
+        if not seam.any():
+            continue
+        rr, cc = np.nonzero(seam)
+        stats["step_seam"] += float(np.abs(ra[seam] - rb[seam]).mean(axis=1).sum())
+        stats["step_n"] += float(len(rr))
+        rows, cols = rr + r0, cc + c0
+        va, oka = _gather(smooth, a[seam], rows, cols)
+        vb, okb = _gather(smooth, b[seam], rows, cols)
+        ok = oka & okb
+        if not ok.any():
+            continue
+        ga, gb = gains[a[seam][ok]], gains[b[seam][ok]]
+        stats["seam_raw"] += float(np.abs(va[ok] - vb[ok]).mean(axis=1).sum())
+        stats["seam_bal"] += float(np.abs(va[ok] * ga - vb[ok] * gb).mean(axis=1).sum())
+        stats["seam_n"] += float(ok.sum())
+    return stats
+
+
+def _fill_holes(bgr: np.ndarray, holes: np.ndarray, max_hole_px: int) -> np.ndarray:
+    """Inpaint the hole components no wider than ``max_hole_px``; return which pixels were filled."""
+    if not holes.any() or max_hole_px <= 0:
+        return np.zeros_like(holes)
+    h8 = holes.astype(np.uint8)
+    n, comp = cv2.connectedComponents(h8, connectivity=8)
+    # Half-width of each hole: the largest distance from inside it to its edge.
+    dist = cv2.distanceTransform(h8, cv2.DIST_L2, 3)
+    widest = np.zeros(n, np.float32)
+    np.maximum.at(widest, comp.ravel(), dist.ravel())
+    small = 2.0 * widest <= max_hole_px
+    small[0] = False
+    fill = small[comp] & holes
+    if fill.any():
+        bgr[:] = cv2.inpaint(bgr, fill.astype(np.uint8), 5, cv2.INPAINT_TELEA)
+    return fill
+
+
+def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
+    ctx = _CTX
+    assert ctx is not None
+    pad = ctx.pad_px
+    rows, cols = ctx.shape
+    pw = Window(max(0, win.row0 - pad), max(0, win.col0 - pad), 0, 0)
+    pw = Window(pw.row0, pw.col0, min(rows, win.row0 + win.height + pad) - pw.row0,
+                min(cols, win.col0 + win.width + pad) - pw.col0)
+    core = win.slices(pw)
+    x, y, z = window_xyz(ctx.transform, pw, ctx.surface)
+    shape = (pw.height, pw.width)
+    planned = ctx.plan.labels_for(ctx.transform, pw)
+    best = np.full(shape, np.inf, np.float32)
+    best_lab = np.full(shape, -1, np.int16)
+    planned_ok = np.zeros(shape, bool)
+    coverage = np.zeros(shape, bool)
+    projs: dict[int, tuple[tuple[slice, slice], Any]] = {}
+    for i, box in enumerate(ctx.boxes):
+        sub = box.intersect(pw) if box is not None else None
+        if sub is None:
+            continue
+        sl = sub.slices(pw)
+        p = project_window(ctx.cams[i], x[sl], y[sl], z[sl], ctx.vis[i])
+        if not p.in_frame.any():
+            continue
+        projs[i] = (sl, p)
+        coverage[sl] |= p.in_frame
+        better = p.cost < best[sl]
+        best[sl][better] = p.cost[better]
+        best_lab[sl][better] = i
+        planned_ok[sl] |= (planned[sl] == i) & p.valid
+    # The plan's owner where it sees the pixel at full resolution, else the best photo that does.
+    lab = np.where(planned_ok, planned, best_lab).astype(np.int16)
+
+    radius = 2 ** _BANDS if ctx.blend == "multiband" else (8 if ctx.blend == "feather" else 0)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 1, 2 * radius + 1)) if radius else None
+    patches: dict[int, _Patch] = {}
+    for i in np.unique(lab[lab >= 0]):
+        sl, p = projs[int(i)]
+        own = (lab[sl] == i).astype(np.uint8)
+        need = (cv2.dilate(own, kernel) if kernel is not None else own).astype(bool) & p.valid
+        rr, cc = np.nonzero(need)
+        r0, r1, c0, c1 = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
+        img = _photo(ctx.cams[int(i)].path)
+        bgr = remap_bgr(img, p.map_x[r0:r1, c0:c1], p.map_y[r0:r1, c0:c1], ctx.interpolation).astype(np.float32)
+        psl = (slice(sl[0].start + r0, sl[0].start + r1), slice(sl[1].start + c0, sl[1].start + c1))
+        patches[int(i)] = _Patch(psl, bgr, need[r0:r1, c0:c1])
+
+    gains = ctx.plan.gains
+    out = np.zeros(shape + (3,), np.uint8)
+    labelled = lab >= 0
+    if ctx.blend == "none" or len(patches) == 1:
+        for i, p in patches.items():
+            m = lab[p.sl] == i
+            out[p.sl][m] = np.clip(p.bgr[m] * gains[i] + 0.5, 0, 255).astype(np.uint8)
+    elif patches:
+        blender = cv2.detail_MultiBandBlender(0, _BANDS) if ctx.blend == "multiband" else \
+            cv2.detail_FeatherBlender(0.05)
+        blender.prepare((0, 0, shape[1], shape[0]))
+        for i, p in patches.items():
+            m = ((lab[p.sl] == i) & p.valid).astype(np.uint8) * 255
+            img16 = np.clip(p.bgr * gains[i] + 0.5, 0, 255).astype(np.int16)
+            blender.feed(img16, m, (p.sl[1].start, p.sl[0].start))
+        res, _ = blender.blend(None, None)
+        res = res.get() if isinstance(res, cv2.UMat) else np.asarray(res)
+        out[labelled] = np.clip(res[: shape[0], : shape[1]][labelled], 0, 255).astype(np.uint8)
+    stats = _seam_stats(lab, patches, gains, out, core)
+    holes = coverage & ~labelled
+    filled = _fill_holes(out, holes, ctx.max_hole_px)
+    alpha = labelled | filled
+    out[~alpha] = 0
+    stats.update(coverage=float(coverage[core].sum()), filled=float(filled[core].sum()),
+                 holes_left=float((holes & ~filled)[core].sum()), used=0.0)
+    rgba = np.empty((4, win.height, win.width), np.uint8)
+    rgba[0], rgba[1], rgba[2] = out[core][..., 2], out[core][..., 1], out[core][..., 0]
+    rgba[3] = np.where(alpha[core], 255, 0)
+    used = {int(i) for i in np.unique(lab[core]) if i >= 0}
+    return win, rgba, {**stats, "used": used}  # type: ignore[dict-item]
+
+
+# ---------------------------------------------------------------------------------------------
+# the whole mosaic
+
+
+def _grid(boxes: Sequence[tuple[float, float, float, float]], surface: Surface, resolution_m: float,
+          ) -> tuple[Affine, tuple[int, int]]:
+    xmin = min(b[0] for b in boxes)
+    ymin = min(b[1] for b in boxes)
+    xmax = max(b[2] for b in boxes)
+    ymax = max(b[3] for b in boxes)
+    if isinstance(surface, GridSurface):
+        sx0, sy0, sx1, sy1 = surface.bounds
+        xmin, ymin, xmax, ymax = max(xmin, sx0), max(ymin, sy0), min(xmax, sx1), min(ymax, sy1)
+    r = resolution_m
+    x0, y1 = math.floor(xmin / r) * r, math.ceil(ymax / r) * r
+    cols, rows = int(math.ceil((xmax - x0) / r)), int(math.ceil((y1 - ymin) / r))
+    return Affine(r, 0, x0, 0, -r, y1), (rows, cols)
+
+
+def mosaic(
+    cams: Sequence[OrthoCamera],
+    surface: Surface,
+    crs: CRS,
+    output: str | os.PathLike[str],
+    resolution_m: float | None = None,
+    *,
+    seams: str = "graphcut",
+    balance: str = "channels",
+    blend: str = "multiband",
+    max_hole_px: int = 64,
+    compress: str = "DEFLATE",
+    preview: str | os.PathLike[str] | None = None,
+    tile_px: int = 1024,
+    interpolation: str = "bilinear",
+    workers: int = 0,
+    poses: str = "given",
+    notes: Sequence[str] = (),
+    skipped: Sequence[tuple[str, str]] = (),
+    feedback: Feedback | None = None,
+) -> OrthoResult:
+    """Orthorectify posed photos onto ``surface`` and mosaic them into a COG at ``output``."""
+    fb = as_feedback(feedback)
+    times: dict[str, float] = {}
+    t0 = time.perf_counter()
+    output = Path(output)
+    notes = list(notes)
+    skipped = list(skipped)
+    if seams not in SEAMS or balance not in BALANCE or blend not in BLEND or compress.upper() not in COMPRESS:
+        raise InputError(f"choose seams from {SEAMS}, balance from {BALANCE}, blend from {BLEND}, "
+                         f"compress from {COMPRESS}")
+    interp = {"nearest": cv2.INTER_NEAREST, "bilinear": cv2.INTER_LINEAR, "bicubic": cv2.INTER_CUBIC,
+              "lanczos": cv2.INTER_LANCZOS4}.get(interpolation)
+    if interp is None:
+        raise InputError(f"interpolation {interpolation!r} is not nearest, bilinear, bicubic or lanczos")
+    st_plan, st_tiles, st_write = split(fb, [2, 10, 1])
+
+    # Where each photo lands; photos that miss the surface are reported and left out.
+    centres = np.array([c.pose.center for c in cams]) if cams else np.zeros((0, 3))
+    ground = surface.elevation(centres[:, 0], centres[:, 1]) if len(cams) else np.zeros(0)
+    ground = np.where(np.isfinite(ground), ground, surface.z_min)
+    heights = centres[:, 2] - ground if len(cams) else np.zeros(0)
+    max_range = 5.0 * float(np.median(heights[heights > 0])) if (heights > 0).any() else 1000.0
+    kept: list[OrthoCamera] = []
+    boxes: list[tuple[float, float, float, float]] = []
+    gsds: list[float] = []
+    for cam, h in zip(cams, heights):
+        box = footprint_bounds(cam, surface, max_range) if h > 0 else None
+        if box is not None and isinstance(surface, GridSurface):
+            sx0, sy0, sx1, sy1 = surface.bounds
+            if box[2] <= sx0 or box[0] >= sx1 or box[3] <= sy0 or box[1] >= sy1:
+                box = None
+        if box is None:
+            skipped.append((cam.name, "its footprint misses the surface (outside the DSM or camera below it)"))
+            fb.warning(f"skipped {cam.name}: outside the surface")
+            continue
+        kept.append(cam)
+        boxes.append(box)
+        gsds.append(ground_sample_distance_m(cam, surface))
+    if not kept:
+        raise InputError("no photo sees the surface: nothing to mosaic")
+    finite = [g for g in gsds if math.isfinite(g)]
+    median_gsd = float(np.median(finite)) if finite else math.nan
+    if resolution_m is None:
+        if not math.isfinite(median_gsd):
+            raise InputError("the GSD could not be found; give a resolution")
+        resolution_m = float(f"{median_gsd:.3g}")
+        fb.info(f"resolution {resolution_m * 100:.2f} cm: the median GSD")
+    elif math.isfinite(median_gsd) and resolution_m < 0.95 * median_gsd:
+        notes.append(f"the resolution {resolution_m * 100:.2f} cm is finer than the photos' median GSD "
+                     f"{median_gsd * 100:.2f} cm: pixels are interpolated, not resolved")
+        fb.warning(notes[-1])
+    if resolution_m <= 0:
+        raise InputError("the resolution must be positive")
+    transform, shape = _grid(boxes, surface, resolution_m)
+    if shape[0] * shape[1] > 4e9:
+        raise InputError(f"the mosaic would be {shape[1]}x{shape[0]} px: give a coarser resolution")
+    box_windows = tuple(bounds_window(transform, shape, b) for b in boxes)
+
+    # Occlusion grids, once per photo.
+    vis: list[VisibilityGrid | None] = []
+    for cam, box in zip(kept, boxes):
+        vis.append(visibility_grid(cam, surface, box) if isinstance(surface, GridSurface) else None)
+    times["visibility"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    # Seams and gains are decided on cells 8x coarser (and no more than 2 Mpx): the graph cut's time
+    # grows with the cells in the seam bands.
+    factor = max(8, int(math.ceil(math.sqrt(shape[0] * shape[1] / 2.0e6))))
+    plan = plan_seams(kept, boxes, gsds, surface, vis, transform, shape, factor, seams=seams, balance=balance,
+                      feedback=st_plan)
+    for name, why in plan.skipped:
+        skipped.append((name, why))
+    bad = {name for name, _ in plan.skipped}
+    box_windows = tuple(None if c.name in bad else w for c, w in zip(kept, box_windows))
+    times["seams_and_balance"] = time.perf_counter() - t1
+    fb.info(f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(kept) - len(bad)} photos; "
+            f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}")
+
+    t2 = time.perf_counter()
+    ctx = _Context(tuple(kept), box_windows, tuple(vis), surface, transform, shape, plan, blend,
+                   int(max_hole_px), 2 ** (_BANDS + 1), interp)
+    tiles = [Window(r, c, min(tile_px, shape[0] - r), min(tile_px, shape[1] - c))
+             for r in range(0, shape[0], tile_px) for c in range(0, shape[1], tile_px)]
+    totals: dict[str, float] = {}
+    used: set[int] = set()
+    output.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{output.name}-", dir=output.parent))
+    try:
+        import rasterio
+        from rasterio.enums import ColorInterp
+        from rasterio.windows import Window as RioWindow
+
+        tmp_tif = work / "mosaic.tif"
+        profile = {"driver": "GTiff", "width": shape[1], "height": shape[0], "count": 4, "dtype": "uint8",
+                   "crs": crs, "transform": transform, "tiled": True, "blockxsize": 512, "blockysize": 512,
+                   "BIGTIFF": "IF_SAFER"}
+        with rasterio.open(tmp_tif, "w", **profile) as dst:
+            dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+            for win, rgba, stats in imap_ordered(_render_tile, tiles, workers=workers, initializer=_init_worker,
+                                                 initargs=(ctx,), feedback=st_tiles):
+                dst.write(rgba, window=RioWindow(win.col0, win.row0, win.width, win.height))
+                used |= stats.pop("used")  # type: ignore[arg-type]
+                for k, v in stats.items():
+                    totals[k] = totals.get(k, 0.0) + v
+        times["tiles"] = time.perf_counter() - t2
+        t3 = time.perf_counter()
+        _write_cog(tmp_tif, output, compress.upper())
+        preview_path = _write_preview(output, Path(preview)) if preview else None
+        times["cog"] = time.perf_counter() - t3
+        st_write.progress(1.0)
+    finally:
+        for f in work.glob("*"):
+            f.unlink()
+        work.rmdir()
+
+    def ratio(a: str, n: str) -> float:
+        return totals.get(a, 0.0) / totals[n] if totals.get(n) else math.nan
+
+    result = OrthoResult(
+        output=output, preview=preview_path, report=output.with_name(output.stem + "_report.json"),
+        crs=crs_to_text(crs), resolution_m=resolution_m, median_gsd_m=median_gsd, width_px=shape[1],
+        height_px=shape[0], n_photos=len(cams), n_used=len(used), coverage_px=int(totals.get("coverage", 0)),
+        holes_filled_px=int(totals.get("filled", 0)), holes_left_px=int(totals.get("holes_left", 0)),
+        seam_mismatch_raw=ratio("seam_raw", "seam_n"), seam_mismatch_balanced=ratio("seam_bal", "seam_n"),
+        poses=poses, surface=_describe(surface), skipped=tuple(skipped), notes=tuple(notes), seconds=times,
+    )
+    write_json(result.report, {
+        **{k: v for k, v in result.__dict__.items() if k not in ("skipped", "notes")},
+        "skipped": [{"image": n, "reason": w} for n, w in skipped], "notes": list(notes),
+        "seam_step_dn": ratio("step_seam", "step_n"), "texture_step_dn": ratio("step_other", "other_n"),
+        "seam_pixels": int(totals.get("seam_n", 0)),
+        "gains_bgr": {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(kept)},
+        "seconds_total": time.perf_counter() - t0,
+    })
+    fb.info(f"ortho: {output} ({shape[1]}x{shape[0]} px, {result.n_used} photos used); seam mismatch "
+            f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing")
+    return result
+
+
+def _describe(surface: Surface) -> str:
+    if isinstance(surface, FlatSurface):
+        return f"flat ground at {surface.elevation_m:.2f} m"
+    cell = surface.cell_m if isinstance(surface, GridSurface) else math.nan
+    return f"DSM, cells of {cell:g}"
+
+
+def _write_cog(src_path: Path, target: Path, compress: str) -> None:
+    """The finished mosaic as a COG: RGBA with DEFLATE, or RGB + mask with JPEG (JPEG has no alpha)."""
+    import rasterio
+    from rasterio.shutil import copy as rio_copy
+
+    opts: dict[str, Any] = {"driver": "COG", "compress": compress, "blocksize": 512, "BIGTIFF": "IF_SAFER",
+                            "overview_resampling": "average", "num_threads": "ALL_CPUS"}
+    with atomic_path(target) as tmp:
+        if compress == "JPEG":
+            rgb_mask = src_path.with_name("rgb_mask.tif")
+            with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(src_path) as src:
+                prof = {**src.profile, "count": 3}
+                with rasterio.open(rgb_mask, "w", **prof) as dst:
+                    for _, w in src.block_windows(1):
+                        dst.write(src.read((1, 2, 3), window=w), window=w)
+                        dst.write_mask(src.read(4, window=w), window=w)
+            with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+                rio_copy(rgb_mask, tmp, quality=90, **opts)
+        else:
+            rio_copy(src_path, tmp, predictor=2, **opts)
+
+
+def _write_preview(ortho_path: Path, target: Path, max_side_px: int = 2048) -> Path:
+    """A PNG of the whole mosaic, read from the COG's overviews."""
+    import rasterio
+    from rasterio.enums import Resampling
+
+    with rasterio.open(ortho_path) as src:
+        scale = max(1.0, max(src.width, src.height) / max_side_px)
+        h, w = max(1, int(src.height / scale)), max(1, int(src.width / scale))
+        rgb = src.read((1, 2, 3), out_shape=(3, h, w), resampling=Resampling.average)
+        alpha = src.dataset_mask(out_shape=(h, w))
+    bgra = np.dstack([rgb[2], rgb[1], rgb[0], alpha])
+    with atomic_path(target) as tmp:
+        ok, buf = cv2.imencode(".png", bgra)
+        if not ok:
+            raise OSError("PNG encoding failed")
+        Path(tmp).write_bytes(buf.tobytes())
+    return target
+
+
+# ---------------------------------------------------------------------------------------------
+# the algorithm
+
+
+def ortho(
+    images: Path,
+    output: Path,
+    sfm: Path | None = None,
+    dsm: Path | None = None,
+    resolution: float | None = None,
+    crs: str | None = None,
+    ground_elevation_m: float | None = None,
+    takeoff_elevation_m: float | None = None,
+    seams: str = "graphcut",
+    balance: str = "channels",
+    blend: str = "multiband",
+    max_hole_px: int = 64,
+    compress: str = "DEFLATE",
+    preview: Path | None = None,
+    tile_px: int = 1024,
+    workers: int = 0,
+    *,
+    feedback: Feedback | None = None,
+) -> OrthoResult:
+    """Orthophoto mosaic: photos orthorectified on the DSM, seams, colour balance, blending, hole fill, COG.
+
+    Poses come from an sfm output folder or, without one, from the photo
+    metadata (GPS, altitude, gimbal: a direct-georeferencing mosaic for a field
+    check). The surface is the DSM when given (occlusions handled: a true
+    orthophoto), else flat ground.
+
+    Parameters
+    ----------
+    images : Path
+        Folder of photos.
+    output : Path
+        Orthophoto GeoTIFF (COG, RGB + alpha; JPEG: RGB + mask). A report
+        ``<name>_report.json`` is written beside it.
+    sfm : Path
+        Output folder of the sfm algorithm (poses and calibrated cameras).
+    dsm : Path
+        Surface model to rectify on (e.g. from the dem algorithm).
+    resolution : float
+        Ground size of an output pixel in CRS units; default the photos' median GSD.
+    crs : str
+        Output CRS (projected); default the SfM model's or the photos' UTM zone.
+    ground_elevation_m : float
+        Flat ground elevation when no DSM is given (default: the SfM points'
+        median height, or the take-off elevation).
+    takeoff_elevation_m : float
+        Take-off elevation for poses from metadata (heights are relative to it).
+    seams : str
+        graphcut (seams moved onto low-difference paths) or voronoi (best-seeing photo).
+    balance : str
+        channels (per-photo RGB gains solved over all overlaps), gain (one gain per photo) or none.
+    blend : str
+        multiband, feather or none across seams.
+    max_hole_px : int
+        Holes inside the coverage up to this width (px) are inpainted; wider ones stay transparent.
+    compress : str
+        DEFLATE (lossless, RGBA) or JPEG (quality 90, RGB + mask).
+    preview : Path
+        Also write a PNG preview (at most 2048 px a side).
+    tile_px : int
+        Side of the processing tiles (memory grows with its square).
+    workers : int
+        Processes for the tiles (0 = every core).
+    """
+    from ..photos import list_images, read_photos
+    from ..surface import read_surface
+
+    fb = as_feedback(feedback)
+    images = Path(images)
+    notes: list[str] = []
+    skipped: list[tuple[str, str]] = []
+    if sfm is not None:
+        cams, out_crs, pts, skipped = cameras_from_sfm(sfm, images, crs)
+        poses = f"sfm ({Path(sfm)})"
+        default_ground = float(np.median(pts[:, 2])) if len(pts) else None
+    else:
+        paths = list_images(images)
+        photoset = read_photos(paths)
+        skipped = list(photoset.skipped)
+        for name, why in photoset.skipped:
+            fb.warning(f"skipped {name}: {why}")
+        if not photoset.photos:
+            raise InputError("no photo with a GPS position and a camera model", path=images)
+        from ..footprint import working_crs
+
+        out_crs = working_crs(photoset.photos, crs)
+        cams, out_crs, default_ground, poses = None, out_crs, None, "photo metadata (direct georeferencing)"
+    surface: Surface
+    if dsm is not None:
+        surface = _read_dsm(Path(dsm), out_crs, fb, notes)
+    elif ground_elevation_m is not None:
+        surface = FlatSurface(float(ground_elevation_m))
+    elif default_ground is not None:
+        surface = FlatSurface(default_ground)
+        notes.append(f"no DSM: flat ground at the SfM points' median height {default_ground:.2f} m")
+    else:
+        surface = None  # type: ignore[assignment]
+    if cams is None:
+        cams, surface, how = cameras_from_metadata(photoset.photos, out_crs, surface, takeoff_elevation_m)
+        notes.append(f"heights: {how}")
+    if len(cams) == 0:
+        raise InputError("no registered photo to rectify", path=sfm or images)
+    return mosaic(cams, surface, out_crs, output, resolution, seams=seams, balance=balance, blend=blend,
+                  max_hole_px=max_hole_px, compress=compress, preview=preview, tile_px=tile_px, workers=workers,
+                  poses=poses, notes=notes, skipped=skipped, feedback=fb)
+
+
+def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurface:
+    """The DSM in the output CRS, its small nodata holes filled (reported)."""
+    from ..gapfill import fill_harmonic, gap_mask
+    from ..surface import read_surface
+
+    surf = read_surface(path, crs)
+    known = np.isfinite(surf.grid)
+    if known.all():
+        return surf
+    holes = gap_mask(known, max_gap_cells=max(4.0, 10.0 / surf.cell_m))
+    if holes.any():
+        grid = fill_harmonic(surf.grid, known, holes)
+        grid = np.where(known, surf.grid, grid)
+        notes.append(f"DSM: {int(holes.sum())} nodata cells inside the data filled by interpolation")
+        fb.warning(notes[-1])
+        surf = GridSurface(grid, surf.transform, surf.crs)
+    return surf

@@ -1,0 +1,210 @@
+"""Ground points of an output window projected into a photo: sampling maps, visibility, preference.
+
+The output grid is north-up; pixel (col, row) has its centre at
+``transform * (col + 0.5, row + 0.5)``. A ground point is (x, y, z) with z from
+the surface; it is projected into each photo with the full camera model
+(distortion included) and sampled there with ``cv2.remap``.
+
+Occlusion (what makes a *true* orthophoto): a ground point takes a photo's
+pixel only if the straight line from it to the camera clears the DSM. The test
+is a ray march on the DSM grid, done once per photo over its footprint
+(:func:`visibility_grid`), then read at every output pixel with bilinear
+weights and a threshold of one — a pixel next to an occluded cell counts as
+occluded, so roof colour never lands on the ground beside a wall.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from affine import Affine
+
+from ..camera import pixel_rays
+from ..surface import FlatSurface, GridSurface, Surface, sample_grid
+from .cameras import OrthoCamera
+
+__all__ = ["Window", "VisibilityGrid", "footprint_bounds", "visibility_grid", "window_xyz", "project_window",
+           "remap_bgr"]
+
+_REMAP_MAX = 32000  # cv2.remap wants map sides below SHRT_MAX
+
+
+@dataclass(frozen=True)
+class Window:
+    """Rows/cols of the output grid: [row0, row0+height) × [col0, col0+width)."""
+
+    row0: int
+    col0: int
+    height: int
+    width: int
+
+    def intersect(self, other: Window) -> Window | None:
+        r0, c0 = max(self.row0, other.row0), max(self.col0, other.col0)
+        r1 = min(self.row0 + self.height, other.row0 + other.height)
+        c1 = min(self.col0 + self.width, other.col0 + other.width)
+        if r1 <= r0 or c1 <= c0:
+            return None
+        return Window(r0, c0, r1 - r0, c1 - c0)
+
+    def slices(self, origin: Window) -> tuple[slice, slice]:
+        """This window's place inside ``origin`` (which contains it)."""
+        r, c = self.row0 - origin.row0, self.col0 - origin.col0
+        return slice(r, r + self.height), slice(c, c + self.width)
+
+
+def bounds_window(transform: Affine, shape: tuple[int, int], bounds: tuple[float, float, float, float]) -> Window | None:
+    """The grid cells touching ``bounds`` (xmin, ymin, xmax, ymax), clipped to the grid."""
+    xmin, ymin, xmax, ymax = bounds
+    res = transform.a
+    c0 = max(0, int(math.floor((xmin - transform.c) / res)))
+    c1 = min(shape[1], int(math.ceil((xmax - transform.c) / res)))
+    r0 = max(0, int(math.floor((transform.f - ymax) / res)))
+    r1 = min(shape[0], int(math.ceil((transform.f - ymin) / res)))
+    if c1 <= c0 or r1 <= r0:
+        return None
+    return Window(r0, c0, r1 - r0, c1 - c0)
+
+
+def footprint_bounds(cam: OrthoCamera, surface: Surface, max_range_m: float) -> tuple[float, float, float, float] | None:
+    """Bounding box of the photo's border cast onto the surface (rays clipped at ``max_range_m``);
+    None when no ray meets the surface."""
+    border = cam.intrinsics.border_pixels(16)
+    pts = np.vstack([border, [[cam.intrinsics.cx_px, cam.intrinsics.cy_px]]])
+    hits = surface.intersect(cam.pose.center, pixel_rays(pts, cam.intrinsics, cam.pose), max_range_m=max_range_m)
+    if not hits.hit.any():
+        return None
+    xy = hits.points[:, :2]  # rays that missed end at the range limit: the box reaches that far
+    return float(xy[:, 0].min()), float(xy[:, 1].min()), float(xy[:, 0].max()), float(xy[:, 1].max())
+
+
+@dataclass(frozen=True, eq=False)
+class VisibilityGrid:
+    """1.0 where the camera sees the DSM cell, 0.0 where the DSM hides it; on a window of the DSM grid."""
+
+    grid: np.ndarray  # float32
+    transform: Affine
+
+    def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        t = self.transform
+        return sample_grid(self.grid, (x - t.c) / t.a - 0.5, (y - t.f) / t.e - 0.5)
+
+
+def visibility_grid(cam: OrthoCamera, surface: GridSurface, bounds: tuple[float, float, float, float],
+                    tolerance_m: float = 0.05) -> VisibilityGrid | None:
+    """Line of sight from each DSM cell in ``bounds`` to the camera, marched over the DSM."""
+    win = bounds_window(surface.transform, surface.grid.shape, bounds)
+    if win is None:
+        return None
+    # One cell of margin so that bilinear reads at the window edge see real values.
+    r0, c0 = max(0, win.row0 - 1), max(0, win.col0 - 1)
+    r1 = min(surface.grid.shape[0], win.row0 + win.height + 1)
+    c1 = min(surface.grid.shape[1], win.col0 + win.width + 1)
+    tr = surface.transform
+    z = surface.grid[r0:r1, c0:c1].astype(np.float64)
+    cc, rr = np.meshgrid(np.arange(c0, c1) + 0.5, np.arange(r0, r1) + 0.5)
+    x, y = tr.c + cc * tr.a, tr.f + rr * tr.e
+    cx, cy, cz = cam.pose.center
+    dx, dy, dz = cx - x, cy - y, cz - z
+    dh = np.hypot(dx, dy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ux, uy, rise = dx / dh, dy / dh, dz / dh  # rise: metres up per metre towards the camera
+    vis = np.isfinite(z) & (dz > 0)
+    step = surface.cell_m
+    # Rays climb out of the DSM's height range after (z_max − z) / rise metres; the camera stops them too.
+    reach = np.where(vis, np.minimum((surface.z_max - z) / np.maximum(rise, 1e-9), dh), 0.0)
+    idx = np.flatnonzero(vis & (reach > step * 0.5))
+    fx, fy, fz = x.ravel(), y.ravel(), z.ravel()
+    fux, fuy, frise, freach = ux.ravel(), uy.ravel(), rise.ravel(), reach.ravel()
+    occluded = np.zeros(z.size, bool)
+    k = 1
+    while idx.size:
+        t = k * step
+        h = surface.elevation(fx[idx] + fux[idx] * t, fy[idx] + fuy[idx] * t)
+        blocked = h > fz[idx] + frise[idx] * t + tolerance_m
+        occluded[idx[blocked]] = True
+        idx = idx[~blocked & (freach[idx] > t + step * 0.5)]
+        k += 1
+    vis = vis & ~occluded.reshape(z.shape)
+    return VisibilityGrid(vis.astype(np.float32), Affine(tr.a, 0, tr.c + c0 * tr.a, 0, tr.e, tr.f + r0 * tr.e))
+
+
+def window_xyz(transform: Affine, win: Window, surface: Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ground points at the centres of the window's pixels: x, y, z (rows, cols) float64; z NaN off the DSM."""
+    res = transform.a
+    xs = transform.c + (np.arange(win.col0, win.col0 + win.width) + 0.5) * res
+    ys = transform.f - (np.arange(win.row0, win.row0 + win.height) + 0.5) * res
+    x, y = np.meshgrid(xs, ys)
+    if isinstance(surface, FlatSurface):
+        z = np.full(x.shape, surface.elevation_m)
+    else:
+        z = surface.elevation(x, y)
+    return x, y, z
+
+
+@dataclass(frozen=True, eq=False)
+class Projection:
+    """A photo seen from an output window: sampling maps, where it is usable, and how much it is preferred."""
+
+    map_x: np.ndarray  # float32 (rows, cols), photo column of each output pixel
+    map_y: np.ndarray
+    in_frame: np.ndarray  # bool: inside the photo and on the surface
+    valid: np.ndarray  # bool: in_frame and not occluded
+    cost: np.ndarray  # float32: lower is preferred (see preference_cost)
+
+
+def preference_cost(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                    map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """How badly this photo sees each ground point: the tangent of the line of sight's angle from
+    the vertical (relief displacement and smear grow with it) plus the distance from the principal
+    point over the half-diagonal (vignetting and distortion grow with that)."""
+    cx, cy, cz = cam.pose.center
+    dx = (x - cx).astype(np.float32)
+    dy = (y - cy).astype(np.float32)
+    dz = np.maximum((cz - z).astype(np.float32), np.float32(1e-3))
+    intr = cam.intrinsics
+    half_diag = np.float32(0.5 * math.hypot(intr.width_px, intr.height_px))
+    off_vertical = np.sqrt(dx * dx + dy * dy) / dz
+    u, v = map_x - np.float32(intr.cx_px), map_y - np.float32(intr.cy_px)
+    return off_vertical + np.float32(0.5) * np.sqrt(u * u + v * v) / half_diag
+
+
+def project_window(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                   visibility: VisibilityGrid | None, margin_px: float = 1.0) -> Projection:
+    """Project the window's ground points into ``cam``."""
+    shape = x.shape
+    ok = np.isfinite(z)
+    pix, depth = cam.project(np.c_[x.ravel(), y.ravel(), np.where(ok, z, 0.0).ravel()])
+    mx = pix[:, 0].reshape(shape).astype(np.float32)
+    my = pix[:, 1].reshape(shape).astype(np.float32)
+    intr = cam.intrinsics
+    with np.errstate(invalid="ignore"):
+        in_frame = (ok & (depth.reshape(shape) > 0) & (mx >= margin_px - 0.5) & (my >= margin_px - 0.5)
+                    & (mx <= intr.width_px - 0.5 - margin_px) & (my <= intr.height_px - 0.5 - margin_px))
+    valid = in_frame.copy()
+    if visibility is not None and valid.any():
+        v = visibility.sample(x[valid], y[valid])
+        valid[valid] = v >= 0.999
+    cost = preference_cost(cam, x, y, np.where(ok, z, 0.0), mx, my)
+    cost[~valid] = np.inf
+    return Projection(mx, my, in_frame, valid, cost)
+
+
+def remap_bgr(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpolation: int = cv2.INTER_LINEAR,
+              reduction: int = 1) -> np.ndarray:
+    """Sample a photo (rows, cols, 3) at full-resolution pixel coordinates; ``reduction`` when the
+    photo was decoded at 1/reduction of its size."""
+    if reduction != 1:
+        map_x = (map_x + 0.5) / reduction - 0.5
+        map_y = (map_y + 0.5) / reduction - 0.5
+    if max(map_x.shape) >= _REMAP_MAX:
+        out = np.empty(map_x.shape + (3,), image.dtype)
+        for r in range(0, map_x.shape[0], 8192):
+            for c in range(0, map_x.shape[1], 8192):
+                out[r:r + 8192, c:c + 8192] = remap_bgr(image, map_x[r:r + 8192, c:c + 8192],
+                                                        map_y[r:r + 8192, c:c + 8192], interpolation)
+        return out
+    return cv2.remap(image, np.nan_to_num(map_x, nan=-1e4), np.nan_to_num(map_y, nan=-1e4), interpolation,
+                     borderMode=cv2.BORDER_REFLECT)

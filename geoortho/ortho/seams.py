@@ -1,0 +1,216 @@
+"""The survey-wide decisions, made once on a coarse grid: which photo owns each ground cell
+(seamlines) and the colour gain of each photo (exposure balance).
+
+Every photo is rectified at the coarse cell (decoded at a reduced size by the
+JPEG decoder itself). Each cell first goes to the photo that sees it best
+(:func:`~geoortho.ortho.rectify.preference_cost`): a Voronoi-like split. A band
+around each of those borders is then handed to OpenCV's graph-cut seam finder,
+which moves the seam inside the band to where the two photos agree (around a
+building rather than through it). Gains come from OpenCV's channel exposure
+compensator, solved jointly over all overlaps.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from affine import Affine
+
+from ..feedback import Feedback, as_feedback
+from ..surface import Surface
+from .cameras import OrthoCamera
+from .rectify import VisibilityGrid, Window, bounds_window, project_window, remap_bgr, window_xyz
+
+__all__ = ["SeamPlan", "plan_seams", "read_photo_bgr"]
+
+BALANCE = ("channels", "gain", "none")
+SEAMS = ("graphcut", "voronoi")
+
+
+@dataclass(frozen=True, eq=False)
+class SeamPlan:
+    """Coarse ownership labels (index into the cameras, −1 none) and per-photo BGR gains."""
+
+    transform: Affine
+    labels: np.ndarray  # int16 (rows, cols)
+    gains: np.ndarray  # float32 (n_cameras, 3), BGR
+    skipped: tuple[tuple[str, str], ...]
+
+    def labels_for(self, out_transform: Affine, win: Window) -> np.ndarray:
+        """The coarse labels read (nearest) at the centres of an output window's pixels."""
+        res, cres = out_transform.a, self.transform.a
+        cols = np.floor(((np.arange(win.col0, win.col0 + win.width) + 0.5) * res + out_transform.c
+                         - self.transform.c) / cres).astype(np.int64)
+        rows = np.floor((self.transform.f - (out_transform.f - (np.arange(win.row0, win.row0 + win.height) + 0.5)
+                                             * res)) / cres).astype(np.int64)
+        rows = np.clip(rows, 0, self.labels.shape[0] - 1)
+        cols = np.clip(cols, 0, self.labels.shape[1] - 1)
+        return self.labels[np.ix_(rows, cols)]
+
+
+def read_photo_bgr(path: str, reduction: int = 1) -> np.ndarray:
+    """Decode a photo (BGR uint8), optionally at 1/2, 1/4 or 1/8 size straight from the JPEG's DCT."""
+    flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+            8: cv2.IMREAD_REDUCED_COLOR_8}[reduction]
+    img = cv2.imread(str(path), flag | cv2.IMREAD_IGNORE_ORIENTATION)
+    if img is None:
+        raise OSError("the image cannot be decoded")
+    return img
+
+
+@dataclass(frozen=True, eq=False)
+class _View:
+    index: int
+    win: Window
+    image: np.ndarray  # uint8 (rows, cols, 3)
+    valid: np.ndarray  # bool
+    cost: np.ndarray  # float32, inf where not valid
+
+
+def _coarse_view(i: int, cam: OrthoCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine,
+                 win: Window, gsd_m: float) -> _View:
+    x, y, z = window_xyz(transform, win, surface)
+    proj = project_window(cam, x, y, z, vis)
+    reduction = 1
+    for r in (2, 4, 8):  # decode no finer than the coarse cell needs
+        if math.isfinite(gsd_m) and r * gsd_m <= transform.a:
+            reduction = r
+    img = read_photo_bgr(str(cam.path), reduction)
+    want = (math.ceil(cam.intrinsics.height_px / reduction), math.ceil(cam.intrinsics.width_px / reduction))
+    if abs(img.shape[0] - want[0]) > 1 or abs(img.shape[1] - want[1]) > 1:
+        raise OSError(f"decoded size {img.shape[1] * reduction}x{img.shape[0] * reduction} px is not the "
+                      f"camera's {cam.intrinsics.width_px}x{cam.intrinsics.height_px}")
+    sampled = remap_bgr(img, proj.map_x, proj.map_y, cv2.INTER_AREA if reduction > 1 else cv2.INTER_LINEAR,
+                        reduction)
+    sampled[~proj.valid] = 0
+    return _View(i, win, sampled, proj.valid, proj.cost)
+
+
+def plan_seams(cams: Sequence[OrthoCamera], boxes: Sequence[tuple[float, float, float, float] | None],
+               gsd_m: Sequence[float], surface: Surface, vis: Sequence[VisibilityGrid | None],
+               out_transform: Affine, out_shape: tuple[int, int], factor: int, *, seams: str = "graphcut",
+               balance: str = "channels", band_m: float = 4.0, feedback: Feedback | None = None) -> SeamPlan:
+    """Coarse labels and gains for the mosaic on ``out_transform`` (cells ``factor`` times coarser)."""
+    fb = as_feedback(feedback)
+    cres = out_transform.a * factor
+    ctr = Affine(cres, 0, out_transform.c, 0, -cres, out_transform.f)
+    cshape = (math.ceil(out_shape[0] / factor), math.ceil(out_shape[1] / factor))
+    views: list[_View] = []
+    skipped: list[tuple[str, str]] = []
+    for i, (cam, box) in enumerate(zip(cams, boxes)):
+        fb.check_canceled()
+        win = bounds_window(ctr, cshape, box) if box is not None else None
+        if win is None:
+            continue
+        try:
+            views.append(_coarse_view(i, cam, surface, vis[i], ctr, win, gsd_m[i]))
+        except OSError as e:
+            skipped.append((cam.name, str(e)))
+            fb.warning(f"skipped {cam.name}: {e}")
+        fb.progress(0.6 * (i + 1) / len(cams))
+
+    # Voronoi-like first split: each cell to the photo that sees it best.
+    best = np.full(cshape, np.inf, np.float32)
+    labels = np.full(cshape, -1, np.int16)
+    for v in views:
+        sl = v.win.slices(Window(0, 0, *cshape))
+        better = v.cost < best[sl]
+        best[sl][better] = v.cost[better]
+        labels[sl][better] = v.index
+
+    gains = solve_gains(views, len(cams), per_channel=balance == "channels") if balance != "none" \
+        else np.ones((len(cams), 3), np.float32)
+    fb.progress(0.75)
+
+    if seams == "graphcut" and len(views) > 1:
+        labels = _graph_cut(views, labels, best, cshape, max(1, int(round(band_m / cres))), gains)
+    fb.progress(1.0)
+    return SeamPlan(ctr, labels, gains, tuple(skipped))
+
+
+def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min_overlap_px: int = 50,
+                prior_weight: float = 0.01) -> np.ndarray:
+    """Per-photo gains (n, 3) BGR that make overlapping photos agree: least squares on log colour
+    means over each pairwise overlap, weighted by the overlap's size, with a weak pull towards 1
+    (it fixes the overall level; the gains are then scaled to a geometric mean of 1)."""
+    rows: list[tuple[int, int, float, np.ndarray]] = []
+    for a in range(len(views)):
+        va = views[a]
+        for b in range(a + 1, len(views)):
+            vb = views[b]
+            inter = va.win.intersect(vb.win)
+            if inter is None:
+                continue
+            sa, sb = inter.slices(va.win), inter.slices(vb.win)
+            ia, ib = va.image[sa], vb.image[sb]
+            # both see it, neither is clipped (a saturated pixel says nothing about exposure)
+            both = (va.valid[sa] & vb.valid[sb] & (ia.max(axis=2) < 250) & (ib.max(axis=2) < 250)
+                    & (ia.min(axis=2) > 3) & (ib.min(axis=2) > 3))
+            k = int(both.sum())
+            if k < min_overlap_px:
+                continue
+            ma = ia[both].astype(np.float64).mean(axis=0)
+            mb = ib[both].astype(np.float64).mean(axis=0)
+            rows.append((va.index, vb.index, math.sqrt(k), np.log(ma) - np.log(mb)))
+    gains = np.ones((n, 3), np.float32)
+    if not rows:
+        return gains
+    used = sorted({i for a, b, _, _ in rows for i in (a, b)})
+    col = {i: k for k, i in enumerate(used)}
+    m = len(used)
+    A = np.zeros((len(rows) + m, m))
+    rhs = np.zeros((len(rows) + m, 3))
+    w_total = 0.0
+    for r, (a, b, w, d) in enumerate(rows):
+        A[r, col[a]], A[r, col[b]] = w, -w
+        rhs[r] = -w * d  # log g_a − log g_b = −(log m_a − log m_b)
+        w_total += w
+    prior = prior_weight * w_total / m
+    A[len(rows):, :] = np.eye(m) * prior
+    if not per_channel:
+        rhs[:] = rhs.mean(axis=1, keepdims=True)
+    log_g, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    log_g -= log_g.mean(axis=0)
+    for i, k in col.items():
+        gains[i] = np.exp(log_g[k])
+    return gains
+
+
+def _graph_cut(views: list[_View], labels: np.ndarray, best: np.ndarray, cshape: tuple[int, int], band_px: int,
+               gains: np.ndarray) -> np.ndarray:
+    """Move each Voronoi seam, within ``band_px`` of where it was, onto a low-difference path."""
+    full = Window(0, 0, *cshape)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
+    masks, images, corners, used = [], [], [], []
+    for v in views:
+        sl = v.win.slices(full)
+        own = (labels[sl] == v.index).astype(np.uint8)
+        if not own.any():
+            continue
+        band = cv2.dilate(own, kernel) & v.valid.astype(np.uint8)
+        masks.append(cv2.UMat(band * 255))
+        # Balanced colours: the cut should follow content, not exposure differences.
+        images.append((v.image.astype(np.float32) * gains[v.index]))
+        corners.append((v.win.col0, v.win.row0))
+        used.append(v)
+    if len(used) < 2:
+        return labels
+    finder = cv2.detail_GraphCutSeamFinder("COST_COLOR_GRAD")
+    cut = finder.find(images, corners, masks)
+    # Owners after the cut; cells claimed by several (or by none) keep the best-seeing photo among them.
+    out_best = np.full(cshape, np.inf, np.float32)
+    out = np.full(cshape, -1, np.int16)
+    for v, m in zip(used, cut):
+        m = (m.get() if isinstance(m, cv2.UMat) else np.asarray(m)) > 0
+        sl = v.win.slices(full)
+        cost = np.where(m, v.cost, np.inf)
+        better = cost < out_best[sl]
+        out_best[sl][better] = cost[better]
+        out[sl][better] = v.index
+    unclaimed = (out < 0) & (labels >= 0)
+    out[unclaimed] = labels[unclaimed]
+    return out
