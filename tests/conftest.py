@@ -69,3 +69,30 @@ class RecordingFeedback(Feedback):
 
     def warning(self, message):
         self.warnings.append(message)
+
+
+SFM_FAST = {"max_image_size": 1024, "max_features": 4096}
+
+
+@pytest.fixture(scope="session")
+def sfm_with_gcps(small_survey, tmp_path_factory):
+    """SfM of the small survey with the GCPs gcp-find located; every third GCP is a checkpoint."""
+    from geoortho.gcp.find import gcp_find
+    from geoortho.sfm import sfm
+
+    d = tmp_path_factory.mktemp("sfm_gcp")
+    found = gcp_find(small_survey.images, small_survey.gcp_file, d / "gcp_list.txt")
+    seen = sorted({line.split()[6] for line in (d / "gcp_list.txt").read_text().splitlines()[1:]})
+    checkpoints = seen[::3]
+    r = sfm(small_survey.images, d / "out", gcp_list=found.output, checkpoints=",".join(checkpoints), **SFM_FAST)
+    return r, checkpoints
+
+
+@pytest.fixture(scope="session")
+def toledo_sfm(tmp_path_factory):
+    """SfM of the real toledo_dji photos with their gcp_list.txt."""
+    from geoortho.sfm import sfm
+
+    base = real_data("toledo_dji")
+    return sfm(base / "images", tmp_path_factory.mktemp("toledo_sfm"), gcp_list=base / "gcp" / "gcp_list.txt",
+               **SFM_FAST)

@@ -14,7 +14,6 @@ from conftest import RecordingFeedback, real_data
 
 from geoortho.camera import rotation_from_ypr
 from geoortho.errors import InputError
-from geoortho.gcp.find import gcp_find
 from geoortho.photos import read_photos
 from geoortho.sfm import _bodies, ce90, le90, sfm
 
@@ -55,13 +54,8 @@ def gps_only(small_survey, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def with_gcps(small_survey, tmp_path_factory):
-    d = tmp_path_factory.mktemp("sfm_gcp")
-    found = gcp_find(small_survey.images, small_survey.gcp_file, d / "gcp_list.txt")
-    seen = sorted({line.split()[6] for line in (d / "gcp_list.txt").read_text().splitlines()[1:]})
-    checkpoints = seen[::3]  # every third GCP held out
-    r = sfm(small_survey.images, d / "out", gcp_list=found.output, checkpoints=",".join(checkpoints), **FAST)
-    return r, checkpoints
+def with_gcps(sfm_with_gcps):
+    return sfm_with_gcps
 
 
 def test_gps_only_registers_and_places_cameras(gps_only, small_survey):
@@ -141,9 +135,8 @@ def test_ce90_le90_formulas():
     assert np.isnan(ce90(np.array([]), np.array([])))
 
 
-def test_toledo_two_bodies_utm17_placeholder_heights(tmp_path):
-    base = real_data("toledo_dji")
-    r = sfm(base / "images", tmp_path / "out", gcp_list=base / "gcp" / "gcp_list.txt", **FAST)
+def test_toledo_two_bodies_utm17_placeholder_heights(toledo_sfm):
+    r = toledo_sfm
     rep = json.loads(r.report.read_text())
     assert r.n_registered >= 0.9 * 57, rep["unregistered"]
     assert "32617" in r.crs

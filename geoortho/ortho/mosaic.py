@@ -41,10 +41,11 @@ from .rectify import (
 )
 from .seams import BALANCE, SEAMS, SeamPlan, plan_seams, read_photo_bgr
 
-__all__ = ["OrthoResult", "ortho", "mosaic", "BLEND", "BALANCE", "SEAMS", "COMPRESS"]
+__all__ = ["OrthoResult", "ortho", "mosaic", "BLEND", "BALANCE", "SEAMS", "COMPRESS", "INTERPOLATION"]
 
 BLEND = ("multiband", "feather", "none")
 COMPRESS = ("DEFLATE", "JPEG")
+INTERPOLATION = ("bilinear", "bicubic", "lanczos", "nearest")
 _BANDS = 5  # multi-band levels: the lowest spans 2**5 px on each side of a seam
 _CACHE_BYTES = 600 * 2**20  # decoded photos kept per worker
 
@@ -316,13 +317,17 @@ def mosaic(
     preview: str | os.PathLike[str] | None = None,
     tile_px: int = 1024,
     interpolation: str = "bilinear",
+    occlusion: bool = True,
     workers: int = 0,
     poses: str = "given",
     notes: Sequence[str] = (),
     skipped: Sequence[tuple[str, str]] = (),
     feedback: Feedback | None = None,
 ) -> OrthoResult:
-    """Orthorectify posed photos onto ``surface`` and mosaic them into a COG at ``output``."""
+    """Orthorectify posed photos onto ``surface`` and mosaic them into a COG at ``output``.
+
+    ``occlusion=False`` skips the line-of-sight test (a plain, not true, orthophoto: faster, and
+    what the tests compare against to show that walls do not ghost)."""
     fb = as_feedback(feedback)
     times: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -383,7 +388,7 @@ def mosaic(
     # Occlusion grids, once per photo.
     vis: list[VisibilityGrid | None] = []
     for cam, box in zip(kept, boxes):
-        vis.append(visibility_grid(cam, surface, box) if isinstance(surface, GridSurface) else None)
+        vis.append(visibility_grid(cam, surface, box) if occlusion and isinstance(surface, GridSurface) else None)
     times["visibility"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -528,6 +533,7 @@ def ortho(
     max_hole_px: int = 64,
     compress: str = "DEFLATE",
     preview: Path | None = None,
+    interpolation: str = "bilinear",
     tile_px: int = 1024,
     workers: int = 0,
     *,
@@ -572,6 +578,8 @@ def ortho(
         DEFLATE (lossless, RGBA) or JPEG (quality 90, RGB + mask).
     preview : Path
         Also write a PNG preview (at most 2048 px a side).
+    interpolation : str
+        How photos are sampled: bilinear, bicubic, lanczos or nearest.
     tile_px : int
         Side of the processing tiles (memory grows with its square).
     workers : int
@@ -617,6 +625,7 @@ def ortho(
         raise InputError("no registered photo to rectify", path=sfm or images)
     return mosaic(cams, surface, out_crs, output, resolution, seams=seams, balance=balance, blend=blend,
                   max_hole_px=max_hole_px, compress=compress, preview=preview, tile_px=tile_px, workers=workers,
+                  interpolation=interpolation,
                   poses=poses, notes=notes, skipped=skipped, feedback=fb)
 
 

@@ -171,17 +171,48 @@ def preference_cost(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarra
     return off_vertical + np.float32(0.5) * np.sqrt(u * u + v * v) / half_diag
 
 
+def project_grid(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel column, row and depth (float32, the grid's shape) of ground points: the camera model of
+    :func:`geoortho.camera.project_points` written out per component, so that a million points cost
+    a few array passes (offsets from the camera are taken in float64 first: CRS coordinates are large)."""
+    c = cam.pose.center
+    dx = (x - c[0]).astype(np.float32)
+    dy = (y - c[1]).astype(np.float32)
+    dz = (z - c[2]).astype(np.float32)
+    r = cam.pose.rotation.astype(np.float32)  # world-from-camera: camera coords = R^T d
+    xc = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
+    yc = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
+    zc = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn, yn = xc / zc, yc / zc
+    intr = cam.intrinsics
+    if intr.has_distortion:
+        k1, k2, p1, p2, k3 = (np.float32(v) for v in intr.dist_coeffs[:5])
+        r2 = xn * xn + yn * yn
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy = xn * yn
+        xd = xn * radial + 2 * p1 * xy + p2 * (r2 + 2 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xy
+        xn, yn = xd, yd
+    f = np.float32(intr.focal_px)
+    mx = xn * f + np.float32(intr.cx_px)
+    my = yn * f + np.float32(intr.cy_px)
+    behind = ~(zc > 0)
+    mx[behind] = np.nan
+    my[behind] = np.nan
+    return mx, my, zc
+
+
 def project_window(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
                    visibility: VisibilityGrid | None, margin_px: float = 1.0) -> Projection:
     """Project the window's ground points into ``cam``."""
     shape = x.shape
     ok = np.isfinite(z)
-    pix, depth = cam.project(np.c_[x.ravel(), y.ravel(), np.where(ok, z, 0.0).ravel()])
-    mx = pix[:, 0].reshape(shape).astype(np.float32)
-    my = pix[:, 1].reshape(shape).astype(np.float32)
+    mx, my, depth = project_grid(cam, x, y, np.where(ok, z, 0.0))
     intr = cam.intrinsics
     with np.errstate(invalid="ignore"):
-        in_frame = (ok & (depth.reshape(shape) > 0) & (mx >= margin_px - 0.5) & (my >= margin_px - 0.5)
+        in_frame = (ok & (depth > 0) & (mx >= margin_px - 0.5) & (my >= margin_px - 0.5)
                     & (mx <= intr.width_px - 0.5 - margin_px) & (my <= intr.height_px - 0.5 - margin_px))
     valid = in_frame.copy()
     if visibility is not None and valid.any():

@@ -7,6 +7,7 @@ from ..demo import demo
 from ..footprint import footprints
 from ..gcp.find import gcp_find
 from ..markers import DICTIONARIES
+from ..ortho.mosaic import BALANCE, BLEND, COMPRESS, INTERPOLATION, SEAMS, ortho
 from ..sfm import CAMERA_MODELS, MATCHING, sfm
 from ..synth import PRESETS, synth
 from .spec import Algorithm, Output, Param
@@ -161,6 +162,39 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("checkpoint_rmse_m", "number", "RMSE at the checkpoints"),
             Output("georeferenced_by", "string", "what put the model in the CRS"),
             Output("crs", "string", "CRS of the outputs"),
+        ),
+    ),
+    Algorithm(
+        id="ortho", title="Orthophoto mosaic (true ortho on the DSM)", group="Photogrammetry", function=ortho,
+        params=(
+            Param("images", "folder"),
+            Param("output", "raster", output=True, extensions=(".tif",)),
+            Param("sfm", "folder", None),
+            Param("dsm", "raster", None),
+            Param("resolution", "number", None, unit="m", minimum=0.001),
+            Param("crs", "crs", None),
+            Param("ground_elevation_m", "number", None, unit="m"),
+            Param("takeoff_elevation_m", "number", None, unit="m"),
+            Param("seams", "enum", "graphcut", choices=SEAMS),
+            Param("balance", "enum", "channels", choices=BALANCE),
+            Param("blend", "enum", "multiband", choices=BLEND),
+            Param("max_hole_px", "integer", 64, unit="px", minimum=0),
+            Param("compress", "enum", "DEFLATE", choices=COMPRESS),
+            Param("preview", "file", None, output=True, extensions=(".png",)),
+            Param("interpolation", "enum", "bilinear", choices=INTERPOLATION, advanced=True),
+            Param("tile_px", "integer", 1024, unit="px", minimum=128, maximum=8192, advanced=True),
+            Param("workers", "integer", 0, minimum=0, advanced=True),
+        ),
+        outputs=(
+            Output("output", "raster", "orthophoto (COG, RGB + alpha)"),
+            Output("preview", "file", "PNG preview"),
+            Output("report", "file", "report JSON: resolution, GSD, coverage, holes, seam colour mismatch, gains"),
+            Output("resolution_m", "number", "pixel size"),
+            Output("median_gsd_m", "number", "median GSD of the photos"),
+            Output("n_used", "integer", "photos in the mosaic"),
+            Output("seam_mismatch_raw", "number", "colour difference across seams before balancing, DN"),
+            Output("seam_mismatch_balanced", "number", "colour difference across seams after balancing, DN"),
+            Output("crs", "string", "CRS of the orthophoto"),
         ),
     ),
     Algorithm(
