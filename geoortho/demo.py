@@ -65,7 +65,8 @@ def demo(
 
 def _stages() -> list:
     """(name, weight, run(survey, output, feedback) -> products) for every stage that exists."""
-    return [("footprints", 1, _footprints), ("gcp-find", 2, _gcp_find), ("sfm", 4, _sfm), ("dem", 1, _dem)]
+    return [("footprints", 1, _footprints), ("gcp-find", 2, _gcp_find), ("sfm", 4, _sfm), ("dem", 1, _dem),
+            ("ortho", 2, _ortho)]
 
 
 def _takeoff_elevation(survey: SynthResult) -> float:
@@ -114,3 +115,14 @@ def _dem(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
             feedback=fb)
     fb.info(f"dem: {r.n_points} points, {r.n_ground} ground, cells of {r.resolution:g} ({r.units})")
     return {"dsm": str(r.dsm), "dtm": str(r.dtm), "dtm_hillshade": str(r.hillshade)}
+
+
+def _ortho(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
+    from .ortho import ortho
+
+    # The SfM poses on the DSM the dem stage made: the chain's own products, not the truth.
+    r = ortho(survey.images, output / "ortho.tif", sfm=output / "sfm", dsm=output / "dsm.tif",
+              preview=output / "ortho_preview.png", feedback=fb)
+    fb.info(f"ortho: {r.width_px}x{r.height_px} px at {r.resolution_m * 100:.2f} cm, {r.n_used} photos; "
+            f"seam colour mismatch {r.seam_mismatch_raw:.1f} -> {r.seam_mismatch_balanced:.1f} DN")
+    return {"ortho": str(r.output), "ortho_preview": str(r.preview), "ortho_report": str(r.report)}

@@ -192,11 +192,13 @@ def _graph_cut(views: list[_View], labels: np.ndarray, best: np.ndarray, cshape:
         if not own.any():
             continue
         band = cv2.dilate(own, kernel) & v.valid.astype(np.uint8)
-        masks.append(cv2.UMat(band * 255))
+        # Cropped to the band: OpenCV cuts every pair whose rectangles overlap, over the whole overlap.
+        x, y, w, h = cv2.boundingRect(band)
+        masks.append(cv2.UMat(np.ascontiguousarray(band[y:y + h, x:x + w]) * 255))
         # Balanced colours: the cut should follow content, not exposure differences.
-        images.append((v.image.astype(np.float32) * gains[v.index]))
-        corners.append((v.win.col0, v.win.row0))
-        used.append(v)
+        images.append(v.image[y:y + h, x:x + w].astype(np.float32) * gains[v.index])
+        corners.append((v.win.col0 + x, v.win.row0 + y))
+        used.append((v, (y, x, h, w)))
     if len(used) < 2:
         return labels
     finder = cv2.detail_GraphCutSeamFinder("COST_COLOR_GRAD")
@@ -204,10 +206,10 @@ def _graph_cut(views: list[_View], labels: np.ndarray, best: np.ndarray, cshape:
     # Owners after the cut; cells claimed by several (or by none) keep the best-seeing photo among them.
     out_best = np.full(cshape, np.inf, np.float32)
     out = np.full(cshape, -1, np.int16)
-    for v, m in zip(used, cut):
+    for (v, (y, x, h, w)), m in zip(used, cut):
         m = (m.get() if isinstance(m, cv2.UMat) else np.asarray(m)) > 0
-        sl = v.win.slices(full)
-        cost = np.where(m, v.cost, np.inf)
+        sl = Window(v.win.row0 + y, v.win.col0 + x, h, w).slices(full)
+        cost = np.where(m, v.cost[y:y + h, x:x + w], np.inf)
         better = cost < out_best[sl]
         out_best[sl][better] = cost[better]
         out[sl][better] = v.index
