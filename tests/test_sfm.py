@@ -10,7 +10,7 @@ import laspy
 import numpy as np
 import pytest
 import rasterio
-from conftest import RecordingFeedback, real_data
+from conftest import RecordingFeedback
 
 from geoortho.camera import rotation_from_ypr
 from geoortho.errors import InputError

@@ -586,7 +586,6 @@ def ortho(
         Processes for the tiles (0 = every core).
     """
     from ..photos import list_images, read_photos
-    from ..surface import read_surface
 
     fb = as_feedback(feedback)
     images = Path(images)

@@ -207,7 +207,6 @@ def project_grid(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
 def project_window(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
                    visibility: VisibilityGrid | None, margin_px: float = 1.0) -> Projection:
     """Project the window's ground points into ``cam``."""
-    shape = x.shape
     ok = np.isfinite(z)
     mx, my, depth = project_grid(cam, x, y, np.where(ok, z, 0.0))
     intr = cam.intrinsics
