@@ -41,14 +41,11 @@ def map_ordered(
     In-process when one worker is asked for or there are fewer than
     ``min_items_for_pool`` items; on ``executor`` when one is given (e.g. a
     Dask ``Client.get_executor()``; ``initializer`` is then not run).
+    Every item is submitted at once: the caller wants the whole list anyway.
     """
-    if executor is not None:
-        return _map_on(executor, fn, items, as_feedback(feedback))
-    with process_pool(workers, len(items), initializer=initializer, initargs=initargs,
-                      min_items_for_pool=min_items_for_pool) as pool:
-        if pool is not None:
-            return _map_on(pool, fn, items, as_feedback(feedback))
-        return _map_here(fn, items, as_feedback(feedback))
+    return list(imap_ordered(fn, items, workers=workers, initializer=initializer, initargs=initargs,
+                             feedback=feedback, min_items_for_pool=min_items_for_pool, executor=executor,
+                             in_flight=max(1, len(items))))
 
 
 def imap_ordered(
@@ -59,27 +56,33 @@ def imap_ordered(
     initializer: Callable[..., Any] | None = None,
     initargs: tuple[Any, ...] = (),
     feedback: Feedback | None = None,
+    min_items_for_pool: int = 2,
     executor: cf.Executor | None = None,
+    in_flight: int | None = None,
 ) -> Iterator[R]:
     """Like :func:`map_ordered`, but yields each result as soon as it and those before it are done,
-    with at most a few items per worker in flight: memory stays bounded by the window, not by
-    the number of items (tiles of a mosaic)."""
+    with at most ``in_flight`` items submitted and not yet yielded (default two per worker): memory
+    stays bounded by that window, not by the number of items (tiles of a mosaic)."""
     fb = as_feedback(feedback)
+    window = in_flight or 2 * (workers or os.cpu_count() or 1)
     if executor is not None:
-        yield from _imap_on(executor, fn, items, fb, 4 * (workers or os.cpu_count() or 1))
+        yield from _imap_on(executor, fn, items, fb, window)
         return
-    with process_pool(workers, len(items), initializer=initializer, initargs=initargs) as pool:
-        if pool is None:
-            for i, item in enumerate(items):
-                fb.check_canceled()
-                yield fn(item)
-                fb.progress((i + 1) / len(items))
+    with process_pool(workers, len(items), initializer=initializer, initargs=initargs,
+                      min_items_for_pool=min_items_for_pool) as pool:
+        if pool is not None:
+            yield from _imap_on(pool, fn, items, fb, window)
             return
-        yield from _imap_on(pool, fn, items, fb, 2 * (workers or os.cpu_count() or 1))
+        for i, item in enumerate(items):
+            fb.check_canceled()
+            yield fn(item)
+            fb.progress((i + 1) / len(items))
 
 
 def _imap_on(executor: cf.Executor, fn: Callable[[T], R], items: Sequence[T], fb: Feedback,
              in_flight: int) -> Iterator[R]:
+    """Results in order with at most ``in_flight`` futures pending; Cancel or an error (or the
+    consumer stopping) cancels what has not started."""
     pending: collections.deque[cf.Future[R]] = collections.deque()
     it = iter(items)
     try:
@@ -89,18 +92,14 @@ def _imap_on(executor: cf.Executor, fn: Callable[[T], R], items: Sequence[T], fb
         while pending:
             fb.check_canceled()
             result = pending.popleft().result()
-            nxt = next(it, _END)
-            if nxt is not _END:
-                pending.append(executor.submit(fn, nxt))  # type: ignore[arg-type]
+            for nxt in itertools.islice(it, 1):
+                pending.append(executor.submit(fn, nxt))
             done += 1
             fb.progress(done / len(items))
             yield result
     finally:
         for f_ in pending:
             f_.cancel()
-
-
-_END = object()
 
 
 @contextmanager
@@ -125,27 +124,3 @@ def process_pool(
         yield pool
     finally:
         pool.shutdown(cancel_futures=True)
-
-
-def _map_here(fn: Callable[[T], R], items: Sequence[T], fb: Feedback) -> list[R]:
-    results: list[R] = []
-    for i, item in enumerate(items):
-        fb.check_canceled()
-        results.append(fn(item))
-        fb.progress((i + 1) / len(items))
-    return results
-
-
-def _map_on(executor: cf.Executor, fn: Callable[[T], R], items: Sequence[T], fb: Feedback) -> list[R]:
-    futures = [executor.submit(fn, item) for item in items]
-    results: list[R] = []
-    try:
-        for i, fut in enumerate(futures):
-            fb.check_canceled()
-            results.append(fut.result())
-            fb.progress((i + 1) / len(items))
-    except BaseException:
-        for f_ in futures:
-            f_.cancel()
-        raise
-    return results
