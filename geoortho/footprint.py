@@ -22,6 +22,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from pyproj import CRS
@@ -144,11 +145,21 @@ class FootprintTable:
     altitude_m: np.ndarray  # camera above the ground under it
 
 
+class Posed(Protocol):
+    """What a footprint needs of a camera: a :class:`PhotoCamera`, or the ortho stage's SfM cameras."""
+
+    @property
+    def intrinsics(self) -> Intrinsics: ...
+
+    @property
+    def pose(self) -> Pose: ...
+
+
 def _border_and_centre(intr: Intrinsics, per_side: int) -> np.ndarray:
     return np.vstack([intr.border_pixels(per_side), [[intr.cx_px, intr.cy_px]]])
 
 
-def compute_footprints(cams: Sequence[PhotoCamera], surface: Surface, *, per_side: int = 16,
+def compute_footprints(cams: Sequence[Posed], surface: Surface, *, per_side: int = 16,
                        max_range_m: float = 500.0) -> FootprintTable:
     """Cast each camera's border (``per_side`` points per edge) and centre onto ``surface``.
 

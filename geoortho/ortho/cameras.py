@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -142,15 +141,3 @@ def cameras_from_metadata(photos: Sequence[Any], crs: CRS, surface: Any = None,
     pcs, surf, how = photo_cameras(photos, crs, surface, takeoff_elevation_m)
     cams = [OrthoCamera(c.photo.path.name, c.photo.path, c.intrinsics, c.pose) for c in pcs]
     return cams, surf, how
-
-
-def ground_sample_distance_m(cam: OrthoCamera, surface: Any) -> float:
-    """Ground size of a pixel at the principal point: range to the surface over the focal length."""
-    intr = cam.intrinsics
-    from ..camera import pixel_rays
-
-    ray = pixel_rays(np.array([[intr.cx_px, intr.cy_px]]), intr, cam.pose)
-    hit = surface.intersect(cam.pose.center, ray, max_range_m=5000.0)
-    if not hit.hit[0]:
-        return math.nan
-    return float(hit.range_m[0] / intr.focal_px)

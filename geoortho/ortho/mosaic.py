@@ -25,15 +25,15 @@ from pyproj import CRS
 from ..crs import crs_to_text
 from ..errors import InputError
 from ..feedback import Feedback, as_feedback, split
+from ..footprint import compute_footprints
 from ..outputs import atomic_path, write_json
 from ..parallel import imap_ordered
 from ..surface import FlatSurface, GridSurface, Surface
-from .cameras import OrthoCamera, cameras_from_metadata, cameras_from_sfm, ground_sample_distance_m
+from .cameras import OrthoCamera, cameras_from_metadata, cameras_from_sfm
 from .rectify import (
     VisibilityGrid,
     Window,
     bounds_window,
-    footprint_bounds,
     project_window,
     remap_bgr,
     visibility_grid,
@@ -343,28 +343,33 @@ def mosaic(
         raise InputError(f"interpolation {interpolation!r} is not nearest, bilinear, bicubic or lanczos")
     st_plan, st_tiles, st_write = split(fb, [2, 10, 1])
 
-    # Where each photo lands; photos that miss the surface are reported and left out.
-    centres = np.array([c.pose.center for c in cams]) if cams else np.zeros((0, 3))
-    ground = surface.elevation(centres[:, 0], centres[:, 1]) if len(cams) else np.zeros(0)
-    ground = np.where(np.isfinite(ground), ground, surface.z_min)
-    heights = centres[:, 2] - ground if len(cams) else np.zeros(0)
+    if not cams:
+        raise InputError("no photo sees the surface: nothing to mosaic")
+    # Where each photo lands (its border cast onto the surface, as the footprints stage does);
+    # photos that miss the surface are reported and left out.
+    centres = np.array([c.pose.center for c in cams])
+    ground = surface.elevation(centres[:, 0], centres[:, 1])
+    heights = centres[:, 2] - np.where(np.isfinite(ground), ground, surface.z_min)
     max_range = 5.0 * float(np.median(heights[heights > 0])) if (heights > 0).any() else 1000.0
+    table = compute_footprints(cams, surface, max_range_m=max_range)
     kept: list[OrthoCamera] = []
     boxes: list[tuple[float, float, float, float]] = []
     gsds: list[float] = []
-    for cam, h in zip(cams, heights):
-        box = footprint_bounds(cam, surface, max_range) if h > 0 else None
-        if box is not None and isinstance(surface, GridSurface):
+    for i, cam in enumerate(cams):
+        # rays that missed end at the range limit: the box reaches that far
+        ring = table.rings[i]
+        box = (float(ring[:, 0].min()), float(ring[:, 1].min()), float(ring[:, 0].max()), float(ring[:, 1].max()))
+        sees = heights[i] > 0 and np.isfinite(table.gsd_min_cm[i])  # some ray met the surface
+        if sees and isinstance(surface, GridSurface):
             sx0, sy0, sx1, sy1 = surface.bounds
-            if box[2] <= sx0 or box[0] >= sx1 or box[3] <= sy0 or box[1] >= sy1:
-                box = None
-        if box is None:
+            sees = not (box[2] <= sx0 or box[0] >= sx1 or box[3] <= sy0 or box[1] >= sy1)
+        if not sees:
             skipped.append((cam.name, "its footprint misses the surface (outside the DSM or camera below it)"))
             fb.warning(f"skipped {cam.name}: outside the surface")
             continue
         kept.append(cam)
         boxes.append(box)
-        gsds.append(ground_sample_distance_m(cam, surface))
+        gsds.append(float(table.gsd_cm[i]) / 100.0)
     if not kept:
         raise InputError("no photo sees the surface: nothing to mosaic")
     finite = [g for g in gsds if math.isfinite(g)]

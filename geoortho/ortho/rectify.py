@@ -22,11 +22,10 @@ import cv2
 import numpy as np
 from affine import Affine
 
-from ..camera import pixel_rays
 from ..surface import FlatSurface, GridSurface, Surface, sample_grid
 from .cameras import OrthoCamera
 
-__all__ = ["Window", "VisibilityGrid", "footprint_bounds", "visibility_grid", "window_xyz", "project_window",
+__all__ = ["Window", "VisibilityGrid", "visibility_grid", "window_xyz", "project_window",
            "remap_bgr"]
 
 _REMAP_MAX = 32000  # cv2.remap wants map sides below SHRT_MAX
@@ -66,18 +65,6 @@ def bounds_window(transform: Affine, shape: tuple[int, int], bounds: tuple[float
     if c1 <= c0 or r1 <= r0:
         return None
     return Window(r0, c0, r1 - r0, c1 - c0)
-
-
-def footprint_bounds(cam: OrthoCamera, surface: Surface, max_range_m: float) -> tuple[float, float, float, float] | None:
-    """Bounding box of the photo's border cast onto the surface (rays clipped at ``max_range_m``);
-    None when no ray meets the surface."""
-    border = cam.intrinsics.border_pixels(16)
-    pts = np.vstack([border, [[cam.intrinsics.cx_px, cam.intrinsics.cy_px]]])
-    hits = surface.intersect(cam.pose.center, pixel_rays(pts, cam.intrinsics, cam.pose), max_range_m=max_range_m)
-    if not hits.hit.any():
-        return None
-    xy = hits.points[:, :2]  # rays that missed end at the range limit: the box reaches that far
-    return float(xy[:, 0].min()), float(xy[:, 1].min()), float(xy[:, 0].max()), float(xy[:, 1].max())
 
 
 @dataclass(frozen=True, eq=False)
