@@ -34,6 +34,7 @@ from .rectify import (
     VisibilityGrid,
     Window,
     bounds_window,
+    keep_best,
     project_window,
     remap_bgr,
     visibility_grid,
@@ -45,7 +46,9 @@ __all__ = ["OrthoResult", "ortho", "mosaic", "BLEND", "BALANCE", "SEAMS", "COMPR
 
 BLEND = ("multiband", "feather", "none")
 COMPRESS = ("DEFLATE", "JPEG")
-INTERPOLATION = ("bilinear", "bicubic", "lanczos", "nearest")
+_INTERPOLATION = {"bilinear": cv2.INTER_LINEAR, "bicubic": cv2.INTER_CUBIC, "lanczos": cv2.INTER_LANCZOS4,
+                  "nearest": cv2.INTER_NEAREST}
+INTERPOLATION = tuple(_INTERPOLATION)
 _BANDS = 5  # multi-band levels: the lowest spans 2**5 px on each side of a seam
 _CACHE_BYTES = 600 * 2**20  # decoded photos kept per worker
 
@@ -208,9 +211,8 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     assert ctx is not None
     pad = ctx.pad_px
     rows, cols = ctx.shape
-    pw = Window(max(0, win.row0 - pad), max(0, win.col0 - pad), 0, 0)
-    pw = Window(pw.row0, pw.col0, min(rows, win.row0 + win.height + pad) - pw.row0,
-                min(cols, win.col0 + win.width + pad) - pw.col0)
+    r0, c0 = max(0, win.row0 - pad), max(0, win.col0 - pad)
+    pw = Window(r0, c0, min(rows, win.row0 + win.height + pad) - r0, min(cols, win.col0 + win.width + pad) - c0)
     core = win.slices(pw)
     x, y, z = window_xyz(ctx.transform, pw, ctx.surface)
     shape = (pw.height, pw.width)
@@ -230,9 +232,7 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
             continue
         projs[i] = (sl, p)
         coverage[sl] |= p.in_frame
-        better = p.cost < best[sl]
-        best[sl][better] = p.cost[better]
-        best_lab[sl][better] = i
+        keep_best(best, best_lab, sl, p.cost, i)
         planned_ok[sl] |= (planned[sl] == i) & p.valid
     # The plan's owner where it sees the pixel at full resolution, else the best photo that does.
     lab = np.where(planned_ok, planned, best_lab).astype(np.int16)
@@ -275,7 +275,7 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     alpha = labelled | filled
     out[~alpha] = 0
     stats.update(coverage=float(coverage[core].sum()), filled=float(filled[core].sum()),
-                 holes_left=float((holes & ~filled)[core].sum()), used=0.0)
+                 holes_left=float((holes & ~filled)[core].sum()))
     rgba = np.empty((4, win.height, win.width), np.uint8)
     rgba[0], rgba[1], rgba[2] = out[core][..., 2], out[core][..., 1], out[core][..., 0]
     rgba[3] = np.where(alpha[core], 255, 0)
@@ -337,10 +337,9 @@ def mosaic(
     if seams not in SEAMS or balance not in BALANCE or blend not in BLEND or compress.upper() not in COMPRESS:
         raise InputError(f"choose seams from {SEAMS}, balance from {BALANCE}, blend from {BLEND}, "
                          f"compress from {COMPRESS}")
-    interp = {"nearest": cv2.INTER_NEAREST, "bilinear": cv2.INTER_LINEAR, "bicubic": cv2.INTER_CUBIC,
-              "lanczos": cv2.INTER_LANCZOS4}.get(interpolation)
+    interp = _INTERPOLATION.get(interpolation)
     if interp is None:
-        raise InputError(f"interpolation {interpolation!r} is not nearest, bilinear, bicubic or lanczos")
+        raise InputError(f"interpolation {interpolation!r} is not one of {', '.join(INTERPOLATION)}")
     st_plan, st_tiles, st_write = split(fb, [2, 10, 1])
 
     if not cams:
@@ -418,13 +417,12 @@ def mosaic(
     totals: dict[str, float] = {}
     used: set[int] = set()
     output.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{output.name}-", dir=output.parent))
-    try:
+    with tempfile.TemporaryDirectory(prefix=f".{output.name}-", dir=output.parent) as work_dir:
         import rasterio
         from rasterio.enums import ColorInterp
         from rasterio.windows import Window as RioWindow
 
-        tmp_tif = work / "mosaic.tif"
+        tmp_tif = Path(work_dir) / "mosaic.tif"
         profile = {"driver": "GTiff", "width": shape[1], "height": shape[0], "count": 4, "dtype": "uint8",
                    "crs": crs, "transform": transform, "tiled": True, "blockxsize": 512, "blockysize": 512,
                    "BIGTIFF": "IF_SAFER"}
@@ -442,10 +440,6 @@ def mosaic(
         preview_path = _write_preview(output, Path(preview)) if preview else None
         times["cog"] = time.perf_counter() - t3
         st_write.progress(1.0)
-    finally:
-        for f in work.glob("*"):
-            f.unlink()
-        work.rmdir()
 
     def ratio(a: str, n: str) -> float:
         return totals.get(a, 0.0) / totals[n] if totals.get(n) else math.nan
@@ -590,7 +584,8 @@ def ortho(
     workers : int
         Processes for the tiles (0 = every core).
     """
-    from ..photos import list_images, read_photos
+    from ..footprint import working_crs
+    from ..photos import read_photos
 
     fb = as_feedback(feedback)
     images = Path(images)
@@ -601,17 +596,14 @@ def ortho(
         poses = f"sfm ({Path(sfm)})"
         default_ground = float(np.median(pts[:, 2])) if len(pts) else None
     else:
-        paths = list_images(images)
-        photoset = read_photos(paths)
+        photoset = read_photos(images)
         skipped = list(photoset.skipped)
         for name, why in photoset.skipped:
             fb.warning(f"skipped {name}: {why}")
         if not photoset.photos:
             raise InputError("no photo with a GPS position and a camera model", path=images)
-        from ..footprint import working_crs
-
         out_crs = working_crs(photoset.photos, crs)
-        cams, out_crs, default_ground, poses = None, out_crs, None, "photo metadata (direct georeferencing)"
+        cams, default_ground, poses = None, None, "photo metadata (direct georeferencing)"
     surface: Surface
     if dsm is not None:
         surface = _read_dsm(Path(dsm), out_crs, fb, notes)
@@ -629,8 +621,7 @@ def ortho(
         raise InputError("no registered photo to rectify", path=sfm or images)
     return mosaic(cams, surface, out_crs, output, resolution, seams=seams, balance=balance, blend=blend,
                   max_hole_px=max_hole_px, compress=compress, preview=preview, tile_px=tile_px, workers=workers,
-                  interpolation=interpolation,
-                  poses=poses, notes=notes, skipped=skipped, feedback=fb)
+                  interpolation=interpolation, poses=poses, notes=notes, skipped=skipped, feedback=fb)
 
 
 def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurface:

@@ -25,7 +25,7 @@ from affine import Affine
 from ..surface import FlatSurface, GridSurface, Surface, sample_grid
 from .cameras import OrthoCamera
 
-__all__ = ["Window", "VisibilityGrid", "visibility_grid", "window_xyz", "project_window",
+__all__ = ["Window", "VisibilityGrid", "visibility_grid", "window_xyz", "project_window", "keep_best",
            "remap_bgr"]
 
 _REMAP_MAX = 32000  # cv2.remap wants map sides below SHRT_MAX
@@ -207,6 +207,14 @@ def project_window(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray
     cost = preference_cost(cam, x, y, np.where(ok, z, 0.0), mx, my)
     cost[~valid] = np.inf
     return Projection(mx, my, in_frame, valid, cost)
+
+
+def keep_best(best: np.ndarray, labels: np.ndarray, sl: tuple[slice, slice], cost: np.ndarray,
+              index: int) -> None:
+    """Give photo ``index`` the cells of ``best[sl]`` where its ``cost`` is lower (``labels`` too)."""
+    better = cost < best[sl]
+    best[sl][better] = cost[better]
+    labels[sl][better] = index
 
 
 def remap_bgr(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpolation: int = cv2.INTER_LINEAR,

@@ -6,8 +6,8 @@ JPEG decoder itself). Each cell first goes to the photo that sees it best
 (:func:`~geoortho.ortho.rectify.preference_cost`): a Voronoi-like split. A band
 around each of those borders is then handed to OpenCV's graph-cut seam finder,
 which moves the seam inside the band to where the two photos agree (around a
-building rather than through it). Gains come from OpenCV's channel exposure
-compensator, solved jointly over all overlaps.
+building rather than through it). Gains are solved jointly over all overlaps
+by least squares on log colour means (:func:`solve_gains`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,15 @@ from affine import Affine
 from ..feedback import Feedback, as_feedback
 from ..surface import Surface
 from .cameras import OrthoCamera
-from .rectify import VisibilityGrid, Window, bounds_window, project_window, remap_bgr, window_xyz
+from .rectify import (
+    VisibilityGrid,
+    Window,
+    bounds_window,
+    keep_best,
+    project_window,
+    remap_bgr,
+    window_xyz,
+)
 
 __all__ = ["SeamPlan", "plan_seams", "read_photo_bgr"]
 
@@ -117,17 +125,14 @@ def plan_seams(cams: Sequence[OrthoCamera], boxes: Sequence[tuple[float, float, 
     best = np.full(cshape, np.inf, np.float32)
     labels = np.full(cshape, -1, np.int16)
     for v in views:
-        sl = v.win.slices(Window(0, 0, *cshape))
-        better = v.cost < best[sl]
-        best[sl][better] = v.cost[better]
-        labels[sl][better] = v.index
+        keep_best(best, labels, v.win.slices(Window(0, 0, *cshape)), v.cost, v.index)
 
     gains = solve_gains(views, len(cams), per_channel=balance == "channels") if balance != "none" \
         else np.ones((len(cams), 3), np.float32)
     fb.progress(0.75)
 
     if seams == "graphcut" and len(views) > 1:
-        labels = _graph_cut(views, labels, best, cshape, max(1, int(round(band_m / cres))), gains)
+        labels = _graph_cut(views, labels, cshape, max(1, int(round(band_m / cres))), gains)
     fb.progress(1.0)
     return SeamPlan(ctr, labels, gains, tuple(skipped))
 
@@ -180,7 +185,7 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
     return gains
 
 
-def _graph_cut(views: list[_View], labels: np.ndarray, best: np.ndarray, cshape: tuple[int, int], band_px: int,
+def _graph_cut(views: list[_View], labels: np.ndarray, cshape: tuple[int, int], band_px: int,
                gains: np.ndarray) -> np.ndarray:
     """Move each Voronoi seam, within ``band_px`` of where it was, onto a low-difference path."""
     full = Window(0, 0, *cshape)
@@ -209,10 +214,7 @@ def _graph_cut(views: list[_View], labels: np.ndarray, best: np.ndarray, cshape:
     for (v, (y, x, h, w)), m in zip(used, cut):
         m = (m.get() if isinstance(m, cv2.UMat) else np.asarray(m)) > 0
         sl = Window(v.win.row0 + y, v.win.col0 + x, h, w).slices(full)
-        cost = np.where(m, v.cost[y:y + h, x:x + w], np.inf)
-        better = cost < out_best[sl]
-        out_best[sl][better] = cost[better]
-        out[sl][better] = v.index
+        keep_best(out_best, out, sl, np.where(m, v.cost[y:y + h, x:x + w], np.inf), v.index)
     unclaimed = (out < 0) & (labels >= 0)
     out[unclaimed] = labels[unclaimed]
     return out
