@@ -212,6 +212,9 @@ def describe() -> dict[str, Any]:
     return {
         "name": "geoortho",
         "version": __version__,
+        # Where this geoortho lives: the QGIS provider keys its cache of this
+        # description on the files there, so an upgrade is noticed.
+        "package_dir": str(Path(__file__).resolve().parents[1]),
         "param_types": list(PARAM_TYPES),
         "algorithms": [
             {
