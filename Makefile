@@ -1,13 +1,17 @@
 # The two commands: `make demo` and `make test`. Each sets up .venv on a fresh
-# Debian 12 (Python 3.11) machine and runs.
+# Debian 12 (Python 3.11) machine and runs. `make test-qgis` installs QGIS 3.40
+# (root) and .venv-qgis, and runs the QGIS provider's tests; `make plugin`
+# builds the QGIS plugin zip.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 DEMO_OUTPUT ?= demo_output
 PYTEST_ARGS ?=
+QGIS_VENV ?= .venv-qgis
+PLUGIN_ZIP ?= build/geoortho_qgis.zip
 
-.PHONY: demo test venv lint bench clean
+.PHONY: demo test test-qgis plugin venv lint bench clean
 
 venv: $(STAMP)
 
@@ -23,11 +27,18 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
+test-qgis:
+	@sh tools/qgis_setup.sh "$(QGIS_VENV)"
+	$(QGIS_VENV)/bin/python -m pytest tests_qgis $(PYTEST_ARGS)
+
+plugin: $(STAMP)
+	$(PY) tools/build_plugin.py $(PLUGIN_ZIP)
+
 lint: $(STAMP)
-	$(VENV)/bin/ruff check geoortho tests benchmarks
+	$(VENV)/bin/ruff check geoortho tests tests_qgis benchmarks tools
 
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUTPUT) build *.egg-info
+	rm -rf $(VENV) $(QGIS_VENV) $(DEMO_OUTPUT) build *.egg-info

@@ -130,7 +130,10 @@ def _vector(p: Spec) -> QgsProcessingParameterDefinition:
 
 def _pointcloud(p: Spec) -> QgsProcessingParameterDefinition:
     if point_clouds_as_layers():
-        from qgis.core import QgsProcessingParameterPointCloudDestination, QgsProcessingParameterPointCloudLayer
+        from qgis.core import (
+            QgsProcessingParameterPointCloudDestination,
+            QgsProcessingParameterPointCloudLayer,
+        )
 
         if p["output"]:
             return QgsProcessingParameterPointCloudDestination(p["qgis_name"], label_of(p), None, _optional(p),

@@ -180,6 +180,9 @@ def run_geoortho(
     returncode = proc.wait()
     for t in threads:
         t.join(timeout=5)
+    for stream in (proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()
     # A grace kill can leave orphaned workers of the group, and temporary files.
     if canceled_at is not None:
         _kill_group(proc)
