@@ -138,3 +138,13 @@ def test_main_json_output(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["n_photos"] == len(list(Path(out["images"]).glob("*.JPG")))
     assert out["crs"] == "EPSG:32629"
+
+
+def test_json_outputs_have_no_nan():
+    # JSON has no NaN; "not measured" (e.g. no checkpoints) must reach QGIS and scripts as null.
+    import numpy as np
+
+    from geoortho.processing.registry import _jsonable
+
+    assert _jsonable({"rmse": float("nan"), "n": np.int64(3), "inf": np.float32("inf")}) == \
+        {"rmse": None, "n": 3, "inf": None}
