@@ -185,6 +185,9 @@ def test_bad_input_and_missing_interpreter_are_clear(provider, tiny, tmp_path, m
 
     with pytest.raises(QgsProcessingException, match="no such folder"):
         _run("footprints", {"IMAGES": str(tmp_path / "nowhere"), "OUTPUT": str(tmp_path / "f.gpkg")})
+    monkeypatch.setenv("GEOORTHO_PYTHON", "/usr/bin/python3")  # Debian's: a Python without geoortho
+    with pytest.raises(QgsProcessingException, match="No module named geoortho.*geoortho Python interpreter"):
+        _run("footprints", {"IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "f.gpkg")})
     monkeypatch.setenv("GEOORTHO_PYTHON", str(tmp_path / "no-python"))
     with pytest.raises(QgsProcessingException, match="Processing > Options > Providers > geoortho"):
         _run("footprints", {"IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "f.gpkg")})
@@ -295,10 +298,18 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
         assert np.median(np.abs(dsm.data[rows, cols] - true_z)) < 0.2  # the DSM is right, not just written
     ran.add("dem")
 
-    r = _run("sfm", {"IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "sfm"), "GCP_LIST": str(gcp_list),
-                     "MAX_IMAGE_SIZE": 1024})
+    # As from the toolbox: outputs that are layers are opened in the project,
+    # cameras.gpkg too, though it is not a destination parameter.
+    import processing
+    from qgis.core import QgsProject
+
+    r = processing.runAndLoadResults("geoortho:sfm", {
+        "IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "sfm"), "GCP_LIST": str(gcp_list),
+        "MAX_IMAGE_SIZE": 1024})
     assert r["N_REGISTERED"] == r["N_PHOTOS"] > 0 and r["GCP_RMSE_M"] < 0.05
     assert Path(r["CAMERAS"]).is_file() and Path(r["POINTS"]).is_file()
+    loaded = {layer.source().split("|")[0]: layer for layer in QgsProject.instance().mapLayers().values()}
+    assert loaded[r["CAMERAS"]].isValid() and loaded[r["CAMERAS"]].featureCount() == r["N_REGISTERED"]
     ran.add("sfm")
 
     r = _run("ortho", {"IMAGES": str(tiny / "images"), "SFM": str(tmp_path / "sfm"),

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import html
 import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,7 @@ from qgis.core import (
     QgsProviderRegistry,
 )
 
+from .interpreter import HOW_TO_SET
 from .runner import RunCanceled, RunFailed, run_geoortho
 
 __all__ = ["GeoorthoAlgorithm", "PARAMETER_BUILDERS", "OUTPUT_BUILDERS", "label_of", "point_clouds_as_layers"]
@@ -64,6 +66,7 @@ except AttributeError:  # pragma: no cover - older QGIS
     _ADVANCED = QgsProcessingParameterDefinition.FlagAdvanced
 
 
+_PATH_TYPES = frozenset({"folder", "file", "raster", "vector", "pointcloud"})
 _ACRONYMS = {"dsm": "DSM", "dtm": "DTM", "crs": "CRS", "gcp": "GCP", "sfm": "SfM", "gps": "GPS", "gsd": "GSD"}
 _UNIT_SUFFIXES = {"_m": "m", "_cm": "cm", "_mm": "mm", "_deg": "deg", "_px": "px"}
 
@@ -321,6 +324,8 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                 if p["required"]:
                     raise QgsProcessingException(f"{name} is required")
                 continue
+            if kind in _PATH_TYPES:
+                value = os.path.abspath(value)  # geoortho runs in another folder
             values[p["name"]] = value
         return values
 
@@ -357,7 +362,10 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
             except RunCanceled as e:
                 raise QgsProcessingException(f"{e}; no output was written") from None
             except RunFailed as e:
-                raise QgsProcessingException(str(e)) from None
+                message = str(e)
+                if "No module named geoortho" in message:
+                    message += f" ({interpreter} has no geoortho); {HOW_TO_SET}"
+                raise QgsProcessingException(message) from None
         return self._results(outputs, context)
 
     def _run_in_process(self, values: dict[str, Any], feedback: Any) -> dict[str, Any]:
@@ -370,6 +378,10 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                 "turn the setting off to run geoortho's own interpreter") from None
         from .inprocess import feedback_adapter
 
+        if "workers" in {p["name"] for p in self._spec["parameters"]} and "workers" not in values:
+            # Worker processes would be spawned with sys.executable, which inside
+            # QGIS is QGIS itself (or whatever python3 is on PATH), not a Python.
+            values = dict(values, workers=1)
         try:
             return run_algorithm(self._spec["id"], values, feedback_adapter(feedback))
         except CanceledError:

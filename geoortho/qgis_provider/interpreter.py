@@ -13,6 +13,7 @@ import json
 import os
 import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -44,9 +45,16 @@ class InterpreterError(RuntimeError):
     """geoortho's interpreter is missing or cannot run geoortho."""
 
 
+#: Where geoortho runs: a folder with no geoortho source in it (see PYTHONSAFEPATH).
+NEUTRAL_CWD = tempfile.gettempdir()
+
+
 def clean_environment() -> dict[str, str]:
     """os.environ without QGIS's Python/GDAL/PROJ variables, unbuffered UTF-8 output."""
     env = {k: v for k, v in os.environ.items() if k not in _QGIS_ONLY_VARIABLES}
+    # `python -m` would put the current folder first on sys.path, so a geoortho
+    # source folder there would shadow the installed one (Python >= 3.11).
+    env["PYTHONSAFEPATH"] = "1"
     env["PYTHONUNBUFFERED"] = "1"
     env["PYTHONIOENCODING"] = "utf-8"
     return env
@@ -139,7 +147,7 @@ def _run_describe(interpreter: str, timeout_s: float) -> dict[str, Any]:
     cmd = [interpreter, "-m", "geoortho", "describe", "--json"]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", errors="replace",
-                              env=clean_environment(), timeout=timeout_s, check=False)
+                              env=clean_environment(), cwd=NEUTRAL_CWD, timeout=timeout_s, check=False)
     except (OSError, subprocess.TimeoutExpired) as e:
         raise InterpreterError(f"{interpreter} could not be run ({e}); {HOW_TO_SET}") from None
     if proc.returncode != 0:

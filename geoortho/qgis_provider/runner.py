@@ -23,7 +23,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-from .interpreter import clean_environment
+from .interpreter import NEUTRAL_CWD, clean_environment
 
 __all__ = ["RunCanceled", "RunFailed", "run_geoortho", "remove_partial_outputs"]
 
@@ -140,7 +140,8 @@ def run_geoortho(
     try:
         proc = subprocess.Popen(
             cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-            text=True, encoding="utf-8", errors="replace", env=clean_environment(), **_popen_kwargs(),
+            text=True, encoding="utf-8", errors="replace", env=clean_environment(), cwd=NEUTRAL_CWD,
+            **_popen_kwargs(),
         )
     except OSError as e:
         raise RunFailed(f"could not start {interpreter}: {e}", -1) from None
