@@ -135,7 +135,8 @@ def test_progress_reaches_the_feedback(provider, tiny, tmp_path):
     feedback = QgsProcessingFeedback()
     seen: list[float] = []
     feedback.progressChanged.connect(seen.append)
-    _run("footprints", {"IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "f.gpkg")}, feedback)
+    r = _run("footprints", {"IMAGES": str(tiny / "images"), "OUTPUT": "TEMPORARY_OUTPUT"}, feedback)
+    assert r["OUTPUT"].endswith(".gpkg") and Path(r["OUTPUT"]).is_file()  # QGIS's temporary file, written
     assert len(seen) >= 3 and seen[-1] == pytest.approx(100.0)
     assert all(b >= a for a, b in zip(seen, seen[1:]))  # forward only
 
@@ -312,8 +313,9 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     assert loaded[r["CAMERAS"]].isValid() and loaded[r["CAMERAS"]].featureCount() == r["N_REGISTERED"]
     ran.add("sfm")
 
+    dsm_layer = QgsRasterLayer(str(tiny / "truth" / "dsm.tif"), "dsm")  # a layer, as the toolbox passes it
     r = _run("ortho", {"IMAGES": str(tiny / "images"), "SFM": str(tmp_path / "sfm"),
-                       "DSM": str(tiny / "truth" / "dsm.tif"), "OUTPUT": str(tmp_path / "ortho.tif")})
+                       "DSM": dsm_layer, "OUTPUT": str(tmp_path / "ortho.tif")})
     layer = QgsRasterLayer(str(tmp_path / "ortho.tif"), "ortho")
     assert layer.isValid() and layer.bandCount() == 4 and layer.crs().authid() == r["CRS"]
     assert r["N_USED"] > 0
