@@ -25,6 +25,7 @@ if "/usr/lib/python3/dist-packages" not in sys.path:
 sys.path.insert(0, "/usr/share/qgis/python/plugins")  # Processing
 
 PROJECT = Path(__file__).resolve().parents[1]
+sys.path.append(str(PROJECT / "tests"))  # realdata: where ../shared/data/real is
 
 
 def geoortho_cli(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:

@@ -210,6 +210,54 @@ def test_in_process_gives_the_same_footprints(provider, tiny, tmp_path):
     _same_footprints(tmp_path / "in.gpkg", tmp_path / "sub.gpkg")
 
 
+def test_graphical_modeler_chains_geoortho_algorithms(provider, tmp_path):
+    """A model saved as .model3: synth -> footprints and gcp-find, fed by synth's outputs."""
+    from qgis.core import (
+        QgsProcessingModelAlgorithm,
+        QgsProcessingModelChildAlgorithm,
+        QgsProcessingModelChildParameterSource,
+        QgsProcessingModelOutput,
+    )
+
+    source = QgsProcessingModelChildParameterSource
+    model = QgsProcessingModelAlgorithm("field check", "geoortho")
+
+    def child(child_id: str, alg: str, sources: dict, outputs: dict[str, str]) -> None:
+        c = QgsProcessingModelChildAlgorithm(f"geoortho:{alg}")
+        c.setChildId(child_id)
+        for name, src in sources.items():
+            c.addParameterSources(name, [src])
+        model_outputs = {}
+        for model_name, child_output in outputs.items():
+            o = QgsProcessingModelOutput(model_name, model_name)
+            o.setChildId(child_id)
+            o.setChildOutputName(child_output)
+            model_outputs[model_name] = o
+        c.setModelOutputs(model_outputs)
+        model.addChildAlgorithm(c)
+
+    child("synth", "synth", {"OUTPUT": source.fromStaticValue(str(tmp_path / "survey")),
+                             "PRESET": source.fromStaticValue("tiny")}, {})
+    child("fp", "footprints", {"IMAGES": source.fromChildOutput("synth", "IMAGES")}, {"footprints": "OUTPUT"})
+    child("gcp", "gcp-find", {"IMAGES": source.fromChildOutput("synth", "IMAGES"),
+                              "GCP_FILE": source.fromChildOutput("synth", "GCP_FILE")}, {"gcp_list": "OUTPUT"})
+    model.updateDestinationParameters()
+    assert model.validate()[0]
+    path = str(tmp_path / "field_check.model3")
+    assert model.toFile(path)
+    loaded = QgsProcessingModelAlgorithm()
+    assert loaded.fromFile(path)
+
+    import processing
+
+    r = processing.run(loaded, {"footprints": str(tmp_path / "fp.gpkg"), "gcp_list": str(tmp_path / "gcp.txt")})
+    fp_results, gcp_results = r["CHILD_RESULTS"]["fp"], r["CHILD_RESULTS"]["gcp"]
+    assert r["CHILD_INPUTS"]["fp"]["IMAGES"] == str(tmp_path / "survey" / "images")
+    assert len(gpd.read_file(tmp_path / "fp.gpkg", layer="footprints")) == fp_results["N_PHOTOS"] > 0
+    lines = (tmp_path / "gcp.txt").read_text().splitlines()
+    assert len(lines) == 1 + gcp_results["N_OBSERVATIONS"] and gcp_results["N_GCPS_FOUND"] == 4
+
+
 # --- qgis_process with the plugin installed from the built zip -------------------
 
 @pytest.fixture(scope="module")
@@ -283,6 +331,7 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
 
     r = _run("dem", {"POINTS": str(tiny / "truth" / "points.laz"), "OUTPUT": str(tmp_path / "dsm.tif"),
                      "DTM": str(tmp_path / "dtm.tif"), "RESOLUTION_M": 0.25, "METHOD": "max"})
+    assert r["OUTPUT"] == str(tmp_path / "dsm.tif") and r["DTM"] == str(tmp_path / "dtm.tif")
     for name in ("dsm.tif", "dtm.tif"):
         layer = QgsRasterLayer(str(tmp_path / name), name)
         assert layer.isValid() and layer.crs().authid() == r["CRS"]

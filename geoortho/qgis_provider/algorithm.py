@@ -366,7 +366,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                 if "No module named geoortho" in message:
                     message += f" ({interpreter} has no geoortho); {HOW_TO_SET}"
                 raise QgsProcessingException(message) from None
-        return self._results(outputs, context)
+        return self._results(values, outputs, context)
 
     def _run_in_process(self, values: dict[str, Any], feedback: Any) -> dict[str, Any]:
         try:
@@ -389,8 +389,12 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         except GeoorthoError as e:
             raise QgsProcessingException(f"geoortho {self._spec['id']}: error: {e}") from None
 
-    def _results(self, outputs: dict[str, Any], context: QgsProcessingContext) -> dict[str, Any]:
-        results: dict[str, Any] = {}
+    def _results(self, values: dict[str, Any], outputs: dict[str, Any],
+                 context: QgsProcessingContext) -> dict[str, Any]:
+        # Every destination parameter given is a result under its own name (dem's
+        # OUTPUT is its "dsm"): QGIS loads and models chain by these names.
+        results: dict[str, Any] = {p["qgis_name"]: str(values[p["name"]]) for p in self._spec["parameters"]
+                                   if p["output"] and p["name"] in values}
         param_names = {p["name"] for p in self._spec["parameters"] if p["output"]}
         for o in self._spec["outputs"]:
             value = outputs.get(o["name"])
