@@ -4,7 +4,8 @@
 * QGIS: ``qgis_process run geoortho:<id>`` with the plugin zip from tools/build_plugin.py
   installed in a throwaway profile (QGIS start, provider load from the cached registry
   description, the same CLI in a subprocess, results back as JSON);
-* the provider's registry description: ``describe --json`` cold, and from its cache.
+* the provider's registry description: ``describe --json`` cold, and from its cache;
+* QGIS's fixed cost: ``qgis_process help geoortho:footprints`` (start, plugins, provider).
 
 Prints photos per second, wall seconds, the ratio QGIS / CLI, and peak RSS of the
 largest child. Needs qgis_process (``make test-qgis`` installs it); says so and exits 0
@@ -69,6 +70,9 @@ def main() -> None:
     load_description(sys.executable, work / "cache.json")
     cached = time.perf_counter() - t0
     print(f"registry description: cold {cold:.2f} s, cached {cached * 1000:.1f} ms ({cold / cached:.0f}x)")
+
+    startup = min(_timed(["qgis_process", "help", "geoortho:footprints"], env) for _ in range(args.repeat))
+    print(f"qgis_process start with the provider loaded (help geoortho:footprints): {startup:.2f} s")
 
     gcp = survey.truth / "gcp_wgs84.csv"
     jobs = {

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+import tempfile
 import time
 import zipfile
 from pathlib import Path
@@ -203,6 +204,9 @@ def test_in_process_gives_the_same_footprints(provider, tiny, tmp_path):
     ProcessingConfig.setSettingValue(SETTING_IN_PROCESS, True)
     try:
         assert provider.settings()["in_process"]
+        # Both settings sit on the provider's page of Processing > Options.
+        assert ProcessingConfig.settings[SETTING_IN_PROCESS].group == "geoortho"
+        assert ProcessingConfig.settings["GEOORTHO_PYTHON"].group == "geoortho"
         _run("footprints", {"IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "in.gpkg")})
     finally:
         ProcessingConfig.setSettingValue(SETTING_IN_PROCESS, False)
@@ -279,7 +283,9 @@ def plugin_env(tmp_path_factory) -> dict[str, str]:
 
 
 def _qgis_process(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(["qgis_process", *args], env=env, capture_output=True, text=True, timeout=600)
+    # Run from a neutral folder: from the checkout, QGIS's Python could import its geoortho/.
+    return subprocess.run(["qgis_process", *args], env=env, capture_output=True, text=True, timeout=600,
+                          cwd=tempfile.gettempdir())
 
 
 def test_qgis_process_runs_footprints_from_the_plugin_zip(plugin_env, tiny, tmp_path):
@@ -291,6 +297,17 @@ def test_qgis_process_runs_footprints_from_the_plugin_zip(plugin_env, tiny, tmp_
     assert results["OUTPUT"] == str(out) and results["N_PHOTOS"] > 0
     geoortho_cli("footprints", "--images", str(tiny / "images"), "--output", str(tmp_path / "cli.gpkg"), "--quiet")
     _same_footprints(out, tmp_path / "cli.gpkg")
+
+
+def test_qgis_process_finds_geoortho_on_path_by_itself(plugin_env, tiny, tmp_path):
+    # No GEOORTHO_PYTHON, no setting: the `geoortho` command on PATH names its interpreter.
+    env = {k: v for k, v in plugin_env.items() if k != "GEOORTHO_PYTHON"}
+    env["PATH"] = f"{Path(PYTHON).parent}{os.pathsep}{env.get('PATH', '')}"
+    assert (Path(PYTHON).parent / "geoortho").is_file()
+    r = _qgis_process(env, "--json", "run", "geoortho:footprints", f"--IMAGES={tiny / 'images'}",
+                      f"--OUTPUT={tmp_path / 'auto.gpkg'}")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stdout)["results"]["N_PHOTOS"] > 0
 
 
 def test_qgis_process_bad_parameter_shows_geoortho_message(plugin_env, tmp_path):
