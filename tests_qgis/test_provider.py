@@ -103,6 +103,19 @@ def test_every_algorithm_with_the_right_parameters(provider, description):
         assert {o["name"].upper() for o in spec["outputs"]} <= outputs, spec["id"]
 
 
+def test_an_unknown_parameter_type_leaves_out_only_its_algorithm(qgis_app, description):
+    import copy
+
+    from geoortho.qgis_provider.provider import GeoorthoProvider
+
+    newer = copy.deepcopy(description)
+    newer["algorithms"][0]["parameters"][0]["type"] = "hologram"  # from a future geoortho
+    p = GeoorthoProvider(newer)
+    p.refreshAlgorithms()
+    ids = {a.name() for a in p.algorithms()}
+    assert ids == {a["id"] for a in description["algorithms"][1:]}
+
+
 def _same_footprints(a: Path, b: Path) -> None:
     fa = gpd.read_file(a, layer="footprints").sort_values("image").reset_index(drop=True)
     fb = gpd.read_file(b, layer="footprints").sort_values("image").reset_index(drop=True)

@@ -16,7 +16,7 @@ from typing import Any
 from qgis.core import Qgis, QgsApplication, QgsMessageLog, QgsProcessingProvider
 from qgis.PyQt.QtGui import QIcon
 
-from .algorithm import GeoorthoAlgorithm
+from .algorithm import OUTPUT_BUILDERS, PARAMETER_BUILDERS, GeoorthoAlgorithm
 from .interpreter import InterpreterError, find_interpreter, load_description
 
 __all__ = ["GeoorthoProvider", "SETTING_PYTHON", "SETTING_IN_PROCESS"]
@@ -141,6 +141,15 @@ class GeoorthoProvider(QgsProcessingProvider):
         if self.description is None:
             _log("geoortho: no algorithms (no interpreter found and no bundled description)", Qgis.Critical)
             return
+        added = 0
         for spec in self.description["algorithms"]:
+            unknown = sorted({p["type"] for p in spec["parameters"]} - set(PARAMETER_BUILDERS)
+                             | {o["type"] for o in spec["outputs"]} - set(OUTPUT_BUILDERS))
+            if unknown:  # a geoortho newer than this plugin: skip the one algorithm, keep the rest
+                _log(f"geoortho:{spec['id']} is left out: this plugin does not know the type(s) "
+                     f"{', '.join(unknown)}; build the plugin of the same geoortho version (make plugin)",
+                     Qgis.Warning)
+                continue
             self.addAlgorithm(GeoorthoAlgorithm(spec, self.settings))
-        _log(f"{len(self.description['algorithms'])} algorithms from {self.description_source}")
+            added += 1
+        _log(f"{added} algorithms from {self.description_source}")
