@@ -184,11 +184,11 @@ def run_geoortho(
     for stream in (proc.stdout, proc.stderr):
         if stream is not None:
             stream.close()
-    # A grace kill can leave orphaned workers of the group, and temporary files.
     if canceled_at is not None:
-        _kill_group(proc)
-        remove_partial_outputs(destinations)
-        raise RunCanceled(f"geoortho {algorithm_id}: canceled")
+        _kill_group(proc)  # workers a grace kill orphaned
+        if returncode != 0:  # (a run that finished before the cancel landed is simply done)
+            remove_partial_outputs(destinations)
+            raise RunCanceled(f"geoortho {algorithm_id}: canceled")
     if returncode != 0:
         message = plain[-1] if plain else f"geoortho {algorithm_id} exited with code {returncode}"
         if returncode == 130:
