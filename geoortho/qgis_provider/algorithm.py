@@ -267,7 +267,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         for o in self._spec["outputs"]:
             name = o["name"].upper()
             if name not in destinations:  # a destination parameter already made this output
-                self.addOutput(OUTPUT_BUILDERS[o["type"]](name, o.get("help") or label_of(o | {"unit": None})))
+                self.addOutput(OUTPUT_BUILDERS[o["type"]](name, o.get("help") or label_of(o)))
 
     # --- values -> geoortho ---------------------------------------------------
     def _given(self, parameters: dict[str, Any], name: str) -> bool:
