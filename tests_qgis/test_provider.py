@@ -167,8 +167,12 @@ def _geoortho_processes(marker: str) -> list[int]:
     return pids
 
 
-def test_cancel_stops_a_long_run_within_seconds(provider, tmp_path):
+@pytest.mark.parametrize("in_process", [False, True], ids=["subprocess", "in-process"])
+def test_cancel_stops_a_long_run_within_seconds(provider, tmp_path, in_process):
+    from processing.core.ProcessingConfig import ProcessingConfig
     from qgis.core import QgsProcessingException, QgsProcessingFeedback
+
+    from geoortho.qgis_provider.provider import SETTING_IN_PROCESS
 
     out = tmp_path / "medium"
     feedback = QgsProcessingFeedback()
@@ -182,10 +186,15 @@ def test_cancel_stops_a_long_run_within_seconds(provider, tmp_path):
             feedback.cancel()
 
     feedback.progressChanged.connect(on_progress)
-    with pytest.raises(QgsProcessingException, match="canceled"):
-        _run("synth", {"OUTPUT": str(out), "PRESET": "medium"}, feedback)
+    ProcessingConfig.setSettingValue(SETTING_IN_PROCESS, in_process)
+    try:
+        with pytest.raises(QgsProcessingException, match="canceled"):
+            _run("synth", {"OUTPUT": str(out), "PRESET": "medium"}, feedback)
+    finally:
+        ProcessingConfig.setSettingValue(SETTING_IN_PROCESS, False)
     stopped_s = time.monotonic() - canceled_at[0]
-    print(f"cancel: stopped {stopped_s:.2f} s after Cancel at {max(seen):.1f} %")
+    mode = "in-process" if in_process else "subprocess"
+    print(f"cancel ({mode}): stopped {stopped_s:.2f} s after Cancel at {max(seen):.1f} %")
     assert stopped_s < 15.0, stopped_s
     assert 1.0 <= max(seen) < 100.0  # it really was mid-run
     assert not _geoortho_processes(str(out))  # workers gone too
