@@ -160,9 +160,15 @@ def test_cancel_stops_the_process_and_leaves_no_temporary(tmp_path):
 
 
 def test_remove_partial_outputs_touches_only_temporaries(tmp_path):
-    (tmp_path / ".dsm.tmp-abc123.tif").write_bytes(b"half")
+    # The runner cannot import geoortho (it runs in QGIS), so it knows the
+    # temporary name by convention: check it against the writer's own.
+    from geoortho.outputs import atomic_path
+
     (tmp_path / "dsm.tif").write_bytes(b"whole")
     (tmp_path / ".other.tmp-1.tif").write_bytes(b"someone else's")
-    removed = remove_partial_outputs([tmp_path / "dsm.tif"])
-    assert [p.name for p in removed] == [".dsm.tmp-abc123.tif"]
+    with pytest.raises(RuntimeError, match="writer produced no file"):
+        with atomic_path(tmp_path / "dsm.tif") as half:
+            half.write_bytes(b"half")  # a run killed mid-write leaves this
+            removed = remove_partial_outputs([tmp_path / "dsm.tif"])
+            assert removed == [half]
     assert sorted(os.listdir(tmp_path)) == [".other.tmp-1.tif", "dsm.tif"]

@@ -102,6 +102,11 @@ def point_clouds_as_layers() -> bool:
     return QgsProviderRegistry.instance().providerMetadata("pdal") is not None
 
 
+def _is_layer(kind: str) -> bool:
+    """Whether parameters of this geoortho type are QGIS map layers (else plain paths)."""
+    return kind in ("raster", "vector") or (kind == "pointcloud" and point_clouds_as_layers())
+
+
 def _folder(p: Spec) -> QgsProcessingParameterDefinition:
     if p["output"]:
         return QgsProcessingParameterFolderDestination(p["qgis_name"], label_of(p), None, _optional(p))
@@ -221,6 +226,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         super().__init__()
         self._spec = spec
         self._settings = settings
+        self._destinations = [p for p in spec["parameters"] if p["output"]]
 
     # --- identity and help ----------------------------------------------------
     def createInstance(self) -> GeoorthoAlgorithm:  # noqa: N802 (QGIS API names)
@@ -254,7 +260,6 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
 
     # --- parameters -----------------------------------------------------------
     def initAlgorithm(self, config: dict[str, Any] | None = None) -> None:  # noqa: N802
-        destinations = set()
         for p in self._spec["parameters"]:
             q = PARAMETER_BUILDERS[p["type"]](p)
             if p.get("help"):
@@ -262,8 +267,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
             if p.get("advanced"):
                 q.setFlags(q.flags() | _ADVANCED)
             self.addParameter(q)
-            if p["output"]:
-                destinations.add(p["qgis_name"])
+        destinations = {p["qgis_name"] for p in self._destinations}
         for o in self._spec["outputs"]:
             name = o["name"].upper()
             if name not in destinations:  # a destination parameter already made this output
@@ -290,20 +294,16 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
             if _optional(p) and not self._given(parameters, name):
                 continue
             if p["output"]:
-                if kind in ("raster", "vector") or (kind == "pointcloud" and point_clouds_as_layers()):
+                if _is_layer(kind):
                     value = self.parameterAsOutputLayer(parameters, name, context)
                 else:
                     value = self.parameterAsFileOutput(parameters, name, context)
                 if value:
                     Path(value).parent.mkdir(parents=True, exist_ok=True)
-            elif kind == "raster":
-                layer = self.parameterAsRasterLayer(parameters, name, context)
-                value = self._layer_path(layer, name) if layer is not None else None
-            elif kind == "vector":
-                layer = self.parameterAsVectorLayer(parameters, name, context)
-                value = self._layer_path(layer, name) if layer is not None else None
-            elif kind == "pointcloud" and point_clouds_as_layers():
-                layer = self.parameterAsPointCloudLayer(parameters, name, context)
+            elif _is_layer(kind):
+                as_layer = {"raster": self.parameterAsRasterLayer, "vector": self.parameterAsVectorLayer,
+                            "pointcloud": self.parameterAsPointCloudLayer}[kind]
+                layer = as_layer(parameters, name, context)
                 value = self._layer_path(layer, name) if layer is not None else None
             elif kind in ("folder", "file", "pointcloud"):
                 value = self.parameterAsFile(parameters, name, context)
@@ -354,8 +354,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                 interpreter = settings["interpreter"]()
             except Exception as e:  # InterpreterError, with how to set it
                 raise QgsProcessingException(str(e)) from None
-            destinations = [values[p["name"]] for p in self._spec["parameters"]
-                            if p["output"] and p["name"] in values]
+            destinations = [values[p["name"]] for p in self._destinations if p["name"] in values]
             try:
                 outputs = run_geoortho(interpreter, self._spec["id"], self.arguments(values), feedback,
                                        destinations=destinations)
@@ -393,9 +392,9 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                  context: QgsProcessingContext) -> dict[str, Any]:
         # Every destination parameter given is a result under its own name (dem's
         # OUTPUT is its "dsm"): QGIS loads and models chain by these names.
-        results: dict[str, Any] = {p["qgis_name"]: str(values[p["name"]]) for p in self._spec["parameters"]
-                                   if p["output"] and p["name"] in values}
-        param_names = {p["name"] for p in self._spec["parameters"] if p["output"]}
+        results: dict[str, Any] = {p["qgis_name"]: str(values[p["name"]]) for p in self._destinations
+                                   if p["name"] in values}
+        param_names = {p["name"] for p in self._destinations}
         for o in self._spec["outputs"]:
             value = outputs.get(o["name"])
             if value is None:

@@ -31,8 +31,8 @@ def _log(message: str, level: Any = Qgis.Info) -> None:
     QgsMessageLog.logMessage(message, "geoortho", level)
 
 
-def _processing_config() -> Any:
-    """Processing's settings registry, or None outside a full Processing (bare pyqgis)."""
+def _processing_config() -> tuple[Any, Any]:
+    """Processing's ProcessingConfig and Setting, or (None, None) outside a full Processing (bare pyqgis)."""
     try:
         from processing.core.ProcessingConfig import ProcessingConfig, Setting
     except ImportError:
