@@ -36,6 +36,15 @@ def geoortho_cli(*args: str, check: bool = True) -> subprocess.CompletedProcess[
     return r
 
 
+def qgis_run(alg_id: str, params: dict, feedback=None, context=None) -> dict:
+    """``processing.run("geoortho:<alg_id>", ...)`` as a script in QGIS would call it."""
+    import processing
+    from qgis.core import QgsProcessingContext, QgsProcessingFeedback
+
+    return processing.run(f"geoortho:{alg_id}", params, feedback=feedback or QgsProcessingFeedback(),
+                          context=context or QgsProcessingContext())
+
+
 @pytest.fixture(scope="session")
 def qgis_app():
     from qgis.core import QgsApplication

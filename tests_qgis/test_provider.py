@@ -15,17 +15,9 @@ import numpy as np
 import pytest
 import rasterio
 from conftest import PROJECT, PYTHON, geoortho_cli
+from conftest import qgis_run as _run
 
 from geoortho.processing.spec import PARAM_TYPES
-
-
-def _run(alg_id: str, params: dict, feedback=None, context=None) -> dict:
-    import processing
-    from qgis.core import QgsProcessingContext, QgsProcessingFeedback
-
-    return processing.run(f"geoortho:{alg_id}", params, feedback=feedback or QgsProcessingFeedback(),
-                          context=context or QgsProcessingContext())
-
 
 # The mapping the issue asks for, written out independently of the provider's table:
 # (geoortho type, is output) -> QGIS parameter type string.

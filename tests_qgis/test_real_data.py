@@ -9,23 +9,15 @@ import geopandas as gpd
 import numpy as np
 import pytest
 import rasterio
-from conftest import geoortho_cli
+from conftest import geoortho_cli, qgis_run
 from realdata import real_data
-
-
-def _run(alg_id: str, params: dict):
-    import processing
-    from qgis.core import QgsProcessingContext, QgsProcessingFeedback
-
-    feedback = QgsProcessingFeedback()
-    return processing.run(f"geoortho:{alg_id}", params, feedback=feedback, context=QgsProcessingContext()), feedback
 
 
 def test_feet_lidar_dsm_opens_in_qgis_in_feet(provider, tmp_path):
     from qgis.core import Qgis, QgsRasterLayer
 
     las = real_data("pdal_las") / "autzen_trim.las"
-    r, _ = _run("dem", {"POINTS": str(las), "OUTPUT": str(tmp_path / "dsm.tif")})
+    r = qgis_run("dem", {"POINTS": str(las), "OUTPUT": str(tmp_path / "dsm.tif")})
     assert r["UNITS"] == "horizontal foot, vertical foot"
     layer = QgsRasterLayer(r["OUTPUT"], "dsm")
     assert layer.isValid() and layer.crs().isValid()
@@ -41,7 +33,10 @@ def test_feet_lidar_dsm_opens_in_qgis_in_feet(provider, tmp_path):
 @pytest.mark.parametrize("folder, n_skipped", [("dji_mini4pro_defects", 1), ("toledo_dji", 0)])
 def test_real_photos_footprints_as_on_the_command_line(provider, tmp_path, folder, n_skipped):
     images = real_data(folder) / "images"
-    r, feedback = _run("footprints", {"IMAGES": str(images), "OUTPUT": str(tmp_path / "q.gpkg")})
+    from qgis.core import QgsProcessingFeedback
+
+    feedback = QgsProcessingFeedback()
+    r = qgis_run("footprints", {"IMAGES": str(images), "OUTPUT": str(tmp_path / "q.gpkg")}, feedback)
     cli = json.loads(geoortho_cli("footprints", "--images", str(images), "--output", str(tmp_path / "c.gpkg"),
                                   "--json", "--quiet").stdout)
     assert r["N_SKIPPED"] == cli["n_skipped"] == n_skipped
