@@ -12,7 +12,8 @@ from typing import Any
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
-__all__ = ["WGS84", "parse_crs", "utm_crs_for", "transformer", "crs_to_text", "horizontal_unit_m"]
+__all__ = ["WGS84", "parse_crs", "utm_crs_for", "transformer", "crs_to_text", "horizontal_unit_m",
+           "geoid_undulation_m"]
 
 WGS84 = CRS.from_epsg(4326)
 WGS84_3D = CRS.from_epsg(4979)
@@ -87,3 +88,44 @@ def horizontal_unit_m(crs: CRS) -> float:
     if axis is None or axis.unit_conversion_factor in (None, 0):
         return 1.0
     return float(axis.unit_conversion_factor)
+
+
+# EGM96 on a 15' grid: PROJ's current name and the legacy one Debian's proj-data ships.
+_GEOID_GRIDS = ("us_nga_egm96_15.tif", "egm96_15.gtx")
+_SYSTEM_PROJ_DIRS = ("/usr/share/proj", "/usr/local/share/proj")
+
+
+@lru_cache(maxsize=1)
+def _geoid_transformer() -> Transformer:
+    import os
+
+    import pyproj.datadir
+
+    dirs = [pyproj.datadir.get_data_dir(), *(os.environ.get(v, "") for v in ("PROJ_DATA", "PROJ_LIB")),
+            *_SYSTEM_PROJ_DIRS]
+    found = next((d for d in dirs for g in _GEOID_GRIDS if d and os.path.isfile(os.path.join(d, g))), None)
+    if found is None:
+        from .errors import DependencyError
+
+        raise DependencyError("no EGM96 geoid grid (egm96_15.gtx): install Debian's proj-data "
+                              "(apt-get install proj-data) or put us_nga_egm96_15.tif in PROJ's data folder")
+    if found not in pyproj.datadir.get_data_dir().split(os.pathsep):
+        # pyproj's wheel carries no grids; PROJ then finds the system grid by its legacy name.
+        pyproj.datadir.append_data_dir(found)
+    return Transformer.from_crs(WGS84_3D, CRS("EPSG:4326+5773"), always_xy=True, only_best=True)
+
+
+def geoid_undulation_m(lon_deg: Any, lat_deg: Any) -> Any:
+    """EGM96 geoid height N above the WGS84 ellipsoid (ellipsoidal h = orthometric H + N), metres.
+
+    Uses PROJ's EGM96 grid through pyproj; raises DependencyError when the grid is not installed.
+
+    >>> round(float(geoid_undulation_m(-9.1887, 38.7476)), 1)  # Lisbon
+    53.7
+    """
+    import numpy as np
+
+    lon = np.asarray(lon_deg, float)
+    lat = np.asarray(lat_deg, float)
+    _, _, h_orth = _geoid_transformer().transform(lon, lat, np.zeros_like(lon), errcheck=True)
+    return -np.asarray(h_orth) if np.ndim(h_orth) else -float(h_orth)

@@ -25,6 +25,7 @@ __all__ = [
     "as_feedback",
     "split",
     "track",
+    "warn_grouped",
 ]
 
 log = logging.getLogger(__name__)
@@ -181,7 +182,8 @@ class TerminalFeedback(Feedback):
 
     def warning(self, message: str) -> None:
         log.warning(message)
-        self._write(f"warning: {message}")
+        if not self._quiet:  # --quiet: errors only (warnings stay in the log and the products' reports)
+            self._write(f"warning: {message}")
 
     def close(self) -> None:
         if self._bar is not None:
@@ -215,3 +217,14 @@ class JsonLinesFeedback(Feedback):
 
     def warning(self, message: str) -> None:
         self._emit({"warning": message})
+
+
+def warn_grouped(feedback: Feedback | None, kind: str, items: Sequence[str], *, show: int = 3) -> None:
+    """One warning for many photos with the same problem: the kind, the count and the first few.
+
+    >>> warn_grouped(None, "no attitude: assumed nadir", ["a.jpg", "b.jpg"])
+    """
+    if not items:
+        return
+    first = ", ".join(items[:show]) + (", …" if len(items) > show else "")
+    as_feedback(feedback).warning(f"{kind}: {len(items)} photo{'s' if len(items) != 1 else ''} ({first})")

@@ -5,13 +5,12 @@ drone), so footprints follow the terrain and oblique photos come out as the
 trapezoids they are. Rays at or above the horizon, or longer than
 ``max_range_m``, are clipped at that range and the footprint is flagged.
 
-Heights: the camera's elevation is the take-off elevation plus DJI's
-RelativeAltitude (barometric, good to decimetres), in the datum of the ground
-model. The take-off elevation is the user's ``takeoff_elevation_m`` when given;
-otherwise the median of AbsoluteAltitude − RelativeAltitude over the flight
-(consumer GNSS heights can be metres off: a known take-off is better); photos
-without RelativeAltitude use their absolute altitude as is. Without any ground
-model the ground is flat at the take-off elevation.
+Heights come from :mod:`geoortho.heights` (one height model per flight: which
+altitude, read how, in which vertical datum, checked against the photo spacing
+and over time; refused with what to give when no height above ground can be
+trusted). Without any ground model the ground is flat at the take-off elevation.
+A DSM that does not cover every photo is extended by a plane at the nearest DSM
+height (flagged per footprint in ``outside_dsm``), not left to the range limit.
 """
 
 from __future__ import annotations
@@ -30,8 +29,9 @@ from pyproj import CRS
 from .camera import Intrinsics, Pose, project_points, rotation_from_ypr, undistort_pixels
 from .crs import WGS84, crs_to_text, parse_crs, transformer, utm_crs_for
 from .errors import InputError
-from .feedback import Feedback, as_feedback, split
+from .feedback import Feedback, as_feedback, split, warn_grouped
 from .photos import Photo, read_photos
+from .heights import HeightModel, resolve_heights
 from .surface import FlatSurface, Surface, read_surface
 
 __all__ = [
@@ -75,62 +75,31 @@ def working_crs(photos: Sequence[Photo], crs: CRS | str | None = None) -> CRS:
     return utm_crs_for(float(lon), float(lat))
 
 
-def _absolute(p: Photo) -> float:
-    return p.absolute_altitude_m if math.isfinite(p.absolute_altitude_m) else p.gps_altitude_m
-
-
-def takeoff_elevation(photos: Sequence[Photo]) -> float:
-    """Median of absolute − relative altitude: the take-off point in the GNSS height datum (NaN if none)."""
-    d = [_absolute(p) - p.relative_altitude_m for p in photos
-         if math.isfinite(_absolute(p)) and math.isfinite(p.relative_altitude_m)]
-    return float(np.median(d)) if d else math.nan
-
-
 def photo_cameras(
     photos: Sequence[Photo],
     crs: CRS,
     surface: Surface | None = None,
     takeoff_elevation_m: float | None = None,
-) -> tuple[list[PhotoCamera], Surface, str]:
-    """Place every photo in ``crs``: position from GPS, height per the module notes, rotation from
-    the attitude. Returns the cameras, the ground surface used, and a note on the heights."""
+    *,
+    flight_height_m: float | None = None,
+    gps_altitude: str = "auto",
+) -> tuple[list[PhotoCamera], HeightModel]:
+    """Place every photo in ``crs``: position from GPS, height from :func:`geoortho.heights.resolve_heights`,
+    rotation from the attitude. Returns the cameras and the flight's height model (its ``surface``
+    is the ground used: ``surface``, or flat ground at the take-off)."""
     to_xy = transformer(WGS84, crs)
     lon = np.array([p.longitude_deg for p in photos], float)
     lat = np.array([p.latitude_deg for p in photos], float)
     x, y = to_xy.transform(lon, lat)
-    # The flight's absolute−relative offset: the take-off in the GNSS height datum. It also turns
-    # an absolute altitude into a relative one for photos that lack RelativeAltitude (XMP
-    # stripped by an editor).
-    offset = takeoff_elevation(photos)
-    if takeoff_elevation_m is not None and math.isfinite(takeoff_elevation_m):
-        takeoff, how = float(takeoff_elevation_m), "take-off elevation given"
-    elif surface is None:
-        takeoff, how = 0.0, "flat ground at the take-off point"
-    else:
-        takeoff, how = offset, "take-off from absolute−relative altitude"
-        if not math.isfinite(takeoff):
-            takeoff = float(surface.elevation(np.array([x[0]]), np.array([y[0]]))[0])
-            how = "take-off assumed at the ground under the first photo"
-    if surface is None:
-        surface = FlatSurface(takeoff)
+    xy = np.c_[x, y]
+    heights = resolve_heights(photos, xy, np.c_[lon, lat], surface, takeoff_elevation_m=takeoff_elevation_m,
+                              flight_height_m=flight_height_m, gps_altitude=gps_altitude)
     cams = []
     for i, p in enumerate(photos):
-        if math.isfinite(p.relative_altitude_m):
-            z, src = takeoff + p.relative_altitude_m, f"relative altitude; {how}"
-        elif math.isfinite(_absolute(p)) and math.isfinite(offset):
-            z, src = takeoff + _absolute(p) - offset, f"absolute altitude less the flight's offset; {how}"
-        elif math.isfinite(_absolute(p)):
-            if isinstance(surface, FlatSurface) and takeoff_elevation_m is None and how.startswith("flat"):
-                # No relative altitude and no ground: the absolute altitude is all there is, taken
-                # as height above the take-off (flagged: wrong if it is a true sea-level height).
-                z, src = takeoff + _absolute(p), "absolute altitude taken as height above take-off"
-            else:
-                z, src = _absolute(p), "absolute altitude"
-        else:
-            raise InputError("no altitude in the metadata", path=p.path)
         rot = rotation_from_ypr(p.yaw_deg, p.pitch_deg, p.roll_deg)
-        cams.append(PhotoCamera(p, p.intrinsics(), Pose(np.array([x[i], y[i], z]), rot), src))
-    return cams, surface, how
+        cams.append(PhotoCamera(p, p.intrinsics(), Pose(np.array([x[i], y[i], heights.z_m[i]]), rot),
+                                heights.sources[i]))
+    return cams, heights
 
 
 @dataclass(frozen=True)
@@ -143,6 +112,7 @@ class FootprintTable:
     gsd_min_cm: np.ndarray
     gsd_max_cm: np.ndarray
     altitude_m: np.ndarray  # camera above the ground under it
+    outside: np.ndarray  # (N,) some ray landed beyond the DSM, on the plane at the nearest DSM height
 
 
 class Posed(Protocol):
@@ -206,6 +176,8 @@ def compute_footprints(cams: Sequence[Posed], surface: Surface, *, per_side: int
     return FootprintTable(
         rings=pts[:, :m, :2], clipped=~hit[:, :m].all(axis=1), gsd_cm=gsd_m[:, m] * 100,
         gsd_min_cm=gmin * 100, gsd_max_cm=gmax * 100, altitude_m=origins[:, 2] - ground_z,
+        outside=(hits.extended.reshape(n, m + 1).any(axis=1) if hits.extended is not None
+                 else np.zeros(n, bool)),
     )
 
 
@@ -220,6 +192,8 @@ class FootprintResult:
     median_gsd_cm: float
     overlap: Path | None
     height_source: str
+    vertical_datum: str = ""
+    notes: tuple[str, ...] = ()
 
 
 def footprints(
@@ -233,6 +207,8 @@ def footprints(
     max_range_m: float = 500.0,
     overlap: Path | None = None,
     overlap_cell_m: float = 1.0,
+    flight_height_m: float | None = None,
+    gps_altitude: str = "auto",
     *,
     feedback: Feedback | None = None,
 ) -> FootprintResult:
@@ -270,6 +246,13 @@ def footprints(
         Also write a raster of how many photos see each ground cell.
     overlap_cell_m : float
         Cell size of the overlap raster, metres.
+    flight_height_m : float
+        Flight height above the take-off ground: use it instead of the photos'
+        altitudes (for cameras that write only a sea-level GPS altitude).
+    gps_altitude : str
+        What GPSAltitude holds when the photos have no RelativeAltitude: auto
+        (decided from the photo spacing and the ground, and said), above-takeoff,
+        orthometric or ellipsoidal.
     """
     import geopandas as gpd
     import shapely
@@ -284,27 +267,34 @@ def footprints(
     photos = read_photos(images, sensor_width_mm, feedback=s_read)
     if not photos.photos:
         raise InputError(f"no usable photo ({photos.summary()})", path=images)
-    usable = [p for p in photos.photos if p.has_altitude]
-    for p in photos.photos:
-        if not p.has_altitude:
-            photos.skipped.append((p.image, "no altitude (RelativeAltitude, AbsoluteAltitude or GPSAltitude)"))
-            fb.warning(f"skipped {p.image}: no altitude in the metadata")
+    usable = [p for p in photos.photos if p.has_altitude or flight_height_m is not None]
+    lacking = [p.image for p in photos.photos if p not in usable]
+    for name in lacking:
+        photos.skipped.append((name, "no altitude (RelativeAltitude, AbsoluteAltitude or GPSAltitude)"))
+    warn_grouped(fb, "skipped: no altitude in the metadata", lacking)
     photos.photos = usable
     if not usable:
-        raise InputError(f"no usable photo ({photos.summary()})", path=images)
+        raise InputError(f"no usable photo ({photos.summary()}); give flight_height_m", path=images)
     work = working_crs(photos.photos, out_crs)
     surface: Surface | None = None
     if dsm is not None:
-        surface = read_surface(dsm, work)
+        surface = read_surface(dsm, work, extend=True)
     elif ground_elevation_m is not None:
         surface = FlatSurface(float(ground_elevation_m))
-    cams, surface, how = photo_cameras(photos.photos, work, surface, takeoff_elevation_m)
+    cams, heights = photo_cameras(photos.photos, work, surface, takeoff_elevation_m,
+                                  flight_height_m=flight_height_m, gps_altitude=gps_altitude)
+    surface = heights.surface
     ground = "DSM" if dsm is not None else ("ground elevation" if ground_elevation_m is not None else
                                              "flat take-off ground")
-    fb.info(f"heights: {ground}; {how}")
+    fb.info(f"heights: {ground}; {heights.method}; vertical datum: {heights.datum}")
+    for note in heights.notes:
+        fb.warning(note)
     s_read.progress(1.0)
     table = compute_footprints(cams, surface, max_range_m=max_range_m)
     s_cast.progress(1.0)
+    if table.outside.any():
+        fb.warning(f"{int(table.outside.sum())} footprint(s) reach beyond the DSM: there the ground is a plane at "
+                   "the nearest DSM height (column outside_dsm)")
 
     polys = shapely.polygons(table.rings)
     bad = ~shapely.is_valid(polys)
@@ -316,7 +306,9 @@ def footprints(
         "altitude_m": table.altitude_m,
         "pitch_deg": [c.photo.pitch_deg for c in cams], "yaw_deg": [c.photo.yaw_deg for c in cams],
         "roll_deg": [c.photo.roll_deg for c in cams], "area_m2": shapely.area(polys),
-        "clipped": table.clipped, "height_source": [f"{ground}; {c.height_source}" for c in cams],
+        "clipped": table.clipped, "outside_dsm": table.outside,
+        "height_source": [f"{ground}; {c.height_source}" for c in cams],
+        "vertical_datum": [heights.datum] * len(cams),
         "attitude_source": [c.photo.attitude_source for c in cams],
         "camera": [f"{c.photo.make} {c.photo.model}".strip() for c in cams],
         "focal_px": [c.intrinsics.focal_px for c in cams],
@@ -343,7 +335,8 @@ def footprints(
     fb.info(f"{len(cams)} footprints, median GSD {median_gsd:.2f} cm, {int(table.clipped.sum())} clipped; "
             f"{photos.summary()}")
     return FootprintResult(Path(output), crs_to_text(out_crs or work), len(cams), len(photos.skipped),
-                           median_gsd, overlap_path, how)
+                           median_gsd, overlap_path, f"{ground}; {heights.method}", heights.datum,
+                           tuple(heights.notes))
 
 
 def write_overlap(path: str | os.PathLike[str], polygons: Sequence, crs: CRS, cell_m: float) -> Path:

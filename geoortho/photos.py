@@ -26,7 +26,7 @@ import numpy as np
 
 from .camera import Intrinsics
 from .errors import InputError
-from .feedback import Feedback, as_feedback
+from .feedback import Feedback, as_feedback, warn_grouped
 from .parallel import map_ordered
 
 __all__ = [
@@ -68,6 +68,7 @@ _XMP_ELEM = re.compile(rb"<([A-Za-z][\w.-]*):([A-Za-z]\w*)>([^<]*)</\1:\2>")
 # (MicaSense, Sentera, Parrot, senseFly, Pix4D) writes 0 at nadir.
 _GIMBAL = ("drone-dji:GimbalYawDegree", "drone-dji:GimbalPitchDegree", "drone-dji:GimbalRollDegree")
 _CAMERA = ("Camera:Yaw", "Camera:Pitch", "Camera:Roll")
+_NO_ATTITUDE = "no attitude in the metadata: assumed nadir, image top to the north"
 _FLIGHT = ("drone-dji:FlightYawDegree", "drone-dji:FlightPitchDegree", "drone-dji:FlightRollDegree")
 
 
@@ -329,7 +330,7 @@ def _attitude(tags: dict[str, str], make: str, warnings: list[str]) -> tuple[flo
     if all(math.isfinite(v) for v in g):
         return _wrap(g[0]), g[1], g[2], "gimbal"
     if not any(math.isfinite(v) for v in g + f):
-        warnings.append("no attitude in the metadata: assumed nadir, image top to the north")
+        warnings.append(_NO_ATTITUDE)
         return 0.0, -90.0, 0.0, "assumed nadir"
     # Partly known: take what the gimbal has, the aircraft's for the rest, nadir otherwise.
     parts = []
@@ -406,11 +407,16 @@ def read_photos(
         else:
             photos.append(r)
     photos = yaw_from_course(photos)
+    # One line per kind of problem, with a count and the first few photos (hundreds of photos
+    # share the same few problems).
+    by_kind: dict[str, list[str]] = {}
     for name, reason in skipped:
-        fb.warning(f"skipped {name}: {reason}")
+        by_kind.setdefault(f"skipped: {reason}", []).append(name)
     for p in photos:
         for w in p.warnings:
-            fb.warning(f"{p.image}: {w}")
+            by_kind.setdefault(w, []).append(p.image)
+    for kind, names in by_kind.items():
+        warn_grouped(fb, kind, names)
     return PhotoSet(photos, skipped)
 
 
@@ -462,8 +468,12 @@ def yaw_from_course(photos: Sequence[Photo], max_gap_s: float = 30.0, min_move_m
         else:
             continue
         yaw = _wrap(yaw)
+        # The course replaces the "top to the north" guess: say that, not both.
+        kept = tuple(w for w in p.warnings if not w.startswith(_NO_ATTITUDE))
+        what = "no attitude in the metadata: yaw taken from the flight course, pitch assumed nadir" \
+            if len(kept) < len(p.warnings) else "incomplete gimbal attitude: yaw taken from the flight course"
         out[i] = replace(p, yaw_deg=yaw, attitude_source=p.attitude_source + ", yaw from course",
-                         warnings=(*p.warnings, f"yaw {yaw:.0f} deg taken from the flight course"))
+                         warnings=(*kept, what))
     return out
 
 

@@ -47,7 +47,8 @@ from .camera import ypr_from_rotation
 from .crs import WGS84, crs_to_text, parse_crs, transformer
 from .errors import InputError
 from .feedback import Feedback, as_feedback
-from .footprint import photo_cameras, takeoff_elevation, working_crs
+from .footprint import photo_cameras, working_crs
+from .heights import takeoff_elevation
 from .gcp.io import GcpSet, read_gcp_file
 from .outputs import write_json, write_vector
 from .photos import Photo, list_images, read_photos

@@ -48,6 +48,7 @@ class RayHits:
     points: np.ndarray  # (N, 3)
     hit: np.ndarray  # (N,) bool
     range_m: np.ndarray  # (N,) distance from the origin
+    extended: np.ndarray | None = None  # (N,) bool: met the plane beyond the grid, not the grid itself
 
 
 class Surface:
@@ -99,11 +100,15 @@ class GridSurface(Surface):
     """A north-up elevation grid (DSM/DTM); NaN where there is no data.
 
     ``transform`` maps (col, row) of cell corners to world x, y (rasterio's Affine).
+    With ``extend``, the ground goes on beyond the grid and through its holes as the
+    height of the nearest cell with data (a plane at the nearby DSM height), so that
+    a DSM covering part of a flight does not send rays to their range limit.
     """
 
     grid: np.ndarray
     transform: Affine
     crs: CRS | None = None
+    extend: bool = False
 
     def __post_init__(self) -> None:
         g = np.ascontiguousarray(self.grid, dtype=np.float32)
@@ -141,7 +146,29 @@ class GridSurface(Surface):
 
     def elevation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         c, r = self.colrow(x, y)
-        return sample_grid(self.grid, c, r).astype(float)
+        z = sample_grid(self.grid, c, r).astype(float)
+        if self.extend:
+            miss = np.isnan(z)
+            if miss.any():
+                z[miss] = self.nearest_elevation(np.broadcast_to(c, z.shape)[miss], np.broadcast_to(r, z.shape)[miss])
+        return z
+
+    def nearest_elevation(self, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Height of the cell with data nearest to fractional (col, row), inside the grid or not."""
+        nr, nc = self.grid.shape
+        ci = np.clip(np.rint(cols), 0, nc - 1).astype(np.intp)
+        ri = np.clip(np.rint(rows), 0, nr - 1).astype(np.intp)
+        z = self.grid[ri, ci]
+        if np.isnan(z).any():
+            near = getattr(self, "_nearest", None)
+            if near is None:
+                from scipy.ndimage import distance_transform_edt
+
+                near = distance_transform_edt(np.isnan(self.grid), return_distances=False,
+                                              return_indices=True).astype(np.int32)
+                object.__setattr__(self, "_nearest", near)
+            z = self.grid[near[0, ri, ci], near[1, ri, ci]]
+        return z.astype(float)
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0,
                   step_m: float | None = None) -> RayHits:
@@ -173,7 +200,29 @@ class GridSurface(Surface):
             # Snap z onto the surface (removes the bisection residue).
             hz = self.elevation(pts[hit, 0], pts[hit, 1])
             pts[hit, 2] = np.where(np.isnan(hz), pts[hit, 2], hz)
-        return RayHits(pts, hit, t_end)
+        extended = None
+        if self.extend:
+            extended = ~hit & (dz < 0)
+            if extended.any():
+                ii = np.nonzero(extended)[0]
+                te = self._plane_beyond(o[ii], d[ii])
+                ok = (te >= 0) & (te <= max_range_m)
+                ii, te = ii[ok], te[ok]
+                t_end[ii] = te
+                hit[ii] = True
+                pts[ii] = o[ii] + d[ii] * te[:, None]
+                extended[:] = False
+                extended[ii] = True
+        return RayHits(pts, hit, t_end, extended)
+
+    def _plane_beyond(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Range to a level plane at the height of the data nearest where the ray lands (a few fixed-point rounds)."""
+        z = self.elevation(o[:, 0], o[:, 1])
+        t = np.zeros(len(o))
+        for _ in range(4):
+            t = np.maximum((z - o[:, 2]) / d[:, 2], 0.0)
+            z = self.elevation(o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1])
+        return (z - o[:, 2]) / d[:, 2]
 
     def _coarse_max(self) -> tuple[np.ndarray, int]:
         """Block maximum of the grid (8×8 cells), dilated by one block; cached."""
@@ -275,7 +324,8 @@ class GridSurface(Surface):
         hit[active[fi]] = True
 
 
-def read_surface(path: str | os.PathLike[str], crs: CRS | None = None, *, band: int = 1) -> GridSurface:
+def read_surface(path: str | os.PathLike[str], crs: CRS | None = None, *, band: int = 1,
+                 extend: bool = False) -> GridSurface:
     """Read a DSM/DTM raster into a north-up :class:`GridSurface`, in ``crs`` if given.
 
     Vertical units are taken as metres; a raster in another CRS is warped
@@ -309,6 +359,6 @@ def read_surface(path: str | os.PathLike[str], crs: CRS | None = None, *, band: 
     except RasterioIOError as e:
         raise InputError(f"cannot read elevation raster: {e}", path=path) from None
     try:
-        return GridSurface(grid, transform, out_crs)
+        return GridSurface(grid, transform, out_crs, extend)
     except ValueError as e:
         raise InputError(str(e), path=path) from None

@@ -25,6 +25,7 @@ import io
 import math
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import cv2
@@ -40,7 +41,7 @@ from .markers import get_dictionary, marker_cells
 from .parallel import map_ordered
 from .surface import GridSurface, sample_grid
 
-__all__ = ["PRESETS", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
+__all__ = ["PRESETS", "PATHOLOGIES", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
 
 Preset = Literal["tiny", "small", "medium", "oblique", "hard"]
 
@@ -96,6 +97,22 @@ TRUE_ATTITUDE_JITTER_DEG = 1.5  # how far the real camera wanders from the plan
 
 DEFAULT_LAT = 38.7476  # Lisbon, Monsanto park
 DEFAULT_LON = -9.1887
+
+# What real consumer drones get wrong, each one a survey can be made with (comma-separated).
+PATHOLOGIES: dict[str, str] = {
+    "no-relative-altitude": "no RelativeAltitude/AbsoluteAltitude; EXIF GPSAltitude orthometric (EGM96), as "
+                            "most non-DJI cameras write it",
+    "ellipsoidal-gps": "no RelativeAltitude/AbsoluteAltitude; EXIF GPSAltitude ellipsoidal",
+    "altitude-drift": "no RelativeAltitude; GPSAltitude (orthometric) drifts 30 m over the flight and jumps 12 m",
+    "wrong-focal": "EXIF FocalLength 12 % longer than the lens's",
+    "dsm-datum": "truth/dsm_other_datum.tif: the DSM in orthometric (EGM96) heights, the photos' ellipsoidal",
+    "partial-dsm": "truth/dsm_partial.tif: the DSM cropped to the eastern 60 % of the flight",
+    "exposure-steps": "every other flight line exposed 0.7x (ExposureTime says so)",
+}
+WRONG_FOCAL_FACTOR = 1.12
+DRIFT_M = 30.0
+JUMP_M = 12.0
+EXPOSURE_STEP = 0.7
 
 
 # ---------------------------------------------------------------------------------------------
@@ -411,6 +428,8 @@ class Shot:
     corrupt: bool = False
     blur_px: float = 0.0
     exposure_gain: float = 1.0
+    exposure_time_s: float = 1.0 / 800.0
+    exif_focal_mm: float = FOCAL_MM  # what EXIF says (the wrong-focal pathology lies)
 
 
 def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
@@ -482,6 +501,38 @@ def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random
 
 def _wrap180(a: float) -> float:
     return float((a + 180.0) % 360.0 - 180.0)
+
+
+def parse_pathologies(text: str) -> tuple[str, ...]:
+    """Comma-separated pathology names → a tuple (an error names the unknown ones)."""
+    names = tuple(n.strip() for n in (text or "").split(",") if n.strip())
+    unknown = [n for n in names if n not in PATHOLOGIES]
+    if unknown:
+        raise InputError(f"unknown pathology {', '.join(unknown)}; choose from {', '.join(PATHOLOGIES)}")
+    return names
+
+
+def _apply_pathologies(shots: list[Shot], scene: Scene, pathologies: Sequence[str], undulation_m: float,
+                       rng: np.random.Generator) -> list[Shot]:
+    """Make the recorded metadata as wrong as the named consumer-drone pathologies make it."""
+    out = list(shots)
+    n = len(out)
+    for i, s in enumerate(out):
+        orthometric = s.rec_gps_alt_m - undulation_m  # the recorded GNSS height, made orthometric
+        if "no-relative-altitude" in pathologies or "altitude-drift" in pathologies:
+            s = replace(s, rec_rel_alt_m=math.nan, rec_abs_alt_m=math.nan, rec_gps_alt_m=orthometric)
+        if "ellipsoidal-gps" in pathologies:
+            s = replace(s, rec_rel_alt_m=math.nan, rec_abs_alt_m=math.nan)
+        if "altitude-drift" in pathologies:
+            s = replace(s, rec_gps_alt_m=s.rec_gps_alt_m + DRIFT_M * i / max(1, n - 1)
+                        + (JUMP_M if i >= int(0.6 * n) else 0.0))
+        if "wrong-focal" in pathologies:
+            s = replace(s, exif_focal_mm=FOCAL_MM * WRONG_FOCAL_FACTOR)
+        if "exposure-steps" in pathologies and abs(_wrap180(s.yaw_deg)) > 90.0 and not s.oblique:
+            s = replace(s, exposure_gain=s.exposure_gain * EXPOSURE_STEP,
+                        exposure_time_s=s.exposure_time_s * EXPOSURE_STEP)
+        out[i] = s
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -624,9 +675,9 @@ def _xmp(shot: Shot) -> bytes:
         '    xmlns:tiff="http://ns.adobe.com/tiff/1.0/"\n'
         '    xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"\n'
         f'    tiff:Make="{CAMERA_MAKE}" tiff:Model="{CAMERA_MODEL}"\n'
-        f'    drone-dji:AbsoluteAltitude="{f(shot.rec_abs_alt_m)}"\n'
-        f'    drone-dji:RelativeAltitude="{f(shot.rec_rel_alt_m)}"\n'
-        f'    drone-dji:GimbalRollDegree="{f(shot.rec_roll_deg)}"\n'
+        + (f'    drone-dji:AbsoluteAltitude="{f(shot.rec_abs_alt_m)}"\n' if math.isfinite(shot.rec_abs_alt_m) else "")
+        + (f'    drone-dji:RelativeAltitude="{f(shot.rec_rel_alt_m)}"\n' if math.isfinite(shot.rec_rel_alt_m) else "")
+        + f'    drone-dji:GimbalRollDegree="{f(shot.rec_roll_deg)}"\n'
         f'    drone-dji:GimbalYawDegree="{f(shot.rec_yaw_deg)}"\n'
         f'    drone-dji:GimbalPitchDegree="{f(shot.rec_pitch_deg)}"\n'
         f'    drone-dji:FlightRollDegree="{f(shot.flight_roll_deg)}"\n'
@@ -652,11 +703,11 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
     }
     exif = {
         piexif.ExifIFD.DateTimeOriginal: shot.time.encode(),
-        piexif.ExifIFD.FocalLength: (int(round(FOCAL_MM * 100)), 100),
-        piexif.ExifIFD.FocalLengthIn35mmFilm: FOCAL_35MM,
+        piexif.ExifIFD.FocalLength: (int(round(shot.exif_focal_mm * 100)), 100),
+        piexif.ExifIFD.FocalLengthIn35mmFilm: int(round(FOCAL_35MM * shot.exif_focal_mm / FOCAL_MM)),
         piexif.ExifIFD.PixelXDimension: intr.width_px,
         piexif.ExifIFD.PixelYDimension: intr.height_px,
-        piexif.ExifIFD.ExposureTime: (1, 800),
+        piexif.ExifIFD.ExposureTime: (int(round(shot.exposure_time_s * 1e6)), 1_000_000),
         piexif.ExifIFD.FNumber: (28, 10),
         piexif.ExifIFD.ISOSpeedRatings: 100,
     }
@@ -713,6 +764,7 @@ def synth(
     dictionary: str = "DICT_4X4_50",
     marker_size_m: float = 1.0,
     workers: int = 0,
+    pathology: str = "",
     *,
     feedback: Feedback | None = None,
 ) -> SynthResult:
@@ -744,6 +796,10 @@ def synth(
         cell surrounds it).
     workers : int
         Processes for rendering; 0 uses every core.
+    pathology : str
+        Comma-separated consumer-drone pathologies to build in: no-relative-altitude,
+        ellipsoidal-gps, altitude-drift, wrong-focal, dsm-datum, partial-dsm,
+        exposure-steps (truth/survey.json says what each did).
 
     Returns
     -------
@@ -768,7 +824,14 @@ def synth(
     scene = build_scene(p, rng, lat=latitude_deg, lon=longitude_deg, dictionary=dictionary,
                         marker_size_m=marker_size_m)
     step_scene.progress(0.5)
+    pathologies = parse_pathologies(pathology)
     shots = _record(plan_flight(p, scene, rng), scene, p, rng)
+    undulation = 0.0
+    if pathologies:
+        from .crs import geoid_undulation_m
+
+        undulation = float(geoid_undulation_m(longitude_deg, latitude_deg))
+        shots = _apply_pathologies(shots, scene, pathologies, undulation, np.random.default_rng(seed + 11))
     w, h = p.image_px
     intr = Intrinsics.from_sensor(w, h, FOCAL_MM, SENSOR_WIDTH_MM, distortion=p.distortion)
     fb.info(f"synth {preset}: {len(shots)} photos of {w}x{h} px over {p.area_m[0]:.0f}x{p.area_m[1]:.0f} m "
@@ -778,7 +841,7 @@ def synth(
     tasks = [(s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name)) for i, s in enumerate(shots)]
     results: list[dict[str, Any]] = map_ordered(_render_task, tasks, workers=workers, initializer=_init_worker,
                                                 initargs=(scene,), feedback=step_render)
-    _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth)
+    _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth, pathologies, undulation)
     return SynthResult(
         output=output, images=images_dir, truth=truth_dir, gcp_file=truth_dir / "gcp_utm.txt",
         dsm=truth_dir / "dsm.tif", dtm=truth_dir / "dtm.tif", ortho=truth_dir / "ortho.tif",
@@ -797,7 +860,8 @@ def true_footprint(scene: Scene, shot: Shot, intr: Intrinsics, per_side: int = 4
 
 
 def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics, p: SynthPreset,
-                 results: list[dict[str, Any]], seed: int, fb: Feedback) -> None:
+                 results: list[dict[str, Any]], seed: int, fb: Feedback, pathologies: Sequence[str] = (),
+                 undulation_m: float = 0.0) -> None:
     import geopandas as gpd
     import shapely
 
@@ -808,6 +872,14 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
     # Rasters
     write_cog(truth / "dsm.tif", scene.dsm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
     write_cog(truth / "dtm.tif", scene.dtm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
+    if "dsm-datum" in pathologies:
+        write_cog(truth / "dsm_other_datum.tif", scene.dsm - np.float32(undulation_m), transform=scene.transform,
+                  crs=scene.crs, nodata=-9999.0)
+    if "partial-dsm" in pathologies:
+        fx0, _, fx1, _ = scene.flight_box
+        c0 = int((fx0 + 0.4 * (fx1 - fx0) - scene.transform.c) / scene.transform.a)
+        write_cog(truth / "dsm_partial.tif", scene.dsm[:, c0:], transform=scene.transform * Affine.translation(c0, 0),
+                  crs=scene.crs, nodata=-9999.0)
     steps[0].progress(1.0)
 
     # Poses and footprints
@@ -825,7 +897,8 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
                 "gimbal_roll_deg": s.rec_roll_deg, "flight_yaw_deg": s.flight_yaw_deg,
             },
             "oblique": s.oblique, "has_xmp": s.has_xmp, "has_gps": s.has_gps, "corrupt": s.corrupt,
-            "blur_px": s.blur_px, "exposure_gain": s.exposure_gain,
+            "blur_px": s.blur_px, "exposure_gain": s.exposure_gain, "exposure_time_s": s.exposure_time_s,
+            "exif_focal_mm": s.exif_focal_mm,
         })
         ring, clip = true_footprint(scene, s, intr)
         polys.append(shapely.make_valid(shapely.Polygon(ring)))
@@ -858,6 +931,7 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
                    "sensor_height_mm": SENSOR_HEIGHT_MM, "focal_mm": FOCAL_MM, "focal_35mm": FOCAL_35MM,
                    "width_px": intr.width_px, "height_px": intr.height_px, "focal_px": intr.focal_px,
                    "cx_px": intr.cx_px, "cy_px": intr.cy_px, "distortion": list(p.distortion)},
+        "pathologies": {k: PATHOLOGIES[k] for k in pathologies}, "geoid_undulation_m": undulation_m,
         "home": {"x": scene.home[0], "y": scene.home[1], "ground_z": scene.home[2]},
         "flight_box": list(scene.flight_box),
         "gsd_cm_at_home_height": p.altitude_m * SENSOR_WIDTH_MM / FOCAL_MM / intr.width_px * 100,

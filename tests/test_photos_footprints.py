@@ -240,7 +240,7 @@ def test_real_toledo_footprints_predict_annotated_gcp_pixels(tmp_path):
     """Camera model + course yaw predict where the GCPs of ODM's toledo gcp_list.txt were clicked."""
     folder = real_data("toledo_dji")
     ps = read_photos(folder / "images")
-    cams, _, _ = photo_cameras(ps.photos, CRS.from_epsg(32617))
+    cams, _ = photo_cameras(ps.photos, CRS.from_epsg(32617))
     by = {c.photo.image: c for c in cams}
     errors = []
     for line in (folder / "gcp" / "gcp_list.txt").read_text().splitlines()[1:]:

@@ -285,9 +285,17 @@ def _plan(photos: list[Photo], gcps: GcpSet, ids: dict[str, int], dsm: Path | No
     takeoff = takeoff_elevation_m if takeoff_elevation_m is not None else float(np.median(plan.xyz[:, 2]))
     if surface is None:
         surface = FlatSurface(takeoff)
-    placed_cams, _, how = photo_cameras(placed, work, surface, takeoff)
+    try:
+        placed_cams, heights = photo_cameras(placed, work, surface, takeoff)
+    except InputError as e:
+        # No trustworthy camera height: predictions would be wrong, so search whole photos.
+        fb.warning(f"camera heights unknown ({e}): every photo is searched whole")
+        plan.unplaced = list(photos)
+        return plan
     plan.cams = {c.photo.image: c for c in placed_cams}
-    fb.info(f"camera heights: {how} ({takeoff:.2f} m)")
+    fb.info(f"camera heights: {heights.method} ({heights.takeoff_elevation_m:.2f} m)")
+    for note in heights.notes:
+        fb.warning(note)
     plan.windows = predict_windows(placed_cams, names, plan.xyz, ids, **uncertainty)
     return plan
 

@@ -134,10 +134,13 @@ def _moved(tr: Any, centre: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np
 
 
 def cameras_from_metadata(photos: Sequence[Any], crs: CRS, surface: Any = None,
-                          takeoff_elevation_m: float | None = None) -> tuple[list[OrthoCamera], Any, str]:
-    """Direct georeferencing: poses from GPS, altitude and gimbal attitude (see :mod:`geoortho.footprint`)."""
+                          takeoff_elevation_m: float | None = None, *, flight_height_m: float | None = None,
+                          gps_altitude: str = "auto") -> tuple[list[OrthoCamera], Any]:
+    """Direct georeferencing: poses from GPS, altitude and gimbal attitude (see :mod:`geoortho.footprint`).
+    Returns the cameras and the flight's :class:`~geoortho.heights.HeightModel`."""
     from ..footprint import photo_cameras
 
-    pcs, surf, how = photo_cameras(photos, crs, surface, takeoff_elevation_m)
+    pcs, heights = photo_cameras(photos, crs, surface, takeoff_elevation_m, flight_height_m=flight_height_m,
+                                 gps_altitude=gps_altitude)
     cams = [OrthoCamera(c.photo.path.name, c.photo.path, c.intrinsics, c.pose) for c in pcs]
-    return cams, surf, how
+    return cams, heights

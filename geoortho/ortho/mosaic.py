@@ -13,7 +13,7 @@ import tempfile
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,8 @@ from .rectify import (
     window_xyz,
 )
 from .seams import BALANCE, SEAMS, SeamPlan, plan_seams, read_photo_bgr
+
+DSM_OFFSET = ("correct", "refuse", "ignore")
 
 __all__ = ["OrthoResult", "ortho", "mosaic", "BLEND", "BALANCE", "SEAMS", "COMPRESS", "INTERPOLATION"]
 
@@ -293,7 +295,7 @@ def _grid(boxes: Sequence[tuple[float, float, float, float]], surface: Surface, 
     ymin = min(b[1] for b in boxes)
     xmax = max(b[2] for b in boxes)
     ymax = max(b[3] for b in boxes)
-    if isinstance(surface, GridSurface):
+    if isinstance(surface, GridSurface) and not surface.extend:
         sx0, sy0, sx1, sy1 = surface.bounds
         xmin, ymin, xmax, ymax = max(xmin, sx0), max(ymin, sy0), min(xmax, sx1), min(ymax, sy1)
     r = resolution_m
@@ -359,7 +361,7 @@ def mosaic(
         ring = table.rings[i]
         box = (float(ring[:, 0].min()), float(ring[:, 1].min()), float(ring[:, 0].max()), float(ring[:, 1].max()))
         sees = heights[i] > 0 and np.isfinite(table.gsd_min_cm[i])  # some ray met the surface
-        if sees and isinstance(surface, GridSurface):
+        if sees and isinstance(surface, GridSurface) and not surface.extend:
             sx0, sy0, sx1, sy1 = surface.bounds
             sees = not (box[2] <= sx0 or box[0] >= sx1 or box[3] <= sy0 or box[1] >= sy1)
         if not sees:
@@ -535,6 +537,10 @@ def ortho(
     interpolation: str = "bilinear",
     tile_px: int = 1024,
     workers: int = 0,
+    flight_height_m: float | None = None,
+    gps_altitude: str = "auto",
+    dsm_offset: str = "correct",
+    max_dsm_offset_m: float = 1.0,
     *,
     feedback: Feedback | None = None,
 ) -> OrthoResult:
@@ -583,6 +589,17 @@ def ortho(
         Side of the processing tiles (memory grows with its square).
     workers : int
         Processes for the tiles (0 = every core).
+    flight_height_m : float
+        For poses from metadata: flight height above the take-off ground, instead of the
+        photos' altitudes (cameras that write only a sea-level GPS altitude).
+    gps_altitude : str
+        For poses from metadata without RelativeAltitude: what GPSAltitude holds (auto,
+        above-takeoff, orthometric, ellipsoidal).
+    dsm_offset : str
+        With sfm and a DSM: the DSM's vertical offset from the SfM points is measured; beyond
+        max_dsm_offset_m it is corrected (the DSM moved onto the points), refused, or ignored.
+    max_dsm_offset_m : float
+        Largest vertical offset between the DSM and the SfM points taken as agreement.
     """
     from ..footprint import working_crs
     from ..photos import read_photos
@@ -591,6 +608,9 @@ def ortho(
     images = Path(images)
     notes: list[str] = []
     skipped: list[tuple[str, str]] = []
+    if dsm_offset not in DSM_OFFSET:
+        raise InputError(f"dsm_offset {dsm_offset!r} is not one of {', '.join(DSM_OFFSET)}")
+    pts = None
     if sfm is not None:
         cams, out_crs, pts, skipped = cameras_from_sfm(sfm, images, crs)
         poses = f"sfm ({Path(sfm)})"
@@ -615,8 +635,15 @@ def ortho(
     else:
         surface = None  # type: ignore[assignment]
     if cams is None:
-        cams, surface, how = cameras_from_metadata(photoset.photos, out_crs, surface, takeoff_elevation_m)
-        notes.append(f"heights: {how}")
+        cams, heights = cameras_from_metadata(photoset.photos, out_crs, surface, takeoff_elevation_m,
+                                              flight_height_m=flight_height_m, gps_altitude=gps_altitude)
+        surface = heights.surface
+        notes.append(f"heights: {heights.method}; vertical datum: {heights.datum}")
+        for note in heights.notes:
+            notes.append(note)
+            fb.warning(note)
+    elif dsm is not None and pts is not None and len(pts):
+        surface = _check_dsm_against_points(surface, pts, dsm_offset, max_dsm_offset_m, notes, fb)
     if len(cams) == 0:
         raise InputError("no registered photo to rectify", path=sfm or images)
     return mosaic(cams, surface, out_crs, output, resolution, seams=seams, balance=balance, blend=blend,
@@ -624,12 +651,47 @@ def ortho(
                   interpolation=interpolation, poses=poses, notes=notes, skipped=skipped, feedback=fb)
 
 
+def _check_dsm_against_points(surface: GridSurface, pts: np.ndarray, how: str, max_offset_m: float,
+                              notes: list[str], fb: Feedback) -> GridSurface:
+    """Measure the DSM's vertical offset from the SfM points (median of point − DSM over the points
+    inside it; the sparse points lie on the surface, roofs and trees included). Beyond
+    ``max_offset_m``: move the DSM onto the points (correct), refuse, or only say it (ignore)."""
+    z = surface.grid
+    c, r = surface.colrow(pts[:, 0], pts[:, 1])
+    from ..surface import sample_grid
+
+    dsm_z = sample_grid(z, c, r).astype(float)
+    ok = np.isfinite(dsm_z)
+    if ok.sum() < 20:
+        notes.append(f"DSM vs SfM points: only {int(ok.sum())} points over the DSM, offset not measured")
+        fb.warning(notes[-1])
+        return surface
+    d = pts[ok, 2] - dsm_z[ok]
+    offset = float(np.median(d))
+    spread = float(1.4826 * np.median(np.abs(d - offset)))
+    text = (f"DSM vs SfM points: the DSM is {-offset:+.2f} m off the points (median of {int(ok.sum())}, "
+            f"spread {spread:.2f} m)")
+    if abs(offset) <= max_offset_m:
+        notes.append(text)
+        fb.info(text)
+        return surface
+    if how == "refuse":
+        raise InputError(f"{text}: another vertical datum? give a DSM in the SfM's datum, or dsm_offset correct")
+    if how == "ignore":
+        notes.append(text + ": not corrected (dsm_offset ignore)")
+        fb.warning(notes[-1])
+        return surface
+    notes.append(text + f": corrected (DSM moved {offset:+.2f} m onto the points)")
+    fb.warning(notes[-1])
+    return replace(surface, grid=surface.grid + np.float32(offset))
+
+
 def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurface:
     """The DSM in the output CRS, its small nodata holes filled (reported)."""
     from ..gapfill import fill_harmonic, gap_mask
     from ..surface import read_surface
 
-    surf = read_surface(path, crs)
+    surf = read_surface(path, crs, extend=True)
     known = np.isfinite(surf.grid)
     if known.all():
         return surf
@@ -639,5 +701,5 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
         grid = np.where(known, surf.grid, grid)
         notes.append(f"DSM: {int(holes.sum())} nodata cells inside the data filled by interpolation")
         fb.warning(notes[-1])
-        surf = GridSurface(grid, surf.transform, surf.crs)
+        surf = GridSurface(grid, surf.transform, surf.crs, extend=True)
     return surf

@@ -6,8 +6,9 @@ from ..dem import GROUND_METHODS, METHODS, dem
 from ..demo import demo
 from ..footprint import footprints
 from ..gcp.find import gcp_find
+from ..heights import GPS_ALTITUDE
 from ..markers import DICTIONARIES
-from ..ortho.mosaic import BALANCE, BLEND, COMPRESS, INTERPOLATION, SEAMS, ortho
+from ..ortho.mosaic import BALANCE, BLEND, COMPRESS, DSM_OFFSET, INTERPOLATION, SEAMS, ortho
 from ..sfm import CAMERA_MODELS, MATCHING, sfm
 from ..synth import PRESETS, synth
 from .spec import Algorithm, Output, Param
@@ -28,6 +29,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("dictionary", "enum", "DICT_4X4_50", choices=DICTIONARIES, advanced=True),
             Param("marker_size_m", "number", 1.0, unit="m", minimum=0.2, maximum=5.0, advanced=True),
             Param("workers", "integer", 0, minimum=0, advanced=True),
+            Param("pathology", "string", ""),
         ),
         outputs=(
             Output("output", "folder", "the survey folder"),
@@ -55,6 +57,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("max_range_m", "number", 500.0, unit="m", minimum=1.0, advanced=True),
             Param("overlap", "raster", None, output=True),
             Param("overlap_cell_m", "number", 1.0, unit="m", minimum=0.01, advanced=True),
+            Param("flight_height_m", "number", None, unit="m", minimum=1.0),
+            Param("gps_altitude", "enum", "auto", choices=GPS_ALTITUDE, advanced=True),
         ),
         outputs=(
             Output("output", "vector", "footprints (layer footprints) and camera positions (layer cameras)"),
@@ -64,6 +68,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("median_gsd_cm", "number", "median GSD at the image centres, cm"),
             Output("crs", "string", "CRS of the output"),
             Output("height_source", "string", "how camera heights were found"),
+            Output("vertical_datum", "string", "vertical datum of the heights"),
         ),
     ),
     Algorithm(
@@ -184,6 +189,10 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("interpolation", "enum", "bilinear", choices=INTERPOLATION, advanced=True),
             Param("tile_px", "integer", 1024, unit="px", minimum=128, maximum=8192, advanced=True),
             Param("workers", "integer", 0, minimum=0, advanced=True),
+            Param("flight_height_m", "number", None, unit="m", minimum=1.0),
+            Param("gps_altitude", "enum", "auto", choices=GPS_ALTITUDE, advanced=True),
+            Param("dsm_offset", "enum", "correct", choices=DSM_OFFSET),
+            Param("max_dsm_offset_m", "number", 1.0, unit="m", minimum=0.0, advanced=True),
         ),
         outputs=(
             Output("output", "raster", "orthophoto (COG, RGB + alpha)"),
