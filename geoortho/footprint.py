@@ -30,8 +30,8 @@ from .camera import Intrinsics, Pose, project_points, rotation_from_ypr, undisto
 from .crs import WGS84, crs_to_text, parse_crs, transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split, warn_grouped
-from .photos import Photo, read_photos
 from .heights import HeightModel, resolve_heights
+from .photos import Photo, read_photos
 from .surface import FlatSurface, Surface, read_surface
 
 __all__ = [

@@ -119,31 +119,28 @@ def check_altitudes(photos: Sequence[Photo], values_m: Sequence[float], label: s
     names = [p.image for p, k in zip(photos, ok) if k]
     names = [names[i] for i in order]
     duration = float(t[-1] - t[0])
-    slope = theilslopes(z, t)[0] if duration > 0 else 0.0
-    resid = z - slope * t
+    # Noise from consecutive differences (blind to drift and to a few jumps), then the jumps,
+    # then the drift of what is left (Theil–Sen), then outliers about that trend.
+    dz = np.diff(z)
+    step_sigma = 1.4826 * float(np.median(np.abs(dz - np.median(dz)))) / math.sqrt(2.0) + 0.05
+    limit = max(MAX_STEP_M, 6.0 * step_sigma)
+    jump = np.abs(dz - np.median(dz)) > limit
+    is_step = np.zeros(len(dz), bool)
+    for k in np.nonzero(jump)[0]:
+        after, before = z[k + 1:k + 4], z[max(0, k - 2):k + 1]
+        # a level held before and after → a jump; one photo off and back → an outlier
+        is_step[k] = len(after) > 1 and bool(np.all(np.abs(after - z[k + 1]) < limit)) \
+            and bool(np.all(np.abs(before - z[k]) < limit))
+    steps = [names[k + 1] for k in np.nonzero(is_step)[0]]
+    flat = z - np.concatenate([[0.0], np.cumsum(np.where(is_step, dz, 0.0))])
+    slope = theilslopes(flat, t)[0] if duration > 0 else 0.0
+    resid = flat - slope * t
     resid = resid - np.median(resid)
     sigma = 1.4826 * float(np.median(np.abs(resid))) + 0.05
-    limit = max(MAX_STEP_M, 6.0 * sigma)
-    dz = np.diff(resid)
-    steps, outliers = [], []
-    for k in np.nonzero(np.abs(dz) > limit)[0]:
-        after = resid[k + 1:k + 4]
-        # kept by the next photos → a jump; back at once → an outlier
-        if len(after) > 1 and np.all(np.abs(after - resid[k + 1]) < limit):
-            steps.append(names[k + 1])
-    far = np.abs(resid) > limit
-    outliers = [names[i] for i in np.nonzero(far)[0] if names[i] not in steps]
-    if steps:
-        # a jump in a flat series also drags the robust line: say the jump, not a drift
-        slope = theilslopes(z - _step_levels(resid, limit), t)[0] if duration > 0 else 0.0
+    far = np.abs(resid) > max(MAX_STEP_M, 6.0 * sigma)
+    outliers = [names[i] for i in np.nonzero(far)[0]]
     return AltitudeCheck(label, int(ok.sum()), float(slope * duration), duration, sigma,
                          tuple(steps), tuple(outliers[:20]))
-
-
-def _step_levels(resid: np.ndarray, limit: float) -> np.ndarray:
-    """Piecewise-constant levels of a series with jumps (cumulative sum of the big steps)."""
-    dz = np.diff(resid)
-    return np.concatenate([[0.0], np.cumsum(np.where(np.abs(dz) > limit, dz, 0.0))])
 
 
 def flight_height_range_m(photos: Sequence[Photo], xy: np.ndarray) -> tuple[float, float] | None:

@@ -102,6 +102,9 @@ class Photo:
     sensor_width_mm: float = math.nan
     sensor_source: str = ""
     taken_at: str = ""  # ISO 8601, camera clock
+    exposure_time_s: float = math.nan
+    f_number: float = math.nan
+    iso: float = math.nan
     has_xmp: bool = False
     warnings: tuple[str, ...] = field(default=(), compare=False)
 
@@ -118,6 +121,12 @@ class Photo:
         """Any of RelativeAltitude, AbsoluteAltitude or GPSAltitude."""
         return any(math.isfinite(v) for v in (self.relative_altitude_m, self.absolute_altitude_m,
                                               self.gps_altitude_m))
+
+    @property
+    def exposure_value(self) -> float:
+        """Relative exposure, ISO · t / N² (NaN when the EXIF lacks any of them): photos of the same
+        scene come out brighter in proportion."""
+        return self.iso * self.exposure_time_s / self.f_number ** 2
 
     @property
     def focal_px(self) -> float:
@@ -189,6 +198,11 @@ def _float(value: Any) -> float:
         return float(value)
     except (TypeError, ValueError, ZeroDivisionError):
         return math.nan
+
+
+def _first(value: Any) -> Any:
+    """ISO is a number in some EXIF writers, a tuple of numbers in others."""
+    return value[0] if isinstance(value, (tuple, list)) and value else value
 
 
 def _xmp_float(tags: dict[str, str], *names: str) -> float:
@@ -300,6 +314,8 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         flight_yaw_deg=_xmp_float(tags, _FLIGHT[0]), flight_pitch_deg=_xmp_float(tags, _FLIGHT[1]),
         flight_roll_deg=_xmp_float(tags, _FLIGHT[2]), focal_mm=focal_mm, focal_35mm=focal_35,
         sensor_width_mm=sw, sensor_source=sw_source, taken_at=taken, has_xmp=bool(tags),
+        exposure_time_s=_float(exif_ifd.get(0x829A)), f_number=_float(exif_ifd.get(0x829D)),
+        iso=_float(_first(exif_ifd.get(0x8827))),
         warnings=tuple(warnings),
     )
 

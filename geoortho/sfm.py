@@ -43,13 +43,13 @@ from typing import Any
 
 import numpy as np
 
-from .camera import ypr_from_rotation
+from .camera import rotation_from_ypr, ypr_from_rotation
 from .crs import WGS84, crs_to_text, parse_crs, transformer
 from .errors import InputError
 from .feedback import Feedback, as_feedback
 from .footprint import photo_cameras, working_crs
-from .heights import takeoff_elevation
 from .gcp.io import GcpSet, read_gcp_file
+from .heights import absolute_altitude, check_altitudes, takeoff_elevation
 from .outputs import write_json, write_vector
 from .photos import Photo, list_images, read_photos
 from .pointcloud import write_las
@@ -58,6 +58,10 @@ __all__ = ["SfmResult", "sfm", "MATCHING", "CAMERA_MODELS", "ce90", "le90"]
 
 MATCHING = ("auto", "exhaustive", "spatial", "sequential")
 CAMERA_MODELS = ("RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE")
+# A georeferenced model whose vertical is this far from the photos' gravity was bent by bad GPS heights.
+MAX_TILT_DEG = 3.0
+# Focal length changes beyond this (percent of the EXIF value) are reported.
+FOCAL_DRIFT_WARN_PCT = 3.0
 # Up to this many photos every pair is matched; above, pairs come from the GPS positions.
 EXHAUSTIVE_MAX_PHOTOS = 40
 # CE90 / LE90 from RMSE, normal errors (NSSDA; what OpenSfM/ODM reports):
@@ -141,26 +145,50 @@ class _Priors:
     offset: np.ndarray  # (3,) added back to local coordinates
     positions: dict[str, np.ndarray]
     heights: str
+    vertical_trusted: bool = True
+    notes: tuple[str, ...] = ()
 
 
 def _gps_priors(photos: Sequence[Photo], names: dict[Path, str], crs: Any,
                 takeoff_elevation_m: float | None) -> _Priors:
+    """Camera positions from the metadata, heights per :mod:`geoortho.heights`.
+
+    SfM needs no height above ground, only camera elevations in one datum: a flight without
+    RelativeAltitude keeps its GPS altitude as recorded (EXIF: orthometric) when no reading of it
+    as a height above ground holds, and its trend over time decides whether it is trusted."""
     with_gps = [p for p in photos if p.has_gps and p.has_altitude]
     if not with_gps:
         return _Priors(crs, np.zeros(3), {}, "no GPS")
-    takeoff, label = takeoff_elevation_m, "take-off elevation given"
-    if takeoff is None or not math.isfinite(takeoff):
-        t = takeoff_elevation(with_gps)
-        # GNSS heights of consumer drones are often metres off: GCPs or a given take-off fix that.
-        takeoff, label = (t, "take-off from absolute − relative altitude (GNSS heights)") if math.isfinite(t) \
-            else (None, "")
-    cams, _, _ = photo_cameras(with_gps, crs, takeoff_elevation_m=takeoff)
-    centres = np.array([c.pose.center for c in cams])
+    takeoff = takeoff_elevation_m
+    notes: list[str] = []
+    try:
+        if takeoff is None or not math.isfinite(takeoff):
+            t = takeoff_elevation(with_gps)
+            takeoff = t if math.isfinite(t) else None
+        cams, heights = photo_cameras(with_gps, crs, takeoff_elevation_m=takeoff)
+        centres = np.array([c.pose.center for c in cams])
+        trusted = heights.vertical_gps_trusted or heights.method.startswith("relative")
+        label = heights.method
+        if takeoff_elevation_m is None and takeoff is not None:
+            label = label.replace("take-off elevation given", "take-off from absolute − relative altitude "
+                                                              "(GNSS heights)")
+        notes += [n for n in heights.notes if "not trusted" in n or "drift" in n]
+    except InputError as e:
+        # No height above ground to be had: keep the recorded GNSS altitude (its own datum).
+        xy = np.array(transformer(WGS84, crs).transform([p.longitude_deg for p in with_gps],
+                                                        [p.latitude_deg for p in with_gps])).T
+        z = np.array([absolute_altitude(p) for p in with_gps])
+        centres = np.c_[xy, z]
+        check = check_altitudes(with_gps, z, "GPS altitude")
+        trusted = check is None or check.trusted
+        label = "GPS altitude as recorded (EXIF says orthometric; not converted)"
+        if not trusted:
+            notes.append(f"GPS altitude not trusted ({check.describe()})")  # type: ignore[union-attr]
+        elif "sea-level" not in str(e):
+            notes.append(f"heights: {e}")
     offset = np.array([*np.round(np.median(centres[:, :2], axis=0), -2), 0.0])
-    positions = {names[c.photo.path]: c.pose.center - offset for c in cams}
-    sources = sorted({c.height_source.split(";")[0] for c in cams})
-    heights = ", ".join(sources) + (f"; {label}" if label else "")
-    return _Priors(crs, offset, positions, heights)
+    positions = {names[p.path]: c - offset for p, c in zip(with_gps, centres)}
+    return _Priors(crs, offset, positions, label, trusted, tuple(notes))
 
 
 def _image_names(photos: Sequence[Photo]) -> tuple[Path, dict[Path, str]]:
@@ -263,9 +291,11 @@ def _match(db: Path, how: str, photos: Sequence[Photo], priors: _Priors, workers
     return "exhaustive"
 
 
-def _map(db: Path, image_root: Path, work: Path, use_priors: bool, workers: int, seed: int) -> list[Any]:
+def _map(db: Path, image_root: Path, work: Path, use_priors: bool, workers: int, seed: int,
+         refine_focal: bool = True) -> list[Any]:
     pc = _pycolmap()
     o = pc.IncrementalPipelineOptions()
+    o.ba_refine_focal_length = refine_focal
     o.use_prior_position = use_priors
     o.use_robust_loss_on_prior_position = True
     o.min_model_size = 3
@@ -297,6 +327,104 @@ def _align_to_gps(rec: Any, priors: _Priors, sigma_h_m: float) -> tuple[Any, int
     if sim is not None:
         rec.transform(sim)
     return sim, len(names)
+
+
+def _levelling_rotation(rec: Any, photos_by_name: dict[str, Photo]) -> np.ndarray | None:
+    """Model → world rotation that makes the cameras look where their recorded attitude says
+    (chordal mean over the photos). Gimbals hold pitch and roll to a degree or two, so this
+    levels the model from gravity; its heading is only as good as the compass."""
+    m = np.zeros((3, 3))
+    k = 0
+    for iid in rec.reg_image_ids():
+        im = rec.image(iid)
+        p = photos_by_name.get(im.name)
+        if p is None:
+            continue
+        m += rotation_from_ypr(p.yaw_deg, p.pitch_deg, p.roll_deg) @ im.cam_from_world().rotation.matrix()
+        k += 1
+    if k < 3:
+        return None
+    u, _, vt = np.linalg.svd(m)
+    r = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return r
+
+
+def _tilt_deg(rec: Any, photos_by_name: dict[str, Photo]) -> float:
+    """How far the (georeferenced) model's vertical is from gravity as the photos' attitude gives it."""
+    r = _levelling_rotation(rec, photos_by_name)
+    return math.nan if r is None else math.degrees(math.acos(float(np.clip(r[2, 2], -1.0, 1.0))))
+
+
+def _align_horizontal(rec: Any, priors: _Priors, photos_by_name: dict[str, Photo], sigma_h_m: float) -> Any:
+    """Georeference with untrusted GPS heights: level the model from the photos' attitude, then a
+    robust 2-D similarity onto the GPS positions (scale, heading, east/north); the vertical offset
+    is the median GPS height's (GCPs, when given, correct it next)."""
+    from skimage.measure import ransac
+    from skimage.transform import SimilarityTransform
+
+    pc = _pycolmap()
+    level = _levelling_rotation(rec, photos_by_name)
+    centres = _centres(rec)
+    names = [n for n in centres if n in priors.positions]
+    if level is None or len(names) < 3:
+        return None
+    src = np.array([level @ centres[n] for n in names])
+    tgt = np.array([priors.positions[n] for n in names])
+    model, inliers = ransac((src[:, :2], tgt[:, :2]), SimilarityTransform, min_samples=2,
+                            residual_threshold=3.0 * sigma_h_m, max_trials=500, rng=0)
+    if model is None or inliers is None or inliers.sum() < 3:
+        return None
+    scale = float(model.scale)
+    c, s_ = math.cos(model.rotation), math.sin(model.rotation)
+    rot = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ level
+    tz = float(np.median(tgt[inliers, 2] - scale * src[inliers, 2]))
+    sim = pc.Sim3d(scale, pc.Rotation3d(rot), np.array([*model.translation, tz]))
+    rec.transform(sim)
+    return sim
+
+
+def _ill_conditioned(photos: Sequence[Photo], priors: _Priors) -> str:
+    """Why self-calibrating the focal length is ill-posed here ('' if it is not): on a nadir-only,
+    single-height block focal length and flying height trade off almost exactly."""
+    nadir = all(p.pitch_deg <= -75.0 for p in photos)
+    z = np.array([v[2] for v in priors.positions.values()]) if priors.positions else np.zeros(0)
+    # untrusted GPS heights say nothing of the flight's: take it as flown at one height, as most are
+    single = z.size == 0 or not priors.vertical_trusted or float(np.ptp(z)) < 10.0
+    return "nadir-only, single-height block" if nadir and single else ""
+
+
+def _focal_px(cam: Any) -> float:
+    return float(np.mean([cam.params[i] for i in cam.focal_length_idxs()]))
+
+
+def _focal_drift(rec: Any, priors_px: dict[int, float]) -> dict[int, float]:
+    """Camera id → focal length change from its prior, percent."""
+    return {cid: 100.0 * (_focal_px(cam) / priors_px[cid] - 1.0) for cid, cam in rec.cameras.items()
+            if cid in priors_px and priors_px[cid] > 0}
+
+
+def _probe_free_focal(rec: Any) -> dict[int, float]:
+    """Focal lengths a bundle adjustment reaches when it may refine them (on a copy)."""
+    pc = _pycolmap()
+    probe = pc.Reconstruction(rec)
+    opts = pc.BundleAdjustmentOptions()
+    opts.print_summary = False
+    opts.refine_focal_length = True
+    opts.ceres.loss_function_type = pc.LossFunctionType.SOFT_L1
+    pc.bundle_adjustment(probe, opts)
+    return {cid: _focal_px(cam) for cid, cam in probe.cameras.items()}
+
+
+def _gps_outliers(rec: Any, priors: _Priors) -> list[str]:
+    """Photos whose GPS position is far off the model's (robust: 4 sigma and 3 m horizontally)."""
+    c = _centres(rec)
+    names = [n for n in c if n in priors.positions]
+    if len(names) < 5:
+        return []
+    d = np.array([np.hypot(*(c[n] - priors.positions[n])[:2]) for n in names])
+    sigma = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+    limit = max(3.0, float(np.median(d)) + 4.0 * sigma)
+    return [n for n, v in zip(names, d) if v > limit]
 
 
 @dataclass
@@ -678,6 +806,8 @@ def sfm(
     out_crs = _output_crs(crs, photos, gcps)
     priors = _gps_priors(photos, names, out_crs, takeoff_elevation_m) if out_crs is not None else \
         _Priors(None, np.zeros(3), {}, "no GPS")
+    notes.append(f"heights: {priors.heights}")
+    notes += priors.notes
     if gcps is not None and not priors.positions:
         to_local = transformer(gcps.crs, out_crs)
         xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
@@ -698,7 +828,9 @@ def sfm(
         timer.add("features", t0)
         fb.set_progress(0.3)
         fb.check_canceled()
-        n_priors = _write_priors(db, priors, gps_sigma_m, 2.0 * gps_sigma_m) if priors.positions else 0
+        # Untrusted GPS heights must not bend the model: their prior is made uninformative.
+        sigma_v = 2.0 * gps_sigma_m if priors.vertical_trusted else 1.0e3
+        n_priors = _write_priors(db, priors, gps_sigma_m, sigma_v) if priors.positions else 0
         t0 = time.perf_counter()
         how = _match(db, matching, photos, priors, workers)
         timer.add("matching", t0)
@@ -706,7 +838,11 @@ def sfm(
         fb.set_progress(0.55)
         fb.check_canceled()
         t0 = time.perf_counter()
-        models = _map(db, root, work / "sparse", n_priors >= 3, workers, seed)
+        ill = _ill_conditioned(photos, priors)
+        if ill:
+            notes.append(f"focal length held at the EXIF value during mapping: {ill} (self-calibration "
+                         "trades focal length for flying height there)")
+        models = _map(db, root, work / "sparse", n_priors >= 3, workers, seed, refine_focal=not ill)
         timer.add("mapping", t0)
         fb.set_progress(0.85)
         if not models:
@@ -723,13 +859,36 @@ def sfm(
             fb.warning(f"not registered: {name}: {why}")
 
         t0 = time.perf_counter()
+        by_name = {names[p.path]: p for p in photos}
+        focal_prior = {cid: float(cam.params[cam.focal_length_idxs()[0]]) for cid, cam in rec.cameras.items()}
+        focal_prior = {cid: _prior_focal(db, cid, f) for cid, f in focal_prior.items()}
         georef, gps_sim, n_gps = "none (local frame)", None, 0
+        tilt = math.nan
         if priors.positions:
-            gps_sim, n_gps = _align_to_gps(rec, priors, gps_sigma_m)
-            if gps_sim is not None:
-                georef = f"GPS of {n_gps} photos"
-            else:
+            if priors.vertical_trusted:
+                gps_sim, n_gps = _align_to_gps(rec, priors, gps_sigma_m)
+                tilt = _tilt_deg(rec, by_name) if gps_sim is not None else math.nan
+                if gps_sim is not None:
+                    georef = f"GPS of {n_gps} photos"
+                # The GPS heights may still be wrong in a way no trend shows: a model they tilt
+                # away from the gravity the gimbals saw is put on the GPS horizontally instead.
+                if math.isfinite(tilt) and tilt > MAX_TILT_DEG:
+                    notes.append(f"the GPS heights tilt the model {tilt:.1f} deg from the photos' vertical: "
+                                 "GPS heights not trusted, model levelled from the photos' attitude")
+                    gps_sim = None
+            if gps_sim is None and (not priors.vertical_trusted or math.isfinite(tilt)):
+                gps_sim = _align_horizontal(rec, priors, by_name, gps_sigma_m)
+                n_gps = len(priors.positions)
+                if gps_sim is not None:
+                    georef = (f"GPS of {n_gps} photos horizontally, levelled from the photos' attitude, "
+                              "height from the median GPS altitude")
+                    tilt = _tilt_deg(rec, by_name)
+            if gps_sim is None:
                 notes.append("the GPS positions did not fit the model (fewer than 3 consistent photos)")
+            outliers = _gps_outliers(rec, priors) if gps_sim is not None else []
+            if outliers:
+                notes.append(f"{len(outliers)} photo(s) with GPS positions far off the model: "
+                             + ", ".join(outliers[:5]) + ("…" if len(outliers) > 5 else ""))
         states: list[_GcpState] = []
         heights_usable = True
         gcp_obs_used = 0
@@ -744,7 +903,7 @@ def sfm(
             if _align_to_gcps(rec, states, heights_usable) is not None:
                 georef = f"{sum(s.role == 'control' and s.triangulated is not None for s in states)} GCPs" + (
                     " (horizontally; heights from GPS)" if not heights_usable else "") + (
-                    f" after GPS of {n_gps} photos" if gps_sim is not None else "")
+                    f" after {georef}" if gps_sim is not None else "")
                 if heights_usable:
                     _triangulate(rec, states)
                     gcp_obs_used = _gcp_bundle_adjust(rec, states)
@@ -755,6 +914,7 @@ def sfm(
                 notes.append(f"only {n_ok} control GCP(s) triangulated (3 needed): GCPs not used for control")
             _triangulate(rec, states)
         timer.add("georeferencing", t0)
+        intrinsics = _intrinsics_report(rec, focal_prior, bool(ill), gcp_obs_used, notes)
         if gps_sim is None and not any(s.triangulated is not None for s in states) and not local_frame:
             raise InputError("the model could not be georeferenced (GPS did not fit, GCPs not triangulated); "
                              "use local_frame to keep it anyway", path=images)
@@ -796,6 +956,9 @@ def sfm(
             "mean_track_length": float(rec.compute_mean_track_length()),
             "gsd_cm": _gsd_m(rec) * 100.0,
             "crs": crs_text, "offset": priors.offset.tolist(), "heights": priors.heights,
+            "vertical_gps_trusted": priors.vertical_trusted,
+            "model_tilt_deg": None if not math.isfinite(tilt) else round(tilt, 3),
+            "intrinsics": intrinsics,
             "georeferenced_by": georef, "gps": gps_res,
             "gcps": rows, "gcp_accuracy": control, "checkpoint_accuracy": check,
             "ce90_le90": "NSSDA from RMSE: CE90 = 2.1460·sqrt((RMSEx²+RMSEy²)/2), LE90 = 1.6449·RMSEz",
@@ -821,6 +984,42 @@ def sfm(
         gcp_rmse_m=_rmse3(control), checkpoint_rmse_m=_rmse3(check), georeferenced_by=georef,
         notes=tuple(notes),
     )
+
+
+def _prior_focal(db: Path, camera_id: int, fallback: float) -> float:
+    """The focal length (px) the camera started from: the database keeps the imported value."""
+    pc = _pycolmap()
+    try:
+        with pc.Database.open(db) as d:
+            cam = d.read_camera(camera_id)
+            return float(cam.params[cam.focal_length_idxs()[0]])
+    except Exception:  # noqa: BLE001 - an old database layout: the mapped value is all there is
+        return fallback
+
+
+def _intrinsics_report(rec: Any, focal_prior: dict[int, float], held: bool, gcp_obs: int,
+                       notes: list[str]) -> list[dict[str, Any]]:
+    """Per camera: the EXIF focal length (px), the final one, the drift in percent; with the focal
+    held, the drift a free self-calibration would have reached (measured on a copy)."""
+    drift = _focal_drift(rec, focal_prior)
+    free = _probe_free_focal(rec) if held and not gcp_obs else {}
+    out = []
+    for cid, cam in rec.cameras.items():
+        row: dict[str, Any] = {"camera_id": int(cid), "focal_exif_px": focal_prior.get(cid),
+                               "focal_px": _focal_px(cam), "focal_drift_pct": drift.get(cid)}
+        if cid in free and focal_prior.get(cid):
+            row["free_focal_drift_pct"] = 100.0 * (free[cid] / focal_prior[cid] - 1.0)
+            if abs(row["free_focal_drift_pct"]) > FOCAL_DRIFT_WARN_PCT:
+                notes.append(f"camera {cid}: self-calibration would move the focal length "
+                             f"{row['free_focal_drift_pct']:+.1f} % off EXIF (not applied: ill-conditioned block; "
+                             "GCPs with heights would settle it)")
+        d = drift.get(cid)
+        if d is not None and abs(d) > FOCAL_DRIFT_WARN_PCT:
+            notes.append(f"camera {cid}: focal length {d:+.1f} % off the EXIF value "
+                         + ("(GCP bundle adjustment)" if gcp_obs else "(self-calibration: check the EXIF "
+                                                                       "focal length or the block geometry)"))
+        out.append(row)
+    return out
 
 
 def _rmse3(acc: dict[str, Any] | None) -> float:

@@ -23,9 +23,9 @@ from __future__ import annotations
 import datetime as dt
 import io
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from collections.abc import Sequence
 from typing import Any, Literal
 
 import cv2

@@ -405,6 +405,7 @@ def mosaic(
                       feedback=st_plan)
     for name, why in plan.skipped:
         skipped.append((name, why))
+    notes.extend(plan.notes)
     bad = {name for name, _ in plan.skipped}
     box_windows = tuple(None if c.name in bad else w for c, w in zip(kept, box_windows))
     times["seams_and_balance"] = time.perf_counter() - t1
@@ -445,6 +446,11 @@ def mosaic(
 
     def ratio(a: str, n: str) -> float:
         return totals.get(a, 0.0) / totals[n] if totals.get(n) else math.nan
+
+    raw, bal = ratio("seam_raw", "seam_n"), ratio("seam_bal", "seam_n")
+    if balance != "none" and math.isfinite(raw) and math.isfinite(bal) and bal >= raw:
+        notes.append(f"colour balance did not lower the colour mismatch across seams ({raw:.2f} → {bal:.2f} DN)")
+        fb.warning(notes[-1])
 
     result = OrthoResult(
         output=output, preview=preview_path, report=output.with_name(output.stem + "_report.json"),

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -47,6 +48,7 @@ class SeamPlan:
     labels: np.ndarray  # int16 (rows, cols)
     gains: np.ndarray  # float32 (n_cameras, 3), BGR
     skipped: tuple[tuple[str, str], ...]
+    notes: tuple[str, ...] = ()
 
     def labels_for(self, out_transform: Affine, win: Window) -> np.ndarray:
         """The coarse labels read (nearest) at the centres of an output window's pixels."""
@@ -68,6 +70,17 @@ def read_photo_bgr(path: str, reduction: int = 1) -> np.ndarray:
     if img is None:
         raise OSError("the image cannot be decoded")
     return img
+
+
+def _exposure(path: Any) -> float:
+    """ISO · t / N² from the photo's EXIF (NaN when unknown or unreadable)."""
+    from ..errors import InputError
+    from ..photos import read_photo
+
+    try:
+        return read_photo(path).exposure_value
+    except InputError:
+        return math.nan
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,21 +140,47 @@ def plan_seams(cams: Sequence[OrthoCamera], boxes: Sequence[tuple[float, float, 
     for v in views:
         keep_best(best, labels, v.win.slices(Window(0, 0, *cshape)), v.cost, v.index)
 
-    gains = solve_gains(views, len(cams), per_channel=balance == "channels") if balance != "none" \
-        else np.ones((len(cams), 3), np.float32)
+    notes: tuple[str, ...] = ()
+    if balance != "none":
+        sol = solve_gains(views, len(cams), per_channel=balance == "channels",
+                          exposure=[_exposure(c.path) for c in cams])
+        gains, notes = sol.gains, sol.notes
+        if sol.exposure_seeded:
+            notes += (f"gains seeded by the EXIF exposure of {sol.exposure_seeded} photos",)
+        for note in notes:
+            fb.warning(note)
+    else:
+        gains = np.ones((len(cams), 3), np.float32)
     fb.progress(0.75)
 
     if seams == "graphcut" and len(views) > 1:
         labels = _graph_cut(views, labels, cshape, max(1, int(round(band_m / cres))), gains)
     fb.progress(1.0)
-    return SeamPlan(ctr, labels, gains, tuple(skipped))
+    return SeamPlan(ctr, labels, gains, tuple(skipped), notes)
+
+
+@dataclass(frozen=True)
+class GainSolution:
+    """Per-photo gains and whether they made the overlaps agree better."""
+
+    gains: np.ndarray  # (n, 3) BGR
+    mismatch_before: float  # overlap-weighted RMS of log colour differences
+    mismatch_after: float
+    exposure_seeded: int  # photos whose prior came from their EXIF exposure
+    notes: tuple[str, ...] = ()
 
 
 def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min_overlap_px: int = 50,
-                prior_weight: float = 0.01) -> np.ndarray:
-    """Per-photo gains (n, 3) BGR that make overlapping photos agree: least squares on log colour
-    means over each pairwise overlap, weighted by the overlap's size, with a weak pull towards 1
-    (it fixes the overall level; the gains are then scaled to a geometric mean of 1)."""
+                prior_weight: float = 0.2, exposure: Sequence[float] | None = None,
+                max_gain: float = 2.0) -> GainSolution:
+    """Per-photo gains (n, 3) BGR that make overlapping photos agree.
+
+    Least squares on log colour means over each pairwise overlap, weighted by the overlap's size,
+    with every photo pulled towards its prior gain: 1, or the inverse of its EXIF exposure
+    (ISO · t / N², relative to the median) where ``exposure`` gives one. The pull holds chains of
+    overlaps from drifting along a flight line (vignetting and sun angle bias each link a little);
+    the mean log-gain is anchored at the priors'. Gains are kept within 1/max_gain..max_gain, and
+    if they do not lower the overlaps' mismatch they are dropped for the priors (and said)."""
     rows: list[tuple[int, int, float, np.ndarray]] = []
     for a in range(len(views)):
         va = views[a]
@@ -161,9 +200,17 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
             ma = ia[both].astype(np.float64).mean(axis=0)
             mb = ib[both].astype(np.float64).mean(axis=0)
             rows.append((va.index, vb.index, math.sqrt(k), np.log(ma) - np.log(mb)))
-    gains = np.ones((n, 3), np.float32)
+    prior = np.zeros(n)
+    seeded = 0
+    if exposure is not None:
+        ev = np.asarray(exposure, float)
+        ok = np.isfinite(ev) & (ev > 0)
+        if ok.sum() >= 2 and np.ptp(np.log(ev[ok])) > 0.05:
+            prior[ok] = -(np.log(ev[ok]) - np.median(np.log(ev[ok])))
+            seeded = int(ok.sum())
+    gains = np.repeat(np.exp(prior)[:, None], 3, axis=1).astype(np.float32)
     if not rows:
-        return gains
+        return GainSolution(gains, math.nan, math.nan, seeded)
     used = sorted({i for a, b, _, _ in rows for i in (a, b)})
     col = {i: k for k, i in enumerate(used)}
     m = len(used)
@@ -174,15 +221,31 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
         A[r, col[a]], A[r, col[b]] = w, -w
         rhs[r] = -w * d  # log g_a − log g_b = −(log m_a − log m_b)
         w_total += w
-    prior = prior_weight * w_total / m
-    A[len(rows):, :] = np.eye(m) * prior
+    lam = prior_weight * w_total / m
+    A[len(rows):, :] = np.eye(m) * lam
+    rhs[len(rows):, :] = lam * prior[used][:, None]
     if not per_channel:
-        rhs[:] = rhs.mean(axis=1, keepdims=True)
+        rhs[: len(rows)] = rhs[: len(rows)].mean(axis=1, keepdims=True)
     log_g, *_ = np.linalg.lstsq(A, rhs, rcond=None)
-    log_g -= log_g.mean(axis=0)
+    log_g += (prior[used].mean() - log_g.mean(axis=0))[None, :]
+    log_g = np.clip(log_g, -math.log(max_gain), math.log(max_gain))
+
+    def mismatch(lg: np.ndarray) -> float:
+        res = [w * (d + lg[col[a]] - lg[col[b]]) for a, b, w, d in rows]
+        ws = [w for _, _, w, _ in rows]
+        return float(math.sqrt(np.sum(np.square(res)) / (3 * np.sum(np.square(ws)))))
+
+    before = mismatch(np.zeros((m, 3)))
+    after = mismatch(log_g)
+    notes: list[str] = []
+    if after >= before:
+        notes.append(f"colour balance would not lower the overlaps' mismatch ({before:.4f} → {after:.4f} log units): "
+                     + ("gains from the EXIF exposure only" if seeded else "gains left at 1"))
+        log_g = np.repeat(prior[used][:, None], 3, axis=1)
+        after = mismatch(log_g)
     for i, k in col.items():
         gains[i] = np.exp(log_g[k])
-    return gains
+    return GainSolution(gains, before, after, seeded, tuple(notes))
 
 
 def _graph_cut(views: list[_View], labels: np.ndarray, cshape: tuple[int, int], band_px: int,
