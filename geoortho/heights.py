@@ -17,7 +17,7 @@ How a photo without RelativeAltitude is read (``gps_altitude="auto"``): each rea
 altitude — above take-off, the ground model's datum as is, orthometric↔ellipsoidal by the EGM96
 geoid (:func:`geoortho.crs.geoid_undulation_m`) — gives a height above the ground; it must be
 positive and fit the spacing of consecutive photos (a mapping flight's front overlap is
-55–85 %, so the spacing bounds the height to a factor of about two). The reading that fits
+50–85 %, so the spacing bounds the height to a factor of about three, give or take 15 % for GNSS error). The reading that fits
 is taken and said; none fits → refused; an altitude that drifts or jumps over the flight is
 not trusted either.
 """
@@ -48,7 +48,7 @@ __all__ = [
 # What EXIF GPSAltitude / AbsoluteAltitude hold, when the photos carry no RelativeAltitude.
 GPS_ALTITUDE = ("auto", "above-takeoff", "orthometric", "ellipsoidal")
 # A mapping flight's front overlap: the spacing of consecutive photos bounds the flight height.
-FRONT_OVERLAP_RANGE = (0.55, 0.85)
+FRONT_OVERLAP_RANGE = (0.5, 0.85)
 # An altitude series that moves more than this over a constant-height flight is not trusted.
 MAX_DRIFT_M = 8.0
 MAX_STEP_M = 5.0
@@ -385,7 +385,7 @@ def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss
         fits = {}
         for key, (z, how) in readings.items():
             agl = float(np.median(z - under))
-            if agl > 2.0 and (bounds is None or bounds[0] * 0.95 <= agl <= bounds[1] * 1.05):
+            if agl > 2.0 and (bounds is None or bounds[0] * 0.85 <= agl <= bounds[1] * 1.15):  # GNSS heights err by metres
                 fits[key] = (agl, z, how)
         spacing = f"the photo spacing says {bounds[0]:.0f}–{bounds[1]:.0f} m" if bounds else \
             "the photo spacing could not bound it"

@@ -878,7 +878,7 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
     if "partial-dsm" in pathologies:
         fx0, _, fx1, _ = scene.flight_box
         c0 = int((fx0 + 0.4 * (fx1 - fx0) - scene.transform.c) / scene.transform.a)
-        write_cog(truth / "dsm_partial.tif", scene.dsm[:, c0:], transform=scene.transform * Affine.translation(c0, 0),
+        write_cog(truth / "dsm_partial.tif", scene.dsm[:, c0:], transform=scene.transform @ Affine.translation(c0, 0),
                   crs=scene.crs, nodata=-9999.0)
     steps[0].progress(1.0)
 

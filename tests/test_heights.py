@@ -18,7 +18,7 @@ import geopandas as gpd
 import numpy as np
 import pytest
 import rasterio
-from conftest import RecordingFeedback
+from conftest import RecordingFeedback, real_data
 
 from geoortho.crs import geoid_undulation_m
 from geoortho.errors import InputError
@@ -274,7 +274,7 @@ def test_sfm_wrong_exif_focal_held_reported_then_fixed_by_gcps(tmp_path_factory,
     assert _camera_rmse(r, survey) <= 1.5 * clean_sfm_rmse + 0.01
 
 
-def test_toledo_height_source_gsd_and_focal(real_data, toledo_sfm, tmp_path):
+def test_toledo_height_source_gsd_and_focal(toledo_sfm, tmp_path):
     """EXIF GPS only (old DJI firmware): height above take-off, said; GSD by physics; focal near EXIF."""
     base = real_data("toledo_dji")
     r = footprints(base / "images", tmp_path / "fp.gpkg")
