@@ -54,9 +54,10 @@ from .outputs import write_json, write_vector
 from .photos import Photo, list_images, read_photos
 from .pointcloud import write_las
 
-__all__ = ["SfmResult", "sfm", "MATCHING", "CAMERA_MODELS", "ce90", "le90"]
+__all__ = ["SfmResult", "sfm", "MATCHING", "MAPPERS", "CAMERA_MODELS", "ce90", "le90"]
 
 MATCHING = ("auto", "exhaustive", "spatial", "sequential")
+MAPPERS = ("incremental", "global")
 CAMERA_MODELS = ("RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE")
 # A georeferenced model whose vertical is this far from the photos' gravity was bent by bad GPS heights.
 MAX_TILT_DEG = 3.0
@@ -292,8 +293,19 @@ def _match(db: Path, how: str, photos: Sequence[Photo], priors: _Priors, workers
 
 
 def _map(db: Path, image_root: Path, work: Path, use_priors: bool, workers: int, seed: int,
-         refine_focal: bool = True) -> list[Any]:
+         refine_focal: bool = True, mapper: str = "incremental") -> list[Any]:
     pc = _pycolmap()
+    if mapper == "global":
+        # GLOMAP: rotation averaging + global positioning, one bundle adjustment; it takes no pose
+        # priors (the GPS georeference the model afterwards, as for the incremental one).
+        g = pc.GlobalPipelineOptions()
+        g.num_threads = workers or -1
+        g.random_seed = seed
+        g.min_model_size = 3
+        g.mapper.bundle_adjustment.refine_focal_length = refine_focal
+        work.mkdir(parents=True, exist_ok=True)
+        models = pc.global_mapping(db, image_root, work, g)
+        return sorted(models.values(), key=lambda r: -r.num_reg_images())
     o = pc.IncrementalPipelineOptions()
     o.ba_refine_focal_length = refine_focal
     o.use_prior_position = use_priors
@@ -730,6 +742,7 @@ def sfm(
     local_frame: bool = False,
     seed: int = 0,
     workers: int = 0,
+    mapper: str = "incremental",
     *,
     feedback: Feedback | None = None,
 ) -> SfmResult:
@@ -767,6 +780,9 @@ def sfm(
         Random seed of the mapper (repeatable runs).
     workers : int
         Threads for pycolmap (0 = every core).
+    mapper : str
+        incremental (COLMAP's, GPS-prior weighted) or global (GLOMAP: rotation averaging and
+        global positioning; see benchmarks/bench_sfm.py --mappers for which is faster here).
     """
     fb = as_feedback(feedback)
     t_start = time.perf_counter()
@@ -774,6 +790,8 @@ def sfm(
     output = Path(output)
     if camera_model not in CAMERA_MODELS:
         raise InputError(f"camera model {camera_model!r} is not one of {', '.join(CAMERA_MODELS)}")
+    if mapper not in MAPPERS:
+        raise InputError(f"mapper {mapper!r} is not one of {', '.join(MAPPERS)}")
     if matching not in MATCHING:
         raise InputError(f"matching {matching!r} is not one of {', '.join(MATCHING)}")
     t0 = time.perf_counter()
@@ -842,7 +860,7 @@ def sfm(
         if ill:
             notes.append(f"focal length held at the EXIF value during mapping: {ill} (self-calibration "
                          "trades focal length for flying height there)")
-        models = _map(db, root, work / "sparse", n_priors >= 3, workers, seed, refine_focal=not ill)
+        models = _map(db, root, work / "sparse", n_priors >= 3, workers, seed, refine_focal=not ill, mapper=mapper)
         timer.add("mapping", t0)
         fb.set_progress(0.85)
         if not models:
@@ -951,7 +969,7 @@ def sfm(
             "skipped": dict(photoset.skipped),
             "camera_bodies": [{"camera": b.label, "photos": len(b.photos)} for b in bodies],
             "cameras": [_camera_record(c) for c in rec.cameras.values()],
-            "matching": how, "models": len(models), "points": rec.num_points3D(),
+            "matching": how, "mapper": mapper, "models": len(models), "points": rec.num_points3D(),
             "mean_reprojection_error_px": mean_reproj,
             "mean_track_length": float(rec.compute_mean_track_length()),
             "gsd_cm": _gsd_m(rec) * 100.0,

@@ -236,12 +236,70 @@ def _camera_rmse(result, survey) -> float:
 
 
 @pytest.fixture(scope="module")
-def clean_sfm_rmse(tiny_survey, tmp_path_factory):
+def clean_sfm(tiny_survey, tmp_path_factory):
     from geoortho.sfm import sfm
 
     d = tmp_path_factory.mktemp("clean_sfm")
-    return _camera_rmse(sfm(tiny_survey.images, d / "out", gcp_list=_gcp_list(tiny_survey, d), **SFM_FAST),
-                        tiny_survey)
+    return sfm(tiny_survey.images, d / "out", gcp_list=_gcp_list(tiny_survey, d), **SFM_FAST)
+
+
+@pytest.fixture(scope="module")
+def clean_sfm_rmse(clean_sfm, tiny_survey):
+    return _camera_rmse(clean_sfm, tiny_survey)
+
+
+def _shifted(dsm: Path, out: Path, dz_m: float, keep_east_of: float | None = None) -> Path:
+    """The DSM moved by dz_m (another vertical datum), optionally cut west of an easting."""
+    with rasterio.open(dsm) as src:
+        prof, z = src.profile, src.read(1)
+        t = src.transform
+    z = np.where(z == prof["nodata"], z, z + dz_m).astype(z.dtype)
+    if keep_east_of is not None:
+        c0 = int((keep_east_of - t.c) / t.a)
+        z, t = z[:, c0:], t @ rasterio.Affine.translation(c0, 0)
+        prof.update(width=z.shape[1], transform=t)
+    with rasterio.open(out, "w", **prof) as dst:
+        dst.write(z, 1)
+    return out
+
+
+def test_ortho_dsm_in_another_datum_measured_corrected_or_refused(clean_sfm, tiny_survey, tmp_path):
+    from geoortho.ortho import ortho
+    from geoortho.ortho.quality import geolocation_shifts
+
+    n = float(geoid_undulation_m(-9.1887, 38.7476))
+    good = ortho(tiny_survey.images, tmp_path / "good.tif", sfm=clean_sfm.output, dsm=tiny_survey.dsm, workers=1)
+    other = _shifted(tiny_survey.dsm, tmp_path / "orthometric.tif", -n)
+    fb = RecordingFeedback()
+    r = ortho(tiny_survey.images, tmp_path / "o.tif", sfm=clean_sfm.output, dsm=other, workers=1, feedback=fb)
+    note = next(x for x in r.notes if x.startswith("DSM vs SfM points"))
+    assert "corrected" in note
+    moved = float(note.split("DSM moved ")[1].split(" m")[0])
+    assert moved == pytest.approx(n, abs=0.3)
+    g0 = np.median([s.distance for s in geolocation_shifts(good.output, tiny_survey.ortho, tile_px=128)])
+    g1 = np.median([s.distance for s in geolocation_shifts(r.output, tiny_survey.ortho, tile_px=128)])
+    assert g1 <= 1.5 * g0 + 0.5 * r.resolution_m
+    with pytest.raises(InputError, match="another vertical datum"):
+        ortho(tiny_survey.images, tmp_path / "x.tif", sfm=clean_sfm.output, dsm=other, dsm_offset="refuse")
+    assert not (tmp_path / "x.tif").exists()
+    # the right DSM is measured too, and left alone
+    assert any("DSM vs SfM points" in x and "corrected" not in x for x in good.notes)
+
+
+def test_ortho_partial_dsm_keeps_every_photo(clean_sfm, tiny_survey, tmp_path):
+    from geoortho.ortho import ortho
+
+    info = _info(tiny_survey)
+    fx0, _, fx1, _ = info["flight_box"]
+    cut = fx0 + 0.6 * (fx1 - fx0)
+    part = _shifted(tiny_survey.dsm, tmp_path / "part.tif", 0.0, keep_east_of=cut)
+    full = ortho(tiny_survey.images, tmp_path / "full.tif", sfm=clean_sfm.output, dsm=tiny_survey.dsm, workers=1)
+    r = ortho(tiny_survey.images, tmp_path / "part.tif", sfm=clean_sfm.output, dsm=part, workers=1)
+    assert not r.skipped and r.n_used == full.n_used
+    with rasterio.open(r.output) as a, rasterio.open(full.output) as b:
+        # not clipped to the DSM's extent: west of the cut as far as the full DSM's, give or take the
+        # plane standing in for the missing terrain
+        assert a.bounds.left < cut - 20.0 and abs(a.bounds.left - b.bounds.left) < 5.0
 
 
 def test_sfm_drifting_altitude_levelled_then_on_the_gcps(drift, clean_sfm_rmse, tmp_path):

@@ -126,6 +126,7 @@ def plan_seams(cams: Sequence[OrthoCamera], boxes: Sequence[tuple[float, float, 
         fb.check_canceled()
         win = bounds_window(ctr, cshape, box) if box is not None else None
         if win is None:
+            skipped.append((cam.name, "its footprint lies outside the mosaic"))
             continue
         try:
             views.append(_coarse_view(i, cam, surface, vis[i], ctr, win, gsd_m[i]))
@@ -206,8 +207,16 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
         ev = np.asarray(exposure, float)
         ok = np.isfinite(ev) & (ev > 0)
         if ok.sum() >= 2 and np.ptp(np.log(ev[ok])) > 0.05:
-            prior[ok] = -(np.log(ev[ok]) - np.median(np.log(ev[ok])))
-            seeded = int(ok.sum())
+            # How much brighter a photo comes out per unit of log exposure is the camera's tone
+            # curve (1 in linear light, about 0.45 through an sRGB curve): fitted on the overlaps.
+            le = np.where(ok, np.log(np.where(ok, ev, 1.0)), np.nan)
+            pairs = [(w, float(np.mean(d)), le[a] - le[b]) for a, b, w, d in rows
+                     if np.isfinite(le[a]) and np.isfinite(le[b])]
+            den = sum(w * w * e * e for w, _, e in pairs)
+            slope = float(np.clip(sum(w * w * d * e for w, d, e in pairs) / den, 0.0, 1.2)) if den > 1e-9 else 0.0
+            if slope > 0.05:
+                prior[ok] = -slope * (le[ok] - np.median(le[ok]))
+                seeded = int(ok.sum())
     gains = np.repeat(np.exp(prior)[:, None], 3, axis=1).astype(np.float32)
     if not rows:
         return GainSolution(gains, math.nan, math.nan, seeded)

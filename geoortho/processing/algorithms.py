@@ -9,7 +9,7 @@ from ..gcp.find import gcp_find
 from ..heights import GPS_ALTITUDE
 from ..markers import DICTIONARIES
 from ..ortho.mosaic import BALANCE, BLEND, COMPRESS, DSM_OFFSET, INTERPOLATION, SEAMS, ortho
-from ..sfm import CAMERA_MODELS, MATCHING, sfm
+from ..sfm import CAMERA_MODELS, MAPPERS, MATCHING, sfm
 from ..synth import PRESETS, synth
 from .spec import Algorithm, Output, Param
 
@@ -153,6 +153,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("local_frame", "bool", False, advanced=True),
             Param("seed", "integer", 0, minimum=0, advanced=True),
             Param("workers", "integer", 0, minimum=0, advanced=True),
+            Param("mapper", "enum", "incremental", choices=MAPPERS, advanced=True),
         ),
         outputs=(
             Output("output", "folder", "the SfM folder"),
