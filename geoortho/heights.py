@@ -248,11 +248,13 @@ def resolve_heights(
     ground = _ground_under(surface, xy)
     label = ground_label or ("DSM" if isinstance(surface, GridSurface) else
                              "ground elevation" if surface is not None else "flat take-off ground")
-    datum = "the DSM's" if isinstance(surface, GridSurface) else "the given ground elevation's" \
-        if surface is not None else "take-off = 0"
+    datum = "the DSM's datum" if isinstance(surface, GridSurface) else "the ground elevation's datum" \
+        if surface is not None else "height above take-off"
     notes: list[str] = []
     checks: list[AltitudeCheck] = []
     has_takeoff = takeoff_elevation_m is not None and math.isfinite(takeoff_elevation_m)
+    if surface is None and has_takeoff:
+        datum = "the take-off elevation's datum"
 
     if flight_height_m is not None and math.isfinite(flight_height_m):
         if has_takeoff:
@@ -365,7 +367,7 @@ def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss
         readings["above-takeoff"] = (base + g, "GPS altitude read as height above take-off "
                                                "(old DJI firmware writes it so)")
     if known_ground:
-        readings["orthometric"] = (g, f"GPS altitude read as in {datum} datum (EXIF: orthometric)")
+        readings["orthometric"] = (g, f"GPS altitude read as in {datum} (EXIF: orthometric)")
         try:
             und = _undulation(lonlat)
             readings["ellipsoidal"] = (g - und, f"GPS altitude read as ellipsoidal, made orthometric "

@@ -163,7 +163,7 @@ def test_no_relative_altitude_refused_without_ground_then_right_on_the_dsm(no_re
     assert "made ellipsoidal" in r.height_source and "EGM96" in r.height_source
     assert _iou_shortfall(tmp_path / "b.gpkg", no_rel) <= 1.5 * clean_shortfall + 0.005
     layer = gpd.read_file(tmp_path / "b.gpkg", layer="footprints")
-    assert (layer.vertical_datum == "the DSM's").all() and layer.height_source.str.contains("GPS altitude").all()
+    assert (layer.vertical_datum == "the DSM's datum").all() and layer.height_source.str.contains("GPS altitude").all()
     # with the flight height given instead, on flat ground
     info = _info(no_rel)
     r2 = footprints(no_rel.images, tmp_path / "c.gpkg", flight_height_m=info["preset"]["altitude_m"])
