@@ -376,3 +376,14 @@ def test_warnings_grouped_and_quiet(hard_survey, tmp_path):
     p = subprocess.run([sys.executable, "-m", "geoortho", "footprints", "--images", str(hard_survey.images),
                         "--output", str(tmp_path / "q.gpkg"), "--quiet"], capture_output=True, text=True)
     assert p.returncode == 0 and p.stderr.strip() == ""
+
+
+def test_real_mini4pro_sea_level_altitudes_refused(tmp_path):
+    """Real DJI Mini 4 Pro frames whose XMP keeps only AbsoluteAltitude (348 and 1190 m over Bali):
+    no height above ground, so no footprint — a line naming what to give instead of 1 km-wide garbage."""
+    images = real_data("dji_mini4pro_defects") / "images"
+    with pytest.raises(InputError, match="flight_height_m") as e:
+        footprints(images, tmp_path / "fp.gpkg")
+    assert "348–1190 m" in str(e.value)
+    r = footprints(images, tmp_path / "fp.gpkg", flight_height_m=100.0)
+    assert r.n_photos == 3 and "flight height given" in r.height_source

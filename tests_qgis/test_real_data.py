@@ -30,20 +30,37 @@ def test_feet_lidar_dsm_opens_in_qgis_in_feet(provider, tmp_path):
         assert a.crs == b.crs and np.array_equal(a.read(1), b.read(1))
 
 
-@pytest.mark.parametrize("folder, n_skipped", [("dji_mini4pro_defects", 1), ("toledo_dji", 0)])
-def test_real_photos_footprints_as_on_the_command_line(provider, tmp_path, folder, n_skipped):
+def test_sea_level_altitudes_refused_in_qgis_as_on_the_command_line(provider, tmp_path):
+    """Mini 4 Pro frames with XMP stripped to AbsoluteAltitude (348 and 1190 m) and no RelativeAltitude:
+    no height above ground to be had, so QGIS shows geoortho's one line naming what to give."""
+    from qgis.core import QgsProcessingException
+
+    images = real_data("dji_mini4pro_defects") / "images"
+    with pytest.raises(QgsProcessingException, match="flight_height_m"):
+        qgis_run("footprints", {"IMAGES": str(images), "OUTPUT": str(tmp_path / "q.gpkg")})
+    cli = geoortho_cli("footprints", "--images", str(images), "--output", str(tmp_path / "c.gpkg"), check=False)
+    assert cli.returncode == 2 and "flight_height_m" in cli.stderr
+    assert not (tmp_path / "q.gpkg").exists() and not (tmp_path / "c.gpkg").exists()
+
+
+@pytest.mark.parametrize("folder, flight_height_m", [("dji_mini4pro_defects", 100.0), ("toledo_dji", None)])
+def test_real_photos_footprints_as_on_the_command_line(provider, tmp_path, folder, flight_height_m):
     images = real_data(folder) / "images"
     from qgis.core import QgsProcessingFeedback
 
     feedback = QgsProcessingFeedback()
-    r = qgis_run("footprints", {"IMAGES": str(images), "OUTPUT": str(tmp_path / "q.gpkg")}, feedback)
-    cli = json.loads(geoortho_cli("footprints", "--images", str(images), "--output", str(tmp_path / "c.gpkg"),
-                                  "--json", "--quiet").stdout)
-    assert r["N_SKIPPED"] == cli["n_skipped"] == n_skipped
+    params = {"IMAGES": str(images), "OUTPUT": str(tmp_path / "q.gpkg")}
+    args = ["--images", str(images), "--output", str(tmp_path / "c.gpkg"), "--json", "--quiet"]
+    if flight_height_m is not None:
+        params["FLIGHT_HEIGHT_M"] = flight_height_m
+        args += ["--flight-height-m", str(flight_height_m)]
+    r = qgis_run("footprints", params, feedback)
+    cli = json.loads(geoortho_cli("footprints", *args).stdout)
+    assert r["N_SKIPPED"] == cli["n_skipped"] == 0
     assert r["N_PHOTOS"] == cli["n_photos"] > 0
-    log = feedback.textLog()
-    if n_skipped:  # the bad photo is reported in QGIS's log, by name, and the rest go on
-        assert "skipped DJI_20251001132715_0396_D_POOR_SHARPNESS.JPG" in log
+    assert r["HEIGHT_SOURCE"] == cli["height_source"]
+    if flight_height_m is not None:  # said, in QGIS's log too
+        assert "flight height given" in r["HEIGHT_SOURCE"] and "flight height given" in feedback.textLog()
     a = gpd.read_file(tmp_path / "q.gpkg", layer="footprints").sort_values("image")
     b = gpd.read_file(Path(cli["output"]), layer="footprints").sort_values("image")
     assert list(a["image"]) == list(b["image"])
