@@ -988,7 +988,8 @@ def sfm(
     finally:
         shutil.rmtree(work, ignore_errors=True)
     for n in notes:
-        fb.warning(n)
+        # what the heights are is information; every other note is a condition to look at
+        (fb.info if n.startswith("heights:") else fb.warning)(n)
     fb.info(f"registered {len(registered)}/{len(photos)} photos, {n_points} points, "
             f"reprojection {mean_reproj:.2f} px; georeferenced by {georef}")
     if check:
