@@ -304,12 +304,20 @@ def _from_relative(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, 
         expected = float(np.nanmedian(rel))
         seen = float(np.nanmedian(agl))
         relief = float(np.nanpercentile(ground, 90) - np.nanpercentile(ground, 10))
-        if math.isfinite(seen) and abs(seen - expected) > max(5.0, relief + 0.15 * expected):
-            alt = float(np.nanpercentile(ground, 30))
-            why = _datum_hint(seen - expected, lonlat)
-            notes.append(f"the GNSS heights put the take-off {seen - expected:+.1f} m off the {label} "
-                         f"({why}); take-off taken from the {label} under the flight instead ({alt:.1f} m)")
-            takeoff, how = alt, f"take-off at the {label} under the flight (GNSS heights disagree with it)"
+        gap = seen - expected
+        if math.isfinite(seen) and abs(gap) > max(5.0, relief + 0.15 * expected):
+            why, und = _datum_hint(gap, lonlat)
+            if und is not None:
+                # the gap is the geoid: move the GNSS take-off into the DSM's datum by the geoid itself
+                alt = offset - math.copysign(abs(und), gap)
+                fix = f"take-off moved into the {label}'s datum by the EGM96 geoid ({alt:.1f} m)"
+                how = f"take-off from absolute − relative altitude, moved by the EGM96 geoid into the {label}'s datum"
+            else:
+                alt = float(np.nanpercentile(ground, 30))
+                fix = f"take-off taken from the {label} under the flight instead ({alt:.1f} m)"
+                how = f"take-off at the {label} under the flight (GNSS heights disagree with it)"
+            notes.append(f"the GNSS heights put the take-off {gap:+.1f} m off the {label} ({why}); {fix}")
+            takeoff = alt
     z = np.empty(len(photos))
     sources = []
     for i in range(len(photos)):
@@ -325,14 +333,15 @@ def _from_relative(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, 
                        tuple(notes), tuple(checks), gnss_ok)
 
 
-def _datum_hint(offset_m: float, lonlat: np.ndarray) -> str:
+def _datum_hint(offset_m: float, lonlat: np.ndarray) -> tuple[str, float | None]:
+    """Why two height sets disagree by ``offset_m``, and the geoid height when that explains it."""
     try:
         n = _undulation(lonlat)
     except DependencyError:
-        return "another vertical datum?"
+        return "another vertical datum?", None
     if abs(abs(offset_m) - abs(n)) < max(3.0, 0.15 * abs(n)):
-        return f"the geoid is {n:+.1f} m here: one is ellipsoidal, the other orthometric"
-    return f"another vertical datum, or GNSS heights off; the geoid is {n:+.1f} m here"
+        return f"the geoid is {n:+.1f} m here: one is ellipsoidal, the other orthometric", n
+    return f"another vertical datum, or GNSS heights off; the geoid is {n:+.1f} m here", None
 
 
 def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss: np.ndarray,

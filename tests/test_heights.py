@@ -198,9 +198,10 @@ def test_dsm_in_another_datum_is_caught_for_relative_altitudes(tiny_survey, tmp_
     fb = RecordingFeedback()
     r = footprints(tiny_survey.images, tmp_path / "fp.gpkg", dsm=other, feedback=fb)
     assert any("one is ellipsoidal, the other orthometric" in w for w in fb.warnings)
-    assert "under the flight" in r.height_source
-    info = _info(tiny_survey)
-    assert r.median_gsd_cm == pytest.approx(info["gsd_cm_at_home_height"], rel=0.1)
+    assert "moved by the EGM96 geoid" in r.height_source
+    # the same heights above ground as on the DSM in the photos' datum
+    same = footprints(tiny_survey.images, tmp_path / "same.gpkg", dsm=tiny_survey.dsm)
+    assert r.median_gsd_cm == pytest.approx(same.median_gsd_cm, rel=0.01)
 
 
 def test_partial_dsm_falls_back_to_a_plane_not_to_the_range_limit(no_rel, tiny_survey, tmp_path):
