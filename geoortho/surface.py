@@ -154,21 +154,38 @@ class GridSurface(Surface):
         return z
 
     def nearest_elevation(self, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """Height of the cell with data nearest to fractional (col, row), inside the grid or not."""
-        nr, nc = self.grid.shape
-        ci = np.clip(np.rint(cols), 0, nc - 1).astype(np.intp)
-        ri = np.clip(np.rint(rows), 0, nr - 1).astype(np.intp)
-        z = self.grid[ri, ci]
-        if np.isnan(z).any():
-            near = getattr(self, "_nearest", None)
-            if near is None:
-                from scipy.ndimage import distance_transform_edt
+        """Ground height near fractional (col, row), inside the grid or beyond it.
 
-                near = distance_transform_edt(np.isnan(self.grid), return_distances=False,
-                                              return_indices=True).astype(np.int32)
-                object.__setattr__(self, "_nearest", near)
-            z = self.grid[near[0, ri, ci], near[1, ri, ci]]
-        return z.astype(float)
+        Read from a smooth ground-like version of the grid (block minimum to ~1 m, holes filled
+        from the nearest data, an opening that removes buildings and trees up to ~15 m across,
+        then a mean of the same size), so the plane that continues a DSM past its edge is at the
+        ground's height there, not at the roof or tree top that happens to stand on the edge."""
+        base, f = self._ground_base()
+        nr, nc = self.grid.shape
+        ci = np.clip(np.rint(cols), 0, nc - 1).astype(np.intp) // f
+        ri = np.clip(np.rint(rows), 0, nr - 1).astype(np.intp) // f
+        return base[ri, ci].astype(float)
+
+    def _ground_base(self) -> tuple[np.ndarray, int]:
+        cached = getattr(self, "_base", None)
+        if cached is not None:
+            return cached
+        from scipy.ndimage import distance_transform_edt, grey_opening, uniform_filter
+
+        f = max(1, int(round(1.0 / self.cell_m)))
+        nr, nc = self.grid.shape
+        g = np.pad(np.where(np.isnan(self.grid), np.inf, self.grid), ((0, (-nr) % f), (0, (-nc) % f)),
+                   constant_values=np.inf)
+        c = g.reshape(g.shape[0] // f, f, g.shape[1] // f, f).min(axis=(1, 3))
+        missing = ~np.isfinite(c)
+        if missing.any():
+            idx = distance_transform_edt(missing, return_distances=False, return_indices=True)
+            c = c[idx[0], idx[1]]
+        k = max(3, int(round(15.0 / (self.cell_m * f))))
+        c = uniform_filter(grey_opening(c, size=(k, k)), size=k, mode="nearest")
+        out = (c.astype(np.float32), f)
+        object.__setattr__(self, "_base", out)
+        return out
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0,
                   step_m: float | None = None) -> RayHits:
