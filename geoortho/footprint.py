@@ -9,7 +9,7 @@ Heights come from :mod:`geoortho.heights` (one height model per flight: which
 altitude, read how, in which vertical datum, checked against the photo spacing
 and over time; refused with what to give when no height above ground can be
 trusted). Without any ground model the ground is flat at the take-off elevation.
-A DSM that does not cover every photo is extended by a plane at the nearest DSM
+A DSM that does not cover every photo is extended by a plane at the nearby ground
 height (flagged per footprint in ``outside_dsm``), not left to the range limit.
 """
 
@@ -83,6 +83,7 @@ def photo_cameras(
     *,
     flight_height_m: float | None = None,
     gps_altitude: str = "auto",
+    gnss_takeoff: bool = False,
 ) -> tuple[list[PhotoCamera], HeightModel]:
     """Place every photo in ``crs``: position from GPS, height from :func:`geoortho.heights.resolve_heights`,
     rotation from the attitude. Returns the cameras and the flight's height model (its ``surface``
@@ -93,7 +94,8 @@ def photo_cameras(
     x, y = to_xy.transform(lon, lat)
     xy = np.c_[x, y]
     heights = resolve_heights(photos, xy, np.c_[lon, lat], surface, takeoff_elevation_m=takeoff_elevation_m,
-                              flight_height_m=flight_height_m, gps_altitude=gps_altitude)
+                              flight_height_m=flight_height_m, gps_altitude=gps_altitude,
+                              gnss_takeoff=gnss_takeoff)
     cams = []
     for i, p in enumerate(photos):
         rot = rotation_from_ypr(p.yaw_deg, p.pitch_deg, p.roll_deg)
@@ -112,7 +114,7 @@ class FootprintTable:
     gsd_min_cm: np.ndarray
     gsd_max_cm: np.ndarray
     altitude_m: np.ndarray  # camera above the ground under it
-    outside: np.ndarray  # (N,) some ray landed beyond the DSM, on the plane at the nearest DSM height
+    outside: np.ndarray  # (N,) some ray landed beyond the DSM, on the plane that continues it
 
 
 class Posed(Protocol):
@@ -294,7 +296,7 @@ def footprints(
     s_cast.progress(1.0)
     if table.outside.any():
         fb.warning(f"{int(table.outside.sum())} footprint(s) reach beyond the DSM: there the ground is a plane at "
-                   "the nearest DSM height (column outside_dsm)")
+                   "the nearby ground height of the DSM (column outside_dsm)")
 
     polys = shapely.polygons(table.rings)
     bad = ~shapely.is_valid(polys)

@@ -24,7 +24,6 @@ not trusted either.
 
 from __future__ import annotations
 
-import datetime as dt
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import DependencyError, InputError
-from .photos import Photo
+from .photos import Photo, photo_seconds
 from .surface import FlatSurface, GridSurface, Surface
 
 __all__ = [
@@ -42,7 +41,6 @@ __all__ = [
     "check_altitudes",
     "flight_height_range_m",
     "resolve_heights",
-    "takeoff_elevation",
 ]
 
 # What EXIF GPSAltitude / AbsoluteAltitude hold, when the photos carry no RelativeAltitude.
@@ -57,21 +55,6 @@ MAX_STEP_M = 5.0
 def absolute_altitude(p: Photo) -> float:
     """DJI AbsoluteAltitude when present, else EXIF GPSAltitude (NaN if neither)."""
     return p.absolute_altitude_m if math.isfinite(p.absolute_altitude_m) else p.gps_altitude_m
-
-
-def takeoff_elevation(photos: Sequence[Photo]) -> float:
-    """Median of absolute − relative altitude: the take-off point in the GNSS height datum (NaN if none)."""
-    d = [absolute_altitude(p) - p.relative_altitude_m for p in photos
-         if math.isfinite(absolute_altitude(p)) and math.isfinite(p.relative_altitude_m)]
-    return float(np.median(d)) if d else math.nan
-
-
-def photo_seconds(p: Photo) -> float:
-    """The photo's camera-clock time in seconds (NaN when it has none)."""
-    try:
-        return dt.datetime.fromisoformat(p.taken_at).timestamp()
-    except ValueError:
-        return math.nan
 
 
 @dataclass(frozen=True)
@@ -103,9 +86,9 @@ class AltitudeCheck:
 def check_altitudes(photos: Sequence[Photo], values_m: Sequence[float], label: str) -> AltitudeCheck | None:
     """Trend, jumps and outliers of an altitude series against time (None: too few timed values).
 
-    A robust line (Theil–Sen) through altitude over time gives the drift; a jump is a change
-    between consecutive photos larger than ``MAX_STEP_M`` and six robust sigmas that the
-    following photos keep; an outlier is off the trend by both and alone.
+    A jump is a change between consecutive photos larger than ``MAX_STEP_M`` and six robust
+    sigmas of those changes, with the level held before and after it; the drift is a robust line
+    (Theil–Sen) through the series less its jumps; an outlier is off that line by as much.
     """
     from scipy.stats import theilslopes
 
@@ -164,9 +147,7 @@ def flight_height_range_m(photos: Sequence[Photo], xy: np.ndarray) -> tuple[floa
         course = math.degrees(math.atan2(xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1]))
         rel = abs(((p.yaw_deg - course) + 90.0) % 180.0 - 90.0)  # 0: image top along the course
         known_yaw = "course" not in p.attitude_source and p.attitude_source != "assumed nadir"
-        short, long_ = sorted((p.width_px, p.height_px))
-        side_px = (long_ if p.width_px < p.height_px else short) if (not known_yaw or rel < 45.0) else \
-            (short if p.width_px < p.height_px else long_)
+        side_px = p.height_px if (not known_yaw or rel < 45.0) else p.width_px
         ratios.append(d * p.focal_px / side_px)
     if len(ratios) < 3:
         return None
@@ -189,11 +170,10 @@ class HeightModel:
     checks: tuple[AltitudeCheck, ...] = field(default=(), compare=False)
     vertical_gps_trusted: bool = True
 
-    def summary(self) -> dict[str, object]:
-        """What a product's report records about its heights."""
-        return {"method": self.method, "datum": self.datum, "takeoff_elevation_m": self.takeoff_elevation_m,
-                "vertical_gps_trusted": self.vertical_gps_trusted, "notes": list(self.notes),
-                "checks": [c.describe() for c in self.checks]}
+
+def _ground_level(ground: np.ndarray) -> float:
+    """The ground under the flight as a take-off level: its 30th percentile (below roofs and trees)."""
+    return float(np.nanpercentile(ground, 30))
 
 
 def _ground_under(surface: Surface | None, xy: np.ndarray) -> np.ndarray:
@@ -218,6 +198,7 @@ def resolve_heights(
     flight_height_m: float | None = None,
     gps_altitude: str = "auto",
     ground_label: str = "",
+    gnss_takeoff: bool = False,
 ) -> HeightModel:
     """Camera elevations for ``photos`` at ``xy`` (world CRS), in the datum of ``surface``.
 
@@ -234,6 +215,10 @@ def resolve_heights(
     gps_altitude
         What GPSAltitude holds when there is no RelativeAltitude: auto (decided and said),
         above-takeoff, orthometric or ellipsoidal.
+    gnss_takeoff
+        Without a ground model or a given take-off, put RelativeAltitude flights on the take-off
+        the GNSS heights give (absolute − relative altitude) rather than at 0: camera elevations
+        in the GNSS datum, as SfM's pose priors want them.
 
     Raises
     ------
@@ -260,7 +245,7 @@ def resolve_heights(
         if has_takeoff:
             base, how = float(takeoff_elevation_m), "take-off elevation given"  # type: ignore[arg-type]
         elif np.isfinite(ground).any():
-            base, how = float(np.nanpercentile(ground, 30)), f"take-off at the {label} under the flight"
+            base, how = _ground_level(ground), f"take-off at the {label} under the flight"
         else:
             base, how = 0.0, "flat take-off ground"
         z = np.full(n, base + float(flight_height_m))
@@ -270,13 +255,15 @@ def resolve_heights(
 
     has_rel = np.isfinite(rel)
     if has_rel.sum() >= max(1, n // 2):
-        return _from_relative(photos, xy, lonlat, rel, gnss, ground, surface, takeoff_elevation_m, label, datum)
+        return _from_relative(photos, xy, lonlat, rel, gnss, ground, surface, takeoff_elevation_m, label, datum,
+                              gnss_takeoff)
     return _from_gnss(photos, xy, lonlat, gnss, ground, surface, takeoff_elevation_m, gps_altitude, label, datum)
 
 
 def _from_relative(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, rel: np.ndarray,
                    gnss: np.ndarray, ground: np.ndarray, surface: Surface | None,
-                   takeoff_elevation_m: float | None, label: str, datum: str) -> HeightModel:
+                   takeoff_elevation_m: float | None, label: str, datum: str,
+                   gnss_takeoff: bool = False) -> HeightModel:
     """RelativeAltitude + take-off elevation (given, from the GNSS heights, or from the DSM)."""
     notes: list[str] = []
     checks = [c for c in (check_altitudes(photos, rel, "relative altitude"),) if c is not None]
@@ -291,10 +278,13 @@ def _from_relative(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, 
     offset = float(np.nanmedian(offsets)) if np.isfinite(offsets).any() else math.nan
     if takeoff_elevation_m is not None and math.isfinite(takeoff_elevation_m):
         takeoff, how = float(takeoff_elevation_m), "take-off elevation given"
+    elif surface is None and gnss_takeoff and math.isfinite(offset):
+        takeoff, how = offset, "take-off from absolute − relative altitude (GNSS heights)"
+        datum = "the GNSS heights' datum"
     elif surface is None:
         takeoff, how = 0.0, "flat ground at the take-off point"
     elif isinstance(surface, FlatSurface) or not math.isfinite(offset) or not gnss_ok:
-        takeoff = float(np.nanpercentile(ground, 30)) if np.isfinite(ground).any() else surface.z_min
+        takeoff = _ground_level(ground) if np.isfinite(ground).any() else surface.z_min
         how = f"take-off at the {label} under the flight (30th percentile)"
     else:
         takeoff, how = offset, "take-off from absolute − relative altitude"
@@ -313,7 +303,7 @@ def _from_relative(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, 
                 fix = f"take-off moved into the {label}'s datum by the EGM96 geoid ({alt:.1f} m)"
                 how = f"take-off from absolute − relative altitude, moved by the EGM96 geoid into the {label}'s datum"
             else:
-                alt = float(np.nanpercentile(ground, 30))
+                alt = _ground_level(ground)
                 fix = f"take-off taken from the {label} under the flight instead ({alt:.1f} m)"
                 how = f"take-off at the {label} under the flight (GNSS heights disagree with it)"
             notes.append(f"the GNSS heights put the take-off {gap:+.1f} m off the {label} ({why}); {fix}")
@@ -361,7 +351,7 @@ def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss
     under = ground if np.isfinite(ground).any() else np.full(n, float(takeoff_elevation_m or 0.0))
     under = np.where(np.isfinite(under), under, np.nanmedian(under))
     base = float(takeoff_elevation_m) if has_takeoff else (  # type: ignore[arg-type]
-        float(np.nanpercentile(under, 30)) if known_ground else 0.0)
+        _ground_level(under) if known_ground else 0.0)
     what = f"{len(photos)} photos carry no RelativeAltitude, only a GPS altitude ({np.nanmin(gnss):.0f}–" \
            f"{np.nanmax(gnss):.0f} m)"
     give = "give flight_height_m (height above take-off), or takeoff_elevation_m or a DSM (in the datum of the GPS altitude)"

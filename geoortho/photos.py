@@ -38,6 +38,7 @@ __all__ = [
     "read_photos",
     "list_images",
     "parse_xmp",
+    "photo_seconds",
 ]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff")
@@ -443,18 +444,10 @@ def yaw_from_course(photos: Sequence[Photo], max_gap_s: float = 30.0, min_move_m
     unless told otherwise; the course is a far better guess than north. Photos
     with a known yaw, or no neighbour within ``max_gap_s``, are left alone.
     """
-    import datetime as dt
-
-    def t(p: Photo) -> float | None:
-        try:
-            return dt.datetime.fromisoformat(p.taken_at).timestamp()
-        except ValueError:
-            return None
-
     unknown = {"assumed nadir", "partial"}
     if not any(p.attitude_source in unknown for p in photos):
         return list(photos)
-    timed = sorted((tt, i) for i, p in enumerate(photos) if (tt := t(p)) is not None and p.has_gps)
+    timed = sorted((tt, i) for i, p in enumerate(photos) if math.isfinite(tt := photo_seconds(p)) and p.has_gps)
     # Segment k joins timed photo k to k+1: its course, or None (gap in time, no movement).
     courses: list[float | None] = []
     for (ta, ia), (tb, ib) in zip(timed, timed[1:]):
@@ -491,6 +484,16 @@ def yaw_from_course(photos: Sequence[Photo], max_gap_s: float = 30.0, min_move_m
         out[i] = replace(p, yaw_deg=yaw, attitude_source=p.attitude_source + ", yaw from course",
                          warnings=(*kept, what))
     return out
+
+
+def photo_seconds(p: Photo) -> float:
+    """The photo's camera-clock time in seconds (NaN when it has none)."""
+    import datetime as dt
+
+    try:
+        return dt.datetime.fromisoformat(p.taken_at).timestamp()
+    except ValueError:
+        return math.nan
 
 
 def with_sensor_width(photo: Photo, sensor_width_mm: float) -> Photo:

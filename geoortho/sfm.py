@@ -49,7 +49,7 @@ from .errors import InputError
 from .feedback import Feedback, as_feedback
 from .footprint import photo_cameras, working_crs
 from .gcp.io import GcpSet, read_gcp_file
-from .heights import absolute_altitude, check_altitudes, takeoff_elevation
+from .heights import absolute_altitude, check_altitudes
 from .outputs import write_json, write_vector
 from .photos import Photo, list_images, read_photos
 from .pointcloud import write_las
@@ -160,19 +160,12 @@ def _gps_priors(photos: Sequence[Photo], names: dict[Path, str], crs: Any,
     with_gps = [p for p in photos if p.has_gps and p.has_altitude]
     if not with_gps:
         return _Priors(crs, np.zeros(3), {}, "no GPS")
-    takeoff = takeoff_elevation_m
     notes: list[str] = []
     try:
-        if takeoff is None or not math.isfinite(takeoff):
-            t = takeoff_elevation(with_gps)
-            takeoff = t if math.isfinite(t) else None
-        cams, heights = photo_cameras(with_gps, crs, takeoff_elevation_m=takeoff)
+        cams, heights = photo_cameras(with_gps, crs, takeoff_elevation_m=takeoff_elevation_m, gnss_takeoff=True)
         centres = np.array([c.pose.center for c in cams])
         trusted = heights.vertical_gps_trusted or heights.method.startswith("relative")
         label = heights.method
-        if takeoff_elevation_m is None and takeoff is not None:
-            label = label.replace("take-off elevation given", "take-off from absolute − relative altitude "
-                                                              "(GNSS heights)")
         notes += [n for n in heights.notes if "not trusted" in n or "drift" in n]
     except InputError as e:
         # No height above ground to be had: keep the recorded GNSS altitude (its own datum).
@@ -878,8 +871,7 @@ def sfm(
 
         t0 = time.perf_counter()
         by_name = {names[p.path]: p for p in photos}
-        focal_prior = {cid: float(cam.params[cam.focal_length_idxs()[0]]) for cid, cam in rec.cameras.items()}
-        focal_prior = {cid: _prior_focal(db, cid, f) for cid, f in focal_prior.items()}
+        focal_prior = {cid: _prior_focal(db, cid, _focal_px(cam)) for cid, cam in rec.cameras.items()}
         georef, gps_sim, n_gps = "none (local frame)", None, 0
         tilt = math.nan
         if priors.positions:

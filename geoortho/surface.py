@@ -100,9 +100,9 @@ class GridSurface(Surface):
     """A north-up elevation grid (DSM/DTM); NaN where there is no data.
 
     ``transform`` maps (col, row) of cell corners to world x, y (rasterio's Affine).
-    With ``extend``, the ground goes on beyond the grid and through its holes as the
-    height of the nearest cell with data (a plane at the nearby DSM height), so that
-    a DSM covering part of a flight does not send rays to their range limit.
+    With ``extend``, the ground goes on beyond the grid and through its holes at the
+    nearby ground height (:meth:`nearest_elevation`), so that a DSM covering part of a
+    flight does not send rays to their range limit.
     """
 
     grid: np.ndarray
@@ -233,7 +233,7 @@ class GridSurface(Surface):
         return RayHits(pts, hit, t_end, extended)
 
     def _plane_beyond(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Range to a level plane at the height of the data nearest where the ray lands (a few fixed-point rounds)."""
+        """Range to a level plane at the nearby ground height where the ray lands (a few fixed-point rounds)."""
         z = self.elevation(o[:, 0], o[:, 1])
         t = np.zeros(len(o))
         for _ in range(4):
