@@ -66,7 +66,7 @@ def main() -> int:
     n = int(args.points)
     from scipy.stats import binned_statistic_2d
 
-    from geoortho.dem import Grid, grid_points
+    from geoortho.elevation import Grid, grid_points
 
     with tempfile.TemporaryDirectory() as d:
         las = Path(d) / "cloud.las"

@@ -27,7 +27,7 @@ def peak_rss_mb() -> float:
 
 def bench_metadata(n: int, work: Path) -> None:
     from geoortho.photos import read_photos
-    from geoortho.synth import synth
+    from geoortho.synthetic import synth
 
     survey = synth(work / "survey", preset="tiny", seed=7)
     sources = sorted(survey.images.iterdir())

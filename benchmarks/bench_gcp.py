@@ -68,7 +68,7 @@ def main() -> int:
     from geoortho.gcp import marker_id_of, read_gcp_file
     from geoortho.gcp.detect import diagonal_intersection
     from geoortho.gcp.find import gcp_find
-    from geoortho.synth import synth
+    from geoortho.synthetic import synth
 
     with tempfile.TemporaryDirectory() as d:
         work = Path(d)

@@ -48,10 +48,10 @@ def measure(name: str, preset: str, seed: int, work: Path) -> dict[str, object]:
     from geoortho.errors import GeoorthoError
     from geoortho.footprint import footprints
     from geoortho.gcp.find import gcp_find
-    from geoortho.ortho import ortho
-    from geoortho.ortho.quality import geolocation_shifts
-    from geoortho.sfm import sfm
-    from geoortho.synth import synth
+    from geoortho.orthophoto import ortho
+    from geoortho.orthophoto.quality import geolocation_shifts
+    from geoortho.reconstruction import sfm
+    from geoortho.synthetic import synth
 
     out: dict[str, object] = {"pathology": name}
     t0 = time.perf_counter()
@@ -72,7 +72,7 @@ def measure(name: str, preset: str, seed: int, work: Path) -> dict[str, object]:
     out["sfm_camera_rmse_m"] = _camera_rmse(r.cameras, s.truth)
     rep = json.loads(r.report.read_text())
     out["sfm_notes"] = rep["notes"]
-    o = ortho(s.images, work / "ortho.tif", sfm=r.output, dsm=dsm, resolution=info["preset"]["ortho_cell_m"])
+    o = ortho(s.images, work / "ortho.tif", sfm=r.output, dsm=dsm, resolution_m=info["preset"]["ortho_cell_m"])
     d = [x.distance for x in geolocation_shifts(o.output, s.ortho)]
     out["ortho_geolocation_m"] = float(np.median(d)) if d else float("nan")
     out["ortho_seam_mismatch_dn"] = [o.seam_mismatch_raw, o.seam_mismatch_balanced]

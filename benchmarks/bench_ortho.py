@@ -6,7 +6,7 @@ each runs in its own child process so that its peak memory is its own:
 * plain baseline: every photo warped by GDAL (``rasterio.warp.reproject``) from 25 ground
   control points — its pixel grid cast onto the DSM, i.e. the footprint's homography — then
   ``rasterio.merge.merge`` of all of them: no occlusion, no seams, no balance, no blending;
-* geoortho: :func:`geoortho.ortho.mosaic` (rectification on the DSM with occlusion, graph-cut
+* geoortho: :func:`geoortho.orthophoto.mosaic` (rectification on the DSM with occlusion, graph-cut
   seams, gains, multi-band blending, hole fill, COG with overviews) on ``--workers`` processes.
 
 Prints output megapixels per second, time per stage, peak RSS (main process and largest worker)
@@ -31,7 +31,7 @@ import json, resource, sys, time
 import numpy as np
 from pathlib import Path
 from geoortho.camera import Intrinsics, Pose
-from geoortho.ortho import OrthoCamera
+from geoortho.orthophoto import OrthoCamera
 from geoortho.surface import read_surface
 
 def true_cameras(survey):
@@ -48,7 +48,7 @@ def peak():
 """
 
 OURS = COMMON + r"""
-from geoortho.ortho import mosaic
+from geoortho.orthophoto import mosaic
 survey, out, resolution, workers = json.loads(sys.argv[1])
 survey, out = Path(survey), Path(out)
 surf = read_surface(survey / "truth/dsm.tif")
@@ -122,7 +122,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as d:
         survey = args.survey
         if survey is None:
-            from geoortho.synth import synth
+            from geoortho.synthetic import synth
 
             survey = synth(Path(d) / "survey", preset=args.preset).output
         res = json.loads((survey / "truth" / "survey.json").read_text())["gsd_cm_at_home_height"] / 100.0

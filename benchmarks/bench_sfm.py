@@ -135,7 +135,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as d:
         survey = args.survey
         if survey is None:
-            from geoortho.synth import synth
+            from geoortho.synthetic import synth
 
             survey = synth(Path(d) / "survey", preset=args.preset).output
         images = survey / "images"

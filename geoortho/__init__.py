@@ -14,19 +14,41 @@ __version__ = "0.1.0"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
-# name -> module that defines it
+# name -> module that defines it. Every algorithm is here under its own name
+# (no module is named like a function, so loading the registry or the CLI can
+# never replace one of these with a submodule), with its result dataclass.
 _EXPORTS = {
-    "synth": "geoortho.synth",
-    "demo": "geoortho.demo",
-    "run_algorithm": "geoortho.processing.registry",
+    # the algorithms, in the order of the chain
+    "synth": "geoortho.synthetic",
     "footprints": "geoortho.footprint",
+    "gcp_find": "geoortho.gcp.find",
+    "sfm": "geoortho.reconstruction",
+    "dem": "geoortho.elevation",
+    "ortho": "geoortho.orthophoto.mosaic",
+    "demo": "geoortho.demonstration",
+    # what they return
+    "SynthResult": "geoortho.synthetic",
+    "FootprintResult": "geoortho.footprint",
+    "GcpFindResult": "geoortho.gcp.find",
+    "SfmResult": "geoortho.reconstruction",
+    "DemResult": "geoortho.elevation",
+    "OrthoResult": "geoortho.orthophoto.mosaic",
+    "DemoResult": "geoortho.demonstration",
+    # the building blocks around them
+    "run_algorithm": "geoortho.processing.registry",
     "read_photos": "geoortho.photos",
     "read_photo": "geoortho.photos",
+    "Photo": "geoortho.photos",
+    "read_gcp_file": "geoortho.gcp.io",
+    "GcpSet": "geoortho.gcp.io",
+    "Feedback": "geoortho.feedback",
+    "TerminalFeedback": "geoortho.feedback",
     "GeoorthoError": "geoortho.errors",
     "InputError": "geoortho.errors",
+    "CanceledError": "geoortho.errors",
 }
 
-__all__ = sorted(_EXPORTS)
+__all__ = list(_EXPORTS)
 
 
 def __getattr__(name: str) -> Any:
@@ -36,3 +58,7 @@ def __getattr__(name: str) -> Any:
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

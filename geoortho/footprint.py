@@ -30,7 +30,7 @@ from .camera import Intrinsics, Pose, project_points, rotation_from_ypr, undisto
 from .crs import WGS84, crs_to_text, parse_crs, transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split, warn_grouped
-from .heights import HeightModel, resolve_heights
+from .heights import GpsAltitude, HeightModel, resolve_heights
 from .photos import Photo, read_photos
 from .surface import FlatSurface, Surface, read_surface
 
@@ -82,8 +82,9 @@ def photo_cameras(
     takeoff_elevation_m: float | None = None,
     *,
     flight_height_m: float | None = None,
-    gps_altitude: str = "auto",
+    gps_altitude: GpsAltitude = "auto",
     gnss_takeoff: bool = False,
+    ground_label: str = "",
 ) -> tuple[list[PhotoCamera], HeightModel]:
     """Place every photo in ``crs``: position from GPS, height from :func:`geoortho.heights.resolve_heights`,
     rotation from the attitude. Returns the cameras and the flight's height model (its ``surface``
@@ -95,7 +96,7 @@ def photo_cameras(
     xy = np.c_[x, y]
     heights = resolve_heights(photos, xy, np.c_[lon, lat], surface, takeoff_elevation_m=takeoff_elevation_m,
                               flight_height_m=flight_height_m, gps_altitude=gps_altitude,
-                              gnss_takeoff=gnss_takeoff)
+                              gnss_takeoff=gnss_takeoff, ground_label=ground_label)
     cams = []
     for i, p in enumerate(photos):
         rot = rotation_from_ypr(p.yaw_deg, p.pitch_deg, p.roll_deg)
@@ -185,7 +186,29 @@ def compute_footprints(cams: Sequence[Posed], surface: Surface, *, per_side: int
 
 @dataclass(frozen=True)
 class FootprintResult:
-    """What the footprints algorithm wrote, and the survey's figures."""
+    """What the footprints algorithm wrote, and the survey's figures.
+
+    Attributes
+    ----------
+    output : Path
+        Footprints (layer footprints) and camera positions (layer cameras).
+    crs : str
+        CRS of the output.
+    n_photos : int
+        Photos with a footprint.
+    n_skipped : int
+        Photos skipped.
+    median_gsd_cm : float
+        Median GSD at the image centres, cm.
+    overlap : Path
+        Photos seeing each ground cell (None when not asked for).
+    height_source : str
+        How camera heights were found.
+    vertical_datum : str
+        Vertical datum of the heights.
+    notes : tuple of str
+        What was assumed or checked, in words.
+    """
 
     output: Path
     crs: str
@@ -210,7 +233,7 @@ def footprints(
     overlap: Path | None = None,
     overlap_cell_m: float = 1.0,
     flight_height_m: float | None = None,
-    gps_altitude: str = "auto",
+    gps_altitude: GpsAltitude = "auto",
     *,
     feedback: Feedback | None = None,
 ) -> FootprintResult:
@@ -234,9 +257,10 @@ def footprints(
         Level ground at this elevation (same datum as the photos' altitudes),
         when there is no DSM.
     takeoff_elevation_m : float
-        Ground elevation of the take-off point, in the datum of the DSM or
-        ground elevation. Default: estimated from the photos' absolute and
-        relative altitudes.
+        Ground elevation of the take-off point, in the vertical datum of the ground
+        model (the DSM, the ground elevation or the GCPs). Default: worked out from the
+        photos by geoortho.heights (absolute − relative altitude, checked against the
+        ground model; else the ground under the flight), and said.
     crs : str
         CRS of the output (EPSG code, WKT, PROJ string). Default: the photos'
         UTM zone.

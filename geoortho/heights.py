@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -36,6 +37,7 @@ from .surface import FlatSurface, GridSurface, Surface
 
 __all__ = [
     "GPS_ALTITUDE",
+    "GpsAltitude",
     "AltitudeCheck",
     "HeightModel",
     "check_altitudes",
@@ -44,7 +46,9 @@ __all__ = [
 ]
 
 # What EXIF GPSAltitude / AbsoluteAltitude hold, when the photos carry no RelativeAltitude.
-GPS_ALTITUDE = ("auto", "above-takeoff", "orthometric", "ellipsoidal")
+#: What GPSAltitude holds when there is no RelativeAltitude.
+GpsAltitude = Literal["auto", "above-takeoff", "orthometric", "ellipsoidal"]
+GPS_ALTITUDE: tuple[str, ...] = get_args(GpsAltitude)
 # A mapping flight's front overlap: the spacing of consecutive photos bounds the flight height.
 FRONT_OVERLAP_RANGE = (0.5, 0.85)
 # An altitude series that moves more than this over a constant-height flight is not trusted.
@@ -196,7 +200,7 @@ def resolve_heights(
     *,
     takeoff_elevation_m: float | None = None,
     flight_height_m: float | None = None,
-    gps_altitude: str = "auto",
+    gps_altitude: GpsAltitude = "auto",
     ground_label: str = "",
     gnss_takeoff: bool = False,
 ) -> HeightModel:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import cache
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -11,10 +12,16 @@ from .errors import InputError
 
 __all__ = ["DICTIONARIES", "get_dictionary", "marker_cells"]
 
-#: Every predefined dictionary OpenCV offers, by its usual name (``DICT_4X4_50`` …).
-DICTIONARIES: tuple[str, ...] = tuple(
-    sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and n == n.upper())
-)
+#: Every predefined dictionary OpenCV offers, by its usual name (a test checks it against cv2.aruco).
+Dictionary = Literal[
+    "DICT_4X4_100", "DICT_4X4_1000", "DICT_4X4_250", "DICT_4X4_50",
+    "DICT_5X5_100", "DICT_5X5_1000", "DICT_5X5_250", "DICT_5X5_50",
+    "DICT_6X6_100", "DICT_6X6_1000", "DICT_6X6_250", "DICT_6X6_50",
+    "DICT_7X7_100", "DICT_7X7_1000", "DICT_7X7_250", "DICT_7X7_50",
+    "DICT_APRILTAG_16H5", "DICT_APRILTAG_25H9", "DICT_APRILTAG_36H10", "DICT_APRILTAG_36H11",
+    "DICT_ARUCO_MIP_36H12", "DICT_ARUCO_ORIGINAL",
+]
+DICTIONARIES: tuple[str, ...] = get_args(Dictionary)
 
 
 @cache

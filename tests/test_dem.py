@@ -14,7 +14,7 @@ from conftest import RecordingFeedback, real_data
 from rasterio.warp import Resampling, reproject
 from scipy import ndimage
 
-from geoortho.dem import Grid, dem, grid_points
+from geoortho.elevation import Grid, dem, grid_points
 from geoortho.errors import InputError, ParameterError
 from geoortho.gapfill import fill_harmonic, gap_mask
 from geoortho.pointcloud import open_points
@@ -192,7 +192,7 @@ def test_array_and_ply_input(tmp_path):
     with rasterio.open(r.dsm) as ds:
         z = ds.read(1, masked=True)
         assert np.allclose(z.compressed(), 12.5)
-    from geoortho.dem import grid_points as gp
+    from geoortho.elevation import grid_points as gp
 
     g = Grid.covering(500000, 4e6, 500050, 4e6 + 50, 2.0)
     assert np.nanmax(gp(xyz[:, 0], xyz[:, 1], xyz[:, 2], g)) == 12.5

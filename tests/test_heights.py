@@ -29,7 +29,7 @@ from geoortho.surface import FlatSurface
 
 
 def _survey(tmp_path_factory, name, pathology):
-    from geoortho.synth import synth
+    from geoortho.synthetic import synth
 
     return synth(tmp_path_factory.mktemp(name), preset="tiny", seed=3, workers=os.cpu_count() or 1,
                  pathology=pathology)
@@ -238,7 +238,7 @@ def _camera_rmse(result, survey) -> float:
 
 @pytest.fixture(scope="module")
 def clean_sfm(tiny_survey, tmp_path_factory):
-    from geoortho.sfm import sfm
+    from geoortho.reconstruction import sfm
 
     d = tmp_path_factory.mktemp("clean_sfm")
     return sfm(tiny_survey.images, d / "out", gcp_list=_gcp_list(tiny_survey, d), **SFM_FAST)
@@ -265,8 +265,8 @@ def _shifted(dsm: Path, out: Path, dz_m: float, keep_east_of: float | None = Non
 
 
 def test_ortho_dsm_in_another_datum_measured_corrected_or_refused(clean_sfm, tiny_survey, tmp_path):
-    from geoortho.ortho import ortho
-    from geoortho.ortho.quality import geolocation_shifts
+    from geoortho.orthophoto import ortho
+    from geoortho.orthophoto.quality import geolocation_shifts
 
     n = float(geoid_undulation_m(-9.1887, 38.7476))
     good = ortho(tiny_survey.images, tmp_path / "good.tif", sfm=clean_sfm.output, dsm=tiny_survey.dsm, workers=1)
@@ -288,7 +288,7 @@ def test_ortho_dsm_in_another_datum_measured_corrected_or_refused(clean_sfm, tin
 
 
 def test_ortho_partial_dsm_keeps_every_photo(clean_sfm, tiny_survey, tmp_path):
-    from geoortho.ortho import ortho
+    from geoortho.orthophoto import ortho
 
     info = _info(tiny_survey)
     fx0, _, fx1, _ = info["flight_box"]
@@ -304,7 +304,7 @@ def test_ortho_partial_dsm_keeps_every_photo(clean_sfm, tiny_survey, tmp_path):
 
 
 def test_sfm_drifting_altitude_levelled_then_on_the_gcps(drift, clean_sfm_rmse, tmp_path):
-    from geoortho.sfm import sfm
+    from geoortho.reconstruction import sfm
 
     r0 = sfm(drift.images, tmp_path / "gps", **SFM_FAST)
     rep0 = json.loads(r0.report.read_text())
@@ -316,7 +316,7 @@ def test_sfm_drifting_altitude_levelled_then_on_the_gcps(drift, clean_sfm_rmse, 
 
 
 def test_sfm_wrong_exif_focal_held_reported_then_fixed_by_gcps(tmp_path_factory, clean_sfm_rmse):
-    from geoortho.sfm import sfm
+    from geoortho.reconstruction import sfm
 
     survey = _survey(tmp_path_factory, "wrong_focal", "wrong-focal")
     d = tmp_path_factory.mktemp("wf")
@@ -352,7 +352,7 @@ def test_toledo_height_source_gsd_and_focal(toledo_sfm, tmp_path):
 
 
 def test_exposure_steps_balanced_from_exif_and_the_overlaps(tmp_path_factory):
-    from geoortho.ortho import ortho
+    from geoortho.orthophoto import ortho
 
     survey = _survey(tmp_path_factory, "exposure", "exposure-steps")
     d = tmp_path_factory.mktemp("exp")

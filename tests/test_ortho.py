@@ -15,8 +15,8 @@ from scipy import ndimage
 
 from geoortho.camera import Intrinsics, Pose
 from geoortho.errors import InputError
-from geoortho.ortho import OrthoCamera, mosaic, ortho
-from geoortho.ortho.quality import geolocation_shifts, read_on_grid
+from geoortho.orthophoto import OrthoCamera, mosaic, ortho
+from geoortho.orthophoto.quality import geolocation_shifts, read_on_grid
 from geoortho.surface import read_surface
 
 TRUE_CELL_M = 0.05  # the small preset's true ortho: our grid lands on its pixels
@@ -32,7 +32,7 @@ def _true_cameras(survey):
 
 def test_project_grid_is_the_camera_model():
     """The tiles' float32 per-component projection agrees with camera.project_points (distortion too)."""
-    from geoortho.ortho.rectify import project_grid
+    from geoortho.orthophoto.rectify import project_grid
 
     intr = Intrinsics(1600, 1067, 1066.7, 800.3, 533.1, (-0.02, 0.01, 0.001, -0.002, 0.003))
     cam = OrthoCamera("a", None, intr, Pose.from_ypr((500000.0, 4300000.0, 140.0), 30, -80, 2))
@@ -149,7 +149,7 @@ def test_occlusion_keeps_roofs_off_the_ground_beside_buildings(true_ortho, small
 def test_sfm_poses_with_gcps_jpeg_cog(sfm_with_gcps, small_survey, tmp_path):
     r_sfm, _ = sfm_with_gcps
     r = ortho(small_survey.images, tmp_path / "o.tif", sfm=r_sfm.output, dsm=small_survey.dsm,
-              resolution=TRUE_CELL_M, compress="JPEG", workers=2)
+              resolution_m=TRUE_CELL_M, compress="JPEG", workers=2)
     d = np.array([s.distance for s in geolocation_shifts(r.output, small_survey.ortho)])
     assert len(d) >= 30
     assert np.median(d) <= 2 * _gsd_m(small_survey)  # measured 0.9 mm
@@ -201,7 +201,7 @@ def test_dsm_holes_are_filled_and_said(tiny_survey, tmp_path):
         dst.write(z, 1)
     home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
     r = ortho(tiny_survey.images, tmp_path / "o.tif", dsm=holed, takeoff_elevation_m=home["ground_z"],
-              resolution=0.03, workers=1)
+              resolution_m=0.03, workers=1)
     assert any("36 nodata cells" in n for n in r.notes)
     assert any("finer than the photos' median GSD" in n for n in r.notes)  # 3 cm asked, GSD 4.7 cm
     assert r.holes_left_px == 0
@@ -221,7 +221,7 @@ def test_bad_input_exit_2(tmp_path):
 def test_toledo_mosaic_from_sfm(toledo_sfm, tmp_path):
     """Real photos: two camera bodies, downscaled photos with lying EXIF sizes, UTM 17N."""
     base = real_data("toledo_dji")
-    r = ortho(base / "images", tmp_path / "toledo.tif", sfm=toledo_sfm.output, resolution=0.3,
+    r = ortho(base / "images", tmp_path / "toledo.tif", sfm=toledo_sfm.output, resolution_m=0.3,
               preview=tmp_path / "toledo.png", workers=2)
     assert r.n_used >= 50 and "32617" in r.crs
     assert r.holes_left_px == 0

@@ -60,20 +60,20 @@ def test_outputs_are_attributes_of_the_result_type():
 
 
 def test_converters_validate_ranges_and_types(tmp_path):
-    assert convert_value(Param("n", "integer", 0, minimum=0), "3") == 3
+    assert convert_value(Param("n", "integer", default=0, minimum=0), "3") == 3
     with pytest.raises(ParameterError, match="n: 3.5"):
-        convert_value(Param("n", "number", 0, minimum=0, maximum=2, unit="m"), "3.5")
+        convert_value(Param("n", "number", default=0, minimum=0, maximum=2, unit="m"), "3.5")
     with pytest.raises(ParameterError, match="expected an integer"):
-        convert_value(Param("n", "integer", 0), "2.5")
+        convert_value(Param("n", "integer", default=0), "2.5")
     with pytest.raises(ParameterError, match="not one of"):
-        convert_value(Param("e", "enum", "a", choices=("a", "b")), "c")
-    assert convert_value(Param("b", "bool", False), "yes") is True
+        convert_value(Param("e", "enum", default="a", choices=("a", "b")), "c")
+    assert convert_value(Param("b", "bool", default=False), "yes") is True
     with pytest.raises(ParameterError, match="no such file"):
         convert_value(Param("f", "file"), tmp_path / "missing.txt")
     assert convert_value(Param("f", "file", output=True), tmp_path / "new.txt") == tmp_path / "new.txt"
-    assert convert_value(Param("c", "crs", None), "WGS84 UTM 29N").to_epsg() == 32629
+    assert convert_value(Param("c", "crs", default=None), "WGS84 UTM 29N").to_epsg() == 32629
     with pytest.raises(ParameterError, match="unknown CRS"):
-        convert_value(Param("c", "crs", None), "EPSG:999999")
+        convert_value(Param("c", "crs", default=None), "EPSG:999999")
 
 
 def test_parse_docstring_reads_numpydoc():

@@ -15,7 +15,7 @@ from conftest import RecordingFeedback
 from geoortho.camera import rotation_from_ypr
 from geoortho.errors import InputError
 from geoortho.photos import read_photos
-from geoortho.sfm import _bodies, ce90, le90, sfm
+from geoortho.reconstruction import _bodies, ce90, le90, sfm
 
 FAST = {"max_image_size": 1024, "max_features": 4096}
 

@@ -224,7 +224,7 @@ def test_rasters_and_points(tiny_survey):
 
 
 def test_deterministic_for_a_seed(tmp_path, tiny_survey):
-    from geoortho.synth import synth
+    from geoortho.synthetic import synth
 
     again = synth(tmp_path / "again", preset="tiny", seed=3, workers=1)
     for name in ("poses.json", "markers.json", "gcp_utm.txt"):
@@ -266,7 +266,7 @@ def test_oblique_plan_and_footprints():
     """The oblique preset adds photos at pitch -45..-70 with free yaw; their true footprints reach
     far from the drone on the side it looks at (checked on the plan, to keep the suite fast)."""
     from geoortho.camera import Intrinsics
-    from geoortho.synth import (
+    from geoortho.synthetic import (
         FOCAL_MM,
         PRESETS,
         SENSOR_WIDTH_MM,
@@ -298,7 +298,7 @@ def test_oblique_plan_and_footprints():
 
 def test_bad_preset_is_an_input_error(tmp_path):
     from geoortho.errors import InputError
-    from geoortho.synth import synth
+    from geoortho.synthetic import synth
 
     with pytest.raises(InputError, match="unknown preset"):
         synth(tmp_path, preset="huge")  # type: ignore[arg-type]

@@ -43,7 +43,7 @@ from ..crs import crs_to_text, parse_crs, transformer
 from ..errors import InputError
 from ..feedback import Feedback, as_feedback, split
 from ..footprint import PhotoCamera, photo_cameras, working_crs
-from ..markers import get_dictionary
+from ..markers import Dictionary, get_dictionary
 from ..parallel import map_ordered, process_pool
 from ..photos import Photo, list_images, read_photos
 from ..surface import FlatSurface, Surface, read_surface
@@ -81,6 +81,28 @@ class Observation:
 
 @dataclass(frozen=True)
 class GcpFindResult:
+    """What gcp-find wrote and found.
+
+    Attributes
+    ----------
+    output : Path
+        OpenDroneMap gcp_list.txt.
+    detections : Path
+        Every candidate and what became of it (None when not asked for).
+    review : Path
+        PNG contact sheet of the detections (None when not asked for).
+    n_observations : int
+        Observations written.
+    n_gcps_found : int
+        GCPs seen at least once.
+    n_candidates : int
+        (photo, GCP) pairs searched.
+    crs : str
+        CRS of gcp_list.txt.
+    flight_offset_m : tuple of float
+        The flight's common position error measured on the pilot photos (east, north, metres).
+    """
+
     output: Path
     detections: Path | None
     review: Path | None
@@ -158,7 +180,7 @@ def gcp_find(
     images: Path,
     gcp_file: Path,
     output: Path,
-    dictionary: str = "DICT_4X4_50",
+    dictionary: Dictionary = "DICT_4X4_50",
     margin: float = 0.0,
     dsm: Path | None = None,
     takeoff_elevation_m: float | None = None,
@@ -197,7 +219,10 @@ def gcp_find(
     dsm : Path
         DSM or DTM (same vertical datum as the GCPs) for the camera heights.
     takeoff_elevation_m : float
-        Ground elevation of the take-off point in the GCPs' datum. Default: the median GCP elevation.
+        Ground elevation of the take-off point, in the vertical datum of the ground
+        model (the DSM, the ground elevation or the GCPs). Default: worked out from the
+        photos by geoortho.heights (absolute − relative altitude, checked against the
+        ground model; else the ground under the flight), and said.
     gcp_crs : str
         CRS of the GCP file when it does not say.
     crs : str
@@ -281,12 +306,12 @@ def _plan(photos: list[Photo], gcps: GcpSet, ids: dict[str, int], dsm: Path | No
     t = transformer(gcps.crs, work)
     gx, gy = t.transform(np.array([p.x for p in gcps.points]), np.array([p.y for p in gcps.points]))
     plan.xyz = np.c_[gx, gy, [p.z for p in gcps.points]]
-    surface: Surface | None = read_surface(dsm, work) if dsm is not None else None
-    takeoff = takeoff_elevation_m if takeoff_elevation_m is not None else float(np.median(plan.xyz[:, 2]))
-    if surface is None:
-        surface = FlatSurface(takeoff)
+    # The ground model: the DSM, else the GCPs themselves (flat at their median height). The
+    # take-off is then worked out as everywhere else (geoortho.heights), unless given.
+    surface: Surface = read_surface(dsm, work) if dsm is not None else FlatSurface(float(np.median(plan.xyz[:, 2])))
     try:
-        placed_cams, heights = photo_cameras(placed, work, surface, takeoff)
+        placed_cams, heights = photo_cameras(placed, work, surface, takeoff_elevation_m,
+                                             ground_label="DSM" if dsm is not None else "GCPs' median height")
     except InputError as e:
         # No trustworthy camera height: predictions would be wrong, so search whole photos.
         fb.warning(f"camera heights unknown ({e}): every photo is searched whole")

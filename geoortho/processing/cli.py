@@ -101,7 +101,7 @@ def _add_algorithm(sub: Any, alg: Algorithm) -> None:
         group = req if param.required else opt
         kwargs = ARGPARSE_OPTIONS[param.type](param)
         group.add_argument(
-            param.cli_flag, dest=param.name, default=None, required=param.required,
+            param.cli_flag, *param.cli_aliases, dest=param.name, default=None, required=param.required,
             help=_option_help(param), **kwargs,
         )
     _add_common(p)

@@ -15,6 +15,7 @@ from pyproj import CRS
 from ..camera import Intrinsics, Pose, project_points
 from ..crs import parse_crs
 from ..errors import InputError
+from ..heights import GpsAltitude
 
 __all__ = ["OrthoCamera", "cameras_from_sfm", "cameras_from_metadata"]
 
@@ -135,7 +136,7 @@ def _moved(tr: Any, centre: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np
 
 def cameras_from_metadata(photos: Sequence[Any], crs: CRS, surface: Any = None,
                           takeoff_elevation_m: float | None = None, *, flight_height_m: float | None = None,
-                          gps_altitude: str = "auto") -> tuple[list[OrthoCamera], Any]:
+                          gps_altitude: GpsAltitude = "auto") -> tuple[list[OrthoCamera], Any]:
     """Direct georeferencing: poses from GPS, altitude and gimbal attitude (see :mod:`geoortho.footprint`).
     Returns the cameras and the flight's :class:`~geoortho.heights.HeightModel`."""
     from ..footprint import photo_cameras

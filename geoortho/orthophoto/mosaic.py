@@ -15,17 +15,18 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
 from affine import Affine
 from pyproj import CRS
 
-from ..crs import crs_to_text
+from ..crs import crs_to_text, horizontal_unit_m
 from ..errors import InputError
 from ..feedback import Feedback, as_feedback, split
 from ..footprint import compute_footprints
+from ..heights import GpsAltitude
 from ..outputs import atomic_path, write_json
 from ..parallel import imap_ordered
 from ..surface import FlatSurface, GridSurface, Surface
@@ -40,24 +41,72 @@ from .rectify import (
     visibility_grid,
     window_xyz,
 )
-from .seams import BALANCE, SEAMS, SeamPlan, plan_seams, read_photo_bgr
+from .seams import BALANCE, SEAMS, Balance, SeamMethod, SeamPlan, plan_seams, read_photo_bgr
 
-DSM_OFFSET = ("correct", "refuse", "ignore")
+DsmOffset = Literal["correct", "refuse", "ignore"]
+DSM_OFFSET: tuple[str, ...] = get_args(DsmOffset)
 
 __all__ = ["OrthoResult", "ortho", "mosaic", "BLEND", "BALANCE", "SEAMS", "COMPRESS", "INTERPOLATION"]
 
-BLEND = ("multiband", "feather", "none")
-COMPRESS = ("DEFLATE", "JPEG")
+Blend = Literal["multiband", "feather", "none"]
+Compression = Literal["DEFLATE", "JPEG"]
+Interpolation = Literal["bilinear", "bicubic", "lanczos", "nearest"]
+BLEND: tuple[str, ...] = get_args(Blend)
+COMPRESS: tuple[str, ...] = get_args(Compression)
 _INTERPOLATION = {"bilinear": cv2.INTER_LINEAR, "bicubic": cv2.INTER_CUBIC, "lanczos": cv2.INTER_LANCZOS4,
                   "nearest": cv2.INTER_NEAREST}
-INTERPOLATION = tuple(_INTERPOLATION)
+INTERPOLATION: tuple[str, ...] = get_args(Interpolation)
 _BANDS = 5  # multi-band levels: the lowest spans 2**5 px on each side of a seam
 _CACHE_BYTES = 600 * 2**20  # decoded photos kept per worker
 
 
 @dataclass(frozen=True)
 class OrthoResult:
-    """The orthophoto and what was measured while making it."""
+    """The orthophoto and what was measured while making it.
+
+    Attributes
+    ----------
+    output : Path
+        Orthophoto (COG, RGB + alpha).
+    preview : Path
+        PNG preview (None when not asked for).
+    report : Path
+        Report JSON: resolution, GSD, coverage, holes, seam colour mismatch, gains.
+    crs : str
+        CRS of the orthophoto.
+    resolution_m : float
+        Pixel size, metres.
+    median_gsd_m : float
+        Median GSD of the photos, metres.
+    width_px : int
+        Width of the orthophoto.
+    height_px : int
+        Height of the orthophoto.
+    n_photos : int
+        Photos given.
+    n_used : int
+        Photos in the mosaic.
+    coverage_px : int
+        Pixels with data.
+    holes_filled_px : int
+        Pixels inpainted inside the coverage.
+    holes_left_px : int
+        Holes left transparent (wider than max_hole_px).
+    seam_mismatch_raw : float
+        Colour difference across seams before balancing, DN.
+    seam_mismatch_balanced : float
+        Colour difference across seams after balancing, DN.
+    poses : str
+        Where the poses came from.
+    surface : str
+        What the photos were rectified on.
+    skipped : tuple of (str, str)
+        Photos left out, and why.
+    notes : tuple of str
+        What was assumed or checked, in words.
+    seconds : dict of str to float
+        Time spent in each step.
+    """
 
     output: Path
     preview: Path | None
@@ -311,14 +360,14 @@ def mosaic(
     output: str | os.PathLike[str],
     resolution_m: float | None = None,
     *,
-    seams: str = "graphcut",
-    balance: str = "channels",
-    blend: str = "multiband",
+    seams: SeamMethod = "graphcut",
+    balance: Balance = "channels",
+    blend: Blend = "multiband",
     max_hole_px: int = 64,
-    compress: str = "DEFLATE",
+    compress: Compression = "DEFLATE",
     preview: str | os.PathLike[str] | None = None,
     tile_px: int = 1024,
-    interpolation: str = "bilinear",
+    interpolation: Interpolation = "bilinear",
     occlusion: bool = True,
     workers: int = 0,
     poses: str = "given",
@@ -375,7 +424,7 @@ def mosaic(
         raise InputError("no photo sees the surface: nothing to mosaic")
     finite = [g for g in gsds if math.isfinite(g)]
     median_gsd = float(np.median(finite)) if finite else math.nan
-    if resolution_m is None:
+    if not resolution_m:  # None or 0: the photos' median GSD
         if not math.isfinite(median_gsd):
             raise InputError("the GSD could not be found; give a resolution")
         resolution_m = float(f"{median_gsd:.3g}")
@@ -530,22 +579,22 @@ def ortho(
     output: Path,
     sfm: Path | None = None,
     dsm: Path | None = None,
-    resolution: float | None = None,
+    resolution_m: float | None = None,
     crs: str | None = None,
     ground_elevation_m: float | None = None,
     takeoff_elevation_m: float | None = None,
-    seams: str = "graphcut",
-    balance: str = "channels",
-    blend: str = "multiband",
+    seams: SeamMethod = "graphcut",
+    balance: Balance = "channels",
+    blend: Blend = "multiband",
     max_hole_px: int = 64,
-    compress: str = "DEFLATE",
+    compress: Compression = "DEFLATE",
     preview: Path | None = None,
-    interpolation: str = "bilinear",
+    interpolation: Interpolation = "bilinear",
     tile_px: int = 1024,
     workers: int = 0,
     flight_height_m: float | None = None,
-    gps_altitude: str = "auto",
-    dsm_offset: str = "correct",
+    gps_altitude: GpsAltitude = "auto",
+    dsm_offset: DsmOffset = "correct",
     max_dsm_offset_m: float = 1.0,
     *,
     feedback: Feedback | None = None,
@@ -568,15 +617,18 @@ def ortho(
         Output folder of the sfm algorithm (poses and calibrated cameras).
     dsm : Path
         Surface model to rectify on (e.g. from the dem algorithm).
-    resolution : float
-        Ground size of an output pixel in CRS units; default the photos' median GSD.
+    resolution_m : float
+        Ground size of an output pixel, metres; default (or 0): the photos' median GSD.
     crs : str
         Output CRS (projected); default the SfM model's or the photos' UTM zone.
     ground_elevation_m : float
         Flat ground elevation when no DSM is given (default: the SfM points'
         median height, or the take-off elevation).
     takeoff_elevation_m : float
-        Take-off elevation for poses from metadata (heights are relative to it).
+        Ground elevation of the take-off point, in the vertical datum of the ground
+        model (the DSM, the ground elevation or the GCPs). Default: worked out from the
+        photos by geoortho.heights (absolute − relative altitude, checked against the
+        ground model; else the ground under the flight), and said.
     seams : str
         graphcut (seams moved onto low-difference paths) or voronoi (best-seeing photo).
     balance : str
@@ -630,6 +682,10 @@ def ortho(
             raise InputError("no photo with a GPS position and a camera model", path=images)
         out_crs = working_crs(photoset.photos, crs)
         cams, default_ground, poses = None, None, "photo metadata (direct georeferencing)"
+    if abs(horizontal_unit_m(out_crs) - 1.0) > 1e-9:
+        # poses, heights and resolution_m are metres: a feet grid would be silently mis-scaled
+        raise InputError(f"the orthophoto is made in a CRS in metres and {crs_to_text(out_crs)} is not: "
+                         "give crs in metres (and reproject the product if feet are wanted)")
     surface: Surface
     if dsm is not None:
         surface = _read_dsm(Path(dsm), out_crs, fb, notes)
@@ -652,7 +708,7 @@ def ortho(
         surface = _check_dsm_against_points(surface, pts, dsm_offset, max_dsm_offset_m, notes, fb)
     if len(cams) == 0:
         raise InputError("no registered photo to rectify", path=sfm or images)
-    return mosaic(cams, surface, out_crs, output, resolution, seams=seams, balance=balance, blend=blend,
+    return mosaic(cams, surface, out_crs, output, resolution_m, seams=seams, balance=balance, blend=blend,
                   max_hole_px=max_hole_px, compress=compress, preview=preview, tile_px=tile_px, workers=workers,
                   interpolation=interpolation, poses=poses, notes=notes, skipped=skipped, feedback=fb)
 

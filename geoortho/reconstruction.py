@@ -39,7 +39,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -56,9 +56,12 @@ from .pointcloud import write_las
 
 __all__ = ["SfmResult", "sfm", "MATCHING", "MAPPERS", "CAMERA_MODELS", "ce90", "le90"]
 
-MATCHING = ("auto", "exhaustive", "spatial", "sequential")
-MAPPERS = ("incremental", "global")
-CAMERA_MODELS = ("RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE")
+Matching = Literal["auto", "exhaustive", "spatial", "sequential"]
+Mapper = Literal["incremental", "global"]
+CameraModel = Literal["RADIAL", "SIMPLE_RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE"]
+MATCHING: tuple[str, ...] = get_args(Matching)
+MAPPERS: tuple[str, ...] = get_args(Mapper)
+CAMERA_MODELS: tuple[str, ...] = get_args(CameraModel)
 # A georeferenced model whose vertical is this far from the photos' gravity was bent by bad GPS heights.
 MAX_TILT_DEG = 3.0
 # Focal length changes beyond this (percent of the EXIF value) are reported.
@@ -73,6 +76,38 @@ _LE90_PER_SIGMA = 1.6449
 
 @dataclass(frozen=True)
 class SfmResult:
+    """The georeferenced reconstruction and its accuracy figures.
+
+    Attributes
+    ----------
+    output : Path
+        The SfM folder.
+    model : Path
+        COLMAP model (local frame; georeference.json gives CRS and offset).
+    points : Path
+        Georeferenced sparse points, coloured.
+    cameras : Path
+        Camera centres, orientation and residuals.
+    report : Path
+        report.json: registration, reprojection, GCP/checkpoint residuals.
+    n_photos : int
+        Photos read.
+    n_registered : int
+        Photos registered.
+    crs : str
+        CRS of the outputs.
+    mean_reprojection_error_px : float
+        Mean reprojection error, px.
+    gcp_rmse_m : float
+        3D RMSE at the control GCPs (NaN without).
+    checkpoint_rmse_m : float
+        3D RMSE at the checkpoints (NaN without).
+    georeferenced_by : str
+        What put the model in the CRS.
+    notes : tuple of str
+        What was assumed or checked, in words.
+    """
+
     output: Path
     model: Path
     points: Path
@@ -286,7 +321,7 @@ def _match(db: Path, how: str, photos: Sequence[Photo], priors: _Priors, workers
 
 
 def _map(db: Path, image_root: Path, work: Path, use_priors: bool, workers: int, seed: int,
-         refine_focal: bool = True, mapper: str = "incremental") -> list[Any]:
+         refine_focal: bool = True, mapper: Mapper = "incremental") -> list[Any]:
     pc = _pycolmap()
     if mapper == "global":
         # GLOMAP: rotation averaging + global positioning, one bundle adjustment; it takes no pose
@@ -726,16 +761,16 @@ def sfm(
     gcp_list: Path | None = None,
     checkpoints: str = "",
     crs: str | None = None,
-    matching: str = "auto",
+    matching: Matching = "auto",
     max_image_size: int = 2048,
     max_features: int = 8192,
-    camera_model: str = "RADIAL",
+    camera_model: CameraModel = "RADIAL",
     takeoff_elevation_m: float | None = None,
     gps_sigma_m: float = 2.0,
     local_frame: bool = False,
     seed: int = 0,
     workers: int = 0,
-    mapper: str = "incremental",
+    mapper: Mapper = "incremental",
     *,
     feedback: Feedback | None = None,
 ) -> SfmResult:
@@ -763,8 +798,10 @@ def sfm(
     camera_model : str
         COLMAP camera model, one per camera body.
     takeoff_elevation_m : float
-        Elevation of the take-off point in the output height datum; default: the
-        flight's absolute − relative altitude (GNSS heights, often metres off).
+        Ground elevation of the take-off point, in the vertical datum of the ground
+        model (the DSM, the ground elevation or the GCPs). Default: worked out from the
+        photos by geoortho.heights (absolute − relative altitude, checked against the
+        ground model; else the ground under the flight), and said.
     gps_sigma_m : float
         Horizontal standard deviation of the photos' GPS positions (vertical: twice that).
     local_frame : bool

@@ -17,7 +17,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -30,8 +30,12 @@ from .pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points
 
 __all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
 
-METHODS = ("max", "min", "mean", "idw", "count")
-GROUND_METHODS = ("smrf", "csf", "classification")
+Method = Literal["max", "min", "mean", "idw", "count"]
+GroundMethod = Literal["smrf", "csf", "classification"]
+Engine = Literal["native", "pdal"]
+METHODS: tuple[str, ...] = get_args(Method)
+GROUND_METHODS: tuple[str, ...] = get_args(GroundMethod)
+ENGINES: tuple[str, ...] = get_args(Engine)
 NODATA = -9999.0
 GROUND = 2
 
@@ -138,7 +142,7 @@ class _Accumulator:
         return out.reshape(self.grid.rows, self.grid.cols)
 
 
-def grid_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: Grid, method: str = "max") -> np.ndarray:
+def grid_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: Grid, method: Method = "max") -> np.ndarray:
     """One statistic of the points per cell (NaN where none fell)."""
     acc = _Accumulator(grid, method)
     acc.add(np.asarray(x, float), np.asarray(y, float), np.asarray(z, float))
@@ -147,6 +151,32 @@ def grid_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: Grid, method:
 
 @dataclass(frozen=True)
 class DemResult:
+    """The rasters dem wrote and what it measured.
+
+    Attributes
+    ----------
+    dsm : Path
+        DSM (COG, float32, nodata -9999).
+    dtm : Path
+        DTM from ground points (None when not asked for).
+    classified : Path
+        The cloud with ground as class 2 (None when not asked for).
+    hillshade : Path
+        Hillshade preview (None when not asked for).
+    resolution : float
+        Cell size in the CRS units (feet in a CRS in feet).
+    crs : str
+        CRS of the rasters.
+    units : str
+        Horizontal and vertical units.
+    n_points : int
+        Points used.
+    n_ground : int
+        Ground points.
+    notes : tuple of str
+        What was assumed or checked, in words.
+    """
+
     dsm: Path
     dtm: Path | None
     classified: Path | None
@@ -181,21 +211,21 @@ def dem(
     points: Path,
     output: Path,
     dtm: Path | None = None,
-    resolution_m: float = 0.0,
-    method: str = "max",
-    ground_method: str = "smrf",
+    resolution_m: float | None = None,
+    method: Method = "max",
+    ground_method: GroundMethod = "smrf",
     crs: str | None = None,
     max_gap_m: float = 25.0,
     smooth_px: int = 0,
     classified: Path | None = None,
     hillshade: Path | None = None,
-    smrf_cell_m: float = 1.0,
-    smrf_slope: float = 0.15,
-    smrf_window_m: float = 18.0,
-    smrf_threshold_m: float = 0.5,
-    smrf_scalar: float = 1.25,
-    smrf_margin_m: float = 1.0,
-    engine: str = "native",
+    smrf_cell_m: float = SmrfParams.cell_m,
+    smrf_slope: float = SmrfParams.slope,
+    smrf_window_m: float = SmrfParams.window_m,
+    smrf_threshold_m: float = SmrfParams.threshold_m,
+    smrf_scalar: float = SmrfParams.scalar,
+    smrf_margin_m: float = SmrfParams.margin_m,
+    engine: Engine = "native",
     *,
     feedback: Feedback | None = None,
 ) -> DemResult:
@@ -215,7 +245,9 @@ def dem(
     dtm : Path
         Also write a DTM (ground only) here.
     resolution_m : float
-        Cell size in metres; 0 = from the point density (about two points per cell).
+        Cell size in metres on the ground (in a CRS in feet, converted: the result's
+        ``resolution`` states it in feet); default (or 0): from the point density, about
+        two points per cell.
     method : str
         DSM statistic per cell: max, min, mean, idw or count.
     ground_method : str
@@ -250,10 +282,10 @@ def dem(
         raise ParameterError("method", f"unknown method {method!r}; use one of {', '.join(METHODS)}")
     if ground_method not in GROUND_METHODS:
         raise ParameterError("ground_method", f"unknown ground method {ground_method!r}; use one of {', '.join(GROUND_METHODS)}")
-    if resolution_m < 0 or max_gap_m < 0 or smooth_px < 0:
+    if (resolution_m or 0.0) < 0 or max_gap_m < 0 or smooth_px < 0:
         raise ParameterError("resolution_m", "resolution, max gap and smoothing must not be negative")
-    if engine not in ("native", "pdal"):
-        raise ParameterError("engine", f"unknown engine {engine!r}; use native or pdal")
+    if engine not in ENGINES:
+        raise ParameterError("engine", f"unknown engine {engine!r}; use one of {', '.join(ENGINES)}")
     src = open_points(points, crs)
     if src.count == 0:
         raise InputError("the point cloud is empty", path=src.path)

@@ -3,7 +3,7 @@
 
 Every photo is rectified at the coarse cell (decoded at a reduced size by the
 JPEG decoder itself). Each cell first goes to the photo that sees it best
-(:func:`~geoortho.ortho.rectify.preference_cost`): a Voronoi-like split. A band
+(:func:`~geoortho.orthophoto.rectify.preference_cost`): a Voronoi-like split. A band
 around each of those borders is then handed to OpenCV's graph-cut seam finder,
 which moves the seam inside the band to where the two photos agree (around a
 building rather than through it). Gains are solved jointly over all overlaps
@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
@@ -36,8 +36,10 @@ from .rectify import (
 
 __all__ = ["SeamPlan", "plan_seams", "read_photo_bgr"]
 
-BALANCE = ("channels", "gain", "none")
-SEAMS = ("graphcut", "voronoi")
+Balance = Literal["channels", "gain", "none"]
+SeamMethod = Literal["graphcut", "voronoi"]
+BALANCE: tuple[str, ...] = get_args(Balance)
+SEAMS: tuple[str, ...] = get_args(SeamMethod)
 
 
 @dataclass(frozen=True, eq=False)

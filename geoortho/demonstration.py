@@ -10,14 +10,22 @@ from typing import TYPE_CHECKING, Literal
 from .feedback import Feedback, as_feedback, split
 
 if TYPE_CHECKING:
-    from .synth import SynthResult
+    from .synthetic import SynthResult
 
 __all__ = ["DemoResult", "demo"]
 
 
 @dataclass(frozen=True)
 class DemoResult:
-    """Where each product of the demo is."""
+    """Where each product of the demo is.
+
+    Attributes
+    ----------
+    output : Path
+        The demo folder.
+    products : dict of str to str
+        Product paths by name.
+    """
 
     output: Path
     products: dict[str, str] = field(default_factory=dict)
@@ -44,7 +52,7 @@ def demo(
     seed : int
         Random seed of the synthetic survey.
     """
-    from .synth import synth
+    from .synthetic import synth
 
     fb = as_feedback(feedback)
     output = Path(output)
@@ -94,7 +102,7 @@ def _gcp_find(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]
 
 
 def _sfm(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
-    from .sfm import sfm
+    from .reconstruction import sfm
 
     gcp_list = output / "gcp_list.txt"
     names = sorted({ln.split()[6] for ln in gcp_list.read_text().splitlines()[1:] if len(ln.split()) >= 7})
@@ -108,7 +116,7 @@ def _sfm(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
 
 
 def _dem(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
-    from .dem import dem
+    from .elevation import dem
 
     # The survey's point cloud until the sfm stage makes one from the photos.
     r = dem(survey.points, output / "dsm.tif", dtm=output / "dtm.tif", hillshade=output / "dtm_hillshade.png",
@@ -118,7 +126,7 @@ def _dem(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
 
 
 def _ortho(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
-    from .ortho import ortho
+    from .orthophoto import ortho
 
     # The SfM poses on the DSM the dem stage made: the chain's own products, not the truth.
     r = ortho(survey.images, output / "ortho.tif", sfm=output / "sfm", dsm=output / "dsm.tif",

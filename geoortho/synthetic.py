@@ -37,7 +37,7 @@ from .camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_
 from .crs import transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
-from .markers import get_dictionary, marker_cells
+from .markers import Dictionary, get_dictionary, marker_cells
 from .parallel import map_ordered
 from .surface import GridSurface, sample_grid
 
@@ -741,7 +741,31 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
 
 @dataclass(frozen=True)
 class SynthResult:
-    """Where the synthetic survey was written."""
+    """Where the synthetic survey was written.
+
+    Attributes
+    ----------
+    output : Path
+        The survey folder.
+    images : Path
+        The photos (JPEG with EXIF/XMP as a DJI drone writes them).
+    truth : Path
+        The ground truth: poses, footprints, marker pixels, survey.json.
+    gcp_file : Path
+        GCP coordinates (UTM, EPSG header).
+    dsm : Path
+        True DSM.
+    dtm : Path
+        True DTM.
+    ortho : Path
+        True orthophoto.
+    points : Path
+        Point cloud sampled from the DSM.
+    n_photos : int
+        Number of photos.
+    crs : str
+        CRS of the scene.
+    """
 
     output: Path
     images: Path
@@ -761,7 +785,7 @@ def synth(
     seed: int = 0,
     latitude_deg: float = DEFAULT_LAT,
     longitude_deg: float = DEFAULT_LON,
-    dictionary: str = "DICT_4X4_50",
+    dictionary: Dictionary = "DICT_4X4_50",
     marker_size_m: float = 1.0,
     workers: int = 0,
     pathology: str = "",
