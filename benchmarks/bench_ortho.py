@@ -48,12 +48,12 @@ def peak():
 """
 
 OURS = COMMON + r"""
-from geoortho.orthophoto import mosaic
+from geoortho.orthophoto import MosaicOptions, mosaic
 survey, out, resolution, workers = json.loads(sys.argv[1])
 survey, out = Path(survey), Path(out)
 surf = read_surface(survey / "truth/dsm.tif")
 t0 = time.perf_counter()
-r = mosaic(true_cameras(survey), surf, surf.crs, out / "ours.tif", resolution, workers=workers)
+r = mosaic(true_cameras(survey), surf, surf.crs, out / "ours.tif", resolution, MosaicOptions(workers=workers))
 wall = time.perf_counter() - t0
 print(json.dumps({"wall": wall, "width": r.width_px, "height": r.height_px, "resolution": r.resolution_m,
                   "seconds": r.seconds, "seam_raw": r.seam_mismatch_raw, "seam_bal": r.seam_mismatch_balanced}))

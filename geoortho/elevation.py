@@ -278,23 +278,64 @@ def dem(
         native, or pdal (PDAL's pipeline, when the pdal module is installed).
     """
     fb = as_feedback(feedback)
+    _check_options(method, ground_method, resolution_m, max_gap_m, smooth_px, engine)
+    src = open_points(points, crs)
+    _check_source(src, classified, ground_method)
+    for n in src.notes:
+        fb.info(n)
+    plan = _plan_grid(src, resolution_m, fb)
+    params = SmrfParams(smrf_cell_m, smrf_slope, smrf_window_m, smrf_threshold_m, smrf_scalar, smrf_margin_m)
+    if engine == "pdal":
+        return _run_pdal(src, plan.grid, output, dtm, method, ground_method, max_gap_m, params, fb)
+
+    want_ground = dtm is not None or classified is not None
+    s_pass1, s_pass2, s_write = split(fb, [4, 4 if want_ground else 0, 2])
+    ground = GROUND_FILTERS[ground_method](src, params) if want_ground else None
+    dtm_acc = _Accumulator(plan.grid, "idw") if dtm is not None else None
+    first = _first_pass(src, plan.grid, method, ground, dtm_acc, s_pass1, fb)
+    n_ground = first.n_ground
+    if ground is not None:
+        ground.prepare()
+    if classified is not None or (ground is not None and not ground.known_in_first_pass):
+        n_ground += _second_pass(src, ground, dtm_acc, classified, s_pass2, fb)
+    result = _write_products(src, plan, method, first, dtm_acc, output, dtm, hillshade, max_gap_m, smooth_px,
+                             classified, n_ground)
+    if dtm is not None:
+        fb.info(f"ground: {n_ground} of {first.n_used} points ({ground_method})")
+    s_write.progress(1.0)
+    return result
+
+
+def _check_options(method: str, ground_method: str, resolution_m: float | None, max_gap_m: float, smooth_px: int,
+                   engine: str) -> None:
     if method not in METHODS:
         raise ParameterError("method", f"unknown method {method!r}; use one of {', '.join(METHODS)}")
     if ground_method not in GROUND_METHODS:
-        raise ParameterError("ground_method", f"unknown ground method {ground_method!r}; use one of {', '.join(GROUND_METHODS)}")
+        raise ParameterError("ground_method",
+                             f"unknown ground method {ground_method!r}; use one of {', '.join(GROUND_METHODS)}")
     if (resolution_m or 0.0) < 0 or max_gap_m < 0 or smooth_px < 0:
         raise ParameterError("resolution_m", "resolution, max gap and smoothing must not be negative")
     if engine not in ENGINES:
         raise ParameterError("engine", f"unknown engine {engine!r}; use one of {', '.join(ENGINES)}")
-    src = open_points(points, crs)
+
+
+def _check_source(src: PointSource, classified: Path | None, ground_method: str) -> None:
     if src.count == 0:
         raise InputError("the point cloud is empty", path=src.path)
     if classified is not None and (src.path is None or src.path.suffix.lower() not in (".las", ".laz")):
         raise ParameterError("classified", "a classified cloud can be written for LAS/LAZ input only")
     if ground_method == "classification" and not src.has_classification:
         raise InputError("the points have no classification; use ground_method smrf or csf", path=src.path)
-    for n in src.notes:
-        fb.info(n)
+
+
+@dataclass(frozen=True)
+class _GridPlan:
+    grid: Grid
+    resolution_m: float  # cell size on the ground, metres
+    cell: float  # the same in the cloud's horizontal units
+
+
+def _plan_grid(src: PointSource, resolution_m: float | None, fb: Feedback) -> _GridPlan:
     res_m = resolution_m or _auto_resolution_m(src)
     cell = res_m / src.horizontal_m
     xmin, ymin, _, xmax, ymax, _ = src.bounds
@@ -306,21 +347,108 @@ def dem(
     grid = Grid.covering(xmin, ymin, xmax, ymax, cell)
     fb.info(f"grid {grid.cols} x {grid.rows} cells of {res_m:g} m ({cell:g} {src.horizontal_unit})"
             + ("" if resolution_m else ", from the point density"))
-    params = SmrfParams(smrf_cell_m, smrf_slope, smrf_window_m, smrf_threshold_m, smrf_scalar, smrf_margin_m)
-    if engine == "pdal":
-        return _run_pdal(src, grid, output, dtm, method, ground_method, max_gap_m,
-                         params, fb)
+    return _GridPlan(grid, res_m, cell)
 
-    want_ground = dtm is not None or classified is not None
-    s_pass1, s_pass2, s_write = split(fb, [4, 4 if want_ground else 0, 2])
+
+class _GroundFilter:
+    """A ground method as the two passes see it: it watches the points of pass 1,
+    prepares between the passes, then says which points of pass 2 are ground."""
+
+    #: The ground is known chunk by chunk in pass 1 already (the file's own classes).
+    known_in_first_pass = False
+
+    def __init__(self, src: PointSource, params: SmrfParams):
+        self.src, self.params = src, params
+
+    def observe(self, ch: Chunk) -> None:
+        """Pass 1: one chunk of finite points."""
+
+    def prepare(self) -> None:
+        """Between the passes."""
+
+    def ground(self, ch: Chunk) -> np.ndarray:
+        """Pass 2 (pass 1 too when ``known_in_first_pass``): ground mask of a chunk of finite points."""
+        raise NotImplementedError
+
+
+class _SmrfGround(_GroundFilter):
+    """Pingel's SMRF on a minimum-elevation grid of its own cell size."""
+
+    def __init__(self, src: PointSource, params: SmrfParams):
+        super().__init__(src, params)
+        xmin, ymin, _, xmax, ymax, _ = src.bounds
+        self.grid = Grid.covering(xmin, ymin, xmax, ymax, params.cell_m / src.horizontal_m)
+        self.zmin = _Accumulator(self.grid, "min")
+        self.surface: np.ndarray | None = None
+
+    def observe(self, ch: Chunk) -> None:
+        self.zmin.add(ch.x, ch.y, ch.z)
+
+    def prepare(self) -> None:
+        self.surface = smrf_surface(self.zmin.result(), self.grid.cell, self.params, self.src.horizontal_m,
+                                    self.src.vertical_m)
+
+    def ground(self, ch: Chunk) -> np.ndarray:
+        assert self.surface is not None
+        g = self.grid
+        return ground_mask(ch.x, ch.y, ch.z, self.surface, g.x0, g.y0, g.cell, self.params, self.src.horizontal_m,
+                           self.src.vertical_m)
+
+
+class _CsfGround(_GroundFilter):
+    """The cloth simulation filter: it needs every point at once, so pass 1 keeps them."""
+
+    def __init__(self, src: PointSource, params: SmrfParams):
+        super().__init__(src, params)
+        self.xyz: list[np.ndarray] = []
+        self.mask: np.ndarray | None = None
+        self.offset = 0
+
+    def observe(self, ch: Chunk) -> None:
+        self.xyz.append(np.c_[ch.x, ch.y, ch.z])
+
+    def prepare(self) -> None:
+        self.mask = _csf(np.concatenate(self.xyz), self.src, self.params)
+        self.xyz.clear()
+
+    def ground(self, ch: Chunk) -> np.ndarray:
+        assert self.mask is not None
+        g = self.mask[self.offset:self.offset + len(ch.x)]
+        self.offset += len(ch.x)
+        return g
+
+
+class _ClassificationGround(_GroundFilter):
+    """The file's own class 2."""
+
+    known_in_first_pass = True
+
+    def ground(self, ch: Chunk) -> np.ndarray:
+        assert ch.classification is not None
+        return np.asarray(ch.classification == GROUND)
+
+
+#: ground_method -> its filter (a new method is a new entry, not a new branch in the passes).
+GROUND_FILTERS: dict[str, type[_GroundFilter]] = {
+    "smrf": _SmrfGround,
+    "csf": _CsfGround,
+    "classification": _ClassificationGround,
+}
+assert set(GROUND_FILTERS) == set(GROUND_METHODS)
+
+
+@dataclass(frozen=True)
+class _FirstPass:
+    dsm: _Accumulator
+    n_used: int
+    n_ground: int  # counted here only when the ground is known in pass 1
+
+
+def _first_pass(src: PointSource, grid: Grid, method: str, ground: _GroundFilter | None,
+                dtm_acc: _Accumulator | None, progress: Feedback, fb: Feedback) -> _FirstPass:
+    """Grid the DSM; let the ground filter see the points (or grid the ground it already knows)."""
     dsm_acc = _Accumulator(grid, method)
-    smrf_grid = Grid.covering(xmin, ymin, xmax, ymax, params.cell_m / src.horizontal_m)
-    zmin_acc = _Accumulator(smrf_grid, "min") if want_ground and ground_method == "smrf" else None
-    dtm_acc = _Accumulator(grid, "idw") if dtm is not None else None
-    n_bad, first_bad = 0, -1
-    n_used = 0
-    n_ground = 0
-    csf_xyz: list[np.ndarray] = []
+    n_bad, first_bad, n_used, n_ground = 0, -1, 0, 0
     for ch in src.chunks():
         fb.check_canceled()
         ch, ok = _finite(ch)
@@ -329,68 +457,61 @@ def dem(
             n_bad += int((~ok).sum())
         n_used += len(ch.x)
         dsm_acc.add(ch.x, ch.y, ch.z)
-        if zmin_acc is not None:
-            zmin_acc.add(ch.x, ch.y, ch.z)
-        if ground_method == "classification" and want_ground:
-            assert ch.classification is not None
-            g = ch.classification == GROUND
-            n_ground += int(g.sum())
-            if dtm_acc is not None:
-                dtm_acc.add(ch.x[g], ch.y[g], ch.z[g])
-        if ground_method == "csf" and want_ground:
-            csf_xyz.append(np.c_[ch.x, ch.y, ch.z])
-        s_pass1.progress(min(1.0, (ch.start + CHUNK_POINTS) / src.count))
+        if ground is not None:
+            ground.observe(ch)
+            if ground.known_in_first_pass:
+                g = ground.ground(ch)
+                n_ground += int(g.sum())
+                if dtm_acc is not None:
+                    dtm_acc.add(ch.x[g], ch.y[g], ch.z[g])
+        progress.progress(min(1.0, (ch.start + CHUNK_POINTS) / src.count))
     if n_bad:
         fb.warning(f"{n_bad} points with non-finite coordinates skipped (first at index {first_bad})")
     if n_used < 3:
         raise InputError(f"{n_used} point(s) with finite coordinates: too few to make a surface", path=src.path)
+    return _FirstPass(dsm_acc, n_used, n_ground)
 
-    surface = None
-    csf_mask = None
-    if zmin_acc is not None:
-        surface = smrf_surface(zmin_acc.result(), smrf_grid.cell, params, src.horizontal_m, src.vertical_m)
-    if ground_method == "csf" and want_ground:
-        csf_mask = _csf(np.concatenate(csf_xyz), src, params)
-        csf_xyz.clear()
-    # Pass 2: classify against the provisional ground (the file's classes were gridded in pass 1)
-    # and write the classified cloud.
-    if classified is not None or (want_ground and ground_method != "classification"):
-        writer = _ClassifiedWriter(src, classified) if classified is not None else None
-        offset = 0
-        try:
-            for ch in src.chunks():
-                fb.check_canceled()
-                fin, keep = _finite(ch)
-                g = np.zeros(len(ch.x), bool)
-                if ground_method == "classification":
-                    assert fin.classification is not None
-                    g[keep] = fin.classification == GROUND
-                elif surface is not None:
-                    g[keep] = ground_mask(fin.x, fin.y, fin.z, surface, smrf_grid.x0, smrf_grid.y0,
-                                          smrf_grid.cell, params, src.horizontal_m, src.vertical_m)
-                else:
-                    assert csf_mask is not None
-                    g[keep] = csf_mask[offset:offset + len(fin.x)]
-                    offset += len(fin.x)
-                if ground_method != "classification":
-                    n_ground += int(g.sum())
-                    if dtm_acc is not None:
-                        dtm_acc.add(ch.x[g], ch.y[g], ch.z[g])
-                if writer is not None:
-                    writer.write(g)
-                s_pass2.progress(min(1.0, (ch.start + CHUNK_POINTS) / src.count))
-            if writer is not None:
-                writer.close()
-        finally:
-            if writer is not None:
-                writer.abort()
 
-    max_gap_cells = max_gap_m / res_m
-    dsm_grid = _finish(dsm_acc.result(), max_gap_cells, smooth_px)
-    units = src.describe_units()
-    notes = [*src.notes, f"values in {src.vertical_unit}" if method != "count" else "values: points per cell"]
+def _second_pass(src: PointSource, ground: _GroundFilter | None, dtm_acc: _Accumulator | None,
+                 classified: Path | None, progress: Feedback, fb: Feedback) -> int:
+    """Classify every point against the prepared ground, grid the DTM, write the classified cloud.
+
+    Returns the ground points counted here (those of pass 1 are not counted again)."""
+    count_here = ground is not None and not ground.known_in_first_pass
+    writer = _ClassifiedWriter(src, classified) if classified is not None else None
+    n_ground = 0
+    try:
+        for ch in src.chunks():
+            fb.check_canceled()
+            fin, keep = _finite(ch)
+            g = np.zeros(len(ch.x), bool)
+            if ground is not None:
+                g[keep] = ground.ground(fin)
+            if count_here:
+                n_ground += int(g.sum())
+                if dtm_acc is not None:
+                    dtm_acc.add(ch.x[g], ch.y[g], ch.z[g])
+            if writer is not None:
+                writer.write(g)
+            progress.progress(min(1.0, (ch.start + CHUNK_POINTS) / src.count))
+        if writer is not None:
+            writer.close()
+    finally:
+        if writer is not None:
+            writer.abort()
+    return n_ground
+
+
+def _write_products(src: PointSource, plan: _GridPlan, method: str, first: _FirstPass, dtm_acc: _Accumulator | None,
+                    output: Path, dtm: Path | None, hillshade: Path | None, max_gap_m: float, smooth_px: int,
+                    classified: Path | None, n_ground: int) -> DemResult:
+    """Fill, smooth and write the DSM, the DTM and the hillshade."""
     from .outputs import write_cog
 
+    grid = plan.grid
+    max_gap_cells = max_gap_m / plan.resolution_m
+    dsm_grid = _finish(first.dsm.result(), max_gap_cells, smooth_px)
+    notes = [*src.notes, f"values in {src.vertical_unit}" if method != "count" else "values: points per cell"]
     unit_tag = _unit_tag(src.vertical_unit) if method != "count" else ""
     dsm_path = write_cog(output, _nodata(dsm_grid), transform=grid.transform, crs=src.crs, nodata=NODATA,
                          band_names=("dsm",), units=unit_tag)
@@ -401,14 +522,12 @@ def dem(
         dtm_grid = _finish(dtm_acc.result(), max_gap_cells, smooth_px)
         dtm_path = write_cog(dtm, _nodata(dtm_grid), transform=grid.transform, crs=src.crs, nodata=NODATA,
                              band_names=("dtm",), units=_unit_tag(src.vertical_unit))
-        fb.info(f"ground: {n_ground} of {n_used} points ({ground_method})")
     shade_path = None
     if hillshade is not None:
-        shade_path = write_hillshade(hillshade, dtm_grid if dtm_grid is not None else dsm_grid, cell,
+        shade_path = write_hillshade(hillshade, dtm_grid if dtm_grid is not None else dsm_grid, plan.cell,
                                      src.vertical_m / src.horizontal_m)
-    s_write.progress(1.0)
     return DemResult(dsm_path, dtm_path, Path(classified) if classified is not None else None, shade_path,
-                     cell, crs_to_text(src.crs), units, n_used, n_ground, tuple(notes))
+                     plan.cell, crs_to_text(src.crs), src.describe_units(), first.n_used, n_ground, tuple(notes))
 
 
 def _unit_tag(name: str) -> str:

@@ -818,12 +818,77 @@ def sfm(
     t_start = time.perf_counter()
     timer = _Timer()
     output = Path(output)
-    if camera_model not in CAMERA_MODELS:
-        raise InputError(f"camera model {camera_model!r} is not one of {', '.join(CAMERA_MODELS)}")
-    if mapper not in MAPPERS:
-        raise InputError(f"mapper {mapper!r} is not one of {', '.join(MAPPERS)}")
-    if matching not in MATCHING:
-        raise InputError(f"matching {matching!r} is not one of {', '.join(MATCHING)}")
+    _check_choice("camera model", camera_model, CAMERA_MODELS)
+    _check_choice("mapper", mapper, MAPPERS)
+    _check_choice("matching", matching, MATCHING)
+    inputs = _read_inputs(images, gcp_list, checkpoints, crs, takeoff_elevation_m, local_frame, timer, fb)
+    notes = list(inputs.notes)
+    output.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".sfm-work-", dir=output))
+    try:
+        db = work / "database.db"
+        mapped = _reconstruct(inputs, db, work, matching, mapper, camera_model, max_image_size, max_features,
+                              gps_sigma_m, seed, workers, timer, fb)
+        notes += mapped.notes
+        t0 = time.perf_counter()
+        geo = _georeference_by_gps(mapped.rec, inputs, gps_sigma_m)
+        geo = _georeference_by_gcps(mapped.rec, inputs, mapped.registered, geo, fb)
+        notes += geo.notes
+        timer.add("georeferencing", t0)
+        intrinsics = _intrinsics_report(mapped.rec, mapped.focal_prior, mapped.focal_held, geo.gcp_obs_used,
+                                        notes)
+        if geo.gps_sim is None and not any(s.triangulated is not None for s in geo.states) and not local_frame:
+            raise InputError("the model could not be georeferenced (GPS did not fit, GCPs not triangulated); "
+                             "use local_frame to keep it anyway", path=images)
+        t0 = time.perf_counter()
+        n_points = _write_model(output, work, db, mapped, inputs, notes)
+        timer.add("outputs", t0)
+        figures = _figures(mapped.rec, inputs, geo)
+        write_json(output / "report.json",
+                   _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    _announce(notes, mapped, inputs, geo, figures, n_points, fb)
+    fb.set_progress(1.0)
+    return SfmResult(
+        output=output, model=output / "model", points=output / "points.laz", cameras=output / "cameras.gpkg",
+        report=output / "report.json", n_photos=len(inputs.photos), n_registered=len(mapped.registered),
+        crs=inputs.crs_text, mean_reprojection_error_px=figures.mean_reprojection_px,
+        gcp_rmse_m=_rmse3(figures.control), checkpoint_rmse_m=_rmse3(figures.check), georeferenced_by=geo.how,
+        notes=tuple(notes),
+    )
+
+
+def _check_choice(what: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise InputError(f"{what} {value!r} is not one of {', '.join(choices)}")
+
+
+# -- the stages of sfm, each a function of small frozen records -----------------------------------
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """What sfm works from: the photos, the GCPs and the GPS priors, checked."""
+
+    photos: tuple[Photo, ...]
+    skipped: tuple[tuple[str, str], ...]
+    root: Path  # the folder image names are relative to
+    names: dict[Path, str]  # photo path -> COLMAP image name
+    gcps: GcpSet | None
+    held_out: frozenset[str]  # checkpoint names
+    out_crs: Any
+    priors: _Priors
+    bodies: tuple[_Body, ...]
+    notes: tuple[str, ...]
+
+    @property
+    def crs_text(self) -> str:
+        return crs_to_text(self.out_crs) if self.out_crs is not None else ""
+
+
+def _read_inputs(images: Path, gcp_list: Path | None, checkpoints: str, crs: str | None,
+                 takeoff_elevation_m: float | None, local_frame: bool, timer: _Timer, fb: Feedback) -> _Inputs:
     t0 = time.perf_counter()
     paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
     # No feedback: SfM does not use the attitude, so its per-photo warnings would be noise here.
@@ -850,12 +915,10 @@ def sfm(
         raise InputError("fewer than 3 photos with GPS and no GCPs: the model would be arbitrary in scale, "
                          "position and orientation; give a gcp_list.txt, or local_frame to accept that",
                          path=images)
-    notes: list[str] = []
     out_crs = _output_crs(crs, photos, gcps)
     priors = _gps_priors(photos, names, out_crs, takeoff_elevation_m) if out_crs is not None else \
         _Priors(None, np.zeros(3), {}, "no GPS")
-    notes.append(f"heights: {priors.heights}")
-    notes += priors.notes
+    notes = [f"heights: {priors.heights}", *priors.notes]
     if gcps is not None and not priors.positions:
         to_local = transformer(gcps.crs, out_crs)
         xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
@@ -865,173 +928,228 @@ def sfm(
             + "; ".join(f"{b.label} ({len(b.photos)})" for b in bodies))
     if len({(b.key[2], b.key[3]) for b in bodies}) > 1:
         notes.append("photos of several image sizes: each size is its own camera")
-    output.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=".sfm-work-", dir=output))
-    try:
-        db = work / "database.db"
-        _pycolmap().Database.open(db).close()
-        t0 = time.perf_counter()
-        fb.info("features ...")
-        _import_and_extract(db, root, names, bodies, camera_model, max_image_size, max_features, workers)
-        timer.add("features", t0)
-        fb.set_progress(0.3)
-        fb.check_canceled()
-        # Untrusted GPS heights must not bend the model: their prior is made uninformative.
-        sigma_v = 2.0 * gps_sigma_m if priors.vertical_trusted else 1.0e3
-        n_priors = _write_priors(db, priors, gps_sigma_m, sigma_v) if priors.positions else 0
-        t0 = time.perf_counter()
-        how = _match(db, matching, photos, priors, workers)
-        timer.add("matching", t0)
-        fb.info(f"matching: {how}")
-        fb.set_progress(0.55)
-        fb.check_canceled()
-        t0 = time.perf_counter()
-        ill = _ill_conditioned(photos, priors)
-        if ill:
-            notes.append(f"focal length held at the EXIF value during mapping: {ill} (self-calibration "
-                         "trades focal length for flying height there)")
-        models = _map(db, root, work / "sparse", n_priors >= 3, workers, seed, refine_focal=not ill, mapper=mapper)
-        timer.add("mapping", t0)
-        fb.set_progress(0.85)
-        if not models:
-            raise InputError("no model could be built: the photos do not overlap enough "
-                             "(or show no texture); see the log for matches", path=images)
-        rec = models[0]
-        registered = {rec.image(i).name for i in rec.reg_image_ids()}
-        elsewhere = {rec2.image(i).name for rec2 in models[1:] for i in rec2.reg_image_ids()}
-        if len(models) > 1:
-            notes.append(f"{len(models)} separate models; the largest ({len(registered)} photos) is kept, "
-                         f"{len(elsewhere)} photos are only in the others")
-        reasons = _why_unregistered(db, list(names.values()), registered, elsewhere)
-        for name, why in sorted(reasons.items()):
-            fb.warning(f"not registered: {name}: {why}")
+    return _Inputs(tuple(photos), tuple(photoset.skipped), root, names, gcps, frozenset(held_out), out_crs, priors,
+                   tuple(bodies), tuple(notes))
 
-        t0 = time.perf_counter()
-        by_name = {names[p.path]: p for p in photos}
-        focal_prior = {cid: _prior_focal(db, cid, _focal_px(cam)) for cid, cam in rec.cameras.items()}
-        georef, gps_sim, n_gps = "none (local frame)", None, 0
-        tilt = math.nan
-        if priors.positions:
-            if priors.vertical_trusted:
-                gps_sim, n_gps = _align_to_gps(rec, priors, gps_sigma_m)
-                tilt = _tilt_deg(rec, by_name) if gps_sim is not None else math.nan
-                if gps_sim is not None:
-                    georef = f"GPS of {n_gps} photos"
-                # The GPS heights may still be wrong in a way no trend shows: a model they tilt
-                # away from the gravity the gimbals saw is put on the GPS horizontally instead.
-                if math.isfinite(tilt) and tilt > MAX_TILT_DEG:
-                    notes.append(f"the GPS heights tilt the model {tilt:.1f} deg from the photos' vertical: "
-                                 "GPS heights not trusted, model levelled from the photos' attitude")
-                    gps_sim = None
-            if gps_sim is None and (not priors.vertical_trusted or math.isfinite(tilt)):
-                gps_sim = _align_horizontal(rec, priors, by_name, gps_sigma_m)
-                n_gps = len(priors.positions)
-                if gps_sim is not None:
-                    georef = (f"GPS of {n_gps} photos horizontally, levelled from the photos' attitude, "
-                              "height from the median GPS altitude")
-                    tilt = _tilt_deg(rec, by_name)
-            if gps_sim is None:
-                notes.append("the GPS positions did not fit the model (fewer than 3 consistent photos)")
-            outliers = _gps_outliers(rec, priors) if gps_sim is not None else []
-            if outliers:
-                notes.append(f"{len(outliers)} photo(s) with GPS positions far off the model: "
-                             + ", ".join(outliers[:5]) + ("…" if len(outliers) > 5 else ""))
-        states: list[_GcpState] = []
-        heights_usable = True
-        gcp_obs_used = 0
-        if gcps is not None:
-            states = _gcp_states(gcps, out_crs, priors.offset, held_out, registered, fb)
-            zs = np.array([s.surveyed[2] for s in states])
-            if len(zs) >= 2 and np.ptp(zs) < 1e-6:
-                heights_usable = False
-                notes.append(f"all GCP heights are {zs[0] + priors.offset[2]:g}: taken as placeholders; "
-                             "GCPs control the model horizontally only and their Z residuals are not reported")
-            _triangulate(rec, states)
-            if _align_to_gcps(rec, states, heights_usable) is not None:
-                georef = f"{sum(s.role == 'control' and s.triangulated is not None for s in states)} GCPs" + (
-                    " (horizontally; heights from GPS)" if not heights_usable else "") + (
-                    f" after {georef}" if gps_sim is not None else "")
-                if heights_usable:
-                    _triangulate(rec, states)
-                    gcp_obs_used = _gcp_bundle_adjust(rec, states)
-                    if gcp_obs_used:
-                        georef += f"; bundle adjustment with {gcp_obs_used} GCP observations fixed"
-            else:
-                n_ok = sum(s.role == "control" and s.triangulated is not None for s in states)
-                notes.append(f"only {n_ok} control GCP(s) triangulated (3 needed): GCPs not used for control")
-            _triangulate(rec, states)
-        timer.add("georeferencing", t0)
-        intrinsics = _intrinsics_report(rec, focal_prior, bool(ill), gcp_obs_used, notes)
-        if gps_sim is None and not any(s.triangulated is not None for s in states) and not local_frame:
-            raise InputError("the model could not be georeferenced (GPS did not fit, GCPs not triangulated); "
-                             "use local_frame to keep it anyway", path=images)
 
-        t0 = time.perf_counter()
-        model_dir = output / "model"
-        tmp_model = work / "model"
-        tmp_model.mkdir()
-        rec.write(tmp_model)
-        crs_text = crs_to_text(out_crs) if out_crs is not None else ""
-        write_json(tmp_model / "georeference.json",
-                   {"crs": crs_text, "offset": priors.offset.tolist(),
-                    "note": "model coordinates + offset = coordinates in crs"})
-        if model_dir.exists():
-            shutil.rmtree(model_dir)
-        os.replace(tmp_model, model_dir)
-        os.replace(db, output / "database.db")
-        las_crs = out_crs if out_crs is not None else None
-        n_points = _write_points(output / "points.laz", rec, priors.offset, las_crs) if las_crs is not None \
-            else 0
-        if las_crs is None:
-            notes.append("no CRS: points.laz and cameras.gpkg are not written (local frame only)")
-        else:
-            _write_cameras(output / "cameras.gpkg", rec, photos, names, priors, las_crs, reasons)
-        timer.add("outputs", t0)
-        rows = _residual_table(states, heights_usable)
-        control = _accuracy(rows, "control")
-        check = _accuracy(rows, "checkpoint")
-        mean_reproj = float(rec.compute_mean_reprojection_error())
-        gps_res = _gps_residuals(rec, priors)
-        report = {
-            "photos": len(photos) + len(photoset.skipped), "photos_read": len(photos),
-            "registered": len(registered), "unregistered": reasons,
-            "skipped": dict(photoset.skipped),
-            "camera_bodies": [{"camera": b.label, "photos": len(b.photos)} for b in bodies],
-            "cameras": [_camera_record(c) for c in rec.cameras.values()],
-            "matching": how, "mapper": mapper, "models": len(models), "points": rec.num_points3D(),
-            "mean_reprojection_error_px": mean_reproj,
-            "mean_track_length": float(rec.compute_mean_track_length()),
-            "gsd_cm": _gsd_m(rec) * 100.0,
-            "crs": crs_text, "offset": priors.offset.tolist(), "heights": priors.heights,
-            "vertical_gps_trusted": priors.vertical_trusted,
-            "model_tilt_deg": None if not math.isfinite(tilt) else round(tilt, 3),
-            "intrinsics": intrinsics,
-            "georeferenced_by": georef, "gps": gps_res,
-            "gcps": rows, "gcp_accuracy": control, "checkpoint_accuracy": check,
-            "ce90_le90": "NSSDA from RMSE: CE90 = 2.1460·sqrt((RMSEx²+RMSEy²)/2), LE90 = 1.6449·RMSEz",
-            "seconds": {k: round(v, 2) for k, v in timer.stages.items()}
-            | {"total": round(time.perf_counter() - t_start, 2)},
-            "notes": notes,
-        }
-        write_json(output / "report.json", report)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+@dataclass(frozen=True)
+class _Mapped:
+    """The mapper's answer: the largest model, and what became of every photo."""
+
+    rec: Any  # pycolmap.Reconstruction (georeferenced in place by the next stages)
+    n_models: int
+    registered: frozenset[str]
+    unregistered: dict[str, str]  # image name -> why
+    matching: str  # how pairs were chosen
+    focal_held: bool
+    focal_prior: dict[int, float]  # camera id -> the focal length (px) it started from
+    notes: tuple[str, ...]
+
+
+def _reconstruct(inputs: _Inputs, db: Path, work: Path, matching: str, mapper: str, camera_model: str,
+                 max_image_size: int, max_features: int, gps_sigma_m: float, seed: int, workers: int,
+                 timer: _Timer, fb: Feedback) -> _Mapped:
+    """Features, GPS priors, matching and mapping into ``db`` and ``work``."""
+    photos, priors = inputs.photos, inputs.priors
+    notes: list[str] = []
+    _pycolmap().Database.open(db).close()
+    t0 = time.perf_counter()
+    fb.info("features ...")
+    _import_and_extract(db, inputs.root, inputs.names, list(inputs.bodies), camera_model, max_image_size,
+                        max_features, workers)
+    timer.add("features", t0)
+    fb.set_progress(0.3)
+    fb.check_canceled()
+    # Untrusted GPS heights must not bend the model: their prior is made uninformative.
+    sigma_v = 2.0 * gps_sigma_m if priors.vertical_trusted else 1.0e3
+    n_priors = _write_priors(db, priors, gps_sigma_m, sigma_v) if priors.positions else 0
+    t0 = time.perf_counter()
+    how = _match(db, matching, photos, priors, workers)
+    timer.add("matching", t0)
+    fb.info(f"matching: {how}")
+    fb.set_progress(0.55)
+    fb.check_canceled()
+    t0 = time.perf_counter()
+    ill = _ill_conditioned(photos, priors)
+    if ill:
+        notes.append(f"focal length held at the EXIF value during mapping: {ill} (self-calibration "
+                     "trades focal length for flying height there)")
+    models = _map(db, inputs.root, work / "sparse", n_priors >= 3, workers, seed, refine_focal=not ill,
+                  mapper=mapper)
+    timer.add("mapping", t0)
+    fb.set_progress(0.85)
+    if not models:
+        raise InputError("no model could be built: the photos do not overlap enough "
+                         "(or show no texture); see the log for matches", path=inputs.root)
+    rec = models[0]
+    registered = {rec.image(i).name for i in rec.reg_image_ids()}
+    elsewhere = {rec2.image(i).name for rec2 in models[1:] for i in rec2.reg_image_ids()}
+    if len(models) > 1:
+        notes.append(f"{len(models)} separate models; the largest ({len(registered)} photos) is kept, "
+                     f"{len(elsewhere)} photos are only in the others")
+    reasons = _why_unregistered(db, list(inputs.names.values()), registered, elsewhere)
+    for name, why in sorted(reasons.items()):
+        fb.warning(f"not registered: {name}: {why}")
+    focal_prior = {cid: _prior_focal(db, cid, _focal_px(cam)) for cid, cam in rec.cameras.items()}
+    return _Mapped(rec, len(models), frozenset(registered), reasons, how, bool(ill), focal_prior, tuple(notes))
+
+
+@dataclass(frozen=True)
+class _Georeference:
+    """How the model was put in the CRS, and the GCPs' state after it."""
+
+    how: str
+    gps_sim: Any  # the GPS similarity applied, or None
+    tilt_deg: float  # the model's vertical against the photos' gravity (NaN: not measured)
+    states: tuple[_GcpState, ...] = ()
+    heights_usable: bool = True  # GCP heights are surveyed, not placeholders
+    gcp_obs_used: int = 0  # GCP observations held fixed in the bundle adjustment
+    notes: tuple[str, ...] = ()
+
+
+def _georeference_by_gps(rec: Any, inputs: _Inputs, gps_sigma_m: float) -> _Georeference:
+    """Similarity onto the GPS positions; levelled from the gimbals when GPS heights are not trusted."""
+    priors = inputs.priors
+    if not priors.positions:
+        return _Georeference("none (local frame)", None, math.nan)
+    by_name = {inputs.names[p.path]: p for p in inputs.photos}
+    notes: list[str] = []
+    georef, gps_sim, tilt = "none (local frame)", None, math.nan
+    if priors.vertical_trusted:
+        gps_sim, n_gps = _align_to_gps(rec, priors, gps_sigma_m)
+        tilt = _tilt_deg(rec, by_name) if gps_sim is not None else math.nan
+        if gps_sim is not None:
+            georef = f"GPS of {n_gps} photos"
+        # The GPS heights may still be wrong in a way no trend shows: a model they tilt
+        # away from the gravity the gimbals saw is put on the GPS horizontally instead.
+        if math.isfinite(tilt) and tilt > MAX_TILT_DEG:
+            notes.append(f"the GPS heights tilt the model {tilt:.1f} deg from the photos' vertical: "
+                         "GPS heights not trusted, model levelled from the photos' attitude")
+            gps_sim = None
+    if gps_sim is None and (not priors.vertical_trusted or math.isfinite(tilt)):
+        gps_sim = _align_horizontal(rec, priors, by_name, gps_sigma_m)
+        if gps_sim is not None:
+            georef = (f"GPS of {len(priors.positions)} photos horizontally, levelled from the photos' attitude, "
+                      "height from the median GPS altitude")
+            tilt = _tilt_deg(rec, by_name)
+    if gps_sim is None:
+        notes.append("the GPS positions did not fit the model (fewer than 3 consistent photos)")
+    outliers = _gps_outliers(rec, priors) if gps_sim is not None else []
+    if outliers:
+        notes.append(f"{len(outliers)} photo(s) with GPS positions far off the model: "
+                     + ", ".join(outliers[:5]) + ("…" if len(outliers) > 5 else ""))
+    return _Georeference(georef, gps_sim, tilt, notes=tuple(notes))
+
+
+def _georeference_by_gcps(rec: Any, inputs: _Inputs, registered: frozenset[str], gps: _Georeference,
+                          fb: Feedback) -> _Georeference:
+    """Triangulate the GCPs; with 3 control GCPs, align onto them and bundle-adjust with them fixed."""
+    if inputs.gcps is None:
+        return gps
+    notes = list(gps.notes)
+    georef, gcp_obs_used, heights_usable = gps.how, 0, True
+    states = _gcp_states(inputs.gcps, inputs.out_crs, inputs.priors.offset, set(inputs.held_out), set(registered),
+                         fb)
+    zs = np.array([s.surveyed[2] for s in states])
+    if len(zs) >= 2 and np.ptp(zs) < 1e-6:
+        heights_usable = False
+        notes.append(f"all GCP heights are {zs[0] + inputs.priors.offset[2]:g}: taken as placeholders; "
+                     "GCPs control the model horizontally only and their Z residuals are not reported")
+    _triangulate(rec, states)
+    if _align_to_gcps(rec, states, heights_usable) is not None:
+        georef = f"{sum(s.role == 'control' and s.triangulated is not None for s in states)} GCPs" + (
+            " (horizontally; heights from GPS)" if not heights_usable else "") + (
+            f" after {georef}" if gps.gps_sim is not None else "")
+        if heights_usable:
+            _triangulate(rec, states)
+            gcp_obs_used = _gcp_bundle_adjust(rec, states)
+            if gcp_obs_used:
+                georef += f"; bundle adjustment with {gcp_obs_used} GCP observations fixed"
+    else:
+        n_ok = sum(s.role == "control" and s.triangulated is not None for s in states)
+        notes.append(f"only {n_ok} control GCP(s) triangulated (3 needed): GCPs not used for control")
+    _triangulate(rec, states)
+    return _Georeference(georef, gps.gps_sim, gps.tilt_deg, tuple(states), heights_usable, gcp_obs_used,
+                         tuple(notes))
+
+
+def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> int:
+    """The COLMAP model (+ georeference.json), the database, points.laz and cameras.gpkg; the points written."""
+    rec, priors = mapped.rec, inputs.priors
+    model_dir = output / "model"
+    tmp_model = work / "model"
+    tmp_model.mkdir()
+    rec.write(tmp_model)
+    write_json(tmp_model / "georeference.json",
+               {"crs": inputs.crs_text, "offset": priors.offset.tolist(),
+                "note": "model coordinates + offset = coordinates in crs"})
+    if model_dir.exists():
+        shutil.rmtree(model_dir)
+    os.replace(tmp_model, model_dir)
+    os.replace(db, output / "database.db")
+    if inputs.out_crs is None:
+        notes.append("no CRS: points.laz and cameras.gpkg are not written (local frame only)")
+        return 0
+    n_points = _write_points(output / "points.laz", rec, priors.offset, inputs.out_crs)
+    _write_cameras(output / "cameras.gpkg", rec, inputs.photos, inputs.names, priors, inputs.out_crs,
+                   mapped.unregistered)
+    return n_points
+
+
+@dataclass(frozen=True)
+class _Figures:
+    """The accuracy figures of the georeferenced model."""
+
+    gcp_rows: list[dict[str, Any]]
+    control: dict[str, Any] | None
+    check: dict[str, Any] | None
+    mean_reprojection_px: float
+
+
+def _figures(rec: Any, inputs: _Inputs, geo: _Georeference) -> _Figures:
+    rows = _residual_table(list(geo.states), geo.heights_usable)
+    return _Figures(rows, _accuracy(rows, "control"), _accuracy(rows, "checkpoint"),
+                    float(rec.compute_mean_reprojection_error()))
+
+
+def _report(inputs: _Inputs, mapped: _Mapped, geo: _Georeference, figures: _Figures,
+            intrinsics: list[dict[str, Any]], mapper: str, timer: _Timer, t_start: float,
+            notes: list[str]) -> dict[str, Any]:
+    rec = mapped.rec
+    return {
+        "photos": len(inputs.photos) + len(inputs.skipped), "photos_read": len(inputs.photos),
+        "registered": len(mapped.registered), "unregistered": mapped.unregistered,
+        "skipped": dict(inputs.skipped),
+        "camera_bodies": [{"camera": b.label, "photos": len(b.photos)} for b in inputs.bodies],
+        "cameras": [_camera_record(c) for c in rec.cameras.values()],
+        "matching": mapped.matching, "mapper": mapper, "models": mapped.n_models, "points": rec.num_points3D(),
+        "mean_reprojection_error_px": figures.mean_reprojection_px,
+        "mean_track_length": float(rec.compute_mean_track_length()),
+        "gsd_cm": _gsd_m(rec) * 100.0,
+        "crs": inputs.crs_text, "offset": inputs.priors.offset.tolist(), "heights": inputs.priors.heights,
+        "vertical_gps_trusted": inputs.priors.vertical_trusted,
+        "model_tilt_deg": None if not math.isfinite(geo.tilt_deg) else round(geo.tilt_deg, 3),
+        "intrinsics": intrinsics,
+        "georeferenced_by": geo.how, "gps": _gps_residuals(rec, inputs.priors),
+        "gcps": figures.gcp_rows, "gcp_accuracy": figures.control, "checkpoint_accuracy": figures.check,
+        "ce90_le90": "NSSDA from RMSE: CE90 = 2.1460·sqrt((RMSEx²+RMSEy²)/2), LE90 = 1.6449·RMSEz",
+        "seconds": {k: round(v, 2) for k, v in timer.stages.items()}
+        | {"total": round(time.perf_counter() - t_start, 2)},
+        "notes": notes,
+    }
+
+
+def _announce(notes: list[str], mapped: _Mapped, inputs: _Inputs, geo: _Georeference, figures: _Figures,
+              n_points: int, fb: Feedback) -> None:
     for n in notes:
         # what the heights are is information; every other note is a condition to look at
         (fb.info if n.startswith("heights:") else fb.warning)(n)
-    fb.info(f"registered {len(registered)}/{len(photos)} photos, {n_points} points, "
-            f"reprojection {mean_reproj:.2f} px; georeferenced by {georef}")
+    fb.info(f"registered {len(mapped.registered)}/{len(inputs.photos)} photos, {n_points} points, "
+            f"reprojection {figures.mean_reprojection_px:.2f} px; georeferenced by {geo.how}")
+    check = figures.check
     if check:
         fb.info(f"checkpoints: RMSE horizontal {check['rmse_horizontal_m']:.3f} m"
                 + (f", vertical {check['rmse_z_m']:.3f} m" if check["rmse_z_m"] is not None else ""))
-    fb.set_progress(1.0)
-    return SfmResult(
-        output=output, model=output / "model", points=output / "points.laz", cameras=output / "cameras.gpkg",
-        report=output / "report.json", n_photos=len(photos), n_registered=len(registered), crs=crs_text,
-        mean_reprojection_error_px=mean_reproj,
-        gcp_rmse_m=_rmse3(control), checkpoint_rmse_m=_rmse3(check), georeferenced_by=georef,
-        notes=tuple(notes),
-    )
 
 
 def _prior_focal(db: Path, camera_id: int, fallback: float) -> float:

@@ -15,7 +15,7 @@ from scipy import ndimage
 
 from geoortho.camera import Intrinsics, Pose
 from geoortho.errors import InputError
-from geoortho.orthophoto import OrthoCamera, mosaic, ortho
+from geoortho.orthophoto import MosaicOptions, OrthoCamera, mosaic, ortho
 from geoortho.orthophoto.quality import geolocation_shifts, read_on_grid
 from geoortho.surface import read_surface
 
@@ -57,7 +57,7 @@ def true_ortho(small_survey, tmp_path_factory):
     surf = read_surface(small_survey.dsm)
     fb = RecordingFeedback()
     r = mosaic(_true_cameras(small_survey), surf, surf.crs, d / "ortho.tif", TRUE_CELL_M,
-               preview=d / "ortho.png", workers=2, feedback=fb)
+               MosaicOptions(workers=2), preview=d / "ortho.png", feedback=fb)
     return r, fb
 
 
@@ -137,7 +137,7 @@ def test_occlusion_keeps_roofs_off_the_ground_beside_buildings(true_ortho, small
     r, _ = true_ortho
     surf = read_surface(small_survey.dsm)
     plain = mosaic(_true_cameras(small_survey), surf, surf.crs, tmp_path / "plain.tif", TRUE_CELL_M,
-                   occlusion=False, workers=2)
+                   MosaicOptions(occlusion=False, workers=2))
     ours = _ring_errors(r.output, small_survey)
     theirs = _ring_errors(plain.output, small_survey)
     # measured: 0.45 % of the ring off with occlusion, 7.4 % without; open ground 0.06 % either way
@@ -184,7 +184,7 @@ def test_bad_photos_are_reported_and_skipped(small_survey, tmp_path):
                    OrthoCamera("far.JPG", cams[1].path, cams[1].intrinsics, Pose(far, cams[1].pose.rotation))]
     surf = read_surface(small_survey.dsm)
     fb = RecordingFeedback()
-    r = mosaic(cams, surf, surf.crs, tmp_path / "o.tif", 0.2, workers=1, feedback=fb)
+    r = mosaic(cams, surf, surf.crs, tmp_path / "o.tif", 0.2, MosaicOptions(workers=1), feedback=fb)
     why = dict(r.skipped)
     assert "cannot be decoded" in why["broken.JPG"]
     assert "outside the DSM" in why["far.JPG"]

@@ -353,23 +353,40 @@ def _grid(boxes: Sequence[tuple[float, float, float, float]], surface: Surface, 
     return Affine(r, 0, x0, 0, -r, y1), (rows, cols)
 
 
+@dataclass(frozen=True)
+class MosaicOptions:
+    """How the mosaic is made: ortho's options, grouped (their defaults are ortho's too)."""
+
+    seams: SeamMethod = "graphcut"
+    balance: Balance = "channels"
+    blend: Blend = "multiband"
+    max_hole_px: int = 64
+    compress: Compression = "DEFLATE"
+    interpolation: Interpolation = "bilinear"
+    tile_px: int = 1024
+    #: False skips the line-of-sight test: a plain, not true, orthophoto (faster; the tests
+    #: compare against it to show that walls do not ghost).
+    occlusion: bool = True
+    workers: int = 0
+
+    def check(self) -> None:
+        if self.seams not in SEAMS or self.balance not in BALANCE or self.blend not in BLEND \
+                or self.compress.upper() not in COMPRESS:
+            raise InputError(f"choose seams from {SEAMS}, balance from {BALANCE}, blend from {BLEND}, "
+                             f"compress from {COMPRESS}")
+        if self.interpolation not in _INTERPOLATION:
+            raise InputError(f"interpolation {self.interpolation!r} is not one of {', '.join(INTERPOLATION)}")
+
+
 def mosaic(
     cams: Sequence[OrthoCamera],
     surface: Surface,
     crs: CRS,
     output: str | os.PathLike[str],
     resolution_m: float | None = None,
+    options: MosaicOptions = MosaicOptions(),
     *,
-    seams: SeamMethod = "graphcut",
-    balance: Balance = "channels",
-    blend: Blend = "multiband",
-    max_hole_px: int = 64,
-    compress: Compression = "DEFLATE",
     preview: str | os.PathLike[str] | None = None,
-    tile_px: int = 1024,
-    interpolation: Interpolation = "bilinear",
-    occlusion: bool = True,
-    workers: int = 0,
     poses: str = "given",
     notes: Sequence[str] = (),
     skipped: Sequence[tuple[str, str]] = (),
@@ -377,26 +394,99 @@ def mosaic(
 ) -> OrthoResult:
     """Orthorectify posed photos onto ``surface`` and mosaic them into a COG at ``output``.
 
-    ``occlusion=False`` skips the line-of-sight test (a plain, not true, orthophoto: faster, and
-    what the tests compare against to show that walls do not ghost)."""
+    The stages: place each photo on the surface, choose the resolution and the grid, the
+    occlusion grids, seams and gains (on a coarse grid), render the tiles in parallel, write
+    the COG and the report."""
     fb = as_feedback(feedback)
+    options.check()
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     output = Path(output)
     notes = list(notes)
     skipped = list(skipped)
-    if seams not in SEAMS or balance not in BALANCE or blend not in BLEND or compress.upper() not in COMPRESS:
-        raise InputError(f"choose seams from {SEAMS}, balance from {BALANCE}, blend from {BLEND}, "
-                         f"compress from {COMPRESS}")
-    interp = _INTERPOLATION.get(interpolation)
-    if interp is None:
-        raise InputError(f"interpolation {interpolation!r} is not one of {', '.join(INTERPOLATION)}")
     st_plan, st_tiles, st_write = split(fb, [2, 10, 1])
+    placed = _place(cams, surface, fb)
+    skipped += placed.skipped
+    resolution_m, median_gsd = _resolution(resolution_m, placed.gsds, notes, fb)
+    transform, shape = _grid(placed.boxes, surface, resolution_m)
+    if shape[0] * shape[1] > 4e9:
+        raise InputError(f"the mosaic would be {shape[1]}x{shape[0]} px: give a coarser resolution")
+    vis = tuple(visibility_grid(cam, surface, box) if options.occlusion and isinstance(surface, GridSurface) else None
+                for cam, box in zip(placed.cams, placed.boxes))
+    times["visibility"] = time.perf_counter() - t0
 
+    t1 = time.perf_counter()
+    # Seams and gains are decided on cells 8x coarser (and no more than 2 Mpx): the graph cut's time
+    # grows with the cells in the seam bands.
+    factor = max(8, int(math.ceil(math.sqrt(shape[0] * shape[1] / 2.0e6))))
+    plan = plan_seams(list(placed.cams), list(placed.boxes), list(placed.gsds), surface, list(vis), transform, shape,
+                      factor, seams=options.seams, balance=options.balance, feedback=st_plan)
+    skipped += plan.skipped
+    notes.extend(plan.notes)
+    bad = {name for name, _ in plan.skipped}
+    box_windows = tuple(None if c.name in bad else bounds_window(transform, shape, b)
+                        for c, b in zip(placed.cams, placed.boxes))
+    times["seams_and_balance"] = time.perf_counter() - t1
+    fb.info(f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(placed.cams) - len(bad)} photos; "
+            f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}")
+
+    t2 = time.perf_counter()
+    ctx = _Context(placed.cams, box_windows, vis, surface, transform, shape, plan, options.blend,
+                   int(options.max_hole_px), 2 ** (_BANDS + 1), _INTERPOLATION[options.interpolation])
+    output.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{output.name}-", dir=output.parent) as work_dir:
+        tiled = Path(work_dir) / "mosaic.tif"
+        totals, used = _render(ctx, crs, tiled, options, st_tiles)
+        times["tiles"] = time.perf_counter() - t2
+        t3 = time.perf_counter()
+        _write_cog(tiled, output, options.compress.upper())
+        preview_path = _write_preview(output, Path(preview)) if preview else None
+        times["cog"] = time.perf_counter() - t3
+    st_write.progress(1.0)
+
+    def ratio(a: str, n: str) -> float:
+        return totals.get(a, 0.0) / totals[n] if totals.get(n) else math.nan
+
+    raw, bal = ratio("seam_raw", "seam_n"), ratio("seam_bal", "seam_n")
+    if options.balance != "none" and math.isfinite(raw) and math.isfinite(bal) and bal >= raw:
+        notes.append(f"colour balance did not lower the colour mismatch across seams ({raw:.2f} → {bal:.2f} DN)")
+        fb.warning(notes[-1])
+
+    result = OrthoResult(
+        output=output, preview=preview_path, report=output.with_name(output.stem + "_report.json"),
+        crs=crs_to_text(crs), resolution_m=resolution_m, median_gsd_m=median_gsd, width_px=shape[1],
+        height_px=shape[0], n_photos=len(cams), n_used=len(used), coverage_px=int(totals.get("coverage", 0)),
+        holes_filled_px=int(totals.get("filled", 0)), holes_left_px=int(totals.get("holes_left", 0)),
+        seam_mismatch_raw=raw, seam_mismatch_balanced=bal,
+        poses=poses, surface=_describe(surface), skipped=tuple(skipped), notes=tuple(notes), seconds=times,
+    )
+    write_json(result.report, {
+        **{k: v for k, v in result.__dict__.items() if k not in ("skipped", "notes")},
+        "skipped": [{"image": n, "reason": w} for n, w in skipped], "notes": list(notes),
+        "seam_step_dn": ratio("step_seam", "step_n"), "texture_step_dn": ratio("step_other", "other_n"),
+        "seam_pixels": int(totals.get("seam_n", 0)),
+        "gains_bgr": {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)},
+        "seconds_total": time.perf_counter() - t0,
+    })
+    fb.info(f"ortho: {output} ({shape[1]}x{shape[0]} px, {result.n_used} photos used); seam mismatch "
+            f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing")
+    return result
+
+
+@dataclass(frozen=True)
+class _Placed:
+    """The photos that see the surface, where they land and their GSD; the others and why."""
+
+    cams: tuple[OrthoCamera, ...]
+    boxes: tuple[tuple[float, float, float, float], ...]  # ground bounding box of each footprint
+    gsds: tuple[float, ...]  # GSD at the image centre, metres
+    skipped: tuple[tuple[str, str], ...]
+
+
+def _place(cams: Sequence[OrthoCamera], surface: Surface, fb: Feedback) -> _Placed:
+    """Cast each photo's border onto the surface (as the footprints stage does); leave out those that miss it."""
     if not cams:
         raise InputError("no photo sees the surface: nothing to mosaic")
-    # Where each photo lands (its border cast onto the surface, as the footprints stage does);
-    # photos that miss the surface are reported and left out.
     centres = np.array([c.pose.center for c in cams])
     ground = surface.elevation(centres[:, 0], centres[:, 1])
     heights = centres[:, 2] - np.where(np.isfinite(ground), ground, surface.z_min)
@@ -405,6 +495,7 @@ def mosaic(
     kept: list[OrthoCamera] = []
     boxes: list[tuple[float, float, float, float]] = []
     gsds: list[float] = []
+    skipped: list[tuple[str, str]] = []
     for i, cam in enumerate(cams):
         # rays that missed end at the range limit: the box reaches that far
         ring = table.rings[i]
@@ -422,6 +513,12 @@ def mosaic(
         gsds.append(float(table.gsd_cm[i]) / 100.0)
     if not kept:
         raise InputError("no photo sees the surface: nothing to mosaic")
+    return _Placed(tuple(kept), tuple(boxes), tuple(gsds), tuple(skipped))
+
+
+def _resolution(resolution_m: float | None, gsds: Sequence[float], notes: list[str],
+                fb: Feedback) -> tuple[float, float]:
+    """The pixel size (given, else the median GSD to 3 digits) and the median GSD, metres."""
     finite = [g for g in gsds if math.isfinite(g)]
     median_gsd = float(np.median(finite)) if finite else math.nan
     if not resolution_m:  # None or 0: the photos' median GSD
@@ -435,91 +532,35 @@ def mosaic(
         fb.warning(notes[-1])
     if resolution_m <= 0:
         raise InputError("the resolution must be positive")
-    transform, shape = _grid(boxes, surface, resolution_m)
-    if shape[0] * shape[1] > 4e9:
-        raise InputError(f"the mosaic would be {shape[1]}x{shape[0]} px: give a coarser resolution")
-    box_windows = tuple(bounds_window(transform, shape, b) for b in boxes)
+    return resolution_m, median_gsd
 
-    # Occlusion grids, once per photo.
-    vis: list[VisibilityGrid | None] = []
-    for cam, box in zip(kept, boxes):
-        vis.append(visibility_grid(cam, surface, box) if occlusion and isinstance(surface, GridSurface) else None)
-    times["visibility"] = time.perf_counter() - t0
 
-    t1 = time.perf_counter()
-    # Seams and gains are decided on cells 8x coarser (and no more than 2 Mpx): the graph cut's time
-    # grows with the cells in the seam bands.
-    factor = max(8, int(math.ceil(math.sqrt(shape[0] * shape[1] / 2.0e6))))
-    plan = plan_seams(kept, boxes, gsds, surface, vis, transform, shape, factor, seams=seams, balance=balance,
-                      feedback=st_plan)
-    for name, why in plan.skipped:
-        skipped.append((name, why))
-    notes.extend(plan.notes)
-    bad = {name for name, _ in plan.skipped}
-    box_windows = tuple(None if c.name in bad else w for c, w in zip(kept, box_windows))
-    times["seams_and_balance"] = time.perf_counter() - t1
-    fb.info(f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(kept) - len(bad)} photos; "
-            f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}")
+def _render(ctx: _Context, crs: CRS, target: Path, options: MosaicOptions,
+            progress: Feedback) -> tuple[dict[str, float], set[int]]:
+    """Every tile rendered (in parallel) into the tiled GeoTIFF ``target``.
 
-    t2 = time.perf_counter()
-    ctx = _Context(tuple(kept), box_windows, tuple(vis), surface, transform, shape, plan, blend,
-                   int(max_hole_px), 2 ** (_BANDS + 1), interp)
+    Returns the tiles' summed statistics and the photos used."""
+    import rasterio
+    from rasterio.enums import ColorInterp
+    from rasterio.windows import Window as RioWindow
+
+    shape, tile_px = ctx.shape, options.tile_px
     tiles = [Window(r, c, min(tile_px, shape[0] - r), min(tile_px, shape[1] - c))
              for r in range(0, shape[0], tile_px) for c in range(0, shape[1], tile_px)]
     totals: dict[str, float] = {}
     used: set[int] = set()
-    output.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=f".{output.name}-", dir=output.parent) as work_dir:
-        import rasterio
-        from rasterio.enums import ColorInterp
-        from rasterio.windows import Window as RioWindow
-
-        tmp_tif = Path(work_dir) / "mosaic.tif"
-        profile = {"driver": "GTiff", "width": shape[1], "height": shape[0], "count": 4, "dtype": "uint8",
-                   "crs": crs, "transform": transform, "tiled": True, "blockxsize": 512, "blockysize": 512,
-                   "BIGTIFF": "IF_SAFER"}
-        with rasterio.open(tmp_tif, "w", **profile) as dst:
-            dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-            for win, rgba, stats in imap_ordered(_render_tile, tiles, workers=workers, initializer=_init_worker,
-                                                 initargs=(ctx,), feedback=st_tiles):
-                dst.write(rgba, window=RioWindow(win.col0, win.row0, win.width, win.height))
-                used |= stats.pop("used")  # type: ignore[arg-type]
-                for k, v in stats.items():
-                    totals[k] = totals.get(k, 0.0) + v
-        times["tiles"] = time.perf_counter() - t2
-        t3 = time.perf_counter()
-        _write_cog(tmp_tif, output, compress.upper())
-        preview_path = _write_preview(output, Path(preview)) if preview else None
-        times["cog"] = time.perf_counter() - t3
-        st_write.progress(1.0)
-
-    def ratio(a: str, n: str) -> float:
-        return totals.get(a, 0.0) / totals[n] if totals.get(n) else math.nan
-
-    raw, bal = ratio("seam_raw", "seam_n"), ratio("seam_bal", "seam_n")
-    if balance != "none" and math.isfinite(raw) and math.isfinite(bal) and bal >= raw:
-        notes.append(f"colour balance did not lower the colour mismatch across seams ({raw:.2f} → {bal:.2f} DN)")
-        fb.warning(notes[-1])
-
-    result = OrthoResult(
-        output=output, preview=preview_path, report=output.with_name(output.stem + "_report.json"),
-        crs=crs_to_text(crs), resolution_m=resolution_m, median_gsd_m=median_gsd, width_px=shape[1],
-        height_px=shape[0], n_photos=len(cams), n_used=len(used), coverage_px=int(totals.get("coverage", 0)),
-        holes_filled_px=int(totals.get("filled", 0)), holes_left_px=int(totals.get("holes_left", 0)),
-        seam_mismatch_raw=ratio("seam_raw", "seam_n"), seam_mismatch_balanced=ratio("seam_bal", "seam_n"),
-        poses=poses, surface=_describe(surface), skipped=tuple(skipped), notes=tuple(notes), seconds=times,
-    )
-    write_json(result.report, {
-        **{k: v for k, v in result.__dict__.items() if k not in ("skipped", "notes")},
-        "skipped": [{"image": n, "reason": w} for n, w in skipped], "notes": list(notes),
-        "seam_step_dn": ratio("step_seam", "step_n"), "texture_step_dn": ratio("step_other", "other_n"),
-        "seam_pixels": int(totals.get("seam_n", 0)),
-        "gains_bgr": {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(kept)},
-        "seconds_total": time.perf_counter() - t0,
-    })
-    fb.info(f"ortho: {output} ({shape[1]}x{shape[0]} px, {result.n_used} photos used); seam mismatch "
-            f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing")
-    return result
+    profile = {"driver": "GTiff", "width": shape[1], "height": shape[0], "count": 4, "dtype": "uint8",
+               "crs": crs, "transform": ctx.transform, "tiled": True, "blockxsize": 512, "blockysize": 512,
+               "BIGTIFF": "IF_SAFER"}
+    with rasterio.open(target, "w", **profile) as dst:
+        dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+        for win, rgba, stats in imap_ordered(_render_tile, tiles, workers=options.workers,
+                                             initializer=_init_worker, initargs=(ctx,), feedback=progress):
+            dst.write(rgba, window=RioWindow(win.col0, win.row0, win.width, win.height))
+            used |= stats.pop("used")  # type: ignore[arg-type]
+            for k, v in stats.items():
+                totals[k] = totals.get(k, 0.0) + v
+    return totals, used
 
 
 def _describe(surface: Surface) -> str:
@@ -583,15 +624,15 @@ def ortho(
     crs: str | None = None,
     ground_elevation_m: float | None = None,
     takeoff_elevation_m: float | None = None,
-    seams: SeamMethod = "graphcut",
-    balance: Balance = "channels",
-    blend: Blend = "multiband",
-    max_hole_px: int = 64,
-    compress: Compression = "DEFLATE",
+    seams: SeamMethod = MosaicOptions.seams,
+    balance: Balance = MosaicOptions.balance,
+    blend: Blend = MosaicOptions.blend,
+    max_hole_px: int = MosaicOptions.max_hole_px,
+    compress: Compression = MosaicOptions.compress,
     preview: Path | None = None,
-    interpolation: Interpolation = "bilinear",
-    tile_px: int = 1024,
-    workers: int = 0,
+    interpolation: Interpolation = MosaicOptions.interpolation,
+    tile_px: int = MosaicOptions.tile_px,
+    workers: int = MosaicOptions.workers,
     flight_height_m: float | None = None,
     gps_altitude: GpsAltitude = "auto",
     dsm_offset: DsmOffset = "correct",
@@ -708,9 +749,10 @@ def ortho(
         surface = _check_dsm_against_points(surface, pts, dsm_offset, max_dsm_offset_m, notes, fb)
     if len(cams) == 0:
         raise InputError("no registered photo to rectify", path=sfm or images)
-    return mosaic(cams, surface, out_crs, output, resolution_m, seams=seams, balance=balance, blend=blend,
-                  max_hole_px=max_hole_px, compress=compress, preview=preview, tile_px=tile_px, workers=workers,
-                  interpolation=interpolation, poses=poses, notes=notes, skipped=skipped, feedback=fb)
+    options = MosaicOptions(seams=seams, balance=balance, blend=blend, max_hole_px=max_hole_px, compress=compress,
+                            interpolation=interpolation, tile_px=tile_px, workers=workers)
+    return mosaic(cams, surface, out_crs, output, resolution_m, options, preview=preview, poses=poses, notes=notes,
+                  skipped=skipped, feedback=fb)
 
 
 def _check_dsm_against_points(surface: GridSurface, pts: np.ndarray, how: str, max_offset_m: float,
