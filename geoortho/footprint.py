@@ -21,7 +21,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from pyproj import CRS
@@ -31,7 +31,7 @@ from .crs import WGS84, crs_to_text, parse_crs, transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split, warn_grouped
 from .heights import GpsAltitude, HeightModel, resolve_heights
-from .photos import Photo, read_photos
+from .photos import Photo, PhotoSet, read_photos
 from .surface import FlatSurface, Surface, read_surface
 
 __all__ = [
@@ -280,9 +280,6 @@ def footprints(
         (decided from the photo spacing and the ground, and said), above-takeoff,
         orthometric or ellipsoidal.
     """
-    import geopandas as gpd
-    import shapely
-
     from .outputs import write_vector
 
     fb = as_feedback(feedback)
@@ -290,7 +287,46 @@ def footprints(
     if dsm is not None and ground_elevation_m is not None:
         raise InputError("give either a DSM or a ground elevation, not both")
     out_crs = parse_crs(crs) if crs else None
-    photos = read_photos(images, sensor_width_mm, feedback=s_read)
+    photos = _photos_with_altitude(images, sensor_width_mm, flight_height_m, s_read, fb)
+    work = working_crs(photos.photos, out_crs)
+    surface: Surface | None = None
+    if dsm is not None:
+        surface = read_surface(dsm, work, extend=True)
+    elif ground_elevation_m is not None:
+        surface = FlatSurface(float(ground_elevation_m))
+    cams, heights = photo_cameras(photos.photos, work, surface, takeoff_elevation_m,
+                                  flight_height_m=flight_height_m, gps_altitude=gps_altitude)
+    ground = "DSM" if dsm is not None else ("ground elevation" if ground_elevation_m is not None else
+                                             "flat take-off ground")
+    fb.info(f"heights: {ground}; {heights.method}; vertical datum: {heights.datum}")
+    for note in heights.notes:
+        fb.warning(note)
+    s_read.progress(1.0)
+    table = compute_footprints(cams, heights.surface, max_range_m=max_range_m)
+    s_cast.progress(1.0)
+    if table.outside.any():
+        fb.warning(f"{int(table.outside.sum())} footprint(s) reach beyond the DSM: there the ground is a plane at "
+                   "the nearby ground height of the DSM (column outside_dsm)")
+    fp, cam_layer = _footprint_layers(cams, table, heights, ground, work)
+    overlap_path = None
+    if overlap is not None:
+        overlap_path = write_overlap(overlap, fp.geometry.values, work, overlap_cell_m)
+    if out_crs is not None and not out_crs.equals(work):
+        fp, cam_layer = fp.to_crs(out_crs), cam_layer.to_crs(out_crs)
+    write_vector(output, {"footprints": fp, "cameras": cam_layer})
+    s_write.progress(1.0)
+    median_gsd = float(np.nanmedian(table.gsd_cm))
+    fb.info(f"{len(cams)} footprints, median GSD {median_gsd:.2f} cm, {int(table.clipped.sum())} clipped; "
+            f"{photos.summary()}")
+    return FootprintResult(Path(output), crs_to_text(out_crs or work), len(cams), len(photos.skipped),
+                           median_gsd, overlap_path, f"{ground}; {heights.method}", heights.datum,
+                           tuple(heights.notes))
+
+
+def _photos_with_altitude(images: Path, sensor_width_mm: float | None, flight_height_m: float | None,
+                          progress: Feedback, fb: Feedback) -> PhotoSet:
+    """The readable photos with an altitude (any photo when the flight height is given); the rest skipped."""
+    photos = read_photos(images, sensor_width_mm, feedback=progress)
     if not photos.photos:
         raise InputError(f"no usable photo ({photos.summary()})", path=images)
     usable = [p for p in photos.photos if p.has_altitude or flight_height_m is not None]
@@ -301,26 +337,14 @@ def footprints(
     photos.photos = usable
     if not usable:
         raise InputError(f"no usable photo ({photos.summary()}); give flight_height_m", path=images)
-    work = working_crs(photos.photos, out_crs)
-    surface: Surface | None = None
-    if dsm is not None:
-        surface = read_surface(dsm, work, extend=True)
-    elif ground_elevation_m is not None:
-        surface = FlatSurface(float(ground_elevation_m))
-    cams, heights = photo_cameras(photos.photos, work, surface, takeoff_elevation_m,
-                                  flight_height_m=flight_height_m, gps_altitude=gps_altitude)
-    surface = heights.surface
-    ground = "DSM" if dsm is not None else ("ground elevation" if ground_elevation_m is not None else
-                                             "flat take-off ground")
-    fb.info(f"heights: {ground}; {heights.method}; vertical datum: {heights.datum}")
-    for note in heights.notes:
-        fb.warning(note)
-    s_read.progress(1.0)
-    table = compute_footprints(cams, surface, max_range_m=max_range_m)
-    s_cast.progress(1.0)
-    if table.outside.any():
-        fb.warning(f"{int(table.outside.sum())} footprint(s) reach beyond the DSM: there the ground is a plane at "
-                   "the nearby ground height of the DSM (column outside_dsm)")
+    return photos
+
+
+def _footprint_layers(cams: Sequence[PhotoCamera], table: FootprintTable, heights: HeightModel, ground: str,
+                      work: CRS) -> tuple[Any, Any]:
+    """The footprints layer (one polygon and its figures per photo) and the cameras layer."""
+    import geopandas as gpd
+    import shapely
 
     polys = shapely.polygons(table.rings)
     bad = ~shapely.is_valid(polys)
@@ -350,19 +374,7 @@ def footprints(
          "gsd_cm": table.gsd_cm},
         geometry=shapely.points(centers[:, :2]), crs=work,
     )
-    overlap_path = None
-    if overlap is not None:
-        overlap_path = write_overlap(overlap, fp.geometry.values, work, overlap_cell_m)
-    if out_crs is not None and not out_crs.equals(work):
-        fp, cam_layer = fp.to_crs(out_crs), cam_layer.to_crs(out_crs)
-    write_vector(output, {"footprints": fp, "cameras": cam_layer})
-    s_write.progress(1.0)
-    median_gsd = float(np.nanmedian(table.gsd_cm))
-    fb.info(f"{len(cams)} footprints, median GSD {median_gsd:.2f} cm, {int(table.clipped.sum())} clipped; "
-            f"{photos.summary()}")
-    return FootprintResult(Path(output), crs_to_text(out_crs or work), len(cams), len(photos.skipped),
-                           median_gsd, overlap_path, f"{ground}; {heights.method}", heights.datum,
-                           tuple(heights.notes))
+    return fp, cam_layer
 
 
 def write_overlap(path: str | os.PathLike[str], polygons: Sequence, crs: CRS, cell_m: float) -> Path:

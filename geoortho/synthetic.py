@@ -222,7 +222,57 @@ def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], blur: float)
 
 def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lon: float,
                 dictionary: str, marker_size_m: float) -> Scene:
-    """The DTM, DSM, texture layers and marker layout for a preset."""
+    """The DTM, DSM, texture layers and marker layout for a preset.
+
+    The stages draw from ``rng`` in a fixed order (terrain, landcover, markers, buildings and
+    trees, texture noise): the same seed gives the same scene, byte for byte."""
+    g = _scene_grid(preset, lat, lon)
+    dtm = _terrain(g, preset, rng)
+    landcover, n_fields = _landcover(g, preset, rng)
+    taken = _Occupancy()
+    markers, pad_r = _place_markers(g, preset, rng, dictionary, marker_size_m, taken)
+    objects, height = _buildings_and_trees(g, preset, rng, dtm, taken)
+    dtm, markers = _marker_pads(g, dtm, markers, pad_r)
+    dsm = (dtm + height).astype(np.float32)
+    noise_cells = (0.02, 0.09, 0.45)
+    noise = tuple(_smooth_noise(rng, (s, s), 1.0) for s in (1021, 1031, 1009))
+    hx, hy = g.flight_box[0] - 5.0, g.flight_box[1] - 5.0
+    home_z = float(sample_grid(dtm, *_cr(g.transform, hx, hy))[0])
+    scene = Scene(g.crs, g.transform, dsm, dtm, landcover.astype(np.float32), objects.astype(np.float32),
+                  noise, noise_cells, tuple(markers), marker_size_m, dictionary, g.flight_box, (hx, hy, home_z))
+    scene.marker_cells = {m.marker_id: marker_cells(dictionary, m.marker_id) for m in markers}
+    return scene
+
+
+@dataclass(frozen=True)
+class _SceneGrid:
+    """The scene's raster grid: the survey area with a margin the photos' footprints fit in."""
+
+    crs: CRS
+    e0: float  # scene centre, easting and northing (rounded to 10 m)
+    n0: float
+    area_m: tuple[float, float]
+    margin_m: float
+    xmin: float
+    ymin: float
+    cell: float
+    rows: int
+    cols: int
+    transform: Affine
+    X: np.ndarray  # cell centres
+    Y: np.ndarray
+
+    @property
+    def flight_box(self) -> tuple[float, float, float, float]:
+        aw, ah = self.area_m
+        return self.e0 - aw / 2, self.n0 - ah / 2, self.e0 + aw / 2, self.n0 + ah / 2
+
+    @property
+    def local(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.X - self.e0, self.Y - self.n0
+
+
+def _scene_grid(preset: SynthPreset, lat: float, lon: float) -> _SceneGrid:
     crs = utm_crs_for(lon, lat)
     e0, n0 = transformer(CRS.from_epsg(4326), crs).transform(lon, lat)
     e0, n0 = round(e0 / 10) * 10, round(n0 / 10) * 10
@@ -239,24 +289,33 @@ def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lo
     xs = xmin + (np.arange(cols) + 0.5) * cell
     ys = ymin + rows * cell - (np.arange(rows) + 0.5) * cell
     X, Y = np.meshgrid(xs, ys)
-    lx, ly = X - e0, Y - n0
+    return _SceneGrid(crs, e0, n0, (aw, ah), margin, xmin, ymin, cell, rows, cols, transform, X, Y)
 
-    # Terrain: gentle slopes and a ridge (metres, ellipsoidal).
-    base_z = 110.0
+
+_BASE_Z = 110.0
+
+
+def _terrain(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator) -> np.ndarray:
+    """Gentle slopes and a ridge (metres, ellipsoidal)."""
+    lx, ly = g.local
     ph = rng.uniform(0, 2 * np.pi, 4)
-    dtm = (base_z + 2.5 * np.sin(lx / 70 + ph[0]) * np.cos(ly / 90 + ph[1])
+    dtm = (_BASE_Z + 2.5 * np.sin(lx / 70 + ph[0]) * np.cos(ly / 90 + ph[1])
            + 1.2 * np.sin(lx / 31 + ph[2]) + 0.02 * lx - 0.015 * ly)
     ang = rng.uniform(0, np.pi)
-    d_ridge = (lx * np.cos(ang) + ly * np.sin(ang)) - rng.uniform(-0.3, 0.3) * aw
-    dtm = dtm + 4.0 * np.exp(-0.5 * (d_ridge / 12.0) ** 2)
+    d_ridge = (lx * np.cos(ang) + ly * np.sin(ang)) - rng.uniform(-0.3, 0.3) * g.area_m[0]
+    return dtm + 4.0 * np.exp(-0.5 * (d_ridge / 12.0) ** 2)  # type: ignore[no-any-return]
 
-    # Landcover colours: Voronoi fields with stripes, roads, paths and clutter.
-    palette = np.array([[0.42, 0.55, 0.25], [0.55, 0.60, 0.30], [0.70, 0.65, 0.38], [0.52, 0.40, 0.28],
-                        [0.35, 0.48, 0.22], [0.62, 0.52, 0.35], [0.47, 0.58, 0.36]], np.float32)
-    n_fields = max(6, int((aw + 2 * margin) * (ah + 2 * margin) / 700))
-    seeds = np.c_[rng.uniform(0, cols, n_fields), rng.uniform(0, rows, n_fields)]
+
+def _landcover(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator) -> tuple[np.ndarray, int]:
+    """Landcover colours: Voronoi fields with stripes, roads, paths and clutter; and the number of fields."""
     from scipy.spatial import cKDTree
 
+    lx, ly = g.local
+    rows, cols, cell = g.rows, g.cols, g.cell
+    palette = np.array([[0.42, 0.55, 0.25], [0.55, 0.60, 0.30], [0.70, 0.65, 0.38], [0.52, 0.40, 0.28],
+                        [0.35, 0.48, 0.22], [0.62, 0.52, 0.35], [0.47, 0.58, 0.36]], np.float32)
+    n_fields = max(6, int((g.area_m[0] + 2 * g.margin_m) * (g.area_m[1] + 2 * g.margin_m) / 700))
+    seeds = np.c_[rng.uniform(0, cols, n_fields), rng.uniform(0, rows, n_fields)]
     _, label = cKDTree(seeds).query(np.c_[np.repeat(np.arange(cols)[None], rows, 0).ravel(),
                                           np.repeat(np.arange(rows)[:, None], cols, 1).ravel()])
     label = label.reshape(rows, cols)
@@ -268,20 +327,21 @@ def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lo
     landcover *= (1.0 + 0.10 * stripes)[..., None].astype(np.float32)
     canvas = np.ascontiguousarray(landcover)
     px_per_m = 1.0 / cell
+    aw, ah = g.area_m
 
     def to_px(x: float, y: float) -> tuple[int, int]:
-        return int(round((x - xmin) * px_per_m * 16)), int(round((ymin + rows * cell - y) * px_per_m * 16))
+        return int(round((x - g.xmin) * px_per_m * 16)), int(round((g.ymin + rows * cell - y) * px_per_m * 16))
 
     for _ in range(2):  # roads through the scene
         a = rng.uniform(0, np.pi)
         off = rng.uniform(-0.4, 0.4) * np.array([aw, ah])
-        c = np.array([e0, n0]) + off
+        c = np.array([g.e0, g.n0]) + off
         d = np.array([np.cos(a), np.sin(a)]) * 2000
         p1, p2 = to_px(*(c - d)), to_px(*(c + d))
         cv2.line(canvas, p1, p2, (0.36, 0.36, 0.38), int(5.0 * px_per_m), cv2.LINE_AA, shift=4)
         cv2.line(canvas, p1, p2, (0.85, 0.85, 0.80), max(1, int(0.15 * px_per_m)), cv2.LINE_AA, shift=4)
     for _ in range(int(n_fields * 1.5)):  # clutter: sheds, cars, bushes, patches
-        x, y = rng.uniform(xmin, xmin + cols * cell), rng.uniform(ymin, ymin + rows * cell)
+        x, y = rng.uniform(g.xmin, g.xmin + cols * cell), rng.uniform(g.ymin, g.ymin + rows * cell)
         colr = tuple(float(v) for v in rng.uniform(0.1, 0.9, 3))
         if rng.random() < 0.5:
             cv2.circle(canvas, to_px(x, y), int(rng.uniform(0.4, 2.0) * px_per_m * 16), colr, -1,
@@ -291,17 +351,28 @@ def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lo
             box = cv2.boxPoints(((x, y), (w, h), an))
             pts = np.array([to_px(*p) for p in box], np.int32)
             cv2.fillPoly(canvas, [pts], colr, cv2.LINE_AA, shift=4)
-    landcover = canvas
+    return canvas, n_fields
 
-    fx0, fy0, fx1, fy1 = e0 - aw / 2, n0 - ah / 2, e0 + aw / 2, n0 + ah / 2
-    occupied: list[tuple[float, float, float]] = []
 
-    def free(x: float, y: float, r: float) -> bool:
-        return all(math.hypot(x - ox, y - oy) > r + orad for ox, oy, orad in occupied)
+class _Occupancy:
+    """Discs already taken by markers, buildings and trees: new objects keep clear of them."""
 
-    # Markers on flat pads, then decoys (ids never in a GCP file).
-    dictionary_obj = get_dictionary(dictionary)
-    n_ids = dictionary_obj.bytesList.shape[0]
+    def __init__(self) -> None:
+        self.discs: list[tuple[float, float, float]] = []
+
+    def free(self, x: float, y: float, r: float) -> bool:
+        return all(math.hypot(x - ox, y - oy) > r + orad for ox, oy, orad in self.discs)
+
+    def take(self, x: float, y: float, r: float) -> None:
+        self.discs.append((x, y, r))
+
+
+def _place_markers(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator, dictionary: str,
+                   marker_size_m: float, taken: _Occupancy) -> tuple[list[Marker], float]:
+    """Markers on flat pads, then decoys (ids never in a GCP file); and the pads' radius."""
+    fx0, fy0, fx1, fy1 = g.flight_box
+    aw, ah = g.area_m
+    n_ids = get_dictionary(dictionary).bytesList.shape[0]
     n_total = preset.n_markers + preset.n_decoys
     if n_total * 2 > n_ids:
         raise InputError(f"dictionary {dictionary} has too few ids for {n_total} markers")
@@ -313,27 +384,33 @@ def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lo
         for _try in range(500):
             mx = rng.uniform(fx0 + 3, fx1 - 3)
             my = rng.uniform(fy0 + 3, fy1 - 3)
-            if free(mx, my, pad_r + 2.0) and all(math.hypot(mx - m.x, my - m.y) > spacing_m for m in markers):
+            if taken.free(mx, my, pad_r + 2.0) and all(math.hypot(mx - m.x, my - m.y) > spacing_m for m in markers):
                 break
         else:
             raise InputError("could not place all markers; use fewer or a larger area")
-        occupied.append((mx, my, pad_r))
+        taken.take(mx, my, pad_r)
         decoy = k >= preset.n_markers
         markers.append(Marker(int(mid), f"GCP{int(mid):02d}", float(mx), float(my), 0.0,
                               float(rng.uniform(0, 360)), decoy))
+    return markers, pad_r
 
-    # Buildings (gabled or flat) and trees, kept clear of each other and of the markers.
-    objects = np.zeros_like(landcover)
-    height = np.zeros((rows, cols), np.float32)
+
+def _buildings_and_trees(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator, dtm: np.ndarray,
+                         taken: _Occupancy) -> tuple[np.ndarray, np.ndarray]:
+    """Buildings (gabled or flat) and trees, clear of each other and of the markers: colours and heights."""
+    X, Y = g.X, g.Y
+    fx0, fy0, fx1, fy1 = g.flight_box
+    objects = np.zeros((g.rows, g.cols, 3), np.float32)
+    height = np.zeros((g.rows, g.cols), np.float32)
     for _ in range(preset.n_buildings):
         for _try in range(50):
             bx, by = rng.uniform(fx0 - 5, fx1 + 5), rng.uniform(fy0 - 5, fy1 + 5)
             bl, bw = rng.uniform(9, 16), rng.uniform(7, 11)
-            if free(bx, by, math.hypot(bl, bw) / 2 + 2):
+            if taken.free(bx, by, math.hypot(bl, bw) / 2 + 2):
                 break
         else:
             continue
-        occupied.append((bx, by, math.hypot(bl, bw) / 2))
+        taken.take(bx, by, math.hypot(bl, bw) / 2)
         ba = rng.uniform(0, np.pi)
         u = (X - bx) * np.cos(ba) + (Y - by) * np.sin(ba)
         v = -(X - bx) * np.sin(ba) + (Y - by) * np.cos(ba)
@@ -343,7 +420,7 @@ def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lo
             roof = eave + rng.uniform(1.5, 3.0) * (1 - np.abs(v) / (bw / 2))
         else:
             roof = np.full_like(u, eave)
-        ground_top = float(dtm[inside].max()) if inside.any() else base_z
+        ground_top = float(dtm[inside].max()) if inside.any() else _BASE_Z
         h = (ground_top + roof - dtm)
         height = np.where(inside, np.maximum(height, h), height)
         rc = np.array(rng.choice([[0.62, 0.30, 0.22], [0.45, 0.45, 0.48], [0.70, 0.68, 0.62],
@@ -354,36 +431,31 @@ def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lo
         for _try in range(50):
             tx, ty = rng.uniform(fx0 - 10, fx1 + 10), rng.uniform(fy0 - 10, fy1 + 10)
             tr = rng.uniform(2.0, 3.5)
-            if free(tx, ty, tr + 1):
+            if taken.free(tx, ty, tr + 1):
                 break
         else:
             continue
-        occupied.append((tx, ty, tr))
+        taken.take(tx, ty, tr)
         th = rng.uniform(5, 9)
         bump = th * np.exp(-0.5 * ((X - tx) ** 2 + (Y - ty) ** 2) / (tr / 1.6) ** 2)
         crown = bump > 0.3
         height = np.where(crown, np.maximum(height, bump), height)
         objects = np.where(crown[..., None], np.array([0.20, 0.34, 0.14], np.float32), objects)
+    return objects, height
 
-    # Flat pads under the markers, blending into the terrain over 2 m.
-    for i, m in enumerate(markers):
-        r = np.hypot(X - m.x, Y - m.y)
-        z_pad = float(sample_grid(dtm.astype(np.float32), *_cr(transform, m.x, m.y))[0])
+
+def _marker_pads(g: _SceneGrid, dtm: np.ndarray, markers: list[Marker],
+                 pad_r: float) -> tuple[np.ndarray, list[Marker]]:
+    """Flat pads under the markers, blending into the terrain over 2 m; the markers at their pads' height."""
+    placed = []
+    for m in markers:
+        r = np.hypot(g.X - m.x, g.Y - m.y)
+        z_pad = float(sample_grid(dtm.astype(np.float32), *_cr(g.transform, m.x, m.y))[0])
         w = np.clip((r - pad_r) / 2.0, 0.0, 1.0)
         w = w * w * (3 - 2 * w)
         dtm = np.where(r < pad_r + 2.0, z_pad * (1 - w) + dtm * w, dtm)
-        markers[i] = replace(m, z=z_pad)
-    dtm = dtm.astype(np.float32)
-    dsm = (dtm + height).astype(np.float32)
-    noise_cells = (0.02, 0.09, 0.45)
-    noise = tuple(_smooth_noise(rng, (s, s), 1.0) for s in (1021, 1031, 1009))
-    hx, hy = fx0 - 5.0, fy0 - 5.0
-    home_z = float(sample_grid(dtm, *_cr(transform, hx, hy))[0])
-    scene = Scene(crs, transform, dsm, dtm, landcover.astype(np.float32), objects.astype(np.float32),
-                  noise, noise_cells, tuple(markers), marker_size_m, dictionary, (fx0, fy0, fx1, fy1),
-                  (hx, hy, home_z))
-    scene.marker_cells = {m.marker_id: marker_cells(dictionary, m.marker_id) for m in markers}
-    return scene
+        placed.append(replace(m, z=z_pad))
+    return dtm.astype(np.float32), placed
 
 
 def _cr(transform: Affine, x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
@@ -886,14 +958,24 @@ def true_footprint(scene: Scene, shot: Shot, intr: Intrinsics, per_side: int = 4
 def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics, p: SynthPreset,
                  results: list[dict[str, Any]], seed: int, fb: Feedback, pathologies: Sequence[str] = (),
                  undulation_m: float = 0.0) -> None:
-    import geopandas as gpd
-    import shapely
-
-    from .outputs import write_cog, write_json, write_text, write_vector
-
+    """Every truth product: rasters, poses and footprints, GCP files, survey.json, ortho, point cloud."""
     steps = split(fb, [1, 1, 3, 2, 1])
-    epsg = scene.crs.to_epsg()
-    # Rasters
+    _write_truth_rasters(truth, scene, pathologies, undulation_m)
+    steps[0].progress(1.0)
+    _write_poses_and_footprints(truth, scene, shots, intr, results)
+    steps[1].progress(1.0)
+    _write_gcp_files(truth, scene)
+    _write_survey_json(truth, scene, intr, p, seed, pathologies, undulation_m)
+    steps[2].progress(1.0)
+    _write_true_ortho(truth / "ortho.tif", scene, p.ortho_cell_m, steps[3])
+    _write_points(truth / "points.laz", scene, p, np.random.default_rng(seed + 7))
+    steps[4].progress(1.0)
+
+
+def _write_truth_rasters(truth: Path, scene: Scene, pathologies: Sequence[str], undulation_m: float) -> None:
+    """The true DSM and DTM, and the DSMs the pathologies ask for (another datum, a partial one)."""
+    from .outputs import write_cog
+
     write_cog(truth / "dsm.tif", scene.dsm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
     write_cog(truth / "dtm.tif", scene.dtm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
     if "dsm-datum" in pathologies:
@@ -904,40 +986,52 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
         c0 = int((fx0 + 0.4 * (fx1 - fx0) - scene.transform.c) / scene.transform.a)
         write_cog(truth / "dsm_partial.tif", scene.dsm[:, c0:], transform=scene.transform @ Affine.translation(c0, 0),
                   crs=scene.crs, nodata=-9999.0)
-    steps[0].progress(1.0)
 
-    # Poses and footprints
-    poses, polys, clipped = [], [], []
+
+def _pose_record(s: Shot) -> dict[str, Any]:
+    R = rotation_from_ypr(s.yaw_deg, s.pitch_deg, s.roll_deg)
+    return {
+        "image": s.name, "x": s.x, "y": s.y, "z": s.z,
+        "yaw_deg": s.yaw_deg, "pitch_deg": s.pitch_deg, "roll_deg": s.roll_deg,
+        "rotation_world_from_camera": R.tolist(),
+        "recorded": {
+            "latitude_deg": s.rec_lat, "longitude_deg": s.rec_lon, "gps_altitude_m": s.rec_gps_alt_m,
+            "relative_altitude_m": s.rec_rel_alt_m, "absolute_altitude_m": s.rec_abs_alt_m,
+            "gimbal_yaw_deg": s.rec_yaw_deg, "gimbal_pitch_deg": s.rec_pitch_deg,
+            "gimbal_roll_deg": s.rec_roll_deg, "flight_yaw_deg": s.flight_yaw_deg,
+        },
+        "oblique": s.oblique, "has_xmp": s.has_xmp, "has_gps": s.has_gps, "corrupt": s.corrupt,
+        "blur_px": s.blur_px, "exposure_gain": s.exposure_gain, "exposure_time_s": s.exposure_time_s,
+        "exif_focal_mm": s.exif_focal_mm,
+    }
+
+
+def _write_poses_and_footprints(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
+                                results: list[dict[str, Any]]) -> None:
+    import geopandas as gpd
+    import shapely
+
+    from .outputs import write_json, write_vector
+
+    polys, clipped = [], []
     for s in shots:
-        R = rotation_from_ypr(s.yaw_deg, s.pitch_deg, s.roll_deg)
-        poses.append({
-            "image": s.name, "x": s.x, "y": s.y, "z": s.z,
-            "yaw_deg": s.yaw_deg, "pitch_deg": s.pitch_deg, "roll_deg": s.roll_deg,
-            "rotation_world_from_camera": R.tolist(),
-            "recorded": {
-                "latitude_deg": s.rec_lat, "longitude_deg": s.rec_lon, "gps_altitude_m": s.rec_gps_alt_m,
-                "relative_altitude_m": s.rec_rel_alt_m, "absolute_altitude_m": s.rec_abs_alt_m,
-                "gimbal_yaw_deg": s.rec_yaw_deg, "gimbal_pitch_deg": s.rec_pitch_deg,
-                "gimbal_roll_deg": s.rec_roll_deg, "flight_yaw_deg": s.flight_yaw_deg,
-            },
-            "oblique": s.oblique, "has_xmp": s.has_xmp, "has_gps": s.has_gps, "corrupt": s.corrupt,
-            "blur_px": s.blur_px, "exposure_gain": s.exposure_gain, "exposure_time_s": s.exposure_time_s,
-            "exif_focal_mm": s.exif_focal_mm,
-        })
         ring, clip = true_footprint(scene, s, intr)
         polys.append(shapely.make_valid(shapely.Polygon(ring)))
         clipped.append(clip)
-    steps[1].progress(1.0)
     gdf = gpd.GeoDataFrame({"image": [s.name for s in shots], "clipped": clipped,
                             "oblique": [s.oblique for s in shots]}, geometry=polys, crs=scene.crs)
     write_vector(truth / "footprints.gpkg", {"footprints": gdf})
-    write_json(truth / "poses.json", poses)
+    write_json(truth / "poses.json", [_pose_record(s) for s in shots])
     write_json(truth / "markers.json", results)
 
-    # GCP files as a surveyor hands them over.
+
+def _write_gcp_files(truth: Path, scene: Scene) -> None:
+    """GCP files as a surveyor hands them over: UTM with an EPSG line, WGS84 text and CSV."""
+    from .outputs import write_text
+
     gcps = [m for m in scene.markers if not m.decoy]
     to_ll = transformer(scene.crs, CRS.from_epsg(4326))
-    utm_lines = [f"EPSG:{epsg}"] + [f"{m.name} {m.x:.4f} {m.y:.4f} {m.z:.4f}" for m in gcps]
+    utm_lines = [f"EPSG:{scene.crs.to_epsg()}"] + [f"{m.name} {m.x:.4f} {m.y:.4f} {m.z:.4f}" for m in gcps]
     write_text(truth / "gcp_utm.txt", "\n".join(utm_lines) + "\n")
     ll_lines = ["EPSG:4979"]
     csv_lines = ["name,lat,lon,alt"]
@@ -947,8 +1041,14 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
         csv_lines.append(f"{m.name},{lat:.9f},{lon:.9f},{m.z:.4f}")
     write_text(truth / "gcp_wgs84.txt", "\n".join(ll_lines) + "\n")
     write_text(truth / "gcp_wgs84.csv", "\n".join(csv_lines) + "\n")
+
+
+def _write_survey_json(truth: Path, scene: Scene, intr: Intrinsics, p: SynthPreset, seed: int,
+                       pathologies: Sequence[str], undulation_m: float) -> None:
+    from .outputs import write_json
+
     write_json(truth / "survey.json", {
-        "preset": asdict(p), "seed": seed, "crs": f"EPSG:{epsg}", "vertical": "WGS84 ellipsoidal height, m",
+        "preset": asdict(p), "seed": seed, "crs": f"EPSG:{scene.crs.to_epsg()}", "vertical": "WGS84 ellipsoidal height, m",
         "pixel_convention": "(0,0) is the centre of the top-left pixel (OpenCV, OpenDroneMap gcp_list.txt)",
         "attitude_convention": "yaw clockwise from north, pitch -90 nadir, roll right-down positive",
         "camera": {"make": CAMERA_MAKE, "model": CAMERA_MODEL, "sensor_width_mm": SENSOR_WIDTH_MM,
@@ -966,12 +1066,15 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
                         "relative_altitude_sigma_m": REL_ALT_NOISE_SIGMA_M,
                         "attitude_sigma_deg": ATTITUDE_NOISE_SIGMA_DEG},
     })
-    steps[2].progress(1.0)
 
-    # True ortho over the flown area (plus a little), at the preset's ortho cell.
+
+def _write_true_ortho(path: Path, scene: Scene, cell_m: float, progress: Feedback) -> None:
+    """The true orthophoto over the flown area (plus a little), coloured from the scene itself."""
+    from .outputs import write_cog
+
     fx0, fy0, fx1, fy1 = scene.flight_box
     pad = 15.0
-    oc = p.ortho_cell_m
+    oc = cell_m
     ox0, oy1 = math.floor((fx0 - pad) / oc) * oc, math.ceil((fy1 + pad) / oc) * oc
     ocols = int(round((fx1 + pad - ox0) / oc))
     orows = int(round((oy1 - (fy0 - pad)) / oc))
@@ -987,13 +1090,9 @@ def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
         z = surf.elevation(x, y)
         col = scene.color(x, y, z)
         ortho[:, r0:r1] = np.clip(col.T.reshape(3, r1 - r0, ocols) * 255 + 0.5, 0, 255).astype(np.uint8)
-        steps[3].progress(r1 / orows)
-    write_cog(truth / "ortho.tif", ortho, transform=ot, crs=scene.crs, compress="DEFLATE",
+        progress.progress(r1 / orows)
+    write_cog(path, ortho, transform=ot, crs=scene.crs, compress="DEFLATE",
               band_names=("red", "green", "blue"))
-
-    # Point cloud sampled from the DSM, ground classified.
-    _write_points(truth / "points.laz", scene, p, np.random.default_rng(seed + 7))
-    steps[4].progress(1.0)
 
 
 def _write_points(path: Path, scene: Scene, p: SynthPreset, rng: np.random.Generator) -> None:
