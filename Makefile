@@ -34,8 +34,11 @@ test-qgis:
 plugin: $(STAMP)
 	$(PY) tools/build_plugin.py $(PLUGIN_ZIP)
 
+# ruff (line length enforced), the formatter's check, and mypy on the package.
 lint: $(STAMP)
 	$(VENV)/bin/ruff check geoortho tests tests_qgis benchmarks tools
+	$(VENV)/bin/ruff format --check geoortho tests tests_qgis benchmarks tools
+	$(VENV)/bin/mypy geoortho
 
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

@@ -83,19 +83,37 @@ def main() -> int:
         ours = grid_points(x, y, z, grid, "max")
         t_ours = time.perf_counter() - t
         t = time.perf_counter()
-        base = binned_statistic_2d(x, y, z, "max", bins=[grid.cols, grid.rows],
-                                   range=[[grid.x0, grid.x0 + grid.cols * grid.cell],
-                                          [grid.y0 - grid.rows * grid.cell, grid.y0]]).statistic
+        base = binned_statistic_2d(
+            x,
+            y,
+            z,
+            "max",
+            bins=[grid.cols, grid.rows],
+            range=[[grid.x0, grid.x0 + grid.cols * grid.cell], [grid.y0 - grid.rows * grid.cell, grid.y0]],
+        ).statistic
         t_base = time.perf_counter() - t
         same = np.allclose(np.nan_to_num(np.flipud(base.T)), np.nan_to_num(ours))
-        print(f"gridding (max, {grid.cols} x {grid.rows} cells, one core): {m / t_ours / 1e6:.1f} M points/s; "
-              f"scipy binned_statistic_2d: {m / t_base / 1e6:.2f} M points/s; ratio x{t_base / t_ours:.1f}; "
-              f"same grid: {same} (target >= 5 M points/s)")
+        print(
+            f"gridding (max, {grid.cols} x {grid.rows} cells, one core): {m / t_ours / 1e6:.1f} M points/s; "
+            f"scipy binned_statistic_2d: {m / t_base / 1e6:.2f} M points/s; ratio x{t_base / t_ours:.1f}; "
+            f"same grid: {same} (target >= 5 M points/s)"
+        )
         del x, y, z, ours, base
 
         for label, extra in (("DSM only", []), ("DSM + SMRF + DTM", ["--dtm", str(Path(d) / "dtm.tif")])):
-            argv = ["geoortho", "dem", "--points", str(las), "--output", str(Path(d) / "dsm.tif"),
-                    "--resolution-m", str(args.resolution_m), "--json", "--quiet", *extra]
+            argv = [
+                "geoortho",
+                "dem",
+                "--points",
+                str(las),
+                "--output",
+                str(Path(d) / "dsm.tif"),
+                "--resolution-m",
+                str(args.resolution_m),
+                "--json",
+                "--quiet",
+                *extra,
+            ]
             cmd = [sys.executable, "-c", CHILD, json.dumps(argv)]
             t = time.perf_counter()
             r = subprocess.run(cmd, capture_output=True, text=True)
@@ -105,8 +123,10 @@ def main() -> int:
                 return 1
             peak_kb = int(r.stderr.strip().splitlines()[-1].split()[-1])
             res = json.loads(r.stdout)
-            print(f"dem {label}: {dt:.1f} s, {n / dt / 1e6:.2f} M points/s end to end (read, grid, fill, write), "
-                  f"peak RSS {peak_kb / 1024:.0f} MB; ground {res['n_ground']:,} of {res['n_points']:,}")
+            print(
+                f"dem {label}: {dt:.1f} s, {n / dt / 1e6:.2f} M points/s end to end (read, grid, fill, write), "
+                f"peak RSS {peak_kb / 1024:.0f} MB; ground {res['n_ground']:,} of {res['n_points']:,}"
+            )
     return 0
 
 

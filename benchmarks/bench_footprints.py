@@ -48,9 +48,11 @@ def bench_metadata(n: int, work: Path) -> None:
         with open(p, "rb") as f:
             exifread.process_file(f, details=False)
     base = len(sample) / (time.perf_counter() - t)
-    print(f"metadata: {len(ps.photos)} photos in {dt:.2f} s = {rate:,.0f} photos/s "
-          f"(target 500: x{rate / 500:.1f}; exifread alone {base:,.0f}/s: x{rate / base:.1f}); "
-          f"peak RSS {peak_rss_mb():.0f} MB")
+    print(
+        f"metadata: {len(ps.photos)} photos in {dt:.2f} s = {rate:,.0f} photos/s "
+        f"(target 500: x{rate / 500:.1f}; exifread alone {base:,.0f}/s: x{rate / base:.1f}); "
+        f"peak RSS {peak_rss_mb():.0f} MB"
+    )
 
 
 def synthetic_cameras(n: int, rng: np.random.Generator):
@@ -62,8 +64,9 @@ def synthetic_cameras(n: int, rng: np.random.Generator):
     cams = []
     for i in range(n):
         x, y = (i % side) * 20.0 + 500, (i // side) * 20.0 + 500
-        pose = Pose.from_ypr((x, y, 150.0 + rng.normal(0, 1)), rng.uniform(-180, 180), -90 + rng.normal(0, 3),
-                             rng.normal(0, 1))
+        pose = Pose.from_ypr(
+            (x, y, 150.0 + rng.normal(0, 1)), rng.uniform(-180, 180), -90 + rng.normal(0, 3), rng.normal(0, 1)
+        )
         cams.append(PhotoCamera(None, intr, pose, ""))  # type: ignore[arg-type]
     return cams, side
 
@@ -99,9 +102,11 @@ def bench_footprints(n: int) -> None:
         for c in cams[:k]:
             shapely.polygons(compute_footprints([c], surface).rings)
         base = k / (time.perf_counter() - t)
-        print(f"footprints on {label}: {n} photos in {dt:.2f} s = {rate:,.0f} photos/s "
-              f"(target {target:,}: x{rate / target:.1f}; per-photo loop {base:,.0f}/s: x{rate / base:.1f}); "
-              f"valid {shapely.is_valid(polys).mean():.3f}; peak RSS {peak_rss_mb():.0f} MB")
+        print(
+            f"footprints on {label}: {n} photos in {dt:.2f} s = {rate:,.0f} photos/s "
+            f"(target {target:,}: x{rate / target:.1f}; per-photo loop {base:,.0f}/s: x{rate / base:.1f}); "
+            f"valid {shapely.is_valid(polys).mean():.3f}; peak RSS {peak_rss_mb():.0f} MB"
+        )
 
 
 def main() -> int:

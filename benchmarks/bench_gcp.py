@@ -29,8 +29,9 @@ def peak_rss_mb() -> float:
 
 
 def score(truth: dict, found: dict[tuple[str, str], tuple[float, float]]) -> dict:
-    visible = {(i, g) for i, ms in truth.items() for g, m in ms.items()
-               if m["inside"] and not m["decoy"] and not m["occluded"]}
+    visible = {
+        (i, g) for i, ms in truth.items() for g, m in ms.items() if m["inside"] and not m["decoy"] and not m["occluded"]
+    }
     errors, wrong = [], 0
     for (img, g), (x, y) in found.items():
         t = truth[img].get(g)
@@ -40,9 +41,13 @@ def score(truth: dict, found: dict[tuple[str, str], tuple[float, float]]) -> dic
         e = float(np.hypot(x - t["x_px"], y - t["y_px"]))
         errors.append(e)
         wrong += e > 3
-    return {"recall": len(set(found) & visible) / max(1, len(visible)),
-            "precision": (len(found) - wrong) / max(1, len(found)),
-            "mean_err": float(np.mean(errors)) if errors else float("nan"), "n": len(found), "visible": len(visible)}
+    return {
+        "recall": len(set(found) & visible) / max(1, len(visible)),
+        "precision": (len(found) - wrong) / max(1, len(found)),
+        "mean_err": float(np.mean(errors)) if errors else float("nan"),
+        "n": len(found),
+        "visible": len(visible),
+    }
 
 
 def plain(images: Path, names_by_id: dict[int, str], dictionary: str) -> dict:
@@ -80,14 +85,15 @@ def main() -> int:
             survey_dir = args.survey
         images, truth_dir = survey_dir / "images", survey_dir / "truth"
         info = json.loads((truth_dir / "survey.json").read_text())
-        truth = {m["image"]: {mm["gcp"]: mm for mm in m["markers"]}
-                 for m in json.loads((truth_dir / "markers.json").read_text())}
+        truth = {
+            m["image"]: {mm["gcp"]: mm for mm in m["markers"]}
+            for m in json.loads((truth_dir / "markers.json").read_text())
+        }
         gcp_file = truth_dir / "gcp_utm.txt"
         n_photos = len(list(images.iterdir()))
 
         t = time.perf_counter()
-        gcp_find(images, gcp_file, work / "gcp_list.txt", dictionary=info["dictionary"],
-                 detections=work / "det.csv")
+        gcp_find(images, gcp_file, work / "gcp_list.txt", dictionary=info["dictionary"], detections=work / "det.csv")
         t_ours = time.perf_counter() - t
         rows = [ln.split() for ln in (work / "gcp_list.txt").read_text().splitlines()[1:]]
         ours = score(truth, {(r[5], r[6]): (float(r[3]), float(r[4])) for r in rows})
@@ -108,13 +114,19 @@ def main() -> int:
             mean.append(np.hypot(*(c.mean(axis=0) - [tr["x_px"], tr["y_px"]])))
 
     print(f"photos: {n_photos}, visible marker observations: {ours['visible']}")
-    print(f"gcp-find: {t_ours:.1f} s ({n_photos / t_ours:.1f} photos/s), recall {ours['recall']:.3f}, "
-          f"precision {ours['precision']:.3f}, mean centre error {ours['mean_err']:.3f} px")
-    print(f"plain whole-photo detectMarkers: {t_plain:.1f} s ({n_photos / t_plain:.1f} photos/s), recall "
-          f"{base['recall']:.3f}, precision {base['precision']:.3f}, mean centre error {base['mean_err']:.3f} px")
+    print(
+        f"gcp-find: {t_ours:.1f} s ({n_photos / t_ours:.1f} photos/s), recall {ours['recall']:.3f}, "
+        f"precision {ours['precision']:.3f}, mean centre error {ours['mean_err']:.3f} px"
+    )
+    print(
+        f"plain whole-photo detectMarkers: {t_plain:.1f} s ({n_photos / t_plain:.1f} photos/s), recall "
+        f"{base['recall']:.3f}, precision {base['precision']:.3f}, mean centre error {base['mean_err']:.3f} px"
+    )
     print(f"speed ratio: x{t_plain / t_ours:.1f} (target >= 5 at higher recall)")
-    print(f"centre: diagonal intersection {np.mean(diag):.3f} px vs corner mean {np.mean(mean):.3f} px "
-          f"(mean error over {len(diag)} detections)")
+    print(
+        f"centre: diagonal intersection {np.mean(diag):.3f} px vs corner mean {np.mean(mean):.3f} px "
+        f"(mean error over {len(diag)} detections)"
+    )
     print(f"peak RSS {peak_rss_mb():.0f} MB (this process; detection workers not counted)")
     return 0
 

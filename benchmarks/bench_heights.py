@@ -20,8 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
-ALL = ("no-relative-altitude", "ellipsoidal-gps", "altitude-drift", "wrong-focal", "dsm-datum", "partial-dsm",
-       "exposure-steps")
+ALL = (
+    "no-relative-altitude",
+    "ellipsoidal-gps",
+    "altitude-drift",
+    "wrong-focal",
+    "dsm-datum",
+    "partial-dsm",
+    "exposure-steps",
+)
 
 
 def _iou_shortfall(fp: Path, truth: Path) -> float:
@@ -29,8 +36,11 @@ def _iou_shortfall(fp: Path, truth: Path) -> float:
 
     a = gpd.read_file(fp, layer="footprints").set_index("image")
     t = gpd.read_file(truth / "footprints.gpkg").set_index("image")
-    return 1.0 - float(np.mean([g.intersection(t.loc[n].geometry).area / g.union(t.loc[n].geometry).area
-                                for n, g in a.geometry.items()]))
+    return 1.0 - float(
+        np.mean(
+            [g.intersection(t.loc[n].geometry).area / g.union(t.loc[n].geometry).area for n, g in a.geometry.items()]
+        )
+    )
 
 
 def _camera_rmse(cameras: Path, truth: Path) -> float:
@@ -39,9 +49,10 @@ def _camera_rmse(cameras: Path, truth: Path) -> float:
     poses = {p["image"]: p for p in json.loads((truth / "poses.json").read_text())}
     c = gpd.read_file(cameras)
     c = c[c.registered]
-    e = np.array([[r.x - poses[r.image]["x"], r.y - poses[r.image]["y"], r.z - poses[r.image]["z"]]
-                  for r in c.itertuples()])
-    return float(np.sqrt((e ** 2).sum(axis=1).mean()))
+    e = np.array(
+        [[r.x - poses[r.image]["x"], r.y - poses[r.image]["y"], r.z - poses[r.image]["z"]] for r in c.itertuples()]
+    )
+    return float(np.sqrt((e**2).sum(axis=1).mean()))
 
 
 def measure(name: str, preset: str, seed: int, work: Path) -> dict[str, object]:
@@ -93,8 +104,10 @@ def main() -> int:
             rows.append(measure(name, args.preset, args.seed, Path(d)))
             print(json.dumps(rows[-1], default=float), flush=True)
     clean = rows[0]
-    print(f"\n{'pathology':<22}{'fp IoU short':>13}{'ratio':>7}{'cam RMSE m':>12}{'ratio':>7}"
-          f"{'ortho geo m':>12}{'ratio':>7}{'s':>7}")
+    print(
+        f"\n{'pathology':<22}{'fp IoU short':>13}{'ratio':>7}{'cam RMSE m':>12}{'ratio':>7}"
+        f"{'ortho geo m':>12}{'ratio':>7}{'s':>7}"
+    )
     for r in rows:
         cells = []
         for k in ("footprint_iou_shortfall", "sfm_camera_rmse_m", "ortho_geolocation_m"):

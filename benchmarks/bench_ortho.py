@@ -47,7 +47,9 @@ def peak():
     print("peak_rss_kb", own, kids, file=sys.stderr)
 """
 
-OURS = COMMON + r"""
+OURS = (
+    COMMON
+    + r"""
 from geoortho.orthophoto import MosaicOptions, mosaic
 survey, out, resolution, workers = json.loads(sys.argv[1])
 survey, out = Path(survey), Path(out)
@@ -59,8 +61,11 @@ print(json.dumps({"wall": wall, "width": r.width_px, "height": r.height_px, "res
                   "seconds": r.seconds, "seam_raw": r.seam_mismatch_raw, "seam_bal": r.seam_mismatch_balanced}))
 peak()
 """
+)
 
-BASELINE = COMMON + r"""
+BASELINE = (
+    COMMON
+    + r"""
 import rasterio
 from rasterio.control import GroundControlPoint
 from rasterio.merge import merge
@@ -102,6 +107,7 @@ wall = time.perf_counter() - t0
 print(json.dumps({"wall": wall, "warp": t_warp, "width": mosaic_arr.shape[2], "height": mosaic_arr.shape[1]}))
 peak()
 """
+)
 
 
 def _child(code: str, args: list) -> tuple[dict, int, int]:
@@ -132,17 +138,25 @@ def main() -> int:
         base, own_b, kids_b = _child(BASELINE, [str(survey), d, res, args.workers])
         mp_o = ours["width"] * ours["height"] / 1e6
         mp_b = base["width"] * base["height"] / 1e6
-        print(f"survey {survey.name}: grid {ours['width']}x{ours['height']} px at {res * 100:.2f} cm "
-              f"({mp_o:.1f} Mpx); {args.workers} workers; benchmark {time.perf_counter() - t:.0f} s")
-        print(f"geoortho: {ours['wall']:.1f} s = {mp_o / ours['wall']:.2f} Mpx/s; stages "
-              + ", ".join(f"{k} {v:.1f} s" for k, v in ours["seconds"].items())
-              + f"; seam mismatch {ours['seam_raw']:.1f} -> {ours['seam_bal']:.1f} DN")
-        print(f"baseline (GDAL warp + merge): {base['wall']:.1f} s = {mp_b / base['wall']:.2f} Mpx/s "
-              f"(warping {base['warp']:.1f} s)")
+        print(
+            f"survey {survey.name}: grid {ours['width']}x{ours['height']} px at {res * 100:.2f} cm "
+            f"({mp_o:.1f} Mpx); {args.workers} workers; benchmark {time.perf_counter() - t:.0f} s"
+        )
+        print(
+            f"geoortho: {ours['wall']:.1f} s = {mp_o / ours['wall']:.2f} Mpx/s; stages "
+            + ", ".join(f"{k} {v:.1f} s" for k, v in ours["seconds"].items())
+            + f"; seam mismatch {ours['seam_raw']:.1f} -> {ours['seam_bal']:.1f} DN"
+        )
+        print(
+            f"baseline (GDAL warp + merge): {base['wall']:.1f} s = {mp_b / base['wall']:.2f} Mpx/s "
+            f"(warping {base['warp']:.1f} s)"
+        )
         peak_o = max(own_o, kids_o) / 1024
-        print(f"peak RSS: geoortho main {own_o / 1024:.0f} MB, largest worker {kids_o / 1024:.0f} MB; "
-              f"baseline {max(own_b, kids_b) / 1024:.0f} MB (target < 2048 MB for medium: "
-              f"{'met' if peak_o < 2048 else 'NOT met'})")
+        print(
+            f"peak RSS: geoortho main {own_o / 1024:.0f} MB, largest worker {kids_o / 1024:.0f} MB; "
+            f"baseline {max(own_b, kids_b) / 1024:.0f} MB (target < 2048 MB for medium: "
+            f"{'met' if peak_o < 2048 else 'NOT met'})"
+        )
         ratio = ours["wall"] / base["wall"]
         print(f"time ratio geoortho / baseline: {ratio:.2f} (target <= 2: {'met' if ratio <= 2 else 'NOT met'})")
     return 0

@@ -54,13 +54,20 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="bench-qgis-"))
     survey = synth(work / "survey", preset=args.preset, seed=1)
     profile = work / "profile"
-    subprocess.run([sys.executable, str(PROJECT / "tools" / "build_plugin.py"), str(work / "p.zip")], check=True,
-                   capture_output=True)
+    subprocess.run(
+        [sys.executable, str(PROJECT / "tools" / "build_plugin.py"), str(work / "p.zip")],
+        check=True,
+        capture_output=True,
+    )
     with zipfile.ZipFile(work / "p.zip") as z:
         z.extractall(profile / "profiles" / "default" / "python" / "plugins")
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "QGIS_PLUGINPATH")}
-    env.update(QT_QPA_PLATFORM="offscreen", QGIS_CUSTOM_CONFIG_PATH=str(profile), GEOORTHO_PYTHON=sys.executable,
-               XDG_RUNTIME_DIR=str(work))
+    env.update(
+        QT_QPA_PLATFORM="offscreen",
+        QGIS_CUSTOM_CONFIG_PATH=str(profile),
+        GEOORTHO_PYTHON=sys.executable,
+        XDG_RUNTIME_DIR=str(work),
+    )
     subprocess.run(["qgis_process", "plugins", "enable", "geoortho_qgis"], env=env, check=True, capture_output=True)
 
     t0 = time.perf_counter()
@@ -87,8 +94,12 @@ def main() -> None:
             out = work / f"{alg}-{i}-{name}"
             cli.append(_timed([sys.executable, "-m", "geoortho", alg, *cli_args, str(out), "--quiet"], env))
             qgis_args = [f"--{a[2:].replace('-', '_').upper()}={b}" for a, b in zip(cli_args[::2], cli_args[1::2])]
-            qgis.append(_timed(["qgis_process", "run", f"geoortho:{alg}", *qgis_args,
-                                f"--OUTPUT={work / f'q-{alg}-{i}-{name}'}"], env))
+            qgis.append(
+                _timed(
+                    ["qgis_process", "run", f"geoortho:{alg}", *qgis_args, f"--OUTPUT={work / f'q-{alg}-{i}-{name}'}"],
+                    env,
+                )
+            )
         c, q = min(cli), min(qgis)
         n = survey.n_photos
         print(f"{alg:<12} {c:7.2f} {q:7.2f} {n / c:13.2f} {n / q:14.2f} {q / c:6.2f}")

@@ -91,9 +91,22 @@ def compare_mappers(images: Path, max_image_size: int, max_features: int) -> Non
     with tempfile.TemporaryDirectory() as d:
         for mapper in ("incremental", "global"):
             out = Path(d) / mapper
-            argv = ["geoortho", "sfm", "--images", str(images), "--output", str(out), "--mapper", mapper,
-                    "--max-image-size", str(max_image_size), "--max-features", str(max_features),
-                    "--json", "--quiet"]
+            argv = [
+                "geoortho",
+                "sfm",
+                "--images",
+                str(images),
+                "--output",
+                str(out),
+                "--mapper",
+                mapper,
+                "--max-image-size",
+                str(max_image_size),
+                "--max-features",
+                str(max_features),
+                "--json",
+                "--quiet",
+            ]
             wall, _, peak = _child(OURS, argv)
             rows[mapper] = (wall, peak, json.loads((out / "report.json").read_text()))
     print(f"{n} photos, SIFT at {max_image_size} px / {max_features} features")
@@ -103,18 +116,26 @@ def compare_mappers(images: Path, max_image_size: int, max_features: int) -> Non
     print(f"{'wall s':<26}" + "".join(f"{r[0]:>14.1f}" for r in rows.values()))
     print(f"{'peak RSS MB':<26}" + "".join(f"{r[1] / 1024:>14.0f}" for r in rows.values()))
     print(f"{'registered':<26}" + "".join(f"{r[2]['registered']:>14d}" for r in rows.values()))
-    print(f"{'reprojection px':<26}" + "".join(f"{r[2]['mean_reprojection_error_px']:>14.2f}"
-                                               for r in rows.values()))
-    print(f"{'model tilt deg':<26}" + "".join(f"{(r[2]['model_tilt_deg'] or float('nan')):>14.2f}"
-                                              for r in rows.values()))
-    print(f"{'focal drift % (1st cam)':<26}" + "".join(
-        f"{(r[2]['intrinsics'][0]['focal_drift_pct'] or 0):>14.2f}" for r in rows.values()))
-    print(f"{'GPS RMSE E/N/Z m':<26}" + "".join(
-        "{:>14}".format("/".join(f"{v:.1f}" for v in r[2]["gps"]["rmse_m"])) if r[2]["gps"] else f"{'-':>14}"
-        for r in rows.values()))
+    print(f"{'reprojection px':<26}" + "".join(f"{r[2]['mean_reprojection_error_px']:>14.2f}" for r in rows.values()))
+    print(
+        f"{'model tilt deg':<26}" + "".join(f"{(r[2]['model_tilt_deg'] or float('nan')):>14.2f}" for r in rows.values())
+    )
+    print(
+        f"{'focal drift % (1st cam)':<26}"
+        + "".join(f"{(r[2]['intrinsics'][0]['focal_drift_pct'] or 0):>14.2f}" for r in rows.values())
+    )
+    print(
+        f"{'GPS RMSE E/N/Z m':<26}"
+        + "".join(
+            "{:>14}".format("/".join(f"{v:.1f}" for v in r[2]["gps"]["rmse_m"])) if r[2]["gps"] else f"{'-':>14}"
+            for r in rows.values()
+        )
+    )
     inc, glo = rows["incremental"][0], rows["global"][0]
-    print(f"global / incremental wall time: {glo / inc:.2f}; per photo {inc / n:.1f} s vs {glo / n:.1f} s; "
-          f"75 photos at this rate: {75 * min(inc, glo) / n / 60:.1f} min (target <= 10 min)")
+    print(
+        f"global / incremental wall time: {glo / inc:.2f}; per photo {inc / n:.1f} s vs {glo / n:.1f} s; "
+        f"75 photos at this rate: {75 * min(inc, glo) / n / 60:.1f} min (target <= 10 min)"
+    )
 
 
 def main() -> int:
@@ -141,15 +162,27 @@ def main() -> int:
         images = survey / "images"
         n = sum(1 for p in images.iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))
         # ours first: its report says which matcher and radius "auto" chose; raw uses the same
-        argv = ["geoortho", "sfm", "--images", str(images), "--output", str(Path(d) / "ours"),
-                "--max-image-size", str(args.max_image_size), "--max-features", str(args.max_features),
-                "--json", "--quiet"]
+        argv = [
+            "geoortho",
+            "sfm",
+            "--images",
+            str(images),
+            "--output",
+            str(Path(d) / "ours"),
+            "--max-image-size",
+            str(args.max_image_size),
+            "--max-features",
+            str(args.max_features),
+            "--json",
+            "--quiet",
+        ]
         t_ours, out, peak_ours = _child(OURS, argv)
         rep = json.loads((Path(d) / "ours" / "report.json").read_text())
         how = rep["matching"].split()[0]
         dist = float(rep["matching"].split("within ")[1].split()[0]) if how == "spatial" else 0.0
-        t_raw, out_raw, peak_raw = _child(RAW, [str(images), str(Path(d) / "raw"), args.max_image_size,
-                                                args.max_features, how, dist])
+        t_raw, out_raw, peak_raw = _child(
+            RAW, [str(images), str(Path(d) / "raw"), args.max_image_size, args.max_features, how, dist]
+        )
         raw = json.loads(out_raw.strip().splitlines()[-1])
         s = rep["seconds"]
         print(f"{n} photos, SIFT at {args.max_image_size} px / {args.max_features} features, matching {how}")
@@ -161,8 +194,10 @@ def main() -> int:
         print(f"{'wall (process)':<16}{t_raw:>9.1f}s{t_ours:>9.1f}s")
         print(f"registered: pycolmap {raw['registered']}/{n}, geoortho {rep['registered']}/{n}")
         print(f"peak RSS: pycolmap {peak_raw / 1024:.0f} MB, geoortho {peak_ours / 1024:.0f} MB")
-        print(f"geoortho overhead over raw pycolmap: {100 * (t_ours - t_raw) / t_raw:+.1f} % "
-              f"(target <= 10 %); georeferenced by {rep['georeferenced_by']}")
+        print(
+            f"geoortho overhead over raw pycolmap: {100 * (t_ours - t_raw) / t_raw:+.1f} % "
+            f"(target <= 10 %); georeferenced by {rep['georeferenced_by']}"
+        )
     return 0
 
 

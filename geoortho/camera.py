@@ -70,7 +70,11 @@ class Intrinsics:
 
     @classmethod
     def from_sensor(
-        cls, width_px: int, height_px: int, focal_mm: float, sensor_width_mm: float,
+        cls,
+        width_px: int,
+        height_px: int,
+        focal_mm: float,
+        sensor_width_mm: float,
         distortion: tuple[float, ...] = (),
     ) -> Intrinsics:
         """Intrinsics from the physical focal length and the sensor width spanned by the image width."""
@@ -109,13 +113,15 @@ class Pose:
     rotation: np.ndarray = field(repr=False)
 
     @classmethod
-    def from_ypr(cls, center: tuple[float, float, float] | np.ndarray, yaw_deg: float,
-                 pitch_deg: float, roll_deg: float) -> Pose:
+    def from_ypr(
+        cls, center: tuple[float, float, float] | np.ndarray, yaw_deg: float, pitch_deg: float, roll_deg: float
+    ) -> Pose:
         return cls(np.asarray(center, dtype=float), rotation_from_ypr(yaw_deg, pitch_deg, roll_deg))
 
 
-def rotation_from_ypr(yaw_deg: float | np.ndarray, pitch_deg: float | np.ndarray,
-                      roll_deg: float | np.ndarray) -> np.ndarray:
+def rotation_from_ypr(
+    yaw_deg: float | np.ndarray, pitch_deg: float | np.ndarray, roll_deg: float | np.ndarray
+) -> np.ndarray:
     """World(ENU)-from-camera rotation for drone yaw/pitch/roll in degrees.
 
     Scalars give (3, 3); arrays of N give (N, 3, 3).
@@ -165,7 +171,10 @@ def project_points(points: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> tu
     if intrinsics.has_distortion:
         pix, _ = cv2.projectPoints(
             np.c_[xn, np.ones(len(xn))].reshape(-1, 1, 3).astype(np.float64),
-            np.zeros(3), np.zeros(3), intrinsics.matrix, intrinsics.dist_coeffs,
+            np.zeros(3),
+            np.zeros(3),
+            intrinsics.matrix,
+            intrinsics.dist_coeffs,
         )
         pix = pix.reshape(-1, 2)
     else:
@@ -185,8 +194,9 @@ def undistort_pixels(pixels: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     if und_fn is not None:
         und = und_fn(px.reshape(-1, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs, None, None, crit)
     else:
-        und = cv2.undistortPoints(px.reshape(-1, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs,
-                                  None, None, None, crit)
+        und = cv2.undistortPoints(
+            px.reshape(-1, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs, None, None, None, crit
+        )
     return und.reshape(-1, 2)
 
 
@@ -197,9 +207,19 @@ def pixel_rays(pixels: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> np.nda
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def in_frame(x: float | np.ndarray, y: float | np.ndarray, width_px: float, height_px: float,
-             margin_x_px: float = 0.0, margin_y_px: float = 0.0) -> bool | np.ndarray:
+def in_frame(
+    x: float | np.ndarray,
+    y: float | np.ndarray,
+    width_px: float,
+    height_px: float,
+    margin_x_px: float = 0.0,
+    margin_y_px: float = 0.0,
+) -> bool | np.ndarray:
     """Whether pixels lie in the image (−0.5 .. size−0.5, pixel-centre convention), ``margin``
     pixels in from each side (a negative margin reaches outside)."""
-    return ((-0.5 + margin_x_px <= x) & (x <= width_px - 0.5 - margin_x_px)
-            & (-0.5 + margin_y_px <= y) & (y <= height_px - 0.5 - margin_y_px))
+    return (
+        (-0.5 + margin_x_px <= x)
+        & (x <= width_px - 0.5 - margin_x_px)
+        & (-0.5 + margin_y_px <= y)
+        & (y <= height_px - 0.5 - margin_y_px)
+    )

@@ -12,8 +12,7 @@ from typing import Any
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
-__all__ = ["WGS84", "parse_crs", "utm_crs_for", "transformer", "crs_to_text", "horizontal_unit_m",
-           "geoid_undulation_m"]
+__all__ = ["WGS84", "parse_crs", "utm_crs_for", "transformer", "crs_to_text", "horizontal_unit_m", "geoid_undulation_m"]
 
 WGS84 = CRS.from_epsg(4326)
 WGS84_3D = CRS.from_epsg(4979)
@@ -101,14 +100,19 @@ def _geoid_transformer() -> Transformer:
 
     import pyproj.datadir
 
-    dirs = [pyproj.datadir.get_data_dir(), *(os.environ.get(v, "") for v in ("PROJ_DATA", "PROJ_LIB")),
-            *_SYSTEM_PROJ_DIRS]
+    dirs = [
+        pyproj.datadir.get_data_dir(),
+        *(os.environ.get(v, "") for v in ("PROJ_DATA", "PROJ_LIB")),
+        *_SYSTEM_PROJ_DIRS,
+    ]
     found = next((d for d in dirs for g in _GEOID_GRIDS if d and os.path.isfile(os.path.join(d, g))), None)
     if found is None:
         from .errors import DependencyError
 
-        raise DependencyError("no EGM96 geoid grid (egm96_15.gtx): install Debian's proj-data "
-                              "(apt-get install proj-data) or put us_nga_egm96_15.tif in PROJ's data folder")
+        raise DependencyError(
+            "no EGM96 geoid grid (egm96_15.gtx): install Debian's proj-data "
+            "(apt-get install proj-data) or put us_nga_egm96_15.tif in PROJ's data folder"
+        )
     if found not in pyproj.datadir.get_data_dir().split(os.pathsep):
         # pyproj's wheel carries no grids; PROJ then finds the system grid by its legacy name.
         pyproj.datadir.append_data_dir(found)

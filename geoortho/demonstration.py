@@ -60,8 +60,12 @@ def demo(
     steps = split(fb, [6] + [w for _, w, _ in stages])
     survey = synth(output / "survey", preset=preset, seed=seed, feedback=steps[0])
     products: dict[str, str] = {
-        "images": str(survey.images), "truth": str(survey.truth), "gcp_file": str(survey.gcp_file),
-        "true_dsm": str(survey.dsm), "true_ortho": str(survey.ortho), "points": str(survey.points),
+        "images": str(survey.images),
+        "truth": str(survey.truth),
+        "gcp_file": str(survey.gcp_file),
+        "true_dsm": str(survey.dsm),
+        "true_ortho": str(survey.ortho),
+        "points": str(survey.points),
     }
     for (name, _, run), step in zip(stages, steps[1:]):
         products.update(run(survey, output, step))
@@ -73,8 +77,13 @@ def demo(
 
 def _stages() -> list:
     """(name, weight, run(survey, output, feedback) -> products) for every stage that exists."""
-    return [("footprints", 1, _footprints), ("gcp-find", 2, _gcp_find), ("sfm", 4, _sfm), ("dem", 1, _dem),
-            ("ortho", 2, _ortho)]
+    return [
+        ("footprints", 1, _footprints),
+        ("gcp-find", 2, _gcp_find),
+        ("sfm", 4, _sfm),
+        ("dem", 1, _dem),
+        ("ortho", 2, _ortho),
+    ]
 
 
 def _takeoff_elevation(survey: SynthResult) -> float:
@@ -85,9 +94,14 @@ def _takeoff_elevation(survey: SynthResult) -> float:
 def _footprints(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
     from .footprint import footprints
 
-    r = footprints(survey.images, output / "footprints.gpkg", dsm=survey.dsm,
-                   takeoff_elevation_m=_takeoff_elevation(survey), overlap=output / "overlap.tif",
-                   feedback=fb)
+    r = footprints(
+        survey.images,
+        output / "footprints.gpkg",
+        dsm=survey.dsm,
+        takeoff_elevation_m=_takeoff_elevation(survey),
+        overlap=output / "overlap.tif",
+        feedback=fb,
+    )
     fb.info(f"footprints: {r.n_photos} photos, median GSD {r.median_gsd_cm:.2f} cm")
     return {"footprints": str(r.output), "overlap": str(r.overlap)}
 
@@ -95,8 +109,15 @@ def _footprints(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, st
 def _gcp_find(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
     from .gcp.find import gcp_find
 
-    r = gcp_find(survey.images, survey.gcp_file, output / "gcp_list.txt", dsm=survey.dsm,
-                 detections=output / "gcp_detections.gpkg", review=output / "gcp_review.png", feedback=fb)
+    r = gcp_find(
+        survey.images,
+        survey.gcp_file,
+        output / "gcp_list.txt",
+        dsm=survey.dsm,
+        detections=output / "gcp_detections.gpkg",
+        review=output / "gcp_review.png",
+        feedback=fb,
+    )
     fb.info(f"gcp-find: {r.n_observations} observations of {r.n_gcps_found} GCPs")
     return {"gcp_list": str(r.output), "gcp_detections": str(r.detections), "gcp_review": str(r.review)}
 
@@ -107,20 +128,34 @@ def _sfm(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
     gcp_list = output / "gcp_list.txt"
     names = sorted({ln.split()[6] for ln in gcp_list.read_text().splitlines()[1:] if len(ln.split()) >= 7})
     # every third GCP is a checkpoint: held out, measured; 1024 px features keep the demo quick
-    r = sfm(survey.images, output / "sfm", gcp_list=gcp_list, checkpoints=",".join(names[::3]),
-            max_image_size=1024, max_features=4096, feedback=fb)
-    fb.info(f"sfm: {r.n_registered}/{r.n_photos} photos, reprojection {r.mean_reprojection_error_px:.2f} px, "
-            f"checkpoint RMSE {r.checkpoint_rmse_m * 100:.1f} cm")
-    return {"sfm_model": str(r.model), "sfm_points": str(r.points), "sfm_cameras": str(r.cameras),
-            "sfm_report": str(r.report)}
+    r = sfm(
+        survey.images,
+        output / "sfm",
+        gcp_list=gcp_list,
+        checkpoints=",".join(names[::3]),
+        max_image_size=1024,
+        max_features=4096,
+        feedback=fb,
+    )
+    fb.info(
+        f"sfm: {r.n_registered}/{r.n_photos} photos, reprojection {r.mean_reprojection_error_px:.2f} px, "
+        f"checkpoint RMSE {r.checkpoint_rmse_m * 100:.1f} cm"
+    )
+    return {
+        "sfm_model": str(r.model),
+        "sfm_points": str(r.points),
+        "sfm_cameras": str(r.cameras),
+        "sfm_report": str(r.report),
+    }
 
 
 def _dem(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
     from .elevation import dem
 
     # The survey's point cloud until the sfm stage makes one from the photos.
-    r = dem(survey.points, output / "dsm.tif", dtm=output / "dtm.tif", hillshade=output / "dtm_hillshade.png",
-            feedback=fb)
+    r = dem(
+        survey.points, output / "dsm.tif", dtm=output / "dtm.tif", hillshade=output / "dtm_hillshade.png", feedback=fb
+    )
     fb.info(f"dem: {r.n_points} points, {r.n_ground} ground, cells of {r.resolution:g} ({r.units})")
     return {"dsm": str(r.dsm), "dtm": str(r.dtm), "dtm_hillshade": str(r.hillshade)}
 
@@ -129,8 +164,16 @@ def _ortho(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
     from .orthophoto import ortho
 
     # The SfM poses on the DSM the dem stage made: the chain's own products, not the truth.
-    r = ortho(survey.images, output / "ortho.tif", sfm=output / "sfm", dsm=output / "dsm.tif",
-              preview=output / "ortho_preview.png", feedback=fb)
-    fb.info(f"ortho: {r.width_px}x{r.height_px} px at {r.resolution_m * 100:.2f} cm, {r.n_used} photos; "
-            f"seam colour mismatch {r.seam_mismatch_raw:.1f} -> {r.seam_mismatch_balanced:.1f} DN")
+    r = ortho(
+        survey.images,
+        output / "ortho.tif",
+        sfm=output / "sfm",
+        dsm=output / "dsm.tif",
+        preview=output / "ortho_preview.png",
+        feedback=fb,
+    )
+    fb.info(
+        f"ortho: {r.width_px}x{r.height_px} px at {r.resolution_m * 100:.2f} cm, {r.n_used} photos; "
+        f"seam colour mismatch {r.seam_mismatch_raw:.1f} -> {r.seam_mismatch_balanced:.1f} DN"
+    )
     return {"ortho": str(r.output), "ortho_preview": str(r.preview), "ortho_report": str(r.report)}

@@ -192,9 +192,9 @@ class DemResult:
 def _auto_resolution_m(src: PointSource) -> float:
     """About two points per cell on average, rounded to a 1-2-2.5-5 step."""
     xmin, ymin, _, xmax, ymax, _ = src.bounds
-    area_m2 = max((xmax - xmin) * (ymax - ymin), 1e-9) * src.horizontal_m ** 2
+    area_m2 = max((xmax - xmin) * (ymax - ymin), 1e-9) * src.horizontal_m**2
     raw = math.sqrt(2.0 * area_m2 / max(src.count, 1))
-    steps = [m * 10.0 ** e for e in range(-2, 3) for m in (1.0, 2.0, 2.5, 5.0)]
+    steps = [m * 10.0**e for e in range(-2, 3) for m in (1.0, 2.0, 2.5, 5.0)]
     return min(steps, key=lambda s: abs(math.log(s / raw)))
 
 
@@ -298,21 +298,24 @@ def dem(
         ground.prepare()
     if classified is not None or (ground is not None and not ground.known_in_first_pass):
         n_ground += _second_pass(src, ground, dtm_acc, classified, s_pass2, fb)
-    result = _write_products(src, plan, method, first, dtm_acc, output, dtm, hillshade, max_gap_m, smooth_px,
-                             classified, n_ground)
+    result = _write_products(
+        src, plan, method, first, dtm_acc, output, dtm, hillshade, max_gap_m, smooth_px, classified, n_ground
+    )
     if dtm is not None:
         fb.info(f"ground: {n_ground} of {first.n_used} points ({ground_method})")
     s_write.progress(1.0)
     return result
 
 
-def _check_options(method: str, ground_method: str, resolution_m: float | None, max_gap_m: float, smooth_px: int,
-                   engine: str) -> None:
+def _check_options(
+    method: str, ground_method: str, resolution_m: float | None, max_gap_m: float, smooth_px: int, engine: str
+) -> None:
     if method not in METHODS:
         raise ParameterError("method", f"unknown method {method!r}; use one of {', '.join(METHODS)}")
     if ground_method not in GROUND_METHODS:
-        raise ParameterError("ground_method",
-                             f"unknown ground method {ground_method!r}; use one of {', '.join(GROUND_METHODS)}")
+        raise ParameterError(
+            "ground_method", f"unknown ground method {ground_method!r}; use one of {', '.join(GROUND_METHODS)}"
+        )
     if (resolution_m or 0.0) < 0 or max_gap_m < 0 or smooth_px < 0:
         raise ParameterError("resolution_m", "resolution, max gap and smoothing must not be negative")
     if engine not in ENGINES:
@@ -342,11 +345,16 @@ def _plan_grid(src: PointSource, resolution_m: float | None, fb: Feedback) -> _G
     if not all(map(math.isfinite, src.bounds)):
         raise InputError("no point has finite coordinates", path=src.path)
     if xmax - xmin < cell and ymax - ymin < cell:
-        raise InputError(f"all points fall in one {res_m:g} m cell (extent {xmax - xmin:g} x {ymax - ymin:g} "
-                         f"{src.horizontal_unit}): nothing to grid", path=src.path)
+        raise InputError(
+            f"all points fall in one {res_m:g} m cell (extent {xmax - xmin:g} x {ymax - ymin:g} "
+            f"{src.horizontal_unit}): nothing to grid",
+            path=src.path,
+        )
     grid = Grid.covering(xmin, ymin, xmax, ymax, cell)
-    fb.info(f"grid {grid.cols} x {grid.rows} cells of {res_m:g} m ({cell:g} {src.horizontal_unit})"
-            + ("" if resolution_m else ", from the point density"))
+    fb.info(
+        f"grid {grid.cols} x {grid.rows} cells of {res_m:g} m ({cell:g} {src.horizontal_unit})"
+        + ("" if resolution_m else ", from the point density")
+    )
     return _GridPlan(grid, res_m, cell)
 
 
@@ -385,14 +393,16 @@ class _SmrfGround(_GroundFilter):
         self.zmin.add(ch.x, ch.y, ch.z)
 
     def prepare(self) -> None:
-        self.surface = smrf_surface(self.zmin.result(), self.grid.cell, self.params, self.src.horizontal_m,
-                                    self.src.vertical_m)
+        self.surface = smrf_surface(
+            self.zmin.result(), self.grid.cell, self.params, self.src.horizontal_m, self.src.vertical_m
+        )
 
     def ground(self, ch: Chunk) -> np.ndarray:
         assert self.surface is not None
         g = self.grid
-        return ground_mask(ch.x, ch.y, ch.z, self.surface, g.x0, g.y0, g.cell, self.params, self.src.horizontal_m,
-                           self.src.vertical_m)
+        return ground_mask(
+            ch.x, ch.y, ch.z, self.surface, g.x0, g.y0, g.cell, self.params, self.src.horizontal_m, self.src.vertical_m
+        )
 
 
 class _CsfGround(_GroundFilter):
@@ -413,7 +423,7 @@ class _CsfGround(_GroundFilter):
 
     def ground(self, ch: Chunk) -> np.ndarray:
         assert self.mask is not None
-        g = self.mask[self.offset:self.offset + len(ch.x)]
+        g = self.mask[self.offset : self.offset + len(ch.x)]
         self.offset += len(ch.x)
         return g
 
@@ -444,8 +454,15 @@ class _FirstPass:
     n_ground: int  # counted here only when the ground is known in pass 1
 
 
-def _first_pass(src: PointSource, grid: Grid, method: str, ground: _GroundFilter | None,
-                dtm_acc: _Accumulator | None, progress: Feedback, fb: Feedback) -> _FirstPass:
+def _first_pass(
+    src: PointSource,
+    grid: Grid,
+    method: str,
+    ground: _GroundFilter | None,
+    dtm_acc: _Accumulator | None,
+    progress: Feedback,
+    fb: Feedback,
+) -> _FirstPass:
     """Grid the DSM; let the ground filter see the points (or grid the ground it already knows)."""
     dsm_acc = _Accumulator(grid, method)
     n_bad, first_bad, n_used, n_ground = 0, -1, 0, 0
@@ -472,8 +489,14 @@ def _first_pass(src: PointSource, grid: Grid, method: str, ground: _GroundFilter
     return _FirstPass(dsm_acc, n_used, n_ground)
 
 
-def _second_pass(src: PointSource, ground: _GroundFilter | None, dtm_acc: _Accumulator | None,
-                 classified: Path | None, progress: Feedback, fb: Feedback) -> int:
+def _second_pass(
+    src: PointSource,
+    ground: _GroundFilter | None,
+    dtm_acc: _Accumulator | None,
+    classified: Path | None,
+    progress: Feedback,
+    fb: Feedback,
+) -> int:
     """Classify every point against the prepared ground, grid the DTM, write the classified cloud.
 
     Returns the ground points counted here (those of pass 1 are not counted again)."""
@@ -502,9 +525,20 @@ def _second_pass(src: PointSource, ground: _GroundFilter | None, dtm_acc: _Accum
     return n_ground
 
 
-def _write_products(src: PointSource, plan: _GridPlan, method: str, first: _FirstPass, dtm_acc: _Accumulator | None,
-                    output: Path, dtm: Path | None, hillshade: Path | None, max_gap_m: float, smooth_px: int,
-                    classified: Path | None, n_ground: int) -> DemResult:
+def _write_products(
+    src: PointSource,
+    plan: _GridPlan,
+    method: str,
+    first: _FirstPass,
+    dtm_acc: _Accumulator | None,
+    output: Path,
+    dtm: Path | None,
+    hillshade: Path | None,
+    max_gap_m: float,
+    smooth_px: int,
+    classified: Path | None,
+    n_ground: int,
+) -> DemResult:
     """Fill, smooth and write the DSM, the DTM and the hillshade."""
     from .outputs import write_cog
 
@@ -513,21 +547,46 @@ def _write_products(src: PointSource, plan: _GridPlan, method: str, first: _Firs
     dsm_grid = _finish(first.dsm.result(), max_gap_cells, smooth_px)
     notes = [*src.notes, f"values in {src.vertical_unit}" if method != "count" else "values: points per cell"]
     unit_tag = _unit_tag(src.vertical_unit) if method != "count" else ""
-    dsm_path = write_cog(output, _nodata(dsm_grid), transform=grid.transform, crs=src.crs, nodata=NODATA,
-                         band_names=("dsm",), units=unit_tag)
+    dsm_path = write_cog(
+        output,
+        _nodata(dsm_grid),
+        transform=grid.transform,
+        crs=src.crs,
+        nodata=NODATA,
+        band_names=("dsm",),
+        units=unit_tag,
+    )
     dtm_path = None
     dtm_grid = None
     if dtm is not None:
         assert dtm_acc is not None
         dtm_grid = _finish(dtm_acc.result(), max_gap_cells, smooth_px)
-        dtm_path = write_cog(dtm, _nodata(dtm_grid), transform=grid.transform, crs=src.crs, nodata=NODATA,
-                             band_names=("dtm",), units=_unit_tag(src.vertical_unit))
+        dtm_path = write_cog(
+            dtm,
+            _nodata(dtm_grid),
+            transform=grid.transform,
+            crs=src.crs,
+            nodata=NODATA,
+            band_names=("dtm",),
+            units=_unit_tag(src.vertical_unit),
+        )
     shade_path = None
     if hillshade is not None:
-        shade_path = write_hillshade(hillshade, dtm_grid if dtm_grid is not None else dsm_grid, plan.cell,
-                                     src.vertical_m / src.horizontal_m)
-    return DemResult(dsm_path, dtm_path, Path(classified) if classified is not None else None, shade_path,
-                     plan.cell, crs_to_text(src.crs), src.describe_units(), first.n_used, n_ground, tuple(notes))
+        shade_path = write_hillshade(
+            hillshade, dtm_grid if dtm_grid is not None else dsm_grid, plan.cell, src.vertical_m / src.horizontal_m
+        )
+    return DemResult(
+        dsm_path,
+        dtm_path,
+        Path(classified) if classified is not None else None,
+        shade_path,
+        plan.cell,
+        crs_to_text(src.crs),
+        src.describe_units(),
+        first.n_used,
+        n_ground,
+        tuple(notes),
+    )
 
 
 def _unit_tag(name: str) -> str:
@@ -550,8 +609,14 @@ def _nodata(grid: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(grid), grid, NODATA).astype(np.float32)
 
 
-def write_hillshade(path: str | os.PathLike[str], z: np.ndarray, cell: float, z_per_xy: float = 1.0,
-                    azimuth_deg: float = 315.0, altitude_deg: float = 45.0) -> Path:
+def write_hillshade(
+    path: str | os.PathLike[str],
+    z: np.ndarray,
+    cell: float,
+    z_per_xy: float = 1.0,
+    azimuth_deg: float = 315.0,
+    altitude_deg: float = 45.0,
+) -> Path:
     """A greyscale hillshade PNG (sun from the north-west, 45° up); nodata transparent."""
     import cv2
 
@@ -589,8 +654,10 @@ class _ClassifiedWriter:
         self._reader = self._stack.enter_context(laspy.open(str(src.path)))
         self._chunks = self._reader.chunk_iterator(CHUNK_POINTS)
         self._writer = self._stack.enter_context(
-            laspy.open(str(tmp), mode="w", header=self._reader.header,
-                       do_compress=Path(target).suffix.lower() == ".laz"))
+            laspy.open(
+                str(tmp), mode="w", header=self._reader.header, do_compress=Path(target).suffix.lower() == ".laz"
+            )
+        )
         self._done = False
 
     def write(self, ground: np.ndarray) -> None:
@@ -617,8 +684,9 @@ def _csf(xyz: np.ndarray, src: PointSource, params: SmrfParams) -> np.ndarray:
     try:
         import CSF
     except ImportError as e:
-        raise DependencyError("ground_method csf needs the cloth-simulation-filter package "
-                              "(pip install cloth-simulation-filter)") from e
+        raise DependencyError(
+            "ground_method csf needs the cloth-simulation-filter package (pip install cloth-simulation-filter)"
+        ) from e
     import contextlib
     import io
 
@@ -636,14 +704,25 @@ def _csf(xyz: np.ndarray, src: PointSource, params: SmrfParams) -> np.ndarray:
     return mask
 
 
-def _run_pdal(src: PointSource, grid: Grid, output: Path, dtm: Path | None, method: str, ground_method: str,
-              max_gap_m: float, params: SmrfParams, fb: Feedback) -> DemResult:
+def _run_pdal(
+    src: PointSource,
+    grid: Grid,
+    output: Path,
+    dtm: Path | None,
+    method: str,
+    ground_method: str,
+    max_gap_m: float,
+    params: SmrfParams,
+    fb: Feedback,
+) -> DemResult:
     """The same products through PDAL (readers.las, filters.smrf, writers.gdal), then our gap fill."""
     try:
         import pdal
     except ImportError as e:
-        raise DependencyError("engine pdal needs the pdal Python package and PDAL itself "
-                              "(not installable on Debian 12; conda-forge has both)") from e
+        raise DependencyError(
+            "engine pdal needs the pdal Python package and PDAL itself "
+            "(not installable on Debian 12; conda-forge has both)"
+        ) from e
     import json
     import tempfile
 
@@ -657,20 +736,35 @@ def _run_pdal(src: PointSource, grid: Grid, output: Path, dtm: Path | None, meth
     with tempfile.TemporaryDirectory() as d:
         raw_dsm, raw_dtm = Path(d) / "dsm.tif", Path(d) / "dtm.tif"
         bounds = f"([{grid.x0}, {grid.x0 + grid.cols * grid.cell}], [{grid.y0 - grid.rows * grid.cell}, {grid.y0}])"
-        writer = {"type": "writers.gdal", "resolution": grid.cell, "output_type": out_type, "bounds": bounds,
-                  "data_type": "float32", "nodata": NODATA}
+        writer = {
+            "type": "writers.gdal",
+            "resolution": grid.cell,
+            "output_type": out_type,
+            "bounds": bounds,
+            "data_type": "float32",
+            "nodata": NODATA,
+        }
         pdal.Pipeline(json.dumps([str(src.path), {**writer, "filename": str(raw_dsm)}])).execute()
         stages: list[Any] = [str(src.path)]
         if ground_method == "smrf":
-            stages.append({"type": "filters.smrf", "cell": params.cell_m / src.horizontal_m,
-                           "slope": params.slope, "window": params.window_m / src.horizontal_m,
-                           "threshold": params.threshold_m / src.vertical_m, "scalar": params.scalar})
+            stages.append(
+                {
+                    "type": "filters.smrf",
+                    "cell": params.cell_m / src.horizontal_m,
+                    "slope": params.slope,
+                    "window": params.window_m / src.horizontal_m,
+                    "threshold": params.threshold_m / src.vertical_m,
+                    "scalar": params.scalar,
+                }
+            )
         elif ground_method == "csf":
             stages.append({"type": "filters.csf"})
         n_ground = 0
         if dtm is not None:
-            stages += [{"type": "filters.range", "limits": "Classification[2:2]"},
-                       {**writer, "output_type": "idw", "filename": str(raw_dtm)}]
+            stages += [
+                {"type": "filters.range", "limits": "Classification[2:2]"},
+                {**writer, "output_type": "idw", "filename": str(raw_dtm)},
+            ]
             p = pdal.Pipeline(json.dumps(stages))
             n_ground = int(p.execute())
         outs = []
@@ -681,8 +775,27 @@ def _run_pdal(src: PointSource, grid: Grid, output: Path, dtm: Path | None, meth
                 z = ds.read(1).astype(np.float64)
             z[z == NODATA] = np.nan
             z = _finish(z, max_gap_m / (grid.cell * src.horizontal_m), 0)
-            outs.append(write_cog(target, _nodata(z), transform=grid.transform, crs=src.crs, nodata=NODATA,
-                                  band_names=(name,), units=_unit_tag(src.vertical_unit)))
+            outs.append(
+                write_cog(
+                    target,
+                    _nodata(z),
+                    transform=grid.transform,
+                    crs=src.crs,
+                    nodata=NODATA,
+                    band_names=(name,),
+                    units=_unit_tag(src.vertical_unit),
+                )
+            )
     fb.info("engine: PDAL")
-    return DemResult(outs[0], outs[1] if dtm is not None else None, None, None, grid.cell, crs_to_text(src.crs),
-                     src.describe_units(), src.count, n_ground, tuple(src.notes))
+    return DemResult(
+        outs[0],
+        outs[1] if dtm is not None else None,
+        None,
+        None,
+        grid.cell,
+        crs_to_text(src.crs),
+        src.describe_units(),
+        src.count,
+        n_ground,
+        tuple(src.notes),
+    )

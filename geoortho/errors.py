@@ -38,9 +38,7 @@ class InputError(GeoorthoError, ValueError):
         1-based line number in ``path``, if the input is a text file.
     """
 
-    def __init__(
-        self, message: str, *, path: str | PathLike[str] | None = None, line: int | None = None
-    ) -> None:
+    def __init__(self, message: str, *, path: str | PathLike[str] | None = None, line: int | None = None) -> None:
         self.reason = message
         self.path = None if path is None else str(path)
         self.line = line

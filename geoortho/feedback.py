@@ -163,11 +163,16 @@ class TerminalFeedback(Feedback):
             from tqdm import tqdm
 
             self._bar = tqdm(
-                total=1000, desc=self._description, file=self._stream, leave=False,
+                total=1000,
+                desc=self._description,
+                file=self._stream,
+                leave=False,
                 bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining}",
             )
-        self._bar.n = int(round(fraction * 1000))
-        self._bar.refresh()
+        bar = self._bar
+        assert bar is not None
+        bar.n = int(round(fraction * 1000))
+        bar.refresh()
 
     def _write(self, message: str) -> None:
         if self._bar is not None:

@@ -94,14 +94,23 @@ def photo_cameras(
     lat = np.array([p.latitude_deg for p in photos], float)
     x, y = to_xy.transform(lon, lat)
     xy = np.c_[x, y]
-    heights = resolve_heights(photos, xy, np.c_[lon, lat], surface, takeoff_elevation_m=takeoff_elevation_m,
-                              flight_height_m=flight_height_m, gps_altitude=gps_altitude,
-                              gnss_takeoff=gnss_takeoff, ground_label=ground_label)
+    heights = resolve_heights(
+        photos,
+        xy,
+        np.c_[lon, lat],
+        surface,
+        takeoff_elevation_m=takeoff_elevation_m,
+        flight_height_m=flight_height_m,
+        gps_altitude=gps_altitude,
+        gnss_takeoff=gnss_takeoff,
+        ground_label=ground_label,
+    )
     cams = []
     for i, p in enumerate(photos):
         rot = rotation_from_ypr(p.yaw_deg, p.pitch_deg, p.roll_deg)
-        cams.append(PhotoCamera(p, p.intrinsics(), Pose(np.array([x[i], y[i], heights.z_m[i]]), rot),
-                                heights.sources[i]))
+        cams.append(
+            PhotoCamera(p, p.intrinsics(), Pose(np.array([x[i], y[i], heights.z_m[i]]), rot), heights.sources[i])
+        )
     return cams, heights
 
 
@@ -132,8 +141,9 @@ def _border_and_centre(intr: Intrinsics, per_side: int) -> np.ndarray:
     return np.vstack([intr.border_pixels(per_side), [[intr.cx_px, intr.cy_px]]])
 
 
-def compute_footprints(cams: Sequence[Posed], surface: Surface, *, per_side: int = 16,
-                       max_range_m: float = 500.0) -> FootprintTable:
+def compute_footprints(
+    cams: Sequence[Posed], surface: Surface, *, per_side: int = 16, max_range_m: float = 500.0
+) -> FootprintTable:
     """Cast each camera's border (``per_side`` points per edge) and centre onto ``surface``.
 
     Vectorised over all cameras: cameras sharing intrinsics share their
@@ -167,7 +177,7 @@ def compute_footprints(cams: Sequence[Posed], surface: Surface, *, per_side: int
     # range · sqrt(cos³θ / cos i) / f, θ off the optical axis, i the incidence angle.
     cos_inc = np.abs(dirs[..., 2])
     with np.errstate(divide="ignore", invalid="ignore"):
-        gsd_m = rng * np.sqrt(cos_theta ** 3 / cos_inc) / focal[:, None]
+        gsd_m = rng * np.sqrt(cos_theta**3 / cos_inc) / focal[:, None]
     gsd_m = np.where(hit, gsd_m, np.nan)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: nothing hit
@@ -177,10 +187,15 @@ def compute_footprints(cams: Sequence[Posed], surface: Surface, *, per_side: int
         gmin = np.nanmin(gsd_m, axis=1)
         gmax = np.nanmax(gsd_m, axis=1)
     return FootprintTable(
-        rings=pts[:, :m, :2], clipped=~hit[:, :m].all(axis=1), gsd_cm=gsd_m[:, m] * 100,
-        gsd_min_cm=gmin * 100, gsd_max_cm=gmax * 100, altitude_m=origins[:, 2] - ground_z,
-        outside=(hits.extended.reshape(n, m + 1).any(axis=1) if hits.extended is not None
-                 else np.zeros(n, bool)),
+        rings=pts[:, :m, :2],
+        clipped=np.asarray(~hit[:, :m].all(axis=1)),
+        gsd_cm=gsd_m[:, m] * 100,
+        gsd_min_cm=gmin * 100,
+        gsd_max_cm=gmax * 100,
+        altitude_m=origins[:, 2] - ground_z,
+        outside=np.asarray(
+            hits.extended.reshape(n, m + 1).any(axis=1) if hits.extended is not None else np.zeros(n, bool)
+        ),
     )
 
 
@@ -294,10 +309,12 @@ def footprints(
         surface = read_surface(dsm, work, extend=True)
     elif ground_elevation_m is not None:
         surface = FlatSurface(float(ground_elevation_m))
-    cams, heights = photo_cameras(photos.photos, work, surface, takeoff_elevation_m,
-                                  flight_height_m=flight_height_m, gps_altitude=gps_altitude)
-    ground = "DSM" if dsm is not None else ("ground elevation" if ground_elevation_m is not None else
-                                             "flat take-off ground")
+    cams, heights = photo_cameras(
+        photos.photos, work, surface, takeoff_elevation_m, flight_height_m=flight_height_m, gps_altitude=gps_altitude
+    )
+    ground = (
+        "DSM" if dsm is not None else ("ground elevation" if ground_elevation_m is not None else "flat take-off ground")
+    )
     fb.info(f"heights: {ground}; {heights.method}; vertical datum: {heights.datum}")
     for note in heights.notes:
         fb.warning(note)
@@ -305,8 +322,10 @@ def footprints(
     table = compute_footprints(cams, heights.surface, max_range_m=max_range_m)
     s_cast.progress(1.0)
     if table.outside.any():
-        fb.warning(f"{int(table.outside.sum())} footprint(s) reach beyond the DSM: there the ground is a plane at "
-                   "the nearby ground height of the DSM (column outside_dsm)")
+        fb.warning(
+            f"{int(table.outside.sum())} footprint(s) reach beyond the DSM: there the ground is a plane at "
+            "the nearby ground height of the DSM (column outside_dsm)"
+        )
     fp, cam_layer = _footprint_layers(cams, table, heights, ground, work)
     overlap_path = None
     if overlap is not None:
@@ -316,15 +335,26 @@ def footprints(
     write_vector(output, {"footprints": fp, "cameras": cam_layer})
     s_write.progress(1.0)
     median_gsd = float(np.nanmedian(table.gsd_cm))
-    fb.info(f"{len(cams)} footprints, median GSD {median_gsd:.2f} cm, {int(table.clipped.sum())} clipped; "
-            f"{photos.summary()}")
-    return FootprintResult(Path(output), crs_to_text(out_crs or work), len(cams), len(photos.skipped),
-                           median_gsd, overlap_path, f"{ground}; {heights.method}", heights.datum,
-                           tuple(heights.notes))
+    fb.info(
+        f"{len(cams)} footprints, median GSD {median_gsd:.2f} cm, {int(table.clipped.sum())} clipped; "
+        f"{photos.summary()}"
+    )
+    return FootprintResult(
+        Path(output),
+        crs_to_text(out_crs or work),
+        len(cams),
+        len(photos.skipped),
+        median_gsd,
+        overlap_path,
+        f"{ground}; {heights.method}",
+        heights.datum,
+        tuple(heights.notes),
+    )
 
 
-def _photos_with_altitude(images: Path, sensor_width_mm: float | None, flight_height_m: float | None,
-                          progress: Feedback, fb: Feedback) -> PhotoSet:
+def _photos_with_altitude(
+    images: Path, sensor_width_mm: float | None, flight_height_m: float | None, progress: Feedback, fb: Feedback
+) -> PhotoSet:
     """The readable photos with an altitude (any photo when the flight height is given); the rest skipped."""
     photos = read_photos(images, sensor_width_mm, feedback=progress)
     if not photos.photos:
@@ -340,8 +370,9 @@ def _photos_with_altitude(images: Path, sensor_width_mm: float | None, flight_he
     return photos
 
 
-def _footprint_layers(cams: Sequence[PhotoCamera], table: FootprintTable, heights: HeightModel, ground: str,
-                      work: CRS) -> tuple[Any, Any]:
+def _footprint_layers(
+    cams: Sequence[PhotoCamera], table: FootprintTable, heights: HeightModel, ground: str, work: CRS
+) -> tuple[Any, Any]:
     """The footprints layer (one polygon and its figures per photo) and the cameras layer."""
     import geopandas as gpd
     import shapely
@@ -352,11 +383,16 @@ def _footprint_layers(cams: Sequence[PhotoCamera], table: FootprintTable, height
         polys[bad] = shapely.make_valid(polys[bad])
     records = {
         "image": [c.photo.image for c in cams],
-        "gsd_cm": table.gsd_cm, "gsd_min_cm": table.gsd_min_cm, "gsd_max_cm": table.gsd_max_cm,
+        "gsd_cm": table.gsd_cm,
+        "gsd_min_cm": table.gsd_min_cm,
+        "gsd_max_cm": table.gsd_max_cm,
         "altitude_m": table.altitude_m,
-        "pitch_deg": [c.photo.pitch_deg for c in cams], "yaw_deg": [c.photo.yaw_deg for c in cams],
-        "roll_deg": [c.photo.roll_deg for c in cams], "area_m2": shapely.area(polys),
-        "clipped": table.clipped, "outside_dsm": table.outside,
+        "pitch_deg": [c.photo.pitch_deg for c in cams],
+        "yaw_deg": [c.photo.yaw_deg for c in cams],
+        "roll_deg": [c.photo.roll_deg for c in cams],
+        "area_m2": shapely.area(polys),
+        "clipped": table.clipped,
+        "outside_dsm": table.outside,
         "height_source": [f"{ground}; {c.height_source}" for c in cams],
         "vertical_datum": [heights.datum] * len(cams),
         "attitude_source": [c.photo.attitude_source for c in cams],
@@ -367,12 +403,19 @@ def _footprint_layers(cams: Sequence[PhotoCamera], table: FootprintTable, height
     fp = gpd.GeoDataFrame(records, geometry=polys, crs=work)
     centers = np.array([c.pose.center for c in cams])
     cam_layer = gpd.GeoDataFrame(
-        {"image": records["image"], "z_m": centers[:, 2], "latitude_deg": [c.photo.latitude_deg for c in cams],
-         "longitude_deg": [c.photo.longitude_deg for c in cams],
-         "relative_altitude_m": [c.photo.relative_altitude_m for c in cams],
-         "yaw_deg": records["yaw_deg"], "pitch_deg": records["pitch_deg"], "roll_deg": records["roll_deg"],
-         "gsd_cm": table.gsd_cm},
-        geometry=shapely.points(centers[:, :2]), crs=work,
+        {
+            "image": records["image"],
+            "z_m": centers[:, 2],
+            "latitude_deg": [c.photo.latitude_deg for c in cams],
+            "longitude_deg": [c.photo.longitude_deg for c in cams],
+            "relative_altitude_m": [c.photo.relative_altitude_m for c in cams],
+            "yaw_deg": records["yaw_deg"],
+            "pitch_deg": records["pitch_deg"],
+            "roll_deg": records["roll_deg"],
+            "gsd_cm": table.gsd_cm,
+        },
+        geometry=shapely.points(centers[:, :2]),
+        crs=work,
     )
     return fp, cam_layer
 
@@ -391,6 +434,12 @@ def write_overlap(path: str | os.PathLike[str], polygons: Sequence, crs: CRS, ce
     if cols * rows > 400_000_000:
         raise InputError(f"overlap raster of {cols}x{rows} cells is too large; raise overlap_cell_m")
     transform = from_origin(x0, y0 + rows * cell_m, cell_m, cell_m)
-    count = rasterize(((g, 1) for g in polygons), out_shape=(rows, cols), transform=transform,
-                      merge_alg=MergeAlg.add, dtype="uint16", fill=0)
+    count = rasterize(
+        ((g, 1) for g in polygons),
+        out_shape=(rows, cols),
+        transform=transform,
+        merge_alg=MergeAlg.add,
+        dtype="uint16",
+        fill=0,
+    )
     return write_cog(path, count, transform=transform, crs=crs, nodata=0)

@@ -33,8 +33,7 @@ def gap_mask(known: np.ndarray, max_gap_cells: float) -> np.ndarray:
     return closed[pad:-pad, pad:-pad] & ~known
 
 
-def fill_harmonic(z: np.ndarray, known: np.ndarray, fill: np.ndarray | None = None, *,
-                  sweeps: int = 30) -> np.ndarray:
+def fill_harmonic(z: np.ndarray, known: np.ndarray, fill: np.ndarray | None = None, *, sweeps: int = 30) -> np.ndarray:
     """``z`` with the cells of ``fill`` (default: every unknown cell) solved from Laplace's equation,
     the known cells fixed. Other cells are NaN."""
     z = np.asarray(z, np.float64)

@@ -44,8 +44,9 @@ def _open(z: np.ndarray, radius_cells: int) -> np.ndarray:
     return cv2.morphologyEx(z.astype(np.float32), cv2.MORPH_OPEN, k)
 
 
-def smrf_surface(zmin: np.ndarray, cell: float, params: SmrfParams, horizontal_m: float = 1.0,
-                 vertical_m: float = 1.0) -> np.ndarray:
+def smrf_surface(
+    zmin: np.ndarray, cell: float, params: SmrfParams, horizontal_m: float = 1.0, vertical_m: float = 1.0
+) -> np.ndarray:
     """The provisional ground surface from a minimum-elevation grid (NaN = no point).
 
     ``cell`` is the grid's cell size in the horizontal units; ``horizontal_m`` and
@@ -97,9 +98,18 @@ def bilinear(grid: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     return top * (1 - fr) + bottom * fr
 
 
-def ground_mask(x: np.ndarray, y: np.ndarray, z: np.ndarray, surface: np.ndarray, origin_x: float,
-                origin_y: float, cell: float, params: SmrfParams, horizontal_m: float = 1.0,
-                vertical_m: float = 1.0) -> np.ndarray:
+def ground_mask(
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    surface: np.ndarray,
+    origin_x: float,
+    origin_y: float,
+    cell: float,
+    params: SmrfParams,
+    horizontal_m: float = 1.0,
+    vertical_m: float = 1.0,
+) -> np.ndarray:
     """Which points are ground: within ``threshold + scalar × slope`` of the provisional surface.
 
     ``origin_x, origin_y`` is the top-left corner of the grid (rows go south).

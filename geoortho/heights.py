@@ -17,9 +17,9 @@ How a photo without RelativeAltitude is read (``gps_altitude="auto"``): each rea
 altitude — above take-off, the ground model's datum as is, orthometric↔ellipsoidal by the EGM96
 geoid (:func:`geoortho.crs.geoid_undulation_m`) — gives a height above the ground; it must be
 positive and fit the spacing of consecutive photos (a mapping flight's front overlap is
-50–85 %, so the spacing bounds the height to a factor of about three, give or take 15 % for GNSS error). The reading that fits
-is taken and said; none fits → refused; an altitude that drifts or jumps over the flight is
-not trusted either.
+50–85 %, so the spacing bounds the height to a factor of about three, give or take 15 % for
+GNSS error). The reading that fits is taken and said; none fits → refused; an altitude that
+drifts or jumps over the flight is not trusted either.
 """
 
 from __future__ import annotations
@@ -78,8 +78,10 @@ class AltitudeCheck:
         return abs(self.drift_m) <= MAX_DRIFT_M and not self.steps
 
     def describe(self) -> str:
-        parts = [f"{self.label}: drift {self.drift_m:+.1f} m over {self.duration_s / 60:.1f} min, "
-                 f"spread {self.spread_m:.1f} m"]
+        parts = [
+            f"{self.label}: drift {self.drift_m:+.1f} m over {self.duration_s / 60:.1f} min, "
+            f"spread {self.spread_m:.1f} m"
+        ]
         if self.steps:
             parts.append(f"{len(self.steps)} jump(s) (first at {self.steps[0]})")
         if self.outliers:
@@ -87,7 +89,9 @@ class AltitudeCheck:
         return ", ".join(parts)
 
 
-def check_altitudes(photos: Sequence[Photo], values_m: Sequence[float], label: str) -> AltitudeCheck | None:
+def check_altitudes(
+    photos: Sequence[Photo], values_m: Sequence[float] | np.ndarray, label: str
+) -> AltitudeCheck | None:
     """Trend, jumps and outliers of an altitude series against time (None: too few timed values).
 
     A jump is a change between consecutive photos larger than ``MAX_STEP_M`` and six robust
@@ -114,10 +118,13 @@ def check_altitudes(photos: Sequence[Photo], values_m: Sequence[float], label: s
     jump = np.abs(dz - np.median(dz)) > limit
     is_step = np.zeros(len(dz), bool)
     for k in np.nonzero(jump)[0]:
-        after, before = z[k + 1:k + 4], z[max(0, k - 2):k + 1]
+        after, before = z[k + 1 : k + 4], z[max(0, k - 2) : k + 1]
         # a level held before and after → a jump; one photo off and back → an outlier
-        is_step[k] = len(after) > 1 and bool(np.all(np.abs(after - z[k + 1]) < limit)) \
+        is_step[k] = (
+            len(after) > 1
+            and bool(np.all(np.abs(after - z[k + 1]) < limit))
             and bool(np.all(np.abs(before - z[k]) < limit))
+        )
     steps = [names[k + 1] for k in np.nonzero(is_step)[0]]
     flat = z - np.concatenate([[0.0], np.cumsum(np.where(is_step, dz, 0.0))])
     slope = theilslopes(flat, t)[0] if duration > 0 else 0.0
@@ -126,8 +133,9 @@ def check_altitudes(photos: Sequence[Photo], values_m: Sequence[float], label: s
     sigma = 1.4826 * float(np.median(np.abs(resid))) + 0.05
     far = np.abs(resid) > max(MAX_STEP_M, 6.0 * sigma)
     outliers = [names[i] for i in np.nonzero(far)[0]]
-    return AltitudeCheck(label, int(ok.sum()), float(slope * duration), duration, sigma,
-                         tuple(steps), tuple(outliers[:20]))
+    return AltitudeCheck(
+        label, int(ok.sum()), float(slope * duration), duration, sigma, tuple(steps), tuple(outliers[:20])
+    )
 
 
 def flight_height_range_m(photos: Sequence[Photo], xy: np.ndarray) -> tuple[float, float] | None:
@@ -235,10 +243,20 @@ def resolve_heights(
     rel = np.array([p.relative_altitude_m for p in photos], float)
     gnss = np.array([absolute_altitude(p) for p in photos], float)
     ground = _ground_under(surface, xy)
-    label = ground_label or ("DSM" if isinstance(surface, GridSurface) else
-                             "ground elevation" if surface is not None else "flat take-off ground")
-    datum = "the DSM's datum" if isinstance(surface, GridSurface) else "the ground elevation's datum" \
-        if surface is not None else "height above take-off"
+    label = ground_label or (
+        "DSM"
+        if isinstance(surface, GridSurface)
+        else "ground elevation"
+        if surface is not None
+        else "flat take-off ground"
+    )
+    datum = (
+        "the DSM's datum"
+        if isinstance(surface, GridSurface)
+        else "the ground elevation's datum"
+        if surface is not None
+        else "height above take-off"
+    )
     notes: list[str] = []
     checks: list[AltitudeCheck] = []
     has_takeoff = takeoff_elevation_m is not None and math.isfinite(takeoff_elevation_m)
@@ -259,15 +277,25 @@ def resolve_heights(
 
     has_rel = np.isfinite(rel)
     if has_rel.sum() >= max(1, n // 2):
-        return _from_relative(photos, xy, lonlat, rel, gnss, ground, surface, takeoff_elevation_m, label, datum,
-                              gnss_takeoff)
+        return _from_relative(
+            photos, xy, lonlat, rel, gnss, ground, surface, takeoff_elevation_m, label, datum, gnss_takeoff
+        )
     return _from_gnss(photos, xy, lonlat, gnss, ground, surface, takeoff_elevation_m, gps_altitude, label, datum)
 
 
-def _from_relative(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, rel: np.ndarray,
-                   gnss: np.ndarray, ground: np.ndarray, surface: Surface | None,
-                   takeoff_elevation_m: float | None, label: str, datum: str,
-                   gnss_takeoff: bool = False) -> HeightModel:
+def _from_relative(
+    photos: Sequence[Photo],
+    xy: np.ndarray,
+    lonlat: np.ndarray,
+    rel: np.ndarray,
+    gnss: np.ndarray,
+    ground: np.ndarray,
+    surface: Surface | None,
+    takeoff_elevation_m: float | None,
+    label: str,
+    datum: str,
+    gnss_takeoff: bool = False,
+) -> HeightModel:
     """RelativeAltitude + take-off elevation (given, from the GNSS heights, or from the DSM)."""
     notes: list[str] = []
     checks = [c for c in (check_altitudes(photos, rel, "relative altitude"),) if c is not None]
@@ -323,8 +351,17 @@ def _from_relative(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, 
             raise InputError("no altitude in the metadata", path=photos[i].path)
         sources.append(s)
     surf = surface if surface is not None else FlatSurface(takeoff)
-    return HeightModel(z, tuple(sources), f"relative altitude + take-off; {how}", datum, takeoff, surf,
-                       tuple(notes), tuple(checks), gnss_ok)
+    return HeightModel(
+        z,
+        tuple(sources),
+        f"relative altitude + take-off; {how}",
+        datum,
+        takeoff,
+        surf,
+        tuple(notes),
+        tuple(checks),
+        gnss_ok,
+    )
 
 
 def _datum_hint(offset_m: float, lonlat: np.ndarray) -> tuple[str, float | None]:
@@ -338,15 +375,26 @@ def _datum_hint(offset_m: float, lonlat: np.ndarray) -> tuple[str, float | None]
     return f"another vertical datum, or GNSS heights off; the geoid is {n:+.1f} m here", None
 
 
-def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss: np.ndarray,
-               ground: np.ndarray, surface: Surface | None, takeoff_elevation_m: float | None,
-               gps_altitude: str, label: str, datum: str) -> HeightModel:
+def _from_gnss(
+    photos: Sequence[Photo],
+    xy: np.ndarray,
+    lonlat: np.ndarray,
+    gnss: np.ndarray,
+    ground: np.ndarray,
+    surface: Surface | None,
+    takeoff_elevation_m: float | None,
+    gps_altitude: str,
+    label: str,
+    datum: str,
+) -> HeightModel:
     """GPSAltitude alone: decide what it holds, check it, or refuse."""
     n = len(photos)
     notes: list[str] = []
     if not np.isfinite(gnss).any():
-        raise InputError("no altitude in the metadata (RelativeAltitude, AbsoluteAltitude or GPSAltitude): "
-                         "give flight_height_m", path=photos[0].path.parent)
+        raise InputError(
+            "no altitude in the metadata (RelativeAltitude, AbsoluteAltitude or GPSAltitude): give flight_height_m",
+            path=photos[0].path.parent,
+        )
     check = check_altitudes(photos, gnss, "GPS altitude")
     checks = (check,) if check is not None else ()
     g = np.where(np.isfinite(gnss), gnss, np.nanmedian(gnss))
@@ -354,11 +402,20 @@ def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss
     known_ground = np.isfinite(ground).any() or has_takeoff
     under = ground if np.isfinite(ground).any() else np.full(n, float(takeoff_elevation_m or 0.0))
     under = np.where(np.isfinite(under), under, np.nanmedian(under))
-    base = float(takeoff_elevation_m) if has_takeoff else (  # type: ignore[arg-type]
-        _ground_level(under) if known_ground else 0.0)
-    what = f"{len(photos)} photos carry no RelativeAltitude, only a GPS altitude ({np.nanmin(gnss):.0f}–" \
-           f"{np.nanmax(gnss):.0f} m)"
-    give = "give flight_height_m (height above take-off), or takeoff_elevation_m or a DSM (in the datum of the GPS altitude)"
+    base = (
+        float(takeoff_elevation_m)  # type: ignore[arg-type]  # has_takeoff: not None
+        if has_takeoff
+        # type: ignore[arg-type]
+        else (_ground_level(under) if known_ground else 0.0)
+    )
+    what = (
+        f"{len(photos)} photos carry no RelativeAltitude, only a GPS altitude ({np.nanmin(gnss):.0f}–"
+        f"{np.nanmax(gnss):.0f} m)"
+    )
+    give = (
+        "give flight_height_m (height above take-off), or takeoff_elevation_m or a DSM "
+        "(in the datum of the GPS altitude)"
+    )
     if check is not None and not check.trusted:
         raise InputError(f"{what} that is not trustworthy ({check.describe()}): {give}")
     # Each reading of the altitude → camera elevation in the ground model's datum. Height above
@@ -367,16 +424,22 @@ def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss
     readings: dict[str, tuple[np.ndarray, str]] = {}
     old_dji = all(p.make.strip().upper().startswith("DJI") and not p.has_xmp for p in photos)
     if old_dji or gps_altitude == "above-takeoff":
-        readings["above-takeoff"] = (base + g, "GPS altitude read as height above take-off "
-                                               "(old DJI firmware writes it so)")
+        readings["above-takeoff"] = (
+            base + g,
+            "GPS altitude read as height above take-off (old DJI firmware writes it so)",
+        )
     if known_ground:
         readings["orthometric"] = (g, f"GPS altitude read as in {datum} (EXIF: orthometric)")
         try:
             und = _undulation(lonlat)
-            readings["ellipsoidal"] = (g - und, f"GPS altitude read as ellipsoidal, made orthometric "
-                                                f"(EGM96 geoid {und:+.1f} m)")
-            readings["orthometric→ellipsoidal"] = (g + und, f"GPS altitude read as orthometric, made "
-                                                            f"ellipsoidal (EGM96 geoid {und:+.1f} m)")
+            readings["ellipsoidal"] = (
+                g - und,
+                f"GPS altitude read as ellipsoidal, made orthometric (EGM96 geoid {und:+.1f} m)",
+            )
+            readings["orthometric→ellipsoidal"] = (
+                g + und,
+                f"GPS altitude read as orthometric, made ellipsoidal (EGM96 geoid {und:+.1f} m)",
+            )
         except DependencyError as e:
             notes.append(f"no geoid model: {e}")
     bounds = flight_height_range_m(photos, xy)
@@ -390,13 +453,20 @@ def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss
         fits = {}
         for key, (z, how) in readings.items():
             agl = float(np.median(z - under))
-            if agl > 2.0 and (bounds is None or bounds[0] * 0.85 <= agl <= bounds[1] * 1.15):  # GNSS heights err by metres
+            if agl > 2.0 and (
+                bounds is None or bounds[0] * 0.85 <= agl <= bounds[1] * 1.15
+            ):  # GNSS heights err by metres
                 fits[key] = (agl, z, how)
-        spacing = f"the photo spacing says {bounds[0]:.0f}–{bounds[1]:.0f} m" if bounds else \
-            "the photo spacing could not bound it"
+        spacing = (
+            f"the photo spacing says {bounds[0]:.0f}–{bounds[1]:.0f} m"
+            if bounds
+            else "the photo spacing could not bound it"
+        )
         if not readings:
-            raise InputError(f"{what}, which is a sea-level or ellipsoidal height, and there is no ground "
-                             f"model to take it from; {give}")
+            raise InputError(
+                f"{what}, which is a sea-level or ellipsoidal height, and there is no ground "
+                f"model to take it from; {give}"
+            )
         if not fits:
             raise InputError(f"{what}: no reading of it is a plausible height above the ground ({spacing}); {give}")
         if bounds is None and not known_ground:
@@ -414,5 +484,14 @@ def _from_gnss(photos: Sequence[Photo], xy: np.ndarray, lonlat: np.ndarray, gnss
     notes.insert(0, note)
     sources = (f"{readings[key][1]}; {label}",) * n
     surf = surface if surface is not None else FlatSurface(base)
-    return HeightModel(np.asarray(z, float), sources, readings[key][1], datum, base, surf, tuple(notes), checks,
-                       check is None or check.trusted)
+    return HeightModel(
+        np.asarray(z, float),
+        sources,
+        readings[key][1],
+        datum,
+        base,
+        surf,
+        tuple(notes),
+        checks,
+        check is None or check.trusted,
+    )

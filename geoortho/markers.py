@@ -14,12 +14,28 @@ __all__ = ["DICTIONARIES", "get_dictionary", "marker_cells"]
 
 #: Every predefined dictionary OpenCV offers, by its usual name (a test checks it against cv2.aruco).
 Dictionary = Literal[
-    "DICT_4X4_100", "DICT_4X4_1000", "DICT_4X4_250", "DICT_4X4_50",
-    "DICT_5X5_100", "DICT_5X5_1000", "DICT_5X5_250", "DICT_5X5_50",
-    "DICT_6X6_100", "DICT_6X6_1000", "DICT_6X6_250", "DICT_6X6_50",
-    "DICT_7X7_100", "DICT_7X7_1000", "DICT_7X7_250", "DICT_7X7_50",
-    "DICT_APRILTAG_16H5", "DICT_APRILTAG_25H9", "DICT_APRILTAG_36H10", "DICT_APRILTAG_36H11",
-    "DICT_ARUCO_MIP_36H12", "DICT_ARUCO_ORIGINAL",
+    "DICT_4X4_100",
+    "DICT_4X4_1000",
+    "DICT_4X4_250",
+    "DICT_4X4_50",
+    "DICT_5X5_100",
+    "DICT_5X5_1000",
+    "DICT_5X5_250",
+    "DICT_5X5_50",
+    "DICT_6X6_100",
+    "DICT_6X6_1000",
+    "DICT_6X6_250",
+    "DICT_6X6_50",
+    "DICT_7X7_100",
+    "DICT_7X7_1000",
+    "DICT_7X7_250",
+    "DICT_7X7_50",
+    "DICT_APRILTAG_16H5",
+    "DICT_APRILTAG_25H9",
+    "DICT_APRILTAG_36H10",
+    "DICT_APRILTAG_36H11",
+    "DICT_ARUCO_MIP_36H12",
+    "DICT_ARUCO_ORIGINAL",
 ]
 DICTIONARIES: tuple[str, ...] = get_args(Dictionary)
 

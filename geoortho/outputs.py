@@ -93,8 +93,13 @@ def write_cog(
     count, rows, cols = data.shape
     is_float = np.issubdtype(data.dtype, np.floating)
     profile = {
-        "driver": "GTiff", "width": cols, "height": rows, "count": count,
-        "dtype": data.dtype.name, "crs": crs, "transform": transform,
+        "driver": "GTiff",
+        "width": cols,
+        "height": rows,
+        "count": count,
+        "dtype": data.dtype.name,
+        "crs": crs,
+        "transform": transform,
     }
     if nodata is not None:
         profile["nodata"] = nodata
@@ -102,8 +107,11 @@ def write_cog(
         with mem.open(**profile) as ds:
             ds.write(data)
             if alpha is not None:
-                interp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue][: count - 1] if count == 4 else \
-                    [ColorInterp.gray] * (count - 1)
+                interp = (
+                    [ColorInterp.red, ColorInterp.green, ColorInterp.blue][: count - 1]
+                    if count == 4
+                    else [ColorInterp.gray] * (count - 1)
+                )
                 ds.colorinterp = [*interp, ColorInterp.alpha]
             for i, name in enumerate(band_names, 1):
                 ds.set_band_description(i, name)
@@ -124,8 +132,14 @@ def write_cog(
 
 #: OGR driver by file extension.
 VECTOR_DRIVERS = {
-    ".gpkg": "GPKG", ".geojson": "GeoJSON", ".json": "GeoJSON", ".shp": "ESRI Shapefile",
-    ".fgb": "FlatGeobuf", ".csv": "CSV", ".kml": "KML", ".gml": "GML",
+    ".gpkg": "GPKG",
+    ".geojson": "GeoJSON",
+    ".json": "GeoJSON",
+    ".shp": "ESRI Shapefile",
+    ".fgb": "FlatGeobuf",
+    ".csv": "CSV",
+    ".kml": "KML",
+    ".gml": "GML",
 }
 
 

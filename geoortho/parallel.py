@@ -43,9 +43,19 @@ def map_ordered(
     Dask ``Client.get_executor()``; ``initializer`` is then not run).
     Every item is submitted at once: the caller wants the whole list anyway.
     """
-    return list(imap_ordered(fn, items, workers=workers, initializer=initializer, initargs=initargs,
-                             feedback=feedback, min_items_for_pool=min_items_for_pool, executor=executor,
-                             in_flight=max(1, len(items))))
+    return list(
+        imap_ordered(
+            fn,
+            items,
+            workers=workers,
+            initializer=initializer,
+            initargs=initargs,
+            feedback=feedback,
+            min_items_for_pool=min_items_for_pool,
+            executor=executor,
+            in_flight=max(1, len(items)),
+        )
+    )
 
 
 def imap_ordered(
@@ -68,8 +78,9 @@ def imap_ordered(
     if executor is not None:
         yield from _imap_on(executor, fn, items, fb, window)
         return
-    with process_pool(workers, len(items), initializer=initializer, initargs=initargs,
-                      min_items_for_pool=min_items_for_pool) as pool:
+    with process_pool(
+        workers, len(items), initializer=initializer, initargs=initargs, min_items_for_pool=min_items_for_pool
+    ) as pool:
         if pool is not None:
             yield from _imap_on(pool, fn, items, fb, window)
             return
@@ -79,8 +90,9 @@ def imap_ordered(
             fb.progress((i + 1) / len(items))
 
 
-def _imap_on(executor: cf.Executor, fn: Callable[[T], R], items: Sequence[T], fb: Feedback,
-             in_flight: int) -> Iterator[R]:
+def _imap_on(
+    executor: cf.Executor, fn: Callable[[T], R], items: Sequence[T], fb: Feedback, in_flight: int
+) -> Iterator[R]:
     """Results in order with at most ``in_flight`` futures pending; Cancel or an error (or the
     consumer stopping) cancels what has not started."""
     pending: collections.deque[cf.Future[R]] = collections.deque()
@@ -104,8 +116,12 @@ def _imap_on(executor: cf.Executor, fn: Callable[[T], R], items: Sequence[T], fb
 
 @contextmanager
 def process_pool(
-    workers: int, n_items: int, *, initializer: Callable[..., Any] | None = None,
-    initargs: tuple[Any, ...] = (), min_items_for_pool: int = 2,
+    workers: int,
+    n_items: int,
+    *,
+    initializer: Callable[..., Any] | None = None,
+    initargs: tuple[Any, ...] = (),
+    min_items_for_pool: int = 2,
 ) -> Iterator[cf.Executor | None]:
     """A spawn pool to share between several ``map_ordered`` calls (one start-up), or None
     (after running ``initializer`` here) when in-process is the better choice."""

@@ -47,18 +47,51 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff")
 # width spans the full image width, also for 16:9 crops of a 4:3 sensor.
 SENSOR_WIDTHS_MM: dict[str, float] = {
     # Phantom 3 / 4 family, Inspire 1
-    "fc300s": 6.17, "fc300x": 6.17, "fc300c": 6.17, "fc300se": 6.17, "fc330": 6.17, "fc350": 6.17,
-    "fc6310": 13.2, "fc6310s": 13.2, "fc6310r": 13.2, "fc6360": 4.87,
+    "fc300s": 6.17,
+    "fc300x": 6.17,
+    "fc300c": 6.17,
+    "fc300se": 6.17,
+    "fc330": 6.17,
+    "fc350": 6.17,
+    "fc6310": 13.2,
+    "fc6310s": 13.2,
+    "fc6310r": 13.2,
+    "fc6360": 4.87,
     # Mavic / Air / Mini family
-    "fc220": 6.17, "fc2103": 6.17, "fc2204": 6.17, "l1d-20c": 13.2, "fc3170": 6.4, "fc3411": 13.2,
-    "fc7203": 6.17, "fc7303": 6.17, "fc3582": 9.7, "fc3682": 9.7, "fc8482": 9.7, "fc4170": 17.3,
-    "l2d-20c": 17.3, "fc3682s": 9.7,
+    "fc220": 6.17,
+    "fc2103": 6.17,
+    "fc2204": 6.17,
+    "l1d-20c": 13.2,
+    "fc3170": 6.4,
+    "fc3411": 13.2,
+    "fc7203": 6.17,
+    "fc7303": 6.17,
+    "fc3582": 9.7,
+    "fc3682": 9.7,
+    "fc8482": 9.7,
+    "fc4170": 17.3,
+    "l2d-20c": 17.3,
+    "fc3682s": 9.7,
     # Enterprise: Mavic 3E/3T, M30, Matrice 4E, Phantom 4 RTK
-    "m3e": 17.3, "m3t": 6.4, "m3m": 17.3, "m30": 6.4, "m30t": 6.4, "m4e": 17.3, "m4t": 9.7,
+    "m3e": 17.3,
+    "m3t": 6.4,
+    "m3m": 17.3,
+    "m30": 6.4,
+    "m30t": 6.4,
+    "m4e": 17.3,
+    "m4t": 9.7,
     "fc6310r_rtk": 13.2,
     # Zenmuse
-    "zenmusep1": 35.9, "zenmusel1": 13.2, "zenmusel2": 17.3, "fc6510": 13.2, "fc6520": 17.3,
-    "fc6540": 23.5, "fc550": 17.3, "fc550raw": 17.3, "zenmuseh20": 7.6, "zenmuseh20t": 7.6,
+    "zenmusep1": 35.9,
+    "zenmusel1": 13.2,
+    "zenmusel2": 17.3,
+    "fc6510": 13.2,
+    "fc6520": 17.3,
+    "fc6540": 23.5,
+    "fc550": 17.3,
+    "fc550raw": 17.3,
+    "zenmuseh20": 7.6,
+    "zenmuseh20t": 7.6,
 }
 
 _XMP_ATTR = re.compile(rb"([A-Za-z][\w.-]*):([A-Za-z]\w*)\s*=\s*([\"'])(.*?)\3", re.S)
@@ -120,14 +153,13 @@ class Photo:
     @property
     def has_altitude(self) -> bool:
         """Any of RelativeAltitude, AbsoluteAltitude or GPSAltitude."""
-        return any(math.isfinite(v) for v in (self.relative_altitude_m, self.absolute_altitude_m,
-                                              self.gps_altitude_m))
+        return any(math.isfinite(v) for v in (self.relative_altitude_m, self.absolute_altitude_m, self.gps_altitude_m))
 
     @property
     def exposure_value(self) -> float:
         """Relative exposure, ISO · t / N² (NaN when the EXIF lacks any of them): photos of the same
         scene come out brighter in proportion."""
-        return self.iso * self.exposure_time_s / self.f_number ** 2
+        return self.iso * self.exposure_time_s / self.f_number**2
 
     @property
     def focal_px(self) -> float:
@@ -233,8 +265,9 @@ def _dms_deg(value: Any, ref: Any, negative: str) -> float:
     return deg
 
 
-def _sensor_width(model: str, focal_mm: float, focal_35mm: float, exif_ifd: dict[int, Any],
-                  longer_px: int, user_mm: float | None) -> tuple[float, str]:
+def _sensor_width(
+    model: str, focal_mm: float, focal_35mm: float, exif_ifd: dict[int, Any], longer_px: int, user_mm: float | None
+) -> tuple[float, str]:
     """Sensor width: user option, then the camera database, 35 mm equivalent, focal-plane resolution."""
     if user_mm:
         return float(user_mm), "user"
@@ -309,13 +342,31 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     if re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d.*", taken):
         taken = taken[:10].replace(":", "-") + "T" + taken[11:19]
     return Photo(
-        path=path, width_px=int(width), height_px=int(height), make=make, model=model,
-        latitude_deg=lat, longitude_deg=lon, gps_altitude_m=gps_alt, relative_altitude_m=rel,
-        absolute_altitude_m=absolute, yaw_deg=yaw, pitch_deg=pitch, roll_deg=roll, attitude_source=source,
-        flight_yaw_deg=_xmp_float(tags, _FLIGHT[0]), flight_pitch_deg=_xmp_float(tags, _FLIGHT[1]),
-        flight_roll_deg=_xmp_float(tags, _FLIGHT[2]), focal_mm=focal_mm, focal_35mm=focal_35,
-        sensor_width_mm=sw, sensor_source=sw_source, taken_at=taken, has_xmp=bool(tags),
-        exposure_time_s=_float(exif_ifd.get(0x829A)), f_number=_float(exif_ifd.get(0x829D)),
+        path=path,
+        width_px=int(width),
+        height_px=int(height),
+        make=make,
+        model=model,
+        latitude_deg=lat,
+        longitude_deg=lon,
+        gps_altitude_m=gps_alt,
+        relative_altitude_m=rel,
+        absolute_altitude_m=absolute,
+        yaw_deg=yaw,
+        pitch_deg=pitch,
+        roll_deg=roll,
+        attitude_source=source,
+        flight_yaw_deg=_xmp_float(tags, _FLIGHT[0]),
+        flight_pitch_deg=_xmp_float(tags, _FLIGHT[1]),
+        flight_roll_deg=_xmp_float(tags, _FLIGHT[2]),
+        focal_mm=focal_mm,
+        focal_35mm=focal_35,
+        sensor_width_mm=sw,
+        sensor_source=sw_source,
+        taken_at=taken,
+        has_xmp=bool(tags),
+        exposure_time_s=_float(exif_ifd.get(0x829A)),
+        f_number=_float(exif_ifd.get(0x829D)),
         iso=_float(_first(exif_ifd.get(0x8827))),
         warnings=tuple(warnings),
     )
@@ -342,8 +393,12 @@ def _attitude(tags: dict[str, str], make: str, warnings: list[str]) -> tuple[flo
     if math.isfinite(c[1]) and not math.isfinite(g[1]):
         # Camera: namespace, 0 = nadir; senseFly writes roll with the opposite sign.
         sign = -1.0 if make.lower() == "sensefly" else 1.0
-        return (_wrap(c[0]) if math.isfinite(c[0]) else 0.0, c[1] - 90.0,
-                sign * c[2] if math.isfinite(c[2]) else 0.0, "camera")
+        return (
+            _wrap(c[0]) if math.isfinite(c[0]) else 0.0,
+            c[1] - 90.0,
+            sign * c[2] if math.isfinite(c[2]) else 0.0,
+            "camera",
+        )
     if all(math.isfinite(v) for v in g):
         return _wrap(g[0]), g[1], g[2], "gimbal"
     if not any(math.isfinite(v) for v in g + f):
@@ -406,10 +461,15 @@ def read_photos(
     fb = as_feedback(feedback)
     paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
     chunk = 64
-    chunks = [[str(p) for p in paths[i:i + chunk]] for i in range(0, len(paths), chunk)]
+    chunks = [[str(p) for p in paths[i : i + chunk]] for i in range(0, len(paths), chunk)]
     # a pool pays off from a few hundred photos on; below that, in-process
-    per_chunk = map_ordered(functools.partial(_read_chunk, sensor_width_mm=sensor_width_mm), chunks,
-                            executor=executor, min_items_for_pool=4, feedback=fb)
+    per_chunk = map_ordered(
+        functools.partial(_read_chunk, sensor_width_mm=sensor_width_mm),
+        chunks,
+        executor=executor,
+        min_items_for_pool=4,
+        feedback=fb,
+    )
     results = [r for c in per_chunk for r in c]
     photos: list[Photo] = []
     skipped: list[tuple[str, str]] = []
@@ -419,8 +479,9 @@ def read_photos(
         elif require_gps and not r.has_gps:
             skipped.append((r.image, "no GPS position in EXIF or XMP"))
         elif require_camera and not math.isfinite(r.focal_px):
-            skipped.append((r.image, f"unknown camera {r.make} {r.model!r}: no focal length or sensor "
-                                     "size; give sensor_width_mm"))
+            skipped.append(
+                (r.image, f"unknown camera {r.make} {r.model!r}: no focal length or sensor size; give sensor_width_mm")
+            )
         else:
             photos.append(r)
     photos = yaw_from_course(photos)
@@ -479,10 +540,14 @@ def yaw_from_course(photos: Sequence[Photo], max_gap_s: float = 30.0, min_move_m
         yaw = _wrap(yaw)
         # The course replaces the "top to the north" guess: say that, not both.
         kept = tuple(w for w in p.warnings if not w.startswith(_NO_ATTITUDE))
-        what = "no attitude in the metadata: yaw taken from the flight course, pitch assumed nadir" \
-            if len(kept) < len(p.warnings) else "incomplete gimbal attitude: yaw taken from the flight course"
-        out[i] = replace(p, yaw_deg=yaw, attitude_source=p.attitude_source + ", yaw from course",
-                         warnings=(*kept, what))
+        what = (
+            "no attitude in the metadata: yaw taken from the flight course, pitch assumed nadir"
+            if len(kept) < len(p.warnings)
+            else "incomplete gimbal attitude: yaw taken from the flight course"
+        )
+        out[i] = replace(
+            p, yaw_deg=yaw, attitude_source=p.attitude_source + ", yaw from course", warnings=(*kept, what)
+        )
     return out
 
 

@@ -64,8 +64,8 @@ class PointSource:
         """The points, ``size`` at a time (NaN coordinates are the caller's to judge)."""
         if self._array is not None:
             for i in range(0, self.count, size):
-                a = self._array[i:i + size]
-                cls = self._classes[i:i + size] if self._classes is not None else None
+                a = self._array[i : i + size]
+                cls = self._classes[i : i + size] if self._classes is not None else None
                 yield Chunk(a[:, 0], a[:, 1], a[:, 2], cls, i)
             return
         assert self.path is not None
@@ -76,8 +76,13 @@ class PointSource:
             with laspy.open(str(self.path)) as reader:
                 for pts in reader.chunk_iterator(size):
                     n = len(pts)
-                    yield Chunk(np.asarray(pts.x, float), np.asarray(pts.y, float), np.asarray(pts.z, float),
-                                np.asarray(pts.classification, np.uint8), start)
+                    yield Chunk(
+                        np.asarray(pts.x, float),
+                        np.asarray(pts.y, float),
+                        np.asarray(pts.z, float),
+                        np.asarray(pts.classification, np.uint8),
+                        start,
+                    )
                     start += n
         except (laspy.errors.LaspyException, ValueError, OSError) as e:
             raise InputError(f"cannot read points after {start}: {e}", path=self.path) from e
@@ -86,8 +91,12 @@ class PointSource:
         return f"horizontal {self.horizontal_unit}, vertical {self.vertical_unit}"
 
 
-def open_points(source: str | os.PathLike[str] | np.ndarray, crs: str | CRS | None = None, *,
-                classification: np.ndarray | None = None) -> PointSource:
+def open_points(
+    source: str | os.PathLike[str] | np.ndarray,
+    crs: str | CRS | None = None,
+    *,
+    classification: np.ndarray | None = None,
+) -> PointSource:
     """Open a LAS/LAZ/PLY file or wrap an (N, 3) array (x, y, z in ``crs``).
 
     ``crs`` overrides the file's CRS (and is required when it has none).
@@ -106,8 +115,14 @@ def open_points(source: str | os.PathLike[str] | np.ndarray, crs: str | CRS | No
     raise InputError(f"unknown point cloud format {ext!r} (use {', '.join(POINT_EXTENSIONS)})", path=path)
 
 
-def write_las(path: str | os.PathLike[str], xyz: np.ndarray, crs: CRS | str, *,
-              rgb: np.ndarray | None = None, classification: np.ndarray | None = None) -> Path:
+def write_las(
+    path: str | os.PathLike[str],
+    xyz: np.ndarray,
+    crs: CRS | str,
+    *,
+    rgb: np.ndarray | None = None,
+    classification: np.ndarray | None = None,
+) -> Path:
     """Write points (N, 3) as LAS/LAZ 1.4 (by extension), millimetre scale, the CRS in the header.
 
     ``rgb`` is (N, 3) in 0..1; written atomically.
@@ -187,8 +202,7 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
             except Exception as e:  # a broken CRS record is reported, not fatal when --crs is given
                 file_crs = None
                 if override is None:
-                    raise InputError(f"unreadable CRS in the LAS header ({e}); give the CRS (--crs)",
-                                     path=path) from e
+                    raise InputError(f"unreadable CRS in the LAS header ({e}); give the CRS (--crs)", path=path) from e
             keys = _geokeys(h)
     except laspy.errors.LaspyException as e:
         raise InputError(f"not a readable LAS/LAZ file: {e}", path=path) from e
@@ -208,15 +222,22 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
             cx, cy = (mins[0] + maxs[0]) / 2, (mins[1] + maxs[1]) / 2
             alt = with_linear_unit(crs, *h_unit)
             if _inside_area(crs, cx, cy) is not True and _inside_area(alt, cx, cy) is not False:
-                notes.append(f"units: {h_unit[0]} from the GeoTIFF ProjLinearUnits key, not the {unit_name} of "
-                             f"the CRS code: only in {h_unit[0]} do the points fall in the CRS's area")
+                notes.append(
+                    f"units: {h_unit[0]} from the GeoTIFF ProjLinearUnits key, not the {unit_name} of "
+                    f"the CRS code: only in {h_unit[0]} do the points fall in the CRS's area"
+                )
                 crs = alt
             else:
-                notes.append(f"units: {unit_name} of the CRS code kept over the ProjLinearUnits key "
-                             f"({h_unit[0]}): the points fall in the CRS's area in {unit_name}")
+                notes.append(
+                    f"units: {unit_name} of the CRS code kept over the ProjLinearUnits key "
+                    f"({h_unit[0]}): the points fall in the CRS's area in {unit_name}"
+                )
     if crs.is_geographic:
-        raise InputError("geographic coordinates (degrees): reproject the cloud to a projected CRS or give "
-                         "the projected CRS it is in (--crs)", path=path)
+        raise InputError(
+            "geographic coordinates (degrees): reproject the cloud to a projected CRS or give "
+            "the projected CRS it is in (--crs)",
+            path=path,
+        )
     h_name, h_m = _units_of(crs)
     v_name, v_m = h_name, h_m
     v_key = UNIT_CODES.get(keys.get(4099, 0)) if override is None else None
@@ -248,8 +269,9 @@ def _open_ply(path: Path, override: CRS | None) -> PointSource:
     return _from_array(xyz, override, cls, path, [f"CRS given: {override.name}"])
 
 
-def _from_array(a: np.ndarray, crs: CRS | None, classification: np.ndarray | None, path: Path | None,
-                notes: list[str]) -> PointSource:
+def _from_array(
+    a: np.ndarray, crs: CRS | None, classification: np.ndarray | None, path: Path | None, notes: list[str]
+) -> PointSource:
     a = np.asarray(a, float)
     if a.ndim != 2 or a.shape[1] < 3:
         raise InputError(f"points must be an (N, 3) array of x, y, z, not {a.shape}", path=path)
@@ -267,6 +289,17 @@ def _from_array(a: np.ndarray, crs: CRS | None, classification: np.ndarray | Non
     h_name, h_m = _units_of(crs)
     v = _vertical_of(crs)
     v_name, v_m = v if v is not None else (h_name, h_m)
-    return PointSource(path, crs, len(a), (*mins, *maxs), h_name, h_m, v_name, v_m, classification is not None,
-                       notes or [f"CRS given: {crs.name}"], _array=a[:, :3],
-                       _classes=None if classification is None else np.asarray(classification, np.uint8))
+    return PointSource(
+        path,
+        crs,
+        len(a),
+        (*mins, *maxs),
+        h_name,
+        h_m,
+        v_name,
+        v_m,
+        classification is not None,
+        notes or [f"CRS given: {crs.name}"],
+        _array=a[:, :3],
+        _classes=None if classification is None else np.asarray(classification, np.uint8),
+    )

@@ -168,8 +168,13 @@ def _camera_params(body: _Body, model: str) -> str:
     if not math.isfinite(f):
         return ""  # COLMAP then guesses 1.2 × the larger side and refines it
     cx, cy = p.width_px / 2.0, p.height_px / 2.0  # COLMAP: pixel (0, 0) is the top-left corner
-    base = {"SIMPLE_PINHOLE": [f, cx, cy], "PINHOLE": [f, f, cx, cy], "SIMPLE_RADIAL": [f, cx, cy, 0.0],
-            "RADIAL": [f, cx, cy, 0.0, 0.0], "OPENCV": [f, f, cx, cy, 0.0, 0.0, 0.0, 0.0]}[model]
+    base = {
+        "SIMPLE_PINHOLE": [f, cx, cy],
+        "PINHOLE": [f, f, cx, cy],
+        "SIMPLE_RADIAL": [f, cx, cy, 0.0],
+        "RADIAL": [f, cx, cy, 0.0, 0.0],
+        "OPENCV": [f, f, cx, cy, 0.0, 0.0, 0.0, 0.0],
+    }[model]
     return ",".join(f"{v:.6f}" for v in base)
 
 
@@ -185,8 +190,9 @@ class _Priors:
     notes: tuple[str, ...] = ()
 
 
-def _gps_priors(photos: Sequence[Photo], names: dict[Path, str], crs: Any,
-                takeoff_elevation_m: float | None) -> _Priors:
+def _gps_priors(
+    photos: Sequence[Photo], names: dict[Path, str], crs: Any, takeoff_elevation_m: float | None
+) -> _Priors:
     """Camera positions from the metadata, heights per :mod:`geoortho.heights`.
 
     SfM needs no height above ground, only camera elevations in one datum: a flight without
@@ -204,8 +210,9 @@ def _gps_priors(photos: Sequence[Photo], names: dict[Path, str], crs: Any,
         notes += [n for n in heights.notes if "not trusted" in n or "drift" in n]
     except InputError as e:
         # No height above ground to be had: keep the recorded GNSS altitude (its own datum).
-        xy = np.array(transformer(WGS84, crs).transform([p.longitude_deg for p in with_gps],
-                                                        [p.latitude_deg for p in with_gps])).T
+        xy = np.array(
+            transformer(WGS84, crs).transform([p.longitude_deg for p in with_gps], [p.latitude_deg for p in with_gps])
+        ).T
         z = np.array([absolute_altitude(p) for p in with_gps])
         centres = np.c_[xy, z]
         check = check_altitudes(with_gps, z, "GPS altitude")
@@ -243,12 +250,20 @@ def _pycolmap() -> Any:
 
     # COLMAP logs every image and iteration at INFO; geoortho's feedback says what matters.
     if os.environ.get("GEOORTHO_COLMAP_LOG") is None:
-        pycolmap.logging.minloglevel = pycolmap.logging.WARNING
+        pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
     return pycolmap
 
 
-def _import_and_extract(db: Path, image_root: Path, names: dict[Path, str], bodies: list[_Body],
-                        camera_model: str, max_image_size: int, max_features: int, workers: int) -> None:
+def _import_and_extract(
+    db: Path,
+    image_root: Path,
+    names: dict[Path, str],
+    bodies: list[_Body],
+    camera_model: str,
+    max_image_size: int,
+    max_features: int,
+    workers: int,
+) -> None:
     pc = _pycolmap()
     for body in bodies:
         ro = pc.ImageReaderOptions()
@@ -263,22 +278,26 @@ def _import_and_extract(db: Path, image_root: Path, names: dict[Path, str], bodi
     # Drone photos are sharp and large: the upsampled first octave (COLMAP's default -1) costs
     # about 3x the time for features too small to matter at survey scale.
     eo.sift.first_octave = 0
-    pc.extract_features(db, image_root, [names[p.path] for b in bodies for p in b.photos],
-                        extraction_options=eo)
+    pc.extract_features(db, image_root, [names[p.path] for b in bodies for p in b.photos], extraction_options=eo)
 
 
 def _write_priors(db: Path, priors: _Priors, sigma_h_m: float, sigma_v_m: float) -> int:
     pc = _pycolmap()
-    cov = np.diag([sigma_h_m ** 2, sigma_h_m ** 2, sigma_v_m ** 2])
+    cov = np.diag([sigma_h_m**2, sigma_h_m**2, sigma_v_m**2])
     n = 0
     with pc.Database.open(db) as d:
         d.clear_pose_priors()  # COLMAP's own priors: raw EXIF latitude/longitude/altitude
         for im in d.read_all_images():
             pos = priors.positions.get(im.name)
             if pos is not None:
-                d.write_pose_prior(pc.PosePrior(
-                    corr_data_id=im.data_id, position=np.asarray(pos, float), position_covariance=cov,
-                    coordinate_system=pc.PosePriorCoordinateSystem.CARTESIAN))
+                d.write_pose_prior(
+                    pc.PosePrior(
+                        corr_data_id=im.data_id,
+                        position=np.asarray(pos, float),
+                        position_covariance=cov,
+                        coordinate_system=pc.PosePriorCoordinateSystem.CARTESIAN,
+                    )
+                )
                 n += 1
     return n
 
@@ -286,8 +305,11 @@ def _write_priors(db: Path, priors: _Priors, sigma_h_m: float, sigma_v_m: float)
 def _spatial_distance_m(photos: Sequence[Photo], priors: _Priors) -> float:
     """Centres closer than 1.5 footprints may overlap: the spatial matcher's radius."""
     heights = [p.relative_altitude_m for p in photos if math.isfinite(p.relative_altitude_m)]
-    widths = [p.sensor_width_mm / p.focal_mm for p in photos
-              if math.isfinite(p.sensor_width_mm) and math.isfinite(p.focal_mm) and p.focal_mm > 0]
+    widths = [
+        p.sensor_width_mm / p.focal_mm
+        for p in photos
+        if math.isfinite(p.sensor_width_mm) and math.isfinite(p.focal_mm) and p.focal_mm > 0
+    ]
     if heights and widths:
         return 1.5 * float(np.median(heights)) * float(np.median(widths))
     pos = np.array(list(priors.positions.values()))
@@ -320,8 +342,16 @@ def _match(db: Path, how: str, photos: Sequence[Photo], priors: _Priors, workers
     return "exhaustive"
 
 
-def _map(db: Path, image_root: Path, work: Path, use_priors: bool, workers: int, seed: int,
-         refine_focal: bool = True, mapper: Mapper = "incremental") -> list[Any]:
+def _map(
+    db: Path,
+    image_root: Path,
+    work: Path,
+    use_priors: bool,
+    workers: int,
+    seed: int,
+    refine_focal: bool = True,
+    mapper: Mapper = "incremental",
+) -> list[Any]:
     pc = _pycolmap()
     if mapper == "global":
         # GLOMAP: rotation averaging + global positioning, one bundle adjustment; it takes no pose
@@ -362,8 +392,7 @@ def _align_to_gps(rec: Any, priors: _Priors, sigma_h_m: float) -> tuple[Any, int
     ro = pc.RANSACOptions()
     ro.max_error = 3.0 * sigma_h_m
     ro.random_seed = 0
-    sim = pc.align_reconstruction_to_locations(rec, names, np.array([priors.positions[n] for n in names]),
-                                               3, ro)
+    sim = pc.align_reconstruction_to_locations(rec, names, np.array([priors.positions[n] for n in names]), 3, ro)
     if sim is not None:
         rec.transform(sim)
     return sim, len(names)
@@ -410,8 +439,14 @@ def _align_horizontal(rec: Any, priors: _Priors, photos_by_name: dict[str, Photo
         return None
     src = np.array([level @ centres[n] for n in names])
     tgt = np.array([priors.positions[n] for n in names])
-    model, inliers = ransac((src[:, :2], tgt[:, :2]), SimilarityTransform, min_samples=2,
-                            residual_threshold=3.0 * sigma_h_m, max_trials=500, rng=0)
+    model, inliers = ransac(
+        (src[:, :2], tgt[:, :2]),
+        SimilarityTransform,
+        min_samples=2,
+        residual_threshold=3.0 * sigma_h_m,
+        max_trials=500,
+        rng=0,
+    )
     if model is None or inliers is None or inliers.sum() < 3:
         return None
     scale = float(model.scale)
@@ -439,8 +474,11 @@ def _focal_px(cam: Any) -> float:
 
 def _focal_drift(rec: Any, priors_px: dict[int, float]) -> dict[int, float]:
     """Camera id → focal length change from its prior, percent."""
-    return {cid: 100.0 * (_focal_px(cam) / priors_px[cid] - 1.0) for cid, cam in rec.cameras.items()
-            if cid in priors_px and priors_px[cid] > 0}
+    return {
+        cid: 100.0 * (_focal_px(cam) / priors_px[cid] - 1.0)
+        for cid, cam in rec.cameras.items()
+        if cid in priors_px and priors_px[cid] > 0
+    }
 
 
 def _probe_free_focal(rec: Any) -> dict[int, float]:
@@ -478,8 +516,9 @@ class _GcpState:
     reprojection_px: float = math.nan
 
 
-def _gcp_states(gcps: GcpSet, crs: Any, offset: np.ndarray, checkpoints: set[str],
-                registered: set[str], fb: Feedback) -> list[_GcpState]:
+def _gcp_states(
+    gcps: GcpSet, crs: Any, offset: np.ndarray, checkpoints: set[str], registered: set[str], fb: Feedback
+) -> list[_GcpState]:
     to_local = transformer(gcps.crs, crs)
     by_name = gcps.by_name()
     obs: dict[str, list[tuple[str, float, float]]] = {}
@@ -493,14 +532,16 @@ def _gcp_states(gcps: GcpSet, crs: Any, offset: np.ndarray, checkpoints: set[str
         # gcp_list.txt: (0, 0) is the centre of the top-left pixel; COLMAP: its top-left corner.
         obs.setdefault(o.gcp, []).append((image, o.x_px + 0.5, o.y_px + 0.5))
     if unmatched:
-        fb.warning(f"GCP observations in {len(unmatched)} photo(s) not in the model ignored: "
-                   + ", ".join(sorted(unmatched)[:5]) + (" ..." if len(unmatched) > 5 else ""))
+        fb.warning(
+            f"GCP observations in {len(unmatched)} photo(s) not in the model ignored: "
+            + ", ".join(sorted(unmatched)[:5])
+            + (" ..." if len(unmatched) > 5 else "")
+        )
     states = []
     for name, g in by_name.items():
         x, y = to_local.transform(g.x, g.y)
         local = np.array([x, y, g.z]) - offset
-        states.append(_GcpState(name, local, obs.get(name, []),
-                                "checkpoint" if name in checkpoints else "control"))
+        states.append(_GcpState(name, local, obs.get(name, []), "checkpoint" if name in checkpoints else "control"))
     return states
 
 
@@ -517,9 +558,12 @@ def _triangulate(rec: Any, states: list[_GcpState], max_error_px: float = 4.0) -
         opts.residual_type = pc.TriangulationResidualType.REPROJECTION_ERROR
         opts.ransac.max_error = max_error_px
         opts.ransac.random_seed = 0
-        out = pc.estimate_triangulation(np.array([[x, y] for _, x, y in ims]),
-                                        [im.cam_from_world() for im, _, _ in ims],
-                                        [im.camera for im, _, _ in ims], opts)
+        out = pc.estimate_triangulation(
+            np.array([[x, y] for _, x, y in ims]),
+            [im.cam_from_world() for im, _, _ in ims],
+            [im.camera for im, _, _ in ims],
+            opts,
+        )
         if out is None:
             continue
         s.triangulated = np.asarray(out["xyz"], float).reshape(3)
@@ -610,16 +654,28 @@ def _gcp_bundle_adjust(rec: Any, states: list[_GcpState]) -> int:
 def _residual_table(states: list[_GcpState], heights_usable: bool) -> list[dict[str, Any]]:
     rows = []
     for s in states:
-        row: dict[str, Any] = {"name": s.name, "role": s.role, "observations": len(s.observations),
-                               "inliers": s.inliers}
+        row: dict[str, Any] = {
+            "name": s.name,
+            "role": s.role,
+            "observations": len(s.observations),
+            "inliers": s.inliers,
+        }
         if s.triangulated is None:
-            row.update(dx_m=None, dy_m=None, dz_m=None, reprojection_px=None,
-                       note="seen in fewer than two registered photos" if len(s.observations) < 2
-                       else "triangulation failed")
+            row.update(
+                dx_m=None,
+                dy_m=None,
+                dz_m=None,
+                reprojection_px=None,
+                note="seen in fewer than two registered photos" if len(s.observations) < 2 else "triangulation failed",
+            )
         else:
             d = s.triangulated - s.surveyed
-            row.update(dx_m=float(d[0]), dy_m=float(d[1]), dz_m=float(d[2]) if heights_usable else None,
-                       reprojection_px=s.reprojection_px if heights_usable else None)
+            row.update(
+                dx_m=float(d[0]),
+                dy_m=float(d[1]),
+                dz_m=float(d[2]) if heights_usable else None,
+                reprojection_px=s.reprojection_px if heights_usable else None,
+            )
         rows.append(row)
     return rows
 
@@ -631,11 +687,19 @@ def _accuracy(rows: list[dict[str, Any]], role: str) -> dict[str, Any] | None:
     dx = np.array([r["dx_m"] for r in use])
     dy = np.array([r["dy_m"] for r in use])
     dz = np.array([r["dz_m"] for r in use if r["dz_m"] is not None])
-    out = {"n": len(use), "rmse_x_m": float(np.sqrt(np.mean(dx ** 2))), "rmse_y_m": float(np.sqrt(np.mean(dy ** 2))),
-           "rmse_horizontal_m": float(np.sqrt(np.mean(dx ** 2 + dy ** 2))), "ce90_m": ce90(dx, dy)}
+    out: dict[str, Any] = {
+        "n": len(use),
+        "rmse_x_m": float(np.sqrt(np.mean(dx**2))),
+        "rmse_y_m": float(np.sqrt(np.mean(dy**2))),
+        "rmse_horizontal_m": float(np.sqrt(np.mean(dx**2 + dy**2))),
+        "ce90_m": ce90(dx, dy),
+    }
     if len(dz) == len(use):
-        out.update(rmse_z_m=float(np.sqrt(np.mean(dz ** 2))),
-                   rmse_3d_m=float(np.sqrt(np.mean(dx ** 2 + dy ** 2 + dz ** 2))), le90_m=le90(dz))
+        out.update(
+            rmse_z_m=float(np.sqrt(np.mean(dz**2))),
+            rmse_3d_m=float(np.sqrt(np.mean(dx**2 + dy**2 + dz**2))),
+            le90_m=le90(dz),
+        )
     else:
         out.update(rmse_z_m=None, rmse_3d_m=None, le90_m=None)
     return out
@@ -679,8 +743,15 @@ def _write_points(path: Path, rec: Any, offset: np.ndarray, crs: Any) -> int:
     return len(ids)
 
 
-def _write_cameras(path: Path, rec: Any, photos: Sequence[Photo], names: dict[Path, str], priors: _Priors,
-                   crs: Any, reasons: dict[str, str]) -> None:
+def _write_cameras(
+    path: Path,
+    rec: Any,
+    photos: Sequence[Photo],
+    names: dict[Path, str],
+    priors: _Priors,
+    crs: Any,
+    reasons: dict[str, str],
+) -> None:
     import geopandas as gpd
     import shapely
 
@@ -692,15 +763,27 @@ def _write_cameras(path: Path, rec: Any, photos: Sequence[Photo], names: dict[Pa
     for p in photos:
         name = names[p.path]
         gps = priors.positions.get(name)
-        row: dict[str, Any] = {"image": name, "registered": name in reg, "reason": reasons.get(name, ""),
-                               "camera": f"{p.make} {p.model}".strip()}
+        row: dict[str, Any] = {
+            "image": name,
+            "registered": name in reg,
+            "reason": reasons.get(name, ""),
+            "camera": f"{p.make} {p.model}".strip(),
+        }
         if name in reg:
             im = rec.image(reg[name])
             c = im.projection_center()
             yaw, pitch, roll = ypr_from_rotation(im.cam_from_world().rotation.matrix().T)
             e, n = errs.get(reg[name], (math.nan, 0))
-            row.update(x=c[0] + priors.offset[0], y=c[1] + priors.offset[1], z=c[2] + priors.offset[2],
-                       yaw_deg=yaw, pitch_deg=pitch, roll_deg=roll, reprojection_px=e, tie_points=n)
+            row.update(
+                x=c[0] + priors.offset[0],
+                y=c[1] + priors.offset[1],
+                z=c[2] + priors.offset[2],
+                yaw_deg=yaw,
+                pitch_deg=pitch,
+                roll_deg=roll,
+                reprojection_px=e,
+                tie_points=n,
+            )
             if gps is not None:
                 d = c - gps
                 row.update(gps_dx_m=d[0], gps_dy_m=d[1], gps_dz_m=d[2])
@@ -827,34 +910,58 @@ def sfm(
     work = Path(tempfile.mkdtemp(prefix=".sfm-work-", dir=output))
     try:
         db = work / "database.db"
-        mapped = _reconstruct(inputs, db, work, matching, mapper, camera_model, max_image_size, max_features,
-                              gps_sigma_m, seed, workers, timer, fb)
+        mapped = _reconstruct(
+            inputs,
+            db,
+            work,
+            matching,
+            mapper,
+            camera_model,
+            max_image_size,
+            max_features,
+            gps_sigma_m,
+            seed,
+            workers,
+            timer,
+            fb,
+        )
         notes += mapped.notes
         t0 = time.perf_counter()
         geo = _georeference_by_gps(mapped.rec, inputs, gps_sigma_m)
         geo = _georeference_by_gcps(mapped.rec, inputs, mapped.registered, geo, fb)
         notes += geo.notes
         timer.add("georeferencing", t0)
-        intrinsics = _intrinsics_report(mapped.rec, mapped.focal_prior, mapped.focal_held, geo.gcp_obs_used,
-                                        notes)
+        intrinsics = _intrinsics_report(mapped.rec, mapped.focal_prior, mapped.focal_held, geo.gcp_obs_used, notes)
         if geo.gps_sim is None and not any(s.triangulated is not None for s in geo.states) and not local_frame:
-            raise InputError("the model could not be georeferenced (GPS did not fit, GCPs not triangulated); "
-                             "use local_frame to keep it anyway", path=images)
+            raise InputError(
+                "the model could not be georeferenced (GPS did not fit, GCPs not triangulated); "
+                "use local_frame to keep it anyway",
+                path=images,
+            )
         t0 = time.perf_counter()
         n_points = _write_model(output, work, db, mapped, inputs, notes)
         timer.add("outputs", t0)
         figures = _figures(mapped.rec, inputs, geo)
-        write_json(output / "report.json",
-                   _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes))
+        write_json(
+            output / "report.json", _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes)
+        )
     finally:
         shutil.rmtree(work, ignore_errors=True)
     _announce(notes, mapped, inputs, geo, figures, n_points, fb)
     fb.set_progress(1.0)
     return SfmResult(
-        output=output, model=output / "model", points=output / "points.laz", cameras=output / "cameras.gpkg",
-        report=output / "report.json", n_photos=len(inputs.photos), n_registered=len(mapped.registered),
-        crs=inputs.crs_text, mean_reprojection_error_px=figures.mean_reprojection_px,
-        gcp_rmse_m=_rmse3(figures.control), checkpoint_rmse_m=_rmse3(figures.check), georeferenced_by=geo.how,
+        output=output,
+        model=output / "model",
+        points=output / "points.laz",
+        cameras=output / "cameras.gpkg",
+        report=output / "report.json",
+        n_photos=len(inputs.photos),
+        n_registered=len(mapped.registered),
+        crs=inputs.crs_text,
+        mean_reprojection_error_px=figures.mean_reprojection_px,
+        gcp_rmse_m=_rmse3(figures.control),
+        checkpoint_rmse_m=_rmse3(figures.check),
+        georeferenced_by=geo.how,
         notes=tuple(notes),
     )
 
@@ -887,8 +994,16 @@ class _Inputs:
         return crs_to_text(self.out_crs) if self.out_crs is not None else ""
 
 
-def _read_inputs(images: Path, gcp_list: Path | None, checkpoints: str, crs: str | None,
-                 takeoff_elevation_m: float | None, local_frame: bool, timer: _Timer, fb: Feedback) -> _Inputs:
+def _read_inputs(
+    images: Path,
+    gcp_list: Path | None,
+    checkpoints: str,
+    crs: str | None,
+    takeoff_elevation_m: float | None,
+    local_frame: bool,
+    timer: _Timer,
+    fb: Feedback,
+) -> _Inputs:
     t0 = time.perf_counter()
     paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
     # No feedback: SfM does not use the attitude, so its per-photo warnings would be noise here.
@@ -902,34 +1017,55 @@ def _read_inputs(images: Path, gcp_list: Path | None, checkpoints: str, crs: str
     root, names = _image_names(photos)
     gcps = read_gcp_file(gcp_list) if gcp_list else None
     if gcps is not None and not gcps.observations:
-        raise InputError("the GCP file has no image observations: SfM needs a gcp_list.txt "
-                         "(x y z px py image name rows), e.g. from gcp-find", path=gcp_list)
+        raise InputError(
+            "the GCP file has no image observations: SfM needs a gcp_list.txt "
+            "(x y z px py image name rows), e.g. from gcp-find",
+            path=gcp_list,
+        )
     held_out = {c.strip() for c in checkpoints.split(",") if c.strip()}
     if held_out and gcps is None:
         raise InputError("checkpoints are named but no gcp_list is given")
     if gcps is not None and held_out - set(gcps.by_name()):
-        raise InputError(f"checkpoint(s) not in the GCP file: {', '.join(sorted(held_out - set(gcps.by_name())))}",
-                         path=gcp_list)
+        raise InputError(
+            f"checkpoint(s) not in the GCP file: {', '.join(sorted(held_out - set(gcps.by_name())))}", path=gcp_list
+        )
     has_gps = sum(p.has_gps for p in photos)
     if has_gps < 3 and gcps is None and not local_frame:
-        raise InputError("fewer than 3 photos with GPS and no GCPs: the model would be arbitrary in scale, "
-                         "position and orientation; give a gcp_list.txt, or local_frame to accept that",
-                         path=images)
+        raise InputError(
+            "fewer than 3 photos with GPS and no GCPs: the model would be arbitrary in scale, "
+            "position and orientation; give a gcp_list.txt, or local_frame to accept that",
+            path=images,
+        )
     out_crs = _output_crs(crs, photos, gcps)
-    priors = _gps_priors(photos, names, out_crs, takeoff_elevation_m) if out_crs is not None else \
-        _Priors(None, np.zeros(3), {}, "no GPS")
+    priors = (
+        _gps_priors(photos, names, out_crs, takeoff_elevation_m)
+        if out_crs is not None
+        else _Priors(None, np.zeros(3), {}, "no GPS")
+    )
     notes = [f"heights: {priors.heights}", *priors.notes]
     if gcps is not None and not priors.positions:
         to_local = transformer(gcps.crs, out_crs)
         xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
         priors = _Priors(out_crs, np.array([*np.round(np.median(xy, axis=0), -2), 0.0]), {}, "no GPS")
     bodies = _bodies(photos)
-    fb.info(f"{len(photos)} photos, {len(bodies)} camera bod{'y' if len(bodies) == 1 else 'ies'}: "
-            + "; ".join(f"{b.label} ({len(b.photos)})" for b in bodies))
+    fb.info(
+        f"{len(photos)} photos, {len(bodies)} camera bod{'y' if len(bodies) == 1 else 'ies'}: "
+        + "; ".join(f"{b.label} ({len(b.photos)})" for b in bodies)
+    )
     if len({(b.key[2], b.key[3]) for b in bodies}) > 1:
         notes.append("photos of several image sizes: each size is its own camera")
-    return _Inputs(tuple(photos), tuple(photoset.skipped), root, names, gcps, frozenset(held_out), out_crs, priors,
-                   tuple(bodies), tuple(notes))
+    return _Inputs(
+        tuple(photos),
+        tuple(photoset.skipped),
+        root,
+        names,
+        gcps,
+        frozenset(held_out),
+        out_crs,
+        priors,
+        tuple(bodies),
+        tuple(notes),
+    )
 
 
 @dataclass(frozen=True)
@@ -946,17 +1082,30 @@ class _Mapped:
     notes: tuple[str, ...]
 
 
-def _reconstruct(inputs: _Inputs, db: Path, work: Path, matching: str, mapper: str, camera_model: str,
-                 max_image_size: int, max_features: int, gps_sigma_m: float, seed: int, workers: int,
-                 timer: _Timer, fb: Feedback) -> _Mapped:
+def _reconstruct(
+    inputs: _Inputs,
+    db: Path,
+    work: Path,
+    matching: str,
+    mapper: Mapper,
+    camera_model: str,
+    max_image_size: int,
+    max_features: int,
+    gps_sigma_m: float,
+    seed: int,
+    workers: int,
+    timer: _Timer,
+    fb: Feedback,
+) -> _Mapped:
     """Features, GPS priors, matching and mapping into ``db`` and ``work``."""
     photos, priors = inputs.photos, inputs.priors
     notes: list[str] = []
     _pycolmap().Database.open(db).close()
     t0 = time.perf_counter()
     fb.info("features ...")
-    _import_and_extract(db, inputs.root, inputs.names, list(inputs.bodies), camera_model, max_image_size,
-                        max_features, workers)
+    _import_and_extract(
+        db, inputs.root, inputs.names, list(inputs.bodies), camera_model, max_image_size, max_features, workers
+    )
     timer.add("features", t0)
     fb.set_progress(0.3)
     fb.check_canceled()
@@ -972,21 +1121,26 @@ def _reconstruct(inputs: _Inputs, db: Path, work: Path, matching: str, mapper: s
     t0 = time.perf_counter()
     ill = _ill_conditioned(photos, priors)
     if ill:
-        notes.append(f"focal length held at the EXIF value during mapping: {ill} (self-calibration "
-                     "trades focal length for flying height there)")
-    models = _map(db, inputs.root, work / "sparse", n_priors >= 3, workers, seed, refine_focal=not ill,
-                  mapper=mapper)
+        notes.append(
+            f"focal length held at the EXIF value during mapping: {ill} (self-calibration "
+            "trades focal length for flying height there)"
+        )
+    models = _map(db, inputs.root, work / "sparse", n_priors >= 3, workers, seed, refine_focal=not ill, mapper=mapper)
     timer.add("mapping", t0)
     fb.set_progress(0.85)
     if not models:
-        raise InputError("no model could be built: the photos do not overlap enough "
-                         "(or show no texture); see the log for matches", path=inputs.root)
+        raise InputError(
+            "no model could be built: the photos do not overlap enough (or show no texture); see the log for matches",
+            path=inputs.root,
+        )
     rec = models[0]
     registered = {rec.image(i).name for i in rec.reg_image_ids()}
     elsewhere = {rec2.image(i).name for rec2 in models[1:] for i in rec2.reg_image_ids()}
     if len(models) > 1:
-        notes.append(f"{len(models)} separate models; the largest ({len(registered)} photos) is kept, "
-                     f"{len(elsewhere)} photos are only in the others")
+        notes.append(
+            f"{len(models)} separate models; the largest ({len(registered)} photos) is kept, "
+            f"{len(elsewhere)} photos are only in the others"
+        )
     reasons = _why_unregistered(db, list(inputs.names.values()), registered, elsewhere)
     for name, why in sorted(reasons.items()):
         fb.warning(f"not registered: {name}: {why}")
@@ -1023,43 +1177,54 @@ def _georeference_by_gps(rec: Any, inputs: _Inputs, gps_sigma_m: float) -> _Geor
         # The GPS heights may still be wrong in a way no trend shows: a model they tilt
         # away from the gravity the gimbals saw is put on the GPS horizontally instead.
         if math.isfinite(tilt) and tilt > MAX_TILT_DEG:
-            notes.append(f"the GPS heights tilt the model {tilt:.1f} deg from the photos' vertical: "
-                         "GPS heights not trusted, model levelled from the photos' attitude")
+            notes.append(
+                f"the GPS heights tilt the model {tilt:.1f} deg from the photos' vertical: "
+                "GPS heights not trusted, model levelled from the photos' attitude"
+            )
             gps_sim = None
     if gps_sim is None and (not priors.vertical_trusted or math.isfinite(tilt)):
         gps_sim = _align_horizontal(rec, priors, by_name, gps_sigma_m)
         if gps_sim is not None:
-            georef = (f"GPS of {len(priors.positions)} photos horizontally, levelled from the photos' attitude, "
-                      "height from the median GPS altitude")
+            georef = (
+                f"GPS of {len(priors.positions)} photos horizontally, levelled from the photos' attitude, "
+                "height from the median GPS altitude"
+            )
             tilt = _tilt_deg(rec, by_name)
     if gps_sim is None:
         notes.append("the GPS positions did not fit the model (fewer than 3 consistent photos)")
     outliers = _gps_outliers(rec, priors) if gps_sim is not None else []
     if outliers:
-        notes.append(f"{len(outliers)} photo(s) with GPS positions far off the model: "
-                     + ", ".join(outliers[:5]) + ("…" if len(outliers) > 5 else ""))
+        notes.append(
+            f"{len(outliers)} photo(s) with GPS positions far off the model: "
+            + ", ".join(outliers[:5])
+            + ("…" if len(outliers) > 5 else "")
+        )
     return _Georeference(georef, gps_sim, tilt, notes=tuple(notes))
 
 
-def _georeference_by_gcps(rec: Any, inputs: _Inputs, registered: frozenset[str], gps: _Georeference,
-                          fb: Feedback) -> _Georeference:
+def _georeference_by_gcps(
+    rec: Any, inputs: _Inputs, registered: frozenset[str], gps: _Georeference, fb: Feedback
+) -> _Georeference:
     """Triangulate the GCPs; with 3 control GCPs, align onto them and bundle-adjust with them fixed."""
     if inputs.gcps is None:
         return gps
     notes = list(gps.notes)
     georef, gcp_obs_used, heights_usable = gps.how, 0, True
-    states = _gcp_states(inputs.gcps, inputs.out_crs, inputs.priors.offset, set(inputs.held_out), set(registered),
-                         fb)
+    states = _gcp_states(inputs.gcps, inputs.out_crs, inputs.priors.offset, set(inputs.held_out), set(registered), fb)
     zs = np.array([s.surveyed[2] for s in states])
     if len(zs) >= 2 and np.ptp(zs) < 1e-6:
         heights_usable = False
-        notes.append(f"all GCP heights are {zs[0] + inputs.priors.offset[2]:g}: taken as placeholders; "
-                     "GCPs control the model horizontally only and their Z residuals are not reported")
+        notes.append(
+            f"all GCP heights are {zs[0] + inputs.priors.offset[2]:g}: taken as placeholders; "
+            "GCPs control the model horizontally only and their Z residuals are not reported"
+        )
     _triangulate(rec, states)
     if _align_to_gcps(rec, states, heights_usable) is not None:
-        georef = f"{sum(s.role == 'control' and s.triangulated is not None for s in states)} GCPs" + (
-            " (horizontally; heights from GPS)" if not heights_usable else "") + (
-            f" after {georef}" if gps.gps_sim is not None else "")
+        georef = (
+            f"{sum(s.role == 'control' and s.triangulated is not None for s in states)} GCPs"
+            + (" (horizontally; heights from GPS)" if not heights_usable else "")
+            + (f" after {georef}" if gps.gps_sim is not None else "")
+        )
         if heights_usable:
             _triangulate(rec, states)
             gcp_obs_used = _gcp_bundle_adjust(rec, states)
@@ -1069,8 +1234,7 @@ def _georeference_by_gcps(rec: Any, inputs: _Inputs, registered: frozenset[str],
         n_ok = sum(s.role == "control" and s.triangulated is not None for s in states)
         notes.append(f"only {n_ok} control GCP(s) triangulated (3 needed): GCPs not used for control")
     _triangulate(rec, states)
-    return _Georeference(georef, gps.gps_sim, gps.tilt_deg, tuple(states), heights_usable, gcp_obs_used,
-                         tuple(notes))
+    return _Georeference(georef, gps.gps_sim, gps.tilt_deg, tuple(states), heights_usable, gcp_obs_used, tuple(notes))
 
 
 def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> int:
@@ -1080,9 +1244,14 @@ def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _I
     tmp_model = work / "model"
     tmp_model.mkdir()
     rec.write(tmp_model)
-    write_json(tmp_model / "georeference.json",
-               {"crs": inputs.crs_text, "offset": priors.offset.tolist(),
-                "note": "model coordinates + offset = coordinates in crs"})
+    write_json(
+        tmp_model / "georeference.json",
+        {
+            "crs": inputs.crs_text,
+            "offset": priors.offset.tolist(),
+            "note": "model coordinates + offset = coordinates in crs",
+        },
+    )
     if model_dir.exists():
         shutil.rmtree(model_dir)
     os.replace(tmp_model, model_dir)
@@ -1091,8 +1260,9 @@ def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _I
         notes.append("no CRS: points.laz and cameras.gpkg are not written (local frame only)")
         return 0
     n_points = _write_points(output / "points.laz", rec, priors.offset, inputs.out_crs)
-    _write_cameras(output / "cameras.gpkg", rec, inputs.photos, inputs.names, priors, inputs.out_crs,
-                   mapped.unregistered)
+    _write_cameras(
+        output / "cameras.gpkg", rec, inputs.photos, inputs.names, priors, inputs.out_crs, mapped.unregistered
+    )
     return n_points
 
 
@@ -1108,30 +1278,49 @@ class _Figures:
 
 def _figures(rec: Any, inputs: _Inputs, geo: _Georeference) -> _Figures:
     rows = _residual_table(list(geo.states), geo.heights_usable)
-    return _Figures(rows, _accuracy(rows, "control"), _accuracy(rows, "checkpoint"),
-                    float(rec.compute_mean_reprojection_error()))
+    return _Figures(
+        rows, _accuracy(rows, "control"), _accuracy(rows, "checkpoint"), float(rec.compute_mean_reprojection_error())
+    )
 
 
-def _report(inputs: _Inputs, mapped: _Mapped, geo: _Georeference, figures: _Figures,
-            intrinsics: list[dict[str, Any]], mapper: str, timer: _Timer, t_start: float,
-            notes: list[str]) -> dict[str, Any]:
+def _report(
+    inputs: _Inputs,
+    mapped: _Mapped,
+    geo: _Georeference,
+    figures: _Figures,
+    intrinsics: list[dict[str, Any]],
+    mapper: str,
+    timer: _Timer,
+    t_start: float,
+    notes: list[str],
+) -> dict[str, Any]:
     rec = mapped.rec
     return {
-        "photos": len(inputs.photos) + len(inputs.skipped), "photos_read": len(inputs.photos),
-        "registered": len(mapped.registered), "unregistered": mapped.unregistered,
+        "photos": len(inputs.photos) + len(inputs.skipped),
+        "photos_read": len(inputs.photos),
+        "registered": len(mapped.registered),
+        "unregistered": mapped.unregistered,
         "skipped": dict(inputs.skipped),
         "camera_bodies": [{"camera": b.label, "photos": len(b.photos)} for b in inputs.bodies],
         "cameras": [_camera_record(c) for c in rec.cameras.values()],
-        "matching": mapped.matching, "mapper": mapper, "models": mapped.n_models, "points": rec.num_points3D(),
+        "matching": mapped.matching,
+        "mapper": mapper,
+        "models": mapped.n_models,
+        "points": rec.num_points3D(),
         "mean_reprojection_error_px": figures.mean_reprojection_px,
         "mean_track_length": float(rec.compute_mean_track_length()),
         "gsd_cm": _gsd_m(rec) * 100.0,
-        "crs": inputs.crs_text, "offset": inputs.priors.offset.tolist(), "heights": inputs.priors.heights,
+        "crs": inputs.crs_text,
+        "offset": inputs.priors.offset.tolist(),
+        "heights": inputs.priors.heights,
         "vertical_gps_trusted": inputs.priors.vertical_trusted,
         "model_tilt_deg": None if not math.isfinite(geo.tilt_deg) else round(geo.tilt_deg, 3),
         "intrinsics": intrinsics,
-        "georeferenced_by": geo.how, "gps": _gps_residuals(rec, inputs.priors),
-        "gcps": figures.gcp_rows, "gcp_accuracy": figures.control, "checkpoint_accuracy": figures.check,
+        "georeferenced_by": geo.how,
+        "gps": _gps_residuals(rec, inputs.priors),
+        "gcps": figures.gcp_rows,
+        "gcp_accuracy": figures.control,
+        "checkpoint_accuracy": figures.check,
         "ce90_le90": "NSSDA from RMSE: CE90 = 2.1460·sqrt((RMSEx²+RMSEy²)/2), LE90 = 1.6449·RMSEz",
         "seconds": {k: round(v, 2) for k, v in timer.stages.items()}
         | {"total": round(time.perf_counter() - t_start, 2)},
@@ -1139,17 +1328,28 @@ def _report(inputs: _Inputs, mapped: _Mapped, geo: _Georeference, figures: _Figu
     }
 
 
-def _announce(notes: list[str], mapped: _Mapped, inputs: _Inputs, geo: _Georeference, figures: _Figures,
-              n_points: int, fb: Feedback) -> None:
+def _announce(
+    notes: list[str],
+    mapped: _Mapped,
+    inputs: _Inputs,
+    geo: _Georeference,
+    figures: _Figures,
+    n_points: int,
+    fb: Feedback,
+) -> None:
     for n in notes:
         # what the heights are is information; every other note is a condition to look at
         (fb.info if n.startswith("heights:") else fb.warning)(n)
-    fb.info(f"registered {len(mapped.registered)}/{len(inputs.photos)} photos, {n_points} points, "
-            f"reprojection {figures.mean_reprojection_px:.2f} px; georeferenced by {geo.how}")
+    fb.info(
+        f"registered {len(mapped.registered)}/{len(inputs.photos)} photos, {n_points} points, "
+        f"reprojection {figures.mean_reprojection_px:.2f} px; georeferenced by {geo.how}"
+    )
     check = figures.check
     if check:
-        fb.info(f"checkpoints: RMSE horizontal {check['rmse_horizontal_m']:.3f} m"
-                + (f", vertical {check['rmse_z_m']:.3f} m" if check["rmse_z_m"] is not None else ""))
+        fb.info(
+            f"checkpoints: RMSE horizontal {check['rmse_horizontal_m']:.3f} m"
+            + (f", vertical {check['rmse_z_m']:.3f} m" if check["rmse_z_m"] is not None else "")
+        )
 
 
 def _prior_focal(db: Path, camera_id: int, fallback: float) -> float:
@@ -1163,27 +1363,39 @@ def _prior_focal(db: Path, camera_id: int, fallback: float) -> float:
         return fallback
 
 
-def _intrinsics_report(rec: Any, focal_prior: dict[int, float], held: bool, gcp_obs: int,
-                       notes: list[str]) -> list[dict[str, Any]]:
+def _intrinsics_report(
+    rec: Any, focal_prior: dict[int, float], held: bool, gcp_obs: int, notes: list[str]
+) -> list[dict[str, Any]]:
     """Per camera: the EXIF focal length (px), the final one, the drift in percent; with the focal
     held, the drift a free self-calibration would have reached (measured on a copy)."""
     drift = _focal_drift(rec, focal_prior)
     free = _probe_free_focal(rec) if held and not gcp_obs else {}
     out = []
     for cid, cam in rec.cameras.items():
-        row: dict[str, Any] = {"camera_id": int(cid), "focal_exif_px": focal_prior.get(cid),
-                               "focal_px": _focal_px(cam), "focal_drift_pct": drift.get(cid)}
+        row: dict[str, Any] = {
+            "camera_id": int(cid),
+            "focal_exif_px": focal_prior.get(cid),
+            "focal_px": _focal_px(cam),
+            "focal_drift_pct": drift.get(cid),
+        }
         if cid in free and focal_prior.get(cid):
             row["free_focal_drift_pct"] = 100.0 * (free[cid] / focal_prior[cid] - 1.0)
             if abs(row["free_focal_drift_pct"]) > FOCAL_DRIFT_WARN_PCT:
-                notes.append(f"camera {cid}: self-calibration would move the focal length "
-                             f"{row['free_focal_drift_pct']:+.1f} % off EXIF (not applied: ill-conditioned block; "
-                             "GCPs with heights would settle it)")
+                notes.append(
+                    f"camera {cid}: self-calibration would move the focal length "
+                    f"{row['free_focal_drift_pct']:+.1f} % off EXIF (not applied: ill-conditioned block; "
+                    "GCPs with heights would settle it)"
+                )
         d = drift.get(cid)
         if d is not None and abs(d) > FOCAL_DRIFT_WARN_PCT:
-            notes.append(f"camera {cid}: focal length {d:+.1f} % off the EXIF value "
-                         + ("(GCP bundle adjustment)" if gcp_obs else "(self-calibration: check the EXIF "
-                                                                       "focal length or the block geometry)"))
+            notes.append(
+                f"camera {cid}: focal length {d:+.1f} % off the EXIF value "
+                + (
+                    "(GCP bundle adjustment)"
+                    if gcp_obs
+                    else "(self-calibration: check the EXIF focal length or the block geometry)"
+                )
+            )
         out.append(row)
     return out
 
@@ -1196,9 +1408,14 @@ def _rmse3(acc: dict[str, Any] | None) -> float:
 
 
 def _camera_record(cam: Any) -> dict[str, Any]:
-    return {"camera_id": int(cam.camera_id), "model": cam.model_name, "width": int(cam.width),
-            "height": int(cam.height), "params": [float(v) for v in cam.params],
-            "params_info": cam.params_info}
+    return {
+        "camera_id": int(cam.camera_id),
+        "model": cam.model_name,
+        "width": int(cam.width),
+        "height": int(cam.height),
+        "params": [float(v) for v in cam.params],
+        "params_info": cam.params_info,
+    }
 
 
 def _gps_residuals(rec: Any, priors: _Priors) -> dict[str, Any] | None:
@@ -1207,8 +1424,13 @@ def _gps_residuals(rec: Any, priors: _Priors) -> dict[str, Any] | None:
     d = np.array([c[n] - priors.positions[n] for n in c if n in priors.positions])
     if len(d) == 0:
         return None
-    return {"n": len(d), "mean_m": d.mean(axis=0).tolist(), "rmse_m": np.sqrt((d ** 2).mean(axis=0)).tolist(),
-            "ce90_m": ce90(d[:, 0], d[:, 1]), "le90_m": le90(d[:, 2])}
+    return {
+        "n": len(d),
+        "mean_m": d.mean(axis=0).tolist(),
+        "rmse_m": np.sqrt((d**2).mean(axis=0)).tolist(),
+        "ce90_m": ce90(d[:, 0], d[:, 1]),
+        "le90_m": le90(d[:, 2]),
+    }
 
 
 def _output_crs(crs: str | None, photos: Sequence[Photo], gcps: GcpSet | None) -> Any:

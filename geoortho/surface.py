@@ -34,9 +34,12 @@ def sample_grid(grid: np.ndarray, cols: np.ndarray, rows: np.ndarray, *, nearest
         c = np.concatenate([c, np.full(pad, -1e6, np.float32)])
         r = np.concatenate([r, np.full(pad, -1e6, np.float32)])
     out = cv2.remap(
-        grid, c.reshape(-1, width), r.reshape(-1, width),
+        grid,
+        c.reshape(-1, width),
+        r.reshape(-1, width),
         cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"),
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float("nan"),
     )
     return out.ravel()[:n].reshape(shape)
 
@@ -60,8 +63,9 @@ class Surface:
     def elevation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def intersect(self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0,
-                  step_m: float | None = None) -> RayHits:
+    def intersect(
+        self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0, step_m: float | None = None
+    ) -> RayHits:
         """First intersection of each ray with the surface (rays from above it)."""
         raise NotImplementedError
 
@@ -83,8 +87,9 @@ class FlatSurface(Surface):
     def elevation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return np.full(np.broadcast(x, y).shape, self.elevation_m, dtype=float)
 
-    def intersect(self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0,
-                  step_m: float | None = None) -> RayHits:
+    def intersect(
+        self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0, step_m: float | None = None
+    ) -> RayHits:
         o = np.asarray(origins, float).reshape(-1, 3)
         d = np.asarray(dirs, float).reshape(-1, 3)
         o = np.broadcast_to(o, d.shape)
@@ -174,8 +179,9 @@ class GridSurface(Surface):
 
         f = max(1, int(round(1.0 / self.cell_m)))
         nr, nc = self.grid.shape
-        g = np.pad(np.where(np.isnan(self.grid), np.inf, self.grid), ((0, (-nr) % f), (0, (-nc) % f)),
-                   constant_values=np.inf)
+        g = np.pad(
+            np.where(np.isnan(self.grid), np.inf, self.grid), ((0, (-nr) % f), (0, (-nc) % f)), constant_values=np.inf
+        )
         c = g.reshape(g.shape[0] // f, f, g.shape[1] // f, f).min(axis=(1, 3))
         missing = ~np.isfinite(c)
         if missing.any():
@@ -187,8 +193,9 @@ class GridSurface(Surface):
         object.__setattr__(self, "_base", out)
         return out
 
-    def intersect(self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0,
-                  step_m: float | None = None) -> RayHits:
+    def intersect(
+        self, origins: np.ndarray, dirs: np.ndarray, *, max_range_m: float = 1000.0, step_m: float | None = None
+    ) -> RayHits:
         """March each ray through the height range of the grid, then refine by bisection.
 
         ``step_m`` (default two cells) bounds how thin a feature can be missed.
@@ -261,8 +268,17 @@ class GridSurface(Surface):
         object.__setattr__(self, "_coarse", out)
         return out
 
-    def _march(self, o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, active: np.ndarray,
-               step: float, t_end: np.ndarray, hit: np.ndarray) -> None:
+    def _march(
+        self,
+        o: np.ndarray,
+        d: np.ndarray,
+        t0: np.ndarray,
+        t1: np.ndarray,
+        active: np.ndarray,
+        step: float,
+        t_end: np.ndarray,
+        hit: np.ndarray,
+    ) -> None:
         """Fill ``t_end``/``hit`` for the ``active`` rays (those with t0 < t1)."""
         tr = self.transform
         # Per-ray state in grid units, float32 and contiguous: each step is then three
@@ -297,8 +313,12 @@ class GridSurface(Surface):
             pos = np.arange(idx.size)
             while cidx.size:
                 t = np.minimum(clo + c_step, t_stop[cidx])
-                hb = sample_grid(coarse, (oc[cidx] + t * dc[cidx]) / block - 0.5 + 0.5 / block,
-                                 (orr[cidx] + t * dr[cidx]) / block - 0.5 + 0.5 / block, nearest=True)
+                hb = sample_grid(
+                    coarse,
+                    (oc[cidx] + t * dc[cidx]) / block - 0.5 + 0.5 / block,
+                    (orr[cidx] + t * dr[cidx]) / block - 0.5 + 0.5 / block,
+                    nearest=True,
+                )
                 clear = (oz[cidx] + t * dzz[cidx] > hb) | np.isnan(hb)
                 go_on = clear & (t < t_stop[cidx])
                 done = ~go_on
@@ -341,8 +361,9 @@ class GridSurface(Surface):
         hit[active[fi]] = True
 
 
-def read_surface(path: str | os.PathLike[str], crs: CRS | None = None, *, band: int = 1,
-                 extend: bool = False) -> GridSurface:
+def read_surface(
+    path: str | os.PathLike[str], crs: CRS | None = None, *, band: int = 1, extend: bool = False
+) -> GridSurface:
     """Read a DSM/DTM raster into a north-up :class:`GridSurface`, in ``crs`` if given.
 
     Vertical units are taken as metres; a raster in another CRS is warped
@@ -364,8 +385,9 @@ def read_surface(path: str | os.PathLike[str], crs: CRS | None = None, *, band: 
                 raise InputError("the elevation raster has no CRS", path=path)
             src_crs = CRS.from_user_input(src.crs)
             if crs is not None and not src_crs.equals(crs):
-                with WarpedVRT(src, crs=crs.to_wkt(), resampling=Resampling.bilinear,
-                               src_nodata=src.nodata, nodata=float("nan")) as vrt:
+                with WarpedVRT(
+                    src, crs=crs.to_wkt(), resampling=Resampling.bilinear, src_nodata=src.nodata, nodata=float("nan")
+                ) as vrt:
                     grid = vrt.read(band, out_dtype="float32")
                     transform = vrt.transform
                 out_crs = crs

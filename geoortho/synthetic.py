@@ -69,12 +69,32 @@ class SynthPreset:
 
 
 PRESETS: dict[str, SynthPreset] = {
-    "tiny": SynthPreset("tiny", area_m=(32.0, 24.0), altitude_m=30.0, image_px=(960, 640),
-                        front_overlap=0.6, side_overlap=0.5, n_buildings=1, n_trees=1, n_markers=4,
-                        n_decoys=1, ortho_cell_m=0.1, points_per_m2=4.0),
+    "tiny": SynthPreset(
+        "tiny",
+        area_m=(32.0, 24.0),
+        altitude_m=30.0,
+        image_px=(960, 640),
+        front_overlap=0.6,
+        side_overlap=0.5,
+        n_buildings=1,
+        n_trees=1,
+        n_markers=4,
+        n_decoys=1,
+        ortho_cell_m=0.1,
+        points_per_m2=4.0,
+    ),
     "small": SynthPreset("small"),
-    "medium": SynthPreset("medium", area_m=(160.0, 120.0), altitude_m=50.0, image_px=(2400, 1600),
-                          n_buildings=10, n_trees=16, n_markers=16, n_decoys=2, ortho_cell_m=0.1),
+    "medium": SynthPreset(
+        "medium",
+        area_m=(160.0, 120.0),
+        altitude_m=50.0,
+        image_px=(2400, 1600),
+        n_buildings=10,
+        n_trees=16,
+        n_markers=16,
+        n_decoys=2,
+        ortho_cell_m=0.1,
+    ),
     "oblique": SynthPreset("oblique", n_oblique=12),
     "hard": SynthPreset("hard", hard=True, distortion=(-0.02, 0.01, 0.0, 0.0, 0.0)),
 }
@@ -101,7 +121,7 @@ DEFAULT_LON = -9.1887
 # What real consumer drones get wrong, each one a survey can be made with (comma-separated).
 PATHOLOGIES: dict[str, str] = {
     "no-relative-altitude": "no RelativeAltitude/AbsoluteAltitude; EXIF GPSAltitude orthometric (EGM96), as "
-                            "most non-DJI cameras write it",
+    "most non-DJI cameras write it",
     "ellipsoidal-gps": "no RelativeAltitude/AbsoluteAltitude; EXIF GPSAltitude ellipsoidal",
     "altitude-drift": "no RelativeAltitude; GPSAltitude (orthometric) drifts 30 m over the flight and jumps 12 m",
     "wrong-focal": "EXIF FocalLength 12 % longer than the lens's",
@@ -220,8 +240,9 @@ def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], blur: float)
     return np.pad(n, ((0, 1), (0, 1)), mode="wrap")
 
 
-def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lon: float,
-                dictionary: str, marker_size_m: float) -> Scene:
+def build_scene(
+    preset: SynthPreset, rng: np.random.Generator, *, lat: float, lon: float, dictionary: str, marker_size_m: float
+) -> Scene:
     """The DTM, DSM, texture layers and marker layout for a preset.
 
     The stages draw from ``rng`` in a fixed order (terrain, landcover, markers, buildings and
@@ -238,8 +259,21 @@ def build_scene(preset: SynthPreset, rng: np.random.Generator, *, lat: float, lo
     noise = tuple(_smooth_noise(rng, (s, s), 1.0) for s in (1021, 1031, 1009))
     hx, hy = g.flight_box[0] - 5.0, g.flight_box[1] - 5.0
     home_z = float(sample_grid(dtm, *_cr(g.transform, hx, hy))[0])
-    scene = Scene(g.crs, g.transform, dsm, dtm, landcover.astype(np.float32), objects.astype(np.float32),
-                  noise, noise_cells, tuple(markers), marker_size_m, dictionary, g.flight_box, (hx, hy, home_z))
+    scene = Scene(
+        g.crs,
+        g.transform,
+        dsm,
+        dtm,
+        landcover.astype(np.float32),
+        objects.astype(np.float32),
+        noise,
+        noise_cells,
+        tuple(markers),
+        marker_size_m,
+        dictionary,
+        g.flight_box,
+        (hx, hy, home_z),
+    )
     scene.marker_cells = {m.marker_id: marker_cells(dictionary, m.marker_id) for m in markers}
     return scene
 
@@ -299,8 +333,13 @@ def _terrain(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator) -> np
     """Gentle slopes and a ridge (metres, ellipsoidal)."""
     lx, ly = g.local
     ph = rng.uniform(0, 2 * np.pi, 4)
-    dtm = (_BASE_Z + 2.5 * np.sin(lx / 70 + ph[0]) * np.cos(ly / 90 + ph[1])
-           + 1.2 * np.sin(lx / 31 + ph[2]) + 0.02 * lx - 0.015 * ly)
+    dtm = (
+        _BASE_Z
+        + 2.5 * np.sin(lx / 70 + ph[0]) * np.cos(ly / 90 + ph[1])
+        + 1.2 * np.sin(lx / 31 + ph[2])
+        + 0.02 * lx
+        - 0.015 * ly
+    )
     ang = rng.uniform(0, np.pi)
     d_ridge = (lx * np.cos(ang) + ly * np.sin(ang)) - rng.uniform(-0.3, 0.3) * g.area_m[0]
     return dtm + 4.0 * np.exp(-0.5 * (d_ridge / 12.0) ** 2)  # type: ignore[no-any-return]
@@ -312,12 +351,23 @@ def _landcover(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator) -> 
 
     lx, ly = g.local
     rows, cols, cell = g.rows, g.cols, g.cell
-    palette = np.array([[0.42, 0.55, 0.25], [0.55, 0.60, 0.30], [0.70, 0.65, 0.38], [0.52, 0.40, 0.28],
-                        [0.35, 0.48, 0.22], [0.62, 0.52, 0.35], [0.47, 0.58, 0.36]], np.float32)
+    palette = np.array(
+        [
+            [0.42, 0.55, 0.25],
+            [0.55, 0.60, 0.30],
+            [0.70, 0.65, 0.38],
+            [0.52, 0.40, 0.28],
+            [0.35, 0.48, 0.22],
+            [0.62, 0.52, 0.35],
+            [0.47, 0.58, 0.36],
+        ],
+        np.float32,
+    )
     n_fields = max(6, int((g.area_m[0] + 2 * g.margin_m) * (g.area_m[1] + 2 * g.margin_m) / 700))
     seeds = np.c_[rng.uniform(0, cols, n_fields), rng.uniform(0, rows, n_fields)]
-    _, label = cKDTree(seeds).query(np.c_[np.repeat(np.arange(cols)[None], rows, 0).ravel(),
-                                          np.repeat(np.arange(rows)[:, None], cols, 1).ravel()])
+    _, label = cKDTree(seeds).query(
+        np.c_[np.repeat(np.arange(cols)[None], rows, 0).ravel(), np.repeat(np.arange(rows)[:, None], cols, 1).ravel()]
+    )
     label = label.reshape(rows, cols)
     field_col = palette[rng.integers(0, len(palette), n_fields)]
     landcover = field_col[label].copy()
@@ -344,8 +394,7 @@ def _landcover(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator) -> 
         x, y = rng.uniform(g.xmin, g.xmin + cols * cell), rng.uniform(g.ymin, g.ymin + rows * cell)
         colr = tuple(float(v) for v in rng.uniform(0.1, 0.9, 3))
         if rng.random() < 0.5:
-            cv2.circle(canvas, to_px(x, y), int(rng.uniform(0.4, 2.0) * px_per_m * 16), colr, -1,
-                       cv2.LINE_AA, shift=4)
+            cv2.circle(canvas, to_px(x, y), int(rng.uniform(0.4, 2.0) * px_per_m * 16), colr, -1, cv2.LINE_AA, shift=4)
         else:
             w, h, an = rng.uniform(0.8, 4.0), rng.uniform(0.6, 2.5), rng.uniform(0, 180)
             box = cv2.boxPoints(((x, y), (w, h), an))
@@ -367,8 +416,14 @@ class _Occupancy:
         self.discs.append((x, y, r))
 
 
-def _place_markers(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator, dictionary: str,
-                   marker_size_m: float, taken: _Occupancy) -> tuple[list[Marker], float]:
+def _place_markers(
+    g: _SceneGrid,
+    preset: SynthPreset,
+    rng: np.random.Generator,
+    dictionary: str,
+    marker_size_m: float,
+    taken: _Occupancy,
+) -> tuple[list[Marker], float]:
     """Markers on flat pads, then decoys (ids never in a GCP file); and the pads' radius."""
     fx0, fy0, fx1, fy1 = g.flight_box
     aw, ah = g.area_m
@@ -376,7 +431,7 @@ def _place_markers(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator,
     n_total = preset.n_markers + preset.n_decoys
     if n_total * 2 > n_ids:
         raise InputError(f"dictionary {dictionary} has too few ids for {n_total} markers")
-    ids = rng.permutation(np.arange(1, n_ids))[: n_total]  # id 0 is never placed
+    ids = rng.permutation(np.arange(1, n_ids))[:n_total]  # id 0 is never placed
     markers: list[Marker] = []
     pad_r = marker_size_m * 0.95 + 0.6
     spacing_m = min(8.0, math.sqrt(aw * ah / n_total) * 0.6)
@@ -390,13 +445,15 @@ def _place_markers(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator,
             raise InputError("could not place all markers; use fewer or a larger area")
         taken.take(mx, my, pad_r)
         decoy = k >= preset.n_markers
-        markers.append(Marker(int(mid), f"GCP{int(mid):02d}", float(mx), float(my), 0.0,
-                              float(rng.uniform(0, 360)), decoy))
+        markers.append(
+            Marker(int(mid), f"GCP{int(mid):02d}", float(mx), float(my), 0.0, float(rng.uniform(0, 360)), decoy)
+        )
     return markers, pad_r
 
 
-def _buildings_and_trees(g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator, dtm: np.ndarray,
-                         taken: _Occupancy) -> tuple[np.ndarray, np.ndarray]:
+def _buildings_and_trees(
+    g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator, dtm: np.ndarray, taken: _Occupancy
+) -> tuple[np.ndarray, np.ndarray]:
     """Buildings (gabled or flat) and trees, clear of each other and of the markers: colours and heights."""
     X, Y = g.X, g.Y
     fx0, fy0, fx1, fy1 = g.flight_box
@@ -421,10 +478,11 @@ def _buildings_and_trees(g: _SceneGrid, preset: SynthPreset, rng: np.random.Gene
         else:
             roof = np.full_like(u, eave)
         ground_top = float(dtm[inside].max()) if inside.any() else _BASE_Z
-        h = (ground_top + roof - dtm)
+        h = ground_top + roof - dtm
         height = np.where(inside, np.maximum(height, h), height)
-        rc = np.array(rng.choice([[0.62, 0.30, 0.22], [0.45, 0.45, 0.48], [0.70, 0.68, 0.62],
-                                  [0.35, 0.30, 0.28]]), np.float32)
+        rc = np.array(
+            rng.choice([[0.62, 0.30, 0.22], [0.45, 0.45, 0.48], [0.70, 0.68, 0.62], [0.35, 0.30, 0.28]]), np.float32
+        )
         shade = np.where(v > 0, 1.0, 0.82)[..., None].astype(np.float32)  # gable sides lit differently
         objects = np.where(inside[..., None], rc * shade, objects)
     for _ in range(preset.n_trees):
@@ -444,8 +502,9 @@ def _buildings_and_trees(g: _SceneGrid, preset: SynthPreset, rng: np.random.Gene
     return objects, height
 
 
-def _marker_pads(g: _SceneGrid, dtm: np.ndarray, markers: list[Marker],
-                 pad_r: float) -> tuple[np.ndarray, list[Marker]]:
+def _marker_pads(
+    g: _SceneGrid, dtm: np.ndarray, markers: list[Marker], pad_r: float
+) -> tuple[np.ndarray, list[Marker]]:
     """Flat pads under the markers, blending into the terrain over 2 m; the markers at their pads' height."""
     placed = []
     for m in markers:
@@ -521,18 +580,34 @@ def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> 
         heading = 0.0 if li % 2 == 0 else 180.0
         line_ys = ys if heading == 0.0 else ys[::-1]
         for y in line_ys:
-            shots.append(Shot(
-                "", float(x + rng.normal(0, 0.3)), float(y + rng.normal(0, 0.3)), float(z + rng.normal(0, 0.2)),
-                float(heading + rng.normal(0, j)), float(-90.0 + rng.normal(0, j)), float(rng.normal(0, j / 2)),
-            ))
+            shots.append(
+                Shot(
+                    "",
+                    float(x + rng.normal(0, 0.3)),
+                    float(y + rng.normal(0, 0.3)),
+                    float(z + rng.normal(0, 0.2)),
+                    float(heading + rng.normal(0, j)),
+                    float(-90.0 + rng.normal(0, j)),
+                    float(rng.normal(0, j / 2)),
+                )
+            )
     for k in range(preset.n_oblique):
         a = 2 * np.pi * k / preset.n_oblique + rng.uniform(-0.2, 0.2)
         r = max(fx1 - fx0, fy1 - fy0) * 0.55
         cx, cy = (fx0 + fx1) / 2 + r * np.sin(a), (fy0 + fy1) / 2 + r * np.cos(a)
         look = (np.degrees(a) + 180.0 + rng.uniform(-40, 40)) % 360.0
-        shots.append(Shot("", float(cx), float(cy), float(z + rng.normal(0, 0.3)),
-                          float((look + 180) % 360 - 180), float(rng.uniform(-70.0, -45.0)),
-                          float(rng.normal(0, 1.0)), oblique=True))
+        shots.append(
+            Shot(
+                "",
+                float(cx),
+                float(cy),
+                float(z + rng.normal(0, 0.3)),
+                float((look + 180) % 360 - 180),
+                float(rng.uniform(-70.0, -45.0)),
+                float(rng.normal(0, 1.0)),
+                oblique=True,
+            )
+        )
     return shots
 
 
@@ -548,18 +623,25 @@ def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random
         lon, lat = to_ll.transform(ex, ey)
         n = ATTITUDE_NOISE_SIGMA_DEG
         fyaw = s.yaw_deg + rng.normal(0, 2.0)  # the aircraft points a little off the gimbal
-        out.append(replace(
-            s, name=f"DJI_{i + 1:04d}.JPG", rec_lat=lat, rec_lon=lon,
-            rec_gps_alt_m=s.z + alt_bias + rng.normal(0, 0.3),
-            rec_rel_alt_m=s.z - scene.home[2] + rng.normal(0, REL_ALT_NOISE_SIGMA_M),
-            rec_abs_alt_m=s.z + alt_bias + rng.normal(0, 0.3),
-            rec_yaw_deg=_wrap180(s.yaw_deg + rng.normal(0, n)), rec_pitch_deg=s.pitch_deg + rng.normal(0, n),
-            rec_roll_deg=s.roll_deg + rng.normal(0, n),
-            flight_yaw_deg=_wrap180(fyaw), flight_pitch_deg=float(rng.uniform(-8, -3)),
-            flight_roll_deg=float(rng.normal(0, 2)),
-            time=(t0 + dt.timedelta(seconds=2 * i)).strftime("%Y:%m:%d %H:%M:%S"),
-            exposure_gain=float(rng.uniform(0.9, 1.1)),
-        ))
+        out.append(
+            replace(
+                s,
+                name=f"DJI_{i + 1:04d}.JPG",
+                rec_lat=lat,
+                rec_lon=lon,
+                rec_gps_alt_m=s.z + alt_bias + rng.normal(0, 0.3),
+                rec_rel_alt_m=s.z - scene.home[2] + rng.normal(0, REL_ALT_NOISE_SIGMA_M),
+                rec_abs_alt_m=s.z + alt_bias + rng.normal(0, 0.3),
+                rec_yaw_deg=_wrap180(s.yaw_deg + rng.normal(0, n)),
+                rec_pitch_deg=s.pitch_deg + rng.normal(0, n),
+                rec_roll_deg=s.roll_deg + rng.normal(0, n),
+                flight_yaw_deg=_wrap180(fyaw),
+                flight_pitch_deg=float(rng.uniform(-8, -3)),
+                flight_roll_deg=float(rng.normal(0, 2)),
+                time=(t0 + dt.timedelta(seconds=2 * i)).strftime("%Y:%m:%d %H:%M:%S"),
+                exposure_gain=float(rng.uniform(0.9, 1.1)),
+            )
+        )
     if preset.hard:
         idx = rng.permutation(len(out))
         for k in idx[:3]:
@@ -584,8 +666,9 @@ def parse_pathologies(text: str) -> tuple[str, ...]:
     return names
 
 
-def _apply_pathologies(shots: list[Shot], scene: Scene, pathologies: Sequence[str], undulation_m: float,
-                       rng: np.random.Generator) -> list[Shot]:
+def _apply_pathologies(
+    shots: list[Shot], scene: Scene, pathologies: Sequence[str], undulation_m: float, rng: np.random.Generator
+) -> list[Shot]:
     """Make the recorded metadata as wrong as the named consumer-drone pathologies make it."""
     out = list(shots)
     n = len(out)
@@ -596,13 +679,15 @@ def _apply_pathologies(shots: list[Shot], scene: Scene, pathologies: Sequence[st
         if "ellipsoidal-gps" in pathologies:
             s = replace(s, rec_rel_alt_m=math.nan, rec_abs_alt_m=math.nan)
         if "altitude-drift" in pathologies:
-            s = replace(s, rec_gps_alt_m=s.rec_gps_alt_m + DRIFT_M * i / max(1, n - 1)
-                        + (JUMP_M if i >= int(0.6 * n) else 0.0))
+            s = replace(
+                s, rec_gps_alt_m=s.rec_gps_alt_m + DRIFT_M * i / max(1, n - 1) + (JUMP_M if i >= int(0.6 * n) else 0.0)
+            )
         if "wrong-focal" in pathologies:
             s = replace(s, exif_focal_mm=FOCAL_MM * WRONG_FOCAL_FACTOR)
         if "exposure-steps" in pathologies and abs(_wrap180(s.yaw_deg)) > 90.0 and not s.oblique:
-            s = replace(s, exposure_gain=s.exposure_gain * EXPOSURE_STEP,
-                        exposure_time_s=s.exposure_time_s * EXPOSURE_STEP)
+            s = replace(
+                s, exposure_gain=s.exposure_gain * EXPOSURE_STEP, exposure_time_s=s.exposure_time_s * EXPOSURE_STEP
+            )
         out[i] = s
     return out
 
@@ -625,8 +710,9 @@ def _render_task(args: tuple[Shot, Intrinsics, bool, int, str]) -> dict[str, Any
     return render_photo(_SCENE, shot, intr, hard=hard, seed=seed, path=Path(path))
 
 
-def render_photo(scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed: int,
-                 path: Path | None) -> dict[str, Any]:
+def render_photo(
+    scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed: int, path: Path | None
+) -> dict[str, Any]:
     """Render one photo (and write it when ``path`` is given); return its marker truth."""
     rng = np.random.default_rng(seed)
     pose = Pose.from_ypr((shot.x, shot.y, shot.z), shot.yaw_deg, shot.pitch_deg, shot.roll_deg)
@@ -643,7 +729,7 @@ def render_photo(scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed
     markers = _marker_truth_and_antialias(scene, shot, intr, pose, img, pts.reshape(h, w, 3))
 
     # Camera effects: vignetting, exposure, glare, blur, noise.
-    r2 = ((uu - intr.cx_px) ** 2 + (vv - intr.cy_px) ** 2) / (intr.cx_px ** 2 + intr.cy_px ** 2)
+    r2 = ((uu - intr.cx_px) ** 2 + (vv - intr.cy_px) ** 2) / (intr.cx_px**2 + intr.cy_px**2)
     img = img * (1.0 - 0.25 * r2)[..., None].astype(np.float32) * shot.exposure_gain
     if hard:
         for m in markers:
@@ -657,9 +743,9 @@ def render_photo(scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed
             kernel = np.zeros((k, k), np.float32)
             kernel[k // 2, :] = 1.0 / k
             rot = cv2.getRotationMatrix2D((k / 2 - 0.5, k / 2 - 0.5), float(rng.uniform(0, 180)), 1.0)
-            kernel = cv2.warpAffine(kernel, rot, (k, k))
+            kernel = np.asarray(cv2.warpAffine(kernel, rot, (k, k)), np.float32)
             kernel /= kernel.sum()
-            img = cv2.filter2D(img, -1, kernel)
+            img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
     img = img + rng.normal(0, 0.008, img.shape).astype(np.float32)
     out = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if path is not None:
@@ -667,8 +753,9 @@ def render_photo(scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed
     return {"image": shot.name, "markers": markers}
 
 
-def _marker_truth_and_antialias(scene: Scene, shot: Shot, intr: Intrinsics, pose: Pose,
-                                img: np.ndarray, pts: np.ndarray) -> list[dict[str, Any]]:
+def _marker_truth_and_antialias(
+    scene: Scene, shot: Shot, intr: Intrinsics, pose: Pose, img: np.ndarray, pts: np.ndarray
+) -> list[dict[str, Any]]:
     """Exact projected marker centres, and 4×4 supersampled marker pixels (markers lie on flat pads)."""
     s = scene.marker_size_m
     quiet = s * 0.5 + s / 6.0
@@ -705,25 +792,32 @@ def _marker_truth_and_antialias(scene: Scene, shot: Shot, intr: Intrinsics, pose
         y0, y1 = int(max(0, np.floor(qpx[:, 1].min()) - 1)), int(min(h - 1, np.ceil(qpx[:, 1].max()) + 1))
         if x1 >= x0 and y1 >= y0:
             gu, gv = np.meshgrid(np.arange(x0, x1 + 1, dtype=float), np.arange(y0, y1 + 1, dtype=float))
-            on_pad = np.abs(pts[y0:y1 + 1, x0:x1 + 1, 2] - m.z) < 0.15
+            on_pad = np.abs(pts[y0 : y1 + 1, x0 : x1 + 1, 2] - m.z) < 0.15
             su = (gu.ravel()[:, None, None] + sub[None, None, :]).repeat(4, 1)
             sv = (gv.ravel()[:, None, None] + sub[None, :, None]).repeat(4, 2)
             rays = pixel_rays(np.c_[su.ravel(), sv.ravel()], intr, pose)
             t = (m.z - pose.center[2]) / rays[:, 2]
             sp = pose.center + rays * t[:, None]
             col = scene.color(sp[:, 0], sp[:, 1], sp[:, 2]).reshape(-1, 16, 3).mean(axis=1)
-            patch = img[y0:y1 + 1, x0:x1 + 1].reshape(-1, 3)
+            patch = img[y0 : y1 + 1, x0 : x1 + 1].reshape(-1, 3)
             mask = on_pad.ravel()
             patch[mask] = col[mask]
-            img[y0:y1 + 1, x0:x1 + 1] = patch.reshape(y1 - y0 + 1, x1 - x0 + 1, 3)
-        out.append({
-            "gcp": m.name, "marker_id": m.marker_id, "decoy": m.decoy,
-            "x_px": float(cx), "y_px": float(cy),
-            "corners_px": cpx.tolist(), "inside": inside and centre_visible,
-            "in_frame": inside, "occluded": not centre_visible and 0 <= cx <= w - 1 and 0 <= cy <= h - 1,
-            "size_px": float(np.sqrt(abs(cv2.contourArea(cpx.astype(np.float32))))),
-            "glare": False,
-        })
+            img[y0 : y1 + 1, x0 : x1 + 1] = patch.reshape(y1 - y0 + 1, x1 - x0 + 1, 3)
+        out.append(
+            {
+                "gcp": m.name,
+                "marker_id": m.marker_id,
+                "decoy": m.decoy,
+                "x_px": float(cx),
+                "y_px": float(cy),
+                "corners_px": cpx.tolist(),
+                "inside": inside and centre_visible,
+                "in_frame": inside,
+                "occluded": not centre_visible and 0 <= cx <= w - 1 and 0 <= cy <= h - 1,
+                "size_px": float(np.sqrt(abs(cv2.contourArea(cpx.astype(np.float32))))),
+                "glare": False,
+            }
+        )
     return out
 
 
@@ -755,9 +849,9 @@ def _xmp(shot: Shot) -> bytes:
         f'    drone-dji:FlightRollDegree="{f(shot.flight_roll_deg)}"\n'
         f'    drone-dji:FlightYawDegree="{f(shot.flight_yaw_deg)}"\n'
         f'    drone-dji:FlightPitchDegree="{f(shot.flight_pitch_deg)}">\n'
-        '  </rdf:Description>\n'
-        ' </rdf:RDF>\n'
-        '</x:xmpmeta>\n'
+        "  </rdf:Description>\n"
+        " </rdf:RDF>\n"
+        "</x:xmpmeta>\n"
         '<?xpacket end="w"?>'
     ).encode()
 
@@ -769,8 +863,10 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
     from .outputs import atomic_path
 
     zeroth = {
-        piexif.ImageIFD.Make: CAMERA_MAKE.encode(), piexif.ImageIFD.Model: CAMERA_MODEL.encode(),
-        piexif.ImageIFD.Orientation: 1, piexif.ImageIFD.Software: b"geoortho.synth",
+        piexif.ImageIFD.Make: CAMERA_MAKE.encode(),
+        piexif.ImageIFD.Model: CAMERA_MODEL.encode(),
+        piexif.ImageIFD.Orientation: 1,
+        piexif.ImageIFD.Software: b"geoortho.synth",
         piexif.ImageIFD.DateTime: shot.time.encode(),
     }
     exif = {
@@ -917,8 +1013,7 @@ def synth(
         old.unlink()
     step_scene, step_render, step_truth = split(fb, [1, 8, 2])
     rng = np.random.default_rng(seed)
-    scene = build_scene(p, rng, lat=latitude_deg, lon=longitude_deg, dictionary=dictionary,
-                        marker_size_m=marker_size_m)
+    scene = build_scene(p, rng, lat=latitude_deg, lon=longitude_deg, dictionary=dictionary, marker_size_m=marker_size_m)
     step_scene.progress(0.5)
     pathologies = parse_pathologies(pathology)
     shots = _record(plan_flight(p, scene, rng), scene, p, rng)
@@ -930,34 +1025,55 @@ def synth(
         shots = _apply_pathologies(shots, scene, pathologies, undulation, np.random.default_rng(seed + 11))
     w, h = p.image_px
     intr = Intrinsics.from_sensor(w, h, FOCAL_MM, SENSOR_WIDTH_MM, distortion=p.distortion)
-    fb.info(f"synth {preset}: {len(shots)} photos of {w}x{h} px over {p.area_m[0]:.0f}x{p.area_m[1]:.0f} m "
-            f"in {scene.crs.name}")
+    fb.info(
+        f"synth {preset}: {len(shots)} photos of {w}x{h} px over {p.area_m[0]:.0f}x{p.area_m[1]:.0f} m "
+        f"in {scene.crs.name}"
+    )
     step_scene.progress(1.0)
 
     tasks = [(s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name)) for i, s in enumerate(shots)]
-    results: list[dict[str, Any]] = map_ordered(_render_task, tasks, workers=workers, initializer=_init_worker,
-                                                initargs=(scene,), feedback=step_render)
+    results: list[dict[str, Any]] = map_ordered(
+        _render_task, tasks, workers=workers, initializer=_init_worker, initargs=(scene,), feedback=step_render
+    )
     _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth, pathologies, undulation)
     return SynthResult(
-        output=output, images=images_dir, truth=truth_dir, gcp_file=truth_dir / "gcp_utm.txt",
-        dsm=truth_dir / "dsm.tif", dtm=truth_dir / "dtm.tif", ortho=truth_dir / "ortho.tif",
-        points=truth_dir / "points.laz", n_photos=len(shots), crs=f"EPSG:{scene.crs.to_epsg()}",
+        output=output,
+        images=images_dir,
+        truth=truth_dir,
+        gcp_file=truth_dir / "gcp_utm.txt",
+        dsm=truth_dir / "dsm.tif",
+        dtm=truth_dir / "dtm.tif",
+        ortho=truth_dir / "ortho.tif",
+        points=truth_dir / "points.laz",
+        n_photos=len(shots),
+        crs=f"EPSG:{scene.crs.to_epsg()}",
     )
 
 
-def true_footprint(scene: Scene, shot: Shot, intr: Intrinsics, per_side: int = 40,
-                   max_range_m: float = 1000.0) -> tuple[np.ndarray, bool]:
+def true_footprint(
+    scene: Scene, shot: Shot, intr: Intrinsics, per_side: int = 40, max_range_m: float = 1000.0
+) -> tuple[np.ndarray, bool]:
     """The image border cast onto the DSM: polygon vertices (N, 2) and whether any ray missed."""
     pose = Pose.from_ypr((shot.x, shot.y, shot.z), shot.yaw_deg, shot.pitch_deg, shot.roll_deg)
     border = intr.border_pixels(per_side)
-    hits = scene.surface.intersect(pose.center, pixel_rays(border, intr, pose), max_range_m=max_range_m,
-                                   step_m=scene.transform.a)
+    hits = scene.surface.intersect(
+        pose.center, pixel_rays(border, intr, pose), max_range_m=max_range_m, step_m=scene.transform.a
+    )
     return hits.points[:, :2], not bool(hits.hit.all())
 
 
-def _write_truth(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics, p: SynthPreset,
-                 results: list[dict[str, Any]], seed: int, fb: Feedback, pathologies: Sequence[str] = (),
-                 undulation_m: float = 0.0) -> None:
+def _write_truth(
+    truth: Path,
+    scene: Scene,
+    shots: list[Shot],
+    intr: Intrinsics,
+    p: SynthPreset,
+    results: list[dict[str, Any]],
+    seed: int,
+    fb: Feedback,
+    pathologies: Sequence[str] = (),
+    undulation_m: float = 0.0,
+) -> None:
     """Every truth product: rasters, poses and footprints, GCP files, survey.json, ortho, point cloud."""
     steps = split(fb, [1, 1, 3, 2, 1])
     _write_truth_rasters(truth, scene, pathologies, undulation_m)
@@ -979,35 +1095,61 @@ def _write_truth_rasters(truth: Path, scene: Scene, pathologies: Sequence[str], 
     write_cog(truth / "dsm.tif", scene.dsm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
     write_cog(truth / "dtm.tif", scene.dtm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
     if "dsm-datum" in pathologies:
-        write_cog(truth / "dsm_other_datum.tif", scene.dsm - np.float32(undulation_m), transform=scene.transform,
-                  crs=scene.crs, nodata=-9999.0)
+        write_cog(
+            truth / "dsm_other_datum.tif",
+            scene.dsm - np.float32(undulation_m),
+            transform=scene.transform,
+            crs=scene.crs,
+            nodata=-9999.0,
+        )
     if "partial-dsm" in pathologies:
         fx0, _, fx1, _ = scene.flight_box
         c0 = int((fx0 + 0.4 * (fx1 - fx0) - scene.transform.c) / scene.transform.a)
-        write_cog(truth / "dsm_partial.tif", scene.dsm[:, c0:], transform=scene.transform @ Affine.translation(c0, 0),
-                  crs=scene.crs, nodata=-9999.0)
+        write_cog(
+            truth / "dsm_partial.tif",
+            scene.dsm[:, c0:],
+            transform=scene.transform @ Affine.translation(c0, 0),
+            crs=scene.crs,
+            nodata=-9999.0,
+        )
 
 
 def _pose_record(s: Shot) -> dict[str, Any]:
     R = rotation_from_ypr(s.yaw_deg, s.pitch_deg, s.roll_deg)
     return {
-        "image": s.name, "x": s.x, "y": s.y, "z": s.z,
-        "yaw_deg": s.yaw_deg, "pitch_deg": s.pitch_deg, "roll_deg": s.roll_deg,
+        "image": s.name,
+        "x": s.x,
+        "y": s.y,
+        "z": s.z,
+        "yaw_deg": s.yaw_deg,
+        "pitch_deg": s.pitch_deg,
+        "roll_deg": s.roll_deg,
         "rotation_world_from_camera": R.tolist(),
         "recorded": {
-            "latitude_deg": s.rec_lat, "longitude_deg": s.rec_lon, "gps_altitude_m": s.rec_gps_alt_m,
-            "relative_altitude_m": s.rec_rel_alt_m, "absolute_altitude_m": s.rec_abs_alt_m,
-            "gimbal_yaw_deg": s.rec_yaw_deg, "gimbal_pitch_deg": s.rec_pitch_deg,
-            "gimbal_roll_deg": s.rec_roll_deg, "flight_yaw_deg": s.flight_yaw_deg,
+            "latitude_deg": s.rec_lat,
+            "longitude_deg": s.rec_lon,
+            "gps_altitude_m": s.rec_gps_alt_m,
+            "relative_altitude_m": s.rec_rel_alt_m,
+            "absolute_altitude_m": s.rec_abs_alt_m,
+            "gimbal_yaw_deg": s.rec_yaw_deg,
+            "gimbal_pitch_deg": s.rec_pitch_deg,
+            "gimbal_roll_deg": s.rec_roll_deg,
+            "flight_yaw_deg": s.flight_yaw_deg,
         },
-        "oblique": s.oblique, "has_xmp": s.has_xmp, "has_gps": s.has_gps, "corrupt": s.corrupt,
-        "blur_px": s.blur_px, "exposure_gain": s.exposure_gain, "exposure_time_s": s.exposure_time_s,
+        "oblique": s.oblique,
+        "has_xmp": s.has_xmp,
+        "has_gps": s.has_gps,
+        "corrupt": s.corrupt,
+        "blur_px": s.blur_px,
+        "exposure_gain": s.exposure_gain,
+        "exposure_time_s": s.exposure_time_s,
         "exif_focal_mm": s.exif_focal_mm,
     }
 
 
-def _write_poses_and_footprints(truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics,
-                                results: list[dict[str, Any]]) -> None:
+def _write_poses_and_footprints(
+    truth: Path, scene: Scene, shots: list[Shot], intr: Intrinsics, results: list[dict[str, Any]]
+) -> None:
     import geopandas as gpd
     import shapely
 
@@ -1018,8 +1160,11 @@ def _write_poses_and_footprints(truth: Path, scene: Scene, shots: list[Shot], in
         ring, clip = true_footprint(scene, s, intr)
         polys.append(shapely.make_valid(shapely.Polygon(ring)))
         clipped.append(clip)
-    gdf = gpd.GeoDataFrame({"image": [s.name for s in shots], "clipped": clipped,
-                            "oblique": [s.oblique for s in shots]}, geometry=polys, crs=scene.crs)
+    gdf = gpd.GeoDataFrame(
+        {"image": [s.name for s in shots], "clipped": clipped, "oblique": [s.oblique for s in shots]},
+        geometry=polys,
+        crs=scene.crs,
+    )
     write_vector(truth / "footprints.gpkg", {"footprints": gdf})
     write_json(truth / "poses.json", [_pose_record(s) for s in shots])
     write_json(truth / "markers.json", results)
@@ -1043,29 +1188,57 @@ def _write_gcp_files(truth: Path, scene: Scene) -> None:
     write_text(truth / "gcp_wgs84.csv", "\n".join(csv_lines) + "\n")
 
 
-def _write_survey_json(truth: Path, scene: Scene, intr: Intrinsics, p: SynthPreset, seed: int,
-                       pathologies: Sequence[str], undulation_m: float) -> None:
+def _write_survey_json(
+    truth: Path,
+    scene: Scene,
+    intr: Intrinsics,
+    p: SynthPreset,
+    seed: int,
+    pathologies: Sequence[str],
+    undulation_m: float,
+) -> None:
     from .outputs import write_json
 
-    write_json(truth / "survey.json", {
-        "preset": asdict(p), "seed": seed, "crs": f"EPSG:{scene.crs.to_epsg()}", "vertical": "WGS84 ellipsoidal height, m",
-        "pixel_convention": "(0,0) is the centre of the top-left pixel (OpenCV, OpenDroneMap gcp_list.txt)",
-        "attitude_convention": "yaw clockwise from north, pitch -90 nadir, roll right-down positive",
-        "camera": {"make": CAMERA_MAKE, "model": CAMERA_MODEL, "sensor_width_mm": SENSOR_WIDTH_MM,
-                   "sensor_height_mm": SENSOR_HEIGHT_MM, "focal_mm": FOCAL_MM, "focal_35mm": FOCAL_35MM,
-                   "width_px": intr.width_px, "height_px": intr.height_px, "focal_px": intr.focal_px,
-                   "cx_px": intr.cx_px, "cy_px": intr.cy_px, "distortion": list(p.distortion)},
-        "pathologies": {k: PATHOLOGIES[k] for k in pathologies}, "geoid_undulation_m": undulation_m,
-        "home": {"x": scene.home[0], "y": scene.home[1], "ground_z": scene.home[2]},
-        "flight_box": list(scene.flight_box),
-        "gsd_cm_at_home_height": p.altitude_m * SENSOR_WIDTH_MM / FOCAL_MM / intr.width_px * 100,
-        "marker_size_m": scene.marker_size_m, "dictionary": scene.dictionary,
-        "markers": [asdict(m) for m in scene.markers],
-        "error_model": {"gps_bias_sigma_m": GPS_BIAS_SIGMA_M, "gps_noise_sigma_m": GPS_NOISE_SIGMA_M,
-                        "gps_alt_bias_sigma_m": GPS_ALT_BIAS_SIGMA_M,
-                        "relative_altitude_sigma_m": REL_ALT_NOISE_SIGMA_M,
-                        "attitude_sigma_deg": ATTITUDE_NOISE_SIGMA_DEG},
-    })
+    write_json(
+        truth / "survey.json",
+        {
+            "preset": asdict(p),
+            "seed": seed,
+            "crs": f"EPSG:{scene.crs.to_epsg()}",
+            "vertical": "WGS84 ellipsoidal height, m",
+            "pixel_convention": "(0,0) is the centre of the top-left pixel (OpenCV, OpenDroneMap gcp_list.txt)",
+            "attitude_convention": "yaw clockwise from north, pitch -90 nadir, roll right-down positive",
+            "camera": {
+                "make": CAMERA_MAKE,
+                "model": CAMERA_MODEL,
+                "sensor_width_mm": SENSOR_WIDTH_MM,
+                "sensor_height_mm": SENSOR_HEIGHT_MM,
+                "focal_mm": FOCAL_MM,
+                "focal_35mm": FOCAL_35MM,
+                "width_px": intr.width_px,
+                "height_px": intr.height_px,
+                "focal_px": intr.focal_px,
+                "cx_px": intr.cx_px,
+                "cy_px": intr.cy_px,
+                "distortion": list(p.distortion),
+            },
+            "pathologies": {k: PATHOLOGIES[k] for k in pathologies},
+            "geoid_undulation_m": undulation_m,
+            "home": {"x": scene.home[0], "y": scene.home[1], "ground_z": scene.home[2]},
+            "flight_box": list(scene.flight_box),
+            "gsd_cm_at_home_height": p.altitude_m * SENSOR_WIDTH_MM / FOCAL_MM / intr.width_px * 100,
+            "marker_size_m": scene.marker_size_m,
+            "dictionary": scene.dictionary,
+            "markers": [asdict(m) for m in scene.markers],
+            "error_model": {
+                "gps_bias_sigma_m": GPS_BIAS_SIGMA_M,
+                "gps_noise_sigma_m": GPS_NOISE_SIGMA_M,
+                "gps_alt_bias_sigma_m": GPS_ALT_BIAS_SIGMA_M,
+                "relative_altitude_sigma_m": REL_ALT_NOISE_SIGMA_M,
+                "attitude_sigma_deg": ATTITUDE_NOISE_SIGMA_DEG,
+            },
+        },
+    )
 
 
 def _write_true_ortho(path: Path, scene: Scene, cell_m: float, progress: Feedback) -> None:
@@ -1091,8 +1264,7 @@ def _write_true_ortho(path: Path, scene: Scene, cell_m: float, progress: Feedbac
         col = scene.color(x, y, z)
         ortho[:, r0:r1] = np.clip(col.T.reshape(3, r1 - r0, ocols) * 255 + 0.5, 0, 255).astype(np.uint8)
         progress.progress(r1 / orows)
-    write_cog(path, ortho, transform=ot, crs=scene.crs, compress="DEFLATE",
-              band_names=("red", "green", "blue"))
+    write_cog(path, ortho, transform=ot, crs=scene.crs, compress="DEFLATE", band_names=("red", "green", "blue"))
 
 
 def _write_points(path: Path, scene: Scene, p: SynthPreset, rng: np.random.Generator) -> None:

@@ -38,7 +38,6 @@ def hard_survey(tmp_path_factory: pytest.TempPathFactory):
     return synth(tmp_path_factory.mktemp("hard"), preset="hard", seed=4)
 
 
-
 class RecordingFeedback(Feedback):
     """A Feedback that keeps what it is told: progress fractions, infos, warnings."""
 
@@ -81,5 +80,6 @@ def toledo_sfm(tmp_path_factory):
     from geoortho.reconstruction import sfm
 
     base = real_data("toledo_dji")
-    return sfm(base / "images", tmp_path_factory.mktemp("toledo_sfm"), gcp_list=base / "gcp" / "gcp_list.txt",
-               **SFM_FAST)
+    return sfm(
+        base / "images", tmp_path_factory.mktemp("toledo_sfm"), gcp_list=base / "gcp" / "gcp_list.txt", **SFM_FAST
+    )

@@ -68,8 +68,7 @@ print(json.dumps({"seen": seen, "n_photos": s.n_photos, "fp": f.n_photos, "obs":
 
 @pytest.mark.slow
 def test_every_public_name_is_callable_after_every_face_is_loaded(tmp_path):
-    proc = subprocess.run([sys.executable, "-c", _SCRIPT, str(tmp_path)], capture_output=True, text=True,
-                          timeout=900)
+    proc = subprocess.run([sys.executable, "-c", _SCRIPT, str(tmp_path)], capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     got = json.loads(proc.stdout.strip().splitlines()[-1])
     assert set(got["seen"]) == set(geoortho.__all__)
@@ -157,18 +156,21 @@ def test_static_reader_refuses_what_it_cannot_read(tmp_path, monkeypatch):
 
     pkg = tmp_path / "geoortho"
     pkg.mkdir()
-    (pkg / "odd.py").write_text("import os\n\ndef f(a: int = os.cpu_count(), *, feedback=None) -> None:\n"
-                                "    '''Doc.'''\n")
+    (pkg / "odd.py").write_text(
+        "import os\n\ndef f(a: int = os.cpu_count(), *, feedback=None) -> None:\n    '''Doc.'''\n"
+    )
     monkeypatch.setattr(static, "_PACKAGE_DIR", pkg)
     with pytest.raises(StaticReadError, match="parameter a"):
         static.read_function.__wrapped__("geoortho.odd:f")
 
 
 def test_cli_help_imports_no_heavy_stack():
-    code = ("import sys\nfrom geoortho.processing.cli import build_parser\nfrom geoortho.processing.registry "
-            "import describe\nbuild_parser(); describe()\n"
-            "heavy = [m for m in ('cv2', 'pycolmap', 'rasterio', 'scipy', 'numpy', 'pyproj', 'geopandas') "
-            "if m in sys.modules]\nprint(','.join(heavy))")
+    code = (
+        "import sys\nfrom geoortho.processing.cli import build_parser\nfrom geoortho.processing.registry "
+        "import describe\nbuild_parser(); describe()\n"
+        "heavy = [m for m in ('cv2', 'pycolmap', 'rasterio', 'scipy', 'numpy', 'pyproj', 'geopandas') "
+        "if m in sys.modules]\nprint(','.join(heavy))"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == ""
@@ -185,3 +187,17 @@ def test_ortho_refuses_a_crs_in_feet(tiny_survey, tmp_path):
     with pytest.raises(geoortho.InputError, match="metres"):
         geoortho.ortho(tiny_survey.images, tmp_path / "o.tif", crs="EPSG:2227")
     assert not list(Path(tmp_path).iterdir())
+
+
+@pytest.mark.slow
+def test_readme_python_example_runs(tmp_path):
+    """The README's Python section is code that works, not a sketch."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("## Python") :]
+    code = section[
+        section.index("```python") + len("```python") : section.index("```\n", section.index("```python") + 9)
+    ]
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (tmp_path / "ortho.tif").is_file() and (tmp_path / "gcp_list.txt").is_file()
+    assert "m pixels" in proc.stdout

@@ -35,13 +35,18 @@ def _kappa(pred, truth):
     tp, tn = np.sum(pred & truth), np.sum(~pred & ~truth)
     fp, fn = np.sum(pred & ~truth), np.sum(~pred & truth)
     po = (tp + tn) / n
-    pe = ((tp + fp) * (tp + fn) + (tn + fn) * (tn + fp)) / n ** 2
+    pe = ((tp + fp) * (tp + fn) + (tn + fn) * (tn + fp)) / n**2
     return (po - pe) / (1 - pe), fn / max(1, tp + fn), fp / max(1, tn + fp)
 
 
 def test_small_dsm_and_dtm_against_truth(small_survey, tmp_path):
-    r = dem(small_survey.points, tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", classified=tmp_path / "c.laz",
-            hillshade=tmp_path / "hs.png")
+    r = dem(
+        small_survey.points,
+        tmp_path / "dsm.tif",
+        dtm=tmp_path / "dtm.tif",
+        classified=tmp_path / "c.laz",
+        hillshade=tmp_path / "hs.png",
+    )
     cell_m = r.resolution
     assert cell_m == 0.5  # about two points per cell at 12 points/m²
     z, truth = _on_our_grid(small_survey.dsm, r.dsm)
@@ -69,7 +74,11 @@ def test_small_dsm_and_dtm_against_truth(small_survey, tmp_path):
         assert ds.crs.to_epsg() == 32629 and ds.nodata == -9999 and ds.dtypes[0] == "float32"
         assert ds.units[0] == "m"
         assert ds.tags(ns="IMAGE_STRUCTURE") | {"INTERLEAVE": "BAND"} == {
-            "LAYOUT": "COG", "COMPRESSION": "DEFLATE", "INTERLEAVE": "BAND", "PREDICTOR": "3"}
+            "LAYOUT": "COG",
+            "COMPRESSION": "DEFLATE",
+            "INTERLEAVE": "BAND",
+            "PREDICTOR": "3",
+        }
     # ground classes written back, agreeing with the truth's labels
     truth_cls = laspy.read(small_survey.points).classification == 2
     ours = laspy.read(r.classified)
@@ -128,8 +137,9 @@ def test_autzen_feet_and_ground_filter(tmp_path):
     # the producer's class 2: the DTM made from them and ours agree where both have ground
     las = laspy.read(path)
     g = np.asarray(las.classification) == 2
-    ref = dem(path, tmp_path / "ref_dsm.tif", dtm=tmp_path / "ref_dtm.tif", ground_method="classification",
-              max_gap_m=5.0)
+    ref = dem(
+        path, tmp_path / "ref_dsm.tif", dtm=tmp_path / "ref_dtm.tif", ground_method="classification", max_gap_m=5.0
+    )
     with rasterio.open(r.dtm) as a, rasterio.open(ref.dtm) as b:
         da, db = a.read(1, masked=True), b.read(1, masked=True)
     both = ~da.mask & ~db.mask
@@ -148,8 +158,9 @@ def test_4_6_crop_us_feet_kappa(tmp_path):
     assert r.units == "horizontal US survey foot, vertical US survey foot"
     with rasterio.open(r.dsm) as ds:
         assert ds.crs.to_epsg() == 2903
-    k, _, _ = _kappa(np.asarray(laspy.read(r.classified).classification) == 2,
-                     np.asarray(laspy.read(path).classification) == 2)
+    k, _, _ = _kappa(
+        np.asarray(laspy.read(r.classified).classification) == 2, np.asarray(laspy.read(path).classification) == 2
+    )
     assert k >= 0.9, k  # measured 0.95
 
 
@@ -187,8 +198,7 @@ def test_las_and_laz_give_the_same_dsm(tmp_path):
 def test_array_and_ply_input(tmp_path):
     rng = np.random.default_rng(0)
     xyz = np.c_[rng.uniform(500000, 500050, 5000), rng.uniform(4e6, 4e6 + 50, 5000), np.full(5000, 12.5)]
-    r = dem(_write_ply(tmp_path / "p.ply", xyz), tmp_path / "p.tif",
-            crs="EPSG:32629", resolution_m=2.0)
+    r = dem(_write_ply(tmp_path / "p.ply", xyz), tmp_path / "p.tif", crs="EPSG:32629", resolution_m=2.0)
     with rasterio.open(r.dsm) as ds:
         z = ds.read(1, masked=True)
         assert np.allclose(z.compressed(), 12.5)
@@ -213,9 +223,12 @@ def test_bad_input_clear_errors_no_file(tmp_path, case):
         with pytest.raises(InputError, match="no CRS"):
             dem(real_data("pdal_las") / "sample_c.las", out)
     else:
-        xyz = {"empty": np.zeros((0, 3)), "one": np.array([[1.0, 2.0, 3.0]]),
-               "equal": np.tile([1.0, 2.0, 3.0], (50, 1)),
-               "nan": np.full((10, 3), np.nan)}[case]
+        xyz = {
+            "empty": np.zeros((0, 3)),
+            "one": np.array([[1.0, 2.0, 3.0]]),
+            "equal": np.tile([1.0, 2.0, 3.0], (50, 1)),
+            "nan": np.full((10, 3), np.nan),
+        }[case]
         with pytest.raises(InputError, match="empty|one .* cell|finite|too few"):
             dem(xyz, out, crs="EPSG:32629")
     assert not out.exists() and not list(tmp_path.glob(".*tmp*"))
@@ -232,18 +245,45 @@ def test_some_nan_points_are_skipped_with_a_warning(tmp_path):
 
 def test_cli_dem_and_bad_parameter(tmp_path):
     path = real_data("pdal_las") / "4_6_crop.las"
-    r = subprocess.run([sys.executable, "-m", "geoortho", "dem", "--points", str(path), "--output",
-                        str(tmp_path / "d.tif"), "--json", "--quiet"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "dem",
+            "--points",
+            str(path),
+            "--output",
+            str(tmp_path / "d.tif"),
+            "--json",
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["units"].startswith("horizontal US survey foot")
-    r = subprocess.run([sys.executable, "-m", "geoortho", "dem", "--points", str(tmp_path / "none.las"),
-                        "--output", str(tmp_path / "d2.tif")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "dem",
+            "--points",
+            str(tmp_path / "none.las"),
+            "--output",
+            str(tmp_path / "d2.tif"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "none.las" in r.stderr
 
 
 def test_pdal_engine_or_clear_reason(tmp_path):
-    pytest.importorskip("pdal", reason="PDAL cannot be installed on Debian 12 (no libpdal); the native engine is "
-                                       "the default")
+    pytest.importorskip(
+        "pdal", reason="PDAL cannot be installed on Debian 12 (no libpdal); the native engine is the default"
+    )
     path = real_data("pdal_las") / "4_6_crop.las"
     a = dem(path, tmp_path / "a.tif", engine="pdal")
     b = dem(path, tmp_path / "b.tif")

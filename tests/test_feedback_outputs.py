@@ -63,8 +63,9 @@ def test_write_cog_is_a_cog_with_crs_and_nodata(tmp_path):
 
     arr = np.arange(1500 * 1300, dtype=np.float32).reshape(1300, 1500)  # > one 512 block: overviews
     arr[:10, :10] = -9999
-    path = write_cog(tmp_path / "a.tif", arr, transform=Affine(0.5, 0, 1000, 0, -0.5, 2000), crs="EPSG:32629",
-                     nodata=-9999.0)
+    path = write_cog(
+        tmp_path / "a.tif", arr, transform=Affine(0.5, 0, 1000, 0, -0.5, 2000), crs="EPSG:32629", nodata=-9999.0
+    )
     with rasterio.open(path) as ds:
         assert ds.crs.to_epsg() == 32629 and ds.nodata == -9999.0
         assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"

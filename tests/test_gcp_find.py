@@ -17,8 +17,10 @@ from geoortho.gcp.find import gcp_find
 
 
 def _score(survey, gcp_list) -> dict:
-    truth = {m["image"]: {mm["gcp"]: mm for mm in m["markers"]}
-             for m in json.loads((survey.truth / "markers.json").read_text())}
+    truth = {
+        m["image"]: {mm["gcp"]: mm for mm in m["markers"]}
+        for m in json.loads((survey.truth / "markers.json").read_text())
+    }
     rows = [ln.split() for ln in gcp_list.read_text().splitlines()[1:]]
     errors, wrong, found = [], 0, set()
     for r in rows:
@@ -30,19 +32,23 @@ def _score(survey, gcp_list) -> dict:
         errors.append(e)
         wrong += e > 3.0
         found.add((r[5], r[6]))
-    visible = {(i, g) for i, ms in truth.items() for g, m in ms.items()
-               if m["inside"] and not m["decoy"] and not m["occluded"]}
+    visible = {
+        (i, g) for i, ms in truth.items() for g, m in ms.items() if m["inside"] and not m["decoy"] and not m["occluded"]
+    }
     return {
-        "written": len(rows), "precision": (len(rows) - wrong) / max(1, len(rows)),
-        "recall": len(found & visible) / max(1, len(visible)), "n_visible": len(visible),
+        "written": len(rows),
+        "precision": (len(rows) - wrong) / max(1, len(rows)),
+        "recall": len(found & visible) / max(1, len(visible)),
+        "n_visible": len(visible),
         "mean_error_px": float(np.mean(errors)) if errors else np.nan,
     }
 
 
 def test_small_precision_recall_and_centre_error(small_survey, tmp_path):
     out = tmp_path / "gcp_list.txt"
-    r = gcp_find(small_survey.images, small_survey.gcp_file, out, detections=tmp_path / "det.csv",
-                 review=tmp_path / "review.png")
+    r = gcp_find(
+        small_survey.images, small_survey.gcp_file, out, detections=tmp_path / "det.csv", review=tmp_path / "review.png"
+    )
     s = _score(small_survey, out)
     assert s["n_visible"] >= 40
     assert s["precision"] == 1.0
@@ -75,8 +81,16 @@ def test_flight_offset_is_measured_and_windows_follow_it(small_survey, tmp_path)
 
     poses = json.loads((small_survey.truth / "poses.json").read_text())
     to_utm = Transformer.from_crs("EPSG:4326", "EPSG:32629", always_xy=True)
-    gps_bias_m = np.mean([np.subtract(to_utm.transform(p["recorded"]["longitude_deg"], p["recorded"]["latitude_deg"]),
-                                      (p["x"], p["y"])) for p in poses if p["has_gps"]], axis=0)
+    gps_bias_m = np.mean(
+        [
+            np.subtract(
+                to_utm.transform(p["recorded"]["longitude_deg"], p["recorded"]["latitude_deg"]), (p["x"], p["y"])
+            )
+            for p in poses
+            if p["has_gps"]
+        ],
+        axis=0,
+    )
     lines = small_survey.gcp_file.read_text().splitlines()
     moved = [lines[0]]
     for ln in lines[1:]:
@@ -112,8 +126,9 @@ def test_swapped_coordinates_are_never_written(tiny_survey, tmp_path):
     bad = tmp_path / "swapped.txt"
     bad.write_text("\n".join([lines[0]] + [" ".join(r) for r in rows]) + "\n")
     out = tmp_path / "gcp_list.txt"
-    gcp_find(tiny_survey.images, bad, out, position_uncertainty_m=1.0, height_uncertainty_m=1.0,
-             attitude_uncertainty_deg=1.0)
+    gcp_find(
+        tiny_survey.images, bad, out, position_uncertainty_m=1.0, height_uncertainty_m=1.0, attitude_uncertainty_deg=1.0
+    )
     written = [ln.split() for ln in out.read_text().splitlines()[1:]]
     assert not [w for w in written if w[6] in (a[0], b[0])]
     assert written  # the others are still found
@@ -130,10 +145,8 @@ def test_real_findgcp_photos_without_gps_match_upstream(tmp_path):
     folder = real_data("findgcp_aruco")
     out = tmp_path / "gcp_list.txt"
     # a local frame: any projected CRS carries it through unchanged
-    gcp_find(folder / "images", folder / "coords" / "aruco.txt", out, dictionary="DICT_4X4_100",
-             gcp_crs="EPSG:3857")
-    ours = {(r[5], r[6]): (float(r[3]), float(r[4])) for r in
-            (ln.split() for ln in out.read_text().splitlines()[1:])}
+    gcp_find(folder / "images", folder / "coords" / "aruco.txt", out, dictionary="DICT_4X4_100", gcp_crs="EPSG:3857")
+    ours = {(r[5], r[6]): (float(r[3]), float(r[4])) for r in (ln.split() for ln in out.read_text().splitlines()[1:])}
     coords = {p.name: (p.x, p.y, p.z) for p in read_gcp_file(folder / "coords" / "aruco.txt", "EPSG:3857").points}
     name_of = {v: k for k, v in coords.items()}
     upstream = {}
@@ -168,8 +181,21 @@ def test_marker_centre_follows_the_diagonals_under_perspective():
 def test_cli_bad_gcp_file_exit_2(tmp_path, tiny_survey):
     bad = tmp_path / "g.txt"
     bad.write_text("EPSG:32629\nGCP1 1 2 x\n")
-    r = subprocess.run([sys.executable, "-m", "geoortho", "gcp-find", "--images", str(tiny_survey.images),
-                        "--gcp-file", str(bad), "--output", str(tmp_path / "o.txt")],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "gcp-find",
+            "--images",
+            str(tiny_survey.images),
+            "--gcp-file",
+            str(bad),
+            "--output",
+            str(tmp_path / "o.txt"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [r.stderr.strip()] and f"{bad}:2:" in r.stderr

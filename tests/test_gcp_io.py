@@ -21,11 +21,18 @@ def _utm(gcps) -> dict[str, np.ndarray]:
     return {p.name: np.array([p.x, p.y, p.z]) for p in gcps.points}
 
 
-@pytest.mark.parametrize("name, crs", [
-    ("gcp_utm.txt", None), ("gcp_wgs84.txt", None), ("gcp_legacy_odm_header.txt", None),
-    ("gcp_named_columns.csv", None), ("gcp_easting_northing.tsv", "EPSG:32629"), ("gcp_list.txt", None),
-    ("ground_control_points.json", None),
-])
+@pytest.mark.parametrize(
+    "name, crs",
+    [
+        ("gcp_utm.txt", None),
+        ("gcp_wgs84.txt", None),
+        ("gcp_legacy_odm_header.txt", None),
+        ("gcp_named_columns.csv", None),
+        ("gcp_easting_northing.tsv", "EPSG:32629"),
+        ("gcp_list.txt", None),
+        ("ground_control_points.json", None),
+    ],
+)
 def test_every_sample_format_gives_the_same_points(name, crs):
     ref = _utm(read_gcp_file(SAMPLES / "gcp_utm.txt"))
     got = _utm(read_gcp_file(SAMPLES / name, crs))
@@ -50,15 +57,18 @@ def test_real_odm_gcp_list_with_comments_and_missing_names():
     assert {"HV01", "HV03", "HV04", "HV05"} <= set(g.by_name())
 
 
-@pytest.mark.parametrize("text, match, line", [
-    ("GCP1 1 2 3\n", "no CRS", 1),
-    ("EPSG:32629\nGCP1 483580.1 4288804.6 112.2\nGCP2 48358x.1 4288804.6 112.2\n", "not a number", 3),
-    ("EPSG:32629\nGCP1 483580.1\n", "expected 'name x y z'", 2),
-    ("EPSG:4979\nGCP1 -9.18 38.74 100\nGCP2 38.74 -9.18 100\nGCP3 -120.5 38.7 1\n", "look swapped", 4),
-    ("EPSG:32629\nA 1 2 3\nA 1 2 4\n", "appears again", 3),
-    ("EPSG:99999999\nA 1 2 3\n", "unknown CRS", 1),
-    ("name,lat,lon,alt\nA,38.7,-9.1\n", "expected 4 columns", 2),
-])
+@pytest.mark.parametrize(
+    "text, match, line",
+    [
+        ("GCP1 1 2 3\n", "no CRS", 1),
+        ("EPSG:32629\nGCP1 483580.1 4288804.6 112.2\nGCP2 48358x.1 4288804.6 112.2\n", "not a number", 3),
+        ("EPSG:32629\nGCP1 483580.1\n", "expected 'name x y z'", 2),
+        ("EPSG:4979\nGCP1 -9.18 38.74 100\nGCP2 38.74 -9.18 100\nGCP3 -120.5 38.7 1\n", "look swapped", 4),
+        ("EPSG:32629\nA 1 2 3\nA 1 2 4\n", "appears again", 3),
+        ("EPSG:99999999\nA 1 2 3\n", "unknown CRS", 1),
+        ("name,lat,lon,alt\nA,38.7,-9.1\n", "expected 4 columns", 2),
+    ],
+)
 def test_errors_name_file_and_line(tmp_path, text, match, line):
     f = tmp_path / "gcp.txt"
     f.write_text(text)

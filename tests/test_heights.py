@@ -31,8 +31,7 @@ from geoortho.surface import FlatSurface
 def _survey(tmp_path_factory, name, pathology):
     from geoortho.synthetic import synth
 
-    return synth(tmp_path_factory.mktemp(name), preset="tiny", seed=3, workers=os.cpu_count() or 1,
-                 pathology=pathology)
+    return synth(tmp_path_factory.mktemp(name), preset="tiny", seed=3, workers=os.cpu_count() or 1, pathology=pathology)
 
 
 @pytest.fixture(scope="module")
@@ -53,8 +52,9 @@ def _iou_shortfall(out: Path, survey) -> float:
     """1 − mean IoU of the footprints against the true ones."""
     fp = gpd.read_file(out, layer="footprints").set_index("image")
     truth = gpd.read_file(survey.truth / "footprints.gpkg").set_index("image")
-    ious = [g.intersection(truth.loc[n].geometry).area / g.union(truth.loc[n].geometry).area
-            for n, g in fp.geometry.items()]
+    ious = [
+        g.intersection(truth.loc[n].geometry).area / g.union(truth.loc[n].geometry).area for n, g in fp.geometry.items()
+    ]
     return 1.0 - float(np.mean(ious))
 
 
@@ -79,9 +79,19 @@ def test_geoid_undulation_is_egm96():
 
 def _photo(i: int, **kw) -> Photo:
     t = f"2026-05-14T10:{i // 30:02d}:{(2 * i) % 60:02d}"
-    base = dict(path=Path(f"P{i:03d}.JPG"), width_px=4000, height_px=3000, make="ACME", model="Cam",
-                latitude_deg=38.0, longitude_deg=-9.0, focal_mm=8.8, sensor_width_mm=13.2, taken_at=t,
-                has_xmp=True)
+    base = dict(
+        path=Path(f"P{i:03d}.JPG"),
+        width_px=4000,
+        height_px=3000,
+        make="ACME",
+        model="Cam",
+        latitude_deg=38.0,
+        longitude_deg=-9.0,
+        focal_mm=8.8,
+        sensor_width_mm=13.2,
+        taken_at=t,
+        has_xmp=True,
+    )
     base.update(kw)
     return Photo(**base)
 
@@ -171,8 +181,20 @@ def test_no_relative_altitude_refused_without_ground_then_right_on_the_dsm(no_re
 
 
 def test_no_relative_altitude_cli_refuses_in_one_line(no_rel, tmp_path):
-    p = subprocess.run([sys.executable, "-m", "geoortho", "footprints", "--images", str(no_rel.images),
-                        "--output", str(tmp_path / "x.gpkg")], capture_output=True, text=True)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "footprints",
+            "--images",
+            str(no_rel.images),
+            "--output",
+            str(tmp_path / "x.gpkg"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert p.returncode == 2
     lines = [x for x in p.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and "flight_height_m" in lines[0] and "GPS altitude" in lines[0]
@@ -182,8 +204,13 @@ def test_drifting_altitude_refused_unless_flight_height_given(drift, clean_short
     with pytest.raises(InputError, match="not trustworthy.*drift"):
         footprints(drift.images, tmp_path / "a.gpkg", dsm=drift.dsm)
     info = _info(drift)
-    footprints(drift.images, tmp_path / "b.gpkg", dsm=drift.dsm,
-               flight_height_m=info["preset"]["altitude_m"], takeoff_elevation_m=info["home"]["ground_z"])
+    footprints(
+        drift.images,
+        tmp_path / "b.gpkg",
+        dsm=drift.dsm,
+        flight_height_m=info["preset"]["altitude_m"],
+        takeoff_elevation_m=info["home"]["ground_z"],
+    )
     assert _iou_shortfall(tmp_path / "b.gpkg", drift) <= 1.5 * clean_shortfall + 0.005
 
 
@@ -231,9 +258,10 @@ def _camera_rmse(result, survey) -> float:
     poses = {p["image"]: p for p in json.loads((survey.truth / "poses.json").read_text())}
     cams = gpd.read_file(result.cameras)
     reg = cams[cams.registered]
-    e = np.array([[r.x - poses[r.image]["x"], r.y - poses[r.image]["y"], r.z - poses[r.image]["z"]]
-                  for r in reg.itertuples()])
-    return float(np.sqrt((e ** 2).sum(axis=1).mean()))
+    e = np.array(
+        [[r.x - poses[r.image]["x"], r.y - poses[r.image]["y"], r.z - poses[r.image]["z"]] for r in reg.itertuples()]
+    )
+    return float(np.sqrt((e**2).sum(axis=1).mean()))
 
 
 @pytest.fixture(scope="module")
@@ -342,8 +370,9 @@ def test_toledo_height_source_gsd_and_focal(toledo_sfm, tmp_path):
 
     photos = read_photos(base / "images").photos
     # physics at the flown height: GSD = height · sensor width / (focal · image width)
-    physics = np.median([p.gps_altitude_m * p.sensor_width_mm / (p.focal_mm * max(p.width_px, p.height_px)) * 100
-                         for p in photos])
+    physics = np.median(
+        [p.gps_altitude_m * p.sensor_width_mm / (p.focal_mm * max(p.width_px, p.height_px)) * 100 for p in photos]
+    )
     assert r.median_gsd_cm == pytest.approx(physics, rel=0.05)
     rep = json.loads(toledo_sfm.report.read_text())
     for cam in rep["intrinsics"]:
@@ -374,8 +403,21 @@ def test_warnings_grouped_and_quiet(hard_survey, tmp_path):
     read_photos(hard_survey.images, feedback=fb)
     assert len(fb.warnings) <= 5, fb.warnings  # one line per kind, not per photo
     assert all(": " in w and "photo" in w for w in fb.warnings)
-    p = subprocess.run([sys.executable, "-m", "geoortho", "footprints", "--images", str(hard_survey.images),
-                        "--output", str(tmp_path / "q.gpkg"), "--quiet"], capture_output=True, text=True)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "footprints",
+            "--images",
+            str(hard_survey.images),
+            "--output",
+            str(tmp_path / "q.gpkg"),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert p.returncode == 0 and p.stderr.strip() == ""
 
 

@@ -25,9 +25,16 @@ TRUE_CELL_M = 0.05  # the small preset's true ortho: our grid lands on its pixel
 def _true_cameras(survey):
     c = json.loads((survey.truth / "survey.json").read_text())["camera"]
     intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"], tuple(c["distortion"]))
-    return [OrthoCamera(p["image"], survey.images / p["image"], intr,
-                        Pose(np.array([p["x"], p["y"], p["z"]]), np.array(p["rotation_world_from_camera"])))
-            for p in json.loads((survey.truth / "poses.json").read_text()) if not p["corrupt"]]
+    return [
+        OrthoCamera(
+            p["image"],
+            survey.images / p["image"],
+            intr,
+            Pose(np.array([p["x"], p["y"], p["z"]]), np.array(p["rotation_world_from_camera"])),
+        )
+        for p in json.loads((survey.truth / "poses.json").read_text())
+        if not p["corrupt"]
+    ]
 
 
 def test_project_grid_is_the_camera_model():
@@ -56,8 +63,16 @@ def true_ortho(small_survey, tmp_path_factory):
     d = tmp_path_factory.mktemp("ortho_true")
     surf = read_surface(small_survey.dsm)
     fb = RecordingFeedback()
-    r = mosaic(_true_cameras(small_survey), surf, surf.crs, d / "ortho.tif", TRUE_CELL_M,
-               MosaicOptions(workers=2), preview=d / "ortho.png", feedback=fb)
+    r = mosaic(
+        _true_cameras(small_survey),
+        surf,
+        surf.crs,
+        d / "ortho.tif",
+        TRUE_CELL_M,
+        MosaicOptions(workers=2),
+        preview=d / "ortho.png",
+        feedback=fb,
+    )
     return r, fb
 
 
@@ -136,8 +151,14 @@ def test_balance_halves_the_colour_step_across_seams(true_ortho, small_survey):
 def test_occlusion_keeps_roofs_off_the_ground_beside_buildings(true_ortho, small_survey, tmp_path):
     r, _ = true_ortho
     surf = read_surface(small_survey.dsm)
-    plain = mosaic(_true_cameras(small_survey), surf, surf.crs, tmp_path / "plain.tif", TRUE_CELL_M,
-                   MosaicOptions(occlusion=False, workers=2))
+    plain = mosaic(
+        _true_cameras(small_survey),
+        surf,
+        surf.crs,
+        tmp_path / "plain.tif",
+        TRUE_CELL_M,
+        MosaicOptions(occlusion=False, workers=2),
+    )
     ours = _ring_errors(r.output, small_survey)
     theirs = _ring_errors(plain.output, small_survey)
     # measured: 0.45 % of the ring off with occlusion, 7.4 % without; open ground 0.06 % either way
@@ -148,8 +169,15 @@ def test_occlusion_keeps_roofs_off_the_ground_beside_buildings(true_ortho, small
 
 def test_sfm_poses_with_gcps_jpeg_cog(sfm_with_gcps, small_survey, tmp_path):
     r_sfm, _ = sfm_with_gcps
-    r = ortho(small_survey.images, tmp_path / "o.tif", sfm=r_sfm.output, dsm=small_survey.dsm,
-              resolution_m=TRUE_CELL_M, compress="JPEG", workers=2)
+    r = ortho(
+        small_survey.images,
+        tmp_path / "o.tif",
+        sfm=r_sfm.output,
+        dsm=small_survey.dsm,
+        resolution_m=TRUE_CELL_M,
+        compress="JPEG",
+        workers=2,
+    )
     d = np.array([s.distance for s in geolocation_shifts(r.output, small_survey.ortho)])
     assert len(d) >= 30
     assert np.median(d) <= 2 * _gsd_m(small_survey)  # measured 0.9 mm
@@ -163,8 +191,14 @@ def test_sfm_poses_with_gcps_jpeg_cog(sfm_with_gcps, small_survey, tmp_path):
 
 def test_direct_georeferencing_from_metadata(tiny_survey, tmp_path):
     home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
-    r = ortho(tiny_survey.images, tmp_path / "o.tif", dsm=tiny_survey.dsm, takeoff_elevation_m=home["ground_z"],
-              preview=tmp_path / "o.png", workers=1)
+    r = ortho(
+        tiny_survey.images,
+        tmp_path / "o.tif",
+        dsm=tiny_survey.dsm,
+        takeoff_elevation_m=home["ground_z"],
+        preview=tmp_path / "o.png",
+        workers=1,
+    )
     assert r.poses.startswith("photo metadata")
     # default resolution: the median GSD, rounded to 3 digits
     assert r.resolution_m == pytest.approx(r.median_gsd_m, rel=0.01)
@@ -180,8 +214,10 @@ def test_bad_photos_are_reported_and_skipped(small_survey, tmp_path):
     broken = tmp_path / "broken.JPG"
     broken.write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
     far = cams[1].pose.center + np.array([5000.0, 0.0, 0.0])
-    cams = cams + [OrthoCamera("broken.JPG", broken, cams[0].intrinsics, cams[0].pose),
-                   OrthoCamera("far.JPG", cams[1].path, cams[1].intrinsics, Pose(far, cams[1].pose.rotation))]
+    cams = cams + [
+        OrthoCamera("broken.JPG", broken, cams[0].intrinsics, cams[0].pose),
+        OrthoCamera("far.JPG", cams[1].path, cams[1].intrinsics, Pose(far, cams[1].pose.rotation)),
+    ]
     surf = read_surface(small_survey.dsm)
     fb = RecordingFeedback()
     r = mosaic(cams, surf, surf.crs, tmp_path / "o.tif", 0.2, MosaicOptions(workers=1), feedback=fb)
@@ -200,8 +236,14 @@ def test_dsm_holes_are_filled_and_said(tiny_survey, tmp_path):
     with rasterio.open(holed, "w", **prof) as dst:
         dst.write(z, 1)
     home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
-    r = ortho(tiny_survey.images, tmp_path / "o.tif", dsm=holed, takeoff_elevation_m=home["ground_z"],
-              resolution_m=0.03, workers=1)
+    r = ortho(
+        tiny_survey.images,
+        tmp_path / "o.tif",
+        dsm=holed,
+        takeoff_elevation_m=home["ground_z"],
+        resolution_m=0.03,
+        workers=1,
+    )
     assert any("36 nodata cells" in n for n in r.notes)
     assert any("finer than the photos' median GSD" in n for n in r.notes)  # 3 cm asked, GSD 4.7 cm
     assert r.holes_left_px == 0
@@ -209,8 +251,20 @@ def test_dsm_holes_are_filled_and_said(tiny_survey, tmp_path):
 
 def test_bad_input_exit_2(tmp_path):
     (tmp_path / "empty").mkdir()
-    p = subprocess.run([sys.executable, "-m", "geoortho", "ortho", "--images", str(tmp_path / "empty"),
-                        "--output", str(tmp_path / "o.tif")], capture_output=True, text=True)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "ortho",
+            "--images",
+            str(tmp_path / "empty"),
+            "--output",
+            str(tmp_path / "o.tif"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert p.returncode == 2
     assert len(p.stderr.strip().splitlines()) == 1
     with pytest.raises(InputError, match="not an sfm output"):
@@ -221,8 +275,14 @@ def test_bad_input_exit_2(tmp_path):
 def test_toledo_mosaic_from_sfm(toledo_sfm, tmp_path):
     """Real photos: two camera bodies, downscaled photos with lying EXIF sizes, UTM 17N."""
     base = real_data("toledo_dji")
-    r = ortho(base / "images", tmp_path / "toledo.tif", sfm=toledo_sfm.output, resolution_m=0.3,
-              preview=tmp_path / "toledo.png", workers=2)
+    r = ortho(
+        base / "images",
+        tmp_path / "toledo.tif",
+        sfm=toledo_sfm.output,
+        resolution_m=0.3,
+        preview=tmp_path / "toledo.png",
+        workers=2,
+    )
     assert r.n_used >= 50 and "32617" in r.crs
     assert r.holes_left_px == 0
     assert r.seam_mismatch_balanced < r.seam_mismatch_raw

@@ -44,14 +44,15 @@ def test_read_photo_matches_what_was_recorded(tiny_survey):
         assert p.absolute_altitude_m == pytest.approx(rec["absolute_altitude_m"], abs=0.01)
         assert p.gps_altitude_m == pytest.approx(rec["gps_altitude_m"], abs=0.01)
         assert (p.yaw_deg, p.pitch_deg, p.roll_deg) == pytest.approx(
-            (rec["gimbal_yaw_deg"], rec["gimbal_pitch_deg"], rec["gimbal_roll_deg"]), abs=0.01)
+            (rec["gimbal_yaw_deg"], rec["gimbal_pitch_deg"], rec["gimbal_roll_deg"]), abs=0.01
+        )
         assert p.attitude_source == "gimbal" and p.sensor_source == "database"
         assert p.focal_px == pytest.approx(info["camera"]["focal_px"])
         assert p.taken_at.startswith("2026-")
 
 
 def test_parse_xmp_attribute_and_element_forms():
-    attr = b'<rdf:Description drone-dji:GimbalYawDegree="+12.50" drone-dji:RelativeAltitude=\'+40.1\'/>'
+    attr = b"<rdf:Description drone-dji:GimbalYawDegree=\"+12.50\" drone-dji:RelativeAltitude='+40.1'/>"
     elem = b"<drone-dji:GimbalPitchDegree>-80.00</drone-dji:GimbalPitchDegree><Camera:Yaw>33</Camera:Yaw>"
     tags = parse_xmp(attr + elem)
     assert tags["drone-dji:GimbalYawDegree"] == "+12.50"
@@ -66,8 +67,10 @@ def test_camera_namespace_pitch_is_converted(tmp_path, tiny_survey):
     from PIL import Image
 
     src = next(tiny_survey.images.iterdir())
-    xmp = (b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF><rdf:Description Camera:Yaw="30" '
-           b'Camera:Pitch="10" Camera:Roll="2"/></rdf:RDF></x:xmpmeta>')
+    xmp = (
+        b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF><rdf:Description Camera:Yaw="30" '
+        b'Camera:Pitch="10" Camera:Roll="2"/></rdf:RDF></x:xmpmeta>'
+    )
     with Image.open(src) as im:
         im.save(tmp_path / "m.jpg", exif=im.getexif(), xmp=xmp)
     p = read_photo(tmp_path / "m.jpg")
@@ -154,9 +157,15 @@ def test_footprints_with_true_poses_reproduce_the_truth(tiny_survey):
     poses, info = _truth(tiny_survey)
     c = info["camera"]
     intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"])
-    cams = [PhotoCamera(read_photo(tiny_survey.images / n), intr,
-                        Pose(np.array([t["x"], t["y"], t["z"]]), np.array(t["rotation_world_from_camera"])), "")
-            for n, t in poses.items()]
+    cams = [
+        PhotoCamera(
+            read_photo(tiny_survey.images / n),
+            intr,
+            Pose(np.array([t["x"], t["y"], t["z"]]), np.array(t["rotation_world_from_camera"])),
+            "",
+        )
+        for n, t in poses.items()
+    ]
     surface = read_surface(tiny_survey.dsm)
     table = compute_footprints(cams, surface, per_side=40)
     truth = gpd.read_file(tiny_survey.truth / "footprints.gpkg").set_index("image")
@@ -172,8 +181,14 @@ def test_footprints_with_true_poses_reproduce_the_truth(tiny_survey):
 def test_footprints_iou_on_dsm(tiny_survey, tmp_path):
     poses, info = _truth(tiny_survey)
     out = tmp_path / "fp.gpkg"
-    r = footprints(tiny_survey.images, out, dsm=tiny_survey.dsm, takeoff_elevation_m=info["home"]["ground_z"],
-                   overlap=tmp_path / "overlap.tif", overlap_cell_m=0.5)
+    r = footprints(
+        tiny_survey.images,
+        out,
+        dsm=tiny_survey.dsm,
+        takeoff_elevation_m=info["home"]["ground_z"],
+        overlap=tmp_path / "overlap.tif",
+        overlap_cell_m=0.5,
+    )
     fp = gpd.read_file(out, layer="footprints").set_index("image")
     truth = gpd.read_file(tiny_survey.truth / "footprints.gpkg").set_index("image")
     ious = [_iou(g, truth.loc[n].geometry) for n, g in fp.geometry.items()]
@@ -204,7 +219,7 @@ def test_flat_ground_worse_than_dsm_but_sane(tiny_survey, tmp_path):
     truth = gpd.read_file(tiny_survey.truth / "footprints.gpkg").set_index("image")
     ious = [_iou(g, truth.loc[n].geometry) for n, g in fp.geometry.items()]
     assert np.mean(ious) > 0.75
-    assert set(fp["height_source"].str.contains("relative altitude"))== {True}
+    assert set(fp["height_source"].str.contains("relative altitude")) == {True}
 
 
 def test_oblique_footprints_iou(oblique_survey, tmp_path):
@@ -229,8 +244,10 @@ def test_rays_above_horizon_are_clipped():
 
     photo = None
     intr = Intrinsics(400, 300, 300.0)
-    cams = [PhotoCamera(photo, intr, Pose.from_ypr((0, 0, 50), 0, -10, 0), ""),  # type: ignore[arg-type]
-            PhotoCamera(photo, intr, Pose.from_ypr((0, 0, 50), 0, -90, 0), "")]  # type: ignore[arg-type]
+    cams = [
+        PhotoCamera(photo, intr, Pose.from_ypr((0, 0, 50), 0, -10, 0), ""),  # type: ignore[arg-type]
+        PhotoCamera(photo, intr, Pose.from_ypr((0, 0, 50), 0, -90, 0), ""),
+    ]  # type: ignore[arg-type]
     t = compute_footprints(cams, FlatSurface(0.0), max_range_m=300.0)
     assert t.clipped.tolist() == [True, False]
     assert np.hypot(*t.rings[0].T).max() == pytest.approx(300.0, rel=0.01)
@@ -267,7 +284,19 @@ def test_real_toledo_footprints_predict_annotated_gcp_pixels(tmp_path):
 
 
 def test_footprints_cli_bad_input_exit_2(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "geoortho", "footprints", "--images", str(tmp_path),
-                        "--output", str(tmp_path / "x.gpkg")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "footprints",
+            "--images",
+            str(tmp_path),
+            "--output",
+            str(tmp_path / "x.gpkg"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and "no images" in r.stderr

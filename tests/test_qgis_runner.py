@@ -78,8 +78,13 @@ def test_interpreter_found_from_the_importable_package(monkeypatch):
     # It runs the very geoortho this process imports.
     import subprocess
 
-    out = subprocess.run([python, "-c", "import geoortho; print(geoortho.__file__)"], capture_output=True,
-                         text=True, check=True, env=interp.clean_environment()).stdout.strip()
+    out = subprocess.run(
+        [python, "-c", "import geoortho; print(geoortho.__file__)"],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=interp.clean_environment(),
+    ).stdout.strip()
     assert Path(out).resolve() == Path(geoortho.__file__).resolve()
 
 
@@ -143,8 +148,9 @@ def test_run_reports_progress_and_returns_the_outputs(tiny_survey, tmp_path):
 
 def test_bad_input_raises_with_geoortho_s_line(tmp_path):
     with pytest.raises(RunFailed, match="geoortho footprints: error: images: no such folder") as e:
-        run_geoortho(sys.executable, "footprints", [f"--images={tmp_path / 'x'}", f"--output={tmp_path / 'f.gpkg'}"],
-                     Recorder())
+        run_geoortho(
+            sys.executable, "footprints", [f"--images={tmp_path / 'x'}", f"--output={tmp_path / 'f.gpkg'}"], Recorder()
+        )
     assert e.value.returncode == 2
 
 
@@ -152,8 +158,9 @@ def test_cancel_stops_the_process_and_leaves_no_temporary(tmp_path):
     fb = Recorder(cancel_at_percent=1.0)
     t0 = time.monotonic()
     with pytest.raises(RunCanceled):
-        run_geoortho(sys.executable, "synth", [f"--output={tmp_path / 's'}", "--preset=tiny"], fb,
-                     destinations=[tmp_path / "s"])
+        run_geoortho(
+            sys.executable, "synth", [f"--output={tmp_path / 's'}", "--preset=tiny"], fb, destinations=[tmp_path / "s"]
+        )
     assert time.monotonic() - t0 < 60
     assert max(fb.progress) < 100.0
     assert not [p for p in tmp_path.rglob("*") if ".tmp-" in p.name]

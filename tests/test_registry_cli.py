@@ -44,8 +44,9 @@ def test_spec_matches_function_signature(alg):
             assert fp.default is inspect.Parameter.empty, f"{alg.id}.{p.name}: required in spec only"
         else:
             assert fp.default is not inspect.Parameter.empty, f"{alg.id}.{p.name}: required in function only"
-            assert fp.default == p.default or (p.type == "folder" and str(fp.default) == str(p.default)), \
+            assert fp.default == p.default or (p.type == "folder" and str(fp.default) == str(p.default)), (
                 f"{alg.id}.{p.name}: default {p.default!r} != {fp.default!r}"
+            )
         assert p.help, f"{alg.id}.{p.name} has no help (docstring Parameters section)"
     assert alg.short_help and alg.title
 
@@ -132,8 +133,21 @@ def test_missing_required_option_exits_2():
 
 
 def test_main_json_output(tmp_path, capsys):
-    rc = main(["synth", "--output", str(tmp_path / "t"), "--preset", "tiny", "--seed", "5", "--json",
-               "--quiet", "--workers", "1"])
+    rc = main(
+        [
+            "synth",
+            "--output",
+            str(tmp_path / "t"),
+            "--preset",
+            "tiny",
+            "--seed",
+            "5",
+            "--json",
+            "--quiet",
+            "--workers",
+            "1",
+        ]
+    )
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
     assert out["n_photos"] == len(list(Path(out["images"]).glob("*.JPG")))
@@ -146,5 +160,8 @@ def test_json_outputs_have_no_nan():
 
     from geoortho.processing.registry import _jsonable
 
-    assert _jsonable({"rmse": float("nan"), "n": np.int64(3), "inf": np.float32("inf")}) == \
-        {"rmse": None, "n": 3, "inf": None}
+    assert _jsonable({"rmse": float("nan"), "n": np.int64(3), "inf": np.float32("inf")}) == {
+        "rmse": None,
+        "n": 3,
+        "inf": None,
+    }

@@ -29,8 +29,9 @@ def _truth(survey):
 def _centre_errors(result, poses):
     cams = gpd.read_file(result.cameras)
     reg = cams[cams.registered]
-    return np.array([[r.x - poses[r.image]["x"], r.y - poses[r.image]["y"], r.z - poses[r.image]["z"]]
-                     for r in reg.itertuples()])
+    return np.array(
+        [[r.x - poses[r.image]["x"], r.y - poses[r.image]["y"], r.z - poses[r.image]["z"]] for r in reg.itertuples()]
+    )
 
 
 NOISE = "ZZ_noise.jpg"
@@ -48,8 +49,7 @@ def gps_only(small_survey, tmp_path_factory):
     rng = np.random.default_rng(0)
     Image.fromarray(rng.integers(0, 255, (1067, 1600, 3), dtype=np.uint8)).save(images / NOISE)
     fb = RecordingFeedback()
-    r = sfm(images, tmp_path_factory.mktemp("sfm_gps"), takeoff_elevation_m=home["ground_z"],
-            feedback=fb, **FAST)
+    r = sfm(images, tmp_path_factory.mktemp("sfm_gps"), takeoff_elevation_m=home["ground_z"], feedback=fb, **FAST)
     return r, fb
 
 
@@ -63,7 +63,7 @@ def test_gps_only_registers_and_places_cameras(gps_only, small_survey):
     poses, _ = _truth(small_survey)
     assert r.n_registered >= 0.95 * len(poses)
     e = _centre_errors(r, poses)
-    rmse = np.sqrt((e ** 2).sum(axis=1).mean())
+    rmse = np.sqrt((e**2).sum(axis=1).mean())
     assert rmse <= 0.5, rmse  # issue: <= 0.5 m with GPS only
     assert r.mean_reprojection_error_px < 0.5
     assert any("registered" in m for m in fb.infos)
@@ -113,7 +113,7 @@ def test_gcps_pin_the_cameras_and_checkpoints_are_honest(with_gcps, small_survey
     r, checkpoints = with_gcps
     poses, _ = _truth(small_survey)
     e = _centre_errors(r, poses)
-    rmse = np.sqrt((e ** 2).sum(axis=1).mean())
+    rmse = np.sqrt((e**2).sum(axis=1).mean())
     assert rmse <= 0.05, rmse  # issue: <= 0.05 m with GCPs
     rep = json.loads(r.report.read_text())
     rows = {g["name"]: g for g in rep["gcps"]}
@@ -194,8 +194,19 @@ def test_bad_input(small_survey, tmp_path):
 def test_cli_bad_checkpoint_exit_2(small_survey, tmp_path, capsys):
     from geoortho.processing.cli import main
 
-    code = main(["sfm", "--images", str(small_survey.images), "--output", str(tmp_path / "o"),
-                 "--gcp-list", str(small_survey.gcp_file), "--checkpoints", "X"])
+    code = main(
+        [
+            "sfm",
+            "--images",
+            str(small_survey.images),
+            "--output",
+            str(tmp_path / "o"),
+            "--gcp-list",
+            str(small_survey.gcp_file),
+            "--checkpoints",
+            "X",
+        ]
+    )
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "gcp_list.txt" in err[0] or "observations" in err[0]

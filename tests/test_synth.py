@@ -29,8 +29,7 @@ def _info(survey) -> dict:
 
 def _intrinsics(info: dict) -> Intrinsics:
     c = info["camera"]
-    return Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"],
-                      tuple(c["distortion"]))
+    return Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"], tuple(c["distortion"]))
 
 
 def _ratio(v) -> float:
@@ -71,7 +70,7 @@ def test_xmp_read_back_by_elementtree(tiny_survey):
         data = (tiny_survey.images / pose["image"]).read_bytes()
         start, end = data.find(b"<x:xmpmeta"), data.find(b"</x:xmpmeta>")
         assert start > 0 and end > start
-        root = ET.fromstring(data[start:end + len(b"</x:xmpmeta>")])
+        root = ET.fromstring(data[start : end + len(b"</x:xmpmeta>")])
         desc = root.find(".//{http://www.w3.org/1999/02/22-rdf-syntax-ns#}Description")
         assert desc is not None
         rec = pose["recorded"]
@@ -313,8 +312,7 @@ def test_pycolmap_registers_the_small_survey(small_survey, tmp_path):
     opts = pycolmap.FeatureExtractionOptions()
     opts.max_image_size = 1024
     opts.sift.max_num_features = 4096
-    pycolmap.extract_features(db, small_survey.images, extraction_options=opts,
-                              camera_mode=pycolmap.CameraMode.SINGLE)
+    pycolmap.extract_features(db, small_survey.images, extraction_options=opts, camera_mode=pycolmap.CameraMode.SINGLE)
     pycolmap.match_exhaustive(db)
     recs = pycolmap.incremental_mapping(db, small_survey.images, tmp_path)
     best = max(recs.values(), key=lambda r: r.num_reg_images())

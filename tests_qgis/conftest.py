@@ -41,8 +41,12 @@ def qgis_run(alg_id: str, params: dict, feedback=None, context=None) -> dict:
     import processing
     from qgis.core import QgsProcessingContext, QgsProcessingFeedback
 
-    return processing.run(f"geoortho:{alg_id}", params, feedback=feedback or QgsProcessingFeedback(),
-                          context=context or QgsProcessingContext())
+    return processing.run(
+        f"geoortho:{alg_id}",
+        params,
+        feedback=feedback or QgsProcessingFeedback(),
+        context=context or QgsProcessingContext(),
+    )
 
 
 @pytest.fixture(scope="session")

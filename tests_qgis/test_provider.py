@@ -22,12 +22,20 @@ from geoortho.processing.spec import PARAM_TYPES
 # The mapping the issue asks for, written out independently of the provider's table:
 # (geoortho type, is output) -> QGIS parameter type string.
 EXPECTED_QGIS_TYPE = {
-    ("folder", False): "file", ("folder", True): "folderDestination",
-    ("file", False): "file", ("file", True): "fileDestination",
-    ("raster", False): "raster", ("raster", True): "rasterDestination",
-    ("vector", False): "vector", ("vector", True): "vectorDestination",
-    ("number", False): "number", ("integer", False): "number", ("enum", False): "enum",
-    ("bool", False): "boolean", ("crs", False): "crs", ("string", False): "string",
+    ("folder", False): "file",
+    ("folder", True): "folderDestination",
+    ("file", False): "file",
+    ("file", True): "fileDestination",
+    ("raster", False): "raster",
+    ("raster", True): "rasterDestination",
+    ("vector", False): "vector",
+    ("vector", True): "vectorDestination",
+    ("number", False): "number",
+    ("integer", False): "number",
+    ("enum", False): "enum",
+    ("bool", False): "boolean",
+    ("crs", False): "crs",
+    ("string", False): "string",
 }
 
 
@@ -72,12 +80,18 @@ def test_every_algorithm_with_the_right_parameters(provider, description):
             assert bool(d.flags() & QgsProcessingParameterDefinition.FlagAdvanced) == p["advanced"], where
             assert d.help() == p["help"], where
             if p["type"] in ("folder", "file") and not p["output"]:
-                want = Qgis.ProcessingFileParameterBehavior.Folder if p["type"] == "folder" else \
-                    Qgis.ProcessingFileParameterBehavior.File
+                want = (
+                    Qgis.ProcessingFileParameterBehavior.Folder
+                    if p["type"] == "folder"
+                    else Qgis.ProcessingFileParameterBehavior.File
+                )
                 assert d.behavior() == want, where
             if p["type"] in ("number", "integer"):
-                want = Qgis.ProcessingNumberParameterType.Integer if p["type"] == "integer" else \
-                    Qgis.ProcessingNumberParameterType.Double
+                want = (
+                    Qgis.ProcessingNumberParameterType.Integer
+                    if p["type"] == "integer"
+                    else Qgis.ProcessingNumberParameterType.Double
+                )
                 assert d.dataType() == want, where
                 if p["minimum"] is not None:
                     assert d.minimum() == p["minimum"], where
@@ -123,8 +137,11 @@ def test_footprints_through_processing_run(provider, tiny, tmp_path):
     out = tmp_path / "qgis.gpkg"
     results = _run("footprints", {"IMAGES": str(tiny / "images"), "OUTPUT": str(out)})
     assert results["OUTPUT"] == str(out)
-    cli = json.loads(geoortho_cli("footprints", "--images", str(tiny / "images"),
-                                  "--output", str(tmp_path / "cli.gpkg"), "--json", "--quiet").stdout)
+    cli = json.loads(
+        geoortho_cli(
+            "footprints", "--images", str(tiny / "images"), "--output", str(tmp_path / "cli.gpkg"), "--json", "--quiet"
+        ).stdout
+    )
     layer = QgsVectorLayer(f"{out}|layername=footprints", "footprints", "ogr")
     assert layer.isValid()
     assert QgsWkbTypes.geometryType(layer.wkbType()) == QgsWkbTypes.PolygonGeometry
@@ -254,11 +271,19 @@ def test_graphical_modeler_chains_geoortho_algorithms(provider, tmp_path):
         c.setModelOutputs(model_outputs)
         model.addChildAlgorithm(c)
 
-    child("synth", "synth", {"OUTPUT": source.fromStaticValue(str(tmp_path / "survey")),
-                             "PRESET": source.fromStaticValue("tiny")}, {})
+    child(
+        "synth",
+        "synth",
+        {"OUTPUT": source.fromStaticValue(str(tmp_path / "survey")), "PRESET": source.fromStaticValue("tiny")},
+        {},
+    )
     child("fp", "footprints", {"IMAGES": source.fromChildOutput("synth", "IMAGES")}, {"footprints": "OUTPUT"})
-    child("gcp", "gcp-find", {"IMAGES": source.fromChildOutput("synth", "IMAGES"),
-                              "GCP_FILE": source.fromChildOutput("synth", "GCP_FILE")}, {"gcp_list": "OUTPUT"})
+    child(
+        "gcp",
+        "gcp-find",
+        {"IMAGES": source.fromChildOutput("synth", "IMAGES"), "GCP_FILE": source.fromChildOutput("synth", "GCP_FILE")},
+        {"gcp_list": "OUTPUT"},
+    )
     model.updateDestinationParameters()
     assert model.validate()[0]
     path = str(tmp_path / "field_check.model3")
@@ -278,34 +303,35 @@ def test_graphical_modeler_chains_geoortho_algorithms(provider, tmp_path):
 
 # --- qgis_process with the plugin installed from the built zip -------------------
 
+
 @pytest.fixture(scope="module")
 def plugin_env(tmp_path_factory) -> dict[str, str]:
     """A fresh QGIS profile with the zip from tools/build_plugin.py installed and enabled."""
     root = tmp_path_factory.mktemp("qgis_process")
     zip_path = root / "geoortho_qgis.zip"
-    subprocess.run([PYTHON, str(PROJECT / "tools" / "build_plugin.py"), str(zip_path)], check=True,
-                   capture_output=True)
+    subprocess.run([PYTHON, str(PROJECT / "tools" / "build_plugin.py"), str(zip_path)], check=True, capture_output=True)
     with zipfile.ZipFile(zip_path) as z:
         assert {n.split("/")[0] for n in z.namelist()} == {"geoortho_qgis"}
         plugins = root / "profile" / "profiles" / "default" / "python" / "plugins"
         z.extractall(plugins)
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "QGIS_PLUGINPATH")}
     env["QGIS_CUSTOM_CONFIG_PATH"] = str(root / "profile")
-    subprocess.run(["qgis_process", "plugins", "enable", "geoortho_qgis"], env=env, check=True,
-                   capture_output=True)
+    subprocess.run(["qgis_process", "plugins", "enable", "geoortho_qgis"], env=env, check=True, capture_output=True)
     return env
 
 
 def _qgis_process(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
     # Run from a neutral folder: from the checkout, QGIS's Python could import its geoortho/.
-    return subprocess.run(["qgis_process", *args], env=env, capture_output=True, text=True, timeout=600,
-                          cwd=tempfile.gettempdir())
+    return subprocess.run(
+        ["qgis_process", *args], env=env, capture_output=True, text=True, timeout=600, cwd=tempfile.gettempdir()
+    )
 
 
 def test_qgis_process_runs_footprints_from_the_plugin_zip(plugin_env, tiny, tmp_path):
     out = tmp_path / "qp.gpkg"
-    r = _qgis_process(plugin_env, "--json", "run", "geoortho:footprints",
-                      f"--IMAGES={tiny / 'images'}", f"--OUTPUT={out}")
+    r = _qgis_process(
+        plugin_env, "--json", "run", "geoortho:footprints", f"--IMAGES={tiny / 'images'}", f"--OUTPUT={out}"
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     results = json.loads(r.stdout)["results"]
     assert results["OUTPUT"] == str(out) and results["N_PHOTOS"] > 0
@@ -318,15 +344,17 @@ def test_qgis_process_finds_geoortho_on_path_by_itself(plugin_env, tiny, tmp_pat
     env = {k: v for k, v in plugin_env.items() if k != "GEOORTHO_PYTHON"}
     env["PATH"] = f"{Path(PYTHON).parent}{os.pathsep}{env.get('PATH', '')}"
     assert (Path(PYTHON).parent / "geoortho").is_file()
-    r = _qgis_process(env, "--json", "run", "geoortho:footprints", f"--IMAGES={tiny / 'images'}",
-                      f"--OUTPUT={tmp_path / 'auto.gpkg'}")
+    r = _qgis_process(
+        env, "--json", "run", "geoortho:footprints", f"--IMAGES={tiny / 'images'}", f"--OUTPUT={tmp_path / 'auto.gpkg'}"
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     assert json.loads(r.stdout)["results"]["N_PHOTOS"] > 0
 
 
 def test_qgis_process_bad_parameter_shows_geoortho_message(plugin_env, tmp_path):
-    r = _qgis_process(plugin_env, "run", "geoortho:footprints",
-                      f"--IMAGES={tmp_path / 'nowhere'}", f"--OUTPUT={tmp_path / 'x.gpkg'}")
+    r = _qgis_process(
+        plugin_env, "run", "geoortho:footprints", f"--IMAGES={tmp_path / 'nowhere'}", f"--OUTPUT={tmp_path / 'x.gpkg'}"
+    )
     assert r.returncode != 0
     assert "geoortho footprints: error: images: no such folder" in r.stdout + r.stderr
     assert not (tmp_path / "x.gpkg").exists()
@@ -334,13 +362,15 @@ def test_qgis_process_bad_parameter_shows_geoortho_message(plugin_env, tmp_path)
 
 def test_qgis_process_without_interpreter_says_how_to_set_it(plugin_env, tiny, tmp_path):
     env = dict(plugin_env, GEOORTHO_PYTHON=str(tmp_path / "missing" / "python"))
-    r = _qgis_process(env, "run", "geoortho:footprints", f"--IMAGES={tiny / 'images'}",
-                      f"--OUTPUT={tmp_path / 'x.gpkg'}")
+    r = _qgis_process(
+        env, "run", "geoortho:footprints", f"--IMAGES={tiny / 'images'}", f"--OUTPUT={tmp_path / 'x.gpkg'}"
+    )
     assert r.returncode != 0
     assert "geoortho Python interpreter" in r.stdout + r.stderr
 
 
 # --- every algorithm once, on tiny -------------------------------------------------
+
 
 def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path):
     """synth, footprints (above), gcp-find, dem, sfm, ortho and demo, each once through Processing."""
@@ -352,24 +382,58 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     ran.add("synth")
 
     gcp_list = tmp_path / "gcp_list.txt"
-    r = _run("gcp-find", {"IMAGES": str(tiny / "images"), "GCP_FILE": str(tiny / "truth" / "gcp_wgs84.csv"),
-                          "OUTPUT": str(gcp_list), "DETECTIONS": str(tmp_path / "detections.gpkg")})
+    r = _run(
+        "gcp-find",
+        {
+            "IMAGES": str(tiny / "images"),
+            "GCP_FILE": str(tiny / "truth" / "gcp_wgs84.csv"),
+            "OUTPUT": str(gcp_list),
+            "DETECTIONS": str(tmp_path / "detections.gpkg"),
+        },
+    )
     cli_list = tmp_path / "cli_gcp_list.txt"
-    geoortho_cli("gcp-find", "--images", str(tiny / "images"), "--gcp-file", str(tiny / "truth" / "gcp_wgs84.csv"),
-                 "--output", str(cli_list), "--quiet")
+    geoortho_cli(
+        "gcp-find",
+        "--images",
+        str(tiny / "images"),
+        "--gcp-file",
+        str(tiny / "truth" / "gcp_wgs84.csv"),
+        "--output",
+        str(cli_list),
+        "--quiet",
+    )
     assert r["N_OBSERVATIONS"] >= 8 and gcp_list.read_text() == cli_list.read_text()
     ran.add("gcp-find")
 
-    r = _run("dem", {"POINTS": str(tiny / "truth" / "points.laz"), "OUTPUT": str(tmp_path / "dsm.tif"),
-                     "DTM": str(tmp_path / "dtm.tif"), "RESOLUTION_M": 0.25, "METHOD": "max"})
+    r = _run(
+        "dem",
+        {
+            "POINTS": str(tiny / "truth" / "points.laz"),
+            "OUTPUT": str(tmp_path / "dsm.tif"),
+            "DTM": str(tmp_path / "dtm.tif"),
+            "RESOLUTION_M": 0.25,
+            "METHOD": "max",
+        },
+    )
     assert r["OUTPUT"] == str(tmp_path / "dsm.tif") and r["DTM"] == str(tmp_path / "dtm.tif")
     for name in ("dsm.tif", "dtm.tif"):
         layer = QgsRasterLayer(str(tmp_path / name), name)
         assert layer.isValid() and layer.crs().authid() == r["CRS"]
-    geoortho_cli("dem", "--points", str(tiny / "truth" / "points.laz"), "--output", str(tmp_path / "cli_dsm.tif"),
-                 "--resolution-m", "0.25", "--quiet")
-    with rasterio.open(tmp_path / "dsm.tif") as ours, rasterio.open(tmp_path / "cli_dsm.tif") as cli, \
-            rasterio.open(tiny / "truth" / "dsm.tif") as truth:
+    geoortho_cli(
+        "dem",
+        "--points",
+        str(tiny / "truth" / "points.laz"),
+        "--output",
+        str(tmp_path / "cli_dsm.tif"),
+        "--resolution-m",
+        "0.25",
+        "--quiet",
+    )
+    with (
+        rasterio.open(tmp_path / "dsm.tif") as ours,
+        rasterio.open(tmp_path / "cli_dsm.tif") as cli,
+        rasterio.open(tiny / "truth" / "dsm.tif") as truth,
+    ):
         assert abs(ours.res[0] - 0.25) < 1e-9 and ours.transform == cli.transform
         dsm = ours.read(1, masked=True)
         assert np.array_equal(dsm.filled(np.nan), cli.read(1, masked=True).filled(np.nan), equal_nan=True)
@@ -384,9 +448,15 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     import processing
     from qgis.core import QgsProject
 
-    r = processing.runAndLoadResults("geoortho:sfm", {
-        "IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "sfm"), "GCP_LIST": str(gcp_list),
-        "MAX_IMAGE_SIZE": 1024})
+    r = processing.runAndLoadResults(
+        "geoortho:sfm",
+        {
+            "IMAGES": str(tiny / "images"),
+            "OUTPUT": str(tmp_path / "sfm"),
+            "GCP_LIST": str(gcp_list),
+            "MAX_IMAGE_SIZE": 1024,
+        },
+    )
     assert r["N_REGISTERED"] == r["N_PHOTOS"] > 0 and r["GCP_RMSE_M"] < 0.05
     assert Path(r["CAMERAS"]).is_file() and Path(r["POINTS"]).is_file()
     loaded = {layer.source().split("|")[0]: layer for layer in QgsProject.instance().mapLayers().values()}
@@ -394,15 +464,23 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     ran.add("sfm")
 
     dsm_layer = QgsRasterLayer(str(tiny / "truth" / "dsm.tif"), "dsm")  # a layer, as the toolbox passes it
-    r = _run("ortho", {"IMAGES": str(tiny / "images"), "SFM": str(tmp_path / "sfm"),
-                       "DSM": dsm_layer, "OUTPUT": str(tmp_path / "ortho.tif")})
+    r = _run(
+        "ortho",
+        {
+            "IMAGES": str(tiny / "images"),
+            "SFM": str(tmp_path / "sfm"),
+            "DSM": dsm_layer,
+            "OUTPUT": str(tmp_path / "ortho.tif"),
+        },
+    )
     layer = QgsRasterLayer(str(tmp_path / "ortho.tif"), "ortho")
     assert layer.isValid() and layer.bandCount() == 4 and layer.crs().authid() == r["CRS"]
     assert r["N_USED"] > 0
     ran.add("ortho")
 
     r = _run("demo", {"OUTPUT": str(tmp_path / "demo"), "PRESET": "tiny", "SEED": 3})
-    assert isinstance(r["PRODUCTS"], dict) and all(Path(p).exists() for p in r["PRODUCTS"].values()
-                                                   if isinstance(p, str))
+    assert isinstance(r["PRODUCTS"], dict) and all(
+        Path(p).exists() for p in r["PRODUCTS"].values() if isinstance(p, str)
+    )
     ran.add("demo")
     assert ran == {a["id"] for a in description["algorithms"]}

@@ -30,8 +30,7 @@ def build(target: Path) -> Path:
     metadata = (SOURCE / "metadata.txt").read_text(encoding="utf-8")
     if f"version={geoortho.__version__}\n" not in metadata:
         raise SystemExit(f"{SOURCE / 'metadata.txt'}: version is not geoortho's {geoortho.__version__}")
-    files = sorted(p for p in SOURCE.iterdir()
-                   if p.is_file() and p.suffix in (".py", ".txt", ".svg"))
+    files = sorted(p for p in SOURCE.iterdir() if p.is_file() and p.suffix in (".py", ".txt", ".svg"))
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.name}.tmp")
     with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:

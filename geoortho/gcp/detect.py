@@ -14,8 +14,14 @@ from ..camera import in_frame
 from ..markers import get_dictionary
 
 __all__ = [
-    "Detection", "Window", "detect_in_image", "detect_task", "init_worker", "marker_centre",
-    "diagonal_intersection", "ATTEMPTS",
+    "Detection",
+    "Window",
+    "detect_in_image",
+    "detect_task",
+    "init_worker",
+    "marker_centre",
+    "diagonal_intersection",
+    "ATTEMPTS",
 ]
 
 #: Tried in order on each window until the expected marker is found. "fast" thresholds at the
@@ -135,8 +141,9 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
     return out
 
 
-def detect_in_image(gray: np.ndarray, windows: list[Window], dictionary: str,
-                    attempts: tuple[str, ...] = ATTEMPTS) -> list[Detection]:
+def detect_in_image(
+    gray: np.ndarray, windows: list[Window], dictionary: str, attempts: tuple[str, ...] = ATTEMPTS
+) -> list[Detection]:
     """Detect markers in each window (the whole image when ``radius_px`` is 0).
 
     Retries go on until the window's expected id is found; every marker seen
@@ -165,8 +172,17 @@ def _square(win: Window, radius_px: float, w: int, h: int) -> tuple[int, int, in
     return x0, y0, x1, y1
 
 
-def _search(gray: np.ndarray, box: tuple[int, int, int, int], win: Window, attempts: tuple[str, ...],
-            dictionary: str, k: int, found: list[Detection], *, stop_at_id: bool = True) -> bool:
+def _search(
+    gray: np.ndarray,
+    box: tuple[int, int, int, int],
+    win: Window,
+    attempts: tuple[str, ...],
+    dictionary: str,
+    k: int,
+    found: list[Detection],
+    *,
+    stop_at_id: bool = True,
+) -> bool:
     """Run the attempts on one crop until the window's id is seen; True if it was."""
     x0, y0, x1, y1 = box
     if x1 - x0 < 8 or y1 - y0 < 8:
@@ -187,8 +203,9 @@ def _search(gray: np.ndarray, box: tuple[int, int, int, int], win: Window, attem
             c = c + [x0, y0]
             centre = marker_centre(c)
             side = float(np.sqrt(abs(cv2.contourArea(c.astype(np.float32)))))
-            found.append(Detection(mid, float(centre[0]), float(centre[1]),
-                                   tuple(map(tuple, c.tolist())), attempt, k, side))
+            found.append(
+                Detection(mid, float(centre[0]), float(centre[1]), tuple(map(tuple, c.tolist())), attempt, k, side)
+            )
         if stop_at_id and any(mid == win.marker_id for mid, _ in hits):
             return True
     return False

@@ -128,9 +128,17 @@ def _marker_ids(gcps: GcpSet, dictionary: str) -> dict[str, int]:
 
 
 def predict_windows(
-    cams: Sequence[PhotoCamera], names: Sequence[str], xyz: np.ndarray, ids: dict[str, int], *,
-    margin_pct: float, position_uncertainty_m: float, height_uncertainty_m: float,
-    attitude_uncertainty_deg: float, marker_size_m: float, residual_m: float | None = None,
+    cams: Sequence[PhotoCamera],
+    names: Sequence[str],
+    xyz: np.ndarray,
+    ids: dict[str, int],
+    *,
+    margin_pct: float,
+    position_uncertainty_m: float,
+    height_uncertainty_m: float,
+    attitude_uncertainty_deg: float,
+    marker_size_m: float,
+    residual_m: float | None = None,
 ) -> dict[str, list[Window]]:
     """Per image: the windows to search, centred on each GCP's predicted pixel, that reach the frame.
 
@@ -162,8 +170,9 @@ def predict_windows(
             if not (np.isfinite(x) and np.isfinite(y)) or name not in ids:
                 continue
             wide = float(max(radius[j], 24.0))
-            narrow = wide if residual_m is None else \
-                float(min(wide, max(residual_m / gsd_m[j] + 1.5 * marker_px[j], 24.0)))
+            narrow = (
+                wide if residual_m is None else float(min(wide, max(residual_m / gsd_m[j] + 1.5 * marker_px[j], 24.0)))
+            )
             # The prediction may be off by the window's error part: a marker just inside the
             # frame can be predicted just outside it. Search when the window reaches the frame;
             # the margin is enforced on the detected centre (_judge).
@@ -171,8 +180,8 @@ def predict_windows(
             if not in_frame(x, y, w, h, mx - slack, my - slack):
                 continue
             out.setdefault(cam.photo.image, []).append(
-                Window(name, ids[name], float(x), float(y), narrow, float(marker_px[j]),
-                       wide if narrow < wide else 0.0))
+                Window(name, ids[name], float(x), float(y), narrow, float(marker_px[j]), wide if narrow < wide else 0.0)
+            )
     return out
 
 
@@ -247,9 +256,13 @@ def gcp_find(
     get_dictionary(dictionary)  # fail early on a bad name
     gcps = read_gcp_file(gcp_file, gcp_crs)
     ids = _marker_ids(gcps, dictionary)
-    uncertainty = dict(margin_pct=margin, position_uncertainty_m=position_uncertainty_m,
-                       height_uncertainty_m=height_uncertainty_m, attitude_uncertainty_deg=attitude_uncertainty_deg,
-                       marker_size_m=marker_size_m)
+    uncertainty = dict(
+        margin_pct=margin,
+        position_uncertainty_m=position_uncertainty_m,
+        height_uncertainty_m=height_uncertainty_m,
+        attitude_uncertainty_deg=attitude_uncertainty_deg,
+        marker_size_m=marker_size_m,
+    )
     # The pool starts first: its workers import OpenCV while the metadata is read.
     paths = list_images(images)
     with process_pool(workers, len(paths), initializer=init_worker, min_items_for_pool=4) as pool:
@@ -268,15 +281,26 @@ def gcp_find(
     out_crs = parse_crs(crs) if crs else (work if gcps.crs.is_geographic and work is not None else gcps.crs)
     written = write_gcp_list(output, observations, gcps, out_crs)
     det_path = write_detections(detections, observations, gcps) if detections is not None else None
-    review_path = write_review(review, observations, {p.image: p.path for p in photos.photos}) \
-        if review is not None else None
+    review_path = (
+        write_review(review, observations, {p.image: p.path for p in photos.photos}) if review is not None else None
+    )
     _warn_counts(observations, fb)
     s_write.progress(1.0)
     accepted = [o for o in observations if o.status == DETECTED]
-    fb.info(f"{len(accepted)} observations of {len({o.gcp for o in accepted})} GCPs in "
-            f"{len({o.image for o in accepted})} photos ({len(observations)} candidates); {photos.summary()}")
-    return GcpFindResult(written, det_path, review_path, len(accepted), len({o.gcp for o in accepted}),
-                         len(observations), crs_to_text(out_crs), offset_m)
+    fb.info(
+        f"{len(accepted)} observations of {len({o.gcp for o in accepted})} GCPs in "
+        f"{len({o.image for o in accepted})} photos ({len(observations)} candidates); {photos.summary()}"
+    )
+    return GcpFindResult(
+        written,
+        det_path,
+        review_path,
+        len(accepted),
+        len({o.gcp for o in accepted}),
+        len(observations),
+        crs_to_text(out_crs),
+        offset_m,
+    )
 
 
 @dataclass
@@ -292,8 +316,15 @@ class _Plan:
     path_of: dict[str, str]
 
 
-def _plan(photos: list[Photo], gcps: GcpSet, ids: dict[str, int], dsm: Path | None,
-          takeoff_elevation_m: float | None, uncertainty: dict[str, float], fb: Feedback) -> _Plan:
+def _plan(
+    photos: list[Photo],
+    gcps: GcpSet,
+    ids: dict[str, int],
+    dsm: Path | None,
+    takeoff_elevation_m: float | None,
+    uncertainty: dict[str, float],
+    fb: Feedback,
+) -> _Plan:
     placed = [p for p in photos if _has_pose(p)]
     unplaced = [p for p in photos if not _has_pose(p)]
     for p in unplaced:
@@ -310,8 +341,9 @@ def _plan(photos: list[Photo], gcps: GcpSet, ids: dict[str, int], dsm: Path | No
     # take-off is then worked out as everywhere else (geoortho.heights), unless given.
     surface: Surface = read_surface(dsm, work) if dsm is not None else FlatSurface(float(np.median(plan.xyz[:, 2])))
     try:
-        placed_cams, heights = photo_cameras(placed, work, surface, takeoff_elevation_m,
-                                             ground_label="DSM" if dsm is not None else "GCPs' median height")
+        placed_cams, heights = photo_cameras(
+            placed, work, surface, takeoff_elevation_m, ground_label="DSM" if dsm is not None else "GCPs' median height"
+        )
     except InputError as e:
         # No trustworthy camera height: predictions would be wrong, so search whole photos.
         fb.warning(f"camera heights unknown ({e}): every photo is searched whole")
@@ -325,9 +357,15 @@ def _plan(photos: list[Photo], gcps: GcpSet, ids: dict[str, int], dsm: Path | No
     return plan
 
 
-def _search(plan: _Plan, pool: Executor | None, workers: int, dictionary: str, ids: dict[str, int],
-            uncertainty: dict[str, float], fb: Feedback,
-            ) -> tuple[list[tuple[str, list[Detection], str]], dict[str, list[Window]], tuple[float, float] | None]:
+def _search(
+    plan: _Plan,
+    pool: Executor | None,
+    workers: int,
+    dictionary: str,
+    ids: dict[str, int],
+    uncertainty: dict[str, float],
+    fb: Feedback,
+) -> tuple[list[tuple[str, list[Detection], str]], dict[str, list[Window]], tuple[float, float] | None]:
     """Detect in a few pilot photos with the stated uncertainty, measure the flight's common
     offset there, then search the rest in windows sized by what was measured."""
     windows = dict(plan.windows)
@@ -344,12 +382,19 @@ def _search(plan: _Plan, pool: Executor | None, workers: int, dictionary: str, i
     offset = _flight_offset(results, windows, plan.cams, dict(zip(plan.names, plan.xyz)))
     if offset is not None:
         shift_m, residual_m, n_used = offset
-        fb.info(f"flight offset from {n_used} detections in {len(pilot)} photos: {shift_m[0]:+.2f} m E, "
-                f"{shift_m[1]:+.2f} m N; windows sized for a {residual_m:.1f} m residual "
-                f"(wide fallback: the stated uncertainty)")
-        narrowed = predict_windows([plan.cams[im] for im in rest], plan.names,
-                                   plan.xyz + [shift_m[0], shift_m[1], 0.0], ids, residual_m=residual_m,
-                                   **uncertainty)
+        fb.info(
+            f"flight offset from {n_used} detections in {len(pilot)} photos: {shift_m[0]:+.2f} m E, "
+            f"{shift_m[1]:+.2f} m N; windows sized for a {residual_m:.1f} m residual "
+            f"(wide fallback: the stated uncertainty)"
+        )
+        narrowed = predict_windows(
+            [plan.cams[im] for im in rest],
+            plan.names,
+            plan.xyz + [shift_m[0], shift_m[1], 0.0],
+            ids,
+            residual_m=residual_m,
+            **uncertainty,
+        )
         for im in rest:
             windows.pop(im)
         windows.update(narrowed)
@@ -362,8 +407,9 @@ def _has_pose(p: Photo) -> bool:
     return p.has_gps and p.has_altitude and math.isfinite(p.focal_px)
 
 
-def _pilot_images(images: list[str], windows: dict[str, list[Window]], cams: dict[str, PhotoCamera],
-                  workers: int) -> list[str]:
+def _pilot_images(
+    images: list[str], windows: dict[str, list[Window]], cams: dict[str, PhotoCamera], workers: int
+) -> list[str]:
     """The photos searched first to measure the flight's offset: those with the most
     predictions well inside the frame. None when the flight is too small to gain."""
     n = max(4, 2 * (workers or os.cpu_count() or 1))
@@ -378,9 +424,12 @@ def _pilot_images(images: list[str], windows: dict[str, list[Window]], cams: dic
     return [im for im in images if im in set(ranked[:n])]  # keep the flight order
 
 
-def _flight_offset(results: list[tuple[str, list[Detection], str]], windows: dict[str, list[Window]],
-                   cams: dict[str, PhotoCamera], xyz_of: dict[str, np.ndarray],
-                   ) -> tuple[np.ndarray, float, int] | None:
+def _flight_offset(
+    results: list[tuple[str, list[Detection], str]],
+    windows: dict[str, list[Window]],
+    cams: dict[str, PhotoCamera],
+    xyz_of: dict[str, np.ndarray],
+) -> tuple[np.ndarray, float, int] | None:
     """The flight's common ground offset of the predictions and the largest residual, metres.
 
     A detected marker's ray, cast from the recorded pose onto the GCP's height,
@@ -413,14 +462,22 @@ def _flight_offset(results: list[tuple[str, list[Detection], str]], windows: dic
 
 def _nearest(dets: list[Detection], k: int, win: Window) -> tuple[Detection, float] | None:
     """The detection of window ``k``'s own id nearest its prediction, and how far it is (px)."""
-    mine = [(d, math.hypot(d.x_px - win.x_px, d.y_px - win.y_px)) for d in dets
-            if d.window == k and d.marker_id == win.marker_id]
+    mine = [
+        (d, math.hypot(d.x_px - win.x_px, d.y_px - win.y_px))
+        for d in dets
+        if d.window == k and d.marker_id == win.marker_id
+    ]
     return min(mine, key=lambda de: de[1]) if mine else None
 
 
-def _judge(results: list[tuple[str, list[Detection], str]],
-           windows: dict[str, list[Window]], ids: dict[str, int],
-           fb: Feedback, frames: dict[str, tuple[int, int]], margin_pct: float) -> list[Observation]:
+def _judge(
+    results: list[tuple[str, list[Detection], str]],
+    windows: dict[str, list[Window]],
+    ids: dict[str, int],
+    fb: Feedback,
+    frames: dict[str, tuple[int, int]],
+    margin_pct: float,
+) -> list[Observation]:
     """Turn raw detections into accepted observations and rejected candidates."""
     by_id = {v: k for k, v in ids.items()}
     obs: list[Observation] = []
@@ -435,16 +492,34 @@ def _judge(results: list[tuple[str, list[Detection], str]],
                 if d.marker_id in by_id:
                     seen.setdefault(d.marker_id, d)
                 else:
-                    obs.append(Observation(image, "", d.marker_id, WRONG_ID, x_px=d.x_px, y_px=d.y_px,
-                                           attempt=d.attempt))
+                    obs.append(
+                        Observation(image, "", d.marker_id, WRONG_ID, x_px=d.x_px, y_px=d.y_px, attempt=d.attempt)
+                    )
             for mid, d in sorted(seen.items()):
-                obs.append(Observation(image, by_id[mid], mid, DETECTED, x_px=d.x_px, y_px=d.y_px,
-                                       attempt=d.attempt, side_px=d.side_px, corners_px=d.corners_px))
+                obs.append(
+                    Observation(
+                        image,
+                        by_id[mid],
+                        mid,
+                        DETECTED,
+                        x_px=d.x_px,
+                        y_px=d.y_px,
+                        attempt=d.attempt,
+                        side_px=d.side_px,
+                        corners_px=d.corners_px,
+                    )
+                )
             continue
         for k, win in enumerate(wins):
             px, py = win.x_px, win.y_px
-            base = dict(image=image, gcp=win.gcp, marker_id=win.marker_id, predicted_x_px=px, predicted_y_px=py,
-                        window_px=win.max_radius_px)
+            base: dict[str, Any] = dict(
+                image=image,
+                gcp=win.gcp,
+                marker_id=win.marker_id,
+                predicted_x_px=px,
+                predicted_y_px=py,
+                window_px=win.max_radius_px,
+            )
             found = _nearest(dets, k, win)
             if found is None:
                 obs.append(Observation(**base, status=NOT_FOUND))
@@ -452,11 +527,22 @@ def _judge(results: list[tuple[str, list[Detection], str]],
             d, err = found
             status = DETECTED if err <= win.max_radius_px else TOO_FAR
             w, h = frames[image]
-            if status == DETECTED and not in_frame(d.x_px, d.y_px, w, h, w * margin_pct / 100.0,
-                                                   h * margin_pct / 100.0):
+            if status == DETECTED and not in_frame(
+                d.x_px, d.y_px, w, h, w * margin_pct / 100.0, h * margin_pct / 100.0
+            ):
                 status = IN_MARGIN
-            obs.append(Observation(**base, status=status, x_px=d.x_px, y_px=d.y_px, error_px=err,
-                                   attempt=d.attempt, side_px=d.side_px, corners_px=d.corners_px))
+            obs.append(
+                Observation(
+                    **base,
+                    status=status,
+                    x_px=d.x_px,
+                    y_px=d.y_px,
+                    error_px=err,
+                    attempt=d.attempt,
+                    side_px=d.side_px,
+                    corners_px=d.corners_px,
+                )
+            )
         # markers seen whose id is in no GCP file: recorded, never written
         for mid in sorted({d.marker_id for d in dets if d.marker_id not in by_id}):
             d = next(d for d in dets if d.marker_id == mid)
@@ -525,14 +611,14 @@ def write_detections(path: Path, observations: list[Observation], gcps: GcpSet) 
         wr.writeheader()
         wr.writerows(rows)
         return write_text(path, buf.getvalue())
-    geoms = [shapely.Point(by_name[o.gcp].x, by_name[o.gcp].y) if o.gcp in by_name else None
-             for o in observations]
+    geoms = [shapely.Point(by_name[o.gcp].x, by_name[o.gcp].y) if o.gcp in by_name else None for o in observations]
     gdf = gpd.GeoDataFrame(rows, geometry=geoms, crs=gcps.crs)
     return write_vector(path, {"detections": gdf})
 
 
-def write_review(path: Path, observations: list[Observation], paths: dict[str, Path],
-                 crop_px: int = 128, columns: int = 8) -> Path:
+def write_review(
+    path: Path, observations: list[Observation], paths: dict[str, Path], crop_px: int = 128, columns: int = 8
+) -> Path:
     """PNG contact sheet: a crop around each detection, centre marked, labelled GCP / image."""
     import cv2
 
@@ -546,7 +632,10 @@ def write_review(path: Path, observations: list[Observation], paths: dict[str, P
         img = cache.get(o.image)
         if img is None:
             cache.clear()  # one photo in memory at a time (observations are sorted by GCP)
-            img = cache[o.image] = cv2.imread(str(paths[o.image]), cv2.IMREAD_COLOR)
+            read = cv2.imread(str(paths[o.image]), cv2.IMREAD_COLOR)
+            if read is None:
+                continue  # a photo that cannot be read again is left off the contact sheet
+            img = cache[o.image] = read
         # crop scaled so the marker fills about half the tile
         scale = max(1.0, (crop_px * 0.5) / max(o.side_px, 1.0))
         m = np.array([[scale, 0, half - scale * o.x_px], [0, scale, half - scale * o.y_px]])
@@ -558,7 +647,7 @@ def write_review(path: Path, observations: list[Observation], paths: dict[str, P
         tiles.append(tile)
     if not tiles:
         tiles = [np.zeros((crop_px + 18, crop_px, 3), np.uint8)]
-    rows = [tiles[i:i + columns] for i in range(0, len(tiles), columns)]
+    rows = [tiles[i : i + columns] for i in range(0, len(tiles), columns)]
     blank = np.zeros_like(tiles[0])
     sheet = np.vstack([np.hstack(r + [blank] * (columns - len(r))) for r in rows])
     with atomic_path(path) as tmp:

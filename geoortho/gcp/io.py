@@ -109,14 +109,19 @@ def _crs_line(text: str, path: Path, line: int) -> CRS | None:
 
 def _check_geographic(name: str, lat: float, lon: float, path: Path, line: int) -> None:
     if abs(lat) > 90 and abs(lon) <= 90:
-        raise InputError(f"{name}: latitude {lat} is beyond ±90 while longitude {lon} is not: "
-                         "the columns look swapped (latitude comes first)", path=path, line=line)
+        raise InputError(
+            f"{name}: latitude {lat} is beyond ±90 while longitude {lon} is not: "
+            "the columns look swapped (latitude comes first)",
+            path=path,
+            line=line,
+        )
     if abs(lat) > 90 or abs(lon) > 180:
         raise InputError(f"{name}: latitude {lat} / longitude {lon} out of range", path=path, line=line)
 
 
-def _finish(points: list[GroundControlPoint], crs: CRS, path: Path,
-            observations: tuple[ImagePoint, ...] = ()) -> GcpSet:
+def _finish(
+    points: list[GroundControlPoint], crs: CRS, path: Path, observations: tuple[ImagePoint, ...] = ()
+) -> GcpSet:
     if not points:
         raise InputError("no GCP in the file", path=path)
     seen: dict[str, GroundControlPoint] = {}
@@ -127,8 +132,9 @@ def _finish(points: list[GroundControlPoint], crs: CRS, path: Path,
             seen[p.name] = p
             unique.append(p)
         elif max(abs(p.x - q.x), abs(p.y - q.y), abs(p.z - q.z)) > 1e-6:
-            raise InputError(f"GCP {p.name!r} appears again with other coordinates (first on line {q.line})",
-                             path=path, line=p.line)
+            raise InputError(
+                f"GCP {p.name!r} appears again with other coordinates (first on line {q.line})", path=path, line=p.line
+            )
     return GcpSet(tuple(unique), crs, path, observations)
 
 
@@ -162,8 +168,11 @@ def read_gcp_file(path: str | os.PathLike[str], crs: CRS | str | None = None) ->
     if any(h in _NAME_COLS for h in header) and not any(_is_number(h) for h in header):
         return _read_named_csv(lines, first, given, path)
     if given is None:
-        raise InputError("no CRS: the first line should be EPSG:xxxx, a PROJ string or 'WGS84 UTM 29N' "
-                         "(or give the CRS)", path=path, line=first + 1)
+        raise InputError(
+            "no CRS: the first line should be EPSG:xxxx, a PROJ string or 'WGS84 UTM 29N' (or give the CRS)",
+            path=path,
+            line=first + 1,
+        )
     return _read_text_rows(lines, first, given, path)
 
 
@@ -199,8 +208,7 @@ def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSe
             observations.append(ImagePoint(name, f[5], px, py, n))
             continue
         if len(f) < 3:
-            raise InputError(f"expected 'name x y z' (or 'name lat lon h'), got {len(f)} fields",
-                             path=path, line=n)
+            raise InputError(f"expected 'name x y z' (or 'name lat lon h'), got {len(f)} fields", path=path, line=n)
         name = f[0]
         a = _num(f[1], path, n, "latitude" if geographic else "x")
         b = _num(f[2], path, n, "longitude" if geographic else "y")
@@ -233,14 +241,20 @@ def _read_named_csv(lines: list[str], first: int, crs: CRS | None, path: Path) -
 
     i_name = col(_NAME_COLS)
     i_lat, i_lon = col(_COLS["lat"]), col(_COLS["lon"])
+    i_a: int | None
+    i_b: int | None
     if i_lat is not None and i_lon is not None:
         i_a, i_b, i_z, geographic = i_lon, i_lat, col(_COLS["alt"]), True
         crs = crs or WGS84_3D
     else:
         i_a, i_b, i_z, geographic = col(_COLS["x"]), col(_COLS["y"]), col(_COLS["z"]), False
         if i_a is None or i_b is None:
-            raise InputError(f"no coordinate columns in header {header}: expected lat/lon(/alt) or "
-                             "x/y/z or easting/northing/elevation", path=path, line=first + 1)
+            raise InputError(
+                f"no coordinate columns in header {header}: expected lat/lon(/alt) or "
+                "x/y/z or easting/northing/elevation",
+                path=path,
+                line=first + 1,
+            )
         if crs is None:
             raise InputError("projected coordinates but no CRS: give the CRS", path=path, line=first + 1)
     points = []
@@ -275,8 +289,7 @@ def _read_opensfm_json(text: str, path: Path) -> GcpSet:
                 lat, lon = float(pos["latitude"]), float(pos["longitude"])
                 alt = float(pos.get("altitude", 0.0))
             except (KeyError, TypeError, ValueError):
-                raise InputError(f"point {name!r}: position needs latitude, longitude (altitude)", path=path) \
-                    from None
+                raise InputError(f"point {name!r}: position needs latitude, longitude (altitude)", path=path) from None
             _check_geographic(name, lat, lon, path, 0)
             points.append(GroundControlPoint(name, lon, lat, alt, 0))
     if not points:

@@ -3,4 +3,12 @@
 from .cameras import OrthoCamera, cameras_from_metadata, cameras_from_sfm
 from .mosaic import MosaicOptions, OrthoResult, mosaic, ortho
 
-__all__ = ["MosaicOptions", "OrthoCamera", "OrthoResult", "cameras_from_metadata", "cameras_from_sfm", "mosaic", "ortho"]
+__all__ = [
+    "MosaicOptions",
+    "OrthoCamera",
+    "OrthoResult",
+    "cameras_from_metadata",
+    "cameras_from_sfm",
+    "mosaic",
+    "ortho",
+]

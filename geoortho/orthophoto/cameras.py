@@ -40,6 +40,7 @@ def _intrinsics_from_colmap(cam: Any) -> Intrinsics:
     p = [float(v) for v in cam.params]
     model = cam.model_name
     w, h = int(cam.width), int(cam.height)
+    dist: tuple[float, ...]
     if model == "SIMPLE_PINHOLE":
         f, cx, cy, dist = p[0], p[1], p[2], ()
     elif model == "PINHOLE":
@@ -52,8 +53,10 @@ def _intrinsics_from_colmap(cam: Any) -> Intrinsics:
         # Square pixels assumed: fx and fy of a drone camera differ by far less than a pixel over the frame.
         f, cx, cy, dist = (p[0] + p[1]) / 2, p[2], p[3], (p[4], p[5], p[6], p[7], 0.0)
     else:
-        raise InputError(f"COLMAP camera model {model} is not supported for orthorectification "
-                         "(use SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV)")
+        raise InputError(
+            f"COLMAP camera model {model} is not supported for orthorectification "
+            "(use SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV)"
+        )
     return Intrinsics(w, h, f, cx - 0.5, cy - 0.5, distortion=dist)
 
 
@@ -64,8 +67,9 @@ def _find_photo(images: Path, name: str, by_name: dict[str, Path]) -> Path | Non
     return by_name.get(Path(name).name)
 
 
-def cameras_from_sfm(sfm_dir: str | os.PathLike[str], images: str | os.PathLike[str],
-                     crs: CRS | None = None) -> tuple[list[OrthoCamera], CRS, np.ndarray, list[tuple[str, str]]]:
+def cameras_from_sfm(
+    sfm_dir: str | os.PathLike[str], images: str | os.PathLike[str], crs: CRS | str | None = None
+) -> tuple[list[OrthoCamera], CRS, np.ndarray, list[tuple[str, str]]]:
     """Registered photos of an ``sfm`` output, posed in its CRS (or ``crs``).
 
     Returns the cameras, the CRS, the georeferenced sparse points (N, 3) and the
@@ -84,8 +88,9 @@ def cameras_from_sfm(sfm_dir: str | os.PathLike[str], images: str | os.PathLike[
     except (ValueError, RuntimeError) as e:
         raise InputError(f"cannot read the SfM model: {e}", path=model) from None
     if not geo.get("crs"):
-        raise InputError("the SfM model is in a local frame (no CRS): an orthophoto needs a georeferenced model",
-                         path=geo_path)
+        raise InputError(
+            "the SfM model is in a local frame (no CRS): an orthophoto needs a georeferenced model", path=geo_path
+        )
     model_crs = parse_crs(geo["crs"])
     offset = np.asarray(geo.get("offset", [0.0, 0.0, 0.0]), float)
     out_crs = model_crs if crs is None else parse_crs(crs)
@@ -134,14 +139,21 @@ def _moved(tr: Any, centre: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np
     return c, (u @ vt) @ rot
 
 
-def cameras_from_metadata(photos: Sequence[Any], crs: CRS, surface: Any = None,
-                          takeoff_elevation_m: float | None = None, *, flight_height_m: float | None = None,
-                          gps_altitude: GpsAltitude = "auto") -> tuple[list[OrthoCamera], Any]:
+def cameras_from_metadata(
+    photos: Sequence[Any],
+    crs: CRS,
+    surface: Any = None,
+    takeoff_elevation_m: float | None = None,
+    *,
+    flight_height_m: float | None = None,
+    gps_altitude: GpsAltitude = "auto",
+) -> tuple[list[OrthoCamera], Any]:
     """Direct georeferencing: poses from GPS, altitude and gimbal attitude (see :mod:`geoortho.footprint`).
     Returns the cameras and the flight's :class:`~geoortho.heights.HeightModel`."""
     from ..footprint import photo_cameras
 
-    pcs, heights = photo_cameras(photos, crs, surface, takeoff_elevation_m, flight_height_m=flight_height_m,
-                                 gps_altitude=gps_altitude)
+    pcs, heights = photo_cameras(
+        photos, crs, surface, takeoff_elevation_m, flight_height_m=flight_height_m, gps_altitude=gps_altitude
+    )
     cams = [OrthoCamera(c.photo.path.name, c.photo.path, c.intrinsics, c.pose) for c in pcs]
     return cams, heights

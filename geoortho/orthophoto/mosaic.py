@@ -53,8 +53,12 @@ Compression = Literal["DEFLATE", "JPEG"]
 Interpolation = Literal["bilinear", "bicubic", "lanczos", "nearest"]
 BLEND: tuple[str, ...] = get_args(Blend)
 COMPRESS: tuple[str, ...] = get_args(Compression)
-_INTERPOLATION = {"bilinear": cv2.INTER_LINEAR, "bicubic": cv2.INTER_CUBIC, "lanczos": cv2.INTER_LANCZOS4,
-                  "nearest": cv2.INTER_NEAREST}
+_INTERPOLATION = {
+    "bilinear": cv2.INTER_LINEAR,
+    "bicubic": cv2.INTER_CUBIC,
+    "lanczos": cv2.INTER_LANCZOS4,
+    "nearest": cv2.INTER_NEAREST,
+}
 INTERPOLATION: tuple[str, ...] = get_args(Interpolation)
 _BANDS = 5  # multi-band levels: the lowest spans 2**5 px on each side of a seam
 _CACHE_BYTES = 600 * 2**20  # decoded photos kept per worker
@@ -182,8 +186,12 @@ class _Patch:
     valid: np.ndarray
 
 
-def _gather(patches: dict[int, _Patch], idx: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-            ) -> tuple[np.ndarray, np.ndarray]:
+def _gather(
+    patches: dict[int, _Patch],
+    idx: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """Photo ``idx[k]``'s colour at (rows[k], cols[k]) of the padded tile, and whether it has one."""
     out = np.zeros((len(idx), 3), np.float32)
     ok = np.zeros(len(idx), bool)
@@ -201,20 +209,30 @@ def _gather(patches: dict[int, _Patch], idx: np.ndarray, rows: np.ndarray, cols:
     return out, ok
 
 
-def _seam_stats(lab: np.ndarray, patches: dict[int, _Patch], gains: np.ndarray, result: np.ndarray,
-                core: tuple[slice, slice]) -> dict[str, float]:
+def _seam_stats(
+    lab: np.ndarray, patches: dict[int, _Patch], gains: np.ndarray, result: np.ndarray, core: tuple[slice, slice]
+) -> dict[str, float]:
     """Across each seam (neighbouring pixels owned by different photos, in the tile's core): how far
     the two photos' colours at the same ground point differ before and after the gains, and the
     output's step across seams against its step between other neighbours (texture)."""
-    stats = {"seam_n": 0.0, "seam_raw": 0.0, "seam_bal": 0.0, "step_seam": 0.0, "step_n": 0.0,
-             "step_other": 0.0, "other_n": 0.0}
+    stats = {
+        "seam_n": 0.0,
+        "seam_raw": 0.0,
+        "seam_bal": 0.0,
+        "step_seam": 0.0,
+        "step_n": 0.0,
+        "step_other": 0.0,
+        "other_n": 0.0,
+    }
     sub = lab[core]
     res = result[core].astype(np.float32)
     # Seams show as colour steps, not as noise or texture resampled differently: compare low-passed colours.
     smooth = {i: _Patch(p.sl, cv2.GaussianBlur(p.bgr, (0, 0), 2.0), p.valid) for i, p in patches.items()}
     r0, c0 = core[0].start, core[1].start
-    for a, b, ra, rb in ((sub[:, :-1], sub[:, 1:], res[:, :-1], res[:, 1:]),
-                         (sub[:-1, :], sub[1:, :], res[:-1, :], res[1:, :])):
+    for a, b, ra, rb in (
+        (sub[:, :-1], sub[:, 1:], res[:, :-1], res[:, 1:]),
+        (sub[:-1, :], sub[1:, :], res[:-1, :], res[1:, :]),
+    ):
         both = (a >= 0) & (b >= 0)
         seam = both & (a != b)
         other = both & (a == b)
@@ -248,7 +266,7 @@ def _fill_holes(bgr: np.ndarray, holes: np.ndarray, max_hole_px: int) -> np.ndar
     # Half-width of each hole: the largest distance from inside it to its edge.
     dist = cv2.distanceTransform(h8, cv2.DIST_L2, 3)
     widest = np.zeros(n, np.float32)
-    np.maximum.at(widest, comp.ravel(), dist.ravel())
+    np.maximum.at(widest, np.asarray(comp, np.intp).ravel(), dist.ravel())
     small = 2.0 * widest <= max_hole_px
     small[0] = False
     fill = small[comp] & holes
@@ -288,7 +306,7 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     # The plan's owner where it sees the pixel at full resolution, else the best photo that does.
     lab = np.where(planned_ok, planned, best_lab).astype(np.int16)
 
-    radius = 2 ** _BANDS if ctx.blend == "multiband" else (8 if ctx.blend == "feather" else 0)
+    radius = 2**_BANDS if ctx.blend == "multiband" else (8 if ctx.blend == "feather" else 0)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 1, 2 * radius + 1)) if radius else None
     patches: dict[int, _Patch] = {}
     for i in np.unique(lab[lab >= 0]):
@@ -306,18 +324,19 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     out = np.zeros(shape + (3,), np.uint8)
     labelled = lab >= 0
     if ctx.blend == "none" or len(patches) == 1:
-        for i, p in patches.items():
-            m = lab[p.sl] == i
-            out[p.sl][m] = np.clip(p.bgr[m] * gains[i] + 0.5, 0, 255).astype(np.uint8)
+        for i, patch in patches.items():
+            m = lab[patch.sl] == i
+            out[patch.sl][m] = np.clip(patch.bgr[m] * gains[i] + 0.5, 0, 255).astype(np.uint8)
     elif patches:
-        blender = cv2.detail_MultiBandBlender(0, _BANDS) if ctx.blend == "multiband" else \
-            cv2.detail_FeatherBlender(0.05)
+        blender = (
+            cv2.detail.MultiBandBlender(0, _BANDS) if ctx.blend == "multiband" else cv2.detail.FeatherBlender(0.05)
+        )
         blender.prepare((0, 0, shape[1], shape[0]))
-        for i, p in patches.items():
-            m = ((lab[p.sl] == i) & p.valid).astype(np.uint8) * 255
-            img16 = np.clip(p.bgr * gains[i] + 0.5, 0, 255).astype(np.int16)
-            blender.feed(img16, m, (p.sl[1].start, p.sl[0].start))
-        res, _ = blender.blend(None, None)
+        for i, patch in patches.items():
+            m = ((lab[patch.sl] == i) & patch.valid).astype(np.uint8) * 255
+            img16 = np.clip(patch.bgr * gains[i] + 0.5, 0, 255).astype(np.int16)
+            blender.feed(img16, m, (patch.sl[1].start, patch.sl[0].start))
+        res, _ = blender.blend(None, None)  # type: ignore[call-overload]  # OpenCV allocates the outputs
         res = res.get() if isinstance(res, cv2.UMat) else np.asarray(res)
         out[labelled] = np.clip(res[: shape[0], : shape[1]][labelled], 0, 255).astype(np.uint8)
     stats = _seam_stats(lab, patches, gains, out, core)
@@ -325,8 +344,11 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     filled = _fill_holes(out, holes, ctx.max_hole_px)
     alpha = labelled | filled
     out[~alpha] = 0
-    stats.update(coverage=float(coverage[core].sum()), filled=float(filled[core].sum()),
-                 holes_left=float((holes & ~filled)[core].sum()))
+    stats.update(
+        coverage=float(coverage[core].sum()),
+        filled=float(filled[core].sum()),
+        holes_left=float((holes & ~filled)[core].sum()),
+    )
     rgba = np.empty((4, win.height, win.width), np.uint8)
     rgba[0], rgba[1], rgba[2] = out[core][..., 2], out[core][..., 1], out[core][..., 0]
     rgba[3] = np.where(alpha[core], 255, 0)
@@ -338,8 +360,11 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
 # the whole mosaic
 
 
-def _grid(boxes: Sequence[tuple[float, float, float, float]], surface: Surface, resolution_m: float,
-          ) -> tuple[Affine, tuple[int, int]]:
+def _grid(
+    boxes: Sequence[tuple[float, float, float, float]],
+    surface: Surface,
+    resolution_m: float,
+) -> tuple[Affine, tuple[int, int]]:
     xmin = min(b[0] for b in boxes)
     ymin = min(b[1] for b in boxes)
     xmax = max(b[2] for b in boxes)
@@ -370,10 +395,15 @@ class MosaicOptions:
     workers: int = 0
 
     def check(self) -> None:
-        if self.seams not in SEAMS or self.balance not in BALANCE or self.blend not in BLEND \
-                or self.compress.upper() not in COMPRESS:
-            raise InputError(f"choose seams from {SEAMS}, balance from {BALANCE}, blend from {BLEND}, "
-                             f"compress from {COMPRESS}")
+        if (
+            self.seams not in SEAMS
+            or self.balance not in BALANCE
+            or self.blend not in BLEND
+            or self.compress.upper() not in COMPRESS
+        ):
+            raise InputError(
+                f"choose seams from {SEAMS}, balance from {BALANCE}, blend from {BLEND}, compress from {COMPRESS}"
+            )
         if self.interpolation not in _INTERPOLATION:
             raise InputError(f"interpolation {self.interpolation!r} is not one of {', '.join(INTERPOLATION)}")
 
@@ -411,28 +441,55 @@ def mosaic(
     transform, shape = _grid(placed.boxes, surface, resolution_m)
     if shape[0] * shape[1] > 4e9:
         raise InputError(f"the mosaic would be {shape[1]}x{shape[0]} px: give a coarser resolution")
-    vis = tuple(visibility_grid(cam, surface, box) if options.occlusion and isinstance(surface, GridSurface) else None
-                for cam, box in zip(placed.cams, placed.boxes))
+    vis = tuple(
+        visibility_grid(cam, surface, box) if options.occlusion and isinstance(surface, GridSurface) else None
+        for cam, box in zip(placed.cams, placed.boxes)
+    )
     times["visibility"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
     # Seams and gains are decided on cells 8x coarser (and no more than 2 Mpx): the graph cut's time
     # grows with the cells in the seam bands.
     factor = max(8, int(math.ceil(math.sqrt(shape[0] * shape[1] / 2.0e6))))
-    plan = plan_seams(list(placed.cams), list(placed.boxes), list(placed.gsds), surface, list(vis), transform, shape,
-                      factor, seams=options.seams, balance=options.balance, feedback=st_plan)
+    plan = plan_seams(
+        list(placed.cams),
+        list(placed.boxes),
+        list(placed.gsds),
+        surface,
+        list(vis),
+        transform,
+        shape,
+        factor,
+        seams=options.seams,
+        balance=options.balance,
+        feedback=st_plan,
+    )
     skipped += plan.skipped
     notes.extend(plan.notes)
     bad = {name for name, _ in plan.skipped}
-    box_windows = tuple(None if c.name in bad else bounds_window(transform, shape, b)
-                        for c, b in zip(placed.cams, placed.boxes))
+    box_windows = tuple(
+        None if c.name in bad else bounds_window(transform, shape, b) for c, b in zip(placed.cams, placed.boxes)
+    )
     times["seams_and_balance"] = time.perf_counter() - t1
-    fb.info(f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(placed.cams) - len(bad)} photos; "
-            f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}")
+    fb.info(
+        f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(placed.cams) - len(bad)} photos; "
+        f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}"
+    )
 
     t2 = time.perf_counter()
-    ctx = _Context(placed.cams, box_windows, vis, surface, transform, shape, plan, options.blend,
-                   int(options.max_hole_px), 2 ** (_BANDS + 1), _INTERPOLATION[options.interpolation])
+    ctx = _Context(
+        placed.cams,
+        box_windows,
+        vis,
+        surface,
+        transform,
+        shape,
+        plan,
+        options.blend,
+        int(options.max_hole_px),
+        2 ** (_BANDS + 1),
+        _INTERPOLATION[options.interpolation],
+    )
     output.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".{output.name}-", dir=output.parent) as work_dir:
         tiled = Path(work_dir) / "mosaic.tif"
@@ -453,23 +510,44 @@ def mosaic(
         fb.warning(notes[-1])
 
     result = OrthoResult(
-        output=output, preview=preview_path, report=output.with_name(output.stem + "_report.json"),
-        crs=crs_to_text(crs), resolution_m=resolution_m, median_gsd_m=median_gsd, width_px=shape[1],
-        height_px=shape[0], n_photos=len(cams), n_used=len(used), coverage_px=int(totals.get("coverage", 0)),
-        holes_filled_px=int(totals.get("filled", 0)), holes_left_px=int(totals.get("holes_left", 0)),
-        seam_mismatch_raw=raw, seam_mismatch_balanced=bal,
-        poses=poses, surface=_describe(surface), skipped=tuple(skipped), notes=tuple(notes), seconds=times,
+        output=output,
+        preview=preview_path,
+        report=output.with_name(output.stem + "_report.json"),
+        crs=crs_to_text(crs),
+        resolution_m=resolution_m,
+        median_gsd_m=median_gsd,
+        width_px=shape[1],
+        height_px=shape[0],
+        n_photos=len(cams),
+        n_used=len(used),
+        coverage_px=int(totals.get("coverage", 0)),
+        holes_filled_px=int(totals.get("filled", 0)),
+        holes_left_px=int(totals.get("holes_left", 0)),
+        seam_mismatch_raw=raw,
+        seam_mismatch_balanced=bal,
+        poses=poses,
+        surface=_describe(surface),
+        skipped=tuple(skipped),
+        notes=tuple(notes),
+        seconds=times,
     )
-    write_json(result.report, {
-        **{k: v for k, v in result.__dict__.items() if k not in ("skipped", "notes")},
-        "skipped": [{"image": n, "reason": w} for n, w in skipped], "notes": list(notes),
-        "seam_step_dn": ratio("step_seam", "step_n"), "texture_step_dn": ratio("step_other", "other_n"),
-        "seam_pixels": int(totals.get("seam_n", 0)),
-        "gains_bgr": {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)},
-        "seconds_total": time.perf_counter() - t0,
-    })
-    fb.info(f"ortho: {output} ({shape[1]}x{shape[0]} px, {result.n_used} photos used); seam mismatch "
-            f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing")
+    write_json(
+        result.report,
+        {
+            **{k: v for k, v in result.__dict__.items() if k not in ("skipped", "notes")},
+            "skipped": [{"image": n, "reason": w} for n, w in skipped],
+            "notes": list(notes),
+            "seam_step_dn": ratio("step_seam", "step_n"),
+            "texture_step_dn": ratio("step_other", "other_n"),
+            "seam_pixels": int(totals.get("seam_n", 0)),
+            "gains_bgr": {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)},
+            "seconds_total": time.perf_counter() - t0,
+        },
+    )
+    fb.info(
+        f"ortho: {output} ({shape[1]}x{shape[0]} px, {result.n_used} photos used); seam mismatch "
+        f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing"
+    )
     return result
 
 
@@ -516,8 +594,9 @@ def _place(cams: Sequence[OrthoCamera], surface: Surface, fb: Feedback) -> _Plac
     return _Placed(tuple(kept), tuple(boxes), tuple(gsds), tuple(skipped))
 
 
-def _resolution(resolution_m: float | None, gsds: Sequence[float], notes: list[str],
-                fb: Feedback) -> tuple[float, float]:
+def _resolution(
+    resolution_m: float | None, gsds: Sequence[float], notes: list[str], fb: Feedback
+) -> tuple[float, float]:
     """The pixel size (given, else the median GSD to 3 digits) and the median GSD, metres."""
     finite = [g for g in gsds if math.isfinite(g)]
     median_gsd = float(np.median(finite)) if finite else math.nan
@@ -527,16 +606,19 @@ def _resolution(resolution_m: float | None, gsds: Sequence[float], notes: list[s
         resolution_m = float(f"{median_gsd:.3g}")
         fb.info(f"resolution {resolution_m * 100:.2f} cm: the median GSD")
     elif math.isfinite(median_gsd) and resolution_m < 0.95 * median_gsd:
-        notes.append(f"the resolution {resolution_m * 100:.2f} cm is finer than the photos' median GSD "
-                     f"{median_gsd * 100:.2f} cm: pixels are interpolated, not resolved")
+        notes.append(
+            f"the resolution {resolution_m * 100:.2f} cm is finer than the photos' median GSD "
+            f"{median_gsd * 100:.2f} cm: pixels are interpolated, not resolved"
+        )
         fb.warning(notes[-1])
     if resolution_m <= 0:
         raise InputError("the resolution must be positive")
     return resolution_m, median_gsd
 
 
-def _render(ctx: _Context, crs: CRS, target: Path, options: MosaicOptions,
-            progress: Feedback) -> tuple[dict[str, float], set[int]]:
+def _render(
+    ctx: _Context, crs: CRS, target: Path, options: MosaicOptions, progress: Feedback
+) -> tuple[dict[str, float], set[int]]:
     """Every tile rendered (in parallel) into the tiled GeoTIFF ``target``.
 
     Returns the tiles' summed statistics and the photos used."""
@@ -545,17 +627,31 @@ def _render(ctx: _Context, crs: CRS, target: Path, options: MosaicOptions,
     from rasterio.windows import Window as RioWindow
 
     shape, tile_px = ctx.shape, options.tile_px
-    tiles = [Window(r, c, min(tile_px, shape[0] - r), min(tile_px, shape[1] - c))
-             for r in range(0, shape[0], tile_px) for c in range(0, shape[1], tile_px)]
+    tiles = [
+        Window(r, c, min(tile_px, shape[0] - r), min(tile_px, shape[1] - c))
+        for r in range(0, shape[0], tile_px)
+        for c in range(0, shape[1], tile_px)
+    ]
     totals: dict[str, float] = {}
     used: set[int] = set()
-    profile = {"driver": "GTiff", "width": shape[1], "height": shape[0], "count": 4, "dtype": "uint8",
-               "crs": crs, "transform": ctx.transform, "tiled": True, "blockxsize": 512, "blockysize": 512,
-               "BIGTIFF": "IF_SAFER"}
+    profile = {
+        "driver": "GTiff",
+        "width": shape[1],
+        "height": shape[0],
+        "count": 4,
+        "dtype": "uint8",
+        "crs": crs,
+        "transform": ctx.transform,
+        "tiled": True,
+        "blockxsize": 512,
+        "blockysize": 512,
+        "BIGTIFF": "IF_SAFER",
+    }
     with rasterio.open(target, "w", **profile) as dst:
         dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-        for win, rgba, stats in imap_ordered(_render_tile, tiles, workers=options.workers,
-                                             initializer=_init_worker, initargs=(ctx,), feedback=progress):
+        for win, rgba, stats in imap_ordered(
+            _render_tile, tiles, workers=options.workers, initializer=_init_worker, initargs=(ctx,), feedback=progress
+        ):
             dst.write(rgba, window=RioWindow(win.col0, win.row0, win.width, win.height))
             used |= stats.pop("used")  # type: ignore[arg-type]
             for k, v in stats.items():
@@ -575,8 +671,14 @@ def _write_cog(src_path: Path, target: Path, compress: str) -> None:
     import rasterio
     from rasterio.shutil import copy as rio_copy
 
-    opts: dict[str, Any] = {"driver": "COG", "compress": compress, "blocksize": 512, "BIGTIFF": "IF_SAFER",
-                            "overview_resampling": "average", "num_threads": "ALL_CPUS"}
+    opts: dict[str, Any] = {
+        "driver": "COG",
+        "compress": compress,
+        "blocksize": 512,
+        "BIGTIFF": "IF_SAFER",
+        "overview_resampling": "average",
+        "num_threads": "ALL_CPUS",
+    }
     with atomic_path(target) as tmp:
         if compress == "JPEG":
             rgb_mask = src_path.with_name("rgb_mask.tif")
@@ -725,8 +827,10 @@ def ortho(
         cams, default_ground, poses = None, None, "photo metadata (direct georeferencing)"
     if abs(horizontal_unit_m(out_crs) - 1.0) > 1e-9:
         # poses, heights and resolution_m are metres: a feet grid would be silently mis-scaled
-        raise InputError(f"the orthophoto is made in a CRS in metres and {crs_to_text(out_crs)} is not: "
-                         "give crs in metres (and reproject the product if feet are wanted)")
+        raise InputError(
+            f"the orthophoto is made in a CRS in metres and {crs_to_text(out_crs)} is not: "
+            "give crs in metres (and reproject the product if feet are wanted)"
+        )
     surface: Surface
     if dsm is not None:
         surface = _read_dsm(Path(dsm), out_crs, fb, notes)
@@ -738,25 +842,51 @@ def ortho(
     else:
         surface = None  # type: ignore[assignment]
     if cams is None:
-        cams, heights = cameras_from_metadata(photoset.photos, out_crs, surface, takeoff_elevation_m,
-                                              flight_height_m=flight_height_m, gps_altitude=gps_altitude)
+        cams, heights = cameras_from_metadata(
+            photoset.photos,
+            out_crs,
+            surface,
+            takeoff_elevation_m,
+            flight_height_m=flight_height_m,
+            gps_altitude=gps_altitude,
+        )
         surface = heights.surface
         notes.append(f"heights: {heights.method}; vertical datum: {heights.datum}")
         for note in heights.notes:
             notes.append(note)
             fb.warning(note)
-    elif dsm is not None and pts is not None and len(pts):
+    elif isinstance(surface, GridSurface) and pts is not None and len(pts):
         surface = _check_dsm_against_points(surface, pts, dsm_offset, max_dsm_offset_m, notes, fb)
     if len(cams) == 0:
         raise InputError("no registered photo to rectify", path=sfm or images)
-    options = MosaicOptions(seams=seams, balance=balance, blend=blend, max_hole_px=max_hole_px, compress=compress,
-                            interpolation=interpolation, tile_px=tile_px, workers=workers)
-    return mosaic(cams, surface, out_crs, output, resolution_m, options, preview=preview, poses=poses, notes=notes,
-                  skipped=skipped, feedback=fb)
+    options = MosaicOptions(
+        seams=seams,
+        balance=balance,
+        blend=blend,
+        max_hole_px=max_hole_px,
+        compress=compress,
+        interpolation=interpolation,
+        tile_px=tile_px,
+        workers=workers,
+    )
+    return mosaic(
+        cams,
+        surface,
+        out_crs,
+        output,
+        resolution_m,
+        options,
+        preview=preview,
+        poses=poses,
+        notes=notes,
+        skipped=skipped,
+        feedback=fb,
+    )
 
 
-def _check_dsm_against_points(surface: GridSurface, pts: np.ndarray, how: str, max_offset_m: float,
-                              notes: list[str], fb: Feedback) -> GridSurface:
+def _check_dsm_against_points(
+    surface: GridSurface, pts: np.ndarray, how: str, max_offset_m: float, notes: list[str], fb: Feedback
+) -> GridSurface:
     """Measure the DSM's vertical offset from the SfM points (median of point − DSM over the points
     inside it; the sparse points lie on the surface, roofs and trees included). Beyond
     ``max_offset_m``: move the DSM onto the points (correct), refuse, or only say it (ignore)."""
@@ -773,8 +903,10 @@ def _check_dsm_against_points(surface: GridSurface, pts: np.ndarray, how: str, m
     d = pts[ok, 2] - dsm_z[ok]
     offset = float(np.median(d))
     spread = float(1.4826 * np.median(np.abs(d - offset)))
-    text = (f"DSM vs SfM points: the DSM is {-offset:+.2f} m off the points (median of {int(ok.sum())}, "
-            f"spread {spread:.2f} m)")
+    text = (
+        f"DSM vs SfM points: the DSM is {-offset:+.2f} m off the points (median of {int(ok.sum())}, "
+        f"spread {spread:.2f} m)"
+    )
     if abs(offset) <= max_offset_m:
         notes.append(text)
         fb.info(text)

@@ -34,15 +34,22 @@ def read_on_grid(path: str | os.PathLike[str], like: str | os.PathLike[str]) -> 
     from rasterio.vrt import WarpedVRT
 
     with rasterio.open(like) as ref, rasterio.open(path) as src:
-        with WarpedVRT(src, crs=ref.crs, transform=ref.transform, width=ref.width, height=ref.height,
-                       resampling=Resampling.bilinear) as vrt:
+        with WarpedVRT(
+            src,
+            crs=ref.crs,
+            transform=ref.transform,
+            width=ref.width,
+            height=ref.height,
+            resampling=Resampling.bilinear,
+        ) as vrt:
             rgb = vrt.read((1, 2, 3))
             mask = vrt.dataset_mask() > 0
     return rgb, mask
 
 
-def geolocation_shifts(ortho: str | os.PathLike[str], reference: str | os.PathLike[str], tile_px: int = 256,
-                       min_response: float = 0.05) -> list[TileShift]:
+def geolocation_shifts(
+    ortho: str | os.PathLike[str], reference: str | os.PathLike[str], tile_px: int = 256, min_response: float = 0.05
+) -> list[TileShift]:
     """Phase-correlate the orthophoto with the reference tile by tile (tiles fully covered by both
     and with texture); a positive dx means the orthophoto shows things east of where the reference does."""
     import rasterio
@@ -59,10 +66,10 @@ def geolocation_shifts(ortho: str | os.PathLike[str], reference: str | os.PathLi
     rows, cols = gray.shape
     for r in range(0, rows - tile_px + 1, tile_px):
         for c in range(0, cols - tile_px + 1, tile_px):
-            if not (mask[r:r + tile_px, c:c + tile_px].all() and ref_mask[r:r + tile_px, c:c + tile_px].all()):
+            if not (mask[r : r + tile_px, c : c + tile_px].all() and ref_mask[r : r + tile_px, c : c + tile_px].all()):
                 continue
-            a = gray_ref[r:r + tile_px, c:c + tile_px]
-            b = gray[r:r + tile_px, c:c + tile_px]
+            a = gray_ref[r : r + tile_px, c : c + tile_px]
+            b = gray[r : r + tile_px, c : c + tile_px]
             if a.std() < 2.0:
                 continue
             (sx, sy), resp = cv2.phaseCorrelate(a, b, window)

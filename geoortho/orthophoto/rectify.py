@@ -25,8 +25,7 @@ from affine import Affine
 from ..surface import FlatSurface, GridSurface, Surface, sample_grid
 from .cameras import OrthoCamera
 
-__all__ = ["Window", "VisibilityGrid", "visibility_grid", "window_xyz", "project_window", "keep_best",
-           "remap_bgr"]
+__all__ = ["Window", "VisibilityGrid", "visibility_grid", "window_xyz", "project_window", "keep_best", "remap_bgr"]
 
 _REMAP_MAX = 32000  # cv2.remap wants map sides below SHRT_MAX
 
@@ -54,7 +53,9 @@ class Window:
         return slice(r, r + self.height), slice(c, c + self.width)
 
 
-def bounds_window(transform: Affine, shape: tuple[int, int], bounds: tuple[float, float, float, float]) -> Window | None:
+def bounds_window(
+    transform: Affine, shape: tuple[int, int], bounds: tuple[float, float, float, float]
+) -> Window | None:
     """The grid cells touching ``bounds`` (xmin, ymin, xmax, ymax), clipped to the grid."""
     xmin, ymin, xmax, ymax = bounds
     res = transform.a
@@ -79,8 +80,9 @@ class VisibilityGrid:
         return sample_grid(self.grid, (x - t.c) / t.a - 0.5, (y - t.f) / t.e - 0.5)
 
 
-def visibility_grid(cam: OrthoCamera, surface: GridSurface, bounds: tuple[float, float, float, float],
-                    tolerance_m: float = 0.05) -> VisibilityGrid | None:
+def visibility_grid(
+    cam: OrthoCamera, surface: GridSurface, bounds: tuple[float, float, float, float], tolerance_m: float = 0.05
+) -> VisibilityGrid | None:
     """Line of sight from each DSM cell in ``bounds`` to the camera, marched over the DSM."""
     win = bounds_window(surface.transform, surface.grid.shape, bounds)
     if win is None:
@@ -142,8 +144,9 @@ class Projection:
     cost: np.ndarray  # float32: lower is preferred (see preference_cost)
 
 
-def preference_cost(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
-                    map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+def preference_cost(
+    cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
+) -> np.ndarray:
     """How badly this photo sees each ground point: the tangent of the line of sight's angle from
     the vertical (relief displacement and smear grow with it) plus the distance from the principal
     point over the half-diagonal (vignetting and distortion grow with that)."""
@@ -158,8 +161,12 @@ def preference_cost(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarra
     return off_vertical + np.float32(0.5) * np.sqrt(u * u + v * v) / half_diag
 
 
-def project_grid(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def project_grid(
+    cam: OrthoCamera,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel column, row and depth (float32, the grid's shape) of ground points: the camera model of
     :func:`geoortho.camera.project_points` written out per component, so that a million points cost
     a few array passes (offsets from the camera are taken in float64 first: CRS coordinates are large)."""
@@ -191,15 +198,27 @@ def project_grid(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
     return mx, my, zc
 
 
-def project_window(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
-                   visibility: VisibilityGrid | None, margin_px: float = 1.0) -> Projection:
+def project_window(
+    cam: OrthoCamera,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    visibility: VisibilityGrid | None,
+    margin_px: float = 1.0,
+) -> Projection:
     """Project the window's ground points into ``cam``."""
     ok = np.isfinite(z)
     mx, my, depth = project_grid(cam, x, y, np.where(ok, z, 0.0))
     intr = cam.intrinsics
     with np.errstate(invalid="ignore"):
-        in_frame = (ok & (depth > 0) & (mx >= margin_px - 0.5) & (my >= margin_px - 0.5)
-                    & (mx <= intr.width_px - 0.5 - margin_px) & (my <= intr.height_px - 0.5 - margin_px))
+        in_frame = (
+            ok
+            & (depth > 0)
+            & (mx >= margin_px - 0.5)
+            & (my >= margin_px - 0.5)
+            & (mx <= intr.width_px - 0.5 - margin_px)
+            & (my <= intr.height_px - 0.5 - margin_px)
+        )
     valid = in_frame.copy()
     if visibility is not None and valid.any():
         v = visibility.sample(x[valid], y[valid])
@@ -209,16 +228,16 @@ def project_window(cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray
     return Projection(mx, my, in_frame, valid, cost)
 
 
-def keep_best(best: np.ndarray, labels: np.ndarray, sl: tuple[slice, slice], cost: np.ndarray,
-              index: int) -> None:
+def keep_best(best: np.ndarray, labels: np.ndarray, sl: tuple[slice, slice], cost: np.ndarray, index: int) -> None:
     """Give photo ``index`` the cells of ``best[sl]`` where its ``cost`` is lower (``labels`` too)."""
     better = cost < best[sl]
     best[sl][better] = cost[better]
     labels[sl][better] = index
 
 
-def remap_bgr(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpolation: int = cv2.INTER_LINEAR,
-              reduction: int = 1) -> np.ndarray:
+def remap_bgr(
+    image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpolation: int = cv2.INTER_LINEAR, reduction: int = 1
+) -> np.ndarray:
     """Sample a photo (rows, cols, 3) at full-resolution pixel coordinates; ``reduction`` when the
     photo was decoded at 1/reduction of its size."""
     if reduction != 1:
@@ -228,8 +247,14 @@ def remap_bgr(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpola
         out = np.empty(map_x.shape + (3,), image.dtype)
         for r in range(0, map_x.shape[0], 8192):
             for c in range(0, map_x.shape[1], 8192):
-                out[r:r + 8192, c:c + 8192] = remap_bgr(image, map_x[r:r + 8192, c:c + 8192],
-                                                        map_y[r:r + 8192, c:c + 8192], interpolation)
+                out[r : r + 8192, c : c + 8192] = remap_bgr(
+                    image, map_x[r : r + 8192, c : c + 8192], map_y[r : r + 8192, c : c + 8192], interpolation
+                )
         return out
-    return cv2.remap(image, np.nan_to_num(map_x, nan=-1e4), np.nan_to_num(map_y, nan=-1e4), interpolation,
-                     borderMode=cv2.BORDER_REFLECT)
+    return cv2.remap(
+        image,
+        np.nan_to_num(map_x, nan=-1e4),
+        np.nan_to_num(map_y, nan=-1e4),
+        interpolation,
+        borderMode=cv2.BORDER_REFLECT,
+    )

@@ -55,10 +55,12 @@ class SeamPlan:
     def labels_for(self, out_transform: Affine, win: Window) -> np.ndarray:
         """The coarse labels read (nearest) at the centres of an output window's pixels."""
         res, cres = out_transform.a, self.transform.a
-        cols = np.floor(((np.arange(win.col0, win.col0 + win.width) + 0.5) * res + out_transform.c
-                         - self.transform.c) / cres).astype(np.int64)
-        rows = np.floor((self.transform.f - (out_transform.f - (np.arange(win.row0, win.row0 + win.height) + 0.5)
-                                             * res)) / cres).astype(np.int64)
+        cols = np.floor(
+            ((np.arange(win.col0, win.col0 + win.width) + 0.5) * res + out_transform.c - self.transform.c) / cres
+        ).astype(np.int64)
+        rows = np.floor(
+            (self.transform.f - (out_transform.f - (np.arange(win.row0, win.row0 + win.height) + 0.5) * res)) / cres
+        ).astype(np.int64)
         rows = np.clip(rows, 0, self.labels.shape[0] - 1)
         cols = np.clip(cols, 0, self.labels.shape[1] - 1)
         return self.labels[np.ix_(rows, cols)]
@@ -66,8 +68,12 @@ class SeamPlan:
 
 def read_photo_bgr(path: str, reduction: int = 1) -> np.ndarray:
     """Decode a photo (BGR uint8), optionally at 1/2, 1/4 or 1/8 size straight from the JPEG's DCT."""
-    flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
-            8: cv2.IMREAD_REDUCED_COLOR_8}[reduction]
+    flag = {
+        1: cv2.IMREAD_COLOR,
+        2: cv2.IMREAD_REDUCED_COLOR_2,
+        4: cv2.IMREAD_REDUCED_COLOR_4,
+        8: cv2.IMREAD_REDUCED_COLOR_8,
+    }[reduction]
     img = cv2.imread(str(path), flag | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise OSError("the image cannot be decoded")
@@ -94,8 +100,9 @@ class _View:
     cost: np.ndarray  # float32, inf where not valid
 
 
-def _coarse_view(i: int, cam: OrthoCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine,
-                 win: Window, gsd_m: float) -> _View:
+def _coarse_view(
+    i: int, cam: OrthoCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine, win: Window, gsd_m: float
+) -> _View:
     x, y, z = window_xyz(transform, win, surface)
     proj = project_window(cam, x, y, z, vis)
     reduction = 1
@@ -105,18 +112,30 @@ def _coarse_view(i: int, cam: OrthoCamera, surface: Surface, vis: VisibilityGrid
     img = read_photo_bgr(str(cam.path), reduction)
     want = (math.ceil(cam.intrinsics.height_px / reduction), math.ceil(cam.intrinsics.width_px / reduction))
     if abs(img.shape[0] - want[0]) > 1 or abs(img.shape[1] - want[1]) > 1:
-        raise OSError(f"decoded size {img.shape[1] * reduction}x{img.shape[0] * reduction} px is not the "
-                      f"camera's {cam.intrinsics.width_px}x{cam.intrinsics.height_px}")
-    sampled = remap_bgr(img, proj.map_x, proj.map_y, cv2.INTER_AREA if reduction > 1 else cv2.INTER_LINEAR,
-                        reduction)
+        raise OSError(
+            f"decoded size {img.shape[1] * reduction}x{img.shape[0] * reduction} px is not the "
+            f"camera's {cam.intrinsics.width_px}x{cam.intrinsics.height_px}"
+        )
+    sampled = remap_bgr(img, proj.map_x, proj.map_y, cv2.INTER_AREA if reduction > 1 else cv2.INTER_LINEAR, reduction)
     sampled[~proj.valid] = 0
     return _View(i, win, sampled, proj.valid, proj.cost)
 
 
-def plan_seams(cams: Sequence[OrthoCamera], boxes: Sequence[tuple[float, float, float, float] | None],
-               gsd_m: Sequence[float], surface: Surface, vis: Sequence[VisibilityGrid | None],
-               out_transform: Affine, out_shape: tuple[int, int], factor: int, *, seams: str = "graphcut",
-               balance: str = "channels", band_m: float = 4.0, feedback: Feedback | None = None) -> SeamPlan:
+def plan_seams(
+    cams: Sequence[OrthoCamera],
+    boxes: Sequence[tuple[float, float, float, float] | None],
+    gsd_m: Sequence[float],
+    surface: Surface,
+    vis: Sequence[VisibilityGrid | None],
+    out_transform: Affine,
+    out_shape: tuple[int, int],
+    factor: int,
+    *,
+    seams: str = "graphcut",
+    balance: str = "channels",
+    band_m: float = 4.0,
+    feedback: Feedback | None = None,
+) -> SeamPlan:
     """Coarse labels and gains for the mosaic on ``out_transform`` (cells ``factor`` times coarser)."""
     fb = as_feedback(feedback)
     cres = out_transform.a * factor
@@ -145,8 +164,9 @@ def plan_seams(cams: Sequence[OrthoCamera], boxes: Sequence[tuple[float, float, 
 
     notes: tuple[str, ...] = ()
     if balance != "none":
-        sol = solve_gains(views, len(cams), per_channel=balance == "channels",
-                          exposure=[_exposure(c.path) for c in cams])
+        sol = solve_gains(
+            views, len(cams), per_channel=balance == "channels", exposure=[_exposure(c.path) for c in cams]
+        )
         gains, notes = sol.gains, sol.notes
         if sol.exposure_seeded:
             notes += (f"gains seeded by the EXIF exposure of {sol.exposure_seeded} photos",)
@@ -173,9 +193,16 @@ class GainSolution:
     notes: tuple[str, ...] = ()
 
 
-def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min_overlap_px: int = 50,
-                prior_weight: float = 0.2, exposure: Sequence[float] | None = None,
-                max_gain: float = 2.0) -> GainSolution:
+def solve_gains(
+    views: Sequence[_View],
+    n: int,
+    *,
+    per_channel: bool = True,
+    min_overlap_px: int = 50,
+    prior_weight: float = 0.2,
+    exposure: Sequence[float] | None = None,
+    max_gain: float = 2.0,
+) -> GainSolution:
     """Per-photo gains (n, 3) BGR that make overlapping photos agree.
 
     Least squares on log colour means over each pairwise overlap, weighted by the overlap's size,
@@ -195,8 +222,14 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
             sa, sb = inter.slices(va.win), inter.slices(vb.win)
             ia, ib = va.image[sa], vb.image[sb]
             # both see it, neither is clipped (a saturated pixel says nothing about exposure)
-            both = (va.valid[sa] & vb.valid[sb] & (ia.max(axis=2) < 250) & (ib.max(axis=2) < 250)
-                    & (ia.min(axis=2) > 3) & (ib.min(axis=2) > 3))
+            both = (
+                va.valid[sa]
+                & vb.valid[sb]
+                & (ia.max(axis=2) < 250)
+                & (ib.max(axis=2) < 250)
+                & (ia.min(axis=2) > 3)
+                & (ib.min(axis=2) > 3)
+            )
             k = int(both.sum())
             if k < min_overlap_px:
                 continue
@@ -212,8 +245,11 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
             # How much brighter a photo comes out per unit of log exposure is the camera's tone
             # curve (1 in linear light, about 0.45 through an sRGB curve): fitted on the overlaps.
             le = np.where(ok, np.log(np.where(ok, ev, 1.0)), np.nan)
-            pairs = [(w, float(np.mean(d)), le[a] - le[b]) for a, b, w, d in rows
-                     if np.isfinite(le[a]) and np.isfinite(le[b])]
+            pairs = [
+                (w, float(np.mean(d)), le[a] - le[b])
+                for a, b, w, d in rows
+                if np.isfinite(le[a]) and np.isfinite(le[b])
+            ]
             den = sum(w * w * e * e for w, _, e in pairs)
             slope = float(np.clip(sum(w * w * d * e for w, d, e in pairs) / den, 0.0, 1.2)) if den > 1e-9 else 0.0
             if slope > 0.05:
@@ -233,8 +269,8 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
         rhs[r] = -w * d  # log g_a − log g_b = −(log m_a − log m_b)
         w_total += w
     lam = prior_weight * w_total / m
-    A[len(rows):, :] = np.eye(m) * lam
-    rhs[len(rows):, :] = lam * prior[used][:, None]
+    A[len(rows) :, :] = np.eye(m) * lam
+    rhs[len(rows) :, :] = lam * prior[used][:, None]
     if not per_channel:
         rhs[: len(rows)] = rhs[: len(rows)].mean(axis=1, keepdims=True)
     log_g, *_ = np.linalg.lstsq(A, rhs, rcond=None)
@@ -250,8 +286,10 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
     after = mismatch(log_g)
     notes: list[str] = []
     if after >= before:
-        notes.append(f"colour balance would not lower the overlaps' mismatch ({before:.4f} → {after:.4f} log units): "
-                     + ("gains from the EXIF exposure only" if seeded else "gains left at 1"))
+        notes.append(
+            f"colour balance would not lower the overlaps' mismatch ({before:.4f} → {after:.4f} log units): "
+            + ("gains from the EXIF exposure only" if seeded else "gains left at 1")
+        )
         log_g = np.repeat(prior[used][:, None], 3, axis=1)
         after = mismatch(log_g)
     for i, k in col.items():
@@ -259,8 +297,9 @@ def solve_gains(views: Sequence[_View], n: int, *, per_channel: bool = True, min
     return GainSolution(gains, before, after, seeded, tuple(notes))
 
 
-def _graph_cut(views: list[_View], labels: np.ndarray, cshape: tuple[int, int], band_px: int,
-               gains: np.ndarray) -> np.ndarray:
+def _graph_cut(
+    views: list[_View], labels: np.ndarray, cshape: tuple[int, int], band_px: int, gains: np.ndarray
+) -> np.ndarray:
     """Move each Voronoi seam, within ``band_px`` of where it was, onto a low-difference path."""
     full = Window(0, 0, *cshape)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
@@ -273,22 +312,22 @@ def _graph_cut(views: list[_View], labels: np.ndarray, cshape: tuple[int, int], 
         band = cv2.dilate(own, kernel) & v.valid.astype(np.uint8)
         # Cropped to the band: OpenCV cuts every pair whose rectangles overlap, over the whole overlap.
         x, y, w, h = cv2.boundingRect(band)
-        masks.append(cv2.UMat(np.ascontiguousarray(band[y:y + h, x:x + w]) * 255))
+        masks.append(cv2.UMat(np.ascontiguousarray(band[y : y + h, x : x + w] * 255)))  # type: ignore[call-overload]
         # Balanced colours: the cut should follow content, not exposure differences.
-        images.append(v.image[y:y + h, x:x + w].astype(np.float32) * gains[v.index])
+        images.append(v.image[y : y + h, x : x + w].astype(np.float32) * gains[v.index])
         corners.append((v.win.col0 + x, v.win.row0 + y))
         used.append((v, (y, x, h, w)))
     if len(used) < 2:
         return labels
-    finder = cv2.detail_GraphCutSeamFinder("COST_COLOR_GRAD")
+    finder = cv2.detail.GraphCutSeamFinder("COST_COLOR_GRAD")
     cut = finder.find(images, corners, masks)
     # Owners after the cut; cells claimed by several (or by none) keep the best-seeing photo among them.
     out_best = np.full(cshape, np.inf, np.float32)
     out = np.full(cshape, -1, np.int16)
     for (v, (y, x, h, w)), m in zip(used, cut):
-        m = (m.get() if isinstance(m, cv2.UMat) else np.asarray(m)) > 0
+        seam_mask = (m.get() if isinstance(m, cv2.UMat) else np.asarray(m)) > 0
         sl = Window(v.win.row0 + y, v.win.col0 + x, h, w).slices(full)
-        keep_best(out_best, out, sl, np.where(m, v.cost[y:y + h, x:x + w], np.inf), v.index)
+        keep_best(out_best, out, sl, np.where(seam_mask, v.cost[y : y + h, x : x + w], np.inf), v.index)
     unclaimed = (out < 0) & (labels >= 0)
     out[unclaimed] = labels[unclaimed]
     return out

@@ -36,15 +36,16 @@ def _advanced(p: Param) -> Param:
 
 ALGORITHMS: tuple[Algorithm, ...] = (
     Algorithm(
-        id="synth", title="Synthetic survey", group="Testing", function_ref="geoortho.synthetic:synth",
+        id="synth",
+        title="Synthetic survey",
+        group="Testing",
+        function_ref="geoortho.synthetic:synth",
         params=(
             Param("output", "folder", output=True),
             PRESET,
             SEED,
-            Param("latitude_deg", "number", unit="deg", minimum=-80, maximum=84,
-                  advanced=True),
-            Param("longitude_deg", "number", unit="deg", minimum=-180, maximum=180,
-                  advanced=True),
+            Param("latitude_deg", "number", unit="deg", minimum=-80, maximum=84, advanced=True),
+            Param("longitude_deg", "number", unit="deg", minimum=-180, maximum=180, advanced=True),
             _advanced(DICTIONARY),
             _advanced(MARKER_SIZE),
             WORKERS,
@@ -64,7 +65,10 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         ),
     ),
     Algorithm(
-        id="footprints", title="Photo footprints and GSD", group="Photos", function_ref="geoortho.footprint:footprints",
+        id="footprints",
+        title="Photo footprints and GSD",
+        group="Photos",
+        function_ref="geoortho.footprint:footprints",
         params=(
             IMAGES,
             Param("output", "vector", output=True, extensions=(".gpkg", ".geojson", ".shp", ".fgb")),
@@ -91,7 +95,10 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         ),
     ),
     Algorithm(
-        id="gcp-find", title="Find GCP markers (gcp_list.txt)", group="Ground control", function_ref="geoortho.gcp.find:gcp_find",
+        id="gcp-find",
+        title="Find GCP markers (gcp_list.txt)",
+        group="Ground control",
+        function_ref="geoortho.gcp.find:gcp_find",
         params=(
             IMAGES,
             Param("gcp_file", "file", extensions=(".txt", ".csv", ".tsv", ".json")),
@@ -107,8 +114,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             MARKER_SIZE,
             Param("position_uncertainty_m", "number", unit="m", minimum=0.0, advanced=True),
             Param("height_uncertainty_m", "number", unit="m", minimum=0.0, advanced=True),
-            Param("attitude_uncertainty_deg", "number", unit="deg", minimum=0.0, maximum=45.0,
-                  advanced=True),
+            Param("attitude_uncertainty_deg", "number", unit="deg", minimum=0.0, maximum=45.0, advanced=True),
             WORKERS,
         ),
         outputs=(
@@ -122,7 +128,10 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         ),
     ),
     Algorithm(
-        id="dem", title="DSM and DTM from a point cloud", group="Elevation", function_ref="geoortho.elevation:dem",
+        id="dem",
+        title="DSM and DTM from a point cloud",
+        group="Elevation",
+        function_ref="geoortho.elevation:dem",
         params=(
             Param("points", "pointcloud", extensions=(".las", ".laz", ".ply")),
             Param("output", "raster", output=True, extensions=(".tif",)),
@@ -156,7 +165,10 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         ),
     ),
     Algorithm(
-        id="sfm", title="Structure from Motion (pycolmap), georeferenced", group="Photogrammetry", function_ref="geoortho.reconstruction:sfm",
+        id="sfm",
+        title="Structure from Motion (pycolmap), georeferenced",
+        group="Photogrammetry",
+        function_ref="geoortho.reconstruction:sfm",
         params=(
             IMAGES,
             Param("output", "folder", output=True),
@@ -190,7 +202,10 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         ),
     ),
     Algorithm(
-        id="ortho", title="Orthophoto mosaic (true ortho on the DSM)", group="Photogrammetry", function_ref="geoortho.orthophoto.mosaic:ortho",
+        id="ortho",
+        title="Orthophoto mosaic (true ortho on the DSM)",
+        group="Photogrammetry",
+        function_ref="geoortho.orthophoto.mosaic:ortho",
         params=(
             IMAGES,
             Param("output", "raster", output=True, extensions=(".tif",)),
@@ -227,7 +242,10 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         ),
     ),
     Algorithm(
-        id="demo", title="Demo: the whole chain on a synthetic survey", group="Testing", function_ref="geoortho.demonstration:demo",
+        id="demo",
+        title="Demo: the whole chain on a synthetic survey",
+        group="Testing",
+        function_ref="geoortho.demonstration:demo",
         params=(
             Param("output", "folder", output=True),
             PRESET,

@@ -84,7 +84,8 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--quiet", action="store_true", help="no progress bar, no info messages")
     g.add_argument("--json", action="store_true", help="print the outputs as JSON on stdout when done")
     g.add_argument(
-        "--progress-json", action="store_true",
+        "--progress-json",
+        action="store_true",
         help="machine-readable progress and messages on stderr, one JSON object a line",
     )
     g.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
@@ -92,7 +93,10 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 
 def _add_algorithm(sub: Any, alg: Algorithm) -> None:
     p = sub.add_parser(
-        alg.id, help=alg.short_help, description=alg.help, prog=f"{PROG} {alg.id}",
+        alg.id,
+        help=alg.short_help,
+        description=alg.help,
+        prog=f"{PROG} {alg.id}",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     req = p.add_argument_group("required")
@@ -101,8 +105,13 @@ def _add_algorithm(sub: Any, alg: Algorithm) -> None:
         group = req if param.required else opt
         kwargs = ARGPARSE_OPTIONS[param.type](param)
         group.add_argument(
-            param.cli_flag, *param.cli_aliases, dest=param.name, default=None, required=param.required,
-            help=_option_help(param), **kwargs,
+            param.cli_flag,
+            *param.cli_aliases,
+            dest=param.name,
+            default=None,
+            required=param.required,
+            help=_option_help(param),
+            **kwargs,
         )
     _add_common(p)
 
@@ -119,8 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="<algorithm>", parser_class=_Parser)
     for alg in list_algorithms():
         _add_algorithm(sub, alg)
-    d = sub.add_parser("describe", help="describe every algorithm (use --json for the machine form)",
-                       prog=f"{PROG} describe")
+    d = sub.add_parser(
+        "describe", help="describe every algorithm (use --json for the machine form)", prog=f"{PROG} describe"
+    )
     d.add_argument("--json", action="store_true", help="print the registry as JSON")
     return parser
 

@@ -22,8 +22,17 @@ from .static import read_function, split_ref
 __all__ = ["PARAM_TYPES", "ParamType", "REQUIRED", "Param", "Output", "Algorithm", "parse_docstring"]
 
 ParamType = Literal[
-    "folder", "file", "raster", "vector", "pointcloud",
-    "number", "integer", "enum", "bool", "crs", "string",
+    "folder",
+    "file",
+    "raster",
+    "vector",
+    "pointcloud",
+    "number",
+    "integer",
+    "enum",
+    "bool",
+    "crs",
+    "string",
 ]
 #: Every parameter type; the CLI and QGIS lookup tables must cover each one.
 PARAM_TYPES: tuple[str, ...] = get_args(ParamType)
@@ -134,7 +143,8 @@ class Algorithm:
         if set(names) != signature:
             raise ValueError(
                 f"algorithm {self.id}: spec and {self.function_ref} disagree: "
-                f"only in the spec {sorted(set(names) - signature)}, only in the function {sorted(signature - set(names))}"
+                f"only in the spec {sorted(set(names) - signature)}, "
+                f"only in the function {sorted(signature - set(names))}"
             )
         doc = parse_docstring(static.doc)
         object.__setattr__(self, "param_help", doc["params"])
@@ -183,7 +193,9 @@ class Algorithm:
         return inspect.signature(self.function)
 
 
-_SECTION = re.compile(r"^\s*(Parameters|Attributes|Returns|Raises|Yields|Notes|Examples|See Also|References|Warns)\s*\n\s*-{3,}\s*$", re.M)
+_SECTION = re.compile(
+    r"^\s*(Parameters|Attributes|Returns|Raises|Yields|Notes|Examples|See Also|References|Warns)\s*\n\s*-{3,}\s*$", re.M
+)
 
 
 def parse_docstring(doc: str) -> dict[str, Any]:
@@ -213,7 +225,7 @@ def parse_docstring(doc: str) -> dict[str, Any]:
             continue
         params = found[m.group(1)]
         end = sections[i + 1].start() if i + 1 < len(sections) else len(text)
-        block = text[m.end():end]
+        block = text[m.end() : end]
         current: str | None = None
         lines: list[str] = []
         for line in block.splitlines():
@@ -226,5 +238,9 @@ def parse_docstring(doc: str) -> dict[str, Any]:
                 lines.append(line.strip())
         if current is not None:
             params[current] = " ".join(lines).strip()
-    return {"summary": summary, "description": description, "params": found["Parameters"],
-            "attributes": found["Attributes"]}
+    return {
+        "summary": summary,
+        "description": description,
+        "params": found["Parameters"],
+        "attributes": found["Attributes"],
+    }

@@ -191,8 +191,12 @@ def _field_default(module: str, class_name: str, field: str) -> Any:
                 return _field_default(_absolute(module, node.level, node.module), alias.name, field)
     if isinstance(node, ast.ClassDef):
         for item in node.body:
-            if isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name) and item.target.id == field \
-                    and item.value is not None:
+            if (
+                isinstance(item, ast.AnnAssign)
+                and isinstance(item.target, ast.Name)
+                and item.target.id == field
+                and item.value is not None
+            ):
                 return _value(module, item.value)
     raise StaticReadError(f"{module}: cannot read {class_name}.{field}")
 

@@ -116,23 +116,26 @@ def _folder(p: Spec) -> QgsProcessingParameterDefinition:
 def _file(p: Spec, kind: str = "Files") -> QgsProcessingParameterDefinition:
     if p["output"]:
         return QgsProcessingParameterFileDestination(
-            p["qgis_name"], label_of(p), _file_filter(p, kind), None, _optional(p), not _optional(p))
-    return QgsProcessingParameterFile(p["qgis_name"], label_of(p), _FILE, "", p["default"], _optional(p),
-                                      _file_filter(p, kind))
+            p["qgis_name"], label_of(p), _file_filter(p, kind), None, _optional(p), not _optional(p)
+        )
+    return QgsProcessingParameterFile(
+        p["qgis_name"], label_of(p), _FILE, "", p["default"], _optional(p), _file_filter(p, kind)
+    )
 
 
 def _raster(p: Spec) -> QgsProcessingParameterDefinition:
     if p["output"]:
-        return QgsProcessingParameterRasterDestination(p["qgis_name"], label_of(p), None, _optional(p),
-                                                       not _optional(p))
+        return QgsProcessingParameterRasterDestination(
+            p["qgis_name"], label_of(p), None, _optional(p), not _optional(p)
+        )
     return QgsProcessingParameterRasterLayer(p["qgis_name"], label_of(p), None, _optional(p))
 
 
 def _vector(p: Spec) -> QgsProcessingParameterDefinition:
     if p["output"]:
         return QgsProcessingParameterVectorDestination(
-            p["qgis_name"], label_of(p), QgsProcessing.TypeVectorAnyGeometry, None, _optional(p),
-            not _optional(p))
+            p["qgis_name"], label_of(p), QgsProcessing.TypeVectorAnyGeometry, None, _optional(p), not _optional(p)
+        )
     return QgsProcessingParameterVectorLayer(p["qgis_name"], label_of(p), [], None, _optional(p))
 
 
@@ -144,8 +147,9 @@ def _pointcloud(p: Spec) -> QgsProcessingParameterDefinition:
         )
 
         if p["output"]:
-            return QgsProcessingParameterPointCloudDestination(p["qgis_name"], label_of(p), None, _optional(p),
-                                                               not _optional(p))
+            return QgsProcessingParameterPointCloudDestination(
+                p["qgis_name"], label_of(p), None, _optional(p), not _optional(p)
+            )
         return QgsProcessingParameterPointCloudLayer(p["qgis_name"], label_of(p), None, _optional(p))
     return _file(p, "Point clouds")
 
@@ -162,8 +166,9 @@ def _number(p: Spec, number_type: Any) -> QgsProcessingParameterDefinition:
 def _enum(p: Spec) -> QgsProcessingParameterDefinition:
     # Static strings: the value is the choice itself ("smrf"), as on the CLI,
     # so qgis_process and scripts pass names, not indices.
-    return QgsProcessingParameterEnum(p["qgis_name"], label_of(p), list(p["choices"]), False, p["default"],
-                                      _optional(p), True)
+    return QgsProcessingParameterEnum(
+        p["qgis_name"], label_of(p), list(p["choices"]), False, p["default"], _optional(p), True
+    )
 
 
 #: One builder per geoortho parameter type (a test checks every type has one).
@@ -178,8 +183,7 @@ PARAMETER_BUILDERS: dict[str, Callable[[Spec], QgsProcessingParameterDefinition]
     "enum": _enum,
     "bool": lambda p: QgsProcessingParameterBoolean(p["qgis_name"], label_of(p), bool(p["default"]), False),
     "crs": lambda p: QgsProcessingParameterCrs(p["qgis_name"], label_of(p), p["default"], _optional(p)),
-    "string": lambda p: QgsProcessingParameterString(p["qgis_name"], label_of(p), p["default"], False,
-                                                     _optional(p)),
+    "string": lambda p: QgsProcessingParameterString(p["qgis_name"], label_of(p), p["default"], False, _optional(p)),
 }
 
 
@@ -283,7 +287,8 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         path = parts.get("path") or ""
         if not path or not Path(path).exists():
             raise QgsProcessingException(
-                f"{name}: geoortho reads files; layer '{layer.name()}' is not a file ({layer.source()})")
+                f"{name}: geoortho reads files; layer '{layer.name()}' is not a file ({layer.source()})"
+            )
         return path
 
     def values(self, parameters: dict[str, Any], context: QgsProcessingContext) -> dict[str, Any]:
@@ -301,8 +306,11 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                 if value:
                     Path(value).parent.mkdir(parents=True, exist_ok=True)
             elif _is_layer(kind):
-                as_layer = {"raster": self.parameterAsRasterLayer, "vector": self.parameterAsVectorLayer,
-                            "pointcloud": self.parameterAsPointCloudLayer}[kind]
+                as_layer = {
+                    "raster": self.parameterAsRasterLayer,
+                    "vector": self.parameterAsVectorLayer,
+                    "pointcloud": self.parameterAsPointCloudLayer,
+                }[kind]
                 layer = as_layer(parameters, name, context)
                 value = self._layer_path(layer, name) if layer is not None else None
             elif kind in ("folder", "file", "pointcloud"):
@@ -343,8 +351,12 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         return args
 
     # --- run ------------------------------------------------------------------
-    def processAlgorithm(self, parameters: dict[str, Any], context: QgsProcessingContext,  # noqa: N802
-                         feedback: Any) -> dict[str, Any]:
+    def processAlgorithm(
+        self,
+        parameters: dict[str, Any],
+        context: QgsProcessingContext,  # noqa: N802
+        feedback: Any,
+    ) -> dict[str, Any]:
         values = self.values(parameters, context)
         settings = self._settings()
         if settings.get("in_process"):
@@ -356,8 +368,9 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                 raise QgsProcessingException(str(e)) from None
             destinations = [values[p["name"]] for p in self._destinations if p["name"] in values]
             try:
-                outputs = run_geoortho(interpreter, self._spec["id"], self.arguments(values), feedback,
-                                       destinations=destinations)
+                outputs = run_geoortho(
+                    interpreter, self._spec["id"], self.arguments(values), feedback, destinations=destinations
+                )
             except RunCanceled as e:
                 raise QgsProcessingException(f"{e}; no output was written") from None
             except RunFailed as e:
@@ -374,7 +387,8 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         except ImportError as e:
             raise QgsProcessingException(
                 f"'run in the QGIS process' is on, but geoortho cannot be imported here ({e}); "
-                "turn the setting off to run geoortho's own interpreter") from None
+                "turn the setting off to run geoortho's own interpreter"
+            ) from None
         from .inprocess import feedback_adapter
 
         if "workers" in {p["name"] for p in self._spec["parameters"]} and "workers" not in values:
@@ -388,12 +402,14 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         except GeoorthoError as e:
             raise QgsProcessingException(f"geoortho {self._spec['id']}: error: {e}") from None
 
-    def _results(self, values: dict[str, Any], outputs: dict[str, Any],
-                 context: QgsProcessingContext) -> dict[str, Any]:
+    def _results(
+        self, values: dict[str, Any], outputs: dict[str, Any], context: QgsProcessingContext
+    ) -> dict[str, Any]:
         # Every destination parameter given is a result under its own name (dem's
         # OUTPUT is its "dsm"): QGIS loads and models chain by these names.
-        results: dict[str, Any] = {p["qgis_name"]: str(values[p["name"]]) for p in self._destinations
-                                   if p["name"] in values}
+        results: dict[str, Any] = {
+            p["qgis_name"]: str(values[p["name"]]) for p in self._destinations if p["name"] in values
+        }
         param_names = {p["name"] for p in self._destinations}
         for o in self._spec["outputs"]:
             value = outputs.get(o["name"])
@@ -405,7 +421,8 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
             # Layers that are not destination parameters (which QGIS loads itself):
             # open them too when the run comes from the toolbox.
             if o["name"] not in param_names and o["type"] in ("raster", "vector") and context.project():
-                details = QgsProcessingContext.LayerDetails(f"{self._spec['id']} {o['name']}", context.project(),
-                                                            o["name"].upper())
+                details = QgsProcessingContext.LayerDetails(
+                    f"{self._spec['id']} {o['name']}", context.project(), o["name"].upper()
+                )
                 context.addLayerToLoadOnCompletion(str(value), details)
         return results

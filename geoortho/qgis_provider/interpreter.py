@@ -37,8 +37,15 @@ HOW_TO_SET = (
 
 #: Variables QGIS sets for its own Python, GDAL and PROJ; passed on, they would make
 #: the geoortho environment load QGIS's libraries or data (e.g. an older proj.db).
-_QGIS_ONLY_VARIABLES = ("PYTHONHOME", "PYTHONPATH", "PYTHONSTARTUP", "PROJ_LIB", "PROJ_DATA",
-                        "GDAL_DATA", "GDAL_DRIVER_PATH")
+_QGIS_ONLY_VARIABLES = (
+    "PYTHONHOME",
+    "PYTHONPATH",
+    "PYTHONSTARTUP",
+    "PROJ_LIB",
+    "PROJ_DATA",
+    "GDAL_DATA",
+    "GDAL_DRIVER_PATH",
+)
 
 
 class InterpreterError(RuntimeError):
@@ -112,8 +119,10 @@ def find_interpreter(configured: str | None = "") -> str:
     ``geoortho`` command on PATH. Raises :class:`InterpreterError` saying how
     to set it when none is found.
     """
-    for source, value in (("the setting 'geoortho Python interpreter'", configured),
-                          (f"${ENV_VAR}", os.environ.get(ENV_VAR, ""))):
+    for source, value in (
+        ("the setting 'geoortho Python interpreter'", configured),
+        (f"${ENV_VAR}", os.environ.get(ENV_VAR, "")),
+    ):
         if value:
             path = Path(value).expanduser()
             if not path.is_file() or not os.access(path, os.X_OK):
@@ -146,8 +155,17 @@ def _interpreter_key(interpreter: str) -> str:
 def _run_describe(interpreter: str, timeout_s: float) -> dict[str, Any]:
     cmd = [interpreter, "-m", "geoortho", "describe", "--json"]
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", errors="replace",
-                              env=clean_environment(), cwd=NEUTRAL_CWD, timeout=timeout_s, check=False)
+        proc = subprocess.run(
+            cmd,
+            capture_output=True,
+            text=True,
+            encoding="utf-8",
+            errors="replace",
+            env=clean_environment(),
+            cwd=NEUTRAL_CWD,
+            timeout=timeout_s,
+            check=False,
+        )
     except (OSError, subprocess.TimeoutExpired) as e:
         raise InterpreterError(f"{interpreter} could not be run ({e}); {HOW_TO_SET}") from None
     if proc.returncode != 0:
@@ -162,8 +180,9 @@ def _run_describe(interpreter: str, timeout_s: float) -> dict[str, Any]:
     return description
 
 
-def load_description(interpreter: str, cache_file: str | os.PathLike[str] | None = None,
-                     *, timeout_s: float = 120.0) -> dict[str, Any]:
+def load_description(
+    interpreter: str, cache_file: str | os.PathLike[str] | None = None, *, timeout_s: float = 120.0
+) -> dict[str, Any]:
     """The registry description from ``interpreter -m geoortho describe --json``.
 
     Starting geoortho takes seconds, and QGIS asks at every start (and
@@ -175,15 +194,19 @@ def load_description(interpreter: str, cache_file: str | os.PathLike[str] | None
     if cache is not None and cache.is_file():
         try:
             cached = json.loads(cache.read_text(encoding="utf-8"))
-            if (cached.get("interpreter") == key
-                    and cached.get("package") == _package_signature(cached["description"]["package_dir"])):
+            if cached.get("interpreter") == key and cached.get("package") == _package_signature(
+                cached["description"]["package_dir"]
+            ):
                 return cached["description"]
         except (OSError, ValueError, KeyError, TypeError):
             pass  # a stale or broken cache is simply rebuilt
     description = _run_describe(interpreter, timeout_s)
     if cache is not None:
-        record = {"interpreter": key, "package": _package_signature(description.get("package_dir", "")),
-                  "description": description}
+        record = {
+            "interpreter": key,
+            "package": _package_signature(description.get("package_dir", "")),
+            "description": description,
+        }
         try:
             cache.parent.mkdir(parents=True, exist_ok=True)
             tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")
@@ -192,4 +215,3 @@ def load_description(interpreter: str, cache_file: str | os.PathLike[str] | None
         except OSError:
             pass  # no cache is slower, not wrong
     return description
-

@@ -81,14 +81,23 @@ class GeoorthoProvider(QgsProcessingProvider):
         config, setting = _processing_config()
         if config is not None:
             config.settingIcons[self.name()] = self.icon()
-            config.addSetting(setting(
-                self.name(), SETTING_PYTHON,
-                "geoortho Python interpreter (empty: $GEOORTHO_PYTHON, else found automatically)",
-                "", valuetype=setting.FILE))
-            config.addSetting(setting(
-                self.name(), SETTING_IN_PROCESS,
-                "Run geoortho in the QGIS process (only when its libraries do not clash with QGIS's)",
-                False))
+            config.addSetting(
+                setting(
+                    self.name(),
+                    SETTING_PYTHON,
+                    "geoortho Python interpreter (empty: $GEOORTHO_PYTHON, else found automatically)",
+                    "",
+                    valuetype=setting.FILE,
+                )
+            )
+            config.addSetting(
+                setting(
+                    self.name(),
+                    SETTING_IN_PROCESS,
+                    "Run geoortho in the QGIS process (only when its libraries do not clash with QGIS's)",
+                    False,
+                )
+            )
             config.readSettings()
         self.refreshAlgorithms()
         return True
@@ -143,12 +152,16 @@ class GeoorthoProvider(QgsProcessingProvider):
             return
         added = 0
         for spec in self.description["algorithms"]:
-            unknown = sorted({p["type"] for p in spec["parameters"]} - set(PARAMETER_BUILDERS)
-                             | {o["type"] for o in spec["outputs"]} - set(OUTPUT_BUILDERS))
+            unknown = sorted(
+                {p["type"] for p in spec["parameters"]} - set(PARAMETER_BUILDERS)
+                | {o["type"] for o in spec["outputs"]} - set(OUTPUT_BUILDERS)
+            )
             if unknown:  # a geoortho newer than this plugin: skip the one algorithm, keep the rest
-                _log(f"geoortho:{spec['id']} is left out: this plugin does not know the type(s) "
-                     f"{', '.join(unknown)}; build the plugin of the same geoortho version (make plugin)",
-                     Qgis.Warning)
+                _log(
+                    f"geoortho:{spec['id']} is left out: this plugin does not know the type(s) "
+                    f"{', '.join(unknown)}; build the plugin of the same geoortho version (make plugin)",
+                    Qgis.Warning,
+                )
                 continue
             self.addAlgorithm(GeoorthoAlgorithm(spec, self.settings))
             added += 1

@@ -139,8 +139,15 @@ def run_geoortho(
     feedback.pushConsoleInfo(" ".join(_quote(c) for c in cmd))
     try:
         proc = subprocess.Popen(
-            cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-            text=True, encoding="utf-8", errors="replace", env=clean_environment(), cwd=NEUTRAL_CWD,
+            cmd,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            encoding="utf-8",
+            errors="replace",
+            env=clean_environment(),
+            cwd=NEUTRAL_CWD,
             **_popen_kwargs(),
         )
     except OSError as e:
