@@ -547,29 +547,19 @@ def _write_products(
     dsm_grid = _finish(first.dsm.result(), max_gap_cells, smooth_px)
     notes = [*src.notes, f"values in {src.vertical_unit}" if method != "count" else "values: points per cell"]
     unit_tag = _unit_tag(src.vertical_unit) if method != "count" else ""
-    dsm_path = write_cog(
-        output,
-        _nodata(dsm_grid),
-        transform=grid.transform,
-        crs=src.crs,
-        nodata=NODATA,
-        band_names=("dsm",),
-        units=unit_tag,
-    )
+
+    def write(path: Path, z: np.ndarray, name: str, units: str) -> Path:
+        return write_cog(
+            path, _nodata(z), transform=grid.transform, crs=src.crs, nodata=NODATA, band_names=(name,), units=units
+        )
+
+    dsm_path = write(output, dsm_grid, "dsm", unit_tag)
     dtm_path = None
     dtm_grid = None
     if dtm is not None:
         assert dtm_acc is not None
         dtm_grid = _finish(dtm_acc.result(), max_gap_cells, smooth_px)
-        dtm_path = write_cog(
-            dtm,
-            _nodata(dtm_grid),
-            transform=grid.transform,
-            crs=src.crs,
-            nodata=NODATA,
-            band_names=("dtm",),
-            units=_unit_tag(src.vertical_unit),
-        )
+        dtm_path = write(dtm, dtm_grid, "dtm", _unit_tag(src.vertical_unit))
     shade_path = None
     if hillshade is not None:
         shade_path = write_hillshade(

@@ -501,10 +501,7 @@ def mosaic(
         times["cog"] = time.perf_counter() - t3
     st_write.progress(1.0)
 
-    def ratio(a: str, n: str) -> float:
-        return totals.get(a, 0.0) / totals[n] if totals.get(n) else math.nan
-
-    raw, bal = ratio("seam_raw", "seam_n"), ratio("seam_bal", "seam_n")
+    raw, bal = _ratio(totals, "seam_raw", "seam_n"), _ratio(totals, "seam_bal", "seam_n")
     if options.balance != "none" and math.isfinite(raw) and math.isfinite(bal) and bal >= raw:
         notes.append(f"colour balance did not lower the colour mismatch across seams ({raw:.2f} → {bal:.2f} DN)")
         fb.warning(notes[-1])
@@ -531,24 +528,37 @@ def mosaic(
         notes=tuple(notes),
         seconds=times,
     )
-    write_json(
-        result.report,
-        {
-            **{k: v for k, v in result.__dict__.items() if k not in ("skipped", "notes")},
-            "skipped": [{"image": n, "reason": w} for n, w in skipped],
-            "notes": list(notes),
-            "seam_step_dn": ratio("step_seam", "step_n"),
-            "texture_step_dn": ratio("step_other", "other_n"),
-            "seam_pixels": int(totals.get("seam_n", 0)),
-            "gains_bgr": {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)},
-            "seconds_total": time.perf_counter() - t0,
-        },
-    )
+    gains = {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)}
+    _write_report(result, totals, gains, time.perf_counter() - t0)
     fb.info(
         f"ortho: {output} ({shape[1]}x{shape[0]} px, {result.n_used} photos used); seam mismatch "
         f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing"
     )
     return result
+
+
+def _ratio(totals: dict[str, float], a: str, n: str) -> float:
+    """A mean over the tiles: the sum of ``a`` over the count ``n`` (NaN when nothing was counted)."""
+    return totals.get(a, 0.0) / totals[n] if totals.get(n) else math.nan
+
+
+def _write_report(
+    result: OrthoResult, totals: dict[str, float], gains_bgr: dict[str, list[float]], seconds_total: float
+) -> None:
+    """``<name>_report.json``: the result's figures, and the seam and gain details behind them."""
+    write_json(
+        result.report,
+        {
+            **{k: v for k, v in result.__dict__.items() if k not in ("skipped", "notes")},
+            "skipped": [{"image": n, "reason": w} for n, w in result.skipped],
+            "notes": list(result.notes),
+            "seam_step_dn": _ratio(totals, "step_seam", "step_n"),
+            "texture_step_dn": _ratio(totals, "step_other", "other_n"),
+            "seam_pixels": int(totals.get("seam_n", 0)),
+            "gains_bgr": gains_bgr,
+            "seconds_total": seconds_total,
+        },
+    )
 
 
 @dataclass(frozen=True)
