@@ -20,39 +20,41 @@ from geoortho.processing.static import StaticReadError, read_function
 ALGORITHM_FUNCTIONS = {a.function_ref.split(":")[1] for a in list_algorithms()}
 
 # Loads every face first (the registry, the CLI's parser, describe --json and the QGIS
-# provider's reading of it), then calls every public name on a tiny survey: a module
-# named like a function would shadow it here and the call would fail.
-_SCRIPT = r"""
-import json, sys, dataclasses
+# provider's reading of it), wraps every public function to record that it was called,
+# runs the README's Python example (the whole chain on a tiny survey), then calls the
+# public names it does not: a module named like a function would shadow it and fail.
+_PRELUDE = r"""
+import json, sys, dataclasses, inspect
 from pathlib import Path
 from geoortho.processing.cli import build_parser
-from geoortho.processing.registry import describe, list_algorithms, run_algorithm as _run
+from geoortho.processing.registry import describe, list_algorithms
 from geoortho.qgis_provider.interpreter import load_description
 build_parser(); describe(); [a.function for a in list_algorithms()]
-load_description(sys.executable, Path(sys.argv[1]) / "describe_cache.json")
+load_description(sys.executable, Path("describe_cache.json"))
 import geoortho
 
-out = Path(sys.argv[1]); seen = {}
-def call(name, *args, **kw):
-    value = getattr(geoortho, name)
-    assert callable(value), f"geoortho.{name} is {type(value).__name__}, not callable"
-    r = value(*args, **kw)
-    seen[name] = type(r).__name__
-    return r
+seen = {}
+def _recorder(name, fn):
+    def wrapped(*args, **kw):
+        r = fn(*args, **kw)
+        seen[name] = type(r).__name__
+        return r
+    return wrapped
+for _name in geoortho.__all__:
+    _value = getattr(geoortho, _name)
+    assert not inspect.ismodule(_value), f"geoortho.{_name} is a module"
+    if inspect.isfunction(_value):
+        setattr(geoortho, _name, _recorder(_name, _value))
+"""
 
-s = call("synth", out / "survey", preset="tiny", seed=5)
-f = call("footprints", s.images, out / "fp.gpkg", dsm=s.dsm)
-g = call("gcp_find", s.images, s.gcp_file, out / "gcp_list.txt", dsm=s.dsm)
-d = call("dem", s.points, out / "dsm.tif", dtm=out / "dtm.tif")
-m = call("sfm", s.images, out / "sfm", gcp_list=g.output, max_image_size=640, max_features=2048)
-o = call("ortho", s.images, out / "ortho.tif", sfm=m.output, dsm=d.dsm)
-demo = call("demo", out / "demo", preset="tiny", seed=5)
-photos = call("read_photos", s.images)
-call("read_photo", photos.photos[0].path)
-call("read_gcp_file", s.gcp_file)
-r = call("run_algorithm", "footprints", {"images": str(s.images), "output": str(out / "fp2.gpkg")})
+_EPILOGUE = r"""
+demo = geoortho.demo(Path("demo"), preset="tiny", seed=5)
+photos = geoortho.read_photos(survey.images)
+geoortho.read_photo(photos.photos[0].path)
+geoortho.read_gcp_file(survey.gcp_file)
 for name in ("TerminalFeedback", "Feedback"):
-    call(name)
+    getattr(geoortho, name)()
+    seen[name] = "feedback"
 for name in ("GeoorthoError", "InputError", "CanceledError"):
     assert issubclass(getattr(geoortho, name), Exception)
     seen[name] = "exception"
@@ -60,24 +62,34 @@ for name in geoortho.__all__:
     if name.endswith("Result") or name in ("Photo", "GcpSet"):
         assert dataclasses.is_dataclass(getattr(geoortho, name)), name
         seen[name] = "dataclass"
-print(json.dumps({"seen": seen, "n_photos": s.n_photos, "fp": f.n_photos, "obs": g.n_observations,
-                  "registered": m.n_registered, "ortho_used": o.n_used, "demo": sorted(demo.products),
-                  "run": r["n_photos"]}))
+print(json.dumps({"seen": seen, "n_photos": survey.n_photos, "fp": fp.n_photos, "obs": found.n_observations,
+                  "registered": model.n_registered, "ortho_used": mosaic.n_used, "demo": sorted(demo.products),
+                  "run": result["n_photos"]}))
 """
 
 
+def _readme_python() -> str:
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("## Python") :]
+    start = section.index("```python") + len("```python")
+    return section[start : section.index("```\n", start)]
+
+
 @pytest.mark.slow
-def test_every_public_name_is_callable_after_every_face_is_loaded(tmp_path):
-    proc = subprocess.run([sys.executable, "-c", _SCRIPT, str(tmp_path)], capture_output=True, text=True, timeout=900)
+def test_every_public_name_is_callable_after_every_face_is_loaded_and_the_readme_runs(tmp_path):
+    code = _PRELUDE + _readme_python() + _EPILOGUE
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     got = json.loads(proc.stdout.strip().splitlines()[-1])
     assert set(got["seen"]) == set(geoortho.__all__)
     # each algorithm returned its own result dataclass, and a real one
     assert got["seen"]["synth"] == "SynthResult" and got["seen"]["ortho"] == "OrthoResult"
     assert got["seen"]["gcp_find"] == "GcpFindResult" and got["seen"]["dem"] == "DemResult"
+    assert got["seen"]["sfm"] == "SfmResult" and got["seen"]["demo"] == "DemoResult"
     assert got["fp"] == got["n_photos"] == got["run"]
     assert got["obs"] > 0 and got["registered"] >= got["n_photos"] - 1 and got["ortho_used"] >= 2
     assert {"footprints", "gcp_list", "dsm", "ortho"} <= set(got["demo"])
+    assert (tmp_path / "ortho.tif").is_file() and "m pixels" in proc.stdout
 
 
 def test_public_names_resolve_to_functions_and_dataclasses_not_modules():
@@ -187,17 +199,3 @@ def test_ortho_refuses_a_crs_in_feet(tiny_survey, tmp_path):
     with pytest.raises(geoortho.InputError, match="metres"):
         geoortho.ortho(tiny_survey.images, tmp_path / "o.tif", crs="EPSG:2227")
     assert not list(Path(tmp_path).iterdir())
-
-
-@pytest.mark.slow
-def test_readme_python_example_runs(tmp_path):
-    """The README's Python section is code that works, not a sketch."""
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
-    section = readme[readme.index("## Python") :]
-    code = section[
-        section.index("```python") + len("```python") : section.index("```\n", section.index("```python") + 9)
-    ]
-    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert (tmp_path / "ortho.tif").is_file() and (tmp_path / "gcp_list.txt").is_file()
-    assert "m pixels" in proc.stdout
