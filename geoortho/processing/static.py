@@ -82,6 +82,8 @@ def _module_path(module: str) -> Path:
 # A top-level statement starts at column 0 with a name, a decorator or a keyword; closing
 # brackets at column 0 continue the statement before.
 _TOP = re.compile(r"^[A-Za-z_@]", re.M)
+# What such a statement binds: a def or class, an assignment, or (parsed) an import.
+_BINDS = re.compile(r"(?:def|class) (?P<def>\w+)\b|(?P<assign>[A-Za-z_]\w*)\s*(:[^=\n]*)?=(?!=)|from ")
 
 
 @cache
@@ -113,9 +115,6 @@ def _module_index(module: str) -> dict[str, str]:
     return index
 
 
-_BINDS = re.compile(r"(?:def|class) (?P<def>\w+)\b|(?P<assign>[A-Za-z_]\w*)\s*(:[^=\n]*)?=(?!=)|from ")
-
-
 @cache
 def _statement(module: str, name: str) -> ast.stmt | None:
     piece = _module_index(module).get(name)
@@ -136,19 +135,27 @@ def _absolute(module: str, level: int, name: str | None) -> str:
     return ".".join(base + ([name] if name else []))
 
 
-def _binding(module: str, name: str) -> tuple[str, ast.expr] | None:
-    """The expression a module-level ``name`` is bound to, and the module it lives in."""
+def _resolve(module: str, name: str) -> tuple[str, ast.stmt] | None:
+    """The statement that defines module-level ``name``, and its module: imports from
+    geoortho's own modules are followed to the definition."""
     node = _statement(module, name)
-    if isinstance(node, ast.Assign):
-        return module, node.value
-    if isinstance(node, ast.AnnAssign) and node.value is not None:
-        return module, node.value
     if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("geoortho")):
         for alias in node.names:
             if (alias.asname or alias.name) == name:
                 source = _absolute(module, node.level, node.module) if node.level else node.module
                 assert source is not None
-                return _binding(source, alias.name)
+                return _resolve(source, alias.name)
+    return None if node is None else (module, node)
+
+
+def _binding(module: str, name: str) -> tuple[str, ast.expr] | None:
+    """The expression a module-level ``name`` is bound to, and the module it lives in."""
+    found = _resolve(module, name)
+    if found is None:
+        return None
+    where, node = found
+    if isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None:
+        return where, node.value
     return None
 
 
@@ -184,11 +191,7 @@ def _value(module: str, node: ast.expr) -> Any:
 
 def _field_default(module: str, class_name: str, field: str) -> Any:
     """``Options.field`` in a signature: the default of a dataclass field (one declaration)."""
-    node = _statement(module, class_name)
-    if isinstance(node, ast.ImportFrom):
-        for alias in node.names:
-            if (alias.asname or alias.name) == class_name and node.level:
-                return _field_default(_absolute(module, node.level, node.module), alias.name, field)
+    where, node = _resolve(module, class_name) or (module, None)
     if isinstance(node, ast.ClassDef):
         for item in node.body:
             if (
@@ -197,7 +200,7 @@ def _field_default(module: str, class_name: str, field: str) -> Any:
                 and item.target.id == field
                 and item.value is not None
             ):
-                return _value(module, item.value)
+                return _value(where, item.value)
     raise StaticReadError(f"{module}: cannot read {class_name}.{field}")
 
 
@@ -256,7 +259,6 @@ def read_function(ref: str) -> StaticFunction:
 
 
 def _class_doc(module: str, name: str) -> str:
-    node = _statement(module, name)
-    if isinstance(node, ast.ImportFrom) and node.level:
-        return _class_doc(_absolute(module, node.level, node.module), name)
+    found = _resolve(module, name)
+    node = found[1] if found is not None else None
     return (ast.get_docstring(node) or "") if isinstance(node, ast.ClassDef) else ""
