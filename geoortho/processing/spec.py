@@ -14,7 +14,7 @@ import importlib
 import inspect
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, Literal, get_args
 
 from .static import read_function, split_ref
@@ -130,7 +130,6 @@ class Algorithm:
     function_ref: str
     params: tuple[Param, ...]
     outputs: tuple[Output, ...] = ()
-    param_help: dict[str, str] = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"[a-z][a-z0-9-]*", self.id):
@@ -147,7 +146,6 @@ class Algorithm:
                 f"only in the function {sorted(signature - set(names))}"
             )
         doc = parse_docstring(static.doc)
-        object.__setattr__(self, "param_help", doc["params"])
         object.__setattr__(self, "params", tuple(self._complete(p, static.param(p.name), doc) for p in self.params))
         fields = parse_docstring(static.returns_doc)["attributes"]
         for o in self.outputs:
