@@ -89,6 +89,10 @@ def pair_points(A, B, imgA, imgB, s, zrange, origin):
     return world[keep], col[keep]
 
 
+MIN_VIEWS = 2
+TOL = 0.01
+
+
 def main():
     sfm_dir, images, out, truth = map(Path, sys.argv[1:5])
     max_size = int(sys.argv[5]) if len(sys.argv) > 5 else 1024
@@ -130,31 +134,58 @@ def main():
             pairs.append((i, j))
     print(f"{n} cameras, {len(pairs)} pairs, scale {s:.3f}; setup {time.perf_counter() - t0:.1f}s")
     t1 = time.perf_counter()
-    allp, allc = [], []
     cache = {}
 
     def img(k):
         if k not in cache:
+            if len(cache) > 8:
+                cache.pop(next(iter(cache)))
             cache[k] = load(cams[k], s)
         return cache[k]
 
-    done = set()
+    neigh = {}
     for i, j in pairs:
-        for a, b in ((i, j), (j, i)):
-            if (a, b) in done:
+        neigh.setdefault(i, []).append(j)
+    allp, allc = [], []
+    n_raw = 0
+    for i, js in neigh.items():
+        if len(js) < MIN_VIEWS:
+            continue
+        w = int(round(cams[i].intrinsics.width_px * s))
+        h = int(round(cams[i].intrinsics.height_px * s))
+        zmaps, per_pair = [], []
+        for j in js:
+            shared = vis[i] & vis[j]
+            zr = (np.percentile(depths[i][shared], 1), np.percentile(depths[i][shared], 99))
+            r = pair_points(cams[i], cams[j], img(i), img(j), s, zr, origin)
+            if r is None:
+                r = pair_points(cams[j], cams[i], img(j), img(i), s, zr, origin)
+            if r is None or not len(r[0]):
                 continue
-            done.add((a, b))
-            shared = vis[a] & vis[b]
-            dA = depths[a][shared]
-            zr = (np.percentile(dA, 1), np.percentile(dA, 99))
-            r = pair_points(cams[a], cams[b], img(a), img(b), s, zr, origin)
-            if r is not None:
-                allp.append(r[0])
-                allc.append(r[1])
+            n_raw += len(r[0])
+            px, dep = cams[i].project(r[0] + origin)
+            c = np.round((px[:, 0] + 0.5) * s - 0.5).astype(np.int64)
+            rr = np.round((px[:, 1] + 0.5) * s - 0.5).astype(np.int64)
+            inside = (c >= 0) & (c < w) & (rr >= 0) & (rr < h) & (dep > 0)
+            z = np.full(h * w, np.inf)
+            np.minimum.at(z, rr[inside] * w + c[inside], dep[inside])
+            zmaps.append(np.where(np.isfinite(z), z, np.nan))
+            per_pair.append((r[0], r[1], rr * w + c, dep, inside))
+        if len(zmaps) < MIN_VIEWS:
+            continue
+        stack = np.vstack(zmaps)
+        med = np.nanmedian(stack, axis=0)
+        tol = TOL * med
+        agree = (np.abs(stack - med) <= tol).sum(axis=0)
+        for pts_w, col, idx, dep, inside in per_pair:
+            k = inside.copy()
+            k[inside] = (agree[idx[inside]] >= MIN_VIEWS) & (np.abs(dep[inside] - med[idx[inside]]) <= tol[idx[inside]])
+            allp.append(pts_w[k])
+            allc.append(col[k])
     P = np.concatenate(allp) + origin
     C = np.concatenate(allc)
     t_pairs = time.perf_counter() - t1
-    print(f"{len(done)} ordered pairs tried, {len(allp)} depth maps, {len(P)} points in {t_pairs:.1f}s")
+    print(f"{len(neigh)} reference photos, {n_raw} raw points, {len(P)} consistent in {t_pairs:.1f}s")
     from geoortho.pointcloud import write_las
 
     write_las(out / "dense.laz", P, crs=crs, rgb=C.astype(np.float64) / 255.0)
