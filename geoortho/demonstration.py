@@ -81,6 +81,7 @@ def _stages() -> list:
         ("footprints", 1, _footprints),
         ("gcp-find", 2, _gcp_find),
         ("sfm", 4, _sfm),
+        ("dense", 3, _dense),
         ("dem", 1, _dem),
         ("ortho", 2, _ortho),
     ]
@@ -149,12 +150,24 @@ def _sfm(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
     }
 
 
+def _dense(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
+    from .densify import dense
+
+    r = dense(output / "sfm", survey.images, output / "dense.laz", feedback=fb)
+    fb.info(f"dense: {r.n_points} points from {r.n_depth_maps} depth maps")
+    return {"dense": str(r.output), "dense_report": str(r.report)}
+
+
 def _dem(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
     from .elevation import dem
 
-    # The survey's point cloud until the sfm stage makes one from the photos.
+    # The cloud the dense stage made from the photos (the survey's lidar-like cloud stays in truth/).
     r = dem(
-        survey.points, output / "dsm.tif", dtm=output / "dtm.tif", hillshade=output / "dtm_hillshade.png", feedback=fb
+        output / "dense.laz",
+        output / "dsm.tif",
+        dtm=output / "dtm.tif",
+        hillshade=output / "dtm_hillshade.png",
+        feedback=fb,
     )
     fb.info(f"dem: {r.n_points} points, {r.n_ground} ground, cells of {r.resolution:g} ({r.units})")
     return {"dsm": str(r.dsm), "dtm": str(r.dtm), "dtm_hillshade": str(r.hillshade)}

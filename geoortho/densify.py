@@ -1,0 +1,392 @@
+"""Dense surface from the photos themselves, on CPU: rectified pairs, OpenCV SGBM, multi-view check.
+
+Each registered photo is a reference: it is paired with its best neighbours from the SfM
+model (shared sparse points, a baseline/height ratio that gives depth, similar view
+directions), each pair is rectified (``cv2.stereoRectify``) and matched by semi-global block
+matching (``cv2.StereoSGBM``, left-right checked), and the pair's points are reprojected into
+the reference photo. A point is kept where at least ``min_views`` pairs agree on the depth
+within ``depth_tolerance``. The cloud is georeferenced like the SfM model (its CRS and offset)
+and thinned to one point per voxel of about a GSD, so ``dem`` takes it as it is.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+from .feedback import Feedback, as_feedback, split
+from .parallel import imap_ordered
+
+__all__ = ["DenseResult", "dense"]
+
+_MIN_SHARED_POINTS = 30
+_MIN_BASE_RATIO = 0.08  # baseline / height: below, depth is noise
+_MAX_VIEW_ANGLE_DEG = 20.0
+
+
+@dataclass(frozen=True)
+class DenseResult:
+    """The dense cloud and what went into it.
+
+    Attributes
+    ----------
+    output : Path
+        Dense point cloud (LAZ, coloured, CRS in the header).
+    report : Path
+        Report JSON: views, pairs, depth maps, points before and after filtering, seconds per step.
+    n_photos : int
+        Registered photos in the SfM model.
+    n_depth_maps : int
+        Photos that gave a filtered depth map.
+    n_points : int
+        Points written.
+    crs : str
+        CRS of the cloud.
+    notes : tuple of str
+        What was assumed or checked, in words.
+    """
+
+    output: Path
+    report: Path
+    n_photos: int
+    n_depth_maps: int
+    n_points: int
+    crs: str
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+@dataclass(frozen=True)
+class _View:
+    """One photo as the matcher sees it: scaled intrinsics, pose in the local frame."""
+
+    name: str
+    path: Path
+    K: np.ndarray  # 3x3 at the working scale, pixel-centre convention
+    dist: np.ndarray  # OpenCV distortion coefficients (normalised coordinates: scale-free)
+    size: tuple[int, int]  # (width, height) at the working scale
+    R: np.ndarray  # world-from-camera
+    C: np.ndarray  # centre, local frame (CRS minus origin)
+
+
+@dataclass(frozen=True)
+class _Job:
+    """A reference photo, its neighbours, and the depth range the sparse points give each pair."""
+
+    ref: int
+    neighbours: tuple[int, ...]
+    depth_ranges: tuple[tuple[float, float], ...]
+
+
+@dataclass(frozen=True)
+class _Context:
+    views: tuple[_View, ...]
+    scale: float
+    min_views: int
+    depth_tolerance: float
+    voxel_m: float
+
+
+_CTX: _Context | None = None
+
+
+def _init_worker(ctx: _Context) -> None:
+    global _CTX
+    _CTX = ctx
+    cv2.setNumThreads(1)  # one photo per process already fills the cores
+
+
+def dense(
+    sfm: Path,
+    images: Path,
+    output: Path,
+    max_image_size: int = 1024,
+    neighbours: int = 3,
+    min_views: int = 2,
+    depth_tolerance: float = 0.01,
+    workers: int = 0,
+    *,
+    feedback: Feedback | None = None,
+) -> DenseResult:
+    """Dense point cloud from the photos and their SfM poses (CPU), ready for the dem algorithm.
+
+    Parameters
+    ----------
+    sfm : Path
+        Output folder of the sfm algorithm (poses, calibrated cameras, sparse points).
+    images : Path
+        Folder of the photos the SfM model was made from.
+    output : Path
+        Dense cloud to write (LAZ or LAS); a report ``<name>_report.json`` is written beside it.
+    max_image_size : int
+        Photos are matched at this larger side (px): the depth maps' resolution.
+    neighbours : int
+        Neighbour photos each reference photo is matched with.
+    min_views : int
+        A point is kept where at least this many pairs agree on its depth.
+    depth_tolerance : float
+        Agreement between pairs, as a fraction of the depth.
+    workers : int
+        Processes for the depth maps (0 = every core).
+    """
+    from .orthophoto.cameras import cameras_from_sfm
+    from .pointcloud import write_las
+
+    fb = as_feedback(feedback)
+    t0 = time.perf_counter()
+    output = Path(output)
+    if min_views < 1 or neighbours < min_views:
+        raise InputError(f"need neighbours ({neighbours}) >= min_views ({min_views}) >= 1")
+    cams, crs, pts, skipped = cameras_from_sfm(sfm, images)
+    notes = [f"{name}: {why}" for name, why in skipped]
+    if len(cams) < 2:
+        raise InputError(f"{len(cams)} registered photo(s) on disk: a dense surface needs 2 or more", path=sfm)
+    if len(pts) < _MIN_SHARED_POINTS:
+        raise InputError(f"the SfM model has {len(pts)} sparse points: too few to choose pairs", path=sfm)
+    origin = np.asarray(np.round(np.mean([c.pose.center for c in cams], axis=0), -2), float)
+    scale = min(1.0, max_image_size / max(cams[0].intrinsics.width_px, cams[0].intrinsics.height_px))
+    views = tuple(_view(c, scale, origin) for c in cams)
+    jobs, gsd_m = _plan(cams, pts, neighbours)
+    if not jobs:
+        raise InputError("no pair of photos overlaps with enough baseline for depth", path=sfm)
+    ctx = _Context(views, scale, min_views, depth_tolerance, voxel_m=gsd_m / scale)
+    s_maps, s_write = split(fb, [9, 1])
+    chunks_xyz, chunks_rgb = [], []
+    n_raw, n_maps = 0, 0
+    for xyz, rgb, raw in imap_ordered(
+        _depth_task, jobs, workers=workers, initializer=_init_worker, initargs=(ctx,), feedback=s_maps
+    ):
+        n_raw += raw
+        if len(xyz):
+            n_maps += 1
+            chunks_xyz.append(xyz)
+            chunks_rgb.append(rgb)
+    t_maps = time.perf_counter() - t0
+    if not chunks_xyz:
+        raise InputError("no depth could be measured (textureless photos, or poses that do not fit)", path=sfm)
+    xyz, rgb = _thin(np.concatenate(chunks_xyz), np.concatenate(chunks_rgb), ctx.voxel_m)
+    write_las(output, xyz.astype(np.float64) + origin, crs, rgb=rgb.astype(np.float64) / 255.0)
+    s_write.progress(1.0)
+    report = output.with_name(output.stem + "_report.json")
+    from .crs import crs_to_text
+    from .outputs import write_json
+
+    write_json(
+        report,
+        {
+            "photos": len(cams),
+            "depth_maps": n_maps,
+            "pairs": sum(len(j.neighbours) for j in jobs),
+            "image_scale": scale,
+            "points_matched": n_raw,
+            "points_consistent": int(sum(len(c) for c in chunks_xyz)),
+            "points_written": len(xyz),
+            "voxel_m": ctx.voxel_m,
+            "seconds": {"depth_maps": t_maps, "total": time.perf_counter() - t0},
+            "notes": notes,
+        },
+    )
+    fb.info(f"dense: {len(xyz)} points from {n_maps} depth maps ({n_raw} matched) in {t_maps:.0f} s")
+    return DenseResult(output, report, len(cams), n_maps, len(xyz), crs_to_text(crs), tuple(notes))
+
+
+def _view(cam: Any, scale: float, origin: np.ndarray) -> _View:
+    intr = cam.intrinsics
+    K = intr.matrix.copy()
+    K[0, 0] *= scale
+    K[1, 1] *= scale
+    K[0, 2] = (K[0, 2] + 0.5) * scale - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) * scale - 0.5
+    size = (int(round(intr.width_px * scale)), int(round(intr.height_px * scale)))
+    return _View(
+        cam.name, cam.path, K, intr.dist_coeffs.reshape(-1, 1), size, cam.pose.rotation, cam.pose.center - origin
+    )
+
+
+def _plan(cams: list[Any], pts: np.ndarray, neighbours: int) -> tuple[list[_Job], float]:
+    """Each photo's best neighbours, and the survey's median GSD (metres) at full resolution."""
+    seen, depth = [], []
+    for c in cams:
+        px, d = c.project(pts)
+        w, h = c.intrinsics.width_px, c.intrinsics.height_px
+        seen.append((d > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h))
+        depth.append(d)
+    centres = np.array([c.pose.center for c in cams])
+    axes = np.array([c.pose.rotation[:, 2] for c in cams])
+    jobs, gsds = [], []
+    for i, c in enumerate(cams):
+        if seen[i].sum() < _MIN_SHARED_POINTS:
+            continue
+        height = float(np.median(depth[i][seen[i]]))
+        gsds.append(height / c.intrinsics.focal_px)
+        scored = []
+        for j in range(len(cams)):
+            shared = seen[i] & seen[j]
+            n_shared = int(shared.sum())
+            if j == i or n_shared < _MIN_SHARED_POINTS:
+                continue
+            ratio = float(np.linalg.norm(centres[i] - centres[j])) / height
+            angle = math.degrees(math.acos(float(np.clip(axes[i] @ axes[j], -1.0, 1.0))))
+            if ratio < _MIN_BASE_RATIO or angle > _MAX_VIEW_ANGLE_DEG:
+                continue
+            lo, hi = np.percentile(depth[i][shared], [1, 99])
+            scored.append((n_shared * min(1.0, ratio / 0.25), j, (float(lo), float(hi))))
+        scored.sort(reverse=True)
+        best = scored[:neighbours]
+        if best:
+            jobs.append(_Job(i, tuple(j for _, j, _ in best), tuple(r for _, _, r in best)))
+    return jobs, float(np.median(gsds)) if gsds else 0.05
+
+
+def _read(view: _View, scale: float) -> np.ndarray:
+    img = cv2.imread(str(view.path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError("cannot be decoded", path=view.path)
+    if scale != 1.0:
+        img = cv2.resize(img, view.size, interpolation=cv2.INTER_AREA)
+    return img
+
+
+def _pair(
+    a: _View, b: _View, img_a: np.ndarray, img_b: np.ndarray, depth_range: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Points (local frame) and colours (BGR) of one rectified pair, ``a`` as the left image;
+    None when the pair rectifies the other way round (then ``b`` must be the left image)."""
+    R = b.R.T @ a.R
+    T = (b.R.T @ (a.C - b.C)).reshape(3, 1)
+    R1, _, P1, P2, _, _, _ = cv2.stereoRectify(
+        a.K, a.dist, b.K, b.dist, a.size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
+    )
+    R2 = cv2.stereoRectify(a.K, a.dist, b.K, b.dist, a.size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)[1]
+    horizontal = abs(P2[0, 3]) > abs(P2[1, 3])
+    shift = P2[0, 3] if horizontal else P2[1, 3]
+    if shift > 0:
+        return None
+    f = float(P1[0, 0])
+    baseline = abs(float(shift)) / f
+    zmin, zmax = depth_range
+    min_d = max(0, int(math.floor(f * baseline / zmax * 0.85)))
+    n_d = max(16, int(math.ceil((f * baseline / zmin * 1.15 - min_d) / 16.0)) * 16)
+    map_a = cv2.initUndistortRectifyMap(a.K, a.dist, R1, P1, a.size, cv2.CV_32FC1)
+    map_b = cv2.initUndistortRectifyMap(b.K, b.dist, R2, P2, b.size, cv2.CV_32FC1)
+    left = cv2.remap(img_a, map_a[0], map_a[1], cv2.INTER_LINEAR)
+    right = cv2.remap(img_b, map_b[0], map_b[1], cv2.INTER_LINEAR)
+    valid = cv2.remap(np.full(img_a.shape[:2], 255, np.uint8), map_a[0], map_a[1], cv2.INTER_NEAREST)
+    if not horizontal:  # vertical pairs: transposed, SGBM searches along rows
+        left, right, valid = cv2.transpose(left), cv2.transpose(right), cv2.transpose(valid)
+    if n_d > left.shape[1] // 2:
+        return None
+    # The right image shifted by the smallest disparity: SGBM searches only the range that matters
+    # (and an image narrower than minDisparity + numDisparities makes OpenCV fail).
+    shifted = np.zeros_like(right)
+    shifted[:, min_d:] = right[:, : right.shape[1] - min_d]
+    bs = 5
+    sgbm = cv2.StereoSGBM.create(
+        minDisparity=0,
+        numDisparities=n_d,
+        blockSize=bs,
+        P1=8 * 3 * bs * bs,
+        P2=32 * 3 * bs * bs,
+        disp12MaxDiff=1,
+        uniquenessRatio=10,
+        speckleWindowSize=100,
+        speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+    raw = sgbm.compute(left, shifted)
+    ok = (raw > 0) & (valid > 0)
+    disp: np.ndarray = raw.astype(np.float32) / 16.0 + min_d
+    if not horizontal:
+        disp = np.asarray(cv2.transpose(disp))
+        ok = np.asarray(cv2.transpose(ok.astype(np.uint8))) > 0
+        left = np.asarray(cv2.transpose(left))
+    rr, cc = np.nonzero(ok)
+    z = f * baseline / disp[rr, cc]
+    keep = (z > zmin * 0.8) & (z < zmax * 1.2)
+    rr, cc, z = rr[keep], cc[keep], z[keep]
+    rect = np.c_[(cc - P1[0, 2]) * z / f, (rr - P1[1, 2]) * z / f, z]
+    world = (rect @ R1) @ a.R.T + a.C  # rectified -> camera a -> local frame
+    return world.astype(np.float32), left[rr, cc]
+
+
+def _depth_task(job: _Job) -> tuple[np.ndarray, np.ndarray, int]:
+    """One reference photo: its pairs' points, kept where ``min_views`` pairs agree on the depth."""
+    assert _CTX is not None
+    ctx = _CTX
+    ref = ctx.views[job.ref]
+    img_ref = _read(ref, ctx.scale)
+    w, h = ref.size
+    per_pair: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+    zmaps = []
+    n_raw = 0
+    for j, rng in zip(job.neighbours, job.depth_ranges):
+        other = ctx.views[j]
+        img_other = _read(other, ctx.scale)
+        got = _pair(ref, other, img_ref, img_other, rng) or _pair(other, ref, img_other, img_ref, rng)
+        if got is None or not len(got[0]):
+            continue
+        xyz, rgb = got
+        n_raw += len(xyz)
+        # into the reference photo (rectification undone: its own undistorted scaled frame)
+        cam = (xyz.astype(np.float64) - ref.C) @ ref.R
+        depth = cam[:, 2]
+        pix, _ = cv2.projectPoints(cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), ref.K, ref.dist)
+        pix = pix.reshape(-1, 2)
+        col = np.round(pix[:, 0]).astype(np.int64)
+        row = np.round(pix[:, 1]).astype(np.int64)
+        inside = (depth > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        idx = np.where(inside, row * w + col, 0)
+        zbuf = np.full(w * h, np.inf, np.float32)
+        np.minimum.at(zbuf, idx[inside], depth[inside].astype(np.float32))
+        zmaps.append(np.where(np.isfinite(zbuf), zbuf, np.nan))
+        per_pair.append((xyz, rgb, idx, np.where(inside, depth, np.nan)))
+    if len(zmaps) < ctx.min_views:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), n_raw
+    stack = np.vstack(zmaps)
+    with np.errstate(invalid="ignore"), _quiet_nanmedian():
+        med = np.nanmedian(stack, axis=0)
+    tol = ctx.depth_tolerance * med
+    agree = (np.abs(stack - med) <= tol).sum(axis=0)
+    out_xyz, out_rgb = [], []
+    for xyz, rgb, idx, depth in per_pair:
+        with np.errstate(invalid="ignore"):
+            keep = (agree[idx] >= ctx.min_views) & (np.abs(depth - med[idx]) <= tol[idx])
+        out_xyz.append(xyz[keep])
+        out_rgb.append(rgb[keep][:, ::-1])  # BGR -> RGB
+    return np.concatenate(out_xyz), np.concatenate(out_rgb), n_raw
+
+
+class _quiet_nanmedian:
+    """All-NaN pixels (seen by no pair) are expected: no RuntimeWarning for them."""
+
+    def __enter__(self) -> None:
+        import warnings
+
+        self._w = warnings.catch_warnings()
+        self._w.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc: Any) -> None:
+        self._w.__exit__(*exc)
+
+
+def _thin(xyz: np.ndarray, rgb: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """One point per voxel (the mean of those in it): the pairs see each spot several times."""
+    key = np.floor(xyz / voxel_m).astype(np.int64)
+    key -= key.min(axis=0)
+    dims = key.max(axis=0) + 1
+    flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]  # one integer per voxel: a 1-D sort
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    n = len(counts)
+    out = np.zeros((n, 3))
+    col = np.zeros((n, 3))
+    for k in range(3):
+        out[:, k] = np.bincount(inverse, xyz[:, k].astype(np.float64), n) / counts
+        col[:, k] = np.bincount(inverse, rgb[:, k].astype(np.float64), n) / counts
+    return out.astype(np.float32), np.clip(col + 0.5, 0, 255).astype(np.uint8)
