@@ -29,6 +29,11 @@ __all__ = ["DenseResult", "dense"]
 _MIN_SHARED_POINTS = 30
 _MIN_BASE_RATIO = 0.08  # baseline / height: below, depth is noise
 _MAX_VIEW_ANGLE_DEG = 20.0
+# Local contrast (grey-level standard deviation over 7 x 7 px) below which a pixel has no texture to
+# match: SGBM's smoothness term would fill such areas (calm water, snow, fresh tarmac) from their
+# edges with made-up depths. Textured ground measures 10+ DN at the 5th percentile; a flat pond ~1 DN.
+_MIN_TEXTURE_DN = 3.0
+_TEXTURE_WINDOW_PX = 7
 
 
 @dataclass(frozen=True)
@@ -77,29 +82,17 @@ class _View:
 
 @dataclass(frozen=True)
 class _Job:
-    """A reference photo, its neighbours, and the depth range the sparse points give each pair."""
+    """A reference photo, its neighbours, the depth range the sparse points give each pair, and
+    what the filter needs: everything a worker needs travels with the job (an executor such as
+    Dask's runs no initializer)."""
 
-    ref: int
-    neighbours: tuple[int, ...]
+    ref: _View
+    neighbours: tuple[_View, ...]
     depth_ranges: tuple[tuple[float, float], ...]
-
-
-@dataclass(frozen=True)
-class _Context:
-    views: tuple[_View, ...]
     scale: float
     min_views: int
     depth_tolerance: float
     voxel_m: float
-
-
-_CTX: _Context | None = None
-
-
-def _init_worker(ctx: _Context) -> None:
-    global _CTX
-    _CTX = ctx
-    cv2.setNumThreads(1)  # one photo per process already fills the cores
 
 
 def dense(
@@ -139,61 +132,98 @@ def dense(
     from .pointcloud import write_las
 
     fb = as_feedback(feedback)
-    t0 = time.perf_counter()
+    seconds: dict[str, float] = {}
+    clock = time.perf_counter()
     output = Path(output)
     if min_views < 1 or neighbours < min_views:
         raise InputError(f"need neighbours ({neighbours}) >= min_views ({min_views}) >= 1")
-    cams, crs, pts, skipped = cameras_from_sfm(sfm, images)
+    if max_image_size < 256:
+        raise InputError(f"max_image_size {max_image_size} px: give 256 or more")
+    cams, crs, pts, skipped = cameras_from_sfm(sfm, images, local_frame_ok=True)
     notes = [f"{name}: {why}" for name, why in skipped]
+    if crs is None:
+        notes.append("the SfM model is in a local frame (no GPS, no GCPs): the cloud has no CRS and model units")
+        fb.warning("dense: the SfM model is in a local frame: the cloud has no CRS (georeference the sfm run)")
     if len(cams) < 2:
         raise InputError(f"{len(cams)} registered photo(s) on disk: a dense surface needs 2 or more", path=sfm)
     if len(pts) < _MIN_SHARED_POINTS:
         raise InputError(f"the SfM model has {len(pts)} sparse points: too few to choose pairs", path=sfm)
     origin = np.asarray(np.round(np.mean([c.pose.center for c in cams], axis=0), -2), float)
     scale = min(1.0, max_image_size / max(cams[0].intrinsics.width_px, cams[0].intrinsics.height_px))
-    views = tuple(_view(c, scale, origin) for c in cams)
-    jobs, gsd_m = _plan(cams, pts, neighbours)
-    if not jobs:
+    views = [_view(c, scale, origin) for c in cams]
+    pairs, gsd = _plan(cams, pts, neighbours)
+    if not pairs:
         raise InputError("no pair of photos overlaps with enough baseline for depth", path=sfm)
-    ctx = _Context(views, scale, min_views, depth_tolerance, voxel_m=gsd_m / scale)
+    voxel = gsd / scale  # about one depth-map pixel on the ground
+    jobs = [
+        _Job(views[i], tuple(views[j] for j in nbrs), rngs, scale, min_views, depth_tolerance, voxel)
+        for i, nbrs, rngs in pairs
+    ]
+    seconds["plan"] = _lap(clock)
     s_maps, s_write = split(fb, [9, 1])
-    chunks_xyz, chunks_rgb = [], []
-    n_raw, n_maps = 0, 0
-    for xyz, rgb, raw in imap_ordered(
-        _depth_task, jobs, workers=workers, initializer=_init_worker, initargs=(ctx,), feedback=s_maps
-    ):
-        n_raw += raw
-        if len(xyz):
+    fusion = _Fusion(voxel)
+    n_matched = n_consistent = n_maps = 0
+    for got in imap_ordered(_depth_task, jobs, workers=workers, feedback=s_maps):
+        n_matched += got.n_matched
+        n_consistent += got.n_consistent
+        if got.n_consistent:
             n_maps += 1
-            chunks_xyz.append(xyz)
-            chunks_rgb.append(rgb)
-    t_maps = time.perf_counter() - t0
-    if not chunks_xyz:
+            fusion.add(got.xyz, got.rgb, got.counts)
+    seconds["depth_maps"] = _lap(clock) - seconds["plan"]
+    xyz, rgb = fusion.result()
+    seconds["fusion"] = fusion.seconds
+    if not len(xyz):
         raise InputError("no depth could be measured (textureless photos, or poses that do not fit)", path=sfm)
-    xyz, rgb = _thin(np.concatenate(chunks_xyz), np.concatenate(chunks_rgb), ctx.voxel_m)
-    write_las(output, xyz.astype(np.float64) + origin, crs, rgb=rgb.astype(np.float64) / 255.0)
+    t_write = time.perf_counter()
+    write_las(output, xyz + origin, crs, rgb=rgb / 255.0)
+    seconds["write"] = time.perf_counter() - t_write
     s_write.progress(1.0)
+    seconds["total"] = _lap(clock)
     report = output.with_name(output.stem + "_report.json")
     from .crs import crs_to_text
     from .outputs import write_json
 
+    crs_text = crs_to_text(crs) if crs is not None else ""
     write_json(
         report,
         {
+            "output": str(output),
+            "crs": crs_text or None,
             "photos": len(cams),
             "depth_maps": n_maps,
-            "pairs": sum(len(j.neighbours) for j in jobs),
+            "pairs": sum(len(nbrs) for _, nbrs, _ in pairs),
+            "views": {views[i].name: [views[j].name for j in nbrs] for i, nbrs, _ in pairs},
+            "max_image_size": max_image_size,
             "image_scale": scale,
-            "points_matched": n_raw,
-            "points_consistent": int(sum(len(c) for c in chunks_xyz)),
+            "depth_map_megapixels": len(jobs) * views[0].size[0] * views[0].size[1] / 1e6,
+            "points_matched": n_matched,
+            "points_consistent": n_consistent,
             "points_written": len(xyz),
-            "voxel_m": ctx.voxel_m,
-            "seconds": {"depth_maps": t_maps, "total": time.perf_counter() - t0},
+            "voxel_m": voxel,
+            "seconds": seconds,
+            "peak_memory_mb": _peak_memory_mb(),
             "notes": notes,
         },
     )
-    fb.info(f"dense: {len(xyz)} points from {n_maps} depth maps ({n_raw} matched) in {t_maps:.0f} s")
-    return DenseResult(output, report, len(cams), n_maps, len(xyz), crs_to_text(crs), tuple(notes))
+    fb.info(
+        f"dense: {len(xyz)} points from {n_maps} depth maps ({n_matched} matched, {n_consistent} consistent) "
+        f"in {seconds['total']:.0f} s"
+    )
+    return DenseResult(output, report, len(cams), n_maps, len(xyz), crs_text, tuple(notes))
+
+
+def _lap(clock: float) -> float:
+    return time.perf_counter() - clock
+
+
+def _peak_memory_mb() -> dict[str, float]:
+    """Peak resident memory of this process and of the largest finished worker (MB; Linux units)."""
+    import resource
+
+    return {
+        "main": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "largest_worker": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
+    }
 
 
 def _view(cam: Any, scale: float, origin: np.ndarray) -> _View:
@@ -209,8 +239,12 @@ def _view(cam: Any, scale: float, origin: np.ndarray) -> _View:
     )
 
 
-def _plan(cams: list[Any], pts: np.ndarray, neighbours: int) -> tuple[list[_Job], float]:
-    """Each photo's best neighbours, and the survey's median GSD (metres) at full resolution."""
+_Pairs = list[tuple[int, tuple[int, ...], tuple[tuple[float, float], ...]]]
+
+
+def _plan(cams: list[Any], pts: np.ndarray, neighbours: int) -> tuple[_Pairs, float]:
+    """Each photo's best neighbours with the pairs' depth ranges, and the survey's median GSD
+    (model units, metres when georeferenced) at full resolution."""
     seen, depth = [], []
     for c in cams:
         px, d = c.project(pts)
@@ -219,7 +253,8 @@ def _plan(cams: list[Any], pts: np.ndarray, neighbours: int) -> tuple[list[_Job]
         depth.append(d)
     centres = np.array([c.pose.center for c in cams])
     axes = np.array([c.pose.rotation[:, 2] for c in cams])
-    jobs, gsds = [], []
+    jobs: _Pairs = []
+    gsds = []
     for i, c in enumerate(cams):
         if seen[i].sum() < _MIN_SHARED_POINTS:
             continue
@@ -240,8 +275,8 @@ def _plan(cams: list[Any], pts: np.ndarray, neighbours: int) -> tuple[list[_Job]
         scored.sort(reverse=True)
         best = scored[:neighbours]
         if best:
-            jobs.append(_Job(i, tuple(j for _, j, _ in best), tuple(r for _, _, r in best)))
-    return jobs, float(np.median(gsds)) if gsds else 0.05
+            jobs.append((i, tuple(j for _, j, _ in best), tuple(r for _, _, r in best)))
+    return jobs, float(np.median(gsds))
 
 
 def _read(view: _View, scale: float) -> np.ndarray:
@@ -300,7 +335,7 @@ def _pair(
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
     raw = sgbm.compute(left, shifted)
-    ok = (raw > 0) & (valid > 0)
+    ok = (raw > 0) & (valid > 0) & _textured(left)
     disp: np.ndarray = raw.astype(np.float32) / 16.0 + min_d
     if not horizontal:
         disp = np.asarray(cv2.transpose(disp))
@@ -315,19 +350,37 @@ def _pair(
     return world.astype(np.float32), left[rr, cc]
 
 
-def _depth_task(job: _Job) -> tuple[np.ndarray, np.ndarray, int]:
+@dataclass(frozen=True)
+class _DepthResult:
+    """One reference photo's consistent points, already thinned to voxel means (with counts)."""
+
+    xyz: np.ndarray  # (N, 3) float64, local frame
+    rgb: np.ndarray  # (N, 3) float64, 0..255
+    counts: np.ndarray  # (N,) points averaged in each
+    n_matched: int
+    n_consistent: int
+
+
+def _textured(img: np.ndarray) -> np.ndarray:
+    """Pixels with enough local contrast to be matched (see ``_MIN_TEXTURE_DN``)."""
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    k = (_TEXTURE_WINDOW_PX, _TEXTURE_WINDOW_PX)
+    mean = cv2.blur(grey, k)
+    var = cv2.blur(grey * grey, k) - mean * mean
+    return np.asarray(var >= _MIN_TEXTURE_DN**2)
+
+
+def _depth_task(job: _Job) -> _DepthResult:
     """One reference photo: its pairs' points, kept where ``min_views`` pairs agree on the depth."""
-    assert _CTX is not None
-    ctx = _CTX
-    ref = ctx.views[job.ref]
-    img_ref = _read(ref, ctx.scale)
+    cv2.setNumThreads(1)  # one photo per process already fills the cores
+    ref = job.ref
+    img_ref = _read(ref, job.scale)
     w, h = ref.size
     per_pair: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     zmaps = []
     n_raw = 0
-    for j, rng in zip(job.neighbours, job.depth_ranges):
-        other = ctx.views[j]
-        img_other = _read(other, ctx.scale)
+    for other, rng in zip(job.neighbours, job.depth_ranges):
+        img_other = _read(other, job.scale)
         got = _pair(ref, other, img_ref, img_other, rng) or _pair(other, ref, img_other, img_ref, rng)
         if got is None or not len(got[0]):
             continue
@@ -346,20 +399,26 @@ def _depth_task(job: _Job) -> tuple[np.ndarray, np.ndarray, int]:
         np.minimum.at(zbuf, idx[inside], depth[inside].astype(np.float32))
         zmaps.append(np.where(np.isfinite(zbuf), zbuf, np.nan))
         per_pair.append((xyz, rgb, idx, np.where(inside, depth, np.nan)))
-    if len(zmaps) < ctx.min_views:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), n_raw
+    empty = _DepthResult(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), n_raw, 0)
+    if len(zmaps) < job.min_views:
+        return empty
     stack = np.vstack(zmaps)
     with np.errstate(invalid="ignore"), _quiet_nanmedian():
         med = np.nanmedian(stack, axis=0)
-    tol = ctx.depth_tolerance * med
+    tol = job.depth_tolerance * med
     agree = (np.abs(stack - med) <= tol).sum(axis=0)
     out_xyz, out_rgb = [], []
     for xyz, rgb, idx, depth in per_pair:
         with np.errstate(invalid="ignore"):
-            keep = (agree[idx] >= ctx.min_views) & (np.abs(depth - med[idx]) <= tol[idx])
+            keep = (agree[idx] >= job.min_views) & (np.abs(depth - med[idx]) <= tol[idx])
         out_xyz.append(xyz[keep])
         out_rgb.append(rgb[keep][:, ::-1])  # BGR -> RGB
-    return np.concatenate(out_xyz), np.concatenate(out_rgb), n_raw
+    xyz_all = np.concatenate(out_xyz).astype(np.float64)
+    if not len(xyz_all):
+        return empty
+    ones = np.ones(len(xyz_all))
+    mean_xyz, mean_rgb, counts = _voxel_means(xyz_all, np.concatenate(out_rgb).astype(np.float64), ones, job.voxel_m)
+    return _DepthResult(mean_xyz, mean_rgb, counts, n_raw, len(xyz_all))
 
 
 class _quiet_nanmedian:
@@ -376,17 +435,58 @@ class _quiet_nanmedian:
         self._w.__exit__(*exc)
 
 
-def _thin(xyz: np.ndarray, rgb: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """One point per voxel (the mean of those in it): the pairs see each spot several times."""
+def _voxel_means(
+    xyz: np.ndarray, rgb: np.ndarray, weight: np.ndarray, voxel_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted mean position and colour per voxel, and the weight in it. A mean of points in a
+    voxel stays in that voxel, so means of means (weighted by counts) equal the mean of all."""
     key = np.floor(xyz / voxel_m).astype(np.int64)
     key -= key.min(axis=0)
     dims = key.max(axis=0) + 1
     flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]  # one integer per voxel: a 1-D sort
-    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    n = len(counts)
-    out = np.zeros((n, 3))
-    col = np.zeros((n, 3))
+    _, inverse, _ = np.unique(flat, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    total = np.bincount(inverse, weight)
+    n = len(total)
+    out_xyz = np.empty((n, 3))
+    out_rgb = np.empty((n, 3))
     for k in range(3):
-        out[:, k] = np.bincount(inverse, xyz[:, k].astype(np.float64), n) / counts
-        col[:, k] = np.bincount(inverse, rgb[:, k].astype(np.float64), n) / counts
-    return out.astype(np.float32), np.clip(col + 0.5, 0, 255).astype(np.uint8)
+        out_xyz[:, k] = np.bincount(inverse, xyz[:, k] * weight, n) / total
+        out_rgb[:, k] = np.bincount(inverse, rgb[:, k] * weight, n) / total
+    return out_xyz, out_rgb, total
+
+
+class _Fusion:
+    """One point per voxel over every depth map, merged as the maps arrive: memory holds the cloud
+    so far and the maps not yet merged, not every map's points."""
+
+    def __init__(self, voxel_m: float, merge_every: int = 4_000_000) -> None:
+        self.voxel_m = voxel_m
+        self.merge_every = merge_every
+        self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.pending = 0
+        self.merged = 0
+        self.seconds = 0.0
+
+    def add(self, xyz: np.ndarray, rgb: np.ndarray, counts: np.ndarray) -> None:
+        self.parts.append((xyz, rgb, counts))
+        self.pending += len(xyz)
+        if self.pending >= max(self.merge_every, self.merged):  # geometric: each point is merged O(log n) times
+            self._merge()
+
+    def _merge(self) -> None:
+        t0 = time.perf_counter()
+        if len(self.parts) > 1:
+            xyz, rgb, w = (np.concatenate(a) for a in zip(*self.parts))
+            self.parts = [_voxel_means(xyz, rgb, w, self.voxel_m)]
+        self.merged = len(self.parts[0][0]) if self.parts else 0
+        self.pending = 0
+        self.seconds += time.perf_counter() - t0
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (N, 3, local frame) and colours (N, 3, 0..255) of the fused cloud."""
+        self._merge()
+        if not self.parts:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        xyz, rgb, _ = self.parts[0]
+        return xyz, np.clip(rgb, 0.0, 255.0)

@@ -118,12 +118,13 @@ def open_points(
 def write_las(
     path: str | os.PathLike[str],
     xyz: np.ndarray,
-    crs: CRS | str,
+    crs: CRS | str | None,
     *,
     rgb: np.ndarray | None = None,
     classification: np.ndarray | None = None,
 ) -> Path:
-    """Write points (N, 3) as LAS/LAZ 1.4 (by extension), millimetre scale, the CRS in the header.
+    """Write points (N, 3) as LAS/LAZ 1.4 (by extension), millimetre scale, the CRS in the header
+    (none for a cloud in a local frame: ``crs`` None).
 
     ``rgb`` is (N, 3) in 0..1; written atomically.
     """
@@ -135,7 +136,8 @@ def write_las(
     header = laspy.LasHeader(point_format=3, version="1.4")
     header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
     header.scales = [0.001, 0.001, 0.001]
-    header.add_crs(parse_crs(crs))
+    if crs is not None:
+        header.add_crs(parse_crs(crs))
     las = laspy.LasData(header)
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     if classification is not None:

@@ -128,8 +128,12 @@ PATHOLOGIES: dict[str, str] = {
     "dsm-datum": "truth/dsm_other_datum.tif: the DSM in orthometric (EGM96) heights, the photos' ellipsoidal",
     "partial-dsm": "truth/dsm_partial.tif: the DSM cropped to the eastern 60 % of the flight",
     "exposure-steps": "every other flight line exposed 0.7x (ExposureTime says so)",
+    "water": "a pond of one flat colour (no texture, as calm water or a fresh tarmac) in the open ground of the "
+    "flight: survey.json gives its disc (water: x, y, radius_m)",
 }
 WRONG_FOCAL_FACTOR = 1.12
+WATER_RGB = (0.16, 0.27, 0.33)
+WATER_RADIUS_M = 6.0
 DRIFT_M = 30.0
 JUMP_M = 12.0
 EXPOSURE_STEP = 0.7
@@ -166,6 +170,7 @@ class Scene:
     flight_box: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax
     home: tuple[float, float, float]  # take-off point (x, y, ground z)
     marker_cells: dict[int, np.ndarray] = field(default_factory=dict)
+    water: tuple[float, float, float] | None = None  # x, y, radius (m): one flat colour there
 
     @property
     def surface(self) -> GridSurface:
@@ -188,6 +193,9 @@ class Scene:
         for grid, cell, amp in zip(self.noise, self.noise_cells_m, (0.22, 0.18, 0.14)):
             detail += amp * _wrap_sample(grid, x / cell, y / cell)
         out = base * detail[:, None]
+        if self.water is not None:
+            wx, wy, wr = self.water
+            out[(x - wx) ** 2 + (y - wy) ** 2 <= wr * wr] = WATER_RGB
         self._paint_markers(x, y, z, out)
         return np.clip(out, 0.0, 1.0)
 
@@ -653,6 +661,28 @@ def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random
     return out
 
 
+def _place_water(scene: Scene) -> tuple[float, float, float]:
+    """The pond: the open-ground spot of the flight area farthest from buildings, trees and markers
+    (no random draw, so the rest of the survey is the one the seed gives without it)."""
+    from scipy.ndimage import distance_transform_edt
+
+    t = scene.transform
+    cell = t.a
+    taken = (scene.dsm - scene.dtm) > 0.05
+    for m in scene.markers:
+        c, r = scene.colrow(np.array([m.x]), np.array([m.y]))
+        taken[int(round(r[0])), int(round(c[0]))] = True
+    clear_m = np.asarray(distance_transform_edt(~taken)) * cell
+    rows, cols = np.indices(taken.shape)
+    xs, ys = (np.asarray(v) for v in t * (cols + 0.5, rows + 0.5))
+    fx0, fy0, fx1, fy1 = scene.flight_box
+    inside = (xs > fx0 + 0.25 * (fx1 - fx0)) & (xs < fx1 - 0.25 * (fx1 - fx0))
+    inside &= (ys > fy0 + 0.25 * (fy1 - fy0)) & (ys < fy1 - 0.25 * (fy1 - fy0))
+    best = np.argmax(np.where(inside, clear_m, -1.0))
+    radius = min(WATER_RADIUS_M, 0.5 * float(clear_m.flat[best]), 0.15 * min(fx1 - fx0, fy1 - fy0))
+    return float(xs.flat[best]), float(ys.flat[best]), radius
+
+
 def _wrap180(a: float) -> float:
     return float((a + 180.0) % 360.0 - 180.0)
 
@@ -991,7 +1021,7 @@ def synth(
     pathology : str
         Comma-separated consumer-drone pathologies to build in: no-relative-altitude,
         ellipsoidal-gps, altitude-drift, wrong-focal, dsm-datum, partial-dsm,
-        exposure-steps (truth/survey.json says what each did).
+        exposure-steps, water (truth/survey.json says what each did).
 
     Returns
     -------
@@ -1012,10 +1042,12 @@ def synth(
     for old in images_dir.glob("*.JPG"):
         old.unlink()
     step_scene, step_render, step_truth = split(fb, [1, 8, 2])
+    pathologies = parse_pathologies(pathology)
     rng = np.random.default_rng(seed)
     scene = build_scene(p, rng, lat=latitude_deg, lon=longitude_deg, dictionary=dictionary, marker_size_m=marker_size_m)
     step_scene.progress(0.5)
-    pathologies = parse_pathologies(pathology)
+    if "water" in pathologies:
+        scene.water = _place_water(scene)
     shots = _record(plan_flight(p, scene, rng), scene, p, rng)
     undulation = 0.0
     if pathologies:
@@ -1223,6 +1255,7 @@ def _write_survey_json(
                 "distortion": list(p.distortion),
             },
             "pathologies": {k: PATHOLOGIES[k] for k in pathologies},
+            **({"water": dict(zip(("x", "y", "radius_m"), scene.water))} if scene.water is not None else {}),
             "geoid_undulation_m": undulation_m,
             "home": {"x": scene.home[0], "y": scene.home[1], "ground_z": scene.home[2]},
             "flight_box": list(scene.flight_box),

@@ -1,16 +1,23 @@
-"""The dense stage against the synthetic truth: a DSM from the photos alone."""
+"""The dense stage against the synthetic truth: a DSM and an orthophoto from the photos alone."""
 
 from __future__ import annotations
 
 import json
+import shutil
 
+import laspy
 import numpy as np
 import pytest
 import rasterio
+from conftest import SFM_FAST
 from rasterio.warp import Resampling, reproject
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 import geoortho
+from geoortho.orthophoto.quality import geolocation_shifts, share_off_beside_objects
+
+ORTHO_CELL_M = 0.05  # the small preset's true ortho grid
 
 
 def _on_grid(path, transform, crs, shape):
@@ -27,40 +34,131 @@ def _on_grid(path, transform, crs, shape):
     return out
 
 
+def _read(path):
+    with rasterio.open(path) as src:
+        return src.read(1, masked=True).filled(np.nan), src.transform, src.crs
+
+
 @pytest.fixture(scope="module")
 def dense_small(sfm_with_gcps, small_survey, tmp_path_factory):
     r_sfm, _ = sfm_with_gcps
     d = tmp_path_factory.mktemp("dense")
-    return geoortho.dense(r_sfm.output, small_survey.images, d / "dense.laz"), d
+    r = geoortho.dense(r_sfm.output, small_survey.images, d / "dense.laz")
+    gsd = json.loads((small_survey.truth / "survey.json").read_text())["gsd_cm_at_home_height"] / 100
+    dem = geoortho.dem(r.output, d / "dsm.tif", dtm=d / "dtm.tif", resolution_m=2 * gsd, max_gap_m=0)
+    return r, dem, gsd
 
 
-def test_dense_dsm_against_the_true_dsm(dense_small, small_survey):
-    r, d = dense_small
-    info = json.loads((small_survey.truth / "survey.json").read_text())
-    gsd = info["gsd_cm_at_home_height"] / 100
+def test_dense_dsm_and_dtm_against_the_truth(dense_small, small_survey):
+    r, dem, gsd = dense_small
     report = json.loads(r.report.read_text())
     assert r.n_depth_maps == report["depth_maps"] >= 0.9 * small_survey.n_photos
     assert report["points_written"] == r.n_points > 0 and r.crs == small_survey.crs
-    dsm = geoortho.dem(r.output, d / "dsm.tif", resolution_m=2 * gsd, max_gap_m=0)
-    with rasterio.open(dsm.dsm) as src:
-        z = src.read(1, masked=True).filled(np.nan)
-        transform, crs = src.transform, src.crs
+    assert set(report["views"]) <= {p.name for p in small_survey.images.iterdir()}
+    assert all(1 <= len(v) <= 3 for v in report["views"].values())
+    assert report["seconds"]["depth_maps"] > 0 and report["peak_memory_mb"]["main"] > 0
+    with laspy.open(r.output) as f:
+        assert f.header.parse_crs().to_epsg() == int(small_survey.crs.split(":")[1])
+        assert f.header.point_format.id in (2, 3, 7, 8)  # coloured
+    z, transform, crs = _read(dem.dsm)
     true_dsm = _on_grid(small_survey.dsm, transform, crs, z.shape)
     true_dtm = _on_grid(small_survey.dtm, transform, crs, z.shape)
     rows, cols = np.indices(z.shape)
     xs, ys = transform * (cols + 0.5, rows + 0.5)
-    fx0, fy0, fx1, fy1 = info["flight_box"]
+    fx0, fy0, fx1, fy1 = json.loads((small_survey.truth / "survey.json").read_text())["flight_box"]
     flown = (xs >= fx0) & (xs <= fx1) & (ys >= fy0) & (ys <= fy1)
     height = true_dsm - true_dtm
     open_ground = flown & (ndimage.maximum_filter(height, 5) < 0.2)
     roofs = flown & (ndimage.minimum_filter(height, 5) > 3.0)
     dz = z - true_dsm
-    assert np.isfinite(z[flown]).mean() >= 0.95  # completeness before any gap fill
+    # measured: completeness 99.3 %, open ground median 1.4 GSD, RMSE 1.9 GSD, roofs +4 cm
+    assert np.isfinite(z[flown]).mean() >= 0.95  # before any gap fill
     ground = dz[open_ground & np.isfinite(dz)]
     assert np.median(np.abs(ground)) <= 1.5 * gsd
     assert np.sqrt(np.mean(ground**2)) <= 3 * gsd
     roof = dz[roofs & np.isfinite(dz)]
     assert roof.size > 1000 and abs(np.median(roof)) <= 0.3
+    dtm, _, _ = _read(dem.dtm)
+    ddz = (dtm - true_dtm)[flown & np.isfinite(dtm)]
+    assert ddz.size > 0.9 * flown.sum() and np.sqrt(np.mean(ddz**2)) <= 0.3
+
+
+def test_ortho_on_the_dense_dsm_is_a_true_ortho(dense_small, sfm_with_gcps, small_survey, tmp_path):
+    """Same SfM poses, the dense DSM against flat ground. Measured (small, seed 1): the dense DSM
+    shifts 3.5 mm, 8.8 % of the ground beside buildings is off by > 25 DN, 3.2 % of open ground;
+    flat ground: 15 cm, 72 %, 60 %; the true DSM: 1.1 mm, 0.17 %, 0.07 % (so the dense one is
+    far better than flat, not yet as good as the truth: roof edges fatten into hidden ground)."""
+    r_sfm, _ = sfm_with_gcps
+    _, dem, gsd = dense_small
+    figures = {}
+    for name, dsm in (("dense", dem.dsm), ("flat", None)):
+        o = geoortho.ortho(
+            small_survey.images,
+            tmp_path / f"{name}.tif",
+            sfm=r_sfm.output,
+            dsm=dsm,
+            resolution_m=ORTHO_CELL_M,
+            workers=2,
+        )
+        shifts = np.array([s.distance for s in geolocation_shifts(o.output, small_survey.ortho)])
+        figures[name] = {
+            "median_shift_m": float(np.median(shifts)),
+            **share_off_beside_objects(o.output, small_survey.ortho, small_survey.dsm, small_survey.dtm),
+        }
+    dense, flat = figures["dense"], figures["flat"]
+    assert dense["median_shift_m"] <= 0.5 * gsd < flat["median_shift_m"], figures
+    assert dense["ring"] <= min(0.15, 0.2 * flat["ring"]), figures
+    assert dense["open"] <= min(0.06, 0.2 * flat["open"]), figures
+
+
+@pytest.fixture(scope="module")
+def pond(tmp_path_factory):
+    """The tiny survey with a textureless pond, its SfM and its dense cloud."""
+    d = tmp_path_factory.mktemp("pond")
+    s = geoortho.synth(d / "survey", preset="tiny", seed=3, pathology="water")
+    found = geoortho.gcp_find(s.images, s.gcp_file, d / "gcp_list.txt")
+    r_sfm = geoortho.sfm(s.images, d / "sfm", gcp_list=found.output, **SFM_FAST)
+    return s, r_sfm, geoortho.dense(r_sfm.output, s.images, d / "dense.laz")
+
+
+def test_textureless_water_stays_a_hole(pond):
+    s, _, r = pond
+    water = json.loads((s.truth / "survey.json").read_text())["water"]
+    las = laspy.read(r.output)
+    x, y, z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
+    d = np.hypot(x - water["x"], y - water["y"]) / water["radius_m"]
+    with rasterio.open(s.dsm) as src:
+        rows, cols = rasterio.transform.rowcol(src.transform, x, y)
+        dz = z - src.read(1)[np.asarray(rows), np.asarray(cols)]
+    # measured: none inside 0.8 R (without the texture mask: 2,500 points, |dZ| up to 0.7 m)
+    assert (d < 0.7).sum() == 0
+    rim, outside = (d >= 0.7) & (d < 1.0), (d >= 1.0) & (d < 3.0)
+    assert outside.sum() > 50_000 and np.percentile(np.abs(dz[outside]), 99) < 0.15
+    assert rim.sum() == 0 or np.percentile(np.abs(dz[rim]), 95) < 0.25
+
+
+def test_local_frame_and_missing_photos(pond, tmp_path):
+    """A model without georeference still gives a cloud (no CRS, said); missing photos are listed."""
+    s, r_sfm, georeferenced = pond
+    local = tmp_path / "sfm"
+    shutil.copytree(r_sfm.output / "model", local / "model")
+    geo = json.loads((local / "model" / "georeference.json").read_text())
+    offset = np.array(geo["offset"])
+    (local / "model" / "georeference.json").write_text(json.dumps({"crs": None, "offset": [0, 0, 0]}))
+    images = tmp_path / "images"
+    images.mkdir()
+    photos = sorted(s.images.iterdir())
+    for p in photos[1:]:
+        (images / p.name).symlink_to(p)
+    r = geoortho.dense(local, images, tmp_path / "local.laz")
+    assert r.crs == "" and any("local frame" in n for n in r.notes)
+    assert any(photos[0].name in n and "not found" in n for n in r.notes)
+    las = laspy.read(r.output)
+    assert las.header.parse_crs() is None and r.n_points > 0.5 * georeferenced.n_points
+    ref = laspy.read(georeferenced.output)
+    ours = np.c_[las.x, las.y, las.z] + offset
+    dist, idx = cKDTree(np.c_[ref.x, ref.y]).query(ours[:, :2])
+    assert np.median(dist) < 0.02 and np.median(np.abs(ours[:, 2] - np.asarray(ref.z)[idx])) < 0.02
 
 
 def test_dense_refuses_a_model_of_one_photo(sfm_with_gcps, small_survey, tmp_path):
@@ -72,3 +170,11 @@ def test_dense_refuses_a_model_of_one_photo(sfm_with_gcps, small_survey, tmp_pat
     with pytest.raises(geoortho.InputError, match="registered photo"):
         geoortho.dense(r_sfm.output, images, tmp_path / "dense.laz")
     assert not (tmp_path / "dense.laz").exists()
+
+
+def test_cli_bad_input_exit_2(tmp_path, capsys):
+    from geoortho.processing.cli import main
+
+    assert main(["dense", "--sfm", str(tmp_path), "--images", str(tmp_path), "--output", str(tmp_path / "d.laz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not an sfm output folder" in err[0]

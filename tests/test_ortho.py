@@ -6,7 +6,6 @@ import json
 import subprocess
 import sys
 
-import cv2
 import numpy as np
 import pytest
 import rasterio
@@ -16,7 +15,7 @@ from scipy import ndimage
 from geoortho.camera import Intrinsics, Pose
 from geoortho.errors import InputError
 from geoortho.orthophoto import MosaicOptions, OrthoCamera, mosaic, ortho
-from geoortho.orthophoto.quality import geolocation_shifts, read_on_grid
+from geoortho.orthophoto.quality import geolocation_shifts, share_off_beside_objects
 from geoortho.surface import read_surface
 
 TRUE_CELL_M = 0.05  # the small preset's true ortho: our grid lands on its pixels
@@ -77,75 +76,7 @@ def true_ortho(small_survey, tmp_path_factory):
 
 
 def _ring_errors(ortho_path, survey):
-    """Colour error against the true ortho on the ground 0.3–2.5 m beside buildings and trees (where
-    roofs ghost when occlusion is ignored) and on open ground (> 6 m from them)."""
-    with rasterio.open(survey.dsm) as a, rasterio.open(survey.dtm) as b:
-        hag, cell, dsm_tr = a.read(1) - b.read(1), a.transform.a, a.transform
-    near = ndimage.distance_transform_edt(~(hag > 2.0)) * cell
-    ground = hag < 0.1
-    masks = {"ring": ground & (near > 0.3) & (near < 2.5), "open": ground & (near > 6.0)}
-    with rasterio.open(survey.ortho) as t:
-        truth, ttr = t.read().astype(np.float32), t.transform
-    rgb, valid = read_on_grid(ortho_path, survey.ortho)
-    rows, cols = np.indices(valid.shape)
-    x, y = ttr.c + (cols + 0.5) * ttr.a, ttr.f + (rows + 0.5) * ttr.e
-    c = np.clip(((x - dsm_tr.c) / dsm_tr.a).astype(int), 0, hag.shape[1] - 1)
-    r = np.clip(((y - dsm_tr.f) / dsm_tr.e).astype(int), 0, hag.shape[0] - 1)
-    diff = cv2.GaussianBlur(np.abs(rgb.astype(np.float32) - truth).mean(axis=0), (0, 0), 1.0)
-    out = {}
-    for name, m in masks.items():
-        sel = m[r, c] & valid
-        out[name] = float((diff[sel] > 25).mean())  # share of pixels off by more than a ground/roof step
-    return out
-
-
-def test_true_poses_geolocation_and_coverage(true_ortho, small_survey):
-    r, fb = true_ortho
-    shifts = geolocation_shifts(r.output, small_survey.ortho)
-    assert len(shifts) >= 30
-    d = np.array([s.distance for s in shifts])
-    assert np.median(d) <= 0.5 * _gsd_m(small_survey)  # measured 0.7 mm (GSD 3.8 cm)
-    assert r.resolution_m == TRUE_CELL_M
-    assert r.median_gsd_m == pytest.approx(_gsd_m(small_survey), rel=0.1)
-    assert not any("finer than" in n for n in r.notes)
-    assert r.n_used == r.n_photos == 35
-    # the flown area is covered, and nothing inside coverage is left a hole
-    flight = json.loads((small_survey.truth / "survey.json").read_text())["flight_box"]
-    with rasterio.open(r.output) as src:
-        win = rasterio.windows.from_bounds(*flight, transform=src.transform)
-        alpha = src.read(4, window=win)
-    assert (alpha == 255).mean() >= 0.99
-    assert r.holes_left_px == 0
-    assert fb.values and fb.values[-1] == pytest.approx(1.0)
-
-
-def test_true_poses_is_a_cog_with_alpha_and_preview(true_ortho, small_survey):
-    r, _ = true_ortho
-    with rasterio.open(r.output) as src:
-        assert src.count == 4 and src.dtypes[0] == "uint8"
-        assert src.colorinterp[3] == rasterio.enums.ColorInterp.alpha
-        assert src.crs.to_epsg() == 32629
-        assert src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
-        assert src.overviews(1)
-        assert src.transform.a == pytest.approx(TRUE_CELL_M)
-    png = cv2.imread(str(r.preview), cv2.IMREAD_UNCHANGED)
-    assert png.shape[2] == 4 and max(png.shape[:2]) <= 2048 and (png[..., 3] == 255).mean() > 0.5
-    rep = json.loads(r.report.read_text())
-    assert rep["resolution_m"] == TRUE_CELL_M and len(rep["gains_bgr"]) == 35
-
-
-def test_balance_halves_the_colour_step_across_seams(true_ortho, small_survey):
-    r, _ = true_ortho
-    # measured 7.0 -> 2.5 DN; the photos' exposures differ by up to ±10 %
-    assert r.seam_mismatch_balanced <= 0.5 * r.seam_mismatch_raw
-    rep = json.loads(r.report.read_text())
-    poses = {p["image"]: p["exposure_gain"] for p in json.loads((small_survey.truth / "poses.json").read_text())}
-    names = sorted(rep["gains_bgr"])
-    gains = np.array([np.mean(rep["gains_bgr"][n]) for n in names])
-    exposure = np.array([poses[n] for n in names])
-    # the solved gains undo the exposures: log-log slope close to -1 (measured -0.99)
-    slope = np.polyfit(np.log(exposure), np.log(gains), 1)[0]
-    assert -1.15 < slope < -0.85
+    return share_off_beside_objects(ortho_path, survey.ortho, survey.dsm, survey.dtm)
 
 
 def test_occlusion_keeps_roofs_off_the_ground_beside_buildings(true_ortho, small_survey, tmp_path):

@@ -301,20 +301,3 @@ def test_bad_preset_is_an_input_error(tmp_path):
 
     with pytest.raises(InputError, match="unknown preset"):
         synth(tmp_path, preset="huge")  # type: ignore[arg-type]
-
-
-@pytest.mark.slow
-def test_pycolmap_registers_the_small_survey(small_survey, tmp_path):
-    """pycolmap (SIFT at 1024 px, exhaustive matching, incremental mapping) registers >= 90 %."""
-    import pycolmap
-
-    db = tmp_path / "db.db"
-    opts = pycolmap.FeatureExtractionOptions()
-    opts.max_image_size = 1024
-    opts.sift.max_num_features = 4096
-    pycolmap.extract_features(db, small_survey.images, extraction_options=opts, camera_mode=pycolmap.CameraMode.SINGLE)
-    pycolmap.match_exhaustive(db)
-    recs = pycolmap.incremental_mapping(db, small_survey.images, tmp_path)
-    best = max(recs.values(), key=lambda r: r.num_reg_images())
-    assert best.num_reg_images() >= 0.9 * small_survey.n_photos
-    assert best.compute_mean_reprojection_error() < 1.0

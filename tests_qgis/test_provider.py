@@ -373,7 +373,7 @@ def test_qgis_process_without_interpreter_says_how_to_set_it(plugin_env, tiny, t
 
 
 def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path):
-    """synth, footprints (above), gcp-find, dem, sfm, ortho and demo, each once through Processing."""
+    """synth, footprints (above), gcp-find, dem, sfm, dense, ortho and demo, each once through Processing."""
     from qgis.core import QgsRasterLayer
 
     ran = {"footprints"}
@@ -462,6 +462,19 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     loaded = {layer.source().split("|")[0]: layer for layer in QgsProject.instance().mapLayers().values()}
     assert loaded[r["CAMERAS"]].isValid() and loaded[r["CAMERAS"]].featureCount() == r["N_REGISTERED"]
     ran.add("sfm")
+
+    r = _run(
+        "dense",
+        {
+            "SFM": str(tmp_path / "sfm"),
+            "IMAGES": str(tiny / "images"),
+            "OUTPUT": str(tmp_path / "dense.laz"),
+            "MAX_IMAGE_SIZE": 512,
+        },
+    )
+    assert r["OUTPUT"] == str(tmp_path / "dense.laz") and r["N_POINTS"] > 1000 and r["CRS"]
+    assert json.loads(Path(r["REPORT"]).read_text())["points_written"] == r["N_POINTS"]
+    ran.add("dense")
 
     dsm_layer = QgsRasterLayer(str(tiny / "truth" / "dsm.tif"), "dsm")  # a layer, as the toolbox passes it
     r = _run(

@@ -7,7 +7,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 from pyproj import CRS
@@ -67,13 +67,38 @@ def _find_photo(images: Path, name: str, by_name: dict[str, Path]) -> Path | Non
     return by_name.get(Path(name).name)
 
 
+@overload
 def cameras_from_sfm(
-    sfm_dir: str | os.PathLike[str], images: str | os.PathLike[str], crs: CRS | str | None = None
-) -> tuple[list[OrthoCamera], CRS, np.ndarray, list[tuple[str, str]]]:
+    sfm_dir: str | os.PathLike[str],
+    images: str | os.PathLike[str],
+    crs: CRS | str | None = None,
+    *,
+    local_frame_ok: Literal[False] = False,
+) -> tuple[list[OrthoCamera], CRS, np.ndarray, list[tuple[str, str]]]: ...
+
+
+@overload
+def cameras_from_sfm(
+    sfm_dir: str | os.PathLike[str],
+    images: str | os.PathLike[str],
+    crs: CRS | str | None = None,
+    *,
+    local_frame_ok: bool,
+) -> tuple[list[OrthoCamera], CRS | None, np.ndarray, list[tuple[str, str]]]: ...
+
+
+def cameras_from_sfm(
+    sfm_dir: str | os.PathLike[str],
+    images: str | os.PathLike[str],
+    crs: CRS | str | None = None,
+    *,
+    local_frame_ok: bool = False,
+) -> tuple[list[OrthoCamera], CRS | None, np.ndarray, list[tuple[str, str]]]:
     """Registered photos of an ``sfm`` output, posed in its CRS (or ``crs``).
 
     Returns the cameras, the CRS, the georeferenced sparse points (N, 3) and the
-    photos that could not be used with why.
+    photos that could not be used with why. A model in a local frame (no CRS) is refused,
+    unless ``local_frame_ok``: then the CRS returned is None and positions are the model's.
     """
     import pycolmap
 
@@ -87,15 +112,17 @@ def cameras_from_sfm(
         rec = pycolmap.Reconstruction(str(model))
     except (ValueError, RuntimeError) as e:
         raise InputError(f"cannot read the SfM model: {e}", path=model) from None
-    if not geo.get("crs"):
+    if not geo.get("crs") and not local_frame_ok:
         raise InputError(
             "the SfM model is in a local frame (no CRS): an orthophoto needs a georeferenced model", path=geo_path
         )
-    model_crs = parse_crs(geo["crs"])
+    model_crs = parse_crs(geo["crs"]) if geo.get("crs") else None
     offset = np.asarray(geo.get("offset", [0.0, 0.0, 0.0]), float)
     out_crs = model_crs if crs is None else parse_crs(crs)
     move = None
-    if not out_crs.equals(model_crs):
+    if model_crs is None and out_crs is not None:
+        raise InputError("the SfM model is in a local frame (no CRS): it cannot be moved to a CRS", path=geo_path)
+    if out_crs is not None and model_crs is not None and not out_crs.equals(model_crs):
         from ..crs import transformer
 
         move = transformer(model_crs, out_crs)
