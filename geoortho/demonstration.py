@@ -14,6 +14,9 @@ if TYPE_CHECKING:
 
 __all__ = ["DemoResult", "demo"]
 
+#: Where the DSM comes from: the dense cloud made from the photos, or the survey's lidar-like cloud.
+Surface = Literal["dense", "lidar"]
+
 
 @dataclass(frozen=True)
 class DemoResult:
@@ -35,13 +38,14 @@ def demo(
     output: Path = Path("demo_output"),
     preset: Literal["tiny", "small", "medium", "oblique", "hard"] = "small",
     seed: int = 0,
+    surface: Surface = "dense",
     *,
     feedback: Feedback | None = None,
 ) -> DemoResult:
     """Make a synthetic survey and run every stage geoortho has on it.
 
-    Prints where each product is. The chain grows as stages land: synth,
-    then footprints, GCP finding, DSM/DTM, SfM and the orthophoto.
+    Prints where each product is. The chain: synth, footprints, GCP finding, SfM,
+    the dense cloud, DSM/DTM and the orthophoto.
 
     Parameters
     ----------
@@ -51,12 +55,15 @@ def demo(
         Synthetic survey preset (see the synth algorithm).
     seed : int
         Random seed of the synthetic survey.
+    surface : str
+        The cloud the DSM and DTM are made from: dense (from the photos, as a survey without
+        lidar) or lidar (the survey's own lidar-like cloud; the dense stage is skipped).
     """
     from .synthetic import synth
 
     fb = as_feedback(feedback)
     output = Path(output)
-    stages = _stages()
+    stages = _stages(surface)
     steps = split(fb, [6] + [w for _, w, _ in stages])
     survey = synth(output / "survey", preset=preset, seed=seed, feedback=steps[0])
     products: dict[str, str] = {
@@ -75,14 +82,16 @@ def demo(
     return DemoResult(output, products)
 
 
-def _stages() -> list:
+def _stages(surface: str = "dense") -> list:
     """(name, weight, run(survey, output, feedback) -> products) for every stage that exists."""
+    from functools import partial
+
     return [
         ("footprints", 1, _footprints),
         ("gcp-find", 2, _gcp_find),
         ("sfm", 4, _sfm),
-        ("dense", 3, _dense),
-        ("dem", 1, _dem),
+        *([("dense", 3, _dense)] if surface == "dense" else []),
+        ("dem", 1, partial(_dem, lidar=surface == "lidar")),
         ("ortho", 2, _ortho),
     ]
 
@@ -158,12 +167,12 @@ def _dense(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
     return {"dense": str(r.output), "dense_report": str(r.report)}
 
 
-def _dem(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
+def _dem(survey: SynthResult, output: Path, fb: Feedback, *, lidar: bool = False) -> dict[str, str]:
     from .elevation import dem
 
-    # The cloud the dense stage made from the photos (the survey's lidar-like cloud stays in truth/).
+    # The cloud the dense stage made from the photos, unless the survey's lidar-like cloud is asked for.
     r = dem(
-        output / "dense.laz",
+        survey.points if lidar else output / "dense.laz",
         output / "dsm.tif",
         dtm=output / "dtm.tif",
         hillshade=output / "dtm_hillshade.png",

@@ -178,3 +178,10 @@ def test_cli_bad_input_exit_2(tmp_path, capsys):
     assert main(["dense", "--sfm", str(tmp_path), "--images", str(tmp_path), "--output", str(tmp_path / "d.laz")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not an sfm output folder" in err[0]
+
+
+def test_demo_chain_makes_the_dsm_from_the_dense_cloud_unless_lidar_is_asked():
+    from geoortho.demonstration import _stages
+
+    assert [n for n, _, _ in _stages()] == ["footprints", "gcp-find", "sfm", "dense", "dem", "ortho"]
+    assert [n for n, _, _ in _stages("lidar")] == ["footprints", "gcp-find", "sfm", "dem", "ortho"]

@@ -274,6 +274,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("output", "folder", output=True),
             PRESET,
             SEED,
+            Param("surface", "enum"),
         ),
         outputs=(Output("output", "folder"), Output("products", "json")),
     ),
