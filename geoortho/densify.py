@@ -174,10 +174,12 @@ def dense(
     seconds["depth_maps"] = _lap(clock) - seconds["plan"]
     xyz, rgb = fusion.result()
     seconds["fusion"] = fusion.seconds
+    peak_before_write_mb = _peak_memory_mb()["main"]
     if not len(xyz):
         raise InputError("no depth could be measured (textureless photos, or poses that do not fit)", path=sfm)
     t_write = time.perf_counter()
-    write_las(output, xyz + origin, crs, rgb=rgb / 255.0)
+    rgb /= 255.0  # in place: no second copy of the cloud's colours
+    write_las(output, xyz, crs, rgb=rgb, offset=origin)
     seconds["write"] = time.perf_counter() - t_write
     s_write.progress(1.0)
     seconds["total"] = _lap(clock)
@@ -203,7 +205,7 @@ def dense(
             "points_written": len(xyz),
             "voxel_m": voxel,
             "seconds": seconds,
-            "peak_memory_mb": _peak_memory_mb(),
+            "peak_memory_mb": {**_peak_memory_mb(), "main_before_write": peak_before_write_mb},
             "notes": notes,
         },
     )
@@ -477,7 +479,9 @@ class _Fusion:
     def add(self, xyz: np.ndarray, rgb: np.ndarray, counts: np.ndarray) -> None:
         self.parts.append((xyz, rgb, counts))
         self.pending += len(xyz)
-        if self.pending >= max(self.merge_every, self.merged):  # geometric: each point is merged O(log n) times
+        # merged when the maps not yet merged are a quarter of the cloud so far: each point is merged
+        # O(log n) times, and the last merge holds at most 1.25 x the cloud
+        if self.pending >= max(self.merge_every, self.merged // 4):
             self._merge()
 
     def _merge(self) -> None:

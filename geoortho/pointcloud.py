@@ -122,31 +122,40 @@ def write_las(
     *,
     rgb: np.ndarray | None = None,
     classification: np.ndarray | None = None,
+    offset: np.ndarray | None = None,
+    chunk_points: int = 1_000_000,
 ) -> Path:
     """Write points (N, 3) as LAS/LAZ 1.4 (by extension), millimetre scale, the CRS in the header
     (none for a cloud in a local frame: ``crs`` None).
 
-    ``rgb`` is (N, 3) in 0..1; written atomically.
+    ``xyz`` may be relative to ``offset`` (e.g. float32 near a survey's middle); ``rgb`` is (N, 3)
+    in 0..1. Written atomically, ``chunk_points`` at a time: memory holds one chunk, not a copy of
+    the cloud.
     """
     import laspy
 
     from .outputs import atomic_path
 
-    xyz = np.asarray(xyz, float).reshape(-1, 3)
+    xyz = np.asarray(xyz).reshape(-1, 3)
+    base = np.zeros(3) if offset is None else np.asarray(offset, float).reshape(3)
     header = laspy.LasHeader(point_format=3, version="1.4")
-    header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
+    header.offsets = np.floor(xyz.min(axis=0).astype(float) + base) if len(xyz) else np.zeros(3)
     header.scales = [0.001, 0.001, 0.001]
     if crs is not None:
         header.add_crs(parse_crs(crs))
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    if classification is not None:
-        las.classification = np.asarray(classification, np.uint8)
-    if rgb is not None:
-        col16 = np.clip(np.asarray(rgb, float) * 65535.0 + 0.5, 0, 65535).astype(np.uint16)
-        las.red, las.green, las.blue = col16[:, 0], col16[:, 1], col16[:, 2]
     with atomic_path(path) as tmp:
-        las.write(str(tmp))
+        with laspy.open(str(tmp), mode="w", header=header) as writer:
+            for start in range(0, len(xyz), chunk_points):
+                part = slice(start, start + chunk_points)
+                pts = xyz[part].astype(np.float64) + base
+                rec = laspy.ScaleAwarePointRecord.zeros(len(pts), header=header)
+                rec.x, rec.y, rec.z = pts[:, 0], pts[:, 1], pts[:, 2]
+                if classification is not None:
+                    rec.classification = np.asarray(classification[part], np.uint8)
+                if rgb is not None:
+                    col16 = np.clip(np.asarray(rgb[part], float) * 65535.0 + 0.5, 0, 65535).astype(np.uint16)
+                    rec.red, rec.green, rec.blue = col16[:, 0], col16[:, 1], col16[:, 2]
+                writer.write_points(rec)
     return Path(path)
 
 
