@@ -17,33 +17,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-CHILD = r"""
-import json, resource, runpy, sys
-sys.argv = json.loads(sys.argv[1])
-try:
-    runpy.run_module("geoortho", run_name="__main__")
-finally:
-    print("peak_rss_kb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
-"""
+from bench_sfm import OURS, _child
 
 
 def _geoortho(*args: str) -> tuple[float, int]:
-    """Run ``geoortho args`` in a child; wall seconds and the child's own peak RSS (kB)."""
-    t = time.perf_counter()
-    r = subprocess.run(
-        [sys.executable, "-c", CHILD, json.dumps(["geoortho", *args, "--quiet"])], capture_output=True, text=True
-    )
-    dt = time.perf_counter() - t
-    if r.returncode:
-        sys.exit(f"geoortho {' '.join(args)} failed:\n{r.stderr[-3000:]}")
-    peak = [int(line.split()[1]) for line in r.stderr.splitlines() if line.startswith("peak_rss_kb")]
-    return dt, peak[-1] if peak else 0
+    """Run ``geoortho args`` in a child (bench_sfm's runner); wall seconds and its own peak RSS (kB)."""
+    dt, _, peak_kb = _child(OURS, ["geoortho", *args, "--quiet"])
+    return dt, peak_kb
 
 
 def main() -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -199,7 +200,7 @@ def dense(
             "views": {views[i].name: [views[j].name for j in nbrs] for i, nbrs, _ in pairs},
             "max_image_size": max_image_size,
             "image_scale": scale,
-            "depth_map_megapixels": len(jobs) * views[0].size[0] * views[0].size[1] / 1e6,
+            "depth_map_megapixels": sum(j.ref.size[0] * j.ref.size[1] for j in jobs) / 1e6,
             "points_matched": n_matched,
             "points_consistent": n_consistent,
             "points_written": len(xyz),
@@ -299,10 +300,9 @@ def _pair(
     None when the pair rectifies the other way round (then ``b`` must be the left image)."""
     R = b.R.T @ a.R
     T = (b.R.T @ (a.C - b.C)).reshape(3, 1)
-    R1, _, P1, P2, _, _, _ = cv2.stereoRectify(
+    R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
         a.K, a.dist, b.K, b.dist, a.size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
     )
-    R2 = cv2.stereoRectify(a.K, a.dist, b.K, b.dist, a.size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)[1]
     horizontal = abs(P2[0, 3]) > abs(P2[1, 3])
     shift = P2[0, 3] if horizontal else P2[1, 3]
     if shift > 0:
@@ -407,7 +407,8 @@ def _depth_task(job: _Job) -> _DepthResult:
     if len(zmaps) < job.min_views:
         return empty
     stack = np.vstack(zmaps)
-    with np.errstate(invalid="ignore"), _quiet_nanmedian():
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels (seen by no pair) are expected
         med = np.nanmedian(stack, axis=0)
     tol = job.depth_tolerance * med
     agree = (np.abs(stack - med) <= tol).sum(axis=0)
@@ -423,20 +424,6 @@ def _depth_task(job: _Job) -> _DepthResult:
     ones = np.ones(len(xyz_all), np.float32)
     mean_xyz, mean_rgb, counts = _voxel_means(xyz_all, np.concatenate(out_rgb), ones, job.voxel_m)
     return _DepthResult(mean_xyz, mean_rgb, counts, n_raw, len(xyz_all))
-
-
-class _quiet_nanmedian:
-    """All-NaN pixels (seen by no pair) are expected: no RuntimeWarning for them."""
-
-    def __enter__(self) -> None:
-        import warnings
-
-        self._w = warnings.catch_warnings()
-        self._w.__enter__()
-        warnings.simplefilter("ignore", RuntimeWarning)
-
-    def __exit__(self, *exc: Any) -> None:
-        self._w.__exit__(*exc)
 
 
 def _voxel_means(
@@ -488,7 +475,7 @@ class _Fusion:
         t0 = time.perf_counter()
         if len(self.parts) > 1:
             xyz, rgb, w = (np.concatenate(a) for a in zip(*self.parts))
-            self.parts = []
+            self.parts = []  # the parts are copied: let them go before the merge allocates
             self.parts = [_voxel_means(xyz, rgb, w, self.voxel_m)]
             del xyz, rgb, w
         self.merged = len(self.parts[0][0]) if self.parts else 0
