@@ -26,7 +26,16 @@ from typing import Any
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
 
-__all__ = ["STAGES", "Ledger", "Project", "Stage", "StageRun", "run_stages"]
+__all__ = [
+    "STAGES",
+    "Ledger",
+    "Project",
+    "Stage",
+    "StageRun",
+    "check_project_folder",
+    "parse_stage_options",
+    "run_stages",
+]
 
 LEDGER_NAME = "run.json"
 LEDGER_VERSION = 1
@@ -321,3 +330,45 @@ def _outputs_there(record: dict[str, Any]) -> bool:
         if isinstance(v, str) and (os.sep in v) and not Path(v).exists():
             return False
     return True
+
+
+def check_project_folder(output: Path, force: bool = False) -> None:
+    """Refuse a folder that holds something other than a geoortho project (no run.json), unless
+    ``force``: a mistyped --output must not mix products into, or overwrite, someone's files."""
+    if output.exists() and not output.is_dir():
+        raise InputError("exists and is not a folder", path=output)
+    if output.is_dir() and not (output / LEDGER_NAME).is_file() and any(output.iterdir()) and not force:
+        raise InputError(
+            f"holds files but no {LEDGER_NAME}: not a geoortho project (give an empty or new folder, or --force)",
+            path=output,
+        )
+
+
+def parse_stage_options(text: str, stages: Sequence[Stage] = STAGES) -> dict[str, dict[str, Any]]:
+    """Stage options from JSON text or a JSON file: ``{"sfm": {"max_image_size": 2048}, ...}``.
+    Each stage's options are its own algorithm's parameters (one declaration per parameter);
+    the ones the chain sets itself (inputs, outputs) cannot be given."""
+    from .processing.registry import get_algorithm
+
+    if not text:
+        return {}
+    path = Path(text)
+    try:
+        raw = json.loads(path.read_text() if not text.lstrip().startswith("{") and path.is_file() else text)
+    except ValueError as e:
+        raise InputError(f"stage options: not JSON ({e})") from None
+    if not isinstance(raw, dict) or not all(isinstance(v, dict) for v in raw.values()):
+        raise InputError('stage options: give {"stage": {"option": value, ...}, ...}')
+    by_name = {s.name: s for s in stages}
+    probe = Project(images=Path("."), output=Path("."), gcp_file=Path("."))
+    for name, opts in raw.items():
+        if name not in by_name:
+            raise InputError(f"stage options: {name} is not a stage; choose from {', '.join(by_name)}")
+        params = {p.name for p in get_algorithm(name).params}
+        chained = set(by_name[name].values(probe))
+        for key in opts:
+            if key not in params:
+                raise InputError(f"stage options: {name} has no option {key}")
+            if key in chained:
+                raise InputError(f"stage options: {name}.{key} is set by the run itself")
+    return raw

@@ -65,3 +65,33 @@ def test_rerun_from_forces_that_stage_and_the_later_ones(first_run):
     assert status == {**reused, "dem": "ran", "ortho": "ran"}
     with pytest.raises(InputError, match="not a stage"):
         run_stages(project, rerun_from="mosaic")
+
+
+def test_stage_options_are_the_stages_own_parameters(tmp_path):
+    from geoortho.pipeline import parse_stage_options
+
+    assert parse_stage_options('{"sfm": {"max_image_size": 2048}}') == {"sfm": {"max_image_size": 2048}}
+    f = tmp_path / "opts.json"
+    f.write_text('{"ortho": {"resolution_m": 0.05}}')
+    assert parse_stage_options(str(f)) == {"ortho": {"resolution_m": 0.05}}
+    for bad, why in (
+        ('{"mosaic": {}}', "not a stage"),
+        ('{"sfm": {"max_size": 1}}', "has no option max_size"),
+        ('{"ortho": {"output": "x.tif"}}', "set by the run itself"),
+        ("[1, 2]", "give"),
+        ("{oops", "not JSON"),
+    ):
+        with pytest.raises(InputError, match=why):
+            parse_stage_options(bad)
+
+
+def test_a_folder_of_other_files_is_refused_unless_forced(tmp_path):
+    from geoortho.pipeline import check_project_folder
+
+    check_project_folder(tmp_path / "new")
+    (tmp_path / "thesis.docx").write_text("mine")
+    with pytest.raises(InputError, match="not a geoortho project"):
+        check_project_folder(tmp_path)
+    check_project_folder(tmp_path, force=True)
+    (tmp_path / LEDGER_NAME).write_text("{}")
+    check_project_folder(tmp_path)
