@@ -240,10 +240,22 @@ class StageRun:
     outputs: dict[str, Any]
 
 
-def _fingerprint(stage: Stage, values: dict[str, Any], hashes: dict[str, str], versions: dict[str, str]) -> str:
+def _relative(v: Any, root: Path) -> Any:
+    """A path inside the project as ``PROJECT/...``: a moved project keeps its fingerprints."""
+    if isinstance(v, Path):
+        try:
+            return "PROJECT/" + v.resolve().relative_to(root.resolve()).as_posix()
+        except ValueError:
+            return str(v)
+    return v
+
+
+def _fingerprint(
+    stage: Stage, values: dict[str, Any], hashes: dict[str, str], versions: dict[str, str], root: Path
+) -> str:
     record = {
         "stage": stage.name,
-        "values": {k: (str(v) if isinstance(v, Path) else v) for k, v in sorted(values.items())},
+        "values": {k: _relative(v, root) for k, v in sorted(values.items())},
         "inputs": hashes,
         "versions": versions,
     }
@@ -286,7 +298,7 @@ def run_stages(
         values = {k: v for k, v in stage.values(project).items() if v is not None}
         values.update(project.options.get(stage.name, {}))
         hashes = {k: hasher.path(Path(values[k])) for k in stage.inputs if k in values}
-        fp = _fingerprint(stage, values, hashes, versions)
+        fp = _fingerprint(stage, values, hashes, versions, project.output)
         before = ledger.stage(stage.name)
         if not forced and before.get("status") == "done" and before.get("fingerprint") == fp and _outputs_there(before):
             results.append(StageRun(stage.name, "reused", 0.0, before.get("outputs", {})))

@@ -95,3 +95,13 @@ def test_a_folder_of_other_files_is_refused_unless_forced(tmp_path):
     check_project_folder(tmp_path, force=True)
     (tmp_path / LEDGER_NAME).write_text("{}")
     check_project_folder(tmp_path)
+
+
+def test_a_moved_project_is_reused(first_run, tmp_path):
+    import shutil
+
+    project, _ = first_run
+    moved = tmp_path / "moved"
+    shutil.copytree(project.output, moved, symlinks=True)
+    status = _status(run_stages(Project(**{**project.__dict__, "output": moved})))
+    assert set(status.values()) == {"reused"}, status
