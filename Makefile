@@ -25,6 +25,7 @@ demo: $(STAMP)
 	$(PY) -m geoortho demo --output $(DEMO_OUTPUT)
 
 test: $(STAMP)
+	@sh tools/browser_setup.sh
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 test-qgis:

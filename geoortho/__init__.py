@@ -26,6 +26,8 @@ _EXPORTS = {
     "dense": "geoortho.densify",
     "dem": "geoortho.elevation",
     "ortho": "geoortho.orthophoto.mosaic",
+    "run": "geoortho.pipeline",
+    "report": "geoortho.reporting",
     "demo": "geoortho.demonstration",
     # what they return
     "SynthResult": "geoortho.synthetic",
@@ -35,6 +37,8 @@ _EXPORTS = {
     "DenseResult": "geoortho.densify",
     "DemResult": "geoortho.elevation",
     "OrthoResult": "geoortho.orthophoto.mosaic",
+    "RunResult": "geoortho.pipeline",
+    "ReportResult": "geoortho.reporting",
     "DemoResult": "geoortho.demonstration",
     # the building blocks around them
     "run_algorithm": "geoortho.processing.registry",

@@ -42,10 +42,12 @@ def demo(
     *,
     feedback: Feedback | None = None,
 ) -> DemoResult:
-    """Make a synthetic survey and run every stage geoortho has on it.
+    """Make a synthetic survey and run the whole chain on it with ``run``.
 
-    Prints where each product is. The chain: synth, footprints, GCP finding, SfM,
-    the dense cloud, DSM/DTM and the orthophoto.
+    Prints where each product and the quality report are. The chain: footprints, GCP finding,
+    SfM (every third GCP held out as a checkpoint), the dense cloud, DSM/DTM, the orthophoto and
+    the report, in ``OUTPUT/project``; the survey and its truth are in ``OUTPUT/survey``. Run it
+    again on the same folder and only what changed is re-done.
 
     Parameters
     ----------
@@ -59,13 +61,26 @@ def demo(
         The cloud the DSM and DTM are made from: dense (from the photos, as a survey without
         lidar) or lidar (the survey's own lidar-like cloud; the dense stage is skipped).
     """
+    from .gcp.io import read_gcp_file
+    from .pipeline import run
     from .synthetic import synth
 
     fb = as_feedback(feedback)
     output = Path(output)
-    stages = _stages(surface)
-    steps = split(fb, [6] + [w for _, w, _ in stages])
-    survey = synth(output / "survey", preset=preset, seed=seed, feedback=steps[0])
+    synth_step, run_step = split(fb, [1, 4])
+    survey = synth(output / "survey", preset=preset, seed=seed, feedback=synth_step)
+    names = sorted(read_gcp_file(survey.gcp_file).by_name())
+    result = run(
+        survey.images,
+        output / "project",
+        gcp_file=survey.gcp_file,
+        checkpoints=",".join(names[::3]),
+        points=survey.points if surface == "lidar" else None,
+        takeoff_elevation_m=_takeoff_elevation(survey),
+        # 1024 px features keep the demo quick
+        stage_options=json.dumps({"sfm": {"max_image_size": 1024, "max_features": 4096}}),
+        feedback=run_step,
+    )
     products: dict[str, str] = {
         "images": str(survey.images),
         "truth": str(survey.truth),
@@ -73,27 +88,13 @@ def demo(
         "true_dsm": str(survey.dsm),
         "true_ortho": str(survey.ortho),
         "points": str(survey.points),
+        **_products(result.output),
+        "report": str(result.report),
     }
-    for (name, _, run), step in zip(stages, steps[1:]):
-        products.update(run(survey, output, step))
-        fb.info(f"demo: {name} done")
     for k, v in products.items():
         fb.info(f"{k}: {v}")
+    fb.info(f"demo: the quality report is {result.report}")
     return DemoResult(output, products)
-
-
-def _stages(surface: str = "dense") -> list:
-    """(name, weight, run(survey, output, feedback) -> products) for every stage that exists."""
-    from functools import partial
-
-    return [
-        ("footprints", 1, _footprints),
-        ("gcp-find", 2, _gcp_find),
-        ("sfm", 4, _sfm),
-        *([("dense", 3, _dense)] if surface == "dense" else []),
-        ("dem", 1, partial(_dem, lidar=surface == "lidar")),
-        ("ortho", 2, _ortho),
-    ]
 
 
 def _takeoff_elevation(survey: SynthResult) -> float:
@@ -101,101 +102,28 @@ def _takeoff_elevation(survey: SynthResult) -> float:
     return float(json.loads((survey.truth / "survey.json").read_text())["home"]["ground_z"])
 
 
-def _footprints(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
-    from .footprint import footprints
-
-    r = footprints(
-        survey.images,
-        output / "footprints.gpkg",
-        dsm=survey.dsm,
-        takeoff_elevation_m=_takeoff_elevation(survey),
-        overlap=output / "overlap.tif",
-        feedback=fb,
-    )
-    fb.info(f"footprints: {r.n_photos} photos, median GSD {r.median_gsd_cm:.2f} cm")
-    return {"footprints": str(r.output), "overlap": str(r.overlap)}
-
-
-def _gcp_find(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
-    from .gcp.find import gcp_find
-
-    r = gcp_find(
-        survey.images,
-        survey.gcp_file,
-        output / "gcp_list.txt",
-        dsm=survey.dsm,
-        detections=output / "gcp_detections.gpkg",
-        review=output / "gcp_review.png",
-        feedback=fb,
-    )
-    fb.info(f"gcp-find: {r.n_observations} observations of {r.n_gcps_found} GCPs")
-    return {"gcp_list": str(r.output), "gcp_detections": str(r.detections), "gcp_review": str(r.review)}
+#: The project's products by name, at the stable paths ``run`` gives them.
+PRODUCTS = {
+    "footprints": "footprints/footprints.gpkg",
+    "overlap": "footprints/overlap.tif",
+    "gcp_list": "gcp-find/gcp_list.txt",
+    "gcp_detections": "gcp-find/detections.gpkg",
+    "gcp_review": "gcp-find/review.png",
+    "sfm_model": "sfm/model",
+    "sfm_points": "sfm/points.laz",
+    "sfm_cameras": "sfm/cameras.gpkg",
+    "sfm_report": "sfm/report.json",
+    "dense": "dense/dense.laz",
+    "dense_report": "dense/dense_report.json",
+    "dsm": "dem/dsm.tif",
+    "dtm": "dem/dtm.tif",
+    "dtm_hillshade": "dem/dtm_hillshade.png",
+    "ortho": "ortho/ortho.tif",
+    "ortho_preview": "ortho/ortho_preview.png",
+    "ortho_report": "ortho/ortho_report.json",
+    "ledger": "run.json",
+}
 
 
-def _sfm(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
-    from .reconstruction import sfm
-
-    gcp_list = output / "gcp_list.txt"
-    names = sorted({ln.split()[6] for ln in gcp_list.read_text().splitlines()[1:] if len(ln.split()) >= 7})
-    # every third GCP is a checkpoint: held out, measured; 1024 px features keep the demo quick
-    r = sfm(
-        survey.images,
-        output / "sfm",
-        gcp_list=gcp_list,
-        checkpoints=",".join(names[::3]),
-        max_image_size=1024,
-        max_features=4096,
-        feedback=fb,
-    )
-    fb.info(
-        f"sfm: {r.n_registered}/{r.n_photos} photos, reprojection {r.mean_reprojection_error_px:.2f} px, "
-        f"checkpoint RMSE {r.checkpoint_rmse_m * 100:.1f} cm"
-    )
-    return {
-        "sfm_model": str(r.model),
-        "sfm_points": str(r.points),
-        "sfm_cameras": str(r.cameras),
-        "sfm_report": str(r.report),
-    }
-
-
-def _dense(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
-    from .densify import dense
-
-    r = dense(output / "sfm", survey.images, output / "dense.laz", feedback=fb)
-    fb.info(f"dense: {r.n_points} points from {r.n_depth_maps} depth maps")
-    return {"dense": str(r.output), "dense_report": str(r.report)}
-
-
-def _dem(survey: SynthResult, output: Path, fb: Feedback, *, lidar: bool = False) -> dict[str, str]:
-    from .elevation import dem
-
-    # The cloud the dense stage made from the photos, unless the survey's lidar-like cloud is asked for.
-    r = dem(
-        survey.points if lidar else output / "dense.laz",
-        output / "dsm.tif",
-        dtm=output / "dtm.tif",
-        hillshade=output / "dtm_hillshade.png",
-        feedback=fb,
-    )
-    fb.info(f"dem: {r.n_points} points, {r.n_ground} ground, cells of {r.resolution:g} ({r.units})")
-    return {"dsm": str(r.dsm), "dtm": str(r.dtm), "dtm_hillshade": str(r.hillshade)}
-
-
-def _ortho(survey: SynthResult, output: Path, fb: Feedback) -> dict[str, str]:
-    from .orthophoto import ortho
-
-    # The SfM poses on the DSM the dem stage made: the chain's own products, not the truth.
-    r = ortho(
-        survey.images,
-        output / "ortho.tif",
-        sfm=output / "sfm",
-        dsm=output / "dsm.tif",
-        preview=output / "ortho_preview.png",
-        feedback=fb,
-    )
-    fb.info(
-        f"ortho: {r.width_px}x{r.height_px} px at {r.resolution_m * 100:.2f} cm, {r.n_used} photos; "
-        f"seam colour mismatch {r.seam_mismatch_raw:.1f} -> {r.seam_mismatch_balanced:.1f} DN"
-    )
-    return {"ortho": str(r.output), "ortho_preview": str(r.preview), "ortho_report": str(r.report)}
+def _products(project: Path) -> dict[str, str]:
+    return {k: str(project / v) for k, v in PRODUCTS.items() if (project / v).exists()}

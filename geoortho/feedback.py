@@ -13,7 +13,7 @@ import logging
 import sys
 import threading
 from collections.abc import Iterable, Iterator, Sequence
-from typing import IO, TypeVar
+from typing import IO, Any, TypeVar
 
 from .errors import CanceledError
 
@@ -56,6 +56,10 @@ class Feedback:
 
     def is_canceled(self) -> bool:
         return self._cancel.is_set()
+
+    def stage(self, name: str, index: int, count: int, start: float, width: float) -> None:
+        """A run of several stages (``run``) enters stage ``index`` of ``count``, which spans
+        [start, start + width] of this feedback's progress; faces that can show it do."""
 
     def check_canceled(self) -> None:
         if self.is_canceled():
@@ -105,6 +109,9 @@ class _SubFeedback(Feedback):
     def warning(self, message: str) -> None:
         self._parent.warning(message)
 
+    def stage(self, name: str, index: int, count: int, start: float, width: float) -> None:
+        self._parent.stage(name, index, count, self._start + self._width * start, self._width * width)
+
     def is_canceled(self) -> bool:
         return self._parent.is_canceled() or super().is_canceled()
 
@@ -147,32 +154,58 @@ def track(items: Iterable[T], feedback: Feedback | None, total: int | None = Non
 
 
 class TerminalFeedback(Feedback):
-    """A tqdm progress bar on stderr and messages through logging."""
+    """A tqdm progress bar on stderr and messages through logging.
+
+    In a run of stages, two bars: the whole run (with the stage's name and number, and the ETA)
+    and the current stage.
+    """
+
+    _FORMAT = "{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining}"
 
     def __init__(self, description: str = "", *, quiet: bool = False, stream: IO[str] | None = None) -> None:
         super().__init__()
         self._quiet = quiet
         self._stream = stream if stream is not None else sys.stderr
-        self._bar = None
+        self._bar: Any = None
+        self._stage_bar: Any = None
         self._description = description
+        self._stage: tuple[str, float, float] | None = None
 
-    def set_progress(self, fraction: float) -> None:
-        if self._quiet or not getattr(self._stream, "isatty", lambda: False)():
+    def _shown(self) -> bool:
+        return not self._quiet and bool(getattr(self._stream, "isatty", lambda: False)())
+
+    def _new_bar(self, description: str, position: int) -> Any:
+        from tqdm import tqdm
+
+        return tqdm(
+            total=1000, desc=description, file=self._stream, leave=False, position=position, bar_format=self._FORMAT
+        )
+
+    def stage(self, name: str, index: int, count: int, start: float, width: float) -> None:
+        self._stage = (name, start, width)
+        if not self._shown():
             return
         if self._bar is None:
-            from tqdm import tqdm
+            self._bar = self._new_bar(self._description, 0)
+        self._bar.set_description_str(f"{self._description} [{index}/{count}] {name}", refresh=False)
+        if self._stage_bar is None:
+            self._stage_bar = self._new_bar(f"  {name}", 1)
+        else:
+            self._stage_bar.reset(total=1000)
+            self._stage_bar.set_description_str(f"  {name}", refresh=False)
 
-            self._bar = tqdm(
-                total=1000,
-                desc=self._description,
-                file=self._stream,
-                leave=False,
-                bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining}",
-            )
-        bar = self._bar
-        assert bar is not None
-        bar.n = int(round(fraction * 1000))
-        bar.refresh()
+    def set_progress(self, fraction: float) -> None:
+        if not self._shown():
+            return
+        if self._bar is None:
+            self._bar = self._new_bar(self._description, 0)
+        self._bar.n = int(round(fraction * 1000))
+        self._bar.refresh()
+        if self._stage is not None and self._stage_bar is not None:
+            _, start, width = self._stage
+            within = (fraction - start) / width if width > 0 else 1.0
+            self._stage_bar.n = int(round(min(1.0, max(0.0, within)) * 1000))
+            self._stage_bar.refresh()
 
     def _write(self, message: str) -> None:
         if self._bar is not None:
@@ -191,9 +224,10 @@ class TerminalFeedback(Feedback):
             self._write(f"warning: {message}")
 
     def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None
+        for bar in (self._stage_bar, self._bar):
+            if bar is not None:
+                bar.close()
+        self._bar = self._stage_bar = None
 
 
 class JsonLinesFeedback(Feedback):
@@ -222,6 +256,9 @@ class JsonLinesFeedback(Feedback):
 
     def warning(self, message: str) -> None:
         self._emit({"warning": message})
+
+    def stage(self, name: str, index: int, count: int, start: float, width: float) -> None:
+        self._emit({"stage": name, "index": index, "count": count})
 
 
 def warn_grouped(feedback: Feedback | None, kind: str, items: Sequence[str], *, show: int = 3) -> None:

@@ -1,15 +1,13 @@
-"""The whole chain in one resumable command: the stages, the project folder and ``run.json``.
+"""The whole chain in one resumable command: ``run``, its stages, the project folder and ``run.json``.
 
-Work in progress (issue 21): the engine — which stages apply, where each writes, what makes a
-stage's result still valid, and the ledger that says so. The ``run`` algorithm, its report and
-its progress display are built on it.
-
-A stage is *done* only when ``run.json`` says so with the fingerprint of what it was run with:
-its options, the content hashes of its inputs (photos, GCP file, earlier stages' products) and
-the software versions. Every product is written atomically by its stage, and a stage is marked
-``running`` before it starts, so a run killed mid-stage leaves that stage not done: the next
-run re-does it and keeps every finished one. A stage whose fingerprint changed is re-done;
-stages after it are re-done when the products they read changed (content, not time).
+A project folder holds one subfolder per stage with products at stable names, ``run.json`` (the
+ledger) and ``report.html``. A stage is *done* only when the ledger says so with the fingerprint
+of what it was run with: its options, the content hashes of its inputs (photos, GCP file,
+earlier stages' products) and the software versions. Every product is written atomically by its
+stage and a stage is marked ``running`` before it starts, so a run killed mid-stage leaves that
+stage not done: the next run re-does it and keeps every finished one. A stage whose fingerprint
+changed is re-done; stages after it are re-done when the products they read changed (content,
+not time). Paths inside the project are kept as ``PROJECT/...``, so a moved project resumes.
 """
 
 from __future__ import annotations
@@ -17,28 +15,36 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-from .errors import InputError
+from .errors import CanceledError, GeoorthoError, InputError
 from .feedback import Feedback, as_feedback, split
 
 __all__ = [
     "STAGES",
     "Ledger",
     "Project",
+    "RunResult",
     "Stage",
     "StageRun",
     "check_project_folder",
     "parse_stage_options",
+    "run",
     "run_stages",
 ]
 
 LEDGER_NAME = "run.json"
-LEDGER_VERSION = 1
+LEDGER_VERSION = 2
+REPORT_NAME = "report.html"
+#: Prefix of a path inside the project, as the ledger keeps it.
+PROJECT_PREFIX = "PROJECT/"
+
+StageName = Literal["footprints", "gcp-find", "sfm", "dense", "dem", "ortho", "report"]
 
 
 @dataclass(frozen=True)
@@ -52,50 +58,71 @@ class Project:
     points: Path | None = None
     dsm: Path | None = None
     crs: str | None = None
+    takeoff_elevation_m: float | None = None
+    workers: int = 0
     options: dict[str, dict[str, Any]] = field(default_factory=dict)  # stage -> its own options
 
     def folder(self, stage: str) -> Path:
         return self.output / stage
 
 
+#: What earlier stages of this run produced (their outputs), by stage name.
+Done = dict[str, dict[str, Any]]
+
+
 @dataclass(frozen=True)
 class Stage:
-    """One step of the chain: the algorithm it runs, when it applies, and its values (inputs from the
-    project and from earlier stages' products at stable paths; outputs at stable paths)."""
+    """One step of the chain: the algorithm it runs, when it applies, its values (from the project
+    and earlier stages' outputs; products at stable paths) and which values are files it reads."""
 
     name: str  # the algorithm id
     applies: Callable[[Project], bool]
-    values: Callable[[Project], dict[str, Any]]
+    values: Callable[[Project, Done], dict[str, Any]]
     inputs: tuple[str, ...]  # the value names that are files or folders read (hashed)
+    weight: float = 1.0  # share of a typical run's time, for the overall progress bar
 
 
-def _gcp_list(p: Project) -> Path | None:
-    return p.folder("gcp-find") / "gcp_list.txt" if p.gcp_file is not None else None
+def _gcp_observations(done: Done) -> Path | None:
+    """The found gcp_list.txt, when gcp-find found any marker (else SfM runs on GPS alone)."""
+    found = done.get("gcp-find") or {}
+    return Path(found["output"]) if found.get("n_observations") else None
+
+
+def _found_checkpoints(p: Project, done: Done) -> str | None:
+    """The named checkpoints that gcp-find found (one not found is reported, not fatal)."""
+    gcp_list = _gcp_observations(done)
+    if not p.checkpoints or gcp_list is None:
+        return None
+    from .gcp.io import read_gcp_file
+
+    found = set(read_gcp_file(gcp_list).by_name())
+    names = [c.strip() for c in p.checkpoints.split(",") if c.strip() in found]
+    return ",".join(names) or None
 
 
 def _cloud(p: Project) -> Path:
-    if p.points is not None:
-        return p.points
-    return p.folder("dense") / "dense.laz"
+    return p.points if p.points is not None else p.folder("dense") / "dense.laz"
 
 
 STAGES: tuple[Stage, ...] = (
     Stage(
         "footprints",
         lambda p: True,
-        lambda p: {
+        lambda p, d: {
             "images": p.images,
             "output": p.folder("footprints") / "footprints.gpkg",
             "overlap": p.folder("footprints") / "overlap.tif",
             "dsm": p.dsm,
             "crs": p.crs,
+            "takeoff_elevation_m": p.takeoff_elevation_m,
         },
         ("images", "dsm"),
+        weight=1,
     ),
     Stage(
         "gcp-find",
         lambda p: p.gcp_file is not None,
-        lambda p: {
+        lambda p, d: {
             "images": p.images,
             "gcp_file": p.gcp_file,
             "output": p.folder("gcp-find") / "gcp_list.txt",
@@ -103,49 +130,73 @@ STAGES: tuple[Stage, ...] = (
             "review": p.folder("gcp-find") / "review.png",
             "dsm": p.dsm,
             "crs": p.crs,
+            "takeoff_elevation_m": p.takeoff_elevation_m,
+            "workers": p.workers,
         },
         ("images", "gcp_file", "dsm"),
+        weight=2,
     ),
     Stage(
         "sfm",
         lambda p: True,
-        lambda p: {
+        lambda p, d: {
             "images": p.images,
             "output": p.folder("sfm"),
-            "gcp_list": _gcp_list(p),
-            "checkpoints": p.checkpoints or None,
+            "gcp_list": _gcp_observations(d),
+            "checkpoints": _found_checkpoints(p, d),
             "crs": p.crs,
+            "takeoff_elevation_m": p.takeoff_elevation_m,
+            "workers": p.workers,
         },
         ("images", "gcp_list"),
+        weight=6,
     ),
     Stage(
         "dense",
         lambda p: p.points is None,
-        lambda p: {"sfm": p.folder("sfm"), "images": p.images, "output": p.folder("dense") / "dense.laz"},
+        lambda p, d: {
+            "sfm": p.folder("sfm"),
+            "images": p.images,
+            "output": p.folder("dense") / "dense.laz",
+            "workers": p.workers,
+        },
         ("sfm", "images"),
+        weight=5,
     ),
     Stage(
         "dem",
         lambda p: True,
-        lambda p: {
+        lambda p, d: {
             "points": _cloud(p),
             "output": p.folder("dem") / "dsm.tif",
             "dtm": p.folder("dem") / "dtm.tif",
             "hillshade": p.folder("dem") / "dtm_hillshade.png",
+            "crs": p.crs if p.points is not None else None,
         },
         ("points",),
+        weight=1,
     ),
     Stage(
         "ortho",
         lambda p: True,
-        lambda p: {
+        lambda p, d: {
             "images": p.images,
             "output": p.folder("ortho") / "ortho.tif",
             "sfm": p.folder("sfm"),
             "dsm": p.dsm if p.dsm is not None else p.folder("dem") / "dsm.tif",
             "preview": p.folder("ortho") / "ortho_preview.png",
+            "takeoff_elevation_m": p.takeoff_elevation_m,
+            "workers": p.workers,
         },
         ("images", "sfm", "dsm"),
+        weight=4,
+    ),
+    Stage(
+        "report",
+        lambda p: True,
+        lambda p, d: {"project": p.output, "output": p.output / REPORT_NAME},
+        (),  # reads the ledger: its fingerprint is the other stages' records (see _report_inputs)
+        weight=0.5,
     ),
 )
 
@@ -199,22 +250,50 @@ def _versions() -> dict[str, str]:
     return out
 
 
+# --- paths as the ledger keeps them --------------------------------------------------------------
+
+
+def to_ledger(v: Any, root: Path) -> Any:
+    """Paths (and path strings) inside the project as ``PROJECT/...``; the rest as JSON values."""
+    if isinstance(v, dict):
+        return {k: to_ledger(x, root) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [to_ledger(x, root) for x in v]
+    if isinstance(v, Path) or (isinstance(v, str) and os.path.isabs(v)):
+        try:
+            return PROJECT_PREFIX + Path(v).resolve().relative_to(root.resolve()).as_posix()
+        except ValueError:
+            return str(v)
+    return v
+
+
+def from_ledger(v: Any, root: Path) -> Any:
+    """The inverse of :func:`to_ledger`: ``PROJECT/...`` back to a path string under ``root``."""
+    if isinstance(v, dict):
+        return {k: from_ledger(x, root) for k, x in v.items()}
+    if isinstance(v, list):
+        return [from_ledger(x, root) for x in v]
+    if isinstance(v, str) and v.startswith(PROJECT_PREFIX):
+        return str(root / v[len(PROJECT_PREFIX) :])
+    return v
+
+
 # --- the ledger ----------------------------------------------------------------------------------
 
 
 class Ledger:
     """``PROJECT/run.json``: per stage its status, fingerprint, options, input hashes, outputs,
-    seconds; written atomically after every change of status."""
+    seconds, peak memory and warnings; the runs; written atomically after every change of status."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.data: dict[str, Any] = {"version": LEDGER_VERSION, "stages": {}, "hash_cache": {}}
+        self.data: dict[str, Any] = {"version": LEDGER_VERSION, "stages": {}, "runs": [], "hash_cache": {}}
         if path.is_file():
             try:
                 loaded = json.loads(path.read_text())
             except ValueError as e:
                 raise InputError(f"unreadable run ledger ({e}): remove it to start afresh", path=path) from None
-            if loaded.get("version") == LEDGER_VERSION:
+            if isinstance(loaded, dict) and loaded.get("version") == LEDGER_VERSION:
                 self.data = loaded
 
     def stage(self, name: str) -> dict[str, Any]:
@@ -235,31 +314,124 @@ class StageRun:
     """What happened to one stage in this run."""
 
     name: str
-    status: str  # "ran", "reused", "skipped" (does not apply)
+    status: str  # "ran", "reused", "skipped" (does not apply), "failed", "not run" (after a failure)
     seconds: float
     outputs: dict[str, Any]
-
-
-def _relative(v: Any, root: Path) -> Any:
-    """A path inside the project as ``PROJECT/...``: a moved project keeps its fingerprints."""
-    if isinstance(v, Path):
-        try:
-            return "PROJECT/" + v.resolve().relative_to(root.resolve()).as_posix()
-        except ValueError:
-            return str(v)
-    return v
 
 
 def _fingerprint(
     stage: Stage, values: dict[str, Any], hashes: dict[str, str], versions: dict[str, str], root: Path
 ) -> str:
+    # files read count by content only: a photo folder moved or given by another path is the same input
     record = {
         "stage": stage.name,
-        "values": {k: _relative(v, root) for k, v in sorted(values.items())},
+        "values": to_ledger({k: v for k, v in sorted(values.items()) if k not in hashes}, root),
         "inputs": hashes,
         "versions": versions,
     }
     return hashlib.sha256(json.dumps(record, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _report_inputs(ledger: Ledger, names: Sequence[str], problems: list[dict[str, str]]) -> dict[str, str]:
+    """What the report is made from: every other stage's record as this run leaves it."""
+    records = {n: {k: ledger.stage(n).get(k) for k in ("status", "fingerprint", "started")} for n in names}
+    blob = json.dumps({"stages": records, "problems": problems}, sort_keys=True, default=str)
+    return {"stages": hashlib.sha256(blob.encode()).hexdigest()}
+
+
+class _PeakMemory:
+    """Peak resident memory while a stage runs, sampled every 0.25 s: this process, and this
+    process with its children (the stages' worker pools; shared pages are counted per process)."""
+
+    def __init__(self, interval_s: float = 0.25) -> None:
+        self.interval_s = interval_s
+        self.main_mb = 0.0
+        self.total_mb = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _sample(self) -> None:
+        import psutil
+
+        me = psutil.Process()
+        while True:
+            try:
+                main = me.memory_info().rss
+                total = main
+                for child in me.children(recursive=True):
+                    try:
+                        total += child.memory_info().rss
+                    except psutil.Error:
+                        continue
+            except psutil.Error:
+                main = total = 0
+            self.main_mb = max(self.main_mb, main / 2**20)
+            self.total_mb = max(self.total_mb, total / 2**20)
+            if self._stop.wait(self.interval_s):
+                return
+
+    def __enter__(self) -> _PeakMemory:
+        self._thread = threading.Thread(target=self._sample, name="geoortho-peak-memory", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
+class _Recorder(Feedback):
+    """Passes everything on to the run's feedback and keeps the stage's warnings for the report."""
+
+    def __init__(self, parent: Feedback) -> None:
+        super().__init__()
+        self._parent = parent
+        self.warnings: list[str] = []
+
+    def set_progress(self, fraction: float) -> None:
+        self._parent.progress(fraction)
+
+    def info(self, message: str) -> None:
+        self._parent.info(message)
+
+    def warning(self, message: str) -> None:
+        self.warnings.append(message)
+        self._parent.warning(message)
+
+    def is_canceled(self) -> bool:
+        return self._parent.is_canceled() or super().is_canceled()
+
+    def cancel(self) -> None:
+        self._parent.cancel()
+
+
+def _stage_problems(stage: str, outputs: dict[str, Any], project: Project) -> list[dict[str, str]]:
+    """What a finished stage's outputs say the client must be told (shown in red in the report)."""
+    out: list[dict[str, str]] = []
+    if stage == "gcp-find" and not outputs.get("n_observations"):
+        out.append(
+            {
+                "stage": stage,
+                "level": "error",
+                "message": "no GCP marker was found in any photo: SfM ran without GCPs (GPS only); "
+                "the products' absolute accuracy is the GPS's, not the survey's",
+            }
+        )
+    if stage == "gcp-find" and outputs.get("n_observations") and project.checkpoints:
+        from .gcp.io import read_gcp_file
+
+        found = set(read_gcp_file(Path(outputs["output"])).by_name())
+        missing = [c.strip() for c in project.checkpoints.split(",") if c.strip() and c.strip() not in found]
+        if missing:
+            out.append(
+                {
+                    "stage": stage,
+                    "level": "error",
+                    "message": f"checkpoint(s) not found in any photo, so not measured: {', '.join(missing)}",
+                }
+            )
+    return out
 
 
 def run_stages(
@@ -271,9 +443,14 @@ def run_stages(
     feedback: Feedback | None = None,
 ) -> list[StageRun]:
     """Run the stages that apply, re-using every one whose fingerprint is unchanged and whose
-    outputs are still there; ``rerun_from`` forces that stage and every later one."""
+    outputs are still there; ``rerun_from`` forces that stage and every later one.
+
+    A stage that fails is marked so in the ledger, the report is still written (it says which
+    stage failed and keeps every earlier product), and the error is raised again, naming the stage.
+    """
     from .processing.registry import run_algorithm
 
+    t_run = time.perf_counter()
     fb = as_feedback(feedback)
     names = [s.name for s in stages]
     if rerun_from is not None and rerun_from not in names:
@@ -282,38 +459,95 @@ def run_stages(
     if unknown:
         raise InputError(f"options for {sorted(unknown)[0]}: not a stage; choose from {', '.join(names)}")
     project.output.mkdir(parents=True, exist_ok=True)
-    ledger = Ledger(project.output / LEDGER_NAME)
+    root = project.output
+    ledger = Ledger(root / LEDGER_NAME)
     hasher = Hasher(ledger.data.get("hash_cache"))
     versions = _versions()
-    run = runner or (lambda name, values, f: run_algorithm(name, values, feedback=f))
+    run_one = runner or (lambda name, values, f: run_algorithm(name, values, feedback=f))
     forced = False
     results: list[StageRun] = []
-    steps = split(fb, [1.0] * len(stages))
-    for stage, step in zip(stages, steps):
+    done: Done = {}
+    problems: list[dict[str, str]] = []
+    failure: BaseException | None = None
+    weights = [s.weight if s.applies(project) else 0.01 for s in stages]
+    steps = split(fb, weights)
+    total = sum(weights)
+    start = 0.0
+    for index, (stage, step, weight) in enumerate(zip(stages, steps, weights), 1):
+        fb.stage(stage.name, index, len(stages), start / total, weight / total)
+        start += weight
         forced = forced or stage.name == rerun_from
+        if failure is not None and stage.name != "report":
+            results.append(StageRun(stage.name, "not run", 0.0, {}))
+            continue
         if not stage.applies(project):
+            ledger.data["stages"].pop(stage.name, None)
             results.append(StageRun(stage.name, "skipped", 0.0, {}))
             step.progress(1.0)
             continue
-        values = {k: v for k, v in stage.values(project).items() if v is not None}
+        values = {k: v for k, v in stage.values(project, done).items() if v is not None}
         values.update(project.options.get(stage.name, {}))
         hashes = {k: hasher.path(Path(values[k])) for k in stage.inputs if k in values}
-        fp = _fingerprint(stage, values, hashes, versions, project.output)
+        if stage.name == "report":
+            hashes.update(_report_inputs(ledger, [n for n in names if n != "report"], problems))
+            # what the report shows of this run (not part of its fingerprint: a run that changed
+            # nothing keeps the report the last change made)
+            ledger.data["problems"] = problems
+            elapsed = time.perf_counter() - t_run
+            ledger.data["current_run"] = {
+                "started": time.time() - elapsed,
+                "seconds_before_report": round(elapsed, 3),
+                "overhead_seconds": round(max(0.0, elapsed - sum(r.seconds for r in results)), 3),
+                "stages": {r.name: r.status for r in results},
+            }
+            ledger.save()
+        fp = _fingerprint(stage, values, hashes, versions, root)
         before = ledger.stage(stage.name)
-        if not forced and before.get("status") == "done" and before.get("fingerprint") == fp and _outputs_there(before):
-            results.append(StageRun(stage.name, "reused", 0.0, before.get("outputs", {})))
+        if (
+            not forced
+            and before.get("status") == "done"
+            and before.get("fingerprint") == fp
+            and _outputs_there(from_ledger(before.get("outputs", {}), root))
+        ):
+            outputs = from_ledger(before.get("outputs", {}), root)
+            done[stage.name] = outputs
+            problems.extend(_stage_problems(stage.name, outputs, project))
+            results.append(StageRun(stage.name, "reused", 0.0, outputs))
             fb.info(f"run: {stage.name}: unchanged, reused")
             step.progress(1.0)
             continue
-        project.folder(stage.name).mkdir(parents=True, exist_ok=True)
+        if stage.name != "report":
+            project.folder(stage.name).mkdir(parents=True, exist_ok=True)
+            _remove_leftovers(project.folder(stage.name))
         started = time.time()
         ledger.set_stage(stage.name, {"status": "running", "started": started, "fingerprint": fp})
+        recorder = _Recorder(step)
         t0 = time.perf_counter()
         try:
-            outputs = run(stage.name, dict(values), step)
+            with _PeakMemory() as memory:
+                outputs = run_one(stage.name, dict(values), recorder)
         except BaseException as e:
-            ledger.set_stage(stage.name, {"status": "failed", "error": str(e), "fingerprint": fp})
-            raise
+            seconds = time.perf_counter() - t0
+            status = "canceled" if isinstance(e, (CanceledError, KeyboardInterrupt)) else "failed"
+            ledger.set_stage(
+                stage.name,
+                {
+                    "status": status,
+                    "fingerprint": fp,
+                    "started": started,
+                    "seconds": seconds,
+                    "error": " ".join(str(e).split()) or type(e).__name__,
+                    "error_type": type(e).__name__,
+                    "values": to_ledger(values, root),
+                    "warnings": recorder.warnings,
+                },
+            )
+            results.append(StageRun(stage.name, status, seconds, {}))
+            if status == "canceled" or stage.name == "report":
+                raise
+            failure = e
+            problems.append({"stage": stage.name, "level": "error", "message": f"stage failed: {e}"})
+            continue
         seconds = time.perf_counter() - t0
         ledger.data["hash_cache"] = hasher.cache
         ledger.set_stage(
@@ -321,25 +555,57 @@ def run_stages(
             {
                 "status": "done",
                 "fingerprint": fp,
-                "values": {k: (str(v) if isinstance(v, Path) else v) for k, v in values.items()},
+                "values": to_ledger(values, root),
                 "inputs": hashes,
                 "versions": versions,
                 "started": started,
                 "seconds": seconds,
-                "outputs": outputs,
+                "peak_memory_mb": {"main": round(memory.main_mb, 1), "with_workers": round(memory.total_mb, 1)},
+                "warnings": recorder.warnings,
+                "outputs": to_ledger(outputs, root),
             },
         )
+        done[stage.name] = outputs
+        problems.extend(_stage_problems(stage.name, outputs, project))
         results.append(StageRun(stage.name, "ran", seconds, outputs))
         fb.info(f"run: {stage.name}: done in {seconds:.1f} s")
+    total_seconds = time.perf_counter() - t_run
     ledger.data["hash_cache"] = hasher.cache
+    ledger.data["problems"] = problems
+    ledger.data["runs"] = [
+        *ledger.data.get("runs", [])[-19:],
+        {
+            "finished": time.time(),
+            "seconds": round(total_seconds, 3),
+            # everything but the stages themselves: hashing, fingerprints, the ledger
+            "overhead_seconds": round(max(0.0, total_seconds - sum(r.seconds for r in results)), 3),
+            "stages": {r.name: r.status for r in results},
+        },
+    ]
     ledger.save()
+    if failure is not None:
+        name = next(r.name for r in results if r.status == "failed")
+        tail = f"earlier products kept; see {root / REPORT_NAME}"
+        if isinstance(failure, InputError):
+            raise InputError(f"stage {name}: {' '.join(str(failure).split())} ({tail})") from failure
+        raise GeoorthoError(
+            f"stage {name} failed: {type(failure).__name__}: {' '.join(str(failure).split())} ({tail})"
+        ) from failure
     return results
 
 
-def _outputs_there(record: dict[str, Any]) -> bool:
+def _remove_leftovers(folder: Path) -> None:
+    """Temporary files of a run killed in this stage (outputs.atomic_path's ``.name.tmp-*``): never
+    a product, and the stage is about to be re-done."""
+    for tmp in folder.rglob(".*.tmp-*"):
+        if tmp.is_file():
+            tmp.unlink(missing_ok=True)
+
+
+def _outputs_there(outputs: dict[str, Any]) -> bool:
     """Every path the stage reported still exists (a product removed by hand is made again)."""
-    for v in record.get("outputs", {}).values():
-        if isinstance(v, str) and (os.sep in v) and not Path(v).exists():
+    for v in outputs.values():
+        if isinstance(v, str) and os.path.isabs(v) and not Path(v).exists():
             return False
     return True
 
@@ -360,27 +626,158 @@ def parse_stage_options(text: str, stages: Sequence[Stage] = STAGES) -> dict[str
     """Stage options from JSON text or a JSON file: ``{"sfm": {"max_image_size": 2048}, ...}``.
     Each stage's options are its own algorithm's parameters (one declaration per parameter);
     the ones the chain sets itself (inputs, outputs) cannot be given."""
-    from .processing.registry import get_algorithm
+    from .processing.registry import convert_value, get_algorithm
 
     if not text:
         return {}
     path = Path(text)
     try:
-        raw = json.loads(path.read_text() if not text.lstrip().startswith("{") and path.is_file() else text)
+        is_file = not text.lstrip().startswith("{") and path.is_file()
+        raw = json.loads(path.read_text() if is_file else text)
     except ValueError as e:
-        raise InputError(f"stage options: not JSON ({e})") from None
+        raise InputError(f"stage options: not JSON ({e})", path=path if is_file else None) from None
     if not isinstance(raw, dict) or not all(isinstance(v, dict) for v in raw.values()):
         raise InputError('stage options: give {"stage": {"option": value, ...}, ...}')
     by_name = {s.name: s for s in stages}
-    probe = Project(images=Path("."), output=Path("."), gcp_file=Path("."))
+    probe = Project(images=Path("."), output=Path("."), gcp_file=Path("."), points=Path("."), dsm=Path("."))
     for name, opts in raw.items():
         if name not in by_name:
             raise InputError(f"stage options: {name} is not a stage; choose from {', '.join(by_name)}")
-        params = {p.name for p in get_algorithm(name).params}
-        chained = set(by_name[name].values(probe))
-        for key in opts:
+        params = {p.name: p for p in get_algorithm(name).params}
+        chained = set(by_name[name].values(probe, {}))
+        for key, value in opts.items():
             if key not in params:
                 raise InputError(f"stage options: {name} has no option {key}")
             if key in chained:
                 raise InputError(f"stage options: {name}.{key} is set by the run itself")
+            convert_value(params[key], value)  # a bad value is refused now, not an hour into the run
     return raw
+
+
+# --- the algorithm -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What ``run`` made.
+
+    Attributes
+    ----------
+    output : Path
+        The project folder.
+    report : Path
+        The quality report (report.html): self-contained, printable to PDF from a browser.
+    ledger : Path
+        run.json: each stage's options, input hashes, versions, status, seconds, outputs.
+    ortho : Path
+        The orthophoto (COG GeoTIFF).
+    dsm : Path
+        The DSM (COG GeoTIFF); the one given when ``dsm`` was given.
+    dtm : Path
+        The DTM (COG GeoTIFF).
+    stages : dict of str to str
+        What happened to each stage: ran, reused or skipped.
+    seconds : float
+        Wall time of this run.
+    """
+
+    output: Path
+    report: Path
+    ledger: Path
+    ortho: Path
+    dsm: Path
+    dtm: Path
+    stages: dict[str, str]
+    seconds: float
+
+
+def run(
+    images: Path,
+    output: Path,
+    gcp_file: Path | None = None,
+    checkpoints: str = "",
+    points: Path | None = None,
+    dsm: Path | None = None,
+    crs: str | None = None,
+    takeoff_elevation_m: float | None = None,
+    stage_options: str = "",
+    rerun_from: StageName | None = None,
+    force: bool = False,
+    workers: int = 0,
+    *,
+    feedback: Feedback | None = None,
+) -> RunResult:
+    """Run the whole chain on a folder of photos, resumably, and write a quality report.
+
+    The stages that apply, in order: footprints, gcp-find (with a GCP file), sfm (on the found
+    GCPs), dense (unless a lidar cloud is given), dem (DSM and DTM), ortho (on the DSM), report.
+    Each writes into its own subfolder of the project at stable names; ``run.json`` records
+    what each was run with. Run again and only the stages whose inputs or options changed are
+    re-done, with everything after them; a run that was killed resumes at the stage it was in.
+
+    Parameters
+    ----------
+    images : Path
+        Folder of photos.
+    output : Path
+        Project folder (new, empty, or an earlier run's).
+    gcp_file : Path
+        Surveyed GCP coordinates (any format gcp-find reads): markers are found in the photos
+        and SfM is put on them. When none is found the run goes on without GCPs and says so.
+    checkpoints : str
+        GCP names held out of the adjustment and measured, comma-separated.
+    points : Path
+        A lidar point cloud: the DSM and DTM are made from it and the dense stage is skipped.
+    dsm : Path
+        A DSM to use for footprints, GCP prediction and the orthophoto instead of the one made.
+    crs : str
+        Output CRS (default: the UTM zone of the photos).
+    takeoff_elevation_m : float
+        Elevation of the take-off point, in the DSM's vertical datum, for every stage that uses it.
+    stage_options : str
+        Options of each stage as JSON, or a JSON file: {"sfm": {"max_image_size": 2048},
+        "ortho": {"resolution_m": 0.05}}; names and values are the stages' own parameters.
+    rerun_from : str
+        Re-do this stage and every later one even when unchanged.
+    force : bool
+        Use an output folder that holds other files (not an earlier run's project).
+    workers : int
+        Worker processes for the per-photo stages (0 = every core).
+    """
+    fb = as_feedback(feedback)
+    t0 = time.perf_counter()
+    output = Path(output)
+    check_project_folder(output, force)
+    options = parse_stage_options(stage_options)
+    project = Project(
+        images=Path(images),
+        output=output,
+        gcp_file=Path(gcp_file) if gcp_file is not None else None,
+        checkpoints=checkpoints or "",
+        points=Path(points) if points is not None else None,
+        dsm=Path(dsm) if dsm is not None else None,
+        crs=str(crs) if crs is not None else None,
+        takeoff_elevation_m=takeoff_elevation_m,
+        workers=workers,
+        options=options,
+    )
+    if project.checkpoints and project.gcp_file is None:
+        raise InputError("checkpoints are named but no GCP file is given (--gcp-file)")
+    results = run_stages(project, rerun_from=rerun_from, feedback=fb)
+    by_name = {r.name: r for r in results}
+    ran = [r.name for r in results if r.status == "ran"]
+    reused = [r.name for r in results if r.status == "reused"]
+    fb.info(f"run: {len(ran)} stage(s) run ({', '.join(ran) or 'none'}), {len(reused)} reused")
+    report = output / REPORT_NAME
+    fb.info(f"report: {report}")
+    dem_out = by_name["dem"].outputs
+    return RunResult(
+        output=output,
+        report=report,
+        ledger=output / LEDGER_NAME,
+        ortho=Path(by_name["ortho"].outputs["output"]),
+        dsm=Path(dsm) if dsm is not None else Path(dem_out["dsm"]),
+        dtm=Path(dem_out["dtm"]),
+        stages={r.name: r.status for r in results},
+        seconds=time.perf_counter() - t0,
+    )

@@ -86,10 +86,12 @@ def test_every_public_name_is_callable_after_every_face_is_loaded_and_the_readme
     assert got["seen"]["synth"] == "SynthResult" and got["seen"]["ortho"] == "OrthoResult"
     assert got["seen"]["gcp_find"] == "GcpFindResult" and got["seen"]["dem"] == "DemResult"
     assert got["seen"]["sfm"] == "SfmResult" and got["seen"]["demo"] == "DemoResult"
+    assert got["seen"]["run"] == "RunResult" and got["seen"]["report"] == "ReportResult"
     assert got["fp"] == got["n_photos"] == got["run"]
     assert got["obs"] > 0 and got["registered"] >= got["n_photos"] - 1 and got["ortho_used"] >= 2
     assert {"footprints", "gcp_list", "dsm", "ortho"} <= set(got["demo"])
     assert (tmp_path / "ortho.tif").is_file() and "m pixels" in proc.stdout
+    assert (tmp_path / "project" / "report.html").is_file() and (tmp_path / "report_copy.html").is_file()
 
 
 def test_public_names_resolve_to_functions_and_dataclasses_not_modules():

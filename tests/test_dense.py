@@ -180,8 +180,13 @@ def test_cli_bad_input_exit_2(tmp_path, capsys):
     assert len(err) == 1 and "not an sfm output folder" in err[0]
 
 
-def test_demo_chain_makes_the_dsm_from_the_dense_cloud_unless_lidar_is_asked():
-    from geoortho.demonstration import _stages
+def test_run_makes_the_dsm_from_the_dense_cloud_unless_a_lidar_cloud_is_given(tmp_path):
+    from geoortho.pipeline import STAGES, Project
 
-    assert [n for n, _, _ in _stages()] == ["footprints", "gcp-find", "sfm", "dense", "dem", "ortho"]
-    assert [n for n, _, _ in _stages("lidar")] == ["footprints", "gcp-find", "sfm", "dem", "ortho"]
+    photos_only = Project(images=tmp_path, output=tmp_path)
+    with_lidar = Project(images=tmp_path, output=tmp_path, points=tmp_path / "lidar.laz")
+    assert [s.name for s in STAGES if s.applies(photos_only)] == ["footprints", "sfm", "dense", "dem", "ortho", "report"]
+    assert [s.name for s in STAGES if s.applies(with_lidar)] == ["footprints", "sfm", "dem", "ortho", "report"]
+    dem = next(s for s in STAGES if s.name == "dem")
+    assert dem.values(photos_only, {})["points"] == tmp_path / "dense" / "dense.laz"
+    assert dem.values(with_lidar, {})["points"] == tmp_path / "lidar.laz"

@@ -1,70 +1,279 @@
-"""The run engine (issue 21, in progress): stages re-used or re-done as run.json says, on tiny."""
+"""``run``: the whole chain in one resumable command, with its report; on the tiny survey.
+
+Resume is asserted from run.json (what each stage did), never from timing.
+"""
 
 from __future__ import annotations
 
 import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
 
 import pytest
 
 from geoortho.errors import InputError
-from geoortho.pipeline import LEDGER_NAME, Project, run_stages
+from geoortho.pipeline import LEDGER_NAME, REPORT_NAME, run
 
 FAST = {"sfm": {"max_image_size": 1024}, "dense": {"max_image_size": 512}}
+CHAIN = ["footprints", "gcp-find", "sfm", "dense", "dem", "ortho", "report"]
 
 
-def _status(results):
-    return {r.name: r.status for r in results}
+def _ledger(project):
+    return json.loads((project / LEDGER_NAME).read_text())
+
+
+def _last_run(project):
+    return _ledger(project)["runs"][-1]["stages"]
+
+
+def _run(survey, output, **kw):
+    kw.setdefault("gcp_file", survey.gcp_file)
+    kw.setdefault("stage_options", json.dumps(FAST))
+    return run(survey.images, output, **kw)
+
+
+def _best_seen_gcp(survey):
+    """The GCP whose marker the most photos show (truth): the checkpoint the tests hold out."""
+    from collections import Counter
+
+    seen = Counter(
+        m["gcp"]
+        for p in json.loads((survey.truth / "markers.json").read_text())
+        for m in p["markers"]
+        if m["inside"] and not m["decoy"] and not m["occluded"]
+    )
+    return seen.most_common(1)[0][0]
 
 
 @pytest.fixture(scope="module")
-def first_run(tiny_survey, tmp_path_factory):
-    project = Project(
-        images=tiny_survey.images,
-        output=tmp_path_factory.mktemp("run") / "project",
-        gcp_file=tiny_survey.gcp_file,
-        options=FAST,
-    )
-    return project, run_stages(project)
+def checkpoint(tiny_survey):
+    return _best_seen_gcp(tiny_survey)
 
 
-def test_first_run_makes_every_product(first_run):
-    project, results = first_run
-    assert _status(results) == dict.fromkeys(["footprints", "gcp-find", "sfm", "dense", "dem", "ortho"], "ran")
-    ledger = json.loads((project.output / LEDGER_NAME).read_text())
-    for name in ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho"):
+@pytest.fixture(scope="module")
+def first_run(tiny_survey, checkpoint, tmp_path_factory):
+    output = tmp_path_factory.mktemp("run") / "project"
+    return _run(tiny_survey, output, checkpoints=checkpoint)
+
+
+def test_first_run_makes_every_product_and_records_how(first_run, checkpoint):
+    project = first_run.output
+    assert first_run.stages == dict.fromkeys(CHAIN, "ran")
+    ledger = _ledger(project)
+    for name in CHAIN:
         rec = ledger["stages"][name]
         assert rec["status"] == "done" and rec["seconds"] > 0 and rec["versions"]["geoortho"]
-    assert (project.output / "ortho" / "ortho.tif").is_file() and (project.output / "dem" / "dsm.tif").is_file()
-    assert ledger["stages"]["sfm"]["values"]["gcp_list"].endswith("gcp-find/gcp_list.txt")
+        assert rec["peak_memory_mb"]["with_workers"] >= rec["peak_memory_mb"]["main"] > 50
+    for product in ("footprints/footprints.gpkg", "sfm/report.json", "dense/dense.laz", "dem/dsm.tif", "dem/dtm.tif"):
+        assert (project / product).is_file(), product
+    assert first_run.ortho == project / "ortho" / "ortho.tif" and first_run.ortho.is_file()
+    # paths inside the project are kept relative to it; the chain's own values are recorded
+    sfm = ledger["stages"]["sfm"]
+    assert sfm["values"]["gcp_list"] == "PROJECT/gcp-find/gcp_list.txt" and sfm["values"]["checkpoints"] == checkpoint
+    assert sfm["values"]["max_image_size"] == 1024 and sfm["outputs"]["model"] == "PROJECT/sfm/model"
+    assert len(sfm["inputs"]["images"]) == 64  # a content hash
+    assert ledger["runs"][-1]["overhead_seconds"] < 0.05 * ledger["runs"][-1]["seconds"]
+    assert not list(project.rglob(".*.tmp-*")), "a temporary file was left behind"
 
 
-def test_second_run_reuses_everything_and_reads_no_photo_again(first_run):
-    project, _ = first_run
-    results = run_stages(project)
-    assert set(_status(results).values()) == {"reused"}
+def test_report_numbers_are_the_stages_own(first_run):
+    page = first_run.report.read_text()
+    project = first_run.output
+    sfm = json.loads((project / "sfm" / "report.json").read_text())
+    ortho = json.loads((project / "ortho" / "ortho_report.json").read_text())
+    dense = json.loads((project / "dense" / "dense_report.json").read_text())
+    assert f"{sfm['registered']} of {sfm['photos']}" in page
+    assert f"{sfm['mean_reprojection_error_px']:.2f} px" in page
+    for g in sfm["gcps"]:
+        row = re.search(rf"<td>{g['name']}</td><td>{g['role']}</td><td>{g['observations']}</td>", page)
+        assert row, g["name"]
+    checkpoint = sfm["checkpoint_accuracy"]
+    assert checkpoint["n"] == 1 and f"{100 * checkpoint['rmse_3d_m']:.1f} cm" in page
+    assert f"{100 * ortho['resolution_m']:.2f} cm" in page and f"{dense['points_written']:,}" in page
+    assert "no problem found" in page and 'class="banner problem"' not in page
+    for section in (
+        "Dataset summary",
+        "Overlap",
+        "Ground control and checkpoints",
+        "Reprojection error",
+        "Photos not used",
+        "DSM and DTM",
+        "Seams and colour balance",
+        "Time and memory per stage",
+        "Parameters",
+    ):
+        assert f">{section}</h2>" in page, section
+    # self-contained: every image is embedded, nothing is fetched
+    assert page.count('src="data:image/png;base64,') >= 8
+    assert not re.search(r'(src|href)="(?!data:|#)', page)
 
 
-def test_an_ortho_option_redoes_only_ortho(first_run):
-    project, _ = first_run
-    changed = Project(**{**project.__dict__, "options": {**FAST, "ortho": {"resolution_m": 0.2}}})
-    status = _status(run_stages(changed))
-    assert status["ortho"] == "ran" and all(v == "reused" for k, v in status.items() if k != "ortho")
-    # a stage left "running" (the run was killed in it) is re-done, nothing before it
-    ledger_path = project.output / LEDGER_NAME
-    ledger = json.loads(ledger_path.read_text())
-    ledger["stages"]["ortho"]["status"] = "running"
-    ledger_path.write_text(json.dumps(ledger))
-    status = _status(run_stages(changed))
-    assert status["ortho"] == "ran" and all(v == "reused" for k, v in status.items() if k != "ortho")
+def test_the_report_loads_in_a_real_browser_without_error(first_run, tmp_path):
+    import browser
+
+    if browser.chromium() is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is not installed: tools/browser_setup.sh (make test) installs it as root")
+        pytest.skip("chromium is not installed (make test installs it as root)")
+    page = browser.load(first_run.report.resolve().as_uri())
+    assert page.errors == []
+    assert all(u.startswith(("file:", "data:")) for u in page.requests)  # no network
+    assert page.title.startswith("geoortho quality report") and page.images >= 8 and page.images_broken == 0
+    import numpy as np
+    from PIL import Image
+
+    shot = tmp_path / "report.png"
+    shot.write_bytes(page.screenshot_png)
+    pixels = np.asarray(Image.open(shot).convert("L"), dtype=float)
+    assert pixels.shape[0] > 1000 and pixels.std() > 20  # text and figures, not a blank page
+    assert page.pdf.startswith(b"%PDF") and page.pdf.count(b"/Type /Page") >= 3  # prints to PDF
 
 
-def test_rerun_from_forces_that_stage_and_the_later_ones(first_run):
-    project, _ = first_run
-    status = _status(run_stages(project, rerun_from="dem"))
-    reused = dict.fromkeys(["footprints", "gcp-find", "sfm", "dense"], "reused")
-    assert status == {**reused, "dem": "ran", "ortho": "ran"}
-    with pytest.raises(InputError, match="not a stage"):
-        run_stages(project, rerun_from="mosaic")
+def test_second_run_reuses_everything(first_run, tiny_survey, checkpoint):
+    before = first_run.report.stat().st_mtime_ns
+    again = _run(tiny_survey, first_run.output, checkpoints=checkpoint)
+    assert set(again.stages.values()) == {"reused"}
+    assert first_run.report.stat().st_mtime_ns == before
+    assert _ledger(first_run.output)["runs"][-1]["seconds"] < 0.05 * sum(
+        rec["seconds"] for rec in _ledger(first_run.output)["stages"].values()
+    )
+
+
+def test_an_ortho_option_redoes_only_ortho_and_the_report(first_run, tiny_survey, checkpoint, tmp_path):
+    project = tmp_path / "copy"
+    shutil.copytree(first_run.output, project)  # a moved project resumes: paths are PROJECT/...
+    changed = json.dumps({**FAST, "ortho": {"resolution_m": 0.1}})
+    r = _run(tiny_survey, project, checkpoints=checkpoint, stage_options=changed)
+    assert r.stages == {**dict.fromkeys(CHAIN[:-2], "reused"), "ortho": "ran", "report": "ran"}
+    r = _run(tiny_survey, project, checkpoints=checkpoint, stage_options=changed, rerun_from="dem")
+    assert r.stages == {**dict.fromkeys(CHAIN[:-3], "reused"), "dem": "ran", "ortho": "ran", "report": "ran"}
+
+
+def test_a_run_killed_in_ortho_resumes_at_ortho(first_run, tiny_survey, checkpoint, tmp_path):
+    project = tmp_path / "killed"
+    shutil.copytree(first_run.output, project)
+    changed = json.dumps({**FAST, "ortho": {"resolution_m": 0.08}})
+    args = [
+        "--images",
+        str(tiny_survey.images),
+        "--output",
+        str(project),
+        "--gcp-file",
+        str(tiny_survey.gcp_file),
+        "--checkpoints",
+        checkpoint,
+        "--stage-options",
+        changed,
+        "--quiet",
+    ]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "geoortho", "run", *args],
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    deadline = time.monotonic() + 120
+    while _ledger(project)["stages"]["ortho"].get("status") != "running":
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    time.sleep(0.5)  # well inside the stage
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert _ledger(project)["stages"]["ortho"]["status"] == "running"  # not done: will be re-done
+    r = _run(tiny_survey, project, checkpoints=checkpoint, stage_options=changed)
+    assert r.stages == {**dict.fromkeys(CHAIN[:-2], "reused"), "ortho": "ran", "report": "ran"}
+    assert _last_run(project) == r.stages
+    assert not list(project.rglob(".*.tmp-*")), "the killed run's temporary file was kept"
+    import rasterio
+
+    with rasterio.open(r.ortho) as src:
+        assert abs(src.res[0] - 0.08) < 1e-6
+
+
+def test_a_failing_stage_keeps_earlier_products_and_the_report_says_which(
+    first_run, tiny_survey, checkpoint, tmp_path, capsys
+):
+    from geoortho.processing.cli import main
+
+    project = tmp_path / "failing"
+    shutil.copytree(first_run.output, project)
+    bad_cloud = tmp_path / "broken.laz"
+    bad_cloud.write_bytes(b"LASF" + b"\0" * 50)
+    code = main(
+        [
+            "run",
+            "--images",
+            str(tiny_survey.images),
+            "--output",
+            str(project),
+            "--gcp-file",
+            str(tiny_survey.gcp_file),
+            "--checkpoints",
+            checkpoint,
+            "--points",
+            str(bad_cloud),
+            "--stage-options",
+            json.dumps(FAST),
+            "--quiet",
+        ]
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "stage dem" in err[0] and "report.html" in err[0]
+    ledger = _ledger(project)
+    assert ledger["stages"]["dem"]["status"] == "failed" and "broken.laz" in ledger["stages"]["dem"]["error"]
+    assert _last_run(project) == {
+        **dict.fromkeys(CHAIN[:3], "reused"),
+        "dense": "skipped",
+        "dem": "failed",
+        "ortho": "not run",
+        "report": "ran",
+    }
+    assert (project / "sfm" / "report.json").is_file()
+    page = (project / REPORT_NAME).read_text()
+    assert 'class="banner problem"' in page and "<b>dem</b>: stage failed" in page
+
+
+def test_markers_never_found_run_on_without_gcps_and_the_report_says_so_in_red(tiny_survey, tmp_path):
+    # surveyed points whose names name markers that are not on the ground (ids no marker, decoy or not, has)
+    on_ground = {
+        m["marker_id"] for p in json.loads((tiny_survey.truth / "markers.json").read_text()) for m in p["markers"]
+    }
+    free = iter(sorted(set(range(50)) - on_ground))
+    text = tiny_survey.gcp_file.read_text()
+    wrong = tmp_path / "wrong_ids.txt"
+    wrong.write_text(re.sub(r"^GCP\d+", lambda m: f"GCP{next(free):02d}", text, flags=re.M))
+    assert wrong.read_text() != text
+    r = _run(tiny_survey, tmp_path / "project", gcp_file=wrong, points=tiny_survey.points)
+    assert r.stages["gcp-find"] == "ran" and r.stages["dense"] == "skipped" and r.stages["ortho"] == "ran"
+    ledger = _ledger(r.output)
+    assert ledger["stages"]["gcp-find"]["outputs"]["n_observations"] == 0
+    assert "gcp_list" not in ledger["stages"]["sfm"]["values"]
+    assert any("no GCP marker was found" in p["message"] for p in ledger["problems"])
+    page = r.report.read_text()
+    assert 'class="banner problem"' in page and "SfM ran without GCPs" in page
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path, tiny_survey, capsys):
+    from geoortho.processing.cli import main
+
+    base = ["run", "--images", str(tiny_survey.images), "--quiet"]
+    (tmp_path / "thesis.docx").write_text("mine")
+    for args, why in (
+        (["--output", str(tmp_path)], "not a geoortho project"),
+        (["--output", str(tmp_path / "p"), "--stage-options", '{"sfm": {"max_image_size": 10}}'], "below the minimum"),
+        (["--output", str(tmp_path / "p"), "--stage-options", '{"ortho": {"output": "x.tif"}}'], "set by the run"),
+        (["--output", str(tmp_path / "p"), "--checkpoints", "GCP1"], "no GCP file"),
+    ):
+        assert main(base + args) == 2, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and why in err[0], err
+    assert (tmp_path / "thesis.docx").read_text() == "mine" and not (tmp_path / LEDGER_NAME).exists()
 
 
 def test_stage_options_are_the_stages_own_parameters(tmp_path):
@@ -78,6 +287,7 @@ def test_stage_options_are_the_stages_own_parameters(tmp_path):
         ('{"mosaic": {}}', "not a stage"),
         ('{"sfm": {"max_size": 1}}', "has no option max_size"),
         ('{"ortho": {"output": "x.tif"}}', "set by the run itself"),
+        ('{"ortho": {"blend": "smudge"}}', "not one of"),
         ("[1, 2]", "give"),
         ("{oops", "not JSON"),
     ):
@@ -85,23 +295,21 @@ def test_stage_options_are_the_stages_own_parameters(tmp_path):
             parse_stage_options(bad)
 
 
-def test_a_folder_of_other_files_is_refused_unless_forced(tmp_path):
-    from geoortho.pipeline import check_project_folder
+def test_one_progress_display_names_the_stage():
+    import io
 
-    check_project_folder(tmp_path / "new")
-    (tmp_path / "thesis.docx").write_text("mine")
-    with pytest.raises(InputError, match="not a geoortho project"):
-        check_project_folder(tmp_path)
-    check_project_folder(tmp_path, force=True)
-    (tmp_path / LEDGER_NAME).write_text("{}")
-    check_project_folder(tmp_path)
+    from geoortho.feedback import TerminalFeedback, split
 
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
 
-def test_a_moved_project_is_reused(first_run, tmp_path):
-    import shutil
-
-    project, _ = first_run
-    moved = tmp_path / "moved"
-    shutil.copytree(project.output, moved, symlinks=True)
-    status = _status(run_stages(Project(**{**project.__dict__, "output": moved})))
-    assert set(status.values()) == {"reused"}, status
+    stream = Tty()
+    fb = TerminalFeedback("run", stream=stream)
+    steps = split(fb, [1, 3])
+    fb.stage("sfm", 2, 7, 0.25, 0.75)
+    steps[1].progress(0.5)
+    fb.close()
+    shown = stream.getvalue()
+    assert "run [2/7] sfm" in shown and "62%" in shown  # overall: 0.25 + 0.75 * 0.5
+    assert "sfm  50%" in shown  # the stage's own bar

@@ -35,6 +35,7 @@ class Recorder:
         self.info: list[str] = []
         self.warnings: list[str] = []
         self.console: list[str] = []
+        self.progress_text: list[str] = []
         self._cancel_at = cancel_at_percent
 
     def setProgress(self, percent: float) -> None:  # noqa: N802
@@ -48,6 +49,9 @@ class Recorder:
 
     def pushConsoleInfo(self, text: str) -> None:  # noqa: N802
         self.console.append(text)
+
+    def setProgressText(self, text: str) -> None:  # noqa: N802
+        self.progress_text.append(text)
 
     def isCanceled(self) -> bool:  # noqa: N802
         return self._cancel_at is not None and any(p >= self._cancel_at for p in self.progress)

@@ -496,4 +496,23 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
         Path(p).exists() for p in r["PRODUCTS"].values() if isinstance(p, str)
     )
     ran.add("demo")
+
+    # run: the chain on the tiny survey with its lidar cloud (no dense stage), then its report again
+    project = tmp_path / "project"
+    r = _run(
+        "run",
+        {
+            "IMAGES": str(tiny / "images"),
+            "OUTPUT": str(project),
+            "GCP_FILE": str(tiny / "truth" / "gcp_utm.txt"),
+            "POINTS": str(tiny / "truth" / "points.laz"),
+            "STAGE_OPTIONS": '{"sfm": {"max_image_size": 1024}}',
+        },
+    )
+    assert Path(r["REPORT"]).is_file() and r["STAGES"]["dense"] == "skipped" and r["STAGES"]["ortho"] == "ran"
+    assert QgsRasterLayer(r["ORTHO"], "ortho").isValid() and QgsRasterLayer(r["DTM"], "dtm").isValid()
+    ran.add("run")
+    r = _run("report", {"PROJECT": str(project), "OUTPUT": str(tmp_path / "again.html")})
+    assert r["N_SECTIONS"] >= 10 and "Quality report" in Path(r["OUTPUT"]).read_text()
+    ran.add("report")
     assert ran == {a["id"] for a in description["algorithms"]}

@@ -27,6 +27,9 @@ class _QgisFeedback(Feedback):
     def warning(self, message: str) -> None:
         self._qgis.pushWarning(message)
 
+    def stage(self, name: str, index: int, count: int, start: float, width: float) -> None:
+        self._qgis.setProgressText(f"[{index}/{count}] {name}")
+
     def is_canceled(self) -> bool:
         return super().is_canceled() or bool(self._qgis.isCanceled())
 

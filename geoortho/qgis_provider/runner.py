@@ -33,6 +33,7 @@ class ProcessingFeedbackLike(Protocol):
     def pushInfo(self, info: str) -> None: ...  # noqa: N802
     def pushWarning(self, warning: str) -> None: ...  # noqa: N802
     def pushConsoleInfo(self, info: str) -> None: ...  # noqa: N802
+    def setProgressText(self, text: str) -> None: ...  # noqa: N802
     def isCanceled(self) -> bool: ...  # noqa: N802
 
 
@@ -95,6 +96,8 @@ def _handle_line(line: str, feedback: ProcessingFeedbackLike, plain: list[str]) 
         feedback.pushInfo(str(message["info"]))
     if "warning" in message:
         feedback.pushWarning(str(message["warning"]))
+    if "stage" in message:  # a run of stages: the stage's name over the progress bar
+        feedback.setProgressText(f"[{message.get('index', '?')}/{message.get('count', '?')}] {message['stage']}")
 
 
 def remove_partial_outputs(destinations: Iterable[str | os.PathLike[str]]) -> list[Path]:
