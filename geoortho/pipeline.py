@@ -54,6 +54,7 @@ class Project:
     images: Path
     output: Path
     gcp_file: Path | None = None
+    gcp_list: Path | None = None  # observations already made (clicked, or an earlier gcp-find)
     checkpoints: str = ""
     points: Path | None = None
     dsm: Path | None = None
@@ -82,15 +83,18 @@ class Stage:
     weight: float = 1.0  # share of a typical run's time, for the overall progress bar
 
 
-def _gcp_observations(done: Done) -> Path | None:
-    """The found gcp_list.txt, when gcp-find found any marker (else SfM runs on GPS alone)."""
+def _gcp_observations(p: Project, done: Done) -> Path | None:
+    """The gcp_list.txt given, or the one found, when gcp-find found any marker (else SfM runs on
+    GPS alone)."""
+    if p.gcp_list is not None:
+        return p.gcp_list
     found = done.get("gcp-find") or {}
     return Path(found["output"]) if found.get("n_observations") else None
 
 
 def _found_checkpoints(p: Project, done: Done) -> str | None:
     """The named checkpoints that gcp-find found (one not found is reported, not fatal)."""
-    gcp_list = _gcp_observations(done)
+    gcp_list = _gcp_observations(p, done)
     if not p.checkpoints or gcp_list is None:
         return None
     from .gcp.io import read_gcp_file
@@ -142,7 +146,7 @@ STAGES: tuple[Stage, ...] = (
         lambda p, d: {
             "images": p.images,
             "output": p.folder("sfm"),
-            "gcp_list": _gcp_observations(d),
+            "gcp_list": _gcp_observations(p, d),
             "checkpoints": _found_checkpoints(p, d),
             "crs": p.crs,
             "takeoff_elevation_m": p.takeoff_elevation_m,
@@ -418,10 +422,13 @@ def _stage_problems(stage: str, outputs: dict[str, Any], project: Project) -> li
                 "the products' absolute accuracy is the GPS's, not the survey's",
             }
         )
-    if stage == "gcp-find" and outputs.get("n_observations") and project.checkpoints:
+    observed = Path(outputs["output"]) if stage == "gcp-find" and outputs.get("n_observations") else None
+    if stage == "footprints" and project.gcp_list is not None:
+        observed = project.gcp_list
+    if observed is not None and project.checkpoints:
         from .gcp.io import read_gcp_file
 
-        found = set(read_gcp_file(Path(outputs["output"])).by_name())
+        found = set(read_gcp_file(observed).by_name())
         missing = [c.strip() for c in project.checkpoints.split(",") if c.strip() and c.strip() not in found]
         if missing:
             out.append(
@@ -695,6 +702,7 @@ def run(
     images: Path,
     output: Path,
     gcp_file: Path | None = None,
+    gcp_list: Path | None = None,
     checkpoints: str = "",
     points: Path | None = None,
     dsm: Path | None = None,
@@ -724,6 +732,9 @@ def run(
     gcp_file : Path
         Surveyed GCP coordinates (any format gcp-find reads): markers are found in the photos
         and SfM is put on them. When none is found the run goes on without GCPs and says so.
+    gcp_list : Path
+        An OpenDroneMap gcp_list.txt whose image observations are already made (clicked by hand,
+        or by an earlier gcp-find): SfM is put on it directly, with no gcp-find stage.
     checkpoints : str
         GCP names held out of the adjustment and measured, comma-separated.
     points : Path
@@ -753,6 +764,7 @@ def run(
         images=Path(images),
         output=output,
         gcp_file=Path(gcp_file) if gcp_file is not None else None,
+        gcp_list=Path(gcp_list) if gcp_list is not None else None,
         checkpoints=checkpoints or "",
         points=Path(points) if points is not None else None,
         dsm=Path(dsm) if dsm is not None else None,
@@ -761,8 +773,10 @@ def run(
         workers=workers,
         options=options,
     )
-    if project.checkpoints and project.gcp_file is None:
-        raise InputError("checkpoints are named but no GCP file is given (--gcp-file)")
+    if project.gcp_file is not None and project.gcp_list is not None:
+        raise InputError("give --gcp-file (markers to find) or --gcp-list (observations made), not both")
+    if project.checkpoints and project.gcp_file is None and project.gcp_list is None:
+        raise InputError("checkpoints are named but no GCP file is given (--gcp-file or --gcp-list)")
     results = run_stages(project, rerun_from=rerun_from, feedback=fb)
     by_name = {r.name: r for r in results}
     ran = [r.name for r in results if r.status == "ran"]

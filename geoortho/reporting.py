@@ -376,8 +376,9 @@ def _sfm_cameras(ctx: _Context) -> Any:
 
 def _gcp_positions(ctx: _Context) -> list[tuple[str, float, float, float]]:
     """(name, x, y, z) of the GCPs in the found gcp_list.txt (the CRS of the products)."""
-    path = ctx.path("gcp-find", "output")
-    if path is None or not (ctx.done("gcp-find") or {}).get("n_observations"):
+    used = ctx.values("sfm").get("gcp_list")  # found by gcp-find, or given as observations
+    path = Path(used) if isinstance(used, str) and Path(used).is_file() else None
+    if path is None:
         return []
     from .gcp.io import read_gcp_file
 
@@ -440,10 +441,12 @@ def _accuracy_rows(sfm: dict[str, Any]) -> list[list[Any]]:
 
 
 def _gcps(ctx: _Context) -> str:
-    given = "gcp-find" in ctx.stages
+    given = "gcp-find" in ctx.stages or bool(ctx.values("sfm").get("gcp_list"))
     sfm = ctx.sfm_report()
     parts: list[str] = []
     g = ctx.done("gcp-find")
+    if "gcp-find" not in ctx.stages and given:
+        parts.append(f"<p>GCP observations given: {html.escape(str(ctx.values('sfm')['gcp_list']))}</p>")
     if not given:
         return _missing(
             "No GCP file was given: the products' absolute accuracy is the photos' GPS "

@@ -274,6 +274,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             IMAGES,
             Param("output", "folder", output=True),
             Param("gcp_file", "file", extensions=(".txt", ".csv", ".tsv", ".json")),
+            Param("gcp_list", "file", extensions=(".txt",)),
             Param("checkpoints", "string"),
             Param("points", "pointcloud", extensions=(".las", ".laz", ".ply")),
             DSM,
