@@ -58,7 +58,8 @@ def main() -> None:
     t_run, rss_run = _geoortho(*run_args)
     ledger = json.loads((project / "run.json").read_text())
     stages = {n: r for n, r in ledger["stages"].items() if r.get("status") == "done"}
-    print(f"run on {args.preset} ({len(list(images.glob('*.JPG')))} photos): {t_run:.1f} s, peak {rss_run / 1024:.0f} MB")
+    n_photos = len(list(images.glob("*.JPG")))
+    print(f"run on {args.preset} ({n_photos} photos): {t_run:.1f} s, peak {rss_run / 1024:.0f} MB")
     print(f"  {'stage':<11} {'in run (s)':>10} {'alone (s)':>10} {'peak MB in run':>15}")
     alone_total = 0.0
     alone = work / "alone"
