@@ -310,6 +310,8 @@ def _pair(
     f = float(P1[0, 0])
     baseline = abs(float(shift)) / f
     zmin, zmax = depth_range
+    if not 0 < zmin <= zmax:  # points behind or at the camera: a broken pose, not a stereo pair
+        return None
     min_d = max(0, int(math.floor(f * baseline / zmax * 0.85)))
     n_d = max(16, int(math.ceil((f * baseline / zmin * 1.15 - min_d) / 16.0)) * 16)
     map_a = cv2.initUndistortRectifyMap(a.K, a.dist, R1, P1, a.size, cv2.CV_32FC1)
@@ -319,7 +321,9 @@ def _pair(
     valid = cv2.remap(np.full(img_a.shape[:2], 255, np.uint8), map_a[0], map_a[1], cv2.INTER_NEAREST)
     if not horizontal:  # vertical pairs: transposed, SGBM searches along rows
         left, right, valid = cv2.transpose(left), cv2.transpose(right), cv2.transpose(valid)
-    if n_d > left.shape[1] // 2:
+    # Disparities past half the canvas: a pair whose rectification blew up (mixed bodies, a
+    # near-degenerate geometry); SGBM could not search it and the overlap would be a sliver.
+    if min_d + n_d > left.shape[1] // 2:
         return None
     # The right image shifted by the smallest disparity: SGBM searches only the range that matters
     # (and an image narrower than minDisparity + numDisparities makes OpenCV fail).

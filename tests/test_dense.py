@@ -191,3 +191,21 @@ def test_run_makes_the_dsm_from_the_dense_cloud_unless_a_lidar_cloud_is_given(tm
     dem = next(s for s in STAGES if s.name == "dem")
     assert dem.values(photos_only, {})["points"] == tmp_path / "dense" / "dense.laz"
     assert dem.values(with_lidar, {})["points"] == tmp_path / "lidar.laz"
+
+
+def test_a_pair_that_cannot_be_searched_is_skipped_not_fatal():
+    """Toledo (two camera bodies) gave a pair whose smallest disparity was past the canvas; SGBM
+    cannot search it and dense died with a broadcast error. Such a pair is skipped."""
+    from geoortho.densify import _pair, _View
+
+    K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])
+    down = np.diag([1.0, -1.0, -1.0])  # camera looking down
+    a = _View("a", None, K, np.zeros(5), (1024, 768), down, np.array([0.0, 0.0, 100.0]))
+    b = _View("b", None, K, np.zeros(5), (1024, 768), down, np.array([60.0, 0.0, 100.0]))
+    img = np.random.default_rng(0).integers(0, 255, (768, 1024, 3), dtype=np.uint8)
+    # 60 m base at 100 m: a disparity of 480 px, past half the 1024 px canvas
+    assert _pair(a, b, img, img, (95.0, 105.0)) is None and _pair(b, a, img, img, (95.0, 105.0)) is None
+    assert _pair(a, b, img, img, (-5.0, 105.0)) is None  # points behind the camera: a broken pose
+    close = _View("c", None, K, np.zeros(5), (1024, 768), down, np.array([20.0, 0.0, 100.0]))
+    got = _pair(a, close, img, img, (95.0, 105.0)) or _pair(close, a, img, img, (95.0, 105.0))
+    assert got is not None  # a searchable pair still gives points
