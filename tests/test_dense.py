@@ -201,9 +201,9 @@ def test_a_pair_that_cannot_be_searched_is_skipped_not_fatal():
     K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])
     down = np.diag([1.0, -1.0, -1.0])  # camera looking down
     a = _View("a", None, K, np.zeros(5), (1024, 768), down, np.array([0.0, 0.0, 100.0]))
-    b = _View("b", None, K, np.zeros(5), (1024, 768), down, np.array([60.0, 0.0, 100.0]))
+    b = _View("b", None, K, np.zeros(5), (1024, 768), down, np.array([110.0, 0.0, 100.0]))
     img = np.random.default_rng(0).integers(0, 255, (768, 1024, 3), dtype=np.uint8)
-    # 60 m base at 100 m: a disparity of 480 px, past half the 1024 px canvas
+    # 110 m base at 100 m: disparities of 840-930 px, a search past the 1024 px canvas
     assert _pair(a, b, img, img, (95.0, 105.0)) is None and _pair(b, a, img, img, (95.0, 105.0)) is None
     assert _pair(a, b, img, img, (-5.0, 105.0)) is None  # points behind the camera: a broken pose
     close = _View("c", None, K, np.zeros(5), (1024, 768), down, np.array([20.0, 0.0, 100.0]))
