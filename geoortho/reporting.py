@@ -285,10 +285,15 @@ def _summary(ctx: _Context) -> str:
             ("Georeferenced by", sfm.get("georeferenced_by")),
             ("Mean reprojection error", f"{sfm.get('mean_reprojection_error_px', float('nan')):.2f} px"),
         ]
-        for label, key in (("GCP RMSE (3D)", "gcp_accuracy"), ("Checkpoint RMSE (3D)", "checkpoint_accuracy")):
+        for label, key in (("GCP RMSE", "gcp_accuracy"), ("Checkpoint RMSE", "checkpoint_accuracy")):
             acc = sfm.get(key)
-            if acc:
-                pairs.append((label, f"{_cm(acc.get('rmse_3d_m'))} over {acc.get('n')}"))
+            if not acc:
+                continue
+            if acc.get("rmse_3d_m") is not None:
+                pairs.append((label, f"{_cm(acc['rmse_3d_m'])} 3D over {acc.get('n')}"))
+            else:  # heights not controlled (placeholder GCP heights): say so, not a dash
+                what = f"{_cm(acc.get('rmse_horizontal_m'))} horizontal over {acc.get('n')}"
+                pairs.append((label, what + " (heights not controlled)"))
     o = ctx.done("ortho")
     if o:
         pairs.append(("Orthophoto", f"{100 * float(o['resolution_m']):.2f} cm/pixel from {o.get('n_used')} photos"))
@@ -542,8 +547,11 @@ def _residual_plot(ctx: _Context, sfm: dict[str, Any]) -> str:
             )
     for r, x, y in zip(res, xs, ys):
         ax.annotate(r["name"], (x, y), textcoords="offset points", xytext=(5, 5), fontsize=7, zorder=6)
-    cbar = fig.colorbar(sc, ax=ax, shrink=0.8)
-    cbar.set_label("vertical residual dZ (m)")
+    if np.isfinite(dz).any():
+        cbar = fig.colorbar(sc, ax=ax, shrink=0.8)
+        cbar.set_label("vertical residual dZ (m)")
+    else:  # heights not controlled: grey dots, no colour bar pretending a dZ of 0
+        sc.set_facecolor("#bbbbbb")
     ax.set_title(f"arrows ×{scale:.0f}: the longest is {100 * longest:.1f} cm", fontsize=9)
     ax.set_aspect("equal")
     pad = 0.1 * span

@@ -37,6 +37,12 @@ def _run(survey, output, **kw):
     return run(survey.images, output, **kw)
 
 
+def _cli(survey, project, checkpoint, stage_options, *extra):
+    """``run``'s command-line arguments for a survey with its GCP file."""
+    return ["--images", str(survey.images), "--output", str(project), "--gcp-file", str(survey.gcp_file),
+            "--checkpoints", checkpoint, *extra, "--stage-options", stage_options, "--quiet"]  # fmt: skip
+
+
 def _best_seen_gcp(survey):
     """The GCP whose marker the most photos show (truth): the checkpoint the tests hold out."""
     from collections import Counter
@@ -158,19 +164,7 @@ def test_a_run_killed_in_ortho_resumes_at_ortho(first_run, tiny_survey, checkpoi
     project = tmp_path / "killed"
     shutil.copytree(first_run.output, project)
     changed = json.dumps({**FAST, "ortho": {"resolution_m": 0.08}})
-    args = [
-        "--images",
-        str(tiny_survey.images),
-        "--output",
-        str(project),
-        "--gcp-file",
-        str(tiny_survey.gcp_file),
-        "--checkpoints",
-        checkpoint,
-        "--stage-options",
-        changed,
-        "--quiet",
-    ]
+    args = _cli(tiny_survey, project, checkpoint, changed)
     proc = subprocess.Popen(
         [sys.executable, "-m", "geoortho", "run", *args],
         start_new_session=True,
@@ -205,24 +199,7 @@ def test_a_failing_stage_keeps_earlier_products_and_the_report_says_which(
     shutil.copytree(first_run.output, project)
     bad_cloud = tmp_path / "broken.laz"
     bad_cloud.write_bytes(b"LASF" + b"\0" * 50)
-    code = main(
-        [
-            "run",
-            "--images",
-            str(tiny_survey.images),
-            "--output",
-            str(project),
-            "--gcp-file",
-            str(tiny_survey.gcp_file),
-            "--checkpoints",
-            checkpoint,
-            "--points",
-            str(bad_cloud),
-            "--stage-options",
-            json.dumps(FAST),
-            "--quiet",
-        ]
-    )
+    code = main(["run", *_cli(tiny_survey, project, checkpoint, json.dumps(FAST), "--points", str(bad_cloud))])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "stage dem" in err[0] and "report.html" in err[0]
     ledger = _ledger(project)
