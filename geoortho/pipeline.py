@@ -744,7 +744,10 @@ def run(
     crs : str
         Output CRS (default: the UTM zone of the photos).
     takeoff_elevation_m : float
-        Elevation of the take-off point, in the DSM's vertical datum, for every stage that uses it.
+        Ground elevation of the take-off point, in the vertical datum of the ground
+        model (the DSM, the ground elevation or the GCPs). Default: worked out from the
+        photos by geoortho.heights (absolute − relative altitude, checked against the
+        ground model; else the ground under the flight), and said.
     stage_options : str
         Options of each stage as JSON, or a JSON file: {"sfm": {"max_image_size": 2048},
         "ortho": {"resolution_m": 0.05}}; names and values are the stages' own parameters.
