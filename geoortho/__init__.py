@@ -29,6 +29,7 @@ _EXPORTS = {
     "run": "geoortho.pipeline",
     "report": "geoortho.reporting",
     "demo": "geoortho.demonstration",
+    "plan": "geoortho.flightplan",
     # what they return
     "SynthResult": "geoortho.synthetic",
     "FootprintResult": "geoortho.footprint",
@@ -40,6 +41,7 @@ _EXPORTS = {
     "RunResult": "geoortho.pipeline",
     "ReportResult": "geoortho.reporting",
     "DemoResult": "geoortho.demonstration",
+    "PlanResult": "geoortho.flightplan",
     # the building blocks around them
     "run_algorithm": "geoortho.processing.registry",
     "read_photos": "geoortho.photos",

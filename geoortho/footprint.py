@@ -434,8 +434,11 @@ def write_overlap(path: str | os.PathLike[str], polygons: Sequence, crs: CRS, ce
     if cols * rows > 400_000_000:
         raise InputError(f"overlap raster of {cols}x{rows} cells is too large; raise overlap_cell_m")
     transform = from_origin(x0, y0 + rows * cell_m, cell_m, cell_m)
+    # Vertices closer than half a cell change no cell: simplify first (rasterio reads every vertex
+    # through __geo_interface__, the slow part for thousands of footprints).
+    simple = shapely.simplify(np.asarray(polygons), cell_m / 2)
     count = rasterize(
-        ((g, 1) for g in polygons),
+        ((g, 1) for g in simple),
         out_shape=(rows, cols),
         transform=transform,
         merge_alg=MergeAlg.add,

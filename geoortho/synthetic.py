@@ -619,6 +619,44 @@ def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> 
     return shots
 
 
+def fly_plan(plan: Path, preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
+    """The photos of a ``plan`` (plan.gpkg or its folder) as this scene's shots: planned position,
+    height and attitude, flown with the same wander as the built-in flight. Heights: the plan's
+    absolute ones when it was planned on a DTM (the scene's truth/dtm.tif), else its altitude above
+    the take-off over the scene's home point."""
+    from .flightplan import read_plan_photos
+
+    photos, summary = read_plan_photos(plan)
+    cam = summary.get("camera", {})
+    w, h = preset.image_px
+    if (cam.get("width_px"), cam.get("height_px")) != (w, h) or abs(
+        cam.get("focal_mm", 0) / max(cam.get("sensor_width_mm", 1e-9), 1e-9) - FOCAL_MM / SENSOR_WIDTH_MM
+    ) > 1e-6:
+        raise InputError(
+            f"the plan's camera ({cam.get('name')}, {cam.get('width_px')}x{cam.get('height_px')} px) is not this "
+            f"preset's ({CAMERA_MODEL}, {w}x{h} px): plan with --camera one of its photos",
+            path=plan,
+        )
+    t = transformer(CRS.from_user_input(photos.crs), scene.crs)
+    x, y = t.transform(photos.geometry.x.to_numpy(), photos.geometry.y.to_numpy())
+    on_dtm = str(summary.get("ground", {}).get("model", "")).startswith("DTM")
+    z = photos["z_m"].to_numpy() if on_dtm else scene.home[2] + photos["altitude_m"].to_numpy()
+    j = TRUE_ATTITUDE_JITTER_DEG
+    return [
+        Shot(
+            "",
+            float(xi + rng.normal(0, 0.3)),
+            float(yi + rng.normal(0, 0.3)),
+            float(zi + rng.normal(0, 0.2)),
+            float(_wrap180(hd + rng.normal(0, j))),
+            float(pt + rng.normal(0, j)),
+            float(rng.normal(0, j / 2)),
+            oblique=pt > -80.0,
+        )
+        for xi, yi, zi, hd, pt in zip(x, y, z, photos["grid_heading_deg"], photos["pitch_deg"])
+    ]
+
+
 def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random.Generator) -> list[Shot]:
     """Add what the drone writes: noisy GPS, heights, gimbal and aircraft attitude, time."""
     to_ll = transformer(scene.crs, CRS.from_epsg(4326))
@@ -987,6 +1025,7 @@ def synth(
     marker_size_m: float = 1.0,
     workers: int = 0,
     pathology: str = "",
+    plan: Path | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> SynthResult:
@@ -1022,6 +1061,9 @@ def synth(
         Comma-separated consumer-drone pathologies to build in: no-relative-altitude,
         ellipsoidal-gps, altitude-drift, wrong-focal, dsm-datum, partial-dsm,
         exposure-steps, water (truth/survey.json says what each did).
+    plan : Path
+        Fly this plan (a ``plan`` output folder or its plan.gpkg) instead of the preset's
+        flight, over the preset's scene: the round trip that checks a plan.
 
     Returns
     -------
@@ -1048,7 +1090,8 @@ def synth(
     step_scene.progress(0.5)
     if "water" in pathologies:
         scene.water = _place_water(scene)
-    shots = _record(plan_flight(p, scene, rng), scene, p, rng)
+    planned = fly_plan(Path(plan), p, scene, rng) if plan is not None else plan_flight(p, scene, rng)
+    shots = _record(planned, scene, p, rng)
     undulation = 0.0
     if pathologies:
         from .crs import geoid_undulation_m

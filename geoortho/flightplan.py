@@ -1,0 +1,1207 @@
+"""Flight and ground-control planning before the flight.
+
+A lawnmower (single or double) grid over an area of interest, sized from the
+camera, a target GSD (or altitude) and the overlaps; photos at constant
+altitude above the take-off or following a DTM; footprints, GSD and an
+overlap raster made by the same code as the ``footprints`` algorithm; proposed
+(or given) GCPs with the number of planned photos that will see each, and the
+marker size to print so that geoortho's own detector decodes it at the planned
+GSD. Exports for pilots: KML 2.2 waypoints and a Litchi mission CSV.
+
+Conventions: the working frame is the projected CRS (the AOI's own, or the UTM
+zone of its centre); ``grid_heading_deg`` is clockwise from grid north (the
+frame the rest of geoortho poses cameras in) and ``heading_deg`` from true north
+(what the drone flies), one per photo. The image's top points along the flight
+line, its width across it, as DJI and Litchi mapping missions shoot.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import math
+import os
+import warnings
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pyproj import CRS, Geod
+
+from .camera import Intrinsics, Pose, rotation_from_ypr
+from .crs import WGS84, crs_to_text, parse_crs, transformer, utm_crs_for
+from .errors import InputError
+from .feedback import Feedback, as_feedback, split
+from .markers import Dictionary, get_dictionary, marker_cells
+from .surface import FlatSurface, Surface, read_surface
+
+__all__ = [
+    "CAMERAS",
+    "CameraSpec",
+    "PlanResult",
+    "plan",
+    "resolve_camera",
+    "min_module_px",
+    "default_gcp_count",
+    "line_overlaps",
+]
+
+# Published maker specifications: sensor width x height (mm), focal length (mm), image (px).
+# The names are what surveyors call them; the second is the EXIF Model the camera writes.
+_CAMERA_TABLE: tuple[tuple[str, str, float, float, float, int, int], ...] = (
+    ("DJI Phantom 4 Pro", "FC6310", 13.2, 8.8, 8.8, 5472, 3648),
+    ("DJI Phantom 4 RTK", "FC6310R", 13.2, 8.8, 8.8, 5472, 3648),
+    ("DJI Phantom 4", "FC330", 6.17, 4.55, 3.61, 4000, 3000),
+    ("DJI Phantom 3 Professional", "FC300X", 6.17, 4.55, 3.61, 4000, 3000),
+    ("DJI Mavic Pro", "FC220", 6.17, 4.55, 4.73, 4000, 3000),
+    ("DJI Mavic 2 Pro", "L1D-20c", 13.2, 8.8, 10.26, 5472, 3648),
+    ("DJI Mavic 3 Enterprise", "M3E", 17.3, 13.0, 12.29, 5280, 3956),
+    ("DJI Air 2S", "FC3411", 13.2, 8.8, 8.38, 5472, 3648),
+    ("DJI Mini 3 Pro", "FC3582", 9.7, 7.3, 6.72, 4032, 3024),
+    ("DJI Mini 4 Pro", "FC8482", 9.7, 7.3, 6.72, 4032, 3024),
+    ("DJI Zenmuse P1 35mm", "ZenmuseP1", 35.9, 24.0, 35.0, 8192, 5460),
+    ("senseFly S.O.D.A.", "SODA", 13.2, 8.8, 10.6, 5472, 3648),
+    ("Sony RX1R II (WingtraOne)", "DSC-RX1RM2", 35.9, 24.0, 35.0, 7952, 5304),
+)
+
+DEFAULT_MAX_ALTITUDE_M = 120.0  # the open-category ceiling in the EU and the US
+DETECTION_SAFETY = 1.5  # printed module size over the smallest one the detector decodes
+MIN_MARKER_STEP_M = 0.05  # print sizes are rounded up to 5 cm
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """A camera as planning needs it."""
+
+    name: str
+    sensor_width_mm: float
+    focal_mm: float
+    width_px: int
+    height_px: int
+    source: str
+
+    @property
+    def focal_px(self) -> float:
+        return self.focal_mm / self.sensor_width_mm * self.width_px
+
+    def intrinsics(self) -> Intrinsics:
+        return Intrinsics(self.width_px, self.height_px, self.focal_px)
+
+
+CAMERAS: dict[str, CameraSpec] = {}
+for _name, _model, _sw, _sh, _f, _w, _h in _CAMERA_TABLE:
+    for _key in (_name, _model):
+        CAMERAS[_key.lower()] = CameraSpec(_name, _sw, _f, _w, _h, f"table: {_name} ({_model})")
+
+
+def resolve_camera(
+    camera: str = "",
+    sensor_width_mm: float | None = None,
+    focal_mm: float | None = None,
+    image_width_px: int | None = None,
+    image_height_px: int | None = None,
+) -> CameraSpec:
+    """The camera from a model name, a sample photo, or explicit values (which override either)."""
+    base: CameraSpec | None = None
+    if camera and Path(camera).is_file():
+        from .photos import read_photo
+
+        p = read_photo(camera)
+        if not (math.isfinite(p.focal_mm) and math.isfinite(p.sensor_width_mm)):
+            raise InputError("the photo gives no focal length or sensor width: give --sensor-width-mm", path=camera)
+        base = CameraSpec(f"{p.make} {p.model}".strip(), p.sensor_width_mm, p.focal_mm, p.width_px, p.height_px,
+                          f"photo {Path(camera).name} ({p.sensor_source})")  # fmt: skip
+    elif camera:
+        base = CAMERAS.get(camera.strip().lower())
+        if base is None:
+            names = sorted({c.name for c in CAMERAS.values()} | {m for _, m, *_ in _CAMERA_TABLE})
+            close = difflib.get_close_matches(camera, names, n=4, cutoff=0.3)
+            hint = f"closest: {', '.join(close)}" if close else f"known: {', '.join(sorted({c.name for c in CAMERAS.values()}))}"
+            raise InputError(f"unknown camera {camera!r} ({hint}); or give a sample photo, or --sensor-width-mm, "
+                             "--focal-mm, --image-width-px and --image-height-px")  # fmt: skip
+    explicit = (sensor_width_mm, focal_mm, image_width_px, image_height_px)
+    if base is None:
+        if any(v is None for v in explicit):
+            raise InputError("no camera: give --camera MODEL|PHOTO, or all of --sensor-width-mm, --focal-mm, "
+                             "--image-width-px and --image-height-px")  # fmt: skip
+        base = CameraSpec("camera", 1.0, 1.0, 1, 1, "given")
+    spec = CameraSpec(
+        base.name,
+        float(sensor_width_mm if sensor_width_mm is not None else base.sensor_width_mm),
+        float(focal_mm if focal_mm is not None else base.focal_mm),
+        int(image_width_px if image_width_px is not None else base.width_px),
+        int(image_height_px if image_height_px is not None else base.height_px),
+        base.source if not any(v is not None for v in explicit) else base.source + " with given values",
+    )
+    if not (spec.sensor_width_mm > 0 and spec.focal_mm > 0 and spec.width_px >= 16 and spec.height_px >= 16):
+        raise InputError(f"camera values out of range: {spec}")
+    return spec
+
+
+# ---------------------------------------------------------------------------------------------
+# Marker detectability, measured with geoortho's own detector
+
+
+@cache
+def min_module_px(dictionary: str = "DICT_4X4_50") -> float:
+    """The smallest marker module (cell) size in pixels at which geoortho's detector decodes every
+    trial: markers rendered area-averaged at 8 rotations and sub-pixel offsets, lens blur
+    (sigma 0.6 px) and noise (sigma 3 DN), searched in a predicted window as ``gcp-find`` does.
+    Every larger size tried must decode too."""
+    import cv2
+
+    from .gcp.detect import Window, detect_in_image
+
+    sizes = np.round(np.arange(1.0, 8.01, 0.25), 2)
+    rng = np.random.default_rng(7)
+    ok_at = []
+    n_ids = get_dictionary(dictionary).bytesList.shape[0]
+    for module in sizes:
+        good = True
+        for t in range(8):
+            mid = int(t * 7 % n_ids)
+            cells = marker_cells(dictionary, mid)
+            gray = _render_marker(cells, float(module), 22.5 * t / 4 + 3.0, rng)
+            h, w = gray.shape
+            side = cells.shape[0] * module
+            win = Window("m", mid, (w - 1) / 2, (h - 1) / 2, max(24.0, 1.5 * side), side)
+            dets = detect_in_image(gray, [win], dictionary)
+            hit = [d for d in dets if d.marker_id == mid and math.hypot(d.x_px - win.x_px, d.y_px - win.y_px) < module]
+            if not hit:
+                good = False
+                break
+        ok_at.append(good)
+        cv2.setNumThreads(0)
+    ok = np.array(ok_at)
+    for i in range(len(sizes)):
+        if ok[i:].all():
+            return float(sizes[i])
+    raise RuntimeError(f"{dictionary}: no module size up to 8 px was always decoded")  # pragma: no cover
+
+
+def _render_marker(cells: np.ndarray, module_px: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """A marker (with a one-module white quiet zone) on mid-grey ground, rotated, area-averaged."""
+    import cv2
+
+    quiet = np.pad(cells, 1, constant_values=True)
+    up = 16
+    big = np.kron(np.where(quiet, 230, 25).astype(np.float32), np.ones((up, up), np.float32))
+    n = quiet.shape[0] * module_px
+    size = int(math.ceil(n * 1.6 + 40))
+    scale = module_px / up
+    c_big = (big.shape[1] - 1) / 2
+    off = rng.uniform(-0.5, 0.5, 2)
+    m = cv2.getRotationMatrix2D((c_big, c_big), angle_deg, scale)
+    m[:, 2] += (size - 1) / 2 + off - c_big
+    # Render at 8x the output and area-average down: each pixel integrates the scene as a sensor does.
+    k = 8
+    m8 = m * np.array([[k], [k]])
+    m8[:, 2] = (m[:, 2] + 0.5) * k - 0.5
+    hi = cv2.warpAffine(big, m8, (size * k, size * k), flags=cv2.INTER_LINEAR, borderValue=128.0)
+    img = cv2.resize(hi, (size, size), interpolation=cv2.INTER_AREA)
+    img = cv2.GaussianBlur(img, (0, 0), 0.6)
+    img += rng.normal(0, 3.0, img.shape).astype(np.float32)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def default_gcp_count(area_ha: float) -> int:
+    """5 GCPs up to 5 ha (four near the corners and one inside, the usual minimum), then one more
+    for every further 10 ha, at most 40."""
+    return int(min(40, 5 + math.ceil(max(0.0, area_ha - 5.0) / 10.0)))
+
+
+# ---------------------------------------------------------------------------------------------
+# The plan
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """What the plan algorithm wrote, and its figures.
+
+    Attributes
+    ----------
+    output : Path
+        The plan folder.
+    plan : Path
+        plan.gpkg (layers aoi, photos, lines, footprints, gcps).
+    photos : str
+        Photo positions (layer photos of plan.gpkg, as ``path|layername=photos``).
+    lines : str
+        Flight lines (layer lines).
+    footprints : str
+        Predicted footprints (layer footprints).
+    gcps : str
+        GCPs with the photos that will see each (layer gcps).
+    overlap : Path
+        Photos covering each ground cell (GeoTIFF).
+    kml : Path
+        Waypoints, lines, AOI and GCPs (KML 2.2).
+    litchi : Path
+        Litchi mission CSV.
+    summary : Path
+        summary.json.
+    n_photos : int
+        Planned photos.
+    n_lines : int
+        Flight lines.
+    flight_length_m : float
+        Length of the photo lines and the turns between them.
+    flight_time_min : float
+        At the planned speed.
+    altitude_m : float
+        Altitude above the take-off (constant mode) or above the ground (terrain following).
+    median_gsd_cm : float
+        Median GSD at the image centres.
+    marker_size_m : float
+        Side of the black square of the markers to print.
+    crs : str
+        CRS of the plan.
+    warnings : tuple of str
+        What the plan could not meet or assumed.
+    """
+
+    output: Path
+    plan: Path
+    photos: str
+    lines: str
+    footprints: str
+    gcps: str
+    overlap: Path
+    kml: Path
+    litchi: Path
+    summary: Path
+    n_photos: int
+    n_lines: int
+    flight_length_m: float
+    flight_time_min: float
+    altitude_m: float
+    median_gsd_cm: float
+    marker_size_m: float
+    crs: str
+    warnings: tuple[str, ...] = field(default=())
+
+
+@dataclass(frozen=True)
+class _Cam:
+    """A planned photo as :func:`geoortho.footprint.compute_footprints` takes it."""
+
+    intrinsics: Intrinsics
+    pose: Pose
+
+
+def plan(
+    aoi: Path,
+    output: Path,
+    camera: str = "",
+    gsd_cm: float | None = None,
+    altitude_m: float | None = None,
+    front_overlap: float = 75.0,
+    side_overlap: float = 65.0,
+    direction_deg: float | None = None,
+    dtm: Path | None = None,
+    terrain: Literal["constant", "follow"] = "constant",
+    takeoff_ground_m: float | None = None,
+    pitch_deg: float = -90.0,
+    grid: Literal["single", "double"] = "single",
+    speed_m_s: float = 8.0,
+    min_interval_s: float = 2.0,
+    max_altitude_m: float = DEFAULT_MAX_ALTITUDE_M,
+    gcps: str = "",
+    gcp_crs: str | None = None,
+    marker_dictionary: Dictionary = "DICT_4X4_50",
+    margin: float = 0.0,
+    crs: str | None = None,
+    sensor_width_mm: float | None = None,
+    focal_mm: float | None = None,
+    image_width_px: int | None = None,
+    image_height_px: int | None = None,
+    *,
+    feedback: Feedback | None = None,
+) -> PlanResult:
+    """Plan a mapping flight and its ground control over an area of interest.
+
+    Writes to ``output``: plan.gpkg (layers aoi, photos, lines, footprints,
+    gcps), overlap.tif, plan.kml, litchi.csv, summary.json and markers/ (one
+    print-ready PDF per GCP, at its real size).
+
+    Parameters
+    ----------
+    aoi : Path
+        Area of interest: polygon(s) in a GeoPackage, GeoJSON, KML or Shapefile, any CRS.
+    output : Path
+        Folder to write the plan into.
+    camera : str
+        A camera model (e.g. "DJI Phantom 4 Pro", "FC6310") or a sample photo to read it from.
+    gsd_cm : float
+        Target ground sample distance at the image centre, cm/pixel (or give altitude_m).
+    altitude_m : float
+        Flight height above the take-off (constant) or above the ground (follow), metres.
+    front_overlap : float
+        Overlap between consecutive photos of a line, percent.
+    side_overlap : float
+        Overlap between neighbouring lines, percent.
+    direction_deg : float
+        Flight line direction, degrees clockwise from grid north. Default: the one
+        giving the fewest lines.
+    dtm : Path
+        Terrain (DTM or DSM raster) for terrain following and the GSD over the ground.
+    terrain : str
+        constant (one altitude above the take-off; the GSD spread over the terrain is
+        reported) or follow (the altitude above the ground is kept per photo; needs dtm).
+    takeoff_ground_m : float
+        Ground elevation of the take-off point, in the DTM's datum. Default: the
+        median ground of the AOI on the DTM (0 without one).
+    pitch_deg : float
+        Gimbal pitch: -90 nadir, -45 to -80 oblique (looking along the line).
+    grid : str
+        single, or double (a second grid across the first, for 3D structures).
+    speed_m_s : float
+        Cruise speed, lowered when the photo spacing needs it (min_interval_s).
+    min_interval_s : float
+        Shortest time between two photos the camera can keep up.
+    max_altitude_m : float
+        Highest allowed flight height above the ground.
+    gcps : str
+        Number of GCPs to propose, or a GCP file (positions to check), or empty for
+        the default number by area.
+    gcp_crs : str
+        CRS of a GCP file without one.
+    marker_dictionary : str
+        ArUco/AprilTag dictionary of the markers to print.
+    margin : float
+        A GCP counts as seen only this far inside the frame, percent of the image side,
+        as gcp-find's margin (the marker must be whole in the photo as well).
+    crs : str
+        Projected CRS to plan in. Default: the AOI's, or its UTM zone.
+    sensor_width_mm : float
+        Sensor width (overrides the camera's).
+    focal_mm : float
+        Focal length (overrides the camera's).
+    image_width_px : int
+        Image width (overrides the camera's).
+    image_height_px : int
+        Image height (overrides the camera's).
+    """
+    import time
+
+    fb = as_feedback(feedback)
+    t0 = time.perf_counter()
+    s_setup, s_grid, s_foot, s_gcp, s_write = split(fb, [1, 1, 3, 2, 2])
+    _check_options(gsd_cm, altitude_m, front_overlap, side_overlap, terrain, dtm, pitch_deg, speed_m_s,
+                   min_interval_s, max_altitude_m)  # fmt: skip
+    warnings_: list[str] = []
+    cam = resolve_camera(camera, sensor_width_mm, focal_mm, image_width_px, image_height_px)
+    area_geom, work_crs, aoi_notes = _read_aoi(Path(aoi), crs)
+    warnings_ += aoi_notes
+    surface: Surface
+    if dtm is not None:
+        surface = read_surface(dtm, work_crs, extend=True)
+        ground = _ground_stats(surface, area_geom)
+        ground_label = f"DTM {Path(dtm).name}"
+    else:
+        surface = FlatSurface(float(takeoff_ground_m or 0.0))
+        ground = {"min": surface.elevation_m, "median": surface.elevation_m, "max": surface.elevation_m}
+        ground_label = "flat ground at the take-off"
+    z_takeoff = float(takeoff_ground_m) if takeoff_ground_m is not None else float(ground["median"])
+    if dtm is not None and takeoff_ground_m is None:
+        warnings_.append(f"take-off assumed at the AOI's median ground, {z_takeoff:.1f} m on the DTM: "
+                         "give --takeoff-ground-m for the real one")  # fmt: skip
+    intr = cam.intrinsics()
+    tilt = math.radians(90.0 + pitch_deg)  # off nadir
+    # Height above the ground for the target GSD at the image centre (slant range r = gsd·f·sqrt(cos i)).
+    if gsd_cm is not None:
+        agl = gsd_cm / 100.0 * intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)
+    else:
+        agl = float(altitude_m)  # type: ignore[arg-type]
+    if agl > max_altitude_m:
+        best = max_altitude_m / (intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)) * 100
+        raise InputError(f"a GSD of {gsd_cm:g} cm needs {agl:.0f} m above the ground with {cam.name}, over the "
+                         f"{max_altitude_m:g} m limit (--max-altitude-m); the best possible is {best:.2f} cm")  # fmt: skip
+    # Spacing from the footprint on level ground: at the highest ground of the AOI for a constant
+    # altitude, so that the overlaps asked are met everywhere (they grow over lower ground).
+    spacing_agl = agl if terrain == "follow" else agl - (ground["max"] - z_takeoff if dtm is not None else 0.0)
+    if terrain == "constant" and dtm is not None and spacing_agl < 0.3 * agl:
+        raise InputError(f"the ground rises {ground['max'] - z_takeoff:.0f} m above the take-off: a constant "
+                         f"{agl:.0f} m would pass within {max(spacing_agl, 0):.0f} m of it; use --terrain follow")  # fmt: skip
+    along_len, across_w, ahead = _footprint_shape(intr, pitch_deg, spacing_agl)
+    along = along_len * (1 - front_overlap / 100.0)
+    across = across_w * (1 - side_overlap / 100.0)
+    s_setup.progress(1.0)
+
+    directions = [_best_direction(area_geom, across) if direction_deg is None else float(direction_deg) % 180.0]
+    if grid == "double":
+        directions.append((directions[0] + 90.0) % 180.0)
+    shots, lines = [], []
+    for d in directions:
+        s, ln = _lines_and_shots(area_geom, d, along, across, along_len, across_w, ahead, len(lines))
+        shots += s
+        lines += ln
+    if not shots:
+        raise InputError("the AOI is smaller than one photo spacing: nothing to plan", path=aoi)
+    s_grid.progress(1.0)
+
+    xy = np.array([(s["x"], s["y"]) for s in shots])
+    grid_heading = np.array([s["grid_heading_deg"] for s in shots])
+    if terrain == "follow":
+        ground_z = _ground_under(surface, xy, grid_heading, along_len, across_w, ahead)
+        z = ground_z + agl
+    else:
+        z = np.full(len(shots), z_takeoff + agl)
+    rots = rotation_from_ypr(grid_heading, np.full(len(xy), pitch_deg), np.zeros(len(xy)))
+    centres = np.c_[xy, z]
+    cams = [_Cam(intr, Pose(c, r)) for c, r in zip(centres, rots)]
+    from .footprint import compute_footprints
+
+    table = compute_footprints(cams, surface, max_range_m=max(1000.0, 20 * agl))
+    s_foot.progress(0.6)
+    import shapely
+
+    polys = list(shapely.make_valid(shapely.polygons(table.rings)))
+    agl_photo = np.asarray(table.altitude_m, float)
+    if (agl_photo > max_altitude_m * 1.001).any():
+        warnings_.append(f"{int((agl_photo > max_altitude_m).sum())} photos fly higher than {max_altitude_m:g} m "
+                         f"above the ground below them (up to {agl_photo.max():.0f} m): the terrain falls away")  # fmt: skip
+    if (agl_photo < 0.5 * agl).any():
+        warnings_.append(f"{int((agl_photo < 0.5 * agl).sum())} photos pass within {agl_photo.min():.0f} m of the "
+                         "ground: the terrain rises; consider --terrain follow")  # fmt: skip
+    heading_true = _true_headings(xy, grid_heading, work_crs)
+    lonlat = np.array(transformer(work_crs, WGS84).transform(xy[:, 0], xy[:, 1])).T
+    interval_m = along
+    speed = min(speed_m_s, interval_m / min_interval_s)
+    if speed < speed_m_s:
+        warnings_.append(f"speed lowered to {speed:.1f} m/s: one photo every {interval_m:.1f} m needs "
+                         f"{min_interval_s:g} s between photos")  # fmt: skip
+    length_m = _flight_length(shots)
+    s_foot.progress(1.0)
+
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    overlap_path = output / "overlap.tif"
+    cell = max(0.05, across_w / 40.0)
+    from .footprint import write_overlap
+
+    write_overlap(overlap_path, polys, work_crs, cell)
+    coverage = _coverage(overlap_path, area_geom, front_overlap, side_overlap, grid)
+    front_m, side_m = line_overlaps(polys, [s["line"] for s in shots])
+
+    # GCPs
+    gcp_rows = _gcp_positions(gcps, gcp_crs, area_geom, work_crs, surface, across_w, marker_dictionary)
+    module_px = min_module_px(marker_dictionary)
+    n_cells = get_dictionary(marker_dictionary).markerSize + 2
+    # The print size from the largest GSD at any GCP among the photos that see it; then the counts
+    # with markers of that size (whole in the frame, its white border included).
+    at_gcps = [_seen_by(centres, rots, intr, np.array([g["x"], g["y"], g["z"]]), margin, 0.0)["gsd_max_cm"] for g in gcp_rows]
+    seen = [v for v in at_gcps if math.isfinite(v)]
+    worst_gsd_m = (max(seen) if seen else float(np.nanmax(table.gsd_max_cm))) / 100.0
+    marker_m = _round_up(n_cells * module_px * DETECTION_SAFETY * worst_gsd_m, MIN_MARKER_STEP_M)
+    for g in gcp_rows:
+        g.update(_seen_by(centres, rots, intr, np.array([g["x"], g["y"], g["z"]]), margin,
+                           marker_m * (n_cells + 2) / n_cells))
+    for g in gcp_rows:
+        g["marker_side_px"] = marker_m / (g["gsd_max_cm"] / 100.0) if g["n_photos"] else float("nan")
+        g["marker_size_m"] = marker_m
+    few = [g["name"] for g in gcp_rows if g["n_photos"] < 3]
+    if few:
+        warnings_.append(f"GCPs seen in fewer than 3 planned photos: {', '.join(few)}")
+    s_gcp.progress(1.0)
+
+    import geopandas as gpd
+
+    from .outputs import write_json, write_vector
+
+    n_lines = len(lines)
+    photos_df = gpd.GeoDataFrame(
+        {
+            "name": [f"P{i + 1:04d}" for i in range(len(shots))],
+            "index": np.arange(len(shots)),
+            "line": [s["line"] for s in shots],
+            "altitude_m": z - z_takeoff,
+            "agl_m": agl_photo,
+            "z_m": z,
+            "heading_deg": heading_true,
+            "grid_heading_deg": grid_heading,
+            "pitch_deg": np.full(len(shots), pitch_deg),
+            "gsd_cm": table.gsd_cm,
+            "longitude_deg": lonlat[:, 0],
+            "latitude_deg": lonlat[:, 1],
+        },
+        geometry=shapely.points(xy),
+        crs=work_crs,
+    )
+    foot_df = gpd.GeoDataFrame(
+        {
+            "name": photos_df["name"],
+            "line": photos_df["line"],
+            "gsd_cm": table.gsd_cm,
+            "gsd_min_cm": table.gsd_min_cm,
+            "gsd_max_cm": table.gsd_max_cm,
+            "area_m2": shapely.area(np.asarray(polys)),
+            "clipped": table.clipped,
+        },
+        geometry=polys,
+        crs=work_crs,
+    )
+    lines_df = gpd.GeoDataFrame(
+        {
+            "line": [ln["line"] for ln in lines],
+            "grid_heading_deg": [ln["grid_heading_deg"] for ln in lines],
+            "length_m": [ln["length_m"] for ln in lines],
+            "n_photos": [ln["n_photos"] for ln in lines],
+        },
+        geometry=[shapely.LineString(ln["ends"]) for ln in lines],
+        crs=work_crs,
+    )
+    gcp_df = gpd.GeoDataFrame(
+        {k: [g[k] for g in gcp_rows] for k in ("name", "marker_id", "role", "z_m", "n_photos", "gsd_max_cm",
+                                                "marker_side_px", "marker_size_m")},  # fmt: skip
+        geometry=shapely.points([(g["x"], g["y"]) for g in gcp_rows]) if gcp_rows else [],
+        crs=work_crs,
+    )
+    aoi_df = gpd.GeoDataFrame({"area_ha": [area_geom.area / 1e4]}, geometry=[area_geom], crs=work_crs)
+    plan_path = write_vector(output / "plan.gpkg", {"photos": photos_df, "lines": lines_df, "footprints": foot_df,
+                                                    "gcps": gcp_df, "aoi": aoi_df})  # fmt: skip
+    kml = _write_kml(output / "plan.kml", photos_df, lines_df, gcp_df, area_geom, work_crs, terrain)
+    litchi, litchi_note = _write_litchi(output / "litchi.csv", photos_df, lines_df, work_crs, speed, along, terrain)
+    if litchi_note:
+        warnings_.append(litchi_note)
+    sheets = _write_marker_sheets(output / "markers", gcp_rows, marker_dictionary, marker_m)
+    s_write.progress(0.7)
+
+    gsd = np.asarray(table.gsd_cm, float)
+    summary = {
+        "camera": {"name": cam.name, "sensor_width_mm": cam.sensor_width_mm, "focal_mm": cam.focal_mm,
+                   "width_px": cam.width_px, "height_px": cam.height_px, "focal_px": cam.focal_px,
+                   "source": cam.source},  # fmt: skip
+        "crs": crs_to_text(work_crs),
+        "aoi_area_ha": area_geom.area / 1e4,
+        "ground": {"model": ground_label, "takeoff_ground_m": z_takeoff, "min_m": ground["min"],
+                   "median_m": ground["median"], "max_m": ground["max"]},  # fmt: skip
+        "terrain": terrain,
+        "altitude_m": agl,
+        "altitude_meaning": "above the take-off" if terrain == "constant" else "above the ground under each photo",
+        "target_gsd_cm": gsd_cm,
+        "gsd_cm": {"min": float(np.nanmin(gsd)), "median": float(np.nanmedian(gsd)), "max": float(np.nanmax(gsd))},
+        "pitch_deg": pitch_deg,
+        "grid": grid,
+        "directions_grid_deg": directions,
+        "front_overlap_pct": front_overlap,
+        "side_overlap_pct": side_overlap,
+        "spacing": {"along_m": along, "across_m": across, "footprint_along_m": along_len,
+                    "footprint_across_m": across_w, "planned_at_agl_m": spacing_agl},  # fmt: skip
+        "overlap_on_footprints_pct": {"front": front_m, "side": side_m},
+        "photos": len(shots),
+        "lines": n_lines,
+        "flight_length_m": length_m,
+        "speed_m_s": speed,
+        "flight_time_min": length_m / speed / 60.0,
+        "photo_interval_s": along / speed,
+        "coverage": coverage,
+        "gcps": [{k: g[k] for k in ("name", "marker_id", "role", "x", "y", "z_m", "n_photos", "gsd_max_cm",
+                                     "marker_side_px")} for g in gcp_rows],  # fmt: skip
+        "gcp_rule": "given positions" if gcps and not gcps.strip().isdigit() else
+                    "5 up to 5 ha (corners and centre), one more per further 10 ha, at most 40; "
+                    "about 60 % on the perimeter, the rest spread inside",  # fmt: skip
+        "marker": {"dictionary": marker_dictionary, "size_m": marker_m, "cells": n_cells,
+                   "min_module_px": module_px, "safety": DETECTION_SAFETY,
+                   "rule": "black square = cells x min_module_px x safety x the largest GSD at a GCP, "
+                           "rounded up to 5 cm; a one-module white border around it"},  # fmt: skip
+        "files": {"plan": plan_path.name, "overlap": overlap_path.name, "kml": kml.name, "litchi": litchi.name,
+                  "markers": [p.name for p in sheets]},  # fmt: skip
+        "warnings": warnings_,
+        "seconds": time.perf_counter() - t0,
+    }
+    summary_path = write_json(output / "summary.json", summary)
+    s_write.progress(1.0)
+    for w in warnings_:
+        fb.warning(w)
+    fb.info(f"plan: {len(shots)} photos on {n_lines} lines, {length_m / 1000:.2f} km, "
+            f"{summary['flight_time_min']:.1f} min at {speed:.1f} m/s; {agl:.1f} m "
+            f"{summary['altitude_meaning']}, GSD {summary['gsd_cm']['median']:.2f} cm; "
+            f"{len(gcp_rows)} GCPs, markers {marker_m * 100:.0f} cm")  # fmt: skip
+    g = str(plan_path)
+    return PlanResult(
+        output=output,
+        plan=plan_path,
+        photos=f"{g}|layername=photos",
+        lines=f"{g}|layername=lines",
+        footprints=f"{g}|layername=footprints",
+        gcps=f"{g}|layername=gcps",
+        overlap=overlap_path,
+        kml=kml,
+        litchi=litchi,
+        summary=summary_path,
+        n_photos=len(shots),
+        n_lines=n_lines,
+        flight_length_m=length_m,
+        flight_time_min=summary["flight_time_min"],
+        altitude_m=agl,
+        median_gsd_cm=summary["gsd_cm"]["median"],
+        marker_size_m=marker_m,
+        crs=crs_to_text(work_crs),
+        warnings=tuple(warnings_),
+    )
+
+
+def _check_options(
+    gsd_cm: float | None,
+    altitude_m: float | None,
+    front: float,
+    side: float,
+    terrain: str,
+    dtm: Path | None,
+    pitch_deg: float,
+    speed: float,
+    interval: float,
+    max_alt: float,
+) -> None:
+    if (gsd_cm is None) == (altitude_m is None):
+        raise InputError("give one of --gsd-cm or --altitude-m")
+    if gsd_cm is not None and not 0.05 <= gsd_cm <= 100:
+        raise InputError(f"--gsd-cm {gsd_cm:g} is out of range (0.05 to 100 cm)")
+    if altitude_m is not None and not 1 <= altitude_m <= 2000:
+        raise InputError(f"--altitude-m {altitude_m:g} is out of range (1 to 2000 m)")
+    for name, v in (("--front-overlap", front), ("--side-overlap", side)):
+        if not 0 <= v < 100:
+            raise InputError(f"{name} {v:g} % is not possible: give 0 to 99 % (photos cannot overlap 100 %)")
+    if terrain == "follow" and dtm is None:
+        raise InputError("--terrain follow needs a --dtm")
+    if not -90 <= pitch_deg <= -30:
+        raise InputError(f"--pitch-deg {pitch_deg:g}: give -90 (nadir) to -30 (oblique)")
+    if speed <= 0 or interval <= 0 or max_alt <= 0:
+        raise InputError("--speed-m-s, --min-interval-s and --max-altitude-m must be positive")
+
+
+def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
+    """The AOI as one valid (multi)polygon in the working CRS, with what was repaired."""
+    import geopandas as gpd
+    import shapely
+
+    if not path.exists():
+        raise InputError("no such file", path=path)
+    try:
+        df = gpd.read_file(path, engine="pyogrio")
+    except Exception as e:  # pyogrio raises its own DataSourceError and friends
+        raise InputError(f"cannot read the AOI: {e}", path=path) from None
+    notes = []
+    polys = [g for g in df.geometry if g is not None and not g.is_empty]
+    polys = [g for g in polys if g.geom_type in ("Polygon", "MultiPolygon")]
+    if not polys:
+        kinds = sorted({g.geom_type for g in df.geometry if g is not None})
+        raise InputError(f"the AOI holds no polygon ({', '.join(kinds) or 'no geometry'}): give an area", path=path)
+    if df.crs is None:
+        raise InputError("the AOI has no CRS", path=path)
+    geom = shapely.union_all(polys)
+    if not geom.is_valid:
+        reason = shapely.is_valid_reason(geom)
+        geom = shapely.make_valid(geom)
+        geom = shapely.union_all([g for g in shapely.get_parts(geom) if g.geom_type in ("Polygon", "MultiPolygon")])
+        notes.append(f"the AOI was not a valid polygon ({reason}): repaired by GEOS make_valid; check it "
+                     "in plan.gpkg, layer aoi")  # fmt: skip
+    src = CRS.from_user_input(df.crs)
+    if crs is not None:
+        work = parse_crs(crs)
+        if not work.is_projected:
+            raise InputError(f"--crs {crs} is not projected: give a projected CRS (metres)")
+    elif src.is_projected:
+        work = src
+    else:  # the UTM zone of the AOI's centre, also when the AOI crosses a zone edge
+        c = _reproject(geom, src, WGS84).centroid
+        work = utm_crs_for(float(c.x), float(c.y))
+    geom = _reproject(geom, src, work)
+    if geom.area < 1.0:
+        raise InputError(f"the AOI is {geom.area:.2f} m²: too small to plan", path=path)
+    from .crs import horizontal_unit_m
+
+    if abs(horizontal_unit_m(work) - 1.0) > 1e-9:
+        raise InputError(f"plan in a CRS in metres: {crs_to_text(work)} is not (give --crs)")
+    return geom, work, notes
+
+
+def _reproject(geom: Any, src: CRS, dst: CRS) -> Any:
+    import shapely
+
+    if src.equals(dst):
+        return geom
+    t = transformer(src, dst)
+    return shapely.transform(geom, lambda c: np.c_[t.transform(c[:, 0], c[:, 1])])
+
+
+def _ground_stats(surface: Surface, area: Any) -> dict[str, float]:
+    import shapely
+
+    x0, y0, x1, y1 = area.bounds
+    n = 60
+    xs, ys = np.meshgrid(np.linspace(x0, x1, n), np.linspace(y0, y1, n))
+    inside = shapely.contains_xy(area, xs, ys)
+    z = surface.elevation(xs[inside], ys[inside]) if inside.any() else np.array([])
+    z = z[np.isfinite(z)]
+    if z.size == 0:
+        raise InputError("the DTM does not cover the AOI")
+    return {"min": float(z.min()), "median": float(np.median(z)), "max": float(z.max())}
+
+
+def _footprint_shape(intr: Intrinsics, pitch_deg: float, agl: float) -> tuple[float, float, float]:
+    """A photo's footprint on level ground ``agl`` below: length along the line (through the image
+    centre), width across it (at the centre's ground point) and how far ahead of the drone that
+    point is."""
+    from .footprint import compute_footprints
+
+    cam = _Cam(intr, Pose(np.array([0.0, 0.0, agl]), rotation_from_ypr(0.0, pitch_deg, 0.0)))
+    t = compute_footprints([cam], FlatSurface(0.0), per_side=64, max_range_m=50 * agl)
+    if t.clipped[0]:
+        raise InputError(f"at pitch {pitch_deg:g}° the photo sees the horizon: plan a steeper pitch")
+    ring = t.rings[0]
+    ahead = agl * math.tan(math.radians(90.0 + pitch_deg))
+    import shapely
+
+    poly = shapely.Polygon(ring)
+    big = 100 * agl
+    along = shapely.intersection(poly, shapely.LineString([(0, -big), (0, big)])).length
+    across = shapely.intersection(poly, shapely.LineString([(-big, ahead), (big, ahead)])).length
+    return float(along), float(across), float(ahead)
+
+
+def _axes(direction_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors along the lines (clockwise from grid north) and across them (to the right)."""
+    a = math.radians(direction_deg)
+    return np.array([math.sin(a), math.cos(a)]), np.array([math.cos(a), -math.sin(a)])
+
+
+def _best_direction(area: Any, across: float) -> float:
+    """The line direction with the fewest lines; ties go to the shorter total line length."""
+    import shapely
+
+    pts = np.array(shapely.get_coordinates(shapely.convex_hull(area)))
+    best = (math.inf, math.inf, 0.0)
+    for d in np.arange(0.0, 180.0, 1.0):
+        u, v = _axes(float(d))
+        pv, pu = pts @ v, pts @ u
+        n = math.ceil((pv.max() - pv.min()) / across) + 1
+        key = (n, (pu.max() - pu.min()) * n, float(d))
+        best = min(best, key)
+    return best[2]
+
+
+def _lines_and_shots(
+    area: Any, direction: float, along: float, across: float, along_len: float, across_w: float, ahead: float,
+    first_line: int,
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:  # fmt: skip
+    """Boustrophedon lines across the AOI: outermost lines on its edges, each line's photos over the
+    AOI within its swath, extended by half a footprint at both ends (full front overlap there)."""
+    import shapely
+
+    u, v = _axes(direction)
+    pts = np.array(shapely.get_coordinates(area))
+    pv = pts @ v
+    width = float(pv.max() - pv.min())
+    n_lines = max(1, math.ceil(width / across - 1e-9) + 1)
+    v_mid = (pv.max() + pv.min()) / 2
+    v_lines = v_mid + (np.arange(n_lines) - (n_lines - 1) / 2) * across
+    shots: list[dict[str, Any]] = []
+    lines: list[dict[str, Any]] = []
+    big = 1e7
+    for k, vk in enumerate(v_lines):
+        half = across_w / 2
+        strip = shapely.Polygon([u * -big + v * (vk - half), u * big + v * (vk - half),
+                                 u * big + v * (vk + half), u * -big + v * (vk + half)])  # fmt: skip
+        part = shapely.intersection(area, strip)
+        if part.is_empty or part.area <= 0:
+            continue
+        pu = np.array(shapely.get_coordinates(part)) @ u
+        u0, u1 = float(pu.min()) - along_len / 2, float(pu.max()) + along_len / 2
+        n = max(2, math.ceil((u1 - u0) / along - 1e-9) + 1)
+        u_mid = (u0 + u1) / 2
+        us = u_mid + (np.arange(n) - (n - 1) / 2) * along
+        forward = len(lines) % 2 == 0
+        heading = direction if forward else (direction + 180.0) % 360.0
+        if not forward:
+            us = us[::-1]
+        step = 1.0 if forward else -1.0
+        line_no = first_line + len(lines) + 1
+        ends = []
+        for uu in us:
+            # the ground point of the image centre is ``ahead`` of the drone along its heading
+            p = u * (uu - step * ahead) + v * vk
+            shots.append({"x": float(p[0]), "y": float(p[1]), "grid_heading_deg": float((heading + 180) % 360 - 180),
+                          "line": line_no})  # fmt: skip
+            ends.append((float(p[0]), float(p[1])))
+        lines.append({"line": line_no, "grid_heading_deg": heading, "length_m": float(abs(us[-1] - us[0])),
+                      "n_photos": int(n), "ends": [ends[0], ends[-1]], "k": k})  # fmt: skip
+    return shots, lines
+
+
+def _ground_under(
+    surface: Surface, xy: np.ndarray, heading: np.ndarray, along_len: float, across_w: float, ahead: float
+) -> np.ndarray:
+    """Mean ground over the central half of each photo's nominal footprint (5 x 5 samples): what
+    terrain following keeps the height above."""
+    s = np.linspace(-0.25, 0.25, 5)  # the central half: the centre GSD held, small bumps averaged out
+    su, sv = (g.ravel() for g in np.meshgrid(s * along_len + ahead, s * across_w))
+    a = np.radians(heading)[:, None]
+    px = xy[:, :1] + np.sin(a) * su + np.cos(a) * sv  # along = (sin, cos), across = (cos, -sin)
+    py = xy[:, 1:] + np.cos(a) * su - np.sin(a) * sv
+    z = surface.elevation(px.ravel(), py.ravel()).reshape(px.shape)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out = np.nanmean(z, axis=1)
+    if not np.isfinite(out).all():
+        raise InputError("the DTM does not cover every planned photo: give a DTM that covers the AOI and a margin")
+    return out
+
+
+def _true_headings(xy: np.ndarray, grid_heading: np.ndarray, crs: CRS) -> np.ndarray:
+    """Grid headings as azimuths from true north (meridian convergence applied), by geodesy."""
+    t = transformer(crs, WGS84)
+    a = np.radians(grid_heading)
+    lon0, lat0 = t.transform(xy[:, 0], xy[:, 1])
+    lon1, lat1 = t.transform(xy[:, 0] + 10 * np.sin(a), xy[:, 1] + 10 * np.cos(a))
+    az, _, _ = Geod(ellps="WGS84").inv(lon0, lat0, lon1, lat1)
+    return np.asarray((np.asarray(az) + 180.0) % 360.0 - 180.0)
+
+
+def _flight_length(shots: list[dict[str, Any]]) -> float:
+    xy = np.array([(s["x"], s["y"]) for s in shots])
+    return float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
+
+
+def _coverage(path: Path, area: Any, front: float, side: float, grid: str) -> dict[str, Any]:
+    """Share of the AOI seen by at least N photos, N = what the overlaps give inside the block."""
+    import rasterio
+    from rasterio.features import geometry_mask
+
+    with rasterio.open(path) as src:
+        count = src.read(1)
+        inside = geometry_mask([area], out_shape=count.shape, transform=src.transform, invert=True,
+                               all_touched=False)  # fmt: skip
+    need = max(1, int(math.floor(1 / (1 - front / 100) + 1e-9)) * int(math.floor(1 / (1 - side / 100) + 1e-9)))
+    if grid == "double":
+        need *= 2
+    c = count[inside].astype(int)
+    if c.size == 0:
+        return {"required_photos": need}
+    return {
+        "required_photos": need,
+        "required_rule": "floor(1/(1-front)) x floor(1/(1-side)) photos (x2 for a double grid)",
+        "aoi_share_at_required_pct": float(100 * (c >= need).mean()),
+        "aoi_share_seen_by_3_pct": float(100 * (c >= 3).mean()),
+        "aoi_share_seen_pct": float(100 * (c >= 1).mean()),
+        "median_photos": float(np.median(c)),
+    }
+
+
+def line_overlaps(polys: list[Any], line: list[int], max_pairs: int = 1500) -> tuple[float, float]:
+    """Mean front overlap (consecutive photos of a line) and side overlap (each photo and the nearest
+    photo of the next line), percent of a footprint's area, as footprints give them."""
+    import shapely
+
+    polys_a = np.asarray(polys, dtype=object)
+    line_a = np.asarray(line)
+    areas = shapely.area(polys_a)
+    cent = shapely.get_coordinates(shapely.centroid(polys_a))
+    fa, fb, sa, sb = [], [], [], []
+    ids = list(dict.fromkeys(line_a.tolist()))
+    for k, ln in enumerate(ids):
+        idx = np.flatnonzero(line_a == ln)
+        fa += idx[:-1].tolist()
+        fb += idx[1:].tolist()
+        if k + 1 < len(ids):
+            nxt = np.flatnonzero(line_a == ids[k + 1])
+            near = np.argmin(np.hypot(*(cent[nxt][None, :, :] - cent[idx][:, None, :]).transpose(2, 0, 1)), axis=1)
+            sa += idx.tolist()
+            sb += nxt[near].tolist()
+
+    def share(a: list[int], b: list[int]) -> np.ndarray:
+        ia, ib = np.asarray(a, int), np.asarray(b, int)
+        if len(ia) > max_pairs:  # an even sample: the median of a large block needs no more
+            keep = np.linspace(0, len(ia) - 1, max_pairs).round().astype(int)
+            ia, ib = ia[keep], ib[keep]
+        return shapely.area(shapely.intersection(polys_a[ia], polys_a[ib])) / areas[ia]
+
+    front, side = share(fa, fb), share(sa, sb)
+    # ends of lines overlap less sideways where the AOI narrows: the median is the block's figure
+    return (float(100 * np.median(front)) if front.size else float("nan"),
+            float(100 * np.median(side)) if side.size else float("nan"))  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# GCPs
+
+
+def _gcp_positions(
+    gcps: str, gcp_crs: str | None, area: Any, crs: CRS, surface: Surface, across_w: float, dictionary: str
+) -> list[dict[str, Any]]:
+    """Given positions (a file) or N proposed ones: about 60 % on the AOI's perimeter, inset so that
+    each lies inside the flown block, the rest inside, spread by farthest-point sampling."""
+    import shapely
+
+    text = gcps.strip()
+    if text and not text.isdigit():
+        from .gcp.io import marker_id_of, read_gcp_file
+
+        gs = read_gcp_file(text, gcp_crs)
+        t = transformer(gs.crs, crs)
+        rows = []
+        for p in gs.points:
+            x, y = t.transform(p.x, p.y)
+            z = p.z if math.isfinite(p.z) else float(surface.elevation(np.array([x]), np.array([y]))[0])
+            rows.append({"name": p.name, "marker_id": marker_id_of(p.name) if marker_id_of(p.name) is not None else -1,
+                         "role": "given", "x": float(x), "y": float(y), "z": float(z), "z_m": float(z)})  # fmt: skip
+        return rows
+    n = int(text) if text else default_gcp_count(area.area / 1e4)
+    n_ids = get_dictionary(dictionary).bytesList.shape[0]
+    if not 1 <= n <= min(200, n_ids - 1):
+        raise InputError(f"--gcps {n}: give 1 to {min(200, n_ids - 1)} (the ids of {dictionary})")
+    inset = min(0.25 * across_w, 0.2 * math.sqrt(area.area))
+    inner = area.buffer(-inset)
+    if inner.is_empty or inner.area < 0.05 * area.area:
+        inner = area.buffer(-0.1 * math.sqrt(area.area))
+    if inner.is_empty:
+        inner = area
+    ring = inner.exterior if inner.geom_type == "Polygon" else max(shapely.get_parts(inner), key=lambda g: g.area).exterior
+    perim_pts = np.array([ring.interpolate(f, normalized=True).coords[0] for f in np.linspace(0, 1, 400, endpoint=False)])
+    x0, y0, x1, y1 = inner.bounds
+    gx, gy = np.meshgrid(np.linspace(x0, x1, 40), np.linspace(y0, y1, 40))
+    ok = shapely.contains_xy(inner, gx, gy)
+    inner_pts = np.c_[gx[ok], gy[ok]]
+    n_perim = n if n < 4 else max(4, int(round(0.6 * n)))
+    n_perim = min(n_perim, n)
+    c = np.array(area.centroid.coords[0])
+    chosen = [perim_pts[np.argmax(np.hypot(*(perim_pts - c).T))]]
+    chosen = _farthest(perim_pts, chosen, n_perim)
+    roles = ["perimeter"] * len(chosen)
+    if n - n_perim > 0 and len(inner_pts):
+        chosen = _farthest(inner_pts, chosen, n)
+        roles += ["interior"] * (len(chosen) - len(roles))
+    xy = np.array(chosen)
+    z = surface.elevation(xy[:, 0], xy[:, 1])
+    return [{"name": f"GCP{i + 1:02d}", "marker_id": i + 1, "role": r, "x": float(x), "y": float(y), "z": float(zz),
+             "z_m": float(zz)} for i, ((x, y), zz, r) in enumerate(zip(xy, z, roles))]  # fmt: skip
+
+
+def _farthest(candidates: np.ndarray, chosen: list[np.ndarray], n: int) -> list[np.ndarray]:
+    chosen = list(chosen)
+    d = np.min([np.hypot(*(candidates - p).T) for p in chosen], axis=0)
+    while len(chosen) < n:
+        i = int(np.argmax(d))
+        chosen.append(candidates[i])
+        d = np.minimum(d, np.hypot(*(candidates - candidates[i]).T))
+    return chosen
+
+
+def _seen_by(
+    centres: np.ndarray, rots: np.ndarray, intr: Intrinsics, xyz: np.ndarray, margin_pct: float, marker_m: float
+) -> dict[str, Any]:
+    """How many planned photos see a ground point inside the frame minus the margin, with a marker
+    ``marker_m`` across (border included) whole in the frame; the largest GSD there among them.
+    Vectorised over the photos (planned photos have no distortion)."""
+    f, cx, cy, w, h = intr.focal_px, intr.cx_px, intr.cy_px, intr.width_px, intr.height_px
+    d = xyz[None, :] - centres
+    cam = np.einsum("nji,nj->ni", rots, d)  # camera frame: R^T (X - C)
+    depth = cam[:, 2]
+    front = depth > 1e-6
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = f * cam[:, 0] / depth + cx
+        y = f * cam[:, 1] / depth + cy
+        above = np.maximum(centres[:, 2] - xyz[2], 1e-6)
+        gsd = depth / f * np.sqrt(np.maximum(depth, 0) / above)
+        edge = 0.5 * marker_m / gsd
+    mx, my = np.maximum(w * margin_pct / 100, edge), np.maximum(h * margin_pct / 100, edge)
+    ok = front & (x >= mx - 0.5) & (x <= w - 0.5 - mx) & (y >= my - 0.5) & (y <= h - 0.5 - my)
+    n = int(ok.sum())
+    return {"n_photos": n, "gsd_max_cm": float(gsd[ok].max() * 100) if n else float("nan")}
+
+
+def _round_up(v: float, step: float) -> float:
+    return round(math.ceil(v / step - 1e-9) * step, 4)
+
+
+# ---------------------------------------------------------------------------------------------
+# Exports
+
+
+def _write_kml(
+    path: Path, photos: Any, lines: Any, gcps: Any, area: Any, crs: CRS, terrain: str
+) -> Path:
+    """KML 2.2 (OGC 07-147r2): Document > Folders of Placemarks; coordinates lon,lat,alt. Heights are
+    relativeToGround (the height above the ground under each photo): KML has no
+    above-take-off mode."""
+    from xml.sax.saxutils import escape
+
+    from .outputs import write_text
+
+    t = transformer(crs, WGS84)
+
+    def coords(xy: np.ndarray, alt: np.ndarray | None = None) -> str:
+        lon, lat = t.transform(xy[:, 0], xy[:, 1])
+        a = np.zeros(len(lon)) if alt is None else alt
+        return " ".join(f"{o:.8f},{la:.8f},{h:.2f}" for o, la, h in zip(lon, lat, a))
+
+    def data(items: dict[str, Any]) -> str:
+        return "<ExtendedData>" + "".join(
+            f'<Data name="{escape(k)}"><value>{escape(str(v))}</value></Data>' for k, v in items.items()
+        ) + "</ExtendedData>"
+
+    import shapely
+
+    parts = ['<?xml version="1.0" encoding="UTF-8"?>', '<kml xmlns="http://www.opengis.net/kml/2.2">',
+             "<Document><name>geoortho flight plan</name>",
+             "<description>Waypoint heights are above the ground under each photo (relativeToGround); "
+             f"the plan flies at {'a constant altitude above the take-off' if terrain == 'constant' else 'a constant height above the terrain'}; "
+             "summary.json has every figure.</description>",
+             '<Style id="photo"><IconStyle><scale>0.5</scale></IconStyle></Style>',
+             '<Style id="line"><LineStyle><color>ff00a5ff</color><width>2</width></LineStyle></Style>',
+             '<Style id="gcp"><IconStyle><color>ff0000ff</color></IconStyle></Style>',
+             '<Style id="aoi"><LineStyle><color>ff00ff00</color><width>2</width></LineStyle>'
+             "<PolyStyle><fill>0</fill></PolyStyle></Style>",
+             "<Folder><name>AOI</name>"]  # fmt: skip
+    for g in shapely.get_parts(area):
+        ring = np.array(g.exterior.coords)
+        parts.append('<Placemark><name>AOI</name><styleUrl>#aoi</styleUrl><Polygon><outerBoundaryIs><LinearRing>'
+                     f"<coordinates>{coords(ring)}</coordinates></LinearRing></outerBoundaryIs></Polygon></Placemark>")  # fmt: skip
+    parts.append("</Folder><Folder><name>Flight lines</name>")
+    agl = photos["agl_m"].to_numpy()
+    xy = np.c_[photos.geometry.x, photos.geometry.y]
+    for ln in lines.itertuples():
+        sel = photos["line"].to_numpy() == ln.line
+        parts.append(f"<Placemark><name>line {ln.line}</name><styleUrl>#line</styleUrl><LineString>"
+                     f"<altitudeMode>relativeToGround</altitudeMode><coordinates>{coords(xy[sel], agl[sel])}"
+                     "</coordinates></LineString></Placemark>")  # fmt: skip
+    parts.append("</Folder><Folder><name>Photos</name>")
+    for i, r in enumerate(photos.itertuples()):
+        parts.append(f"<Placemark><name>{escape(r.name)}</name><styleUrl>#photo</styleUrl>"
+                     + data({"line": r.line, "altitude_above_takeoff_m": f"{r.altitude_m:.2f}",
+                             "height_above_ground_m": f"{r.agl_m:.2f}", "heading_deg": f"{r.heading_deg:.2f}",
+                             "gimbal_pitch_deg": f"{r.pitch_deg:.1f}", "gsd_cm": f"{r.gsd_cm:.2f}"})
+                     + f"<Point><altitudeMode>relativeToGround</altitudeMode><coordinates>{coords(xy[i:i + 1], agl[i:i + 1])}"
+                     "</coordinates></Point></Placemark>")  # fmt: skip
+    parts.append("</Folder><Folder><name>GCPs</name>")
+    for r in gcps.itertuples():
+        p = np.array([[r.geometry.x, r.geometry.y]])
+        parts.append(f"<Placemark><name>{escape(str(r.name))}</name><styleUrl>#gcp</styleUrl>"
+                     + data({"marker_id": r.marker_id, "photos": r.n_photos, "marker_size_m": r.marker_size_m})
+                     + f"<Point><coordinates>{coords(p)}</coordinates></Point></Placemark>")  # fmt: skip
+    parts.append("</Folder></Document></kml>")
+    return write_text(path, "\n".join(parts) + "\n")
+
+
+LITCHI_MAX_WAYPOINTS = 99
+LITCHI_HEADER = (
+    ["latitude", "longitude", "altitude(m)", "heading(deg)", "curvesize(m)", "rotationdir", "gimbalmode",
+     "gimbalpitchangle"]
+    + [f"action{k}{i}" for i in range(1, 16) for k in ("type", "param")]
+    + ["altitudemode", "speed(m/s)", "poi_latitude", "poi_longitude", "poi_altitude(m)", "poi_altitudemode",
+       "photo_timeinterval", "photo_distinterval"]
+)  # fmt: skip
+
+
+def _write_litchi(
+    path: Path, photos: Any, lines: Any, crs: CRS, speed: float, along: float, terrain: str
+) -> tuple[Path, str]:
+    """Litchi Mission Hub CSV: one waypoint per photo (action 1 = take photo) when they fit in
+    Litchi's 99 waypoints, else the line ends with a photo every ``along`` metres
+    (photo_distinterval). Altitude mode 0 = above the take-off, 1 = above the ground."""
+    from .outputs import write_text
+
+    gimbal_mode = 2  # interpolate: the gimbal pitch column is applied
+    mode = 1 if terrain == "follow" else 0
+    rows = []
+    note = ""
+    t = transformer(crs, WGS84)
+
+    def row(lon: float, lat: float, alt: float, heading: float, pitch: float, photo: bool, dist: float) -> str:
+        actions = ["1", "0"] + ["-1", "0"] * 14 if photo else ["-1", "0"] * 15
+        vals = [f"{lat:.8f}", f"{lon:.8f}", f"{alt:.1f}", f"{heading % 360:.1f}", "0", "0", str(gimbal_mode),
+                f"{pitch:.0f}", *actions, str(mode), f"{speed:.1f}", "0", "0", "0", "0", "-1",
+                f"{dist:.1f}" if dist > 0 else "-1"]  # fmt: skip
+        return ",".join(vals)
+
+    alt_col = photos["agl_m"] if terrain == "follow" else photos["altitude_m"]
+    if len(photos) <= LITCHI_MAX_WAYPOINTS:
+        for r, alt in zip(photos.itertuples(), alt_col):
+            rows.append(row(r.longitude_deg, r.latitude_deg, alt, r.heading_deg, r.pitch_deg, True, 0.0))
+    else:
+        line_col = photos["line"].to_numpy()
+        for ln in lines.itertuples():
+            idx = np.flatnonzero(line_col == ln.line)
+            for j in (idx[0], idx[-1]):
+                r = photos.iloc[j]
+                lon, lat = t.transform(r.geometry.x, r.geometry.y)
+                rows.append(row(lon, lat, float(alt_col.iloc[j]), r.heading_deg, r.pitch_deg, False, along))
+        note = (f"litchi.csv: {len(photos)} photos are more than Litchi's {LITCHI_MAX_WAYPOINTS} waypoints: "
+                f"line ends with a photo every {along:.1f} m instead")  # fmt: skip
+        if len(rows) > LITCHI_MAX_WAYPOINTS:
+            note += f"; still {len(rows)} waypoints: split the mission in Litchi Hub"
+    return write_text(path, ",".join(LITCHI_HEADER) + "\n" + "\n".join(rows) + "\n"), note
+
+
+def _write_marker_sheets(folder: Path, gcps: list[dict[str, Any]], dictionary: str, side_m: float) -> list[Path]:
+    """One PDF per GCP at the real size: the marker (black square ``side_m``) with its one-module
+    white border, a cross-hair mark at the centre outside the marker, and its name, id and size."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import rc_context
+    from matplotlib.figure import Figure
+    from matplotlib.patches import PathPatch
+    from matplotlib.path import Path as MplPath
+
+    from .outputs import atomic_path
+
+    out = []
+    inch = 0.0254
+    for g in gcps:
+        mid = int(g["marker_id"])
+        if mid < 0:
+            continue
+        cells = marker_cells(dictionary, mid)
+        n = cells.shape[0]
+        module = side_m / n
+        page_w = side_m + 2 * module + 0.04
+        label_h = max(0.03, 0.06 * side_m)
+        page_h = page_w + label_h
+        fig = Figure(figsize=(page_w / inch, page_h / inch))
+        ax = fig.add_axes((0, label_h / page_h, 1, page_w / page_h))
+        ax.set_xlim(0, page_w)
+        ax.set_ylim(0, page_w)
+        ax.axis("off")
+        off = 0.02 + module
+        # black cells as one vector path (exact edges at any print size; a raster would be resampled)
+        verts, codes = [], []
+        for r, cc in zip(*np.nonzero(~cells)):
+            x, y = off + cc * module, off + (n - 1 - r) * module
+            verts += [(x, y), (x + module, y), (x + module, y + module), (x, y + module), (x, y)]
+            codes += [MplPath.MOVETO, MplPath.LINETO, MplPath.LINETO, MplPath.LINETO, MplPath.CLOSEPOLY]
+        ax.add_patch(PathPatch(MplPath(verts, codes), facecolor="black", edgecolor="none", antialiased=False))
+        c = off + side_m / 2
+        r0, r1 = side_m / 2 + module + 0.002, side_m / 2 + module + 0.018
+        for sgn in (-1, 1):  # ticks in the margin on the centre lines: where to survey
+            ax.plot([c + sgn * r0, c + sgn * r1], [c, c], color="k", lw=0.6)
+            ax.plot([c, c], [c + sgn * r0, c + sgn * r1], color="k", lw=0.6)
+        fig.text(0.5, 0.5 * label_h / page_h,
+                 f"{g['name']} · id {mid} · {dictionary} · black square {side_m * 100:.1f} × {side_m * 100:.1f} cm "
+                 "— print at 100 %, check with a ruler; survey the centre",
+                 ha="center", va="center", fontweight="medium", fontsize=max(4.0, min(14.0, label_h / inch * 72 * 0.35)))  # fmt: skip
+        target = folder / f"{g['name']}.pdf"
+        # the PDF core fonts: nothing to embed, a sheet in milliseconds
+        with atomic_path(target) as tmp, rc_context({"pdf.use14corefonts": True, "font.family": "sans-serif",
+                                                     "font.sans-serif": ["Helvetica"]}):  # fmt: skip
+            fig.savefig(tmp, format="pdf")
+        out.append(target)
+    return out
+
+
+def read_plan_photos(path: str | os.PathLike[str]) -> tuple[Any, dict[str, Any]]:
+    """The photos layer of a plan.gpkg and its summary.json (beside it): what ``synth`` flies."""
+    import geopandas as gpd
+
+    path = Path(path)
+    gpkg = path / "plan.gpkg" if path.is_dir() else path
+    try:
+        photos = gpd.read_file(gpkg, layer="photos", engine="pyogrio")
+    except Exception as e:
+        raise InputError(f"not a geoortho plan (no photos layer): {e}", path=gpkg) from None
+    summary_path = gpkg.with_name("summary.json")
+    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    return photos, summary
