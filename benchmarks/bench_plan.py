@@ -34,8 +34,9 @@ def _hill_dtm(path: Path) -> None:
     y = N0 + 3500 - (np.arange(rows) + 0.5) * cell
     X, Y = np.meshgrid(x, y)
     z = 100 + 80 * np.exp(-(((X - E0 - 2000) / 900) ** 2 + ((Y - N0 - 1250) / 700) ** 2))
-    write_cog(path, z.astype(np.float32), transform=from_origin(E0 - 1000, N0 + 3500, cell, cell), crs=CRS,
-              nodata=-9999.0)  # fmt: skip
+    write_cog(
+        path, z.astype(np.float32), transform=from_origin(E0 - 1000, N0 + 3500, cell, cell), crs=CRS, nodata=-9999.0
+    )
 
 
 def main() -> None:
@@ -58,9 +59,11 @@ def main() -> None:
         st = pstats.Stats(prof)
         foot = sum(v[3] for k, v in st.stats.items() if k[2] == "compute_footprints")  # type: ignore[attr-defined]
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        print(f"{label}: 10 km², {r.n_photos} photos on {r.n_lines} lines in {dt:.2f} s "
-              f"({r.n_photos / dt:,.0f} photos/s; target < 5 s: {'met' if dt < 5 else 'NOT met'}), "
-              f"peak {peak:.0f} MB")  # fmt: skip
+        print(
+            f"{label}: 10 km², {r.n_photos} photos on {r.n_lines} lines in {dt:.2f} s "
+            f"({r.n_photos / dt:,.0f} photos/s; target < 5 s: {'met' if dt < 5 else 'NOT met'}), "
+            f"peak {peak:.0f} MB"
+        )
         print(f"  footprint prediction: {foot:.2f} s = {r.n_photos / max(foot, 1e-9):,.0f} photos/s")
         if "--profile" in sys.argv:
             st.sort_stats("cumulative").print_stats("flightplan|footprint|outputs", 20)

@@ -67,6 +67,10 @@ _CAMERA_TABLE: tuple[tuple[str, str, float, float, float, int, int], ...] = (
 )
 
 DEFAULT_MAX_ALTITUDE_M = 120.0  # the open-category ceiling in the EU and the US
+# How far a flown photo is from the planned one (consumer GNSS and wind; gimbal and aircraft
+# attitude): what makes a GCP near a frame edge seen or not.
+FLIGHT_POSITION_SIGMA_M = 0.5
+FLIGHT_ATTITUDE_SIGMA_DEG = 1.5
 DETECTION_SAFETY = 1.5  # printed module size over the smallest one the detector decodes
 MIN_MARKER_STEP_M = 0.05  # print sizes are rounded up to 5 cm
 
@@ -111,21 +115,35 @@ def resolve_camera(
         p = read_photo(camera)
         if not (math.isfinite(p.focal_mm) and math.isfinite(p.sensor_width_mm)):
             raise InputError("the photo gives no focal length or sensor width: give --sensor-width-mm", path=camera)
-        base = CameraSpec(f"{p.make} {p.model}".strip(), p.sensor_width_mm, p.focal_mm, p.width_px, p.height_px,
-                          f"photo {Path(camera).name} ({p.sensor_source})")  # fmt: skip
+        base = CameraSpec(
+            f"{p.make} {p.model}".strip(),
+            p.sensor_width_mm,
+            p.focal_mm,
+            p.width_px,
+            p.height_px,
+            f"photo {Path(camera).name} ({p.sensor_source})",
+        )
     elif camera:
         base = CAMERAS.get(camera.strip().lower())
         if base is None:
             names = sorted({c.name for c in CAMERAS.values()} | {m for _, m, *_ in _CAMERA_TABLE})
             close = difflib.get_close_matches(camera, names, n=4, cutoff=0.3)
-            hint = f"closest: {', '.join(close)}" if close else f"known: {', '.join(sorted({c.name for c in CAMERAS.values()}))}"
-            raise InputError(f"unknown camera {camera!r} ({hint}); or give a sample photo, or --sensor-width-mm, "
-                             "--focal-mm, --image-width-px and --image-height-px")  # fmt: skip
+            hint = (
+                f"closest: {', '.join(close)}"
+                if close
+                else f"known: {', '.join(sorted({c.name for c in CAMERAS.values()}))}"
+            )
+            raise InputError(
+                f"unknown camera {camera!r} ({hint}); or give a sample photo, or --sensor-width-mm, "
+                "--focal-mm, --image-width-px and --image-height-px"
+            )
     explicit = (sensor_width_mm, focal_mm, image_width_px, image_height_px)
     if base is None:
         if any(v is None for v in explicit):
-            raise InputError("no camera: give --camera MODEL|PHOTO, or all of --sensor-width-mm, --focal-mm, "
-                             "--image-width-px and --image-height-px")  # fmt: skip
+            raise InputError(
+                "no camera: give --camera MODEL|PHOTO, or all of --sensor-width-mm, --focal-mm, "
+                "--image-width-px and --image-height-px"
+            )
         base = CameraSpec("camera", 1.0, 1.0, 1, 1, "given")
     spec = CameraSpec(
         base.name,
@@ -187,7 +205,7 @@ def _render_marker(cells: np.ndarray, module_px: float, angle_deg: float, rng: n
 
     quiet = np.pad(cells, 1, constant_values=True)
     up = 16
-    big = np.kron(np.where(quiet, 230, 25).astype(np.float32), np.ones((up, up), np.float32))
+    big = np.asarray(np.kron(np.where(quiet, 230.0, 25.0), np.ones((up, up))), np.float32)
     n = quiet.shape[0] * module_px
     size = int(math.ceil(n * 1.6 + 40))
     scale = module_px / up
@@ -202,7 +220,7 @@ def _render_marker(cells: np.ndarray, module_px: float, angle_deg: float, rng: n
     hi = cv2.warpAffine(big, m8, (size * k, size * k), flags=cv2.INTER_LINEAR, borderValue=128.0)
     img = cv2.resize(hi, (size, size), interpolation=cv2.INTER_AREA)
     img = cv2.GaussianBlur(img, (0, 0), 0.6)
-    img += rng.normal(0, 3.0, img.shape).astype(np.float32)
+    img = img + np.asarray(rng.normal(0, 3.0, img.shape), np.float32)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
@@ -311,6 +329,7 @@ def plan(
     gcps: str = "",
     gcp_crs: str | None = None,
     marker_dictionary: Dictionary = "DICT_4X4_50",
+    marker_size_m: float | None = None,
     margin: float = 0.0,
     crs: str | None = None,
     sensor_width_mm: float | None = None,
@@ -370,6 +389,9 @@ def plan(
         CRS of a GCP file without one.
     marker_dictionary : str
         ArUco/AprilTag dictionary of the markers to print.
+    marker_size_m : float
+        Side of the black square of the markers you have: the GCP sightings are counted
+        with it, and it is checked against the size needed. Default: the size needed.
     margin : float
         A GCP counts as seen only this far inside the frame, percent of the image side,
         as gcp-find's margin (the marker must be whole in the photo as well).
@@ -389,8 +411,18 @@ def plan(
     fb = as_feedback(feedback)
     t0 = time.perf_counter()
     s_setup, s_grid, s_foot, s_gcp, s_write = split(fb, [1, 1, 3, 2, 2])
-    _check_options(gsd_cm, altitude_m, front_overlap, side_overlap, terrain, dtm, pitch_deg, speed_m_s,
-                   min_interval_s, max_altitude_m)  # fmt: skip
+    _check_options(
+        gsd_cm,
+        altitude_m,
+        front_overlap,
+        side_overlap,
+        terrain,
+        dtm,
+        pitch_deg,
+        speed_m_s,
+        min_interval_s,
+        max_altitude_m,
+    )
     warnings_: list[str] = []
     cam = resolve_camera(camera, sensor_width_mm, focal_mm, image_width_px, image_height_px)
     area_geom, work_crs, aoi_notes = _read_aoi(Path(aoi), crs)
@@ -406,8 +438,10 @@ def plan(
         ground_label = "flat ground at the take-off"
     z_takeoff = float(takeoff_ground_m) if takeoff_ground_m is not None else float(ground["median"])
     if dtm is not None and takeoff_ground_m is None:
-        warnings_.append(f"take-off assumed at the AOI's median ground, {z_takeoff:.1f} m on the DTM: "
-                         "give --takeoff-ground-m for the real one")  # fmt: skip
+        warnings_.append(
+            f"take-off assumed at the AOI's median ground, {z_takeoff:.1f} m on the DTM: "
+            "give --takeoff-ground-m for the real one"
+        )
     intr = cam.intrinsics()
     tilt = math.radians(90.0 + pitch_deg)  # off nadir
     # Height above the ground for the target GSD at the image centre (slant range r = gsd·f·sqrt(cos i)).
@@ -417,14 +451,18 @@ def plan(
         agl = float(altitude_m)  # type: ignore[arg-type]
     if agl > max_altitude_m:
         best = max_altitude_m / (intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)) * 100
-        raise InputError(f"a GSD of {gsd_cm:g} cm needs {agl:.0f} m above the ground with {cam.name}, over the "
-                         f"{max_altitude_m:g} m limit (--max-altitude-m); the best possible is {best:.2f} cm")  # fmt: skip
+        raise InputError(
+            f"a GSD of {gsd_cm:g} cm needs {agl:.0f} m above the ground with {cam.name}, over the "
+            f"{max_altitude_m:g} m limit (--max-altitude-m); the best possible is {best:.2f} cm"
+        )
     # Spacing from the footprint on level ground: at the highest ground of the AOI for a constant
     # altitude, so that the overlaps asked are met everywhere (they grow over lower ground).
     spacing_agl = agl if terrain == "follow" else agl - (ground["max"] - z_takeoff if dtm is not None else 0.0)
     if terrain == "constant" and dtm is not None and spacing_agl < 0.3 * agl:
-        raise InputError(f"the ground rises {ground['max'] - z_takeoff:.0f} m above the take-off: a constant "
-                         f"{agl:.0f} m would pass within {max(spacing_agl, 0):.0f} m of it; use --terrain follow")  # fmt: skip
+        raise InputError(
+            f"the ground rises {ground['max'] - z_takeoff:.0f} m above the take-off: a constant "
+            f"{agl:.0f} m would pass within {max(spacing_agl, 0):.0f} m of it; use --terrain follow"
+        )
     along_len, across_w, ahead = _footprint_shape(intr, pitch_deg, spacing_agl)
     along = along_len * (1 - front_overlap / 100.0)
     across = across_w * (1 - side_overlap / 100.0)
@@ -433,7 +471,8 @@ def plan(
     directions = [_best_direction(area_geom, across) if direction_deg is None else float(direction_deg) % 180.0]
     if grid == "double":
         directions.append((directions[0] + 90.0) % 180.0)
-    shots, lines = [], []
+    shots: list[dict[str, Any]] = []
+    lines: list[dict[str, Any]] = []
     for d in directions:
         s, ln = _lines_and_shots(area_geom, d, along, across, along_len, across_w, ahead, len(lines))
         shots += s
@@ -461,18 +500,24 @@ def plan(
     polys = list(shapely.make_valid(shapely.polygons(table.rings)))
     agl_photo = np.asarray(table.altitude_m, float)
     if (agl_photo > max_altitude_m * 1.001).any():
-        warnings_.append(f"{int((agl_photo > max_altitude_m).sum())} photos fly higher than {max_altitude_m:g} m "
-                         f"above the ground below them (up to {agl_photo.max():.0f} m): the terrain falls away")  # fmt: skip
+        warnings_.append(
+            f"{int((agl_photo > max_altitude_m).sum())} photos fly higher than {max_altitude_m:g} m "
+            f"above the ground below them (up to {agl_photo.max():.0f} m): the terrain falls away"
+        )
     if (agl_photo < 0.5 * agl).any():
-        warnings_.append(f"{int((agl_photo < 0.5 * agl).sum())} photos pass within {agl_photo.min():.0f} m of the "
-                         "ground: the terrain rises; consider --terrain follow")  # fmt: skip
+        warnings_.append(
+            f"{int((agl_photo < 0.5 * agl).sum())} photos pass within {agl_photo.min():.0f} m of the "
+            "ground: the terrain rises; consider --terrain follow"
+        )
     heading_true = _true_headings(xy, grid_heading, work_crs)
     lonlat = np.array(transformer(work_crs, WGS84).transform(xy[:, 0], xy[:, 1])).T
     interval_m = along
     speed = min(speed_m_s, interval_m / min_interval_s)
     if speed < speed_m_s:
-        warnings_.append(f"speed lowered to {speed:.1f} m/s: one photo every {interval_m:.1f} m needs "
-                         f"{min_interval_s:g} s between photos")  # fmt: skip
+        warnings_.append(
+            f"speed lowered to {speed:.1f} m/s: one photo every {interval_m:.1f} m needs "
+            f"{min_interval_s:g} s between photos"
+        )
     length_m = _flight_length(shots)
     s_foot.progress(1.0)
 
@@ -492,19 +537,28 @@ def plan(
     n_cells = get_dictionary(marker_dictionary).markerSize + 2
     # The print size from the largest GSD at any GCP among the photos that see it; then the counts
     # with markers of that size (whole in the frame, its white border included).
-    at_gcps = [_seen_by(centres, rots, intr, np.array([g["x"], g["y"], g["z"]]), margin, 0.0)["gsd_max_cm"] for g in gcp_rows]
+    at_gcps = [
+        _seen_by(centres, rots, intr, np.array([g["x"], g["y"], g["z"]]), margin, 0.0)["gsd_max_cm"] for g in gcp_rows
+    ]
     seen = [v for v in at_gcps if math.isfinite(v)]
     worst_gsd_m = (max(seen) if seen else float(np.nanmax(table.gsd_max_cm))) / 100.0
     marker_m = _round_up(n_cells * module_px * DETECTION_SAFETY * worst_gsd_m, MIN_MARKER_STEP_M)
+    laid_m = marker_m if marker_size_m is None else float(marker_size_m)
+    if laid_m < marker_m:
+        warnings_.append(
+            f"markers of {laid_m * 100:.0f} cm are too small for this plan: {marker_m * 100:.0f} cm "
+            f"are needed ({marker_dictionary} at up to {worst_gsd_m * 100:.2f} cm GSD)"
+        )
     for g in gcp_rows:
-        g.update(_seen_by(centres, rots, intr, np.array([g["x"], g["y"], g["z"]]), margin,
-                           marker_m * (n_cells + 2) / n_cells))
+        g.update(
+            _seen_by(centres, rots, intr, np.array([g["x"], g["y"], g["z"]]), margin, laid_m * (n_cells + 2) / n_cells)
+        )
     for g in gcp_rows:
         g["marker_side_px"] = marker_m / (g["gsd_max_cm"] / 100.0) if g["n_photos"] else float("nan")
         g["marker_size_m"] = marker_m
-    few = [g["name"] for g in gcp_rows if g["n_photos"] < 3]
+    few = [g["name"] for g in gcp_rows if g["n_photos_sure"] < 3]
     if few:
-        warnings_.append(f"GCPs seen in fewer than 3 planned photos: {', '.join(few)}")
+        warnings_.append(f"GCPs not surely seen in 3 planned photos: {', '.join(few)}")
     s_gcp.progress(1.0)
 
     import geopandas as gpd
@@ -554,14 +608,29 @@ def plan(
         crs=work_crs,
     )
     gcp_df = gpd.GeoDataFrame(
-        {k: [g[k] for g in gcp_rows] for k in ("name", "marker_id", "role", "z_m", "n_photos", "gsd_max_cm",
-                                                "marker_side_px", "marker_size_m")},  # fmt: skip
+        {
+            k: [g[k] for g in gcp_rows]
+            for k in (
+                "name",
+                "marker_id",
+                "role",
+                "z_m",
+                "n_photos",
+                "n_photos_sure",
+                "n_photos_max",
+                "gsd_max_cm",
+                "marker_side_px",
+                "marker_size_m",
+            )
+        },
         geometry=shapely.points([(g["x"], g["y"]) for g in gcp_rows]) if gcp_rows else [],
         crs=work_crs,
     )
     aoi_df = gpd.GeoDataFrame({"area_ha": [area_geom.area / 1e4]}, geometry=[area_geom], crs=work_crs)
-    plan_path = write_vector(output / "plan.gpkg", {"photos": photos_df, "lines": lines_df, "footprints": foot_df,
-                                                    "gcps": gcp_df, "aoi": aoi_df})  # fmt: skip
+    plan_path = write_vector(
+        output / "plan.gpkg",
+        {"photos": photos_df, "lines": lines_df, "footprints": foot_df, "gcps": gcp_df, "aoi": aoi_df},
+    )
     kml = _write_kml(output / "plan.kml", photos_df, lines_df, gcp_df, area_geom, work_crs, terrain)
     litchi, litchi_note = _write_litchi(output / "litchi.csv", photos_df, lines_df, work_crs, speed, along, terrain)
     if litchi_note:
@@ -571,13 +640,24 @@ def plan(
 
     gsd = np.asarray(table.gsd_cm, float)
     summary = {
-        "camera": {"name": cam.name, "sensor_width_mm": cam.sensor_width_mm, "focal_mm": cam.focal_mm,
-                   "width_px": cam.width_px, "height_px": cam.height_px, "focal_px": cam.focal_px,
-                   "source": cam.source},  # fmt: skip
+        "camera": {
+            "name": cam.name,
+            "sensor_width_mm": cam.sensor_width_mm,
+            "focal_mm": cam.focal_mm,
+            "width_px": cam.width_px,
+            "height_px": cam.height_px,
+            "focal_px": cam.focal_px,
+            "source": cam.source,
+        },
         "crs": crs_to_text(work_crs),
         "aoi_area_ha": area_geom.area / 1e4,
-        "ground": {"model": ground_label, "takeoff_ground_m": z_takeoff, "min_m": ground["min"],
-                   "median_m": ground["median"], "max_m": ground["max"]},  # fmt: skip
+        "ground": {
+            "model": ground_label,
+            "takeoff_ground_m": z_takeoff,
+            "min_m": ground["min"],
+            "median_m": ground["median"],
+            "max_m": ground["max"],
+        },
         "terrain": terrain,
         "altitude_m": agl,
         "altitude_meaning": "above the take-off" if terrain == "constant" else "above the ground under each photo",
@@ -588,8 +668,13 @@ def plan(
         "directions_grid_deg": directions,
         "front_overlap_pct": front_overlap,
         "side_overlap_pct": side_overlap,
-        "spacing": {"along_m": along, "across_m": across, "footprint_along_m": along_len,
-                    "footprint_across_m": across_w, "planned_at_agl_m": spacing_agl},  # fmt: skip
+        "spacing": {
+            "along_m": along,
+            "across_m": across,
+            "footprint_along_m": along_len,
+            "footprint_across_m": across_w,
+            "planned_at_agl_m": spacing_agl,
+        },
         "overlap_on_footprints_pct": {"front": front_m, "side": side_m},
         "photos": len(shots),
         "lines": n_lines,
@@ -598,17 +683,48 @@ def plan(
         "flight_time_min": length_m / speed / 60.0,
         "photo_interval_s": along / speed,
         "coverage": coverage,
-        "gcps": [{k: g[k] for k in ("name", "marker_id", "role", "x", "y", "z_m", "n_photos", "gsd_max_cm",
-                                     "marker_side_px")} for g in gcp_rows],  # fmt: skip
-        "gcp_rule": "given positions" if gcps and not gcps.strip().isdigit() else
-                    "5 up to 5 ha (corners and centre), one more per further 10 ha, at most 40; "
-                    "about 60 % on the perimeter, the rest spread inside",  # fmt: skip
-        "marker": {"dictionary": marker_dictionary, "size_m": marker_m, "cells": n_cells,
-                   "min_module_px": module_px, "safety": DETECTION_SAFETY,
-                   "rule": "black square = cells x min_module_px x safety x the largest GSD at a GCP, "
-                           "rounded up to 5 cm; a one-module white border around it"},  # fmt: skip
-        "files": {"plan": plan_path.name, "overlap": overlap_path.name, "kml": kml.name, "litchi": litchi.name,
-                  "markers": [p.name for p in sheets]},  # fmt: skip
+        "gcps": [
+            {
+                k: g[k]
+                for k in (
+                    "name",
+                    "marker_id",
+                    "role",
+                    "x",
+                    "y",
+                    "z_m",
+                    "n_photos",
+                    "n_photos_sure",
+                    "n_photos_max",
+                    "gsd_max_cm",
+                    "marker_side_px",
+                )
+            }
+            for g in gcp_rows
+        ],
+        "gcp_sightings": f"expected count with the flown pose off the plan by {FLIGHT_POSITION_SIGMA_M} m and "
+        f"{FLIGHT_ATTITUDE_SIGMA_DEG} deg (1 sigma); sure: probability >= 0.9; max: >= 0.1",
+        "gcp_rule": "given positions"
+        if gcps and not gcps.strip().isdigit()
+        else "5 up to 5 ha (corners and centre), one more per further 10 ha, at most 40; "
+        "about 60 % on the perimeter, the rest spread inside",
+        "marker": {
+            "dictionary": marker_dictionary,
+            "size_m": marker_m,
+            "laid_size_m": laid_m,
+            "cells": n_cells,
+            "min_module_px": module_px,
+            "safety": DETECTION_SAFETY,
+            "rule": "black square = cells x min_module_px x safety x the largest GSD at a GCP, "
+            "rounded up to 5 cm; a one-module white border around it",
+        },
+        "files": {
+            "plan": plan_path.name,
+            "overlap": overlap_path.name,
+            "kml": kml.name,
+            "litchi": litchi.name,
+            "markers": [p.name for p in sheets],
+        },
         "warnings": warnings_,
         "seconds": time.perf_counter() - t0,
     }
@@ -616,18 +732,20 @@ def plan(
     s_write.progress(1.0)
     for w in warnings_:
         fb.warning(w)
-    fb.info(f"plan: {len(shots)} photos on {n_lines} lines, {length_m / 1000:.2f} km, "
-            f"{summary['flight_time_min']:.1f} min at {speed:.1f} m/s; {agl:.1f} m "
-            f"{summary['altitude_meaning']}, GSD {summary['gsd_cm']['median']:.2f} cm; "
-            f"{len(gcp_rows)} GCPs, markers {marker_m * 100:.0f} cm")  # fmt: skip
-    g = str(plan_path)
+    fb.info(
+        f"plan: {len(shots)} photos on {n_lines} lines, {length_m / 1000:.2f} km, "
+        f"{summary['flight_time_min']:.1f} min at {speed:.1f} m/s; {agl:.1f} m "
+        f"{summary['altitude_meaning']}, GSD {summary['gsd_cm']['median']:.2f} cm; "
+        f"{len(gcp_rows)} GCPs, markers {marker_m * 100:.0f} cm"
+    )
+    gpkg = str(plan_path)
     return PlanResult(
         output=output,
         plan=plan_path,
-        photos=f"{g}|layername=photos",
-        lines=f"{g}|layername=lines",
-        footprints=f"{g}|layername=footprints",
-        gcps=f"{g}|layername=gcps",
+        photos=f"{gpkg}|layername=photos",
+        lines=f"{gpkg}|layername=lines",
+        footprints=f"{gpkg}|layername=footprints",
+        gcps=f"{gpkg}|layername=gcps",
         overlap=overlap_path,
         kml=kml,
         litchi=litchi,
@@ -697,8 +815,9 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
         reason = shapely.is_valid_reason(geom)
         geom = shapely.make_valid(geom)
         geom = shapely.union_all([g for g in shapely.get_parts(geom) if g.geom_type in ("Polygon", "MultiPolygon")])
-        notes.append(f"the AOI was not a valid polygon ({reason}): repaired by GEOS make_valid; check it "
-                     "in plan.gpkg, layer aoi")  # fmt: skip
+        notes.append(
+            f"the AOI was not a valid polygon ({reason}): repaired by GEOS make_valid; check it in plan.gpkg, layer aoi"
+        )
     src = CRS.from_user_input(df.crs)
     if crs is not None:
         work = parse_crs(crs)
@@ -785,9 +904,15 @@ def _best_direction(area: Any, across: float) -> float:
 
 
 def _lines_and_shots(
-    area: Any, direction: float, along: float, across: float, along_len: float, across_w: float, ahead: float,
+    area: Any,
+    direction: float,
+    along: float,
+    across: float,
+    along_len: float,
+    across_w: float,
+    ahead: float,
     first_line: int,
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:  # fmt: skip
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Boustrophedon lines across the AOI: outermost lines on its edges, each line's photos over the
     AOI within its swath, extended by half a footprint at both ends (full front overlap there)."""
     import shapely
@@ -804,8 +929,14 @@ def _lines_and_shots(
     big = 1e7
     for k, vk in enumerate(v_lines):
         half = across_w / 2
-        strip = shapely.Polygon([u * -big + v * (vk - half), u * big + v * (vk - half),
-                                 u * big + v * (vk + half), u * -big + v * (vk + half)])  # fmt: skip
+        strip = shapely.Polygon(
+            [
+                u * -big + v * (vk - half),
+                u * big + v * (vk - half),
+                u * big + v * (vk + half),
+                u * -big + v * (vk + half),
+            ]
+        )
         part = shapely.intersection(area, strip)
         if part.is_empty or part.area <= 0:
             continue
@@ -824,11 +955,25 @@ def _lines_and_shots(
         for uu in us:
             # the ground point of the image centre is ``ahead`` of the drone along its heading
             p = u * (uu - step * ahead) + v * vk
-            shots.append({"x": float(p[0]), "y": float(p[1]), "grid_heading_deg": float((heading + 180) % 360 - 180),
-                          "line": line_no})  # fmt: skip
+            shots.append(
+                {
+                    "x": float(p[0]),
+                    "y": float(p[1]),
+                    "grid_heading_deg": float((heading + 180) % 360 - 180),
+                    "line": line_no,
+                }
+            )
             ends.append((float(p[0]), float(p[1])))
-        lines.append({"line": line_no, "grid_heading_deg": heading, "length_m": float(abs(us[-1] - us[0])),
-                      "n_photos": int(n), "ends": [ends[0], ends[-1]], "k": k})  # fmt: skip
+        lines.append(
+            {
+                "line": line_no,
+                "grid_heading_deg": heading,
+                "length_m": float(abs(us[-1] - us[0])),
+                "n_photos": int(n),
+                "ends": [ends[0], ends[-1]],
+                "k": k,
+            }
+        )
     return shots, lines
 
 
@@ -873,8 +1018,7 @@ def _coverage(path: Path, area: Any, front: float, side: float, grid: str) -> di
 
     with rasterio.open(path) as src:
         count = src.read(1)
-        inside = geometry_mask([area], out_shape=count.shape, transform=src.transform, invert=True,
-                               all_touched=False)  # fmt: skip
+        inside = geometry_mask([area], out_shape=count.shape, transform=src.transform, invert=True, all_touched=False)
     need = max(1, int(math.floor(1 / (1 - front / 100) + 1e-9)) * int(math.floor(1 / (1 - side / 100) + 1e-9)))
     if grid == "double":
         need *= 2
@@ -921,8 +1065,10 @@ def line_overlaps(polys: list[Any], line: list[int], max_pairs: int = 1500) -> t
 
     front, side = share(fa, fb), share(sa, sb)
     # ends of lines overlap less sideways where the AOI narrows: the median is the block's figure
-    return (float(100 * np.median(front)) if front.size else float("nan"),
-            float(100 * np.median(side)) if side.size else float("nan"))  # fmt: skip
+    return (
+        float(100 * np.median(front)) if front.size else float("nan"),
+        float(100 * np.median(side)) if side.size else float("nan"),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -946,8 +1092,17 @@ def _gcp_positions(
         for p in gs.points:
             x, y = t.transform(p.x, p.y)
             z = p.z if math.isfinite(p.z) else float(surface.elevation(np.array([x]), np.array([y]))[0])
-            rows.append({"name": p.name, "marker_id": marker_id_of(p.name) if marker_id_of(p.name) is not None else -1,
-                         "role": "given", "x": float(x), "y": float(y), "z": float(z), "z_m": float(z)})  # fmt: skip
+            rows.append(
+                {
+                    "name": p.name,
+                    "marker_id": marker_id_of(p.name) if marker_id_of(p.name) is not None else -1,
+                    "role": "given",
+                    "x": float(x),
+                    "y": float(y),
+                    "z": float(z),
+                    "z_m": float(z),
+                }
+            )
         return rows
     n = int(text) if text else default_gcp_count(area.area / 1e4)
     n_ids = get_dictionary(dictionary).bytesList.shape[0]
@@ -959,8 +1114,12 @@ def _gcp_positions(
         inner = area.buffer(-0.1 * math.sqrt(area.area))
     if inner.is_empty:
         inner = area
-    ring = inner.exterior if inner.geom_type == "Polygon" else max(shapely.get_parts(inner), key=lambda g: g.area).exterior
-    perim_pts = np.array([ring.interpolate(f, normalized=True).coords[0] for f in np.linspace(0, 1, 400, endpoint=False)])
+    ring = (
+        inner.exterior if inner.geom_type == "Polygon" else max(shapely.get_parts(inner), key=lambda g: g.area).exterior
+    )
+    perim_pts = np.array(
+        [ring.interpolate(f, normalized=True).coords[0] for f in np.linspace(0, 1, 400, endpoint=False)]
+    )
     x0, y0, x1, y1 = inner.bounds
     gx, gy = np.meshgrid(np.linspace(x0, x1, 40), np.linspace(y0, y1, 40))
     ok = shapely.contains_xy(inner, gx, gy)
@@ -975,9 +1134,19 @@ def _gcp_positions(
         chosen = _farthest(inner_pts, chosen, n)
         roles += ["interior"] * (len(chosen) - len(roles))
     xy = np.array(chosen)
-    z = surface.elevation(xy[:, 0], xy[:, 1])
-    return [{"name": f"GCP{i + 1:02d}", "marker_id": i + 1, "role": r, "x": float(x), "y": float(y), "z": float(zz),
-             "z_m": float(zz)} for i, ((x, y), zz, r) in enumerate(zip(xy, z, roles))]  # fmt: skip
+    ground = surface.elevation(xy[:, 0], xy[:, 1])
+    return [
+        {
+            "name": f"GCP{i + 1:02d}",
+            "marker_id": i + 1,
+            "role": r,
+            "x": float(x),
+            "y": float(y),
+            "z": float(zz),
+            "z_m": float(zz),
+        }
+        for i, ((x, y), zz, r) in enumerate(zip(xy, ground, roles))
+    ]
 
 
 def _farthest(candidates: np.ndarray, chosen: list[np.ndarray], n: int) -> list[np.ndarray]:
@@ -993,8 +1162,10 @@ def _farthest(candidates: np.ndarray, chosen: list[np.ndarray], n: int) -> list[
 def _seen_by(
     centres: np.ndarray, rots: np.ndarray, intr: Intrinsics, xyz: np.ndarray, margin_pct: float, marker_m: float
 ) -> dict[str, Any]:
-    """How many planned photos see a ground point inside the frame minus the margin, with a marker
-    ``marker_m`` across (border included) whole in the frame; the largest GSD there among them.
+    """How many planned photos will see a ground point inside the frame minus the margin, with a
+    marker ``marker_m`` across (border included) whole in the frame: the expected count given how
+    far a flown pose wanders from the planned one, the count sure (probability >= 0.9) and at most
+    (>= 0.1); and the largest GSD there among the photos that see it as planned.
     Vectorised over the photos (planned photos have no distortion)."""
     f, cx, cy, w, h = intr.focal_px, intr.cx_px, intr.cy_px, intr.width_px, intr.height_px
     d = xyz[None, :] - centres
@@ -1008,9 +1179,21 @@ def _seen_by(
         gsd = depth / f * np.sqrt(np.maximum(depth, 0) / above)
         edge = 0.5 * marker_m / gsd
     mx, my = np.maximum(w * margin_pct / 100, edge), np.maximum(h * margin_pct / 100, edge)
-    ok = front & (x >= mx - 0.5) & (x <= w - 0.5 - mx) & (y >= my - 0.5) & (y <= h - 0.5 - my)
+    # signed distance (px) inside the allowed part of the frame; the flown pose wanders from the
+    # planned one, which moves the point by sigma_px: each photo sees it with probability Phi(d/sigma)
+    inside_px = np.minimum.reduce([x - (mx - 0.5), (w - 0.5 - mx) - x, y - (my - 0.5), (h - 0.5 - my) - y])
+    sigma_px = FLIGHT_POSITION_SIGMA_M / gsd + f * math.tan(math.radians(FLIGHT_ATTITUDE_SIGMA_DEG))
+    from scipy.special import ndtr
+
+    p = np.where(front & np.isfinite(inside_px), ndtr(np.nan_to_num(inside_px) / sigma_px), 0.0)
+    ok = front & (inside_px >= 0)
     n = int(ok.sum())
-    return {"n_photos": n, "gsd_max_cm": float(gsd[ok].max() * 100) if n else float("nan")}
+    return {
+        "n_photos": int(round(float(p.sum()))),
+        "n_photos_sure": int((p >= 0.9).sum()),
+        "n_photos_max": int((p >= 0.1).sum()),
+        "gsd_max_cm": float(gsd[ok].max() * 100) if n else float("nan"),
+    }
 
 
 def _round_up(v: float, step: float) -> float:
@@ -1021,9 +1204,7 @@ def _round_up(v: float, step: float) -> float:
 # Exports
 
 
-def _write_kml(
-    path: Path, photos: Any, lines: Any, gcps: Any, area: Any, crs: CRS, terrain: str
-) -> Path:
+def _write_kml(path: Path, photos: Any, lines: Any, gcps: Any, area: Any, crs: CRS, terrain: str) -> Path:
     """KML 2.2 (OGC 07-147r2): Document > Folders of Placemarks; coordinates lon,lat,alt. Heights are
     relativeToGround (the height above the ground under each photo): KML has no
     above-take-off mode."""
@@ -1039,61 +1220,98 @@ def _write_kml(
         return " ".join(f"{o:.8f},{la:.8f},{h:.2f}" for o, la, h in zip(lon, lat, a))
 
     def data(items: dict[str, Any]) -> str:
-        return "<ExtendedData>" + "".join(
-            f'<Data name="{escape(k)}"><value>{escape(str(v))}</value></Data>' for k, v in items.items()
-        ) + "</ExtendedData>"
+        return (
+            "<ExtendedData>"
+            + "".join(f'<Data name="{escape(k)}"><value>{escape(str(v))}</value></Data>' for k, v in items.items())
+            + "</ExtendedData>"
+        )
 
     import shapely
 
-    parts = ['<?xml version="1.0" encoding="UTF-8"?>', '<kml xmlns="http://www.opengis.net/kml/2.2">',
-             "<Document><name>geoortho flight plan</name>",
-             "<description>Waypoint heights are above the ground under each photo (relativeToGround); "
-             f"the plan flies at {'a constant altitude above the take-off' if terrain == 'constant' else 'a constant height above the terrain'}; "
-             "summary.json has every figure.</description>",
-             '<Style id="photo"><IconStyle><scale>0.5</scale></IconStyle></Style>',
-             '<Style id="line"><LineStyle><color>ff00a5ff</color><width>2</width></LineStyle></Style>',
-             '<Style id="gcp"><IconStyle><color>ff0000ff</color></IconStyle></Style>',
-             '<Style id="aoi"><LineStyle><color>ff00ff00</color><width>2</width></LineStyle>'
-             "<PolyStyle><fill>0</fill></PolyStyle></Style>",
-             "<Folder><name>AOI</name>"]  # fmt: skip
+    flies = "a constant altitude above the take-off" if terrain == "constant" else "a constant height over the terrain"
+    parts = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        '<kml xmlns="http://www.opengis.net/kml/2.2">',
+        "<Document><name>geoortho flight plan</name>",
+        "<description>Waypoint heights are above the ground under each photo (relativeToGround); "
+        f"the plan flies at {flies}; "
+        "summary.json has every figure.</description>",
+        '<Style id="photo"><IconStyle><scale>0.5</scale></IconStyle></Style>',
+        '<Style id="line"><LineStyle><color>ff00a5ff</color><width>2</width></LineStyle></Style>',
+        '<Style id="gcp"><IconStyle><color>ff0000ff</color></IconStyle></Style>',
+        '<Style id="aoi"><LineStyle><color>ff00ff00</color><width>2</width></LineStyle>'
+        "<PolyStyle><fill>0</fill></PolyStyle></Style>",
+        "<Folder><name>AOI</name>",
+    ]
     for g in shapely.get_parts(area):
         ring = np.array(g.exterior.coords)
-        parts.append('<Placemark><name>AOI</name><styleUrl>#aoi</styleUrl><Polygon><outerBoundaryIs><LinearRing>'
-                     f"<coordinates>{coords(ring)}</coordinates></LinearRing></outerBoundaryIs></Polygon></Placemark>")  # fmt: skip
+        parts.append(
+            "<Placemark><name>AOI</name><styleUrl>#aoi</styleUrl><Polygon><outerBoundaryIs><LinearRing>"
+            f"<coordinates>{coords(ring)}</coordinates></LinearRing></outerBoundaryIs></Polygon></Placemark>"
+        )
     parts.append("</Folder><Folder><name>Flight lines</name>")
     agl = photos["agl_m"].to_numpy()
     xy = np.c_[photos.geometry.x, photos.geometry.y]
     for ln in lines.itertuples():
         sel = photos["line"].to_numpy() == ln.line
-        parts.append(f"<Placemark><name>line {ln.line}</name><styleUrl>#line</styleUrl><LineString>"
-                     f"<altitudeMode>relativeToGround</altitudeMode><coordinates>{coords(xy[sel], agl[sel])}"
-                     "</coordinates></LineString></Placemark>")  # fmt: skip
+        parts.append(
+            f"<Placemark><name>line {ln.line}</name><styleUrl>#line</styleUrl><LineString>"
+            f"<altitudeMode>relativeToGround</altitudeMode><coordinates>{coords(xy[sel], agl[sel])}"
+            "</coordinates></LineString></Placemark>"
+        )
     parts.append("</Folder><Folder><name>Photos</name>")
     for i, r in enumerate(photos.itertuples()):
-        parts.append(f"<Placemark><name>{escape(r.name)}</name><styleUrl>#photo</styleUrl>"
-                     + data({"line": r.line, "altitude_above_takeoff_m": f"{r.altitude_m:.2f}",
-                             "height_above_ground_m": f"{r.agl_m:.2f}", "heading_deg": f"{r.heading_deg:.2f}",
-                             "gimbal_pitch_deg": f"{r.pitch_deg:.1f}", "gsd_cm": f"{r.gsd_cm:.2f}"})
-                     + f"<Point><altitudeMode>relativeToGround</altitudeMode><coordinates>{coords(xy[i:i + 1], agl[i:i + 1])}"
-                     "</coordinates></Point></Placemark>")  # fmt: skip
+        parts.append(
+            f"<Placemark><name>{escape(r.name)}</name><styleUrl>#photo</styleUrl>"
+            + data(
+                {
+                    "line": r.line,
+                    "altitude_above_takeoff_m": f"{r.altitude_m:.2f}",
+                    "height_above_ground_m": f"{r.agl_m:.2f}",
+                    "heading_deg": f"{r.heading_deg:.2f}",
+                    "gimbal_pitch_deg": f"{r.pitch_deg:.1f}",
+                    "gsd_cm": f"{r.gsd_cm:.2f}",
+                }
+            )
+            + "<Point><altitudeMode>relativeToGround</altitudeMode>"
+            + f"<coordinates>{coords(xy[i : i + 1], agl[i : i + 1])}</coordinates></Point></Placemark>"
+        )
     parts.append("</Folder><Folder><name>GCPs</name>")
     for r in gcps.itertuples():
         p = np.array([[r.geometry.x, r.geometry.y]])
-        parts.append(f"<Placemark><name>{escape(str(r.name))}</name><styleUrl>#gcp</styleUrl>"
-                     + data({"marker_id": r.marker_id, "photos": r.n_photos, "marker_size_m": r.marker_size_m})
-                     + f"<Point><coordinates>{coords(p)}</coordinates></Point></Placemark>")  # fmt: skip
+        parts.append(
+            f"<Placemark><name>{escape(str(r.name))}</name><styleUrl>#gcp</styleUrl>"
+            + data({"marker_id": r.marker_id, "photos": r.n_photos, "marker_size_m": r.marker_size_m})
+            + f"<Point><coordinates>{coords(p)}</coordinates></Point></Placemark>"
+        )
     parts.append("</Folder></Document></kml>")
     return write_text(path, "\n".join(parts) + "\n")
 
 
 LITCHI_MAX_WAYPOINTS = 99
 LITCHI_HEADER = (
-    ["latitude", "longitude", "altitude(m)", "heading(deg)", "curvesize(m)", "rotationdir", "gimbalmode",
-     "gimbalpitchangle"]
+    [
+        "latitude",
+        "longitude",
+        "altitude(m)",
+        "heading(deg)",
+        "curvesize(m)",
+        "rotationdir",
+        "gimbalmode",
+        "gimbalpitchangle",
+    ]
     + [f"action{k}{i}" for i in range(1, 16) for k in ("type", "param")]
-    + ["altitudemode", "speed(m/s)", "poi_latitude", "poi_longitude", "poi_altitude(m)", "poi_altitudemode",
-       "photo_timeinterval", "photo_distinterval"]
-)  # fmt: skip
+    + [
+        "altitudemode",
+        "speed(m/s)",
+        "poi_latitude",
+        "poi_longitude",
+        "poi_altitude(m)",
+        "poi_altitudemode",
+        "photo_timeinterval",
+        "photo_distinterval",
+    ]
+)
 
 
 def _write_litchi(
@@ -1112,9 +1330,25 @@ def _write_litchi(
 
     def row(lon: float, lat: float, alt: float, heading: float, pitch: float, photo: bool, dist: float) -> str:
         actions = ["1", "0"] + ["-1", "0"] * 14 if photo else ["-1", "0"] * 15
-        vals = [f"{lat:.8f}", f"{lon:.8f}", f"{alt:.1f}", f"{heading % 360:.1f}", "0", "0", str(gimbal_mode),
-                f"{pitch:.0f}", *actions, str(mode), f"{speed:.1f}", "0", "0", "0", "0", "-1",
-                f"{dist:.1f}" if dist > 0 else "-1"]  # fmt: skip
+        vals = [
+            f"{lat:.8f}",
+            f"{lon:.8f}",
+            f"{alt:.1f}",
+            f"{heading % 360:.1f}",
+            "0",
+            "0",
+            str(gimbal_mode),
+            f"{pitch:.0f}",
+            *actions,
+            str(mode),
+            f"{speed:.1f}",
+            "0",
+            "0",
+            "0",
+            "0",
+            "-1",
+            f"{dist:.1f}" if dist > 0 else "-1",
+        ]
         return ",".join(vals)
 
     alt_col = photos["agl_m"] if terrain == "follow" else photos["altitude_m"]
@@ -1129,8 +1363,10 @@ def _write_litchi(
                 r = photos.iloc[j]
                 lon, lat = t.transform(r.geometry.x, r.geometry.y)
                 rows.append(row(lon, lat, float(alt_col.iloc[j]), r.heading_deg, r.pitch_deg, False, along))
-        note = (f"litchi.csv: {len(photos)} photos are more than Litchi's {LITCHI_MAX_WAYPOINTS} waypoints: "
-                f"line ends with a photo every {along:.1f} m instead")  # fmt: skip
+        note = (
+            f"litchi.csv: {len(photos)} photos are more than Litchi's {LITCHI_MAX_WAYPOINTS} waypoints: "
+            f"line ends with a photo every {along:.1f} m instead"
+        )
         if len(rows) > LITCHI_MAX_WAYPOINTS:
             note += f"; still {len(rows)} waypoints: split the mission in Litchi Hub"
     return write_text(path, ",".join(LITCHI_HEADER) + "\n" + "\n".join(rows) + "\n"), note
@@ -1179,14 +1415,22 @@ def _write_marker_sheets(folder: Path, gcps: list[dict[str, Any]], dictionary: s
         for sgn in (-1, 1):  # ticks in the margin on the centre lines: where to survey
             ax.plot([c + sgn * r0, c + sgn * r1], [c, c], color="k", lw=0.6)
             ax.plot([c, c], [c + sgn * r0, c + sgn * r1], color="k", lw=0.6)
-        fig.text(0.5, 0.5 * label_h / page_h,
-                 f"{g['name']} · id {mid} · {dictionary} · black square {side_m * 100:.1f} × {side_m * 100:.1f} cm "
-                 "— print at 100 %, check with a ruler; survey the centre",
-                 ha="center", va="center", fontweight="medium", fontsize=max(4.0, min(14.0, label_h / inch * 72 * 0.35)))  # fmt: skip
+        fig.text(
+            0.5,
+            0.5 * label_h / page_h,
+            f"{g['name']} · id {mid} · {dictionary} · black square {side_m * 100:.1f} × {side_m * 100:.1f} cm "
+            "— print at 100 %, check with a ruler; survey the centre",
+            ha="center",
+            va="center",
+            fontweight="medium",
+            fontsize=max(4.0, min(14.0, label_h / inch * 72 * 0.35)),
+        )
         target = folder / f"{g['name']}.pdf"
         # the PDF core fonts: nothing to embed, a sheet in milliseconds
-        with atomic_path(target) as tmp, rc_context({"pdf.use14corefonts": True, "font.family": "sans-serif",
-                                                     "font.sans-serif": ["Helvetica"]}):  # fmt: skip
+        with (
+            atomic_path(target) as tmp,
+            rc_context({"pdf.use14corefonts": True, "font.family": "sans-serif", "font.sans-serif": ["Helvetica"]}),
+        ):
             fig.savefig(tmp, format="pdf")
         out.append(target)
     return out

@@ -39,8 +39,15 @@ def flown(small_survey, tmp_path_factory):
     x0, y0, x1, y1 = survey["flight_box"]
     aoi = _aoi(d / "aoi.gpkg", shapely.box(x0 + 5, y0 + 5, x1 - 5, y1 - 5), survey["crs"])
     photo = sorted(small_survey.images.iterdir())[0]
-    p = geoortho.plan(aoi, d / "plan", camera=str(photo), altitude_m=40.0, dtm=small_survey.dtm,
-                      gcps=str(small_survey.gcp_file))  # fmt: skip
+    p = geoortho.plan(
+        aoi,
+        d / "plan",
+        camera=str(photo),
+        altitude_m=40.0,
+        dtm=small_survey.dtm,
+        gcps=str(small_survey.gcp_file),
+        marker_size_m=survey["marker_size_m"],
+    )
     s = geoortho.synth(d / "flown", preset="small", seed=1, plan=p.plan)
     return p, s, survey
 
@@ -53,14 +60,14 @@ def test_flying_the_plan_gives_the_planned_overlap_gsd_and_gcp_sightings(flown, 
     # the overlaps asked are met on the plan's own footprints (spaced at the highest ground)
     planned = summary["overlap_on_footprints_pct"]
     assert planned["front"] >= 75 - 0.5 and planned["side"] >= 65 - 0.5
-    fp = geoortho.footprints(s.images, tmp_path / "fp.gpkg", dsm=s.dtm,
-                             takeoff_ground_m=survey["home"]["ground_z"])  # fmt: skip
+    fp = geoortho.footprints(s.images, tmp_path / "fp.gpkg", dsm=s.dtm, takeoff_elevation_m=survey["home"]["ground_z"])
     got = gpd.read_file(fp.output, layer="footprints").sort_values("image")
     front, side = line_overlaps(list(got.geometry), photos["line"].tolist())
     # measured: front 76.8 vs 76.8, side 64.4 vs 66.6 (the flown attitude wanders 1.5 degrees)
     assert abs(front - planned["front"]) <= 3.0 and abs(side - planned["side"]) <= 3.0
     assert abs(np.median(got["gsd_cm"]) / summary["gsd_cm"]["median"] - 1) <= 0.03
-    # every GCP found in as many photos as planned, +-1 (measured: 7 of 8 exact, one +1)
+    # every GCP found in as many photos as planned (the expected count given how far a flown pose
+    # wanders), +-1; measured on two flown plans: 9 of 16 exact, the rest +-1
     r = geoortho.gcp_find(s.images, s.gcp_file, tmp_path / "gcp_list.txt")
     rows = r.output.read_text().splitlines()[1:]
     found = Counter(ln.split()[6] for ln in rows if ln.strip())
@@ -79,7 +86,9 @@ def test_plan_layers_and_exports(flown):
     kml = gpd.read_file(p.kml, layer="Photos")
     assert len(kml) == p.n_photos
     ll = photos.to_crs("EPSG:4326")
-    assert np.allclose(kml.geometry.x, ll.geometry.x, atol=1e-7) and np.allclose(kml.geometry.y, ll.geometry.y, atol=1e-7)
+    assert np.allclose(kml.geometry.x, ll.geometry.x, atol=1e-7) and np.allclose(
+        kml.geometry.y, ll.geometry.y, atol=1e-7
+    )
     # Litchi: its 46 columns, one take-photo waypoint per photo (<= 99), altitude above take-off
     lines = p.litchi.read_text().splitlines()
     assert lines[0].split(",") == LITCHI_HEADER and len(LITCHI_HEADER) == 46
@@ -105,17 +114,30 @@ def test_terrain_following_keeps_the_gsd_and_constant_altitude_reports_the_sprea
     z = 200 + hill_m * np.exp(-(((X - E0 - 300) / 180) ** 2 + ((Y - N0 - 300) / 180) ** 2))
     from geoortho.outputs import write_cog
 
-    dtm = write_cog(tmp_path / "hill.tif", z.astype(np.float32), transform=from_origin(E0 - 300, N0 + 900, cell, cell),
-                    crs=UTM29, nodata=-9999.0)  # fmt: skip
+    dtm = write_cog(
+        tmp_path / "hill.tif",
+        z.astype(np.float32),
+        transform=from_origin(E0 - 300, N0 + 900, cell, cell),
+        crs=UTM29,
+        nodata=-9999.0,
+    )
     aoi = _aoi(tmp_path / "aoi.geojson", shapely.box(E0, N0, E0 + 600, N0 + 600))
-    follow = geoortho.plan(aoi, tmp_path / "follow", camera="DJI Phantom 4 Pro", gsd_cm=2.0, dtm=dtm,
-                           terrain="follow", takeoff_ground_m=200.0)  # fmt: skip
+    follow = geoortho.plan(
+        aoi,
+        tmp_path / "follow",
+        camera="DJI Phantom 4 Pro",
+        gsd_cm=2.0,
+        dtm=dtm,
+        terrain="follow",
+        takeoff_ground_m=200.0,
+    )
     fp = gpd.read_file(follow.plan, layer="footprints")
     assert np.abs(fp["gsd_cm"] / 2.0 - 1).max() <= 0.05
     ph = gpd.read_file(follow.plan, layer="photos")
     assert ph["altitude_m"].max() - ph["altitude_m"].min() > 0.8 * hill_m  # it climbs over the hill
-    const = geoortho.plan(aoi, tmp_path / "const", camera="DJI Phantom 4 Pro", gsd_cm=3.0, dtm=dtm,
-                          takeoff_ground_m=200.0)  # fmt: skip
+    const = geoortho.plan(
+        aoi, tmp_path / "const", camera="DJI Phantom 4 Pro", gsd_cm=3.0, dtm=dtm, takeoff_ground_m=200.0
+    )
     s = json.loads(const.summary.read_text())
     agl = s["altitude_m"]  # over the take-off ground: the hilltop is 60 m nearer
     assert s["gsd_cm"]["max"] == pytest.approx(3.0, rel=0.03)
@@ -129,8 +151,10 @@ def test_terrain_following_keeps_the_gsd_and_constant_altitude_reports_the_sprea
 
 
 def test_gcp_proposal_spread_and_seen(tmp_path):
-    aoi = _aoi(tmp_path / "aoi.gpkg", shapely.Polygon([(E0, N0), (E0 + 700, N0), (E0 + 700, N0 + 400),
-                                                         (E0 + 300, N0 + 600), (E0, N0 + 400)]))  # fmt: skip
+    aoi = _aoi(
+        tmp_path / "aoi.gpkg",
+        shapely.Polygon([(E0, N0), (E0 + 700, N0), (E0 + 700, N0 + 400), (E0 + 300, N0 + 600), (E0, N0 + 400)]),
+    )
     r = geoortho.plan(aoi, tmp_path / "p", camera="FC6310", gsd_cm=2.5)
     g = gpd.read_file(r.plan, layer="gcps")
     area_ha = shapely.area(gpd.read_file(aoi).geometry.iloc[0]) / 1e4
@@ -212,8 +236,9 @@ def test_aoi_not_a_polygon_refused_self_intersecting_repaired(tmp_path, capsys):
     from geoortho.processing.cli import main
 
     line = _aoi(tmp_path / "line.gpkg", shapely.LineString([(E0, N0), (E0 + 300, N0 + 200)]))
-    code = main(["plan", "--aoi", str(line), "--output", str(tmp_path / "a"), "--camera", "FC6310",
-                 "--gsd-cm", "2", "--quiet"])  # fmt: skip
+    code = main(
+        ["plan", "--aoi", str(line), "--output", str(tmp_path / "a"), "--camera", "FC6310", "--gsd-cm", "2", "--quiet"]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "no polygon" in err and "line.gpkg" in err
     bowtie = shapely.Polygon([(E0, N0), (E0 + 300, N0 + 300), (E0 + 300, N0), (E0, N0 + 300)])

@@ -333,6 +333,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("gcps", "string"),
             Param("gcp_crs", "crs", advanced=True),
             Param("marker_dictionary", "enum"),
+            Param("marker_size_m", "number", unit="m", minimum=0.05, maximum=10.0),
             Param("margin", "number", unit="%", minimum=0.0, maximum=45.0, advanced=True),
             CRS,
             Param("sensor_width_mm", "number", unit="mm", minimum=0.5, maximum=100.0, advanced=True),
