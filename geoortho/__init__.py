@@ -30,6 +30,7 @@ _EXPORTS = {
     "report": "geoortho.reporting",
     "demo": "geoortho.demonstration",
     "plan": "geoortho.flightplan",
+    "check_plan": "geoortho.flightplan",
     # what they return
     "SynthResult": "geoortho.synthetic",
     "FootprintResult": "geoortho.footprint",
@@ -42,6 +43,7 @@ _EXPORTS = {
     "ReportResult": "geoortho.reporting",
     "DemoResult": "geoortho.demonstration",
     "PlanResult": "geoortho.flightplan",
+    "PlanCheckResult": "geoortho.flightplan",
     # the building blocks around them
     "run_algorithm": "geoortho.processing.registry",
     "read_photos": "geoortho.photos",

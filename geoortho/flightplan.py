@@ -42,6 +42,8 @@ __all__ = [
     "CameraSpec",
     "PlanResult",
     "plan",
+    "check_plan",
+    "PlanCheckResult",
     "resolve_camera",
     "min_module_px",
     "default_gcp_count",
@@ -1190,6 +1192,7 @@ def _seen_by(
     n = int(ok.sum())
     return {
         "n_photos": int(round(float(p.sum()))),
+        "n_in_frame": n,
         "n_photos_sure": int((p >= 0.9).sum()),
         "n_photos_max": int((p >= 0.1).sum()),
         "gsd_max_cm": float(gsd[ok].max() * 100) if n else float("nan"),
@@ -1449,3 +1452,244 @@ def read_plan_photos(path: str | os.PathLike[str]) -> tuple[Any, dict[str, Any]]
     summary_path = gpkg.with_name("summary.json")
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     return photos, summary
+
+
+# ---------------------------------------------------------------------------------------------
+# Check: an existing plan, or the photos of a flight, against the GCPs and the overlap needed
+
+
+@dataclass(frozen=True)
+class PlanCheckResult:
+    """What the plan-check algorithm found.
+
+    Attributes
+    ----------
+    output : Path
+        The check folder.
+    check : Path
+        check.gpkg (layers gcps, under_overlap).
+    gcps : str
+        GCPs with the photos that see each (layer gcps).
+    under_overlap : str
+        Areas seen by fewer photos than required (layer under_overlap).
+    overlap : Path
+        Photos covering each ground cell (GeoTIFF).
+    report : Path
+        check.json.
+    short_gcps : str
+        GCPs seen in fewer than min_photos photos, comma-separated.
+    n_short_gcps : int
+        How many.
+    under_overlap_m2 : float
+        Area seen by fewer photos than required, m².
+    """
+
+    output: Path
+    check: Path
+    gcps: str
+    under_overlap: str
+    overlap: Path
+    report: Path
+    short_gcps: str
+    n_short_gcps: int
+    under_overlap_m2: float
+
+
+def check_plan(
+    gcp_file: Path,
+    output: Path,
+    plan: Path | None = None,
+    images: Path | None = None,
+    dsm: Path | None = None,
+    takeoff_elevation_m: float | None = None,
+    gcp_crs: str | None = None,
+    min_photos: int = 3,
+    required_photos: int | None = None,
+    marker_size_m: float | None = None,
+    margin: float = 0.0,
+    *,
+    feedback: Feedback | None = None,
+) -> PlanCheckResult:
+    """Check a plan (or the photos of a flight) against the GCPs: GCPs seen in too few photos, and
+    the areas seen by fewer photos than required.
+
+    Parameters
+    ----------
+    gcp_file : Path
+        GCP coordinates (any format gcp-find reads).
+    output : Path
+        Folder to write check.gpkg, overlap.tif and check.json into.
+    plan : Path
+        A plan folder (or its plan.gpkg) made by ``plan``.
+    images : Path
+        Or the photos of a flight (their metadata: positions, heights, attitude).
+    dsm : Path
+        Ground model for the photos' footprints (default: flat take-off ground).
+    takeoff_elevation_m : float
+        Ground elevation of the take-off point, in the vertical datum of the ground
+        model (the DSM, the ground elevation or the GCPs). Default: worked out from the
+        photos by geoortho.heights (absolute − relative altitude, checked against the
+        ground model; else the ground under the flight), and said.
+    gcp_crs : str
+        CRS of a GCP file without one.
+    min_photos : int
+        A GCP needs at least this many photos.
+    required_photos : int
+        Photos each ground cell needs. Default: the plan's own figure, or 5 for photos.
+    marker_size_m : float
+        Side of the markers' black square: it must be whole in a photo. Default: the
+        plan's print size, or 1 m for photos.
+    margin : float
+        A GCP counts as seen only this far inside the frame, percent of the image side.
+    """
+    import geopandas as gpd
+    import shapely
+
+    from .footprint import compute_footprints, write_overlap
+    from .gcp.io import read_gcp_file
+    from .outputs import write_json, write_vector
+
+    fb = as_feedback(feedback)
+    if (plan is None) == (images is None):
+        raise InputError("give one of --plan or --images")
+    if min_photos < 1:
+        raise InputError("--min-photos must be at least 1")
+    groups: list[tuple[Intrinsics, np.ndarray, np.ndarray]] = []  # intrinsics, centres, rotations
+    if plan is not None:
+        photos, summary = read_plan_photos(plan)
+        if not summary:
+            raise InputError("no summary.json beside the plan: check a folder made by plan", path=plan)
+        crs = CRS.from_user_input(photos.crs)
+        c = summary["camera"]
+        intr = Intrinsics(int(c["width_px"]), int(c["height_px"]), float(c["focal_px"]))
+        centres = np.c_[photos.geometry.x, photos.geometry.y, photos["z_m"]]
+        rots = rotation_from_ypr(
+            photos["grid_heading_deg"].to_numpy(), photos["pitch_deg"].to_numpy(), np.zeros(len(photos))
+        )
+        groups.append((intr, centres, rots))
+        polys = list(
+            gpd.read_file(Path(plan) / "plan.gpkg" if Path(plan).is_dir() else plan, layer="footprints").geometry
+        )
+        need = int(required_photos or summary.get("coverage", {}).get("required_photos", 5))
+        laid = float(marker_size_m or summary.get("marker", {}).get("laid_size_m", 1.0))
+        surface: Surface = FlatSurface(float(summary.get("ground", {}).get("takeoff_elevation_m", 0.0)))
+        if dsm is not None:
+            surface = read_surface(dsm, crs, extend=True)
+        source = f"plan {Path(plan).name}"
+    else:
+        from .footprint import _photos_with_altitude, photo_cameras, working_crs
+
+        ps = _photos_with_altitude(Path(images), None, None, fb, fb)  # type: ignore[arg-type]
+        crs = working_crs(ps.photos)
+        ground = read_surface(dsm, crs, extend=True) if dsm is not None else None
+        cams, heights = photo_cameras(ps.photos, crs, ground, takeoff_elevation_m)
+        for note in heights.notes:
+            fb.warning(note)
+        surface = heights.surface
+        by: dict[Intrinsics, list[Any]] = {}
+        for cam in cams:
+            by.setdefault(cam.intrinsics, []).append(cam)
+        for intr, cs in by.items():
+            groups.append((intr, np.array([c.pose.center for c in cs]), np.array([c.pose.rotation for c in cs])))
+        table = compute_footprints(cams, surface)
+        polys = list(shapely.make_valid(shapely.polygons(table.rings)))
+        need = int(required_photos or 5)
+        laid = float(marker_size_m or 1.0)
+        source = f"{len(cams)} photos in {Path(images).name}"  # type: ignore[arg-type]
+    if need < 1:
+        raise InputError("--required-photos must be at least 1")
+    gs = read_gcp_file(gcp_file, gcp_crs)
+    t = transformer(gs.crs, crs)
+    rows = []
+    for p in gs.points:
+        x, y = t.transform(p.x, p.y)
+        z = p.z if math.isfinite(p.z) else float(surface.elevation(np.array([x]), np.array([y]))[0])
+        n_frame = n_exp = 0
+        for intr, centres, rots in groups:
+            # the marker with its one-module white border (a 4x4 marker: 8 / 6 of the black square)
+            got = _seen_by(centres, rots, intr, np.array([x, y, z]), margin, laid * 8 / 6)
+            n_frame += got["n_in_frame"]
+            n_exp += got["n_photos"]
+        rows.append(
+            {
+                "name": p.name,
+                "x": float(x),
+                "y": float(y),
+                "z_m": float(z),
+                "n_photos": n_frame,
+                "n_expected": n_exp if plan is not None else n_frame,
+                "short": n_frame < min_photos,
+            }
+        )
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    overlap = write_overlap(output / "overlap.tif", polys, crs, max(0.05, math.sqrt(shapely.area(polys[0])) / 60))
+    under = _under_overlap(overlap, need)
+    covered_m2 = float(shapely.union_all(polys).area)
+    if plan is not None:  # a plan's AOI is what must be covered: its block edge beyond does not count
+        gpkg_in = Path(plan) / "plan.gpkg" if Path(plan).is_dir() else Path(plan)
+        area = shapely.union_all(list(gpd.read_file(gpkg_in, layer="aoi").geometry))
+        under = [g for g in (shapely.intersection(u, area) for u in under) if not g.is_empty and g.area > 0]
+        covered_m2 = float(area.area)
+    gcp_df = gpd.GeoDataFrame(
+        {k: [r[k] for r in rows] for k in ("name", "z_m", "n_photos", "n_expected", "short")},
+        geometry=shapely.points([(r["x"], r["y"]) for r in rows]),
+        crs=crs,
+    )
+    under_df = gpd.GeoDataFrame({"photos_needed": [need] * len(under)}, geometry=under, crs=crs)
+    gpkg = write_vector(output / "check.gpkg", {"gcps": gcp_df, "under_overlap": under_df})
+    short = [r["name"] for r in rows if r["short"]]
+    under_m2 = float(sum(g.area for g in under))
+    report = write_json(
+        output / "check.json",
+        {
+            "source": source,
+            "crs": crs_to_text(crs),
+            "min_photos": min_photos,
+            "required_photos": need,
+            "marker_size_m": laid,
+            "gcps": rows,
+            "short_gcps": short,
+            "under_overlap_m2": under_m2,
+            "checked_area_m2": covered_m2,
+            "checked_area": "the plan's AOI" if plan is not None else "the ground the photos cover",
+            "under_overlap_pct": 100 * under_m2 / max(covered_m2, 1e-9),
+        },
+    )
+    if short:
+        fb.warning(f"GCPs seen in fewer than {min_photos} photos: {', '.join(short)}")
+    fb.info(
+        f"check of {source}: {len(rows) - len(short)} of {len(rows)} GCPs in >= {min_photos} photos; "
+        f"{under_m2:,.0f} m² ({100 * under_m2 / max(covered_m2, 1e-9):.1f} % of the "
+        f"{'AOI' if plan is not None else 'covered ground'}) seen by "
+        f"fewer than {need} photos"
+    )
+    return PlanCheckResult(
+        output,
+        gpkg,
+        f"{gpkg}|layername=gcps",
+        f"{gpkg}|layername=under_overlap",
+        overlap,
+        report,
+        ",".join(short),
+        len(short),
+        under_m2,
+    )
+
+
+def _under_overlap(overlap: Path, need: int) -> list[Any]:
+    """Polygons of the covered cells seen by fewer than ``need`` photos (the block's ragged outer
+    edge included: it is where a flight is short of photos)."""
+    import rasterio
+    import shapely
+    from rasterio.features import shapes
+
+    with rasterio.open(overlap) as src:
+        count = src.read(1)
+        mask = (count > 0) & (count < need)
+        polys = [
+            shapely.geometry.shape(g)
+            for g, v in shapes(mask.astype(np.uint8), mask=mask, transform=src.transform)
+            if v == 1
+        ]
+    return polys

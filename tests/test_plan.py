@@ -255,3 +255,26 @@ def test_camera_from_table_photo_or_values(small_survey):
     assert (photo.width_px, photo.height_px) == (1600, 1067) and photo.focal_mm == pytest.approx(8.8)
     given = resolve_camera("", 13.2, 8.8, 4000, 3000)
     assert given.focal_px == pytest.approx(8.8 / 13.2 * 4000)
+
+
+def test_check_a_plan_and_the_flown_photos(flown, tmp_path):
+    p, s, _ = flown
+    planned = {g["name"]: g for g in json.loads(p.summary.read_text())["gcps"]}
+    # an extra GCP far outside the block: seen by no photo, listed
+    far = tmp_path / "gcps.txt"
+    far.write_text(s.gcp_file.read_text().rstrip("\n") + "\nGCP49 483300.0 4288600.0 110.0\n")
+    c = geoortho.check_plan(far, tmp_path / "c_plan", plan=p.plan, marker_size_m=1.0)
+    rep = json.loads(c.report.read_text())
+    assert c.short_gcps == "GCP49" and c.n_short_gcps == 1
+    for g in rep["gcps"]:
+        if g["name"] in planned:
+            assert g["n_expected"] == planned[g["name"]]["n_photos"]  # the same count as plan gave
+    assert rep["under_overlap_pct"] < 1.0  # the plan covers its AOI at the overlap it asked
+    # the flown photos, from their metadata: each GCP within 2 of what gcp-find found in them
+    c2 = geoortho.check_plan(far, tmp_path / "c_photos", images=s.images, dsm=s.dtm)
+    got = {g["name"]: g["n_photos"] for g in json.loads(c2.report.read_text())["gcps"]}
+    r = geoortho.gcp_find(s.images, s.gcp_file, tmp_path / "gcp_list.txt")
+    found = Counter(ln.split()[6] for ln in r.output.read_text().splitlines()[1:] if ln.strip())
+    assert got["GCP49"] == 0 and all(abs(got[n] - found[n]) <= 2 for n in found)
+    under = gpd.read_file(c2.check, layer="under_overlap")
+    assert len(under) > 0 and (under["photos_needed"] == 5).all()  # the block's edge
