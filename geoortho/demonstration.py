@@ -44,7 +44,9 @@ def demo(
 ) -> DemoResult:
     """Make a synthetic survey and run the whole chain on it with ``run``.
 
-    Prints where each product and the quality report are. The chain: footprints, GCP finding,
+    Prints where each product and the quality report are. Before the flight, a plan over the
+    survey's area with its GCPs (``OUTPUT/plan``); after it, the photos checked against the GCPs
+    (``OUTPUT/plan/check``). The chain: footprints, GCP finding,
     SfM (every third GCP held out as a checkpoint), the dense cloud, DSM/DTM, the orthophoto and
     the report, in ``OUTPUT/project``; the survey and its truth are in ``OUTPUT/survey``. Run it
     again on the same folder and only what changed is re-done.
@@ -67,9 +69,10 @@ def demo(
 
     fb = as_feedback(feedback)
     output = Path(output)
-    synth_step, run_step = split(fb, [1, 4])
+    synth_step, plan_step, run_step = split(fb, [1, 0.1, 4])
     survey = synth(output / "survey", preset=preset, seed=seed, feedback=synth_step)
     names = sorted(read_gcp_file(survey.gcp_file).by_name())
+    planned = _plan_and_check(survey, output / "plan", plan_step)
     result = run(
         survey.images,
         output / "project",
@@ -88,6 +91,7 @@ def demo(
         "true_dsm": str(survey.dsm),
         "true_ortho": str(survey.ortho),
         "points": str(survey.points),
+        **planned,
         **_products(result.output),
         "report": str(result.report),
     }
@@ -95,6 +99,43 @@ def demo(
         fb.info(f"{k}: {v}")
     fb.info(f"demo: the quality report is {result.report}")
     return DemoResult(output, products)
+
+
+def _plan_and_check(survey: SynthResult, folder: Path, fb: Feedback) -> dict[str, str]:
+    """Before the flight: the plan over the survey's area with its GCPs; after it: the photos
+    checked against the GCPs and the overlap needed."""
+    import geopandas as gpd
+    import shapely
+
+    from .flightplan import check_plan, plan
+
+    info = json.loads((survey.truth / "survey.json").read_text())
+    aoi = folder / "aoi.gpkg"
+    folder.mkdir(parents=True, exist_ok=True)
+    gpd.GeoDataFrame(geometry=[shapely.box(*info["flight_box"])], crs=info["crs"]).to_file(aoi)
+    before, after = split(fb, [1, 1])
+    p = plan(
+        aoi,
+        folder,
+        camera=str(sorted(survey.images.iterdir())[0]),
+        altitude_m=info["preset"]["altitude_m"],
+        front_overlap=100 * info["preset"]["front_overlap"],
+        side_overlap=100 * info["preset"]["side_overlap"],
+        dtm=survey.dtm,
+        takeoff_ground_m=_takeoff_elevation(survey),
+        gcps=str(survey.gcp_file),
+        marker_size_m=info["marker_size_m"],
+        feedback=before,
+    )
+    c = check_plan(
+        survey.gcp_file,
+        folder / "check",
+        images=survey.images,
+        dsm=survey.dtm,
+        takeoff_elevation_m=_takeoff_elevation(survey),
+        feedback=after,
+    )
+    return {"plan": str(p.plan), "plan_summary": str(p.summary), "plan_kml": str(p.kml), "check": str(c.report)}
 
 
 def _takeoff_elevation(survey: SynthResult) -> float:

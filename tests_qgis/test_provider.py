@@ -515,4 +515,40 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     r = _run("report", {"PROJECT": str(project), "OUTPUT": str(tmp_path / "again.html")})
     assert r["N_SECTIONS"] >= 10 and "Quality report" in Path(r["OUTPUT"]).read_text()
     ran.add("report")
+
+    # plan: layers loaded in the project from the toolbox; then plan-check on it
+    import geopandas as gpd
+    import shapely
+
+    info = json.loads((tiny / "truth" / "survey.json").read_text())
+    aoi = tmp_path / "aoi.gpkg"
+    gpd.GeoDataFrame(geometry=[shapely.box(*info["flight_box"])], crs=info["crs"]).to_file(aoi)
+    r = processing.runAndLoadResults(
+        "geoortho:plan",
+        {
+            "AOI": str(aoi),
+            "OUTPUT": str(tmp_path / "plan"),
+            "CAMERA": "DJI Phantom 4 Pro",
+            "GSD_CM": 2.0,
+            "GCPS": str(tiny / "truth" / "gcp_utm.txt"),
+        },
+    )
+    summary = json.loads(Path(r["SUMMARY"]).read_text())
+    assert r["N_PHOTOS"] == summary["photos"] > 0 and abs(summary["gsd_cm"]["median"] - 2.0) < 0.05
+    loaded = {layer.source(): layer for layer in QgsProject.instance().mapLayers().values()}
+    for name in ("PHOTOS", "GCPS"):
+        match = [v for k, v in loaded.items() if k.split("|")[0] == r[name].split("|")[0] and name.lower() in k]
+        assert match and match[0].isValid() and match[0].featureCount() > 0
+    ran.add("plan")
+    r = _run(
+        "plan-check",
+        {
+            "GCP_FILE": str(tiny / "truth" / "gcp_utm.txt"),
+            "OUTPUT": str(tmp_path / "check"),
+            "PLAN": str(tmp_path / "plan" / "plan.gpkg"),
+        },
+    )
+    checked = {g["name"]: g["n_expected"] for g in json.loads(Path(r["REPORT"]).read_text())["gcps"]}
+    assert checked == {g["name"]: g["n_photos"] for g in summary["gcps"]}
+    ran.add("plan-check")
     assert ran == {a["id"] for a in description["algorithms"]}
