@@ -534,7 +534,10 @@ def plan(
     front_m, side_m = line_overlaps(polys, [s["line"] for s in shots])
 
     # GCPs
-    gcp_rows = _gcp_positions(gcps, gcp_crs, area_geom, work_crs, surface, across_w, marker_dictionary)
+    gcp_rows, gcp_notes = _gcp_positions(
+        gcps, gcp_crs, area_geom, work_crs, surface, across_w, marker_dictionary, float(z.min())
+    )
+    warnings_ += gcp_notes
     module_px = min_module_px(marker_dictionary)
     n_cells = get_dictionary(marker_dictionary).markerSize + 2
     # The print size from the largest GSD at any GCP among the photos that see it; then the counts
@@ -1077,35 +1080,65 @@ def line_overlaps(polys: list[Any], line: list[int], max_pairs: int = 1500) -> t
 # GCPs
 
 
+def _given_gcps(
+    path: str, gcp_crs: str | None, crs: CRS, surface: Surface, camera_z_min: float
+) -> tuple[list[tuple[str, float, float, float]], list[str]]:
+    """A GCP file's points in ``crs``: name, x, y and the height to use, with what was assumed.
+    Heights that are placeholders (all equal), missing, or at or above the cameras are taken from
+    the ground model instead: a GCP above the photos would be seen by none of them."""
+    from .gcp.io import heights_are_placeholders, read_gcp_file
+
+    gs = read_gcp_file(path, gcp_crs)
+    t = transformer(gs.crs, crs)
+    x, y = (np.asarray(v, float) for v in t.transform([p.x for p in gs.points], [p.y for p in gs.points]))
+    z = np.array([p.z for p in gs.points], float)
+    ground = surface.elevation(x, y)
+    notes = []
+    if heights_are_placeholders(z):
+        notes.append(f"all GCP heights are {z[0]:g}: taken as placeholders; heights from the ground model")
+        z = ground.copy()
+    bad = ~np.isfinite(z) | (z >= camera_z_min - 1.0)
+    if bad.any():
+        names = ", ".join(p.name for p, b in zip(gs.points, bad) if b)
+        notes.append(f"GCP heights missing or not below the photos ({names}): heights from the ground model")
+        z = np.where(bad, ground, z)
+    return [(p.name, float(a), float(b), float(c)) for p, a, b, c in zip(gs.points, x, y, z)], notes
+
+
 def _gcp_positions(
-    gcps: str, gcp_crs: str | None, area: Any, crs: CRS, surface: Surface, across_w: float, dictionary: str
-) -> list[dict[str, Any]]:
+    gcps: str,
+    gcp_crs: str | None,
+    area: Any,
+    crs: CRS,
+    surface: Surface,
+    across_w: float,
+    dictionary: str,
+    camera_z_min: float,
+) -> tuple[list[dict[str, Any]], list[str]]:
     """Given positions (a file) or N proposed ones: about 60 % on the AOI's perimeter, inset so that
     each lies inside the flown block, the rest inside, spread by farthest-point sampling."""
     import shapely
 
     text = gcps.strip()
     if text and not text.isdigit():
-        from .gcp.io import marker_id_of, read_gcp_file
+        from .gcp.io import marker_id_of
 
-        gs = read_gcp_file(text, gcp_crs)
-        t = transformer(gs.crs, crs)
+        pts, notes = _given_gcps(text, gcp_crs, crs, surface, camera_z_min)
         rows = []
-        for p in gs.points:
-            x, y = t.transform(p.x, p.y)
-            z = p.z if math.isfinite(p.z) else float(surface.elevation(np.array([x]), np.array([y]))[0])
+        for name, x, y, z in pts:
+            mid = marker_id_of(name)
             rows.append(
                 {
-                    "name": p.name,
-                    "marker_id": marker_id_of(p.name) if marker_id_of(p.name) is not None else -1,
+                    "name": name,
+                    "marker_id": -1 if mid is None else mid,
                     "role": "given",
-                    "x": float(x),
-                    "y": float(y),
-                    "z": float(z),
-                    "z_m": float(z),
+                    "x": x,
+                    "y": y,
+                    "z": z,
+                    "z_m": z,
                 }
             )
-        return rows
+        return rows, notes
     n = int(text) if text else default_gcp_count(area.area / 1e4)
     n_ids = get_dictionary(dictionary).bytesList.shape[0]
     if not 1 <= n <= min(200, n_ids - 1):
@@ -1148,7 +1181,7 @@ def _gcp_positions(
             "z_m": float(zz),
         }
         for i, ((x, y), zz, r) in enumerate(zip(xy, ground, roles))
-    ]
+    ], []
 
 
 def _farthest(candidates: np.ndarray, chosen: list[np.ndarray], n: int) -> list[np.ndarray]:
@@ -1537,7 +1570,6 @@ def check_plan(
     required_photos : int
         Photos each ground cell needs. Default: the plan's own figure, or 5 for photos.
     marker_size_m : float
-        Side of the markers' black square: it must be whole in a photo. Default: the
         plan's print size, or 1 m for photos.
     margin : float
         A GCP counts as seen only this far inside the frame, percent of the image side.
@@ -1546,7 +1578,6 @@ def check_plan(
     import shapely
 
     from .footprint import compute_footprints, write_overlap
-    from .gcp.io import read_gcp_file
     from .outputs import write_json, write_vector
 
     fb = as_feedback(feedback)
@@ -1598,12 +1629,11 @@ def check_plan(
         source = f"{len(cams)} photos in {Path(images).name}"  # type: ignore[arg-type]
     if need < 1:
         raise InputError("--required-photos must be at least 1")
-    gs = read_gcp_file(gcp_file, gcp_crs)
-    t = transformer(gs.crs, crs)
-    rows = []
-    for p in gs.points:
-        x, y = t.transform(p.x, p.y)
-        z = p.z if math.isfinite(p.z) else float(surface.elevation(np.array([x]), np.array([y]))[0])
+    pts, notes = _given_gcps(str(gcp_file), gcp_crs, crs, surface, min(float(c[:, 2].min()) for _, c, _ in groups))
+    for note in notes:
+        fb.warning(note)
+    rows: list[dict[str, Any]] = []
+    for name, x, y, z in pts:
         n_frame = n_exp = 0
         for intr, centres, rots in groups:
             # the marker with its one-module white border (a 4x4 marker: 8 / 6 of the black square)
@@ -1612,7 +1642,7 @@ def check_plan(
             n_exp += got["n_photos"]
         rows.append(
             {
-                "name": p.name,
+                "name": name,
                 "x": float(x),
                 "y": float(y),
                 "z_m": float(z),

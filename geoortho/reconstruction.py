@@ -48,7 +48,7 @@ from .crs import WGS84, crs_to_text, parse_crs, transformer
 from .errors import InputError
 from .feedback import Feedback, as_feedback
 from .footprint import photo_cameras, working_crs
-from .gcp.io import GcpSet, read_gcp_file
+from .gcp.io import GcpSet, heights_are_placeholders, read_gcp_file
 from .heights import absolute_altitude, check_altitudes
 from .outputs import write_json, write_vector
 from .photos import Photo, list_images, read_photos
@@ -1212,7 +1212,7 @@ def _georeference_by_gcps(
     georef, gcp_obs_used, heights_usable = gps.how, 0, True
     states = _gcp_states(inputs.gcps, inputs.out_crs, inputs.priors.offset, set(inputs.held_out), set(registered), fb)
     zs = np.array([s.surveyed[2] for s in states])
-    if len(zs) >= 2 and np.ptp(zs) < 1e-6:
+    if heights_are_placeholders(zs):
         heights_usable = False
         notes.append(
             f"all GCP heights are {zs[0] + inputs.priors.offset[2]:g}: taken as placeholders; "

@@ -11,6 +11,7 @@ import geopandas as gpd
 import numpy as np
 import pytest
 import shapely
+from conftest import RecordingFeedback, real_data
 from rasterio.transform import from_origin
 
 import geoortho
@@ -278,3 +279,26 @@ def test_check_a_plan_and_the_flown_photos(flown, tmp_path):
     assert got["GCP49"] == 0 and all(abs(got[n] - found[n]) <= 2 for n in found)
     under = gpd.read_file(c2.check, layer="under_overlap")
     assert len(under) > 0 and (under["photos_needed"] == 5).all()  # the block's edge
+
+
+def test_real_toledo_photos_checked_and_used_as_the_camera(tmp_path):
+    """Toledo's gcp_list has placeholder heights (all 400 m, above the drone): taken from the ground,
+    said; every GCP is then in at least as many photos as someone marked it in, by hand."""
+    folder = real_data("toledo_dji")
+    gcp_list = folder / "gcp" / "gcp_list.txt"
+    fb = RecordingFeedback()
+    c = geoortho.check_plan(gcp_list, tmp_path / "c", images=folder / "images", feedback=fb)
+    assert any("placeholders" in w for w in fb.warnings)
+    marked = Counter(
+        ln.split()[-1]
+        for ln in gcp_list.read_text().splitlines()[1:]
+        if ln.strip() and not ln.startswith("#") and len(ln.split()) >= 7
+    )
+    got = {g["name"]: g["n_photos"] for g in json.loads(c.report.read_text())["gcps"]}
+    assert marked and all(got[n] >= k for n, k in marked.items()) and c.n_short_gcps == 0
+    photo = sorted((folder / "images").iterdir())[0]
+    cam = resolve_camera(str(photo))
+    import cv2
+
+    h, w = cv2.imread(str(photo)).shape[:2]  # the size as decoded (these files were downscaled)
+    assert "FC3" in cam.name and (cam.width_px, cam.height_px) == (w, h) and 6.0 < cam.sensor_width_mm < 6.4

@@ -23,9 +23,11 @@ import json
 import math
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 from pyproj import CRS
 
 from ..crs import WGS84_3D, parse_crs
@@ -77,6 +79,13 @@ class GcpSet:
 
     def by_name(self) -> dict[str, GroundControlPoint]:
         return {p.name: p for p in self.points}
+
+
+def heights_are_placeholders(z: Sequence[float] | np.ndarray) -> bool:
+    """All GCP heights equal (two GCPs or more): a file with horizontal control and a filler height
+    (toledo's gcp_list: every height 400), not surveyed heights."""
+    zs = np.asarray(z, float)
+    return len(zs) >= 2 and bool(np.ptp(zs) < 1e-6)
 
 
 def marker_id_of(name: str) -> int | None:
