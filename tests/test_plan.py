@@ -302,3 +302,24 @@ def test_real_toledo_photos_checked_and_used_as_the_camera(tmp_path):
 
     h, w = cv2.imread(str(photo)).shape[:2]  # the size as decoded (these files were downscaled)
     assert "FC3" in cam.name and (cam.width_px, cam.height_px) == (w, h) and 6.0 < cam.sensor_width_mm < 6.4
+
+
+def test_double_grid_oblique_and_speed(tmp_path):
+    aoi = _aoi(tmp_path / "aoi.gpkg", shapely.box(E0, N0, E0 + 300, N0 + 200))
+    single = geoortho.plan(aoi, tmp_path / "s", camera="FC6310", gsd_cm=2.0, min_interval_s=2.0, speed_m_s=12.0)
+    double = geoortho.plan(aoi, tmp_path / "d", camera="FC6310", gsd_cm=2.0, grid="double")
+    lines = gpd.read_file(double.plan, layer="lines")
+    assert len(set((lines["grid_heading_deg"] % 180).round())) == 2 and double.n_photos > 1.6 * single.n_photos
+    s = json.loads(single.summary.read_text())
+    # one photo every spacing at the speed flown: never faster than the camera's interval
+    assert s["photo_interval_s"] >= 2.0 - 1e-9 and s["speed_m_s"] <= 12.0
+    assert s["speed_m_s"] == pytest.approx(min(12.0, s["spacing"]["along_m"] / 2.0))
+    oblique = geoortho.plan(aoi, tmp_path / "o", camera="FC6310", gsd_cm=2.0, pitch_deg=-60.0)
+    ph = gpd.read_file(oblique.plan, layer="photos")
+    fp = gpd.read_file(oblique.plan, layer="footprints")
+    # the footprints lie ahead of the drone along its heading, by about the height x tan(30 deg)
+    a = np.radians(ph["grid_heading_deg"])
+    ahead = (fp.centroid.x - ph.geometry.x) * np.sin(a) + (fp.centroid.y - ph.geometry.y) * np.cos(a)
+    agl = json.loads(oblique.summary.read_text())["altitude_m"]
+    assert np.median(ahead) > 0.4 * agl * math.tan(math.radians(30))
+    assert json.loads(oblique.summary.read_text())["gsd_cm"]["median"] == pytest.approx(2.0, rel=0.03)
