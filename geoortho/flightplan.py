@@ -1414,15 +1414,33 @@ def _write_marker_sheets(folder: Path, gcps: list[dict[str, Any]], dictionary: s
     import matplotlib
 
     matplotlib.use("Agg")
+    import logging
+
     from matplotlib import rc_context
+
+    # the PDF core fonts (Helvetica): nothing to embed, a sheet in milliseconds (matplotlib's font
+    # manager grumbles that no Helvetica *file* exists: none is needed, a PDF reader has it)
+    fm_log = logging.getLogger("matplotlib.font_manager")
+    level = fm_log.level
+    fm_log.setLevel(logging.ERROR)
+    try:
+        with rc_context({"pdf.use14corefonts": True, "font.family": "Helvetica"}):
+            return _marker_pages(folder, gcps, dictionary, side_m)
+    finally:
+        fm_log.setLevel(level)
+
+
+def _marker_pages(folder: Path, gcps: list[dict[str, Any]], dictionary: str, side_m: float) -> list[Path]:
     from matplotlib.figure import Figure
     from matplotlib.patches import PathPatch
     from matplotlib.path import Path as MplPath
 
     from .outputs import atomic_path
 
-    out = []
+    out: list[Path] = []
     inch = 0.0254
+    fig = ax = label = None
+    patch = None
     for g in gcps:
         mid = int(g["marker_id"])
         if mid < 0:
@@ -1433,40 +1451,42 @@ def _write_marker_sheets(folder: Path, gcps: list[dict[str, Any]], dictionary: s
         page_w = side_m + 2 * module + 0.04
         label_h = max(0.03, 0.06 * side_m)
         page_h = page_w + label_h
-        fig = Figure(figsize=(page_w / inch, page_h / inch))
-        ax = fig.add_axes((0, label_h / page_h, 1, page_w / page_h))
-        ax.set_xlim(0, page_w)
-        ax.set_ylim(0, page_w)
-        ax.axis("off")
         off = 0.02 + module
+        if fig is None:  # one page layout for every sheet (one size): only the cells and label change
+            fig = Figure(figsize=(page_w / inch, page_h / inch))
+            ax = fig.add_axes((0, label_h / page_h, 1, page_w / page_h))
+            ax.set_xlim(0, page_w)
+            ax.set_ylim(0, page_w)
+            ax.axis("off")
+            c = off + side_m / 2
+            r0, r1 = side_m / 2 + module + 0.002, side_m / 2 + module + 0.018
+            for sgn in (-1, 1):  # ticks in the margin on the centre lines: where to survey
+                ax.plot([c + sgn * r0, c + sgn * r1], [c, c], color="k", lw=0.6)
+                ax.plot([c, c], [c + sgn * r0, c + sgn * r1], color="k", lw=0.6)
+            label = fig.text(
+                0.5,
+                0.5 * label_h / page_h,
+                "",
+                ha="center",
+                va="center",
+                fontsize=max(4.0, min(14.0, label_h / inch * 72 * 0.35)),
+            )
         # black cells as one vector path (exact edges at any print size; a raster would be resampled)
         verts, codes = [], []
         for r, cc in zip(*np.nonzero(~cells)):
             x, y = off + cc * module, off + (n - 1 - r) * module
             verts += [(x, y), (x + module, y), (x + module, y + module), (x, y + module), (x, y)]
             codes += [MplPath.MOVETO, MplPath.LINETO, MplPath.LINETO, MplPath.LINETO, MplPath.CLOSEPOLY]
-        ax.add_patch(PathPatch(MplPath(verts, codes), facecolor="black", edgecolor="none", antialiased=False))
-        c = off + side_m / 2
-        r0, r1 = side_m / 2 + module + 0.002, side_m / 2 + module + 0.018
-        for sgn in (-1, 1):  # ticks in the margin on the centre lines: where to survey
-            ax.plot([c + sgn * r0, c + sgn * r1], [c, c], color="k", lw=0.6)
-            ax.plot([c, c], [c + sgn * r0, c + sgn * r1], color="k", lw=0.6)
-        fig.text(
-            0.5,
-            0.5 * label_h / page_h,
+        assert ax is not None and label is not None
+        if patch is not None:
+            patch.remove()
+        patch = ax.add_patch(PathPatch(MplPath(verts, codes), facecolor="black", edgecolor="none", antialiased=False))
+        label.set_text(
             f"{g['name']} · id {mid} · {dictionary} · black square {side_m * 100:.1f} × {side_m * 100:.1f} cm "
-            "— print at 100 %, check with a ruler; survey the centre",
-            ha="center",
-            va="center",
-            fontweight="medium",
-            fontsize=max(4.0, min(14.0, label_h / inch * 72 * 0.35)),
+            "— print at 100 %, check with a ruler; survey the centre"
         )
         target = folder / f"{g['name']}.pdf"
-        # the PDF core fonts: nothing to embed, a sheet in milliseconds
-        with (
-            atomic_path(target) as tmp,
-            rc_context({"pdf.use14corefonts": True, "font.family": "sans-serif", "font.sans-serif": ["Helvetica"]}),
-        ):
+        with atomic_path(target) as tmp:
             fig.savefig(tmp, format="pdf")
         out.append(target)
     return out
