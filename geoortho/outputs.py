@@ -7,6 +7,7 @@ This module owns raster (COG) and vector writing.
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import os
 import tempfile
@@ -36,13 +37,21 @@ def atomic_path(target: str | os.PathLike[str]) -> Iterator[Path]:
         yield tmp
         if not tmp.exists():
             raise RuntimeError(f"writer produced no file for {target}")
+        # Multi-file formats (Shapefile: .dbf .shx .prj .cpg; ENVI .hdr; ...) write sidecars named
+        # like the temporary file: each moves to the final name with it, before the main file.
+        for side in _sidecars(tmp):
+            if not side.name.endswith(".aux.xml"):  # GDAL's statistics cache stays behind (removed)
+                os.replace(side, target.with_name(target.stem + side.name[len(tmp.stem) :]))
         os.replace(tmp, target)
     finally:
-        if tmp.exists():
-            tmp.unlink()
-        aux = tmp.with_name(tmp.name + ".aux.xml")
-        if aux.exists():
-            aux.unlink()
+        for leftover in [tmp, *_sidecars(tmp)]:
+            if leftover.exists():
+                leftover.unlink()
+
+
+def _sidecars(tmp: Path) -> list[Path]:
+    """Files beside ``tmp`` named ``<tmp stem>.<anything>`` other than ``tmp`` itself."""
+    return [p for p in tmp.parent.glob(glob.escape(tmp.stem) + ".*") if p != tmp and p.is_file()]
 
 
 def write_text(target: str | os.PathLike[str], text: str) -> Path:
@@ -163,8 +172,10 @@ def write_vector(target: str | os.PathLike[str], layers: dict[str, Any]) -> Path
             if driver != "GPKG" and i > 0:
                 break  # single-layer formats keep the first (main) layer
             kwargs: dict[str, Any] = {"driver": driver, "engine": "pyogrio"}
-            if driver == "GPKG":
-                kwargs["layer"] = name
+            if driver in ("GPKG", "KML", "GML", "GeoJSON", "FlatGeobuf"):
+                kwargs["layer"] = name  # else the layer is named after the temporary file
+            if driver == "CSV":
+                kwargs["GEOMETRY"] = "AS_WKT"  # the CSV driver writes no geometry otherwise
             if i > 0:
                 kwargs["mode"] = "a"
             frame.to_file(tmp, **kwargs)

@@ -71,3 +71,25 @@ def test_write_cog_is_a_cog_with_crs_and_nodata(tmp_path):
         assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
         assert ds.overviews(1)
         np.testing.assert_array_equal(ds.read(1), arr)
+
+
+@pytest.mark.parametrize("ext", [".gpkg", ".geojson", ".shp", ".fgb", ".csv", ".kml", ".gml"])
+def test_every_offered_vector_format_is_whole_under_its_final_name(tmp_path, ext):
+    """Issue 23 (2): a Shapefile's .dbf/.shx/.prj/.cpg stayed under the temporary name (GDAL could
+    not open the result), CSV failed, KML layers were named after the temporary file."""
+    import geopandas as gpd
+    import pyogrio
+    import shapely
+
+    from geoortho.outputs import write_vector
+
+    g = gpd.GeoDataFrame(
+        {"image": ["a", "b"]}, geometry=[shapely.box(0, 0, 1, 1), shapely.box(1, 1, 2, 3)], crs="EPSG:32629"
+    )
+    p = write_vector(tmp_path / f"fp{ext}", {"footprints": g, "cameras": g})
+    back = gpd.read_file(p, layer=0).sort_values("image")
+    back = back.set_crs("EPSG:32629") if back.crs is None else back.to_crs("EPSG:32629")  # CSV: no CRS; KML: lon/lat
+    assert list(back["image"]) == ["a", "b"] and back.geometry.area.round(3).tolist() == [1.0, 2.0]
+    assert not [x.name for x in tmp_path.iterdir() if ".tmp-" in x.name]
+    names = pyogrio.list_layers(p)[:, 0].tolist()
+    assert names[0] in ("footprints", "fp")

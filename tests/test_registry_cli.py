@@ -165,3 +165,37 @@ def test_json_outputs_have_no_nan():
         "n": 3,
         "inf": None,
     }
+
+
+@pytest.mark.parametrize(
+    "args, what",
+    [
+        (["dem", "--points", "{d}/in.laz", "--output", "{d}/in.laz"], "points"),
+        (["dem", "--points", "{d}/in.laz", "--output", "{d}/dsm.tif", "--dtm", "{d}/dsm.tif"], "output dsm"),
+        (["dem", "--points", "{d}/in.laz", "--output", "{d}/dsm.tif", "--hillshade", "{d}/link.laz"], "points"),
+        (["gcp-find", "--images", "{d}", "--gcp-file", "{d}/g.txt", "--output", "{d}/./g.txt"], "gcp_file"),
+        (["ortho", "--images", "{d}", "--dsm", "{d}/d.tif", "--output", "{d}/d.tif"], "dsm"),
+        (["footprints", "--images", "{d}", "--output", "{d}/fp.gpkg", "--overlap", "{d}/fp.gpkg"], "output output"),
+    ],
+)
+def test_an_output_that_is_an_input_or_another_output_is_refused_untouched(tmp_path, capsys, args, what):
+    """Issue 23 (1): writing an output onto an input destroyed it, exit 0. Refused before any work,
+    the input byte for byte as it was; symlinks and '..' paths are the same file too."""
+    import os
+
+    for name, data in (
+        ("in.laz", b"LASF" + bytes(range(200))),
+        ("g.txt", b"EPSG:32629\nGCP1 1 2 3\n"),
+        ("d.tif", b"II*\x00" + bytes(100)),
+    ):
+        (tmp_path / name).write_bytes(data)
+    os.symlink(tmp_path / "in.laz", tmp_path / "link.laz")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    code = main([a.format(d=tmp_path) for a in args] + ["--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "destroy" in err[0] or "also the output" in err[0], err[0]
+    label = what.split()[-1]
+    assert label in err[0], err[0]
+    after = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    assert after == before  # nothing touched, nothing written

@@ -5,13 +5,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from ..errors import ParameterError
 from ..feedback import Feedback, as_feedback
-from .spec import PARAM_TYPES, Algorithm, Param
+from .spec import PARAM_TYPES, PATH_TYPES, Algorithm, Param
 
 __all__ = ["CONVERTERS", "convert_value", "get_algorithm", "list_algorithms", "run_algorithm", "describe"]
 
@@ -145,7 +146,44 @@ def convert_values(alg: Algorithm, values: dict[str, Any]) -> dict[str, Any]:
             raise ParameterError(p.name, "is required")
         else:
             kwargs[p.name] = p.default
+    _refuse_overwriting_inputs(alg, kwargs)
     return kwargs
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """The same file, through symlinks and ``..`` too (an output need not exist yet)."""
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
+def _refuse_overwriting_inputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
+    """An output that is an input file (or another output) would destroy it: refused before any
+    work. Folders given as outputs are checked against input files only (a project folder may hold
+    the photos' folder beside it)."""
+    inputs = [
+        (p, Path(kwargs[p.name]))
+        for p in alg.params
+        if p.type in PATH_TYPES and not p.output and kwargs.get(p.name) is not None
+    ]
+    outputs = [
+        (p, Path(kwargs[p.name]))
+        for p in alg.params
+        if p.type in PATH_TYPES and p.output and kwargs.get(p.name) is not None
+    ]
+    for i, (out_p, out_path) in enumerate(outputs):
+        for in_p, in_path in inputs:
+            if (in_p.type != "folder" or out_p.type != "folder") and _same_file(out_path, in_path):
+                raise ParameterError(
+                    out_p.name,
+                    f"{out_path} is also the input {in_p.name}: writing it would destroy it; give another path",
+                )
+        for other_p, other_path in outputs[:i]:
+            if _same_file(out_path, other_path):
+                raise ParameterError(out_p.name, f"{out_path} is also the output {other_p.name}; give another path")
 
 
 def outputs_of(alg: Algorithm, result: Any) -> dict[str, Any]:
