@@ -199,3 +199,33 @@ def test_cli_bad_gcp_file_exit_2(tmp_path, tiny_survey):
     )
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [r.stderr.strip()] and f"{bad}:2:" in r.stderr
+
+
+@pytest.mark.parametrize(
+    "how, hint",
+    [
+        ("zone", "the file's CRS looks wrong"),
+        ("swapped", "the columns look swapped"),
+        ("far", "the nearest is 0.3 km from the flight"),
+    ],
+)
+def test_no_gcp_in_any_photo_says_why(tiny_survey, tmp_path, how, hint):
+    """Issue 23 (6): a GCP file with no GCP in any photo ended in 'weights must sum to a positive
+    number'. Now one line: how far the nearest is, both CRSs, and the likely cause when found."""
+    from geoortho.errors import InputError
+
+    lines = tiny_survey.gcp_file.read_text().splitlines()
+    rows = [ln.split() for ln in lines[1:] if ln.strip()]
+    if how == "zone":
+        text = ["EPSG:32617"] + [" ".join(r) for r in rows]
+    elif how == "swapped":
+        text = [lines[0]] + [f"{r[0]} {r[2]} {r[1]} {r[3]}" for r in rows]
+    else:
+        text = [lines[0]] + [f"{r[0]} {float(r[1]) + 300:.3f} {r[2]} {r[3]}" for r in rows]
+    bad = tmp_path / "gcps.txt"
+    bad.write_text("\n".join(text) + "\n")
+    with pytest.raises(InputError) as e:
+        gcp_find(tiny_survey.images, bad, tmp_path / "gcp_list.txt")
+    msg = str(e.value)
+    assert "none of the" in msg and "gcps.txt" in msg and hint in msg and "EPSG:32629" in msg, msg
+    assert not (tmp_path / "gcp_list.txt").exists()

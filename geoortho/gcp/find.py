@@ -354,7 +354,39 @@ def _plan(
     for note in heights.notes:
         fb.warning(note)
     plan.windows = predict_windows(placed_cams, names, plan.xyz, ids, **uncertainty)
+    if not plan.windows:
+        raise InputError(_none_inside(placed_cams, gcps, plan.xyz, work, ids, uncertainty), path=gcps.path)
     return plan
+
+
+def _none_inside(
+    cams: list[PhotoCamera], gcps: GcpSet, xyz: np.ndarray, work: CRS, ids: dict[str, int], unc: dict[str, float]
+) -> str:
+    """Why no GCP is predicted in any photo, with the likely cause when one can be found: the
+    columns swapped, or the file's CRS line naming another CRS than its numbers are in."""
+    centres = np.array([c.pose.center[:2] for c in cams])
+    with np.errstate(invalid="ignore"):
+        d = np.hypot(*(xyz[:, None, :2] - centres[None]).transpose(2, 0, 1))
+    nearest = float(np.nanmin(d)) if np.isfinite(d).any() else float("inf")
+    far = f"the nearest is {nearest / 1000:.1f} km from the flight" if math.isfinite(nearest) else "none maps near it"
+    own = working_crs([c.photo for c in cams])  # the photos' own UTM zone
+    msg = (
+        f"none of the {len(xyz)} GCPs falls inside any photo; {far} — is the CRS right? "
+        f"(file: {crs_to_text(gcps.crs)}, photos: {crs_to_text(own)})"
+    )
+    raw = np.array([[p.x, p.y, p.z] for p in gcps.points])
+    names = [p.name for p in gcps.points]
+
+    def lands(x: np.ndarray, y: np.ndarray, crs: CRS) -> bool:
+        with np.errstate(invalid="ignore"):
+            wx, wy = transformer(crs, work).transform(x, y)
+        return bool(predict_windows(cams, names, np.c_[wx, wy, raw[:, 2]], ids, **unc))
+
+    if lands(raw[:, 1], raw[:, 0], gcps.crs):
+        return msg + "; with x and y swapped they fall on the flight: the columns look swapped"
+    if not gcps.crs.equals(own) and lands(raw[:, 0], raw[:, 1], own):
+        return msg + f"; read as {crs_to_text(own)} they fall on the flight: the file's CRS looks wrong"
+    return msg
 
 
 def _search(
