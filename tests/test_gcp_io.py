@@ -86,3 +86,15 @@ def test_duplicate_with_same_coordinates_is_fine(tmp_path):
 
 def test_marker_id_of():
     assert [marker_id_of(n) for n in ("GCP07", "12", "HV01", "base")] == [7, 12, 1, None]
+
+
+def test_semicolon_rows_with_decimal_commas(tmp_path):
+    """Issue 23 (6): 'GCP33;483601,6247;4288786,6576;113,8976' was split into 7 fields and read as
+    x=483601, y=6247, z=4288786 — silently wrong. Semicolons separate, commas are decimals."""
+    p = tmp_path / "g.txt"
+    p.write_text("EPSG:32629\nGCP33;483601,6247;4288786,6576;113,8976\nGCP34 ; 483602,5 ; 4288787 ; 114\n")
+    g = read_gcp_file(p)
+    assert [(q.name, q.x, q.y, q.z) for q in g.points] == [
+        ("GCP33", 483601.6247, 4288786.6576, 113.8976),
+        ("GCP34", 483602.5, 4288787.0, 114.0),
+    ]

@@ -202,7 +202,10 @@ def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSe
         raw = lines[i].split("#", 1)[0].strip()
         if not raw:
             continue
-        f = [t for t in re.split(r"[\s,;]+", raw) if t]
+        if ";" in raw:  # semicolon-separated: commas inside a field are decimal commas (483601,6247)
+            f = [t.strip().replace(",", ".") for t in raw.split(";") if t.strip()]
+        else:
+            f = [t for t in re.split(r"[\s,]+", raw) if t]
         n = i + 1
         if len(f) >= 6 and _is_number(f[0]) and _is_number(f[3]) and _is_number(f[4]):
             # an ODM gcp_list.txt row: geo_x geo_y geo_z im_x im_y image [name]
