@@ -46,7 +46,8 @@ def parse_crs(value: Any) -> CRS:
     try:
         return CRS.from_user_input(text)
     except CRSError:
-        raise ValueError(f"unknown CRS {text!r} (expected e.g. EPSG:32629, a PROJ string or WKT)") from None
+        shown = text if len(text) <= 80 else text[:77] + "..."
+        raise ValueError(f"unknown CRS {shown!r} (expected e.g. EPSG:32629, a PROJ string or WKT)") from None
 
 
 def utm_crs_for(lon_deg: float, lat_deg: float) -> CRS:

@@ -199,3 +199,20 @@ def test_an_output_that_is_an_input_or_another_output_is_refused_untouched(tmp_p
     assert label in err[0], err[0]
     after = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
     assert after == before  # nothing touched, nothing written
+
+
+@pytest.mark.parametrize(
+    "alg, crs, message",
+    [
+        ("ortho", "EPSG:4326", "is not projected"),
+        ("footprints", "EPSG:4978", "geocentric"),
+        ("footprints", "EPSG:5773", "vertical"),
+        ("footprints", "x" * 100_000, "unknown CRS"),
+    ],
+)
+def test_a_crs_that_cannot_be_a_map_is_refused(tmp_path, capsys, alg, crs, message):
+    """Issue 23 (7, 10): ortho --crs EPSG:4326 was ignored, footprints --crs EPSG:4978 wrote ECEF
+    geometry, a 100 kB --crs was echoed back whole."""
+    code = main([alg, "--images", str(tmp_path), "--output", str(tmp_path / "o.tif"), "--crs", crs, "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0] and len(err[0]) < 300, err

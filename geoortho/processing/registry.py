@@ -88,9 +88,18 @@ def _crs(p: Param, v: Any) -> Any:
     from ..crs import parse_crs
 
     try:
-        return parse_crs(v)
+        crs = parse_crs(v)
     except ValueError as e:
         raise ParameterError(p.name, str(e)) from None
+    if crs.is_geocentric:
+        raise ParameterError(p.name, f"{crs.name} is geocentric (ECEF x, y, z): give a projected CRS or lon/lat")
+    if crs.is_vertical and not (crs.is_projected or crs.is_geographic):
+        raise ParameterError(p.name, f"{crs.name} is a vertical CRS only: give a horizontal one")
+    return crs
+
+
+#: Algorithms whose ``crs`` may be geographic (lon/lat vectors); every other ``crs`` is a map grid.
+_GEOGRAPHIC_CRS_OK = frozenset({"footprints"})
 
 
 #: One converter per parameter type (a test checks that every type has one).
@@ -146,6 +155,12 @@ def convert_values(alg: Algorithm, values: dict[str, Any]) -> dict[str, Any]:
             raise ParameterError(p.name, "is required")
         else:
             kwargs[p.name] = p.default
+    crs = kwargs.get("crs")
+    if crs is not None and alg.id not in _GEOGRAPHIC_CRS_OK and not crs.is_projected:
+        raise ParameterError(
+            "crs",
+            f"{crs.name} is not projected: {alg.id} needs a map grid in metres or feet (e.g. the photos' UTM zone)",
+        )
     _refuse_overwriting_inputs(alg, kwargs)
     return kwargs
 
