@@ -133,10 +133,38 @@ def process_pool(
         return
     ctx = multiprocessing.get_context("spawn")
     n_procs = min(n_workers, n_items)
-    pool = cf.ProcessPoolExecutor(n_procs, mp_context=ctx, initializer=initializer, initargs=initargs)
+    pool = cf.ProcessPoolExecutor(
+        n_procs, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(), initializer, initargs)
+    )
     for _ in range(n_procs):
         pool.submit(os.getpid)  # start the workers now: they import while the caller prepares
     try:
         yield pool
     finally:
         pool.shutdown(cancel_futures=True)
+
+
+def _die_with_parent() -> None:
+    """Linux: ask the kernel to send SIGKILL to this worker when its parent dies (a SIGKILLed run
+    must not leave workers computing for minutes); elsewhere nothing."""
+    import ctypes
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _worker_start(parent_pid: int, initializer: Callable[..., Any] | None, initargs: tuple[Any, ...]) -> None:
+    """Every pool worker's first act: die with the parent, then the caller's initializer."""
+    _die_with_parent()
+    if os.getppid() != parent_pid:  # the parent died before the request took effect
+        os._exit(1)
+    if initializer is not None:
+        initializer(*initargs)

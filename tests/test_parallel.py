@@ -49,3 +49,42 @@ def test_imap_ordered_stops_on_cancel():
             if len(seen) == 3:
                 fb.cancel()
     assert seen == [0, 1, 4]
+
+
+def test_workers_die_with_a_sigkilled_parent(tmp_path):
+    """Issue 23 (8): after SIGKILL, pool workers went on rendering for over 10 minutes."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "synth",
+            "--output",
+            str(tmp_path / "s"),
+            "--preset",
+            "small",
+            "--workers",
+            "2",
+            "--quiet",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    parent = psutil.Process(proc.pid)
+    deadline = time.monotonic() + 60
+    while len(parent.children()) < 2:
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.1)
+    workers = parent.children(recursive=True)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    gone, alive = psutil.wait_procs(workers, timeout=10)
+    assert not alive, f"{len(alive)} workers outlived their parent"
