@@ -10,6 +10,7 @@ import contextlib
 import glob
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,7 +18,16 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "write_cog", "write_vector", "write_text", "write_json", "VECTOR_DRIVERS"]
+__all__ = [
+    "atomic_path",
+    "temp_prefix",
+    "remove_stale_temporaries",
+    "write_cog",
+    "write_vector",
+    "write_text",
+    "write_json",
+    "VECTOR_DRIVERS",
+]
 
 
 @contextlib.contextmanager
@@ -29,7 +39,7 @@ def atomic_path(target: str | os.PathLike[str]) -> Iterator[Path]:
     """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.stem}.tmp-", suffix=target.suffix, dir=target.parent)
+    fd, tmp_name = tempfile.mkstemp(prefix=temp_prefix(target.stem), suffix=target.suffix, dir=target.parent)
     os.close(fd)
     tmp = Path(tmp_name)
     tmp.unlink()  # let the writer create it (some drivers refuse an existing file)
@@ -52,6 +62,46 @@ def atomic_path(target: str | os.PathLike[str]) -> Iterator[Path]:
 def _sidecars(tmp: Path) -> list[Path]:
     """Files beside ``tmp`` named ``<tmp stem>.<anything>`` other than ``tmp`` itself."""
     return [p for p in tmp.parent.glob(glob.escape(tmp.stem) + ".*") if p != tmp and p.is_file()]
+
+
+def temp_prefix(name: str) -> str:
+    """The name start of every temporary geoortho writes beside a product: hidden, and carrying the
+    writer's pid so that the next run can tell a dead run's leftovers from a live run's work."""
+    return f".{name}.tmp-{os.getpid()}-"
+
+
+_TEMP = re.compile(r"^\..+\.tmp-(\d+)-")
+
+
+def remove_stale_temporaries(folder: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporaries (files and folders) in ``folder`` left by runs whose process is gone
+    (killed, or the machine stopped); a live run's are kept."""
+    import shutil
+
+    removed: list[Path] = []
+    folder = Path(folder)
+    if not folder.is_dir():
+        return removed
+    for p in folder.glob(".*.tmp-*"):
+        m = _TEMP.match(p.name)
+        if m is None or _alive(int(m.group(1))):
+            continue
+        try:
+            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+            removed.append(p)
+        except OSError:
+            pass
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 def write_text(target: str | os.PathLike[str], text: str) -> Path:

@@ -50,7 +50,7 @@ from .feedback import Feedback, as_feedback
 from .footprint import photo_cameras, working_crs
 from .gcp.io import GcpSet, heights_are_placeholders, read_gcp_file
 from .heights import absolute_altitude, check_altitudes
-from .outputs import write_json, write_vector
+from .outputs import temp_prefix, write_json, write_vector
 from .photos import Photo, list_images, read_photos
 from .pointcloud import write_las
 
@@ -907,7 +907,7 @@ def sfm(
     inputs = _read_inputs(images, gcp_list, checkpoints, crs, takeoff_elevation_m, local_frame, timer, fb)
     notes = list(inputs.notes)
     output.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=".sfm-work-", dir=output))
+    work = Path(tempfile.mkdtemp(prefix=temp_prefix("sfm-work"), dir=output))
     try:
         db = work / "database.db"
         mapped = _reconstruct(

@@ -93,3 +93,22 @@ def test_every_offered_vector_format_is_whole_under_its_final_name(tmp_path, ext
     assert not [x.name for x in tmp_path.iterdir() if ".tmp-" in x.name]
     names = pyogrio.list_layers(p)[:, 0].tolist()
     assert names[0] in ("footprints", "fp")
+
+
+def test_a_dead_runs_temporaries_are_removed_at_the_next_start_a_live_runs_kept(tiny_survey, tmp_path):
+    """Issue 23 (8): a SIGKILLed ortho left .o.tif-*/mosaic.tif (12 MB) that reruns never cleaned."""
+    import os
+
+    from geoortho.processing import run_algorithm
+
+    dead = 2**22 + 12345  # above Linux's default pid_max: no such process
+    stale_dir = tmp_path / f".o.tif.tmp-{dead}-abc"
+    stale_dir.mkdir()
+    (stale_dir / "mosaic.tif").write_bytes(b"\0" * 1000)
+    stale_file = tmp_path / f".fp.tmp-{dead}-xyz.gpkg"
+    stale_file.write_bytes(b"half")
+    live = tmp_path / f".other.tmp-{os.getpid()}-q.tif"  # a run still going (here: this one)
+    live.write_bytes(b"busy")
+    run_algorithm("footprints", {"images": tiny_survey.images, "output": tmp_path / "fp.gpkg"})
+    assert not stale_dir.exists() and not stale_file.exists() and live.exists()
+    assert (tmp_path / "fp.gpkg").is_file()

@@ -27,7 +27,7 @@ from ..errors import InputError
 from ..feedback import Feedback, as_feedback, split
 from ..footprint import compute_footprints
 from ..heights import GpsAltitude
-from ..outputs import atomic_path, write_json
+from ..outputs import atomic_path, temp_prefix, write_json
 from ..parallel import imap_ordered
 from ..surface import FlatSurface, GridSurface, Surface
 from .cameras import OrthoCamera, cameras_from_metadata, cameras_from_sfm
@@ -491,7 +491,7 @@ def mosaic(
         _INTERPOLATION[options.interpolation],
     )
     output.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=f".{output.name}-", dir=output.parent) as work_dir:
+    with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
         tiled = Path(work_dir) / "mosaic.tif"
         totals, used = _render(ctx, crs, tiled, options, st_tiles)
         times["tiles"] = time.perf_counter() - t2

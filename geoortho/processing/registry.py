@@ -232,10 +232,23 @@ def run_algorithm(
     """Validate ``values``, call the core function with a feedback, return its outputs."""
     alg = algorithm_id if isinstance(algorithm_id, Algorithm) else get_algorithm(algorithm_id)
     kwargs = convert_values(alg, values)
+    _clean_beside_outputs(alg, kwargs)
     fb = as_feedback(feedback)
     result = alg.function(**kwargs, feedback=fb)
     fb.progress(1.0)
     return outputs_of(alg, result)
+
+
+def _clean_beside_outputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
+    """Temporaries of killed runs beside (or in) this run's outputs are removed before it starts."""
+    from ..outputs import remove_stale_temporaries
+
+    for p in alg.params:
+        if p.output and kwargs.get(p.name) is not None:
+            path = Path(kwargs[p.name])
+            remove_stale_temporaries(path.parent)
+            if p.type == "folder":
+                remove_stale_temporaries(path)
 
 
 def _param_json(p: Param) -> dict[str, Any]:
