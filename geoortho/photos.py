@@ -312,6 +312,11 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
             exif_ifd = exif.get_ifd(0x8769)
             if im.format == "JPEG":
                 _check_jpeg_complete(path)
+    except Image.DecompressionBombError:
+        raise InputError(
+            f"the header claims more than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} M pixels: not a drone photo",
+            path=path,
+        ) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
         raise InputError(f"not a readable image ({e})", path=path) from None
     tags = parse_xmp(xmp_raw)
@@ -325,6 +330,8 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         lon = _xmp_float(tags, "drone-dji:GpsLongitude", "drone-dji:GpsLongtitude", "drone-dji:Longitude")
     if math.isfinite(lat) and math.isfinite(lon) and lat == 0.0 and lon == 0.0:
         lat = lon = math.nan  # a GPS without a fix writes 0, 0
+    if (math.isfinite(lat) and abs(lat) > 90) or (math.isfinite(lon) and abs(lon) > 180):
+        raise InputError(f"GPS position out of range (latitude {lat:g}, longitude {lon:g})", path=path)
     gps_alt = _float(gps.get(6)) if gps else math.nan
     if gps and math.isfinite(gps_alt) and gps.get(5) in (1, b"\x01"):
         gps_alt = -gps_alt
@@ -334,6 +341,13 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     yaw, pitch, roll, source = _attitude(tags, make, warnings)
     focal_mm = _float(exif_ifd.get(0x920A))
     focal_35 = _float(exif_ifd.get(0xA405))
+    # No camera has a lens under 1.5 mm (35 mm equivalent under 8 mm): 0 and 1 are placeholders.
+    if math.isfinite(focal_mm) and focal_mm < 1.5:
+        warnings.append(f"FocalLength {focal_mm:g} mm is not a lens: ignored")
+        focal_mm = math.nan
+    if math.isfinite(focal_35) and focal_35 < 8:
+        warnings.append(f"FocalLengthIn35mmFilm {focal_35:g} mm is not a lens: ignored")
+        focal_35 = math.nan
     sw, sw_source = _sensor_width(model, focal_mm, focal_35, exif_ifd, max(width, height), sensor_width_mm)
     if not math.isfinite(focal_mm) and math.isfinite(focal_35):
         # No true focal length: the 35 mm equivalent on a 36 mm-wide virtual sensor.
@@ -484,6 +498,8 @@ def read_photos(
             )
         else:
             photos.append(r)
+    photos, far = _drop_far_away(photos)
+    skipped += far
     photos = yaw_from_course(photos)
     # One line per kind of problem, with a count and the first few photos (hundreds of photos
     # share the same few problems).
@@ -496,6 +512,33 @@ def read_photos(
     for kind, names in by_kind.items():
         warn_grouped(fb, kind, names)
     return PhotoSet(photos, skipped)
+
+
+def _drop_far_away(photos: list[Photo]) -> tuple[list[Photo], list[tuple[str, str]]]:
+    """Photos whose GPS puts them far from the rest (a corrupt fix, a photo from another job):
+    farther from the median position than 20 x the photos' median distance to it, and 5 km (a
+    corridor's far end is about 2 x that median)."""
+    located = [p for p in photos if p.has_gps]
+    if len(located) < 3:
+        return photos, []
+    lat0 = float(np.median([p.latitude_deg for p in located]))
+    lon0 = float(np.median([p.longitude_deg for p in located]))
+    from pyproj import Geod
+
+    geod = Geod(ellps="WGS84")
+    _, _, d = geod.inv(
+        np.full(len(located), lon0),
+        np.full(len(located), lat0),
+        [p.longitude_deg for p in located],
+        [p.latitude_deg for p in located],
+    )
+    d = np.asarray(d)
+    limit = max(5_000.0, 20.0 * float(np.median(d)))
+    far = {p.image: float(km) for p, km in zip(located, d / 1000) if km * 1000 > limit}
+    if not far:
+        return photos, []
+    kept = [p for p in photos if p.image not in far]
+    return kept, [(name, f"{km:,.0f} km from the other photos (a wrong GPS fix?)") for name, km in far.items()]
 
 
 def yaw_from_course(photos: Sequence[Photo], max_gap_s: float = 30.0, min_move_m: float = 1.0) -> list[Photo]:

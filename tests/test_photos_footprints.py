@@ -300,3 +300,50 @@ def test_footprints_cli_bad_input_exit_2(tmp_path):
     )
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and "no images" in r.stderr
+
+
+def _with_exif(src, dst, gps=None, exif=None):
+    """A copy of ``src`` with some EXIF GPS/Exif tags replaced (piexif), its XMP kept."""
+    import piexif
+
+    data = piexif.load(str(src))
+    for k, v in (gps or {}).items():
+        data["GPS"][k] = v
+    for k, v in (exif or {}).items():
+        data["Exif"][k] = v
+    piexif.insert(piexif.dump(data), str(src), str(dst))
+    return dst
+
+
+def test_garbage_photos_are_skipped_with_their_reason_the_batch_goes_on(tiny_survey, tmp_path):
+    """Issue 23 (3, 4): lat 95 gave POINT(inf inf); a photo 12,000 km away was kept; a header of
+    30000 x 30000 px killed every command; focal length 0 killed footprints."""
+    import piexif
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    srcs = sorted(tiny_survey.images.iterdir())
+    for s in srcs[1:]:
+        (folder / s.name).write_bytes(s.read_bytes())
+    _with_exif(srcs[0], folder / "lat95.jpg", gps={piexif.GPSIFD.GPSLatitude: ((95, 1), (0, 1), (0, 1))})
+    _with_exif(
+        srcs[0],
+        folder / "far.jpg",
+        gps={piexif.GPSIFD.GPSLatitudeRef: b"S", piexif.GPSIFD.GPSLongitude: ((170, 1), (0, 1), (0, 1))},
+    )
+    _with_exif(srcs[0], folder / "focal0.jpg", exif={piexif.ExifIFD.FocalLength: (0, 1)})
+    # a JPEG whose frame header claims 30000 x 30000 pixels
+    raw = bytearray(srcs[0].read_bytes())
+    sof = raw.find(b"\xff\xc0")
+    raw[sof + 5 : sof + 9] = (30000).to_bytes(2, "big") * 2
+    (folder / "bomb.jpg").write_bytes(bytes(raw))
+    ps = read_photos(folder)
+    skipped = dict(ps.skipped)
+    assert "out of range" in skipped["lat95.jpg"]
+    assert "km from the other photos" in skipped["far.jpg"]
+    assert "M pixels" in skipped["bomb.jpg"]
+    focal0 = next(p for p in ps.photos if p.image == "focal0.jpg")  # the 35 mm equivalent stands in
+    assert any("not a lens" in w for w in focal0.warnings) and focal0.focal_px > 0
+    assert {p.image for p in ps.photos} == {s.name for s in srcs[1:]} | {"focal0.jpg"}
+    r = footprints(folder, tmp_path / "fp.gpkg")
+    assert r.n_photos == len(srcs) and r.n_skipped == 3
