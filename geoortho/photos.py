@@ -516,7 +516,7 @@ def read_photos(
 
 def _drop_far_away(photos: list[Photo]) -> tuple[list[Photo], list[tuple[str, str]]]:
     """Photos whose GPS puts them far from the rest (a corrupt fix, a photo from another job):
-    farther from the median position than 20 x the photos' median distance to it, and 5 km (a
+    farther from the median position than 20 x the photos' median distance to it, and 100 km (a
     corridor's far end is about 2 x that median)."""
     located = [p for p in photos if p.has_gps]
     if len(located) < 3:
@@ -533,7 +533,7 @@ def _drop_far_away(photos: list[Photo]) -> tuple[list[Photo], list[tuple[str, st
         [p.latitude_deg for p in located],
     )
     d = np.asarray(d)
-    limit = max(5_000.0, 20.0 * float(np.median(d)))
+    limit = max(100_000.0, 20.0 * float(np.median(d)))
     far = {p.image: float(km) for p, km in zip(located, d / 1000) if km * 1000 > limit}
     if not far:
         return photos, []
