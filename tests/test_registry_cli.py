@@ -216,3 +216,11 @@ def test_a_crs_that_cannot_be_a_map_is_refused(tmp_path, capsys, alg, crs, messa
     code = main([alg, "--images", str(tmp_path), "--output", str(tmp_path / "o.tif"), "--crs", crs, "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and message in err[0] and len(err[0]) < 300, err
+
+
+def test_progress_json_ends_with_a_json_error_line(tmp_path):
+    """Issue 23 (10): with --progress-json every stderr line is JSON, the final error too."""
+    r = cli("footprints", "--images", str(tmp_path / "none"), "--output", str(tmp_path / "f.gpkg"), "--progress-json")
+    last = json.loads(r.stderr.strip().splitlines()[-1])
+    assert r.returncode == 2 and last["type"] == "error" and last["exit_code"] == 2
+    assert "no such folder" in last["message"] and last["message"].startswith("geoortho footprints: error:")

@@ -177,30 +177,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         feedback = TerminalFeedback(alg.id, quiet=args.quiet)
     _install_sigterm(feedback)
     prog = f"{PROG} {alg.id}"
+
+    def fail(kind: str, message: str, code: int) -> int:
+        """The last stderr line: plain text, or one JSON object under --progress-json."""
+        feedback.close()
+        if args.progress_json:
+            line = f"{prog}: {message}"
+            sys.stderr.write(json.dumps({"type": kind, "message": line, "exit_code": code}) + "\n")
+        else:
+            sys.stderr.write(f"{prog}: {message}\n")
+        return code
+
     try:
         outputs = run_algorithm(alg, values, feedback)
     except InputError as e:
-        feedback.close()
-        sys.stderr.write(f"{prog}: error: {_one_line(e)}\n")
-        return 2
+        return fail("error", f"error: {_one_line(e)}", 2)
     except (CanceledError, KeyboardInterrupt):
-        feedback.close()
-        sys.stderr.write(f"{prog}: canceled\n")
-        return 130
+        return fail("canceled", "canceled", 130)
     except GeoorthoError as e:
-        feedback.close()
         if args.debug:
+            feedback.close()
             raise
-        sys.stderr.write(f"{prog}: error: {_one_line(e)}\n")
-        return 1
+        return fail("error", f"error: {_one_line(e)}", 1)
     except Exception as e:  # unexpected: a bug or an environment problem
-        feedback.close()
         if args.debug:
+            feedback.close()
             raise
-        sys.stderr.write(
-            f"{prog}: unexpected error: {type(e).__name__}: {_one_line(e)} (run with --debug for details)\n"
-        )
-        return 1
+        return fail("error", f"unexpected error: {type(e).__name__}: {_one_line(e)} (run with --debug for details)", 1)
     feedback.close()
     if args.json:
         print(json.dumps(outputs, indent=2))

@@ -90,6 +90,9 @@ def _handle_line(line: str, feedback: ProcessingFeedbackLike, plain: list[str]) 
             plain.append(line)
             feedback.pushConsoleInfo(line)
         return
+    if message.get("type") in ("error", "canceled"):  # geoortho's last word, as one JSON object
+        plain.append(str(message.get("message", "")))
+        return
     if "progress" in message:
         feedback.setProgress(100.0 * float(message["progress"]))
     if "info" in message:
