@@ -224,3 +224,14 @@ def test_progress_json_ends_with_a_json_error_line(tmp_path):
     last = json.loads(r.stderr.strip().splitlines()[-1])
     assert r.returncode == 2 and last["type"] == "error" and last["exit_code"] == 2
     assert "no such folder" in last["message"] and last["message"].startswith("geoortho footprints: error:")
+
+
+def test_no_room_for_the_output_is_said_before_any_work(tmp_path, capsys, monkeypatch):
+    """Issue 23 (9): a full disk was found only after the computing, under a temporary's name."""
+    import geoortho.processing.registry as registry
+
+    monkeypatch.setattr(registry, "MIN_FREE_MB", 1e15)
+    code = main(["synth", "--output", str(tmp_path / "s"), "--preset", "tiny", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and f"cannot write {tmp_path / 's'}" in err[0] and "MB free" in err[0]
+    assert not (tmp_path / "s").exists()

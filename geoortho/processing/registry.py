@@ -240,15 +240,36 @@ def run_algorithm(
 
 
 def _clean_beside_outputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
-    """Temporaries of killed runs beside (or in) this run's outputs are removed before it starts."""
+    """Each output can be written (refused now, not after the computing); temporaries of killed
+    runs beside (or in) it are removed before this run starts."""
     from ..outputs import remove_stale_temporaries
 
     for p in alg.params:
         if p.output and kwargs.get(p.name) is not None:
             path = Path(kwargs[p.name])
+            _check_writable(p, path)
             remove_stale_temporaries(path.parent)
             if p.type == "folder":
                 remove_stale_temporaries(path)
+
+
+MIN_FREE_MB = 50  # below this a product cannot be written whole; said before any computing
+
+
+def _check_writable(p: Param, path: Path) -> None:
+    """Before the work, not after it: the output's folder can be written and has room."""
+    import shutil
+
+    where = path if p.type == "folder" and path.is_dir() else path.parent
+    while not where.exists() and where != where.parent:  # folders still to be made
+        where = where.parent
+    if not os.access(where, os.W_OK | os.X_OK) or (
+        path.exists() and not path.is_dir() and not os.access(path, os.W_OK)
+    ):
+        raise ParameterError(p.name, f"cannot write {path}: {where} is read-only")
+    free_mb = shutil.disk_usage(where).free / 1e6
+    if free_mb < MIN_FREE_MB:
+        raise ParameterError(p.name, f"cannot write {path}: only {free_mb:.0f} MB free on its disk")
 
 
 def _param_json(p: Param) -> dict[str, Any]:
