@@ -331,6 +331,34 @@ def _check_source(src: PointSource, classified: Path | None, ground_method: str)
         raise InputError("the points have no classification; use ground_method smrf or csf", path=src.path)
 
 
+#: Bytes per grid cell at the peak of a DSM + DTM run (accumulators, gap fill, ground filter, the
+#: written products), rounded up from the measured peak of the 10 M-point benchmark.
+BYTES_PER_CELL = 64
+
+
+def _check_memory(grid: Grid, res_m: float, src: PointSource, width_m: float, height_m: float) -> None:
+    """Refuse, before allocating, a grid that cannot fit in half the memory available, saying which
+    resolution fits (and, when the cloud is far wider than its points fill, that an outlier is likely)."""
+    import psutil
+
+    cells = float(grid.cols) * float(grid.rows)
+    budget = 0.5 * psutil.virtual_memory().available
+    need = cells * BYTES_PER_CELL
+    if need <= budget:
+        return
+    fits = res_m * math.sqrt(need / budget)
+    fits = float(f"{fits:.2g}") if fits < 10 else math.ceil(fits)
+    hint = ""
+    if src.count / max(width_m * height_m, 1e-9) < 0.01:  # under one point per 100 m²
+        hint = "; the points are very sparse over that extent: a far outlier point in the file?"
+    raise InputError(
+        f"a {res_m:g} m grid over {width_m:,.0f} x {height_m:,.0f} m is {grid.cols:,} x {grid.rows:,} cells "
+        f"(~{need / 1e9:.1f} GB), more than this machine has free ({budget / 1e9:.1f} GB for it): "
+        f"give --resolution-m {fits:g} or coarser{hint}",
+        path=src.path,
+    )
+
+
 @dataclass(frozen=True)
 class _GridPlan:
     grid: Grid
@@ -351,6 +379,7 @@ def _plan_grid(src: PointSource, resolution_m: float | None, fb: Feedback) -> _G
             path=src.path,
         )
     grid = Grid.covering(xmin, ymin, xmax, ymax, cell)
+    _check_memory(grid, res_m, src, (xmax - xmin) * src.horizontal_m, (ymax - ymin) * src.horizontal_m)
     fb.info(
         f"grid {grid.cols} x {grid.rows} cells of {res_m:g} m ({cell:g} {src.horizontal_unit})"
         + ("" if resolution_m else ", from the point density")

@@ -294,3 +294,23 @@ def test_pdal_engine_or_clear_reason(tmp_path):
 def test_unknown_method_is_a_parameter_error(tmp_path):
     with pytest.raises(ParameterError):
         dem(np.zeros((5, 3)), tmp_path / "d.tif", crs="EPSG:32629", method="median")
+
+
+def test_a_grid_that_cannot_fit_is_refused_before_allocating_with_a_resolution_that_fits(tiny_survey, tmp_path):
+    """Issue 23 (5): one outlier point 100 km away with an explicit resolution asked for 74.5 GiB
+    (MemoryError); --resolution-m 1e-3 too. Now one line, before any allocation."""
+    import laspy
+
+    from geoortho.pointcloud import write_las
+
+    las = laspy.read(tiny_survey.points)
+    xyz = np.c_[las.x, las.y, las.z]
+    xyz = np.vstack([xyz, xyz[:1] + [100_000.0, 0.0, 0.0]])
+    cloud = write_las(tmp_path / "outlier.laz", xyz, las.header.parse_crs())
+    with pytest.raises(InputError) as e:
+        dem(cloud, tmp_path / "dsm.tif", resolution_m=0.01)
+    msg = str(e.value)
+    assert "give --resolution-m" in msg and "outlier" in msg and "outlier.laz" in msg, msg
+    assert not (tmp_path / "dsm.tif").exists()
+    with pytest.raises(InputError, match="give --resolution-m"):
+        dem(tiny_survey.points, tmp_path / "dsm.tif", resolution_m=1e-4)
