@@ -223,3 +223,26 @@ def test_toledo_mosaic_from_sfm(toledo_sfm, tmp_path):
     filled = ndimage.binary_fill_holes(alpha > 0)
     assert (alpha[filled] > 0).mean() > 0.999
     assert r.preview.exists()
+
+
+@pytest.mark.parametrize("resolution", ["1e6", "1e-5"])
+def test_a_resolution_that_makes_no_product_is_refused(tiny_survey, tmp_path, capsys, resolution):
+    """Issue 23 (7): --resolution 1e6 wrote a 1 x 1 px mosaic with 0 photos used, exit 0."""
+    from geoortho.processing.cli import main
+
+    code = main(
+        [
+            "ortho",
+            "--images",
+            str(tiny_survey.images),
+            "--output",
+            str(tmp_path / "o.tif"),
+            "--resolution-m",
+            resolution,
+            "--takeoff-elevation-m",
+            "110",
+            "--quiet",
+        ]
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "median GSD" in err[0] and not (tmp_path / "o.tif").exists(), err

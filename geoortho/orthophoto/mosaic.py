@@ -23,7 +23,7 @@ from affine import Affine
 from pyproj import CRS
 
 from ..crs import crs_to_text, horizontal_unit_m
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 from ..feedback import Feedback, as_feedback, split
 from ..footprint import compute_footprints
 from ..heights import GpsAltitude
@@ -623,6 +623,13 @@ def _resolution(
         fb.warning(notes[-1])
     if resolution_m <= 0:
         raise InputError("the resolution must be positive")
+    if math.isfinite(median_gsd) and not 0.1 * median_gsd <= resolution_m <= 100 * median_gsd:
+        # a mosaic of a few pixels, or 100x more pixels than the photos resolve: neither is a product
+        raise ParameterError(
+            "resolution_m",
+            f"{resolution_m:g} m is not within 0.1 to 100 x the photos' median GSD ({median_gsd * 100:.2f} cm): "
+            f"give {0.1 * median_gsd:.3g} to {100 * median_gsd:.3g} m",
+        )
     return resolution_m, median_gsd
 
 
