@@ -1654,12 +1654,14 @@ def check_plan(
         fb.warning(note)
     rows: list[dict[str, Any]] = []
     for name, x, y, z in pts:
-        n_frame = n_exp = 0
+        n_frame = n_exp = n_sure = n_max = 0
         for intr, centres, rots in groups:
             # the marker with its one-module white border (a 4x4 marker: 8 / 6 of the black square)
             got = _seen_by(centres, rots, intr, np.array([x, y, z]), margin, laid * 8 / 6)
             n_frame += got["n_in_frame"]
             n_exp += got["n_photos"]
+            n_sure += got["n_photos_sure"]
+            n_max += got["n_photos_max"]
         rows.append(
             {
                 "name": name,
@@ -1667,7 +1669,9 @@ def check_plan(
                 "y": float(y),
                 "z_m": float(z),
                 "n_photos": n_frame,
-                "n_expected": n_exp if plan is not None else n_frame,
+                "n_expected": n_exp,
+                "n_sure": n_sure,
+                "n_max": n_max,
                 "short": n_frame < min_photos,
             }
         )
@@ -1682,7 +1686,7 @@ def check_plan(
         under = [g for g in (shapely.intersection(u, area) for u in under) if not g.is_empty and g.area > 0]
         covered_m2 = float(area.area)
     gcp_df = gpd.GeoDataFrame(
-        {k: [r[k] for r in rows] for k in ("name", "z_m", "n_photos", "n_expected", "short")},
+        {k: [r[k] for r in rows] for k in ("name", "z_m", "n_photos", "n_expected", "n_sure", "n_max", "short")},
         geometry=shapely.points([(r["x"], r["y"]) for r in rows]),
         crs=crs,
     )

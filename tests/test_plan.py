@@ -45,6 +45,8 @@ def flown(small_survey, tmp_path_factory):
         d / "plan",
         camera=str(photo),
         altitude_m=40.0,
+        front_overlap=70.0,  # the preset flies 75/65: fewer photos keep the test quick
+        side_overlap=60.0,
         dtm=small_survey.dtm,
         gcps=str(small_survey.gcp_file),
         marker_size_m=survey["marker_size_m"],
@@ -60,7 +62,7 @@ def test_flying_the_plan_gives_the_planned_overlap_gsd_and_gcp_sightings(flown, 
     assert s.n_photos == p.n_photos == len(photos)
     # the overlaps asked are met on the plan's own footprints (spaced at the highest ground)
     planned = summary["overlap_on_footprints_pct"]
-    assert planned["front"] >= 75 - 0.5 and planned["side"] >= 65 - 0.5
+    assert planned["front"] >= 70 - 0.5 and planned["side"] >= 60 - 0.5
     fp = geoortho.footprints(s.images, tmp_path / "fp.gpkg", dsm=s.dtm, takeoff_elevation_m=survey["home"]["ground_z"])
     got = gpd.read_file(fp.output, layer="footprints").sort_values("image")
     front, side = line_overlaps(list(got.geometry), photos["line"].tolist())
@@ -259,7 +261,7 @@ def test_camera_from_table_photo_or_values(small_survey):
 
 
 def test_check_a_plan_and_the_flown_photos(flown, tmp_path):
-    p, s, _ = flown
+    p, s, survey = flown
     planned = {g["name"]: g for g in json.loads(p.summary.read_text())["gcps"]}
     # an extra GCP far outside the block: seen by no photo, listed
     far = tmp_path / "gcps.txt"
@@ -271,12 +273,19 @@ def test_check_a_plan_and_the_flown_photos(flown, tmp_path):
         if g["name"] in planned:
             assert g["n_expected"] == planned[g["name"]]["n_photos"]  # the same count as plan gave
     assert rep["under_overlap_pct"] < 1.0  # the plan covers its AOI at the overlap it asked
-    # the flown photos, from their metadata: each GCP within 2 of what gcp-find found in them
-    c2 = geoortho.check_plan(far, tmp_path / "c_photos", images=s.images, dsm=s.dtm)
-    got = {g["name"]: g["n_photos"] for g in json.loads(c2.report.read_text())["gcps"]}
+    # the flown photos, from their metadata and the take-off height (GPS off by a bias of ~1 m: a
+    # GCP near the edge of a line is in or out of all its photos together): what gcp-find found lies between the sure
+    # and the most sightings, +-1
+    c2 = geoortho.check_plan(
+        far, tmp_path / "c_photos", images=s.images, dsm=s.dtm, takeoff_elevation_m=survey["home"]["ground_z"]
+    )
+    rows = {g["name"]: g for g in json.loads(c2.report.read_text())["gcps"]}
+    got = {n: g["n_photos"] for n, g in rows.items()}
     r = geoortho.gcp_find(s.images, s.gcp_file, tmp_path / "gcp_list.txt")
     found = Counter(ln.split()[6] for ln in r.output.read_text().splitlines()[1:] if ln.strip())
-    assert got["GCP49"] == 0 and all(abs(got[n] - found[n]) <= 2 for n in found)
+    assert got["GCP49"] == 0
+    for n, k in found.items():
+        assert rows[n]["n_sure"] - 1 <= k <= rows[n]["n_max"] + 1, (n, k, rows[n])
     under = gpd.read_file(c2.check, layer="under_overlap")
     assert len(under) > 0 and (under["photos_needed"] == 5).all()  # the block's edge
 
