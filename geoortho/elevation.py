@@ -198,13 +198,115 @@ def _auto_resolution_m(src: PointSource) -> float:
     return min(steps, key=lambda s: abs(math.log(s / raw)))
 
 
-def _finite(ch: Chunk) -> tuple[Chunk, np.ndarray]:
-    """The chunk's points with finite coordinates, and which of its points those are."""
+Box = tuple[float, float, float, float, float, float]  # xmin ymin zmin xmax ymax zmax
+
+
+def _finite(ch: Chunk, keep: Box | None = None) -> tuple[Chunk, np.ndarray]:
+    """The chunk's points with finite coordinates (inside ``keep`` when given: the far outliers
+    are out), and which of its points those are."""
     ok = np.isfinite(ch.x) & np.isfinite(ch.y) & np.isfinite(ch.z)
+    if keep is not None:
+        ok &= (ch.x >= keep[0]) & (ch.x <= keep[3]) & (ch.y >= keep[1]) & (ch.y <= keep[4])
+        ok &= (ch.z >= keep[2]) & (ch.z <= keep[5])
     if ok.all():
         return ch, ok
     cls = ch.classification[ok] if ch.classification is not None else None
     return Chunk(ch.x[ok], ch.y[ok], ch.z[ok], cls, ch.start), ok
+
+
+#: Points sampled by the extent scan; far outliers are judged against the sample's core.
+SCAN_SAMPLE = 200_000
+#: The core holds all but this share of the sampled points on each side of each axis.
+CORE_TAIL = 0.001
+#: A far outlier lies beyond the core by more than the core's size and more than this
+#: (metres; heights: at least FAR_Z_M, as no structure is taller).
+FAR_XY_M = 100.0
+FAR_Z_M = 1000.0
+#: Points beyond the core by that much are outliers only while they are this rare; more are data.
+MAX_OUTLIER_SHARE = 0.001
+
+
+@dataclass(frozen=True)
+class _Scan:
+    src: PointSource  # with the bounds and count of the points kept
+    keep: Box | None  # the box far outliers fall out of (None: every finite point is kept)
+    notes: tuple[str, ...]
+
+
+def _bounds_of(src: PointSource, keep: Box | None, fb: Feedback) -> tuple[int, Box, list[np.ndarray]]:
+    """One read of the points: how many are finite (and inside ``keep``), their exact bounds,
+    and a systematic sample of about SCAN_SAMPLE of them."""
+    step = max(1, src.count // SCAN_SAMPLE)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    n = 0
+    sample: list[np.ndarray] = []
+    for ch in src.chunks():
+        fb.check_canceled()
+        ch, _ = _finite(ch, keep)
+        if not len(ch.x):
+            continue
+        n += len(ch.x)
+        xyz = (ch.x, ch.y, ch.z)
+        lo = np.minimum(lo, [a.min() for a in xyz])
+        hi = np.maximum(hi, [a.max() for a in xyz])
+        first = (-ch.start) % step
+        sample.append(np.c_[ch.x[first::step], ch.y[first::step], ch.z[first::step]])
+    return n, (*lo, *hi), sample  # type: ignore[return-value]
+
+
+def _scan_extent(src: PointSource, fb: Feedback) -> _Scan:
+    """The extent the grid must cover, read from the points (headers' bounds and counts can lie),
+    without the far outliers: a point tens of km off would otherwise make the grid huge
+    (or, with the automatic resolution, its cells coarse)."""
+    n, bounds, sample = _bounds_of(src, None, fb)
+    if n < 3:
+        raise InputError(f"{n} point(s) with finite coordinates: too few to make a surface", path=src.path)
+    notes: list[str] = []
+    if n != src.count:
+        lying = " (the header's count is wrong)" if src.path is not None and src.count < n else ""
+        notes.append(f"{n:,} of {src.count:,} points have finite coordinates{lying}")
+    pts = np.concatenate(sample)
+    core_lo = np.quantile(pts, CORE_TAIL, axis=0)
+    core_hi = np.quantile(pts, 1.0 - CORE_TAIL, axis=0)
+    size = core_hi - core_lo
+    far_xy = max(float(size[0]), float(size[1]), FAR_XY_M / src.horizontal_m)
+    far_z = max(float(size[2]), FAR_Z_M / src.vertical_m)
+    keep: Box = (
+        core_lo[0] - far_xy,
+        core_lo[1] - far_xy,
+        core_lo[2] - far_z,
+        core_hi[0] + far_xy,
+        core_hi[1] + far_xy,
+        core_hi[2] + far_z,
+    )
+    inside = all(keep[i] <= bounds[i] and bounds[i + 3] <= keep[i + 3] for i in range(3))
+    if inside:
+        return _Scan(_with_bounds(src, n, bounds), None, tuple(notes))
+    n_kept, kept_bounds, _ = _bounds_of(src, keep, fb)
+    n_out = n - n_kept
+    if n_out > MAX_OUTLIER_SHARE * n:
+        # that many points are not strays: keep them all (the memory check speaks if it cannot fit)
+        notes.append(
+            f"{n_out:,} points ({100 * n_out / n:.2f} %) lie far outside the bulk of the cloud; kept as data"
+        )
+        return _Scan(_with_bounds(src, n, bounds), None, tuple(notes))
+    centre = (core_lo + core_hi) / 2
+    units = (src.horizontal_m, src.horizontal_m, src.vertical_m)
+    reach = max(max(abs(bounds[i] - centre[i]), abs(bounds[i + 3] - centre[i])) * units[i] for i in range(3))
+    notes.append(
+        f"{n_out:,} far outlier point(s) dropped (up to {reach / 1000:,.1f} km from the rest; "
+        f"the other {n_kept:,} span {(kept_bounds[3] - kept_bounds[0]) * src.horizontal_m:,.0f} x "
+        f"{(kept_bounds[4] - kept_bounds[1]) * src.horizontal_m:,.0f} m)"
+    )
+    fb.warning(notes[-1])
+    return _Scan(_with_bounds(src, n_kept, kept_bounds), keep, tuple(notes))
+
+
+def _with_bounds(src: PointSource, count: int, bounds: Box) -> PointSource:
+    from dataclasses import replace
+
+    return replace(src, bounds=bounds, notes=list(src.notes))
 
 
 def dem(
@@ -283,21 +385,27 @@ def dem(
     _check_source(src, classified, ground_method)
     for n in src.notes:
         fb.info(n)
+    want_ground = dtm is not None or classified is not None
+    s_scan, s_pass1, s_pass2, s_write = split(fb, [1, 4, 4 if want_ground else 0, 2])
+    scan = _scan_extent(src, s_scan)
+    src = scan.src
+    src.notes.extend(scan.notes)
     plan = _plan_grid(src, resolution_m, fb)
     params = SmrfParams(smrf_cell_m, smrf_slope, smrf_window_m, smrf_threshold_m, smrf_scalar, smrf_margin_m)
+    if want_ground and ground_method == "smrf":
+        params = _check_smrf(src, params, fb)
     if engine == "pdal":
         return _run_pdal(src, plan.grid, output, dtm, method, ground_method, max_gap_m, params, fb)
 
-    want_ground = dtm is not None or classified is not None
-    s_pass1, s_pass2, s_write = split(fb, [4, 4 if want_ground else 0, 2])
     ground = GROUND_FILTERS[ground_method](src, params) if want_ground else None
     dtm_acc = _Accumulator(plan.grid, "idw") if dtm is not None else None
-    first = _first_pass(src, plan.grid, method, ground, dtm_acc, s_pass1, fb)
+    first = _first_pass(src, plan.grid, method, ground, dtm_acc, scan.keep, s_pass1, fb)
     n_ground = first.n_ground
     if ground is not None:
         ground.prepare()
     if classified is not None or (ground is not None and not ground.known_in_first_pass):
-        n_ground += _second_pass(src, ground, dtm_acc, classified, s_pass2, fb)
+        n_ground += _second_pass(src, ground, dtm_acc, classified, scan.keep, s_pass2, fb)
+    fb.check_canceled()  # a SIGTERM during the last numpy step stops here, before any product is written
     result = _write_products(
         src, plan, method, first, dtm_acc, output, dtm, hillshade, max_gap_m, smooth_px, classified, n_ground
     )
@@ -359,6 +467,10 @@ def _check_memory(grid: Grid, res_m: float, src: PointSource, width_m: float, he
     )
 
 
+#: Finer grids than this many cells per point are interpolation, not measurement.
+MAX_CELLS_PER_POINT = 100
+
+
 @dataclass(frozen=True)
 class _GridPlan:
     grid: Grid
@@ -372,19 +484,69 @@ def _plan_grid(src: PointSource, resolution_m: float | None, fb: Feedback) -> _G
     xmin, ymin, _, xmax, ymax, _ = src.bounds
     if not all(map(math.isfinite, src.bounds)):
         raise InputError("no point has finite coordinates", path=src.path)
-    if xmax - xmin < cell and ymax - ymin < cell:
+    if xmax - xmin < 2 * cell or ymax - ymin < 2 * cell:
+        # a surface needs an area: a line of points (or a header X/Y scale of 0) has none
         raise InputError(
-            f"all points fall in one {res_m:g} m cell (extent {xmax - xmin:g} x {ymax - ymin:g} "
-            f"{src.horizontal_unit}): nothing to grid",
+            f"the points span {xmax - xmin:.3g} x {ymax - ymin:.3g} {src.horizontal_unit}: a line or a spot, "
+            "not an area (a header scale of 0? the wrong file?)",
             path=src.path,
         )
     grid = Grid.covering(xmin, ymin, xmax, ymax, cell)
-    _check_memory(grid, res_m, src, (xmax - xmin) * src.horizontal_m, (ymax - ymin) * src.horizontal_m)
+    width_m, height_m = (xmax - xmin) * src.horizontal_m, (ymax - ymin) * src.horizontal_m
+    cells = float(grid.rows) * float(grid.cols)
+    if cells > MAX_CELLS_PER_POINT * src.count:
+        # nearly every cell would be interpolated: minutes of gap filling for no detail
+        spacing_m = math.sqrt(width_m * height_m / src.count)
+        raise ParameterError(
+            "resolution_m",
+            f"{res_m:g} m makes {cells:,.0f} cells for {src.count:,} points (one point per "
+            f"{cells / src.count:,.0f} cells; the points are ~{spacing_m:.2g} m apart): "
+            f"give {1.05 * spacing_m / math.sqrt(MAX_CELLS_PER_POINT):.2g} m or coarser",
+        )
+    _check_memory(grid, res_m, src, width_m, height_m)
     fb.info(
         f"grid {grid.cols} x {grid.rows} cells of {res_m:g} m ({cell:g} {src.horizontal_unit})"
         + ("" if resolution_m else ", from the point density")
     )
     return _GridPlan(grid, res_m, cell)
+
+
+#: Seconds per cell and per squared opening radius of OpenCV's float32 opening with a disc
+#: (measured: radius 80 on 1 M cells, 1.8 s); the SMRF estimate sums it over every step.
+OPEN_S_PER_CELL_R2 = 3e-10
+#: The longest SMRF run allowed, estimated before it starts.
+MAX_SMRF_S = 600.0
+
+
+def _check_smrf(src: PointSource, params: SmrfParams, fb: Feedback) -> SmrfParams:
+    """SMRF parameters that can finish: a window wider than the cloud is cut to its size (an
+    opening that wide removes nothing more), and a cell whose estimated run passes MAX_SMRF_S
+    is refused with the finest cell that fits."""
+    from dataclasses import replace
+
+    xmin, ymin, _, xmax, ymax, _ = src.bounds
+    width_m, height_m = (xmax - xmin) * src.horizontal_m, (ymax - ymin) * src.horizontal_m
+    if params.cell_m <= 0 or params.window_m <= 0:
+        raise ParameterError("smrf_cell_m", "the SMRF cell and window must be positive")
+    widest = max(width_m, height_m, params.cell_m)
+    if params.window_m > widest:
+        fb.info(f"SMRF window {params.window_m:g} m is wider than the cloud: {widest:.0f} m used")
+        params = replace(params, window_m=widest)
+
+    def seconds(cell_m: float) -> float:
+        cells = (width_m / cell_m + 1) * (height_m / cell_m + 1)
+        steps = max(1.0, math.ceil(params.window_m / cell_m))
+        return OPEN_S_PER_CELL_R2 * cells * steps**3 / 3.0
+
+    est = seconds(params.cell_m)
+    if est > MAX_SMRF_S:
+        fits = params.cell_m * (est / MAX_SMRF_S) ** 0.2  # cells ~ 1/c², steps³ ~ 1/c³
+        raise ParameterError(
+            "smrf_cell_m",
+            f"{params.cell_m:g} m cells with a {params.window_m:g} m window over {width_m:,.0f} x {height_m:,.0f} m "
+            f"would take ~{est / 3600:,.1f} h: give {float(f'{fits:.2g}'):g} m or coarser (or a smaller smrf_window_m)",
+        )
+    return params
 
 
 class _GroundFilter:
@@ -489,6 +651,7 @@ def _first_pass(
     method: str,
     ground: _GroundFilter | None,
     dtm_acc: _Accumulator | None,
+    keep: Box | None,
     progress: Feedback,
     fb: Feedback,
 ) -> _FirstPass:
@@ -501,6 +664,8 @@ def _first_pass(
         if not ok.all():
             first_bad = first_bad if n_bad else ch.start + int(np.argmin(ok))
             n_bad += int((~ok).sum())
+        if keep is not None:
+            ch, _ = _finite(ch, keep)
         n_used += len(ch.x)
         dsm_acc.add(ch.x, ch.y, ch.z)
         if ground is not None:
@@ -523,6 +688,7 @@ def _second_pass(
     ground: _GroundFilter | None,
     dtm_acc: _Accumulator | None,
     classified: Path | None,
+    keep: Box | None,
     progress: Feedback,
     fb: Feedback,
 ) -> int:
@@ -535,10 +701,10 @@ def _second_pass(
     try:
         for ch in src.chunks():
             fb.check_canceled()
-            fin, keep = _finite(ch)
+            fin, used = _finite(ch, keep)
             g = np.zeros(len(ch.x), bool)
             if ground is not None:
-                g[keep] = ground.ground(fin)
+                g[used] = ground.ground(fin)
             if count_here:
                 n_ground += int(g.sum())
                 if dtm_acc is not None:
@@ -572,7 +738,8 @@ def _write_products(
     from .outputs import write_cog
 
     grid = plan.grid
-    max_gap_cells = max_gap_m / plan.resolution_m
+    # no gap is wider than the grid: a larger max gap means "every gap" (and must not pad the grid by it)
+    max_gap_cells = min(max_gap_m / plan.resolution_m, math.hypot(grid.rows, grid.cols))
     dsm_grid = _finish(first.dsm.result(), max_gap_cells, smooth_px)
     notes = [*src.notes, f"values in {src.vertical_unit}" if method != "count" else "values: points per cell"]
     unit_tag = _unit_tag(src.vertical_unit) if method != "count" else ""

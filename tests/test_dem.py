@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -229,7 +230,7 @@ def test_bad_input_clear_errors_no_file(tmp_path, case):
             "equal": np.tile([1.0, 2.0, 3.0], (50, 1)),
             "nan": np.full((10, 3), np.nan),
         }[case]
-        with pytest.raises(InputError, match="empty|one .* cell|finite|too few"):
+        with pytest.raises(InputError, match="empty|a line or a spot|finite|too few"):
             dem(xyz, out, crs="EPSG:32629")
     assert not out.exists() and not list(tmp_path.glob(".*tmp*"))
 
@@ -296,21 +297,102 @@ def test_unknown_method_is_a_parameter_error(tmp_path):
         dem(np.zeros((5, 3)), tmp_path / "d.tif", crs="EPSG:32629", method="median")
 
 
-def test_a_grid_that_cannot_fit_is_refused_before_allocating_with_a_resolution_that_fits(tiny_survey, tmp_path):
-    """Issue 23 (5): one outlier point 100 km away with an explicit resolution asked for 74.5 GiB
-    (MemoryError); --resolution-m 1e-3 too. Now one line, before any allocation."""
+def test_far_outliers_are_dropped_and_the_dsm_is_the_clean_one(tiny_survey, tmp_path):
+    """Issue 23 (5): outlier points 100 km away (and one 10 km up) made a 74.5 GiB grid, or with
+    the automatic resolution a silent 200 m-cell DSM. Now they are dropped with a warning."""
     import laspy
+    import rasterio
 
     from geoortho.pointcloud import write_las
 
     las = laspy.read(tiny_survey.points)
     xyz = np.c_[las.x, las.y, las.z]
-    xyz = np.vstack([xyz, xyz[:1] + [100_000.0, 0.0, 0.0]])
-    cloud = write_las(tmp_path / "outlier.laz", xyz, las.header.parse_crs())
-    with pytest.raises(InputError) as e:
-        dem(cloud, tmp_path / "dsm.tif", resolution_m=0.01)
-    msg = str(e.value)
-    assert "give --resolution-m" in msg and "outlier" in msg and "outlier.laz" in msg, msg
+    far = np.vstack([xyz[:10] + [100_000.0, 0.0, 0.0], xyz[10:11] + [0.0, 0.0, 10_000.0]])
+    cloud = write_las(tmp_path / "outlier.laz", np.vstack([xyz, far]), las.header.parse_crs())
+    fb = RecordingFeedback()
+    for name, src in (("clean", tiny_survey.points), ("outliers", cloud)):
+        r = dem(src, tmp_path / f"{name}.tif", dtm=tmp_path / f"{name}_dtm.tif", feedback=fb)
+    assert any("11 far outlier point(s) dropped" in w and "100.0 km" in w for w in fb.warnings), fb.warnings
+    assert any("11 far outlier" in n for n in r.notes)
+    for kind in ("", "_dtm"):
+        with rasterio.open(tmp_path / f"clean{kind}.tif") as a, rasterio.open(tmp_path / f"outliers{kind}.tif") as b:
+            assert a.transform == b.transform and a.shape == b.shape
+            assert np.array_equal(a.read(1), b.read(1))
+
+
+def test_many_points_far_apart_are_data_not_outliers():
+    from geoortho.elevation import _scan_extent
+    from geoortho.feedback import Feedback
+    from geoortho.pointcloud import open_points
+
+    rng = np.random.default_rng(0)
+    a = np.c_[rng.uniform(0, 50, (10_000, 2)), rng.uniform(0, 2, 10_000)]
+    block = a[:900] + [20_000.0, 0.0, 0.0]  # a second block 20 km away: 8 % of the points
+    scan = _scan_extent(open_points(np.vstack([a, block]), "EPSG:32629"), Feedback())
+    assert scan.keep is None and scan.src.bounds[3] > 20_000
+    # 18 points in two far groups: too rare for the core, too many (> 0.1 %) to be strays
+    strays = np.vstack([a[:9] + [20_000.0, 0.0, 0.0], a[9:18] + [0.0, 20_000.0, 0.0]])
+    scan = _scan_extent(open_points(np.vstack([a, strays]), "EPSG:32629"), Feedback())
+    assert scan.keep is None and scan.src.bounds[4] > 20_000 and "kept as data" in scan.notes[-1], scan.notes
+    scan = _scan_extent(open_points(np.vstack([a, strays[:9]]), "EPSG:32629"), Feedback())
+    assert scan.keep is not None and scan.src.bounds[3] < 51 and "9 far outlier" in scan.notes[-1]
+
+
+def test_grids_that_cannot_fit_or_are_mostly_interpolation_are_refused_first(tiny_survey, tmp_path, monkeypatch):
+    """--resolution-m 0.01 on a 72 x 64 m cloud took 7 GB and 9 minutes; 1e-3 asked for 238 GB."""
+    import collections
+
+    import psutil
+
+    with pytest.raises(ParameterError, match=r"one point per 2,500 cells.*give 0.052 m or coarser"):
+        dem(tiny_survey.points, tmp_path / "dsm.tif", resolution_m=0.01)
+    mem = collections.namedtuple("mem", "available")
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: mem(2_000_000))
+    with pytest.raises(InputError, match=r"more than this machine has free.*give --resolution-m \S+ or coarser"):
+        dem(tiny_survey.points, tmp_path / "dsm.tif", resolution_m=0.5)
     assert not (tmp_path / "dsm.tif").exists()
-    with pytest.raises(InputError, match="give --resolution-m"):
-        dem(tiny_survey.points, tmp_path / "dsm.tif", resolution_m=1e-4)
+
+
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        ({"smrf_cell_m": 0.05}, r"smrf_cell_m: .*would take ~2.4 h: give 0.085 m or coarser"),
+        ({"max_gap_m": 1e9}, None),
+        ({"smrf_window_m": 1e6}, None),
+    ],
+)
+def test_parameters_at_their_extremes_finish_or_are_refused_at_once(tiny_survey, tmp_path, option, message):
+    """--smrf-cell-m 0.05 ran 15 minutes, --smrf-window-m 1e6 over 3, --max-gap-m 1e9 ran out of memory."""
+    import time
+
+    t = time.perf_counter()
+    if message:
+        with pytest.raises(ParameterError, match=message):
+            dem(tiny_survey.points, tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", **option)
+    else:
+        r = dem(tiny_survey.points, tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", **option)
+        assert r.dtm is not None and r.dtm.exists()
+    assert time.perf_counter() - t < 60
+
+
+@pytest.mark.parametrize("case", ["line", "x_scale_0"])
+def test_points_without_an_area_are_refused(tiny_survey, tmp_path, case):
+    """Points on a line gave an np.gradient error; a header X scale of 0 a one-column DSM, exit 0."""
+    import struct
+
+    import laspy
+
+    from geoortho.pointcloud import write_las
+
+    if case == "line":
+        t = np.linspace(0, 30, 500)
+        cloud = write_las(tmp_path / "line.laz", np.c_[483600 + t, 4288780 + 0 * t, 110 + 0 * t], "EPSG:32629")
+    else:
+        data = bytearray(Path(tiny_survey.points).read_bytes())
+        assert laspy.open(tiny_survey.points).header.version.minor >= 2
+        data[131:139] = struct.pack("<d", 0.0)  # the X scale factor of a LAS 1.2-1.4 header
+        cloud = tmp_path / "x0.laz"
+        cloud.write_bytes(data)
+    with pytest.raises(InputError, match="a line or a spot, not an area"):
+        dem(cloud, tmp_path / "dsm.tif")
+    assert not (tmp_path / "dsm.tif").exists()

@@ -571,6 +571,9 @@ class _Placed:
     skipped: tuple[tuple[str, str], ...]
 
 
+MIN_AXIS_BELOW_HORIZON_DEG = 20.0
+
+
 def _place(cams: Sequence[OrthoCamera], surface: Surface, fb: Feedback) -> _Placed:
     """Cast each photo's border onto the surface (as the footprints stage does); leave out those that miss it."""
     if not cams:
@@ -584,7 +587,19 @@ def _place(cams: Sequence[OrthoCamera], surface: Surface, fb: Feedback) -> _Plac
     boxes: list[tuple[float, float, float, float]] = []
     gsds: list[float] = []
     skipped: list[tuple[str, str]] = []
+    axis_z = np.array([(c.pose.rotation @ [0.0, 0.0, 1.0])[2] for c in cams])
+    below_horizon_deg = np.degrees(np.arcsin(np.clip(-axis_z, -1.0, 1.0)))
     for i, cam in enumerate(cams):
+        if below_horizon_deg[i] < MIN_AXIS_BELOW_HORIZON_DEG:
+            # a view along the ground rectifies into a smear of stretched pixels, never a map
+            why = (
+                f"it looks at the horizon (view axis {abs(below_horizon_deg[i]):.0f} deg "
+                f"{'below' if below_horizon_deg[i] >= 0 else 'above'} it, "
+                f"less than {MIN_AXIS_BELOW_HORIZON_DEG:.0f}): not a mapping photo"
+            )
+            skipped.append((cam.name, why))
+            fb.warning(f"skipped {cam.name}: {why}")
+            continue
         # rays that missed end at the range limit: the box reaches that far
         ring = table.rings[i]
         box = (float(ring[:, 0].min()), float(ring[:, 1].min()), float(ring[:, 0].max()), float(ring[:, 1].max()))
@@ -819,8 +834,7 @@ def ortho(
     max_dsm_offset_m : float
         Largest vertical offset between the DSM and the SfM points taken as agreement.
     """
-    from ..footprint import working_crs
-    from ..photos import read_photos
+    from ..footprint import _photos_with_altitude, working_crs
 
     fb = as_feedback(feedback)
     images = Path(images)
@@ -834,12 +848,9 @@ def ortho(
         poses = f"sfm ({Path(sfm)})"
         default_ground = float(np.median(pts[:, 2])) if len(pts) else None
     else:
-        photoset = read_photos(images)
+        # one photo without an altitude is skipped, as in footprints, not the end of the mosaic
+        photoset = _photos_with_altitude(images, None, flight_height_m, fb, fb)
         skipped = list(photoset.skipped)
-        for name, why in photoset.skipped:
-            fb.warning(f"skipped {name}: {why}")
-        if not photoset.photos:
-            raise InputError("no photo with a GPS position and a camera model", path=images)
         out_crs = working_crs(photoset.photos, crs)
         cams, default_ground, poses = None, None, "photo metadata (direct georeferencing)"
     if abs(horizontal_unit_m(out_crs) - 1.0) > 1e-9:

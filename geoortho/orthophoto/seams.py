@@ -66,8 +66,24 @@ class SeamPlan:
         return self.labels[np.ix_(rows, cols)]
 
 
-def read_photo_bgr(path: str, reduction: int = 1) -> np.ndarray:
-    """Decode a photo (BGR uint8), optionally at 1/2, 1/4 or 1/8 size straight from the JPEG's DCT."""
+def read_photo_bgr(path: str, reduction: int = 1, *, verify: bool = False) -> np.ndarray:
+    """Decode a photo (BGR uint8), optionally at 1/2, 1/4 or 1/8 size straight from the JPEG's DCT.
+
+    ``verify``: decode with Pillow, which refuses a JPEG whose entropy-coded data is corrupt
+    (libjpeg, under OpenCV, only prints "Corrupt JPEG data" and returns a grey-smeared image)."""
+    if verify:
+        from PIL import Image
+
+        try:
+            with Image.open(path) as im:
+                if reduction > 1:
+                    im.draft("RGB", (math.ceil(im.width / reduction), math.ceil(im.height / reduction)))
+                rgb = np.asarray(im.convert("RGB"))
+        except Image.DecompressionBombError:
+            raise OSError("the image is too large to be a photo") from None
+        except (OSError, SyntaxError, ValueError) as e:
+            raise OSError(f"its pixel data is corrupt ({e}): the image cannot be trusted") from None
+        return cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
     flag = {
         1: cv2.IMREAD_COLOR,
         2: cv2.IMREAD_REDUCED_COLOR_2,
@@ -109,7 +125,7 @@ def _coarse_view(
     for r in (2, 4, 8):  # decode no finer than the coarse cell needs
         if math.isfinite(gsd_m) and r * gsd_m <= transform.a:
             reduction = r
-    img = read_photo_bgr(str(cam.path), reduction)
+    img = read_photo_bgr(str(cam.path), reduction, verify=True)
     want = (math.ceil(cam.intrinsics.height_px / reduction), math.ceil(cam.intrinsics.width_px / reduction))
     if abs(img.shape[0] - want[0]) > 1 or abs(img.shape[1] - want[1]) > 1:
         raise OSError(
