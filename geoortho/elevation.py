@@ -287,9 +287,7 @@ def _scan_extent(src: PointSource, fb: Feedback) -> _Scan:
     n_out = n - n_kept
     if n_out > MAX_OUTLIER_SHARE * n:
         # that many points are not strays: keep them all (the memory check speaks if it cannot fit)
-        notes.append(
-            f"{n_out:,} points ({100 * n_out / n:.2f} %) lie far outside the bulk of the cloud; kept as data"
-        )
+        notes.append(f"{n_out:,} points ({100 * n_out / n:.2f} %) lie far outside the bulk of the cloud; kept as data")
         return _Scan(_with_bounds(src, n, bounds), None, tuple(notes))
     centre = (core_lo + core_hi) / 2
     units = (src.horizontal_m, src.horizontal_m, src.vertical_m)

@@ -270,3 +270,18 @@ def warn_grouped(feedback: Feedback | None, kind: str, items: Sequence[str], *, 
         return
     first = ", ".join(items[:show]) + (", …" if len(items) > show else "")
     as_feedback(feedback).warning(f"{kind}: {len(items)} photo{'s' if len(items) != 1 else ''} ({first})")
+
+
+def reclaim_signal_handlers() -> None:
+    """Put Python's own SIGTERM handler back after a library replaced it at the C level.
+
+    COLMAP's glog installs a failure handler on SIGTERM when pycolmap is imported: a
+    terminated run (QGIS's Cancel) then dies with a 30-line C++ dump and leaves its work
+    folder. Python still knows its handler (the CLI's: cancel the feedback); set it again."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    handler = signal.getsignal(signal.SIGTERM)
+    if handler is not None:
+        signal.signal(signal.SIGTERM, handler)

@@ -248,6 +248,9 @@ class _Timer:
 def _pycolmap() -> Any:
     import pycolmap
 
+    from .feedback import reclaim_signal_handlers
+
+    reclaim_signal_handlers()
     # COLMAP logs every image and iteration at INFO; geoortho's feedback says what matters.
     if os.environ.get("GEOORTHO_COLMAP_LOG") is None:
         pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
@@ -1043,6 +1046,8 @@ def _read_inputs(
         else _Priors(None, np.zeros(3), {}, "no GPS")
     )
     notes = [f"heights: {priors.heights}", *priors.notes]
+    if gcps is not None and priors.positions and out_crs is not None:
+        _check_gcps_near_photos(gcps, priors, out_crs)
     if gcps is not None and not priors.positions:
         to_local = transformer(gcps.crs, out_crs)
         xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
@@ -1066,6 +1071,28 @@ def _read_inputs(
         tuple(bodies),
         tuple(notes),
     )
+
+
+#: GCPs farther than this from every photo's GPS (and than the flight's size) are not of this flight.
+GCP_FAR_M = 1000.0
+
+
+def _check_gcps_near_photos(gcps: GcpSet, priors: _Priors, crs: Any) -> None:
+    """Refuse GCPs that lie kilometres from the photos' GPS positions: the model would follow
+    them there (a wrong CRS line, a wrong UTM zone, another site's file), silently."""
+    pos = np.array(list(priors.positions.values()))[:, :2] + priors.offset[:2]
+    t = transformer(gcps.crs, crs)
+    gxy = np.array(t.transform([g.x for g in gcps.points], [g.y for g in gcps.points])).T
+    if not np.isfinite(gxy).all():
+        raise InputError(f"the GCPs cannot be placed in {crs_to_text(crs)}: is the file's CRS right?", path=gcps.path)
+    nearest = np.min(np.linalg.norm(gxy[:, None, :] - pos[None, :, :], axis=2), axis=1)
+    size = float(np.linalg.norm(pos.max(axis=0) - pos.min(axis=0)))
+    if nearest.min() > max(GCP_FAR_M, size):
+        raise InputError(
+            f"the nearest GCP is {nearest.min() / 1000:,.1f} km from the photos' GPS positions (the flight is "
+            f"{size:,.0f} m across): is the GCP file's CRS right ({crs_to_text(gcps.crs)})? is it this site's file?",
+            path=gcps.path,
+        )
 
 
 @dataclass(frozen=True)

@@ -570,6 +570,10 @@ def _reprojection(ctx: _Context) -> str:
         return _missing("SfM did not finish.")
     import pycolmap
 
+    from .feedback import reclaim_signal_handlers
+
+    reclaim_signal_handlers()  # pycolmap's glog took SIGTERM
+
     rec = pycolmap.Reconstruction(str(model))
     errors = np.array([p.error for p in rec.points3D.values()], dtype=float)
     errors = errors[np.isfinite(errors)]

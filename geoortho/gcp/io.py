@@ -204,11 +204,14 @@ def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSe
             continue
         if ";" in raw:  # semicolon-separated: commas inside a field are decimal commas (483601,6247)
             f = [t.strip().replace(",", ".") for t in raw.split(";") if t.strip()]
+        elif "\t" in raw:  # tab-separated: a field may hold spaces (an image name)
+            f = [t.strip() for t in raw.split("\t") if t.strip()]
         else:
             f = [t for t in re.split(r"[\s,]+", raw) if t]
         n = i + 1
         if len(f) >= 6 and _is_number(f[0]) and _is_number(f[3]) and _is_number(f[4]):
             # an ODM gcp_list.txt row: geo_x geo_y geo_z im_x im_y image [name]
+            f = f[:5] + _image_then_rest(f[5:])
             x, y, z = (_num(v, path, n, w) for v, w in zip(f[:3], ("x", "y", "z")))
             name = f[6] if len(f) >= 7 else f"{x:.3f}_{y:.3f}"
             if len(f) < 7:
@@ -237,6 +240,20 @@ def _read_text_rows(lines: list[str], start: int, crs: CRS, path: Path) -> GcpSe
         new_name = {p.line: p.name for p in points}
         observations = [replace(o, gcp=new_name.get(o.line, o.gcp)) for o in observations]
     return _finish(points, crs, path, tuple(observations))
+
+
+_IMAGE_SUFFIX = re.compile(r".*\.(jpe?g|tiff?|png|dng)$", re.IGNORECASE)
+
+
+def _image_then_rest(fields: list[str]) -> list[str]:
+    """An image name split at its spaces (``DJI 0001.JPG``) joined again: the shortest run of
+    fields that ends in an image suffix, when the first field does not."""
+    if _IMAGE_SUFFIX.match(fields[0]):
+        return fields
+    for k in range(2, len(fields) + 1):
+        if _IMAGE_SUFFIX.match(fields[k - 1]):
+            return [" ".join(fields[:k]), *fields[k:]]
+    return fields
 
 
 def _read_named_csv(lines: list[str], first: int, crs: CRS | None, path: Path) -> GcpSet:
@@ -292,16 +309,27 @@ def _read_opensfm_json(text: str, path: Path) -> GcpSet:
         doc = json.loads(text)
     except json.JSONDecodeError as e:
         raise InputError(f"not valid JSON: {e.msg}", path=path, line=e.lineno) from None
+    items = doc.get("points") if isinstance(doc, dict) else None
+    if not isinstance(items, list):
+        raise InputError(
+            'expected OpenSfM\'s ground_control_points.json: {"points": [{"id": ..., "position": '
+            '{"latitude": ..., "longitude": ..., "altitude": ...}}, ...]}',
+            path=path,
+        )
     points = []
-    for k, p in enumerate(doc.get("points", [])):
+    for k, p in enumerate(items):
+        if not isinstance(p, dict):
+            raise InputError(f"point {k + 1}: expected an object with id and position, got {p!r:.40}", path=path)
         name = str(p.get("id", k + 1))
         if "position" in p:
             pos = p["position"]
             try:
                 lat, lon = float(pos["latitude"]), float(pos["longitude"])
                 alt = float(pos.get("altitude", 0.0))
-            except (KeyError, TypeError, ValueError):
+            except (KeyError, TypeError, ValueError, AttributeError):
                 raise InputError(f"point {name!r}: position needs latitude, longitude (altitude)", path=path) from None
+            if not all(map(math.isfinite, (lat, lon, alt))):
+                raise InputError(f"point {name!r}: latitude, longitude and altitude must be numbers", path=path)
             _check_geographic(name, lat, lon, path, 0)
             points.append(GroundControlPoint(name, lon, lat, alt, 0))
     if not points:

@@ -102,6 +102,10 @@ def cameras_from_sfm(
     """
     import pycolmap
 
+    from ..feedback import reclaim_signal_handlers
+
+    reclaim_signal_handlers()  # pycolmap's glog took SIGTERM
+
     sfm_dir = Path(sfm_dir)
     model = sfm_dir / "model" if (sfm_dir / "model").is_dir() else sfm_dir
     geo_path = model / "georeference.json"
