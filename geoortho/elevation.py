@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, get_args
 
@@ -26,6 +26,7 @@ from .errors import DependencyError, InputError, ParameterError
 from .feedback import Feedback, as_feedback, split
 from .gapfill import fill_harmonic, gap_mask
 from .ground import SmrfParams, ground_mask, smrf_surface
+from .outputs import atomic_paths
 from .pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points
 
 __all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
@@ -302,8 +303,6 @@ def _scan_extent(src: PointSource, fb: Feedback) -> _Scan:
 
 
 def _with_bounds(src: PointSource, count: int, bounds: Box) -> PointSource:
-    from dataclasses import replace
-
     return replace(src, bounds=bounds, notes=list(src.notes))
 
 
@@ -403,9 +402,17 @@ def dem(
         ground.prepare()
     if classified is not None or (ground is not None and not ground.known_in_first_pass):
         n_ground += _second_pass(src, ground, dtm_acc, classified, scan.keep, s_pass2, fb)
-    fb.check_canceled()  # a SIGTERM during the last numpy step stops here, before any product is written
-    result = _write_products(
-        src, plan, method, first, dtm_acc, output, dtm, hillshade, max_gap_m, smooth_px, classified, n_ground
+    # the products appear together or not at all: a SIGTERM while they are written leaves none
+    with atomic_paths(output, dtm, hillshade, commit_check=fb.check_canceled) as (t_dsm, t_dtm, t_shade):
+        assert t_dsm is not None
+        result = _write_products(
+            src, plan, method, first, dtm_acc, t_dsm, t_dtm, t_shade, max_gap_m, smooth_px, classified, n_ground
+        )
+    result = replace(
+        result,
+        dsm=Path(output),
+        dtm=None if dtm is None else Path(dtm),
+        hillshade=None if hillshade is None else Path(hillshade),
     )
     if dtm is not None:
         fb.info(f"ground: {n_ground} of {first.n_used} points ({ground_method})")
@@ -520,7 +527,6 @@ def _check_smrf(src: PointSource, params: SmrfParams, fb: Feedback) -> SmrfParam
     """SMRF parameters that can finish: a window wider than the cloud is cut to its size (an
     opening that wide removes nothing more), and a cell whose estimated run passes MAX_SMRF_S
     is refused with the finest cell that fits."""
-    from dataclasses import replace
 
     xmin, ymin, _, xmax, ymax, _ = src.bounds
     width_m, height_m = (xmax - xmin) * src.horizontal_m, (ymax - ymin) * src.horizontal_m

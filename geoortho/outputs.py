@@ -20,6 +20,7 @@ import numpy as np
 
 __all__ = [
     "atomic_path",
+    "atomic_paths",
     "temp_prefix",
     "remove_stale_temporaries",
     "write_cog",
@@ -57,6 +58,18 @@ def atomic_path(target: str | os.PathLike[str]) -> Iterator[Path]:
         for leftover in [tmp, *_sidecars(tmp)]:
             if leftover.exists():
                 leftover.unlink()
+
+
+@contextlib.contextmanager
+def atomic_paths(*targets: str | os.PathLike[str] | None, commit_check: Any = None) -> Iterator[list[Path | None]]:
+    """Temporaries for several products that appear together or not at all: ``commit_check``
+    (e.g. a feedback's ``check_canceled``) runs after the last is written and before the first
+    rename, so a run canceled while writing leaves none of them. None targets stay None."""
+    with contextlib.ExitStack() as stack:
+        temps = [stack.enter_context(atomic_path(t)) if t is not None else None for t in targets]
+        yield temps
+        if commit_check is not None:
+            commit_check()
 
 
 def _sidecars(tmp: Path) -> list[Path]:

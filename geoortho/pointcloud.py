@@ -84,8 +84,13 @@ class PointSource:
                         start,
                     )
                     start += n
-        except (laspy.errors.LaspyException, ValueError, OSError) as e:
-            raise InputError(f"cannot read points after {start}: {e}", path=self.path) from e
+        except (laspy.errors.LaspyException, ValueError, OSError, RuntimeError) as e:
+            # RuntimeError: lazrs's LazrsError, a LAZ stream that ends before the header's count
+            raise InputError(
+                f"cannot read points after {start:,} of the {self.count:,} the header states "
+                f"(truncated or corrupt file?): {e}",
+                path=self.path,
+            ) from e
 
     def describe_units(self) -> str:
         return f"horizontal {self.horizontal_unit}, vertical {self.vertical_unit}"

@@ -163,7 +163,7 @@ def read_gcp_file(path: str | os.PathLike[str], crs: CRS | str | None = None) ->
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"cannot read GCP file: {e}", path=path) from None
     given = parse_crs(crs) if crs is not None else None
-    if text.lstrip().startswith("{"):
+    if text.lstrip().startswith(("{", "[")):
         return _read_opensfm_json(text, path)
     lines = text.splitlines()
     first = next((i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")), None)

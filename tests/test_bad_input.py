@@ -1,0 +1,643 @@
+"""The catalogue of hostile inputs (issue 23): every command, as a new user would break it.
+
+Each case runs the CLI in-process and asserts what a surveyor needs of it:
+
+* the exit code: 0 with a product, 2 with one stderr line for bad input, never 1 ("unexpected");
+* the line names the file, the line or the value, and what to give instead;
+* every input is byte for byte as it was;
+* nothing is left under a final name that is not a complete product, and no temporary file.
+
+``python tests/test_bad_input.py`` runs the catalogue outside pytest and prints the counts
+the issue asks for (cases, products, named errors, unexpected errors, inputs destroyed,
+temporaries left).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import re
+import shutil
+import struct
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from geoortho.processing.cli import main
+
+# ---------------------------------------------------------------------------------------------
+# hostile inputs, made from a clean tiny survey
+
+CENTRE = "DJI_0005.JPG"  # a photo in the middle of the tiny flight
+
+
+def _exif_edit(path: Path, edit: Callable[[dict], None]) -> None:
+    import piexif
+
+    ex = piexif.load(str(path))
+    edit(ex)
+    piexif.insert(piexif.dump(ex), str(path))
+
+
+def _xmp_edit(path: Path, pattern: bytes, value: bytes) -> None:
+    """Replace an XMP attribute's value keeping the segment's length (the JPEG stays valid)."""
+    data = path.read_bytes()
+
+    def same_length(m: re.Match[bytes]) -> bytes:
+        return m.group(1) + value.rjust(len(m.group(2))) + m.group(3)
+
+    new = re.sub(pattern, same_length, data)
+    assert new != data and len(new) == len(data)
+    path.write_bytes(new)
+
+
+def _dms(v: float) -> tuple:
+    d = int(abs(v))
+    m = int((abs(v) - d) * 60)
+    return (d, 1), (m, 1), (int(round(((abs(v) - d) * 60 - m) * 60 * 1000)), 1000)
+
+
+def _pitch_0(p: Path) -> None:
+    _xmp_edit(p, rb'(GimbalPitchDegree=")([^"]*)(")', b"+0.00")
+
+
+def _no_altitude(p: Path) -> None:
+    _exif_edit(p, lambda ex: [ex["GPS"].pop(k, None) for k in (5, 6)])
+    _xmp_edit(p, rb'(drone-dji:AbsoluteAltitude=")([^"]*)(")', b"")
+    _xmp_edit(p, rb'(drone-dji:RelativeAltitude=")([^"]*)(")', b"")
+
+
+def _corrupt_scan(p: Path) -> None:
+    data = bytearray(p.read_bytes())
+    sos = data.find(b"\xff\xda")
+    rng = np.random.default_rng(1)
+    for k in rng.integers(sos + 600, len(data) - 100, 200):
+        if data[k - 1] != 0xFF and data[k] != 0xFF:
+            data[k] = int(rng.integers(0, 255))
+    p.write_bytes(bytes(data))
+
+
+def _latitude_95(p: Path) -> None:
+    _exif_edit(p, lambda ex: ex["GPS"].update({2: ((95, 1), (0, 1), (0, 1))}))
+
+
+def _12000_km_away(p: Path) -> None:
+    _exif_edit(p, lambda ex: ex["GPS"].update({1: b"S", 2: _dms(45.0), 3: b"E", 4: _dms(170.0)}))
+
+
+def _focal_0(p: Path) -> None:
+    _exif_edit(p, lambda ex: ex["Exif"].update({0x920A: (0, 1), 0xA405: 0}))
+
+
+def _header_30000_px(p: Path) -> None:
+    data = bytearray(p.read_bytes())
+    sof = data.find(b"\xff\xc0")
+    data[sof + 5 : sof + 9] = struct.pack(">HH", 30000, 30000)
+    p.write_bytes(bytes(data))
+
+
+def _truncated(p: Path) -> None:
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+
+
+def _text(p: Path) -> None:
+    p.write_bytes(b"this is not a photo\n")
+
+
+def _empty(p: Path) -> None:
+    p.write_bytes(b"")
+
+
+#: Bad photo -> (how it is made, what the skip reason must say). Each is a copy of the centre
+#: photo with one defect, so it would land in the products if it were not refused.
+BAD_PHOTOS: dict[str, tuple[Callable[[Path], None], str]] = {
+    "pitch_0": (_pitch_0, "looks at the horizon"),
+    "no_altitude": (_no_altitude, "no altitude"),
+    "corrupt_scan": (_corrupt_scan, "corrupt"),
+    "latitude_95": (_latitude_95, "out of range"),
+    "far_away": (_12000_km_away, "km from"),
+    "focal_0": (_focal_0, "no focal length"),  # placeholders ignored: the camera is then unknown
+    "bomb": (_header_30000_px, "M pixels"),
+    "truncated": (_truncated, "truncated"),
+    "text": (_text, "not a readable image"),
+    "empty": (_empty, "not a readable image"),
+}
+
+
+def hostile_photos(clean: Path, folder: Path) -> Path:
+    """The clean photos plus one copy of the centre photo per defect, named after it."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for p in sorted(clean.iterdir()):
+        shutil.copy(p, folder / p.name)
+    for name, (make, _) in BAD_PHOTOS.items():
+        target = folder / f"BAD_{name}.JPG"
+        shutil.copy(clean / CENTRE, target)
+        make(target)
+    return folder
+
+
+def hostile_gcp_files(truth: Path, folder: Path) -> dict[str, Path]:
+    """GCP files that cannot place any GCP in the photos, or cannot be read."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = [ln.split() for ln in (truth / "gcp_utm.txt").read_text().splitlines()[1:] if ln.strip()]
+    files = {
+        "wrong_zone": "EPSG:32617\n" + "".join(f"{n} {x} {y} {z}\n" for n, x, y, z in rows),
+        "swapped": "EPSG:32629\n" + "".join(f"{n} {y} {x} {z}\n" for n, x, y, z in rows),
+        "300m_off": "EPSG:32629\n" + "".join(f"{n} {float(x) + 300} {y} {z}\n" for n, x, y, z in rows),
+        "geocentric": "EPSG:4978\n" + "".join(f"{n} {x} {y} {z}\n" for n, x, y, z in rows),
+        "vertical": "EPSG:5773\n" + "".join(f"{n} {x} {y} {z}\n" for n, x, y, z in rows),
+        "json_points_5": '{"points": 5}',
+        "json_nan": '{"points": [{"id": "A", "position": {"latitude": "nan", "longitude": 1}}]}',
+        "json_list": "[1, 2, 3]",
+        "not_a_number": "EPSG:32629\nGCP1 483600 abc 110\n",
+        "binary": "\x00\x01\x02\xff" * 50,
+        "empty": "",
+    }
+    out = {}
+    for name, text in files.items():
+        out[name] = folder / f"{name}.txt"
+        out[name].write_bytes(text.encode("utf-8", "surrogateescape") if name != "binary" else bytes(range(256)))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# running a case
+
+
+@dataclass
+class Outcome:
+    code: int
+    stderr: list[str]
+    stdout: str
+    changed_inputs: list[str] = field(default_factory=list)
+    temporaries: list[str] = field(default_factory=list)
+
+
+def _digest(paths: list[Path]) -> dict[str, str]:
+    out = {}
+    for root in paths:
+        files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file())
+        for p in files:
+            out[str(p)] = hashlib.sha1(p.read_bytes()).hexdigest()
+    return out
+
+
+def run_cli(argv: list[str], inputs: list[Path], workdir: Path, quiet: bool = True) -> Outcome:
+    before = _digest(inputs)
+    err, out = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        try:
+            code = main([*argv, "--quiet"] if quiet else argv)
+        except SystemExit as e:  # argparse's own refusals (unknown choice, made-up option)
+            code = int(e.code or 0)
+    after = _digest(inputs)
+    return Outcome(
+        code,
+        [ln for ln in err.getvalue().splitlines() if ln.strip()],
+        out.getvalue(),
+        sorted(k for k in before if before[k] != after.get(k)),
+        sorted(str(p) for p in workdir.rglob(".*.tmp*")),
+    )
+
+
+@dataclass(frozen=True)
+class Case:
+    """One hostile input: the arguments ({s}: the tiny survey, {h}: the hostile inputs, {o}: an empty
+    output folder), the exit code, and a pattern the last stderr line (code 2) must match."""
+
+    id: str
+    argv: tuple[str, ...]
+    code: int
+    message: str = ""
+    outputs: tuple[str, ...] = ()  # final output paths: present with code 0, absent otherwise
+
+
+CASES = [
+    # 3-4: photos, one bad photo never aborts a batch
+    Case(
+        "footprints/bad-photos",
+        ("footprints", "--images", "{h}/photos", "--output", "{o}/fp.gpkg"),
+        0,
+        outputs=("{o}/fp.gpkg",),
+    ),
+    Case(
+        "gcp-find/bad-photos",
+        ("gcp-find", "--images", "{h}/photos", "--gcp-file", "{s}/truth/gcp_utm.txt", "--output", "{o}/gcp_list.txt"),
+        0,
+        outputs=("{o}/gcp_list.txt",),
+    ),
+    Case("ortho/bad-photos", ("ortho", "--images", "{h}/photos", "--output", "{o}/o.tif"), 0, outputs=("{o}/o.tif",)),
+    Case(
+        "footprints/no-photo",
+        ("footprints", "--images", "{h}/gcp", "--output", "{o}/fp.gpkg"),
+        2,
+        "no images .* in the folder",
+    ),
+    # 1: outputs onto inputs
+    Case("dem/output=points", ("dem", "--points", "{h}/points.laz", "--output", "{h}/points.laz"), 2, "points"),
+    Case(
+        "gcp-find/output=gcp-file",
+        ("gcp-find", "--images", "{s}/images", "--gcp-file", "{h}/gcp/swapped.txt", "--output", "{h}/gcp/swapped.txt"),
+        2,
+        "gcp_file",
+    ),
+    Case(
+        "ortho/output=dsm",
+        ("ortho", "--images", "{s}/images", "--dsm", "{s}/truth/dsm.tif", "--output", "{s}/truth/dsm.tif"),
+        2,
+        "dsm",
+    ),
+    # 2: every offered vector format whole under its final name
+    Case(
+        "footprints/shapefile",
+        ("footprints", "--images", "{s}/images", "--output", "{o}/fp.shp"),
+        0,
+        outputs=("{o}/fp.shp", "{o}/fp.dbf", "{o}/fp.shx", "{o}/fp.prj"),
+    ),
+    Case(
+        "footprints/csv", ("footprints", "--images", "{s}/images", "--output", "{o}/fp.csv"), 0, outputs=("{o}/fp.csv",)
+    ),
+    Case(
+        "footprints/kml", ("footprints", "--images", "{s}/images", "--output", "{o}/fp.kml"), 0, outputs=("{o}/fp.kml",)
+    ),
+    # 5: point clouds and grids
+    Case(
+        "dem/far-outliers",
+        ("dem", "--points", "{h}/outliers.laz", "--output", "{o}/dsm.tif"),
+        0,
+        outputs=("{o}/dsm.tif",),
+    ),
+    Case("dem/line", ("dem", "--points", "{h}/line.laz", "--output", "{o}/dsm.tif"), 2, "a line or a spot"),
+    Case("dem/x-scale-0", ("dem", "--points", "{h}/x0.laz", "--output", "{o}/dsm.tif"), 2, "a line or a spot"),
+    Case(
+        "dem/resolution-0.01",
+        ("dem", "--points", "{s}/truth/points.laz", "--output", "{o}/dsm.tif", "--resolution-m", "0.01"),
+        2,
+        r"give \S+ m or coarser",
+    ),
+    Case(
+        "dem/resolution-1e-3",
+        ("dem", "--points", "{s}/truth/points.laz", "--output", "{o}/dsm.tif", "--resolution-m", "1e-3"),
+        2,
+        r"give \S+ m or coarser",
+    ),
+    Case(
+        "dem/smrf-cell-0.05",
+        (
+            "dem",
+            "--points",
+            "{s}/truth/points.laz",
+            "--output",
+            "{o}/dsm.tif",
+            "--dtm",
+            "{o}/dtm.tif",
+            "--smrf-cell-m",
+            "0.05",
+        ),
+        2,
+        r"smrf_cell_m: .* give \S+ m or coarser",
+    ),
+    Case(
+        "dem/smrf-window-1e6",
+        (
+            "dem",
+            "--points",
+            "{s}/truth/points.laz",
+            "--output",
+            "{o}/dsm.tif",
+            "--dtm",
+            "{o}/dtm.tif",
+            "--smrf-window-m",
+            "1e6",
+        ),
+        0,
+        outputs=("{o}/dsm.tif", "{o}/dtm.tif"),
+    ),
+    Case(
+        "dem/max-gap-1e9",
+        ("dem", "--points", "{s}/truth/points.laz", "--output", "{o}/dsm.tif", "--max-gap-m", "1e9"),
+        0,
+        outputs=("{o}/dsm.tif",),
+    ),
+    Case(
+        "dem/count-lies",
+        ("dem", "--points", "{h}/count_lies.laz", "--output", "{o}/dsm.tif"),
+        2,
+        "cannot read points|points",
+    ),
+    Case(
+        "dem/not-a-cloud", ("dem", "--points", "{h}/gcp/binary.txt", "--output", "{o}/dsm.tif"), 2, "point cloud format"
+    ),
+    Case("dem/text-as-laz", ("dem", "--points", "{h}/text.laz", "--output", "{o}/dsm.tif"), 2, "not a readable LAS"),
+    Case(
+        "dem/nan-z", ("dem", "--points", "{h}/nan.ply", "--output", "{o}/dsm.tif", "--crs", "EPSG:32629"), 2, "finite"
+    ),
+    # 6: GCP files
+    *[
+        Case(
+            f"gcp-find/{name}",
+            (
+                "gcp-find",
+                "--images",
+                "{s}/images",
+                "--gcp-file",
+                f"{{h}}/gcp/{name}.txt",
+                "--output",
+                "{o}/gcp_list.txt",
+            ),
+            2,
+            message,
+        )
+        for name, message in (
+            ("wrong_zone", r"none of the \d+ GCPs falls inside any photo.*CRS"),
+            ("swapped", "swapped"),
+            ("300m_off", r"none of the \d+ GCPs falls inside any photo; the nearest is 0.3 km from the flight"),
+            ("geocentric", "geocentric"),
+            ("vertical", "vertical"),
+            ("json_points_5", "expected OpenSfM"),
+            ("json_nan", "must be numbers|not finite"),
+            ("json_list", "expected OpenSfM"),
+            ("not_a_number", r"not_a_number.txt:2: y is not a number"),
+            ("binary", "cannot read GCP file|no CRS"),
+            ("empty", "empty GCP file"),
+        )
+    ],
+    Case(
+        "sfm/gcps-10-km-off",
+        ("sfm", "--images", "{s}/images", "--gcp-list", "{h}/gcp_list_far.txt", "--output", "{o}/sfm"),
+        2,
+        r"nearest GCP is 10.0 km from the photos",
+    ),
+    # 7: options that produce nothing
+    Case(
+        "ortho/resolution-1e6",
+        ("ortho", "--images", "{s}/images", "--output", "{o}/o.tif", "--resolution-m", "1e6"),
+        2,
+        r"not within 0.1 to 100 x",
+    ),
+    Case(
+        "ortho/crs-4326",
+        ("ortho", "--images", "{s}/images", "--output", "{o}/o.tif", "--crs", "EPSG:4326"),
+        2,
+        "not projected",
+    ),
+    Case(
+        "footprints/crs-4978",
+        ("footprints", "--images", "{s}/images", "--output", "{o}/fp.gpkg", "--crs", "EPSG:4978"),
+        2,
+        "geocentric",
+    ),
+    Case(
+        "footprints/crs-5773",
+        ("footprints", "--images", "{s}/images", "--output", "{o}/fp.gpkg", "--crs", "EPSG:5773"),
+        2,
+        "vertical",
+    ),
+    Case(
+        "footprints/crs-100kB",
+        ("footprints", "--images", "{s}/images", "--output", "{o}/fp.gpkg", "--crs", "x" * 100_000),
+        2,
+        "unknown CRS",
+    ),
+    Case("synth/preset", ("synth", "--output", "{o}/s", "--preset", "huge"), 2, "invalid choice: 'huge'"),
+    Case("plan/no-aoi", ("plan", "--aoi", "{h}/missing.gpkg", "--output", "{o}/plan"), 2, "no such file"),
+]
+
+
+def make_hostile(survey: Path, folder: Path) -> None:
+    """Every hostile input the cases name under {h}."""
+    import laspy
+
+    from geoortho.pointcloud import write_las
+
+    hostile_photos(survey / "images", folder / "photos")
+    hostile_gcp_files(survey / "truth", folder / "gcp")
+    las = laspy.read(survey / "truth" / "points.laz")
+    xyz = np.c_[las.x, las.y, las.z]
+    crs = las.header.parse_crs()
+    write_las(folder / "points.laz", xyz, crs)
+    far = np.vstack([xyz[:10] + [100_000.0, 0, 0], xyz[10:11] + [0, 0, 10_000.0]])
+    write_las(folder / "outliers.laz", np.vstack([xyz, far]), crs)
+    t = np.linspace(0, 30, 500)
+    write_las(folder / "line.laz", np.c_[xyz[0, 0] + t, xyz[0, 1] + 0 * t, xyz[0, 2] + 0 * t], crs)
+    data = bytearray((survey / "truth" / "points.laz").read_bytes())
+    data[131:139] = struct.pack("<d", 0.0)  # LAS 1.2-1.4 header: X scale factor
+    (folder / "x0.laz").write_bytes(bytes(data))
+    lies = bytearray((folder / "points.laz").read_bytes())
+    lies[107:111] = struct.pack("<I", 10 * len(xyz))  # legacy point count: ten times the truth
+    lies[247:255] = struct.pack("<Q", 10 * len(xyz))  # LAS 1.4 point count
+    (folder / "count_lies.laz").write_bytes(bytes(lies))
+    (folder / "text.laz").write_text("not a point cloud\n")
+    from plyfile import PlyData, PlyElement
+
+    v = np.zeros(50, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
+    v["x"], v["y"], v["z"] = np.arange(50.0), np.arange(50.0) % 7, np.nan
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(folder / "nan.ply"))
+    rows = [ln.split() for ln in (survey / "truth" / "gcp_utm.txt").read_text().splitlines()[1:] if ln.strip()]
+    (folder / "gcp_list_far.txt").write_text(
+        "EPSG:32629\n" + "".join(f"{float(x) + 10_000} {y} {z} 100 100 DJI_0001.JPG {n}\n" for n, x, y, z in rows)
+    )
+
+
+def run_case(case: Case, survey: Path, hostile: Path, out: Path, quiet: bool = True) -> Outcome:
+    out.mkdir(parents=True, exist_ok=True)
+    fill = {"s": str(survey), "h": str(hostile), "o": str(out)}
+    argv = [a.format(**fill) if len(a) < 1000 else a for a in case.argv]
+    return run_cli(argv, [survey, hostile], out, quiet)
+
+
+def judge(case: Case, got: Outcome, survey: Path, hostile: Path, out: Path) -> list[str]:
+    """What is wrong with the outcome (empty: the case passes)."""
+    fill = {"s": str(survey), "h": str(hostile), "o": str(out)}
+    problems = []
+    if got.code != case.code:
+        problems.append(f"exit {got.code}, expected {case.code}: {got.stderr[-1:]}")
+    if got.code == 2:
+        if len(got.stderr) != 1:
+            problems.append(f"{len(got.stderr)} stderr lines, expected one: {got.stderr}")
+        elif not re.search(case.message, got.stderr[0]):
+            problems.append(f"message {got.stderr[0]!r} does not match {case.message!r}")
+        elif len(got.stderr[0]) > 600:
+            problems.append(f"message of {len(got.stderr[0])} characters")
+    if got.stderr and "unexpected error" in got.stderr[-1]:
+        problems.append(got.stderr[-1])
+    for o in case.outputs:
+        path = Path(o.format(**fill))
+        if got.code == 0 and not path.is_file():
+            problems.append(f"no product {path.name}")
+    if got.code != 0:
+        left = [p for p in out.rglob("*") if p.is_file()]
+        if left:
+            problems.append(f"a failed run left {[p.name for p in left]}")
+    if got.changed_inputs:
+        problems.append(f"inputs changed: {got.changed_inputs}")
+    if got.temporaries:
+        problems.append(f"temporaries left: {got.temporaries}")
+    return problems
+
+
+# ---------------------------------------------------------------------------------------------
+# the tests
+
+
+@pytest.fixture(scope="module")
+def hostile(tiny_survey, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("hostile")
+    make_hostile(tiny_survey.output, folder)
+    return folder
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+def test_hostile_input(case, tiny_survey, hostile, tmp_path):
+    got = run_case(case, tiny_survey.output, hostile, tmp_path / "out")
+    assert not judge(case, got, tiny_survey.output, hostile, tmp_path / "out")
+
+
+@pytest.mark.parametrize("command", ["footprints", "gcp-find", "ortho"])
+def test_each_bad_photo_is_skipped_with_its_reason_by_every_command(command, tiny_survey, hostile, tmp_path):
+    """Issue 23 (3-4): garbage photos entered the mosaic, exit 0; one bad photo aborted the batch."""
+    out = tmp_path / "out"
+    case = next(c for c in CASES if c.id == f"{command}/bad-photos")
+    got = run_case(case, tiny_survey.output, hostile, out, quiet=False)
+    assert got.code == 0, got.stderr
+    said = [line for line in got.stderr if "skipped" in line]
+    if command == "ortho":
+        report = json.loads((out / "o_report.json").read_text())["skipped"]
+        said += [f"skipped {s['image']}: {s['reason']}" for s in report]
+    skipped = {}
+    for name in BAD_PHOTOS:
+        image = f"BAD_{name}.JPG"
+        lines = [line for line in said if image in line]
+        if lines:
+            skipped[image] = " | ".join(lines)
+    for name, (_, reason) in BAD_PHOTOS.items():
+        image = f"BAD_{name}.JPG"
+        if reason is None:
+            assert image not in skipped, skipped.get(image)
+        elif name == "pitch_0" and command != "ortho":
+            continue  # a horizon view has a footprint (clipped) and can hold a GCP: only the mosaic refuses it
+        elif name in ("no_altitude", "corrupt_scan", "focal_0") and command == "gcp-find":
+            continue  # searched whole / detected or not: neither can put a wrong GCP in the list
+        elif name == "corrupt_scan" and command == "footprints":
+            continue  # footprints read headers only
+        else:
+            assert image in skipped and re.search(reason, skipped[image]), (image, skipped.get(image))
+    if command == "ortho":
+        import rasterio
+
+        with rasterio.open(out / "o.tif") as ds:
+            assert ds.count == 4 and ds.crs.is_projected  # RGBA, georeferenced
+
+
+def test_sigterm_stops_dem_before_writing_anything(tiny_survey, tmp_path):
+    """Issue 23 (8): SIGTERM during dem wrote both rasters and then said "canceled"."""
+    import signal
+    import subprocess
+
+    src = tmp_path / "big.laz"
+    make_big = (
+        "import numpy as np, laspy; from geoortho.pointcloud import write_las;"
+        f"las = laspy.read({str(tiny_survey.points)!r}); xyz = np.c_[las.x, las.y, las.z];"
+        "rng = np.random.default_rng(0); k = 60;"
+        "big = np.vstack([xyz + [0, 0, rng.normal(0, 0.01)] for _ in range(k)]);"
+        f"write_las({str(src)!r}, big, las.header.parse_crs())"
+    )
+    subprocess.run([sys.executable, "-c", make_big], check=True)
+    p = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "geoortho",
+            "dem",
+            "--points",
+            str(src),
+            "--output",
+            str(tmp_path / "dsm.tif"),
+            "--dtm",
+            str(tmp_path / "dtm.tif"),
+            "--resolution-m",
+            "0.1",
+            "--progress-json",
+        ],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        text=True,
+    )
+    assert p.stderr is not None
+    lines = []
+    for line in p.stderr:  # the handler is in place once the run reports anything
+        lines.append(line)
+        if "grid " in line:
+            break
+    p.send_signal(signal.SIGTERM)
+    err = "".join(lines) + p.stderr.read()
+    p.wait(timeout=120)
+    if p.returncode == 0:
+        pytest.skip("dem finished before the signal")
+    assert p.returncode == 130 and json.loads(err.strip().splitlines()[-1])["type"] == "canceled", err
+    assert not (tmp_path / "dsm.tif").exists() and not (tmp_path / "dtm.tif").exists()
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_gcp_list_with_spaces_in_image_names_round_trips(tiny_survey, tmp_path):
+    """Issue 23 (6): photo names with spaces broke the gcp_list.txt round trip into sfm."""
+    from geoortho.gcp.find import gcp_find
+    from geoortho.gcp.io import read_gcp_file
+
+    images = tmp_path / "my photos"
+    images.mkdir()
+    for p in tiny_survey.images.iterdir():
+        shutil.copy(p, images / p.name.replace("_", " "))
+    found = gcp_find(images, tiny_survey.gcp_file, tmp_path / "gcp_list.txt")
+    gl = read_gcp_file(found.output)
+    names = {o.image for o in gl.observations}
+    assert names and names <= {p.name for p in images.iterdir()}, names
+    assert {o.gcp for o in gl.observations} <= {p.name for p in read_gcp_file(tiny_survey.gcp_file).points}
+
+
+# ---------------------------------------------------------------------------------------------
+# the counts, outside pytest
+
+
+def _counts() -> None:
+    import tempfile
+
+    from geoortho.synthetic import synth
+
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d)
+        survey = synth(root / "tiny", preset="tiny", seed=3).output
+        make_hostile(survey, root / "hostile")
+        tally = {
+            "cases": 0,
+            "passed": 0,
+            "products": 0,
+            "named errors": 0,
+            "unexpected errors": 0,
+            "inputs destroyed": 0,
+            "temporaries left": 0,
+        }
+        for k, case in enumerate(CASES):
+            out = root / "out" / str(k)
+            got = run_case(case, survey, root / "hostile", out)
+            problems = judge(case, got, survey, root / "hostile", out)
+            tally["cases"] += 1
+            tally["passed"] += not problems
+            tally["products"] += got.code == 0
+            tally["named errors"] += got.code == 2
+            tally["unexpected errors"] += got.code == 1
+            tally["inputs destroyed"] += bool(got.changed_inputs)
+            tally["temporaries left"] += bool(got.temporaries)
+            print(f"{'ok ' if not problems else 'BAD'} {case.id}: exit {got.code}", *problems, sep="\n    ")
+        print(json.dumps(tally, indent=1))
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).parent))
+    _counts()
