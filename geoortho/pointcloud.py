@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import os
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,7 +85,7 @@ class PointSource:
                         start,
                     )
                     start += n
-        except (laspy.errors.LaspyException, ValueError, OSError, RuntimeError) as e:
+        except (laspy.errors.LaspyException, ValueError, OSError, RuntimeError, struct.error, IndexError) as e:
             # RuntimeError: lazrs's LazrsError, a LAZ stream that ends before the header's count
             raise InputError(
                 f"cannot read points after {start:,} of the {self.count:,} the header states "
@@ -205,9 +206,82 @@ def _geokeys(header: Any) -> dict[int, int]:
     return {}
 
 
+#: Bytes per point of each LAS point format (0-10), the least a record can hold.
+_LAS_RECORD_MIN = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)
+#: No LAZ file compresses its points better than this (typical: 5-10 x).
+_LAZ_MAX_RATIO = 100
+
+
+def _check_las_header(path: Path) -> None:
+    """Refuse a LAS/LAZ header whose counts cannot be true before laspy or lazrs trusts them:
+    a mutated VLR count makes laspy read for minutes, a point count of billions makes lazrs
+    allocate tens of GB and abort the process (not an exception: the run dies)."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        h = f.read(375)
+    if len(h) < 227 or h[:4] != b"LASF":
+        raise InputError("not a LAS/LAZ file (no LASF signature)", path=path)
+    minor = h[25]
+    header_size, to_points, n_vlrs = struct.unpack_from("<HII", h, 94)
+    fmt_byte, record_len, legacy_count = struct.unpack_from("<BHI", h, 104)
+    fmt, compressed = fmt_byte & 0x3F, bool(fmt_byte & 0xC0)
+    count = legacy_count
+    if minor >= 4 and len(h) >= 255:
+        count = max(count, struct.unpack_from("<Q", h, 247)[0])
+
+    def bad(why: str) -> InputError:
+        return InputError(f"corrupt LAS header: {why}", path=path)
+
+    if not 227 <= header_size <= to_points <= size:
+        raise bad(f"header size {header_size} and point offset {to_points} do not fit a file of {size:,} bytes")
+    if n_vlrs * 54 > to_points - header_size:
+        raise bad(f"{n_vlrs:,} VLRs cannot fit in the {to_points - header_size:,} bytes before the points")
+    if fmt >= len(_LAS_RECORD_MIN) or record_len < _LAS_RECORD_MIN[fmt]:
+        raise bad(f"point format {fmt} with {record_len}-byte records")
+    with open(path, "rb") as f:  # the VLRs: the laszip one states the chunk lazrs allocates whole
+        f.seek(header_size)
+        vlrs = f.read(to_points - header_size)
+    at = 0
+    for _ in range(n_vlrs):
+        if at + 54 > len(vlrs):
+            raise bad(f"{n_vlrs} VLRs announced, the header region ends after fewer")
+        user_id = vlrs[at + 2 : at + 18].rstrip(b"\0")
+        record_id, length = struct.unpack_from("<HH", vlrs, at + 18)
+        data = vlrs[at + 54 : at + 54 + length]
+        if user_id == b"laszip encoded" and record_id == 22204 and len(data) >= 16:
+            chunk = struct.unpack_from("<I", data, 12)[0]
+            if chunk != 0xFFFFFFFF and chunk * record_len > 2**31:  # 0xFFFFFFFF: variable-size chunks
+                raise bad(f"a LAZ chunk of {chunk:,} points")
+            _check_chunk_table(path, to_points, size, bad)
+        at += 54 + length
+    room = size - to_points
+    if count * record_len > (_LAZ_MAX_RATIO if compressed or path.suffix.lower() == ".laz" else 1) * room:
+        raise bad(f"{count:,} points of {record_len} bytes cannot be in {room:,} bytes of point data")
+
+
+def _check_chunk_table(path: Path, to_points: int, size: int, bad: Any) -> None:
+    """LAZ: the points start with the chunk table's offset; the table starts with its chunk count,
+    which lazrs allocates before reading a chunk. No chunk is smaller than a byte."""
+    with open(path, "rb") as f:
+        f.seek(to_points)
+        raw = f.read(8)
+        if len(raw) < 8:
+            raise bad("no LAZ chunk table offset")
+        offset = struct.unpack("<q", raw)[0]
+        if offset == -1:  # not written (a streamed file): lazrs reads the chunks in order
+            return
+        if not to_points < offset <= size - 8:
+            raise bad(f"the LAZ chunk table offset {offset:,} is outside the file")
+        f.seek(offset + 4)
+        n_chunks = struct.unpack("<I", f.read(4))[0]
+    if n_chunks > size:
+        raise bad(f"{n_chunks:,} LAZ chunks in a file of {size:,} bytes")
+
+
 def _open_las(path: Path, override: CRS | None) -> PointSource:
     import laspy
 
+    _check_las_header(path)
     try:
         with laspy.open(str(path)) as reader:
             h = reader.header
@@ -220,8 +294,10 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
                 if override is None:
                     raise InputError(f"unreadable CRS in the LAS header ({e}); give the CRS (--crs)", path=path) from e
             keys = _geokeys(h)
-    except laspy.errors.LaspyException as e:
-        raise InputError(f"not a readable LAS/LAZ file: {e}", path=path) from e
+    except InputError:
+        raise
+    except Exception as e:  # laspy meets a broken header with struct, value and index errors of all kinds
+        raise InputError(f"not a readable LAS/LAZ file: {type(e).__name__}: {e}", path=path) from e
     notes: list[str] = []
     if override is not None:
         crs = override
