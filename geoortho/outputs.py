@@ -12,6 +12,7 @@ import json
 import os
 import re
 import tempfile
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -241,5 +242,9 @@ def write_vector(target: str | os.PathLike[str], layers: dict[str, Any]) -> Path
                 kwargs["GEOMETRY"] = "AS_WKT"  # the CSV driver writes no geometry otherwise
             if i > 0:
                 kwargs["mode"] = "a"
-            frame.to_file(tmp, **kwargs)
+            with warnings.catch_warnings():
+                # Shapefile: field names are cut to 10 characters, as the format has it; said once
+                # per field by geopandas and by pyogrio, to stderr, it is noise
+                warnings.filterwarnings("ignore", message=".*(Column names longer|laundered field name)")
+                frame.to_file(tmp, **kwargs)
     return target

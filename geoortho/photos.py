@@ -611,3 +611,27 @@ def with_sensor_width(photo: Photo, sensor_width_mm: float) -> Photo:
 def positions_lonlat(photos: Sequence[Photo]) -> np.ndarray:
     """(N, 2) longitude, latitude in degrees."""
     return np.array([[p.longitude_deg, p.latitude_deg] for p in photos], dtype=float).reshape(-1, 2)
+
+
+def decode_photo(path: str | os.PathLike[str], reduction: int = 1, *, grey: bool = False) -> np.ndarray | None:
+    """A JPEG's pixels (BGR, or grey), at 1/``reduction`` of its size straight from the DCT,
+    refusing (OSError) entropy-coded data libjpeg finds corrupt: under OpenCV (and Pillow, for a
+    bad Huffman code) it only prints "Corrupt JPEG data" and returns a grey-smeared image.
+    None when the file is not a JPEG (the caller decodes it its own way)."""
+    import simplejpeg
+
+    data = Path(path).read_bytes()
+    if data[:2] != b"\xff\xd8":
+        return None
+    try:
+        h, w, _, _ = simplejpeg.decode_jpeg_header(data)
+        img = simplejpeg.decode_jpeg(
+            data,
+            "GRAY" if grey else "BGR",
+            min_height=math.ceil(h / reduction),
+            min_width=math.ceil(w / reduction),
+            strict=True,
+        )
+    except ValueError as e:
+        raise OSError(f"its pixel data is corrupt ({e}): the image cannot be trusted") from None
+    return img[:, :, 0] if grey and img.ndim == 3 else img

@@ -214,7 +214,14 @@ def _search(
 def detect_task(args: tuple[str, list[Window], str]) -> tuple[str, list[Detection], str]:
     """Worker entry: decode one photo (grey) and search its windows."""
     path, windows, dictionary = args
-    gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    from ..photos import decode_photo
+
+    try:  # strict: a corrupt scan would be searched as grey smears, with libjpeg noise on stderr
+        gray = decode_photo(path, grey=True)
+    except OSError as e:
+        return path, [], str(e)
+    if gray is None:
+        gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     if gray is None:
         return path, [], "cannot decode the image"
     return path, detect_in_image(gray, windows, dictionary), ""

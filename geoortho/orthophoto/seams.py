@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Literal, get_args
 
 import cv2
@@ -74,21 +73,11 @@ def read_photo_bgr(path: str, reduction: int = 1, *, verify: bool = False) -> np
     OpenCV (and Pillow, for a bad Huffman code) only warns "Corrupt JPEG data" and returns a
     grey-smeared image; simplejpeg's strict mode turns the warning into an error."""
     if verify:
-        data = Path(path).read_bytes()
-        if data[:2] == b"\xff\xd8":
-            import simplejpeg
+        from ..photos import decode_photo
 
-            try:
-                h, w, _, _ = simplejpeg.decode_jpeg_header(data)
-                return simplejpeg.decode_jpeg(
-                    data,
-                    "BGR",
-                    min_height=math.ceil(h / reduction),
-                    min_width=math.ceil(w / reduction),
-                    strict=True,
-                )
-            except ValueError as e:
-                raise OSError(f"its pixel data is corrupt ({e}): the image cannot be trusted") from None
+        img = decode_photo(path, reduction)
+        if img is not None:
+            return img
     flag = {
         1: cv2.IMREAD_COLOR,
         2: cv2.IMREAD_REDUCED_COLOR_2,
