@@ -7,7 +7,9 @@ points) as a LAS file, then in one run:
   ``scipy.stats.binned_statistic_2d(..., "max")`` on the same arrays;
   target >= 5 M points/s;
 * the whole ``dem`` run (read LAS in chunks, DSM, SMRF, DTM, fill, COGs)
-  in a child process, so its peak memory is its own.
+  in a child process, so its peak memory is its own;
+* the same cloud with 10 far outliers (100 km off, one 10 km up): same DSM and DTM, and
+  the peak memory against the clean run (issue 23).
 
     python benchmarks/bench_dem.py [--points 10e6] [--resolution-m 0.25]
 """
@@ -62,6 +64,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=float, default=10e6)
     ap.add_argument("--resolution-m", type=float, default=0.5)
+    ap.add_argument("--outliers", type=int, default=10, help="far outlier points in the outlier comparison")
     args = ap.parse_args()
     n = int(args.points)
     from scipy.stats import binned_statistic_2d
@@ -127,7 +130,55 @@ def main() -> int:
                 f"dem {label}: {dt:.1f} s, {n / dt / 1e6:.2f} M points/s end to end (read, grid, fill, write), "
                 f"peak RSS {peak_kb / 1024:.0f} MB; ground {res['n_ground']:,} of {res['n_points']:,}"
             )
+        _outliers(las, Path(d), args.resolution_m, args.outliers)
     return 0
+
+
+def _run_dem(argv: list[str]) -> tuple[float, int, dict]:
+    """Seconds, peak RSS (kB) and the JSON result of one dem run in a child process."""
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", CHILD, json.dumps(argv)], capture_output=True, text=True)
+    dt = time.perf_counter() - t
+    if r.returncode:
+        raise SystemExit(r.stderr)
+    return dt, int(r.stderr.strip().splitlines()[-1].split()[-1]), json.loads(r.stdout)
+
+
+def _outliers(las: Path, d: Path, resolution_m: float, k: int) -> None:
+    """Issue 23: the same cloud with ``k`` points 100 km away (one 10 km up) gives the same DSM and
+    DTM, at the explicit resolution and the automatic one, in about the same memory."""
+    import laspy
+    import rasterio
+
+    far = d / "outliers.las"
+    with laspy.open(str(las)) as r, laspy.open(str(far), mode="w", header=r.header) as w:
+        first = None
+        for pts in r.chunk_iterator(2_000_000):
+            first = pts[:k] if first is None else first
+            w.write_points(pts)
+        extra = laspy.ScaleAwarePointRecord.zeros(k, header=r.header)
+        extra.x = np.asarray(first.x) + np.r_[np.full(k - 1, 100_000.0), 0.0]
+        extra.y = np.asarray(first.y)
+        extra.z = np.asarray(first.z) + np.r_[np.zeros(k - 1), 10_000.0]
+        w.write_points(extra)
+    for res in (str(resolution_m), "0"):
+        peaks, grids = [], []
+        for name, src in (("clean", las), ("outliers", far)):
+            out = d / f"{name}_{res}.tif"
+            dtm = d / f"{name}_{res}_dtm.tif"
+            argv = ["geoortho", "dem", "--points", str(src), "--output", str(out), "--dtm", str(dtm)]
+            dt, peak_kb, _ = _run_dem([*argv, "--resolution-m", res, "--json", "--quiet"])
+            peaks.append(peak_kb)
+            with rasterio.open(out) as a, rasterio.open(dtm) as b:
+                grids.append((a.transform, a.read(1), b.read(1)))
+            print(
+                f"  {name} (resolution {res if res != '0' else 'auto'}): {dt:.1f} s, peak RSS {peak_kb / 1024:.0f} MB"
+            )
+        same = grids[0][0] == grids[1][0] and all(np.array_equal(grids[0][i], grids[1][i]) for i in (1, 2))
+        print(
+            f"dem with {k} far outliers (resolution {res if res != '0' else 'auto'}): same DSM and DTM as without: "
+            f"{same}; peak memory x{peaks[1] / peaks[0]:.3f} of the clean run (target: same, within 10 %)"
+        )
 
 
 if __name__ == "__main__":
