@@ -92,6 +92,13 @@ class PointSource:
                 f"(truncated or corrupt file?): {e}",
                 path=self.path,
             ) from e
+        except BaseException as e:
+            # lazrs panics on some corrupt streams: pyo3's PanicException derives from BaseException
+            if type(e).__name__ != "PanicException":
+                raise
+            raise InputError(
+                f"cannot read points after {start:,}: the LAZ stream is corrupt ({e})", path=self.path
+            ) from None
 
     def describe_units(self) -> str:
         return f"horizontal {self.horizontal_unit}, vertical {self.vertical_unit}"
@@ -296,8 +303,10 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
             keys = _geokeys(h)
     except InputError:
         raise
-    except Exception as e:  # laspy meets a broken header with struct, value and index errors of all kinds
-        raise InputError(f"not a readable LAS/LAZ file: {type(e).__name__}: {e}", path=path) from e
+    except BaseException as e:  # laspy meets a broken header with struct, value and index errors of all kinds
+        if not isinstance(e, Exception) and type(e).__name__ != "PanicException":  # lazrs panics are Base
+            raise
+        raise InputError(f"not a readable LAS/LAZ file: {type(e).__name__}: {e}", path=path) from None
     notes: list[str] = []
     if override is not None:
         crs = override
