@@ -22,6 +22,7 @@ import re
 import shutil
 import struct
 import sys
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -191,15 +192,17 @@ def _digest(paths: list[Path]) -> dict[str, str]:
 def run_cli(argv: list[str], inputs: list[Path], workdir: Path, quiet: bool = True) -> Outcome:
     before = _digest(inputs)
     err, out = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out), warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("default")  # as python -m geoortho runs: shown once, on stderr
         try:
             code = main([*argv, "--quiet"] if quiet else argv)
         except SystemExit as e:  # argparse's own refusals (unknown choice, made-up option)
             code = int(e.code or 0)
     after = _digest(inputs)
+    shown = [f"{x.filename}:{x.lineno}: {x.category.__name__}: {x.message}" for x in w]
     return Outcome(
         code,
-        [ln for ln in err.getvalue().splitlines() if ln.strip()],
+        shown + [ln for ln in err.getvalue().splitlines() if ln.strip()],
         out.getvalue(),
         sorted(k for k in before if before[k] != after.get(k)),
         sorted(str(p) for p in workdir.rglob(".*.tmp*")),
@@ -358,8 +361,8 @@ CASES = [
             ("wrong_zone", r"none of the \d+ GCPs falls inside any photo.*CRS"),
             ("swapped", "swapped"),
             ("300m_off", r"none of the \d+ GCPs falls inside any photo; the nearest is 0.3 km from the flight"),
-            ("geocentric", "geocentric"),
-            ("vertical", "vertical"),
+            ("geocentric", "EPSG:4978 is geocentric"),
+            ("vertical", "EPSG:5773 is vertical only"),
             ("json_points_5", "expected OpenSfM"),
             ("json_nan", "must be numbers|not finite"),
             ("json_list", "expected OpenSfM"),

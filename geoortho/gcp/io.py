@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS
 
-from ..crs import WGS84_3D, parse_crs
+from ..crs import WGS84_3D, crs_to_text, parse_crs
 from ..errors import InputError
 
 __all__ = ["GroundControlPoint", "ImagePoint", "GcpSet", "read_gcp_file", "marker_id_of"]
@@ -133,6 +133,18 @@ def _finish(
 ) -> GcpSet:
     if not points:
         raise InputError("no GCP in the file", path=path)
+    if crs.is_geocentric:
+        raise InputError(
+            f"the CRS {crs_to_text(crs)} is geocentric (X, Y, Z from the Earth's centre): "
+            "give the GCPs in a projected or geographic CRS",
+            path=path,
+        )
+    if crs.is_vertical and not (crs.is_projected or crs.is_geographic):
+        raise InputError(
+            f"the CRS {crs_to_text(crs)} is vertical only: give the horizontal CRS (e.g. EPSG:32629, "
+            "or a compound one such as EPSG:32629+5773)",
+            path=path,
+        )
     seen: dict[str, GroundControlPoint] = {}
     unique = []
     for p in points:

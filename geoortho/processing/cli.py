@@ -11,6 +11,7 @@ import json
 import logging
 import signal
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
@@ -169,6 +170,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.debug:  # the feedback prints messages itself; logging only for debugging
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         logging.getLogger("geoortho").setLevel(logging.DEBUG)
+    if not args.debug:
+        # numpy's "invalid value encountered" and the like are not for a surveyor: what matters is
+        # said through the feedback; --debug shows them
+        warnings.filterwarnings("ignore", category=RuntimeWarning)
     values = {p.name: getattr(args, p.name) for p in alg.params}
     feedback: Feedback
     if args.progress_json:
