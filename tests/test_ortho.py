@@ -153,7 +153,7 @@ def test_bad_photos_are_reported_and_skipped(small_survey, tmp_path):
     fb = RecordingFeedback()
     r = mosaic(cams, surf, surf.crs, tmp_path / "o.tif", 0.2, MosaicOptions(workers=1), feedback=fb)
     why = dict(r.skipped)
-    assert "cannot be decoded" in why["broken.JPG"]
+    assert "corrupt" in why["broken.JPG"]  # the strict decoder refuses it (was: "cannot be decoded")
     assert "outside the DSM" in why["far.JPG"]
     assert r.n_used == 8
     assert any("broken.JPG" in w for w in fb.warnings)
