@@ -229,7 +229,7 @@ MAX_OUTLIER_SHARE = 0.001
 
 @dataclass(frozen=True)
 class _Scan:
-    src: PointSource  # with the bounds and count of the points kept
+    src: PointSource  # with the bounds of the points kept
     keep: Box | None  # the box far outliers fall out of (None: every finite point is kept)
     notes: tuple[str, ...]
 
@@ -265,8 +265,7 @@ def _scan_extent(src: PointSource, fb: Feedback) -> _Scan:
         raise InputError(f"{n} point(s) with finite coordinates: too few to make a surface", path=src.path)
     notes: list[str] = []
     if n != src.count:
-        lying = " (the header's count is wrong)" if src.path is not None and src.count < n else ""
-        notes.append(f"{n:,} of {src.count:,} points have finite coordinates{lying}")
+        notes.append(f"{n:,} of {src.count:,} points have finite coordinates")
     pts = np.concatenate(sample)
     core_lo = np.quantile(pts, CORE_TAIL, axis=0)
     core_hi = np.quantile(pts, 1.0 - CORE_TAIL, axis=0)
@@ -283,13 +282,13 @@ def _scan_extent(src: PointSource, fb: Feedback) -> _Scan:
     )
     inside = all(keep[i] <= bounds[i] and bounds[i + 3] <= keep[i + 3] for i in range(3))
     if inside:
-        return _Scan(_with_bounds(src, n, bounds), None, tuple(notes))
+        return _Scan(_with_bounds(src, bounds), None, tuple(notes))
     n_kept, kept_bounds, _ = _bounds_of(src, keep, fb)
     n_out = n - n_kept
     if n_out > MAX_OUTLIER_SHARE * n:
         # that many points are not strays: keep them all (the memory check speaks if it cannot fit)
         notes.append(f"{n_out:,} points ({100 * n_out / n:.2f} %) lie far outside the bulk of the cloud; kept as data")
-        return _Scan(_with_bounds(src, n, bounds), None, tuple(notes))
+        return _Scan(_with_bounds(src, bounds), None, tuple(notes))
     centre = (core_lo + core_hi) / 2
     units = (src.horizontal_m, src.horizontal_m, src.vertical_m)
     reach = max(max(abs(bounds[i] - centre[i]), abs(bounds[i + 3] - centre[i])) * units[i] for i in range(3))
@@ -299,10 +298,10 @@ def _scan_extent(src: PointSource, fb: Feedback) -> _Scan:
         f"{(kept_bounds[4] - kept_bounds[1]) * src.horizontal_m:,.0f} m)"
     )
     fb.warning(notes[-1])
-    return _Scan(_with_bounds(src, n_kept, kept_bounds), keep, tuple(notes))
+    return _Scan(_with_bounds(src, kept_bounds), keep, tuple(notes))
 
 
-def _with_bounds(src: PointSource, count: int, bounds: Box) -> PointSource:
+def _with_bounds(src: PointSource, bounds: Box) -> PointSource:
     return replace(src, bounds=bounds, notes=list(src.notes))
 
 

@@ -245,7 +245,9 @@ class _Timer:
         self.stages[stage] = self.stages.get(stage, 0.0) + time.perf_counter() - t0
 
 
-def _pycolmap() -> Any:
+def load_pycolmap() -> Any:
+    """pycolmap as every geoortho caller needs it: Python's SIGTERM handler taken back from glog,
+    COLMAP's INFO logging off."""
     import pycolmap
 
     from .feedback import reclaim_signal_handlers
@@ -267,7 +269,7 @@ def _import_and_extract(
     max_features: int,
     workers: int,
 ) -> None:
-    pc = _pycolmap()
+    pc = load_pycolmap()
     for body in bodies:
         ro = pc.ImageReaderOptions()
         ro.camera_model = camera_model
@@ -285,7 +287,7 @@ def _import_and_extract(
 
 
 def _write_priors(db: Path, priors: _Priors, sigma_h_m: float, sigma_v_m: float) -> int:
-    pc = _pycolmap()
+    pc = load_pycolmap()
     cov = np.diag([sigma_h_m**2, sigma_h_m**2, sigma_v_m**2])
     n = 0
     with pc.Database.open(db) as d:
@@ -323,7 +325,7 @@ def _spatial_distance_m(photos: Sequence[Photo], priors: _Priors) -> float:
 
 
 def _match(db: Path, how: str, photos: Sequence[Photo], priors: _Priors, workers: int) -> str:
-    pc = _pycolmap()
+    pc = load_pycolmap()
     mo = pc.FeatureMatchingOptions()
     mo.num_threads = workers or -1
     if how == "auto":
@@ -355,7 +357,7 @@ def _map(
     refine_focal: bool = True,
     mapper: Mapper = "incremental",
 ) -> list[Any]:
-    pc = _pycolmap()
+    pc = load_pycolmap()
     if mapper == "global":
         # GLOMAP: rotation averaging + global positioning, one bundle adjustment; it takes no pose
         # priors (the GPS georeference the model afterwards, as for the incremental one).
@@ -388,7 +390,7 @@ def _centres(rec: Any) -> dict[str, np.ndarray]:
 
 def _align_to_gps(rec: Any, priors: _Priors, sigma_h_m: float) -> tuple[Any, int]:
     """Robust similarity from the model's camera centres onto their GPS positions."""
-    pc = _pycolmap()
+    pc = load_pycolmap()
     names = [n for n in _centres(rec) if n in priors.positions]
     if len(names) < 3:
         return None, 0
@@ -434,7 +436,7 @@ def _align_horizontal(rec: Any, priors: _Priors, photos_by_name: dict[str, Photo
     from skimage.measure import ransac
     from skimage.transform import SimilarityTransform
 
-    pc = _pycolmap()
+    pc = load_pycolmap()
     level = _levelling_rotation(rec, photos_by_name)
     centres = _centres(rec)
     names = [n for n in centres if n in priors.positions]
@@ -486,7 +488,7 @@ def _focal_drift(rec: Any, priors_px: dict[int, float]) -> dict[int, float]:
 
 def _probe_free_focal(rec: Any) -> dict[int, float]:
     """Focal lengths a bundle adjustment reaches when it may refine them (on a copy)."""
-    pc = _pycolmap()
+    pc = load_pycolmap()
     probe = pc.Reconstruction(rec)
     opts = pc.BundleAdjustmentOptions()
     opts.print_summary = False
@@ -550,7 +552,7 @@ def _gcp_states(
 
 def _triangulate(rec: Any, states: list[_GcpState], max_error_px: float = 4.0) -> None:
     """Each GCP from its observations in registered photos (robust; needs two or more)."""
-    pc = _pycolmap()
+    pc = load_pycolmap()
     by_name = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
     for s in states:
         s.triangulated, s.inliers, s.reprojection_px = None, 0, math.nan
@@ -586,7 +588,7 @@ def _reprojection_px(ims: list[tuple[Any, float, float]], xyz: np.ndarray) -> fl
 
 def _align_to_gcps(rec: Any, states: list[_GcpState], heights_usable: bool) -> Any:
     """Similarity from the triangulated control GCPs onto their surveyed positions."""
-    pc = _pycolmap()
+    pc = load_pycolmap()
     use = [s for s in states if s.role == "control" and s.triangulated is not None]
     if len(use) < 3:
         return None
@@ -608,7 +610,7 @@ def _gcp_bundle_adjust(rec: Any, states: list[_GcpState]) -> int:
     are restored afterwards). The fixed points hold the datum: no gauge is left
     free. Returns the number of GCP observations used.
     """
-    pc = _pycolmap()
+    pc = load_pycolmap()
     by_name = {rec.image(i).name: i for i in rec.reg_image_ids()}
     borrowed: list[tuple[int, int, np.ndarray]] = []
     gcp_points = []
@@ -803,7 +805,7 @@ def _write_cameras(
 
 
 def _why_unregistered(db: Path, names: list[str], registered: set[str], elsewhere: set[str]) -> dict[str, str]:
-    pc = _pycolmap()
+    pc = load_pycolmap()
     reasons = {}
     with pc.Database.open(db) as d:
         ids = {im.name: im.image_id for im in d.read_all_images()}
@@ -1127,7 +1129,7 @@ def _reconstruct(
     """Features, GPS priors, matching and mapping into ``db`` and ``work``."""
     photos, priors = inputs.photos, inputs.priors
     notes: list[str] = []
-    _pycolmap().Database.open(db).close()
+    load_pycolmap().Database.open(db).close()
     t0 = time.perf_counter()
     fb.info("features ...")
     _import_and_extract(
@@ -1381,7 +1383,7 @@ def _announce(
 
 def _prior_focal(db: Path, camera_id: int, fallback: float) -> float:
     """The focal length (px) the camera started from: the database keeps the imported value."""
-    pc = _pycolmap()
+    pc = load_pycolmap()
     try:
         with pc.Database.open(db) as d:
             cam = d.read_camera(camera_id)

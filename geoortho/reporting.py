@@ -568,11 +568,9 @@ def _reprojection(ctx: _Context) -> str:
     sfm = ctx.sfm_report()
     if model is None or sfm is None:
         return _missing("SfM did not finish.")
-    import pycolmap
+    from .reconstruction import load_pycolmap
 
-    from .feedback import reclaim_signal_handlers
-
-    reclaim_signal_handlers()  # pycolmap's glog took SIGTERM
+    pycolmap = load_pycolmap()
 
     rec = pycolmap.Reconstruction(str(model))
     errors = np.array([p.error for p in rec.points3D.values()], dtype=float)

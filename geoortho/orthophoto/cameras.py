@@ -100,11 +100,9 @@ def cameras_from_sfm(
     photos that could not be used with why. A model in a local frame (no CRS) is refused,
     unless ``local_frame_ok``: then the CRS returned is None and positions are the model's.
     """
-    import pycolmap
+    from ..reconstruction import load_pycolmap
 
-    from ..feedback import reclaim_signal_handlers
-
-    reclaim_signal_handlers()  # pycolmap's glog took SIGTERM
+    pycolmap = load_pycolmap()
 
     sfm_dir = Path(sfm_dir)
     model = sfm_dir / "model" if (sfm_dir / "model").is_dir() else sfm_dir
