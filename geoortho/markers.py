@@ -10,7 +10,14 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["DICTIONARIES", "get_dictionary", "marker_cells"]
+__all__ = [
+    "DICTIONARIES",
+    "TARGETS",
+    "get_dictionary",
+    "marker_cells",
+    "target_half_extent",
+    "target_reflectance",
+]
 
 #: Every predefined dictionary OpenCV offers, by its usual name (a test checks it against cv2.aruco).
 Dictionary = Literal[
@@ -62,3 +69,65 @@ def marker_cells(name: str, marker_id: int) -> np.ndarray:
     side = d.markerSize + 2
     img = cv2.aruco.generateImageMarker(d, int(marker_id), side, borderBits=1)
     return img > 127
+
+
+#: What is on the ground at a GCP. ``aruco``/``apriltag``: a coded marker of the dictionary; the
+#: others carry no id and are told apart by where they are predicted.
+Target = Literal["aruco", "apriltag", "checkerboard", "cross", "circle"]
+TARGETS: tuple[str, ...] = get_args(Target)
+#: What gcp-find looks for: a target type, or ``auto`` (each tried on the first photos, the one found most kept).
+FindTarget = Literal["aruco", "apriltag", "checkerboard", "cross", "circle", "auto"]
+CODED = ("aruco", "apriltag")
+
+#: Width of a cross target's bars, as a share of its span (the fit frees it within 0.08–0.45).
+CROSS_BAR = 0.2
+#: A circle target: a black disc of diameter ``side`` on a white board this many sides wide.
+CIRCLE_BOARD = 1.5
+
+
+def target_half_extent(kind: str, cells: int = 6) -> float:
+    """Half the side of the square the target occupies, in marker sides (the board with its quiet zone)."""
+    if kind in CODED:
+        return 0.5 + 1.0 / cells
+    if kind == "circle":
+        return CIRCLE_BOARD / 2
+    return 0.5
+
+
+def target_reflectance(
+    kind: str, u: np.ndarray, v: np.ndarray, cells: np.ndarray | None = None, bar: float = CROSS_BAR
+) -> np.ndarray:
+    """Reflectance (0 black … 1 white) of a target at marker-frame points, NaN where the ground shows.
+
+    ``u`` to the target's right and ``v`` to its top, in marker sides from its centre. Coded
+    markers: the black square of ``cells`` (True = white, border included) in a one-cell white quiet
+    zone. Checkerboard: 2 × 2 squares, black top-left. Cross: white bars ``bar`` wide and one side
+    long, painted on the ground. Circle: a black disc one side across on a white board.
+    """
+    u = np.asarray(u, float)
+    v = np.asarray(v, float)
+    out = np.full(np.broadcast(u, v).shape, np.nan)
+    half = target_half_extent(kind, 6 if cells is None else cells.shape[0])
+    if kind in CODED:
+        if cells is None:
+            raise ValueError("a coded marker needs its cells")
+        n = cells.shape[0]
+        board = (np.abs(u) <= half) & (np.abs(v) <= half)
+        out[board] = 1.0
+        ci = np.floor((u + 0.5) * n).astype(int)
+        ri = np.floor((0.5 - v) * n).astype(int)
+        inside = board & (ci >= 0) & (ci < n) & (ri >= 0) & (ri < n)
+        out[inside] = np.where(cells[ri[inside], ci[inside]], 1.0, 0.0)
+    elif kind == "checkerboard":
+        board = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
+        out[board] = ((u[board] >= 0) == (v[board] >= 0)).astype(float)
+    elif kind == "cross":
+        span = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
+        bars = span & ((np.abs(u) <= bar / 2) | (np.abs(v) <= bar / 2))
+        out[bars] = 1.0
+    elif kind == "circle":
+        board = (np.abs(u) <= half) & (np.abs(v) <= half)
+        out[board] = np.where(u[board] ** 2 + v[board] ** 2 <= 0.25, 0.0, 1.0)
+    else:
+        raise InputError(f"unknown target {kind!r}; choose one of {', '.join(TARGETS)}")
+    return out

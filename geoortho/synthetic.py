@@ -37,7 +37,7 @@ from .camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_
 from .crs import transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
-from .markers import Dictionary, get_dictionary, marker_cells
+from .markers import TARGETS, Dictionary, Target, get_dictionary, marker_cells, target_half_extent, target_reflectance
 from .parallel import map_ordered
 from .surface import GridSurface, sample_grid
 
@@ -171,6 +171,7 @@ class Scene:
     home: tuple[float, float, float]  # take-off point (x, y, ground z)
     marker_cells: dict[int, np.ndarray] = field(default_factory=dict)
     water: tuple[float, float, float] | None = None  # x, y, radius (m): one flat colour there
+    target: str = "aruco"  # what the markers look like (markers.TARGETS)
 
     @property
     def surface(self) -> GridSurface:
@@ -201,9 +202,9 @@ class Scene:
 
     def _paint_markers(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
         s = self.marker_size_m
-        quiet = s * 0.5 + s / 6.0  # half side of the white square (one cell of quiet zone)
+        reach = s * max(target_half_extent(self.target), target_half_extent("aruco")) * 1.5
         for m in self.markers:
-            near = (np.abs(x - m.x) < quiet * 1.5) & (np.abs(y - m.y) < quiet * 1.5) & (np.abs(z - m.z) < 0.2)
+            near = (np.abs(x - m.x) < reach) & (np.abs(y - m.y) < reach) & (np.abs(z - m.z) < 0.2)
             if not near.any():
                 continue
             a = math.radians(m.angle_deg)
@@ -211,16 +212,10 @@ class Scene:
             # marker frame: u to the marker's right, v to its top (rotated by angle, clockwise)
             u = dx * math.cos(a) - dy * math.sin(a)
             v = dx * math.sin(a) + dy * math.cos(a)
-            inside_quiet = (np.abs(u) <= quiet) & (np.abs(v) <= quiet)
-            val = np.full(u.shape, 0.92, np.float32)
-            cells = self.marker_cells[m.marker_id]
-            n = cells.shape[0]
-            ci = np.floor((u / s + 0.5) * n).astype(int)
-            ri = np.floor((0.5 - v / s) * n).astype(int)
-            in_marker = (ci >= 0) & (ci < n) & (ri >= 0) & (ri < n)
-            val[in_marker] = np.where(cells[ri[in_marker], ci[in_marker]], 0.92, 0.08)
-            idx = np.nonzero(near)[0][inside_quiet]
-            out[idx] = val[inside_quiet, None]
+            refl = target_reflectance(self.target, u / s, v / s, self.marker_cells.get(m.marker_id))
+            painted = np.isfinite(refl)
+            idx = np.nonzero(near)[0][painted]
+            out[idx] = (0.08 + 0.84 * refl[painted]).astype(np.float32)[:, None]
 
 
 def _remap3(img: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -772,14 +767,14 @@ def _init_worker(scene: Scene) -> None:
     cv2.setNumThreads(1)
 
 
-def _render_task(args: tuple[Shot, Intrinsics, bool, int, str]) -> dict[str, Any]:
-    shot, intr, hard, seed, path = args
+def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float]) -> dict[str, Any]:
+    shot, intr, hard, seed, path, glare = args
     assert _SCENE is not None
-    return render_photo(_SCENE, shot, intr, hard=hard, seed=seed, path=Path(path))
+    return render_photo(_SCENE, shot, intr, hard=hard, seed=seed, path=Path(path), glare=glare)
 
 
 def render_photo(
-    scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed: int, path: Path | None
+    scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed: int, path: Path | None, glare: float = 0.0
 ) -> dict[str, Any]:
     """Render one photo (and write it when ``path`` is given); return its marker truth."""
     rng = np.random.default_rng(seed)
@@ -799,26 +794,41 @@ def render_photo(
     # Camera effects: vignetting, exposure, glare, blur, noise.
     r2 = ((uu - intr.cx_px) ** 2 + (vv - intr.cy_px) ** 2) / (intr.cx_px**2 + intr.cy_px**2)
     img = img * (1.0 - 0.25 * r2)[..., None].astype(np.float32) * shot.exposure_gain
-    if hard:
-        for m in markers:
-            if m["inside"] and rng.random() < 0.3:  # sun glare on the marker
-                gx, gy = m["x_px"] + rng.normal(0, 4), m["y_px"] + rng.normal(0, 4)
-                g = np.exp(-((uu - gx) ** 2 + (vv - gy) ** 2) / (2 * (m["size_px"] * 0.35) ** 2))
-                img = img + 0.45 * g[..., None].astype(np.float32)
-                m["glare"] = True
-        if shot.blur_px > 0:
-            k = int(round(shot.blur_px)) | 1
-            kernel = np.zeros((k, k), np.float32)
-            kernel[k // 2, :] = 1.0 / k
-            rot = cv2.getRotationMatrix2D((k / 2 - 0.5, k / 2 - 0.5), float(rng.uniform(0, 180)), 1.0)
-            kernel = np.asarray(cv2.warpAffine(kernel, rot, (k, k)), np.float32)
-            kernel /= kernel.sum()
-            img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
+    # effects asked for by option draw from their own stream: the rest of the photo stays as without them
+    opt = np.random.default_rng([seed, 1])
+    for m in markers:
+        if not m["inside"]:
+            continue
+        if hard and rng.random() < 0.3:  # sun glare on the marker
+            gx, gy = m["x_px"] + rng.normal(0, 4), m["y_px"] + rng.normal(0, 4)
+            amp, sigma = 0.45, m["size_px"] * 0.35
+        elif not hard and glare > 0 and opt.random() < glare:  # a specular spot, saturating part of it
+            gx, gy = m["x_px"] + opt.normal(0, 0.25) * m["size_px"], m["y_px"] + opt.normal(0, 0.25) * m["size_px"]
+            amp, sigma = float(opt.uniform(0.5, 1.0)), m["size_px"] * float(opt.uniform(0.15, 0.3))
+        else:
+            continue
+        g = np.exp(-((uu - gx) ** 2 + (vv - gy) ** 2) / (2 * sigma**2))
+        img = img + amp * g[..., None].astype(np.float32)
+        m["glare"] = True
+    blur_deg = 0.0
+    if shot.blur_px > 0:
+        blur_deg = float(rng.uniform(0, 180) if hard else opt.uniform(0, 180))
+        img = np.asarray(cv2.filter2D(img, -1, motion_kernel(shot.blur_px, blur_deg)), np.float32)
     img = img + rng.normal(0, 0.008, img.shape).astype(np.float32)
     out = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if path is not None:
         _write_jpeg(path, out, shot, intr)
-    return {"image": shot.name, "markers": markers}
+    return {"image": shot.name, "markers": markers, "blur_px": shot.blur_px, "blur_deg": blur_deg}
+
+
+def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
+    """A straight motion-blur kernel: a line ``length_px`` long (odd size) at ``angle_deg`` from the x axis."""
+    k = int(round(length_px)) | 1
+    kernel = np.zeros((k, k), np.float32)
+    kernel[k // 2, :] = 1.0 / k
+    rot = cv2.getRotationMatrix2D((k / 2 - 0.5, k / 2 - 0.5), float(angle_deg), 1.0)
+    kernel = np.asarray(cv2.warpAffine(kernel, rot, (k, k)), np.float32)
+    return kernel / kernel.sum()
 
 
 def _marker_truth_and_antialias(
@@ -826,7 +836,7 @@ def _marker_truth_and_antialias(
 ) -> list[dict[str, Any]]:
     """Exact projected marker centres, and 4×4 supersampled marker pixels (markers lie on flat pads)."""
     s = scene.marker_size_m
-    quiet = s * 0.5 + s / 6.0
+    quiet = s * target_half_extent(scene.target, next(iter(scene.marker_cells.values()), np.zeros((6, 6))).shape[0])
     h, w = img.shape[:2]
     out = []
     sub = (np.arange(4) + 0.5) / 4 - 0.5
@@ -1026,6 +1036,9 @@ def synth(
     workers: int = 0,
     pathology: str = "",
     plan: Path | None = None,
+    target: Target = "aruco",
+    blur_px: float = 0.0,
+    glare: float = 0.0,
     *,
     feedback: Feedback | None = None,
 ) -> SynthResult:
@@ -1064,6 +1077,16 @@ def synth(
     plan : Path
         Fly this plan (a ``plan`` output folder or its plan.gpkg) instead of the preset's
         flight, over the preset's scene: the round trip that checks a plan.
+    target : str
+        What the GCP targets look like: aruco or apriltag (coded markers of the dictionary),
+        checkerboard (2 × 2 squares), cross (white bars a fifth of the side wide, painted on
+        the ground) or circle (a black disc on a white board).
+    blur_px : float
+        Motion blur in half of the photos, from a third of this length up to it, pixels, in a
+        random direction (poses.json and markers.json say which and how much).
+    glare : float
+        Share (0–1) of the targets in each photo under a specular glare spot that saturates
+        part of them (markers.json marks each).
 
     Returns
     -------
@@ -1085,8 +1108,15 @@ def synth(
         old.unlink()
     step_scene, step_render, step_truth = split(fb, [1, 8, 2])
     pathologies = parse_pathologies(pathology)
+    if target not in TARGETS:
+        raise InputError(f"unknown target {target!r}; choose one of {', '.join(TARGETS)}")
+    if target == "apriltag" and "APRILTAG" not in str(dictionary).upper():
+        raise InputError(f"target apriltag needs an AprilTag dictionary (e.g. DICT_APRILTAG_36H11), not {dictionary}")
+    if not 0.0 <= glare <= 1.0 or not 0.0 <= blur_px <= 200.0:
+        raise InputError("glare is a share 0–1 and blur_px 0–200 pixels")
     rng = np.random.default_rng(seed)
     scene = build_scene(p, rng, lat=latitude_deg, lon=longitude_deg, dictionary=dictionary, marker_size_m=marker_size_m)
+    scene.target = target
     step_scene.progress(0.5)
     if "water" in pathologies:
         scene.water = _place_water(scene)
@@ -1098,6 +1128,12 @@ def synth(
 
         undulation = float(geoid_undulation_m(longitude_deg, latitude_deg))
         shots = _apply_pathologies(shots, scene, pathologies, undulation, np.random.default_rng(seed + 11))
+    if blur_px > 0:
+        blur_rng = np.random.default_rng([seed, 13])
+        shots = [
+            replace(s, blur_px=float(blur_rng.uniform(blur_px / 3, blur_px))) if blur_rng.random() < 0.5 else s
+            for s in shots
+        ]
     w, h = p.image_px
     intr = Intrinsics.from_sensor(w, h, FOCAL_MM, SENSOR_WIDTH_MM, distortion=p.distortion)
     fb.info(
@@ -1106,7 +1142,7 @@ def synth(
     )
     step_scene.progress(1.0)
 
-    tasks = [(s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name)) for i, s in enumerate(shots)]
+    tasks = [(s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name), glare) for i, s in enumerate(shots)]
     results: list[dict[str, Any]] = map_ordered(
         _render_task, tasks, workers=workers, initializer=_init_worker, initargs=(scene,), feedback=step_render
     )
@@ -1305,6 +1341,7 @@ def _write_survey_json(
             "gsd_cm_at_home_height": p.altitude_m * SENSOR_WIDTH_MM / FOCAL_MM / intr.width_px * 100,
             "marker_size_m": scene.marker_size_m,
             "dictionary": scene.dictionary,
+            "target": scene.target,
             "markers": [asdict(m) for m in scene.markers],
             "error_model": {
                 "gps_bias_sigma_m": GPS_BIAS_SIGMA_M,

@@ -5,13 +5,15 @@ Runs in worker processes: everything here takes and returns plain data.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from ..camera import in_frame
-from ..markers import get_dictionary
+from ..markers import CODED, get_dictionary
+from .targets import estimate_motion_blur, fit_target
 
 __all__ = [
     "Detection",
@@ -45,6 +47,10 @@ class Window:
     radius_px: float
     side_px: float = 0.0  # expected marker side; 0 = unknown
     wide_radius_px: float = 0.0
+    #: pixels per marker side along east and north at the GCP (row-major 2 × 2); () = unknown
+    ground_px: tuple[float, ...] = ()
+    #: another GCP predicted inside this window (targets without an id are then refused)
+    ambiguous_with: str = ""
 
     @property
     def max_radius_px(self) -> float:
@@ -57,9 +63,14 @@ class Detection:
     x_px: float  # centre, pixel-centre convention, whole-photo coordinates
     y_px: float
     corners_px: tuple[tuple[float, float], ...]
-    attempt: str
+    attempt: str  # the detector attempt that decoded it, or "verified"/"fitted" (model fit)
     window: int  # index of the window it was found in (-1: whole photo)
     side_px: float
+    score: float = math.nan  # model fit: normalised correlation
+    id_margin: float = math.nan
+    position_margin: float = math.nan
+    blur_px: float = math.nan  # model fit: motion blur length at the target
+    reason: str = ""  # model fit refused: why (the detection is then not a find)
 
 
 def diagonal_intersection(corners: np.ndarray) -> np.ndarray:
@@ -142,26 +153,96 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
 
 
 def detect_in_image(
-    gray: np.ndarray, windows: list[Window], dictionary: str, attempts: tuple[str, ...] = ATTEMPTS
+    gray: np.ndarray,
+    windows: list[Window],
+    dictionary: str,
+    attempts: tuple[str, ...] = ATTEMPTS,
+    target: str = "aruco",
+    blur: tuple[float, float] | None = None,
 ) -> list[Detection]:
     """Detect markers in each window (the whole image when ``radius_px`` is 0).
 
-    Retries go on until the window's expected id is found; every marker seen
-    on the way is returned, so the caller can judge wrong ids too.
+    Coded targets: retries go on until the window's expected id is decoded; every marker
+    seen on the way is returned, so the caller can judge wrong ids too. Where none decodes,
+    the expected marker is verified by fitting its model (:mod:`.targets`). Targets without
+    a code are fitted in every window. ``blur``: the photo's motion blur (estimated when needed).
     """
     h, w = gray.shape[:2]
+    coded = target in CODED
     found: list[Detection] = []
     for k, win in enumerate(windows):
         if win.radius_px <= 0:
+            if not coded:
+                continue  # no prediction, no id: nothing to tell a target by
             # A whole photo has no expected id: run the cheap attempts and keep all they see.
             tries = tuple(a for a in attempts if a in ("plain", "clahe"))
             _search(gray, (0, 0, w, h), win, tries, dictionary, -1, found, stop_at_id=False)
             continue
-        if _search(gray, _square(win, win.radius_px, w, h), win, attempts, dictionary, k, found):
+        if coded:
+            if _search(gray, _square(win, win.radius_px, w, h), win, attempts, dictionary, k, found):
+                continue
+            if win.wide_radius_px > win.radius_px and in_frame(win.x_px, win.y_px, w, h):
+                if _search(gray, _square(win, win.wide_radius_px, w, h), win, attempts, dictionary, k, found):
+                    continue
+        elif win.ambiguous_with:
             continue
-        if win.wide_radius_px > win.radius_px and in_frame(win.x_px, win.y_px, w, h):
-            _search(gray, _square(win, win.wide_radius_px, w, h), win, attempts, dictionary, k, found)
+        if len(win.ground_px) != 4 or not in_frame(win.x_px, win.y_px, w, h, -win.side_px, -win.side_px):
+            continue
+        if blur is None:
+            blur = estimate_motion_blur(gray)
+        radii = [win.radius_px] + ([win.wide_radius_px] if win.wide_radius_px > win.radius_px else [])
+        for radius in radii:
+            d = _fit(gray, win, k, _square(win, radius, w, h), target, dictionary, blur)
+            if d is not None:
+                found.append(d)
+                if not d.reason:
+                    break
     return found
+
+
+def _fit(
+    gray: np.ndarray,
+    win: Window,
+    k: int,
+    box: tuple[int, int, int, int],
+    target: str,
+    dictionary: str,
+    blur: tuple[float, float],
+) -> Detection | None:
+    """The window's target by model fit, as a detection (refused ones carry their reason)."""
+    from ..markers import marker_cells
+
+    coded = target in CODED
+    cells = marker_cells(dictionary, win.marker_id) if coded else None
+    base = np.array(win.ground_px, float).reshape(2, 2)
+    fit = fit_target(
+        gray,
+        box,
+        target,
+        base,
+        cells=cells,
+        dictionary=dictionary if coded else "",
+        marker_id=win.marker_id,
+        blur=blur,
+        predicted_xy=(win.x_px, win.y_px),
+    )
+    if fit is None:
+        return None
+    side = float(np.sqrt(abs(cv2.contourArea(np.array(fit.corners_px, np.float32)))))
+    return Detection(
+        win.marker_id,
+        fit.x_px,
+        fit.y_px,
+        fit.corners_px,
+        "verified" if coded else "fitted",
+        k,
+        side,
+        fit.score,
+        fit.id_margin,
+        fit.position_margin,
+        fit.blur_px,
+        fit.reason,
+    )
 
 
 def _square(win: Window, radius_px: float, w: int, h: int) -> tuple[int, int, int, int]:
@@ -211,20 +292,21 @@ def _search(
     return False
 
 
-def detect_task(args: tuple[str, list[Window], str]) -> tuple[str, list[Detection], str]:
-    """Worker entry: decode one photo (grey) and search its windows."""
-    path, windows, dictionary = args
+def detect_task(args: tuple[str, list[Window], str, str]) -> tuple[str, list[Detection], str, float]:
+    """Worker entry: decode one photo (grey) and search its windows; and the photo's motion blur (px)."""
+    path, windows, dictionary, target = args
     from ..photos import decode_photo
 
     try:  # strict: a corrupt scan would be searched as grey smears, with libjpeg noise on stderr
         gray = decode_photo(path, grey=True)
     except OSError as e:
-        return path, [], str(e)
+        return path, [], str(e), math.nan
     if gray is None:
         gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     if gray is None:
-        return path, [], "cannot decode the image"
-    return path, detect_in_image(gray, windows, dictionary), ""
+        return path, [], "cannot decode the image", math.nan
+    blur = estimate_motion_blur(gray)
+    return path, detect_in_image(gray, windows, dictionary, target=target, blur=blur), "", blur[0]
 
 
 def init_worker() -> None:

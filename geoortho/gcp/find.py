@@ -31,7 +31,7 @@ import math
 import os
 from collections.abc import Sequence
 from concurrent.futures import Executor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,7 @@ from ..crs import crs_to_text, parse_crs, transformer
 from ..errors import InputError
 from ..feedback import Feedback, as_feedback, split
 from ..footprint import PhotoCamera, photo_cameras, working_crs
-from ..markers import Dictionary, get_dictionary
+from ..markers import CODED, TARGETS, Dictionary, FindTarget, get_dictionary
 from ..parallel import map_ordered, process_pool
 from ..photos import Photo, list_images, read_photos
 from ..surface import FlatSurface, Surface, read_surface
@@ -58,6 +58,7 @@ NOT_FOUND = "not found"
 TOO_FAR = "too far from prediction"
 WRONG_ID = "id not in GCP file"
 IN_MARGIN = "inside the margin"
+AMBIGUOUS = "ambiguous"
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,13 @@ class Observation:
     attempt: str = ""
     side_px: float = math.nan
     corners_px: tuple[tuple[float, float], ...] = ()
+    method: str = ""  # decoded (the detector read its id), verified (coded, by model fit), fitted (no code)
+    score: float = math.nan  # model fit: normalised correlation
+    id_margin: float = math.nan  # verified: over the best other id or rotation
+    position_margin: float = math.nan  # model fit: over the best look-alike in the window
+    blur_px: float = math.nan  # model fit: motion blur length at the target
+    photo_blur_px: float = math.nan  # the photo's motion blur, estimated from its texture
+    reason: str = ""  # why a candidate was not accepted, when there is more to say than its status
 
 
 @dataclass(frozen=True)
@@ -114,7 +122,9 @@ class GcpFindResult:
     flight_offset_m: tuple[float, float] | None = None
 
 
-def _marker_ids(gcps: GcpSet, dictionary: str) -> dict[str, int]:
+def _marker_ids(gcps: GcpSet, dictionary: str, target: str = "aruco") -> dict[str, int]:
+    if target not in CODED and target != "auto":
+        return {p.name: i for i, p in enumerate(gcps.points)}  # no code: an index to tell windows apart
     n_ids = get_dictionary(dictionary).bytesList.shape[0]
     ids = {}
     for p in gcps.points:
@@ -165,6 +175,9 @@ def predict_windows(
         err_m = position_uncertainty_m + height_uncertainty_m * slope + rng * tan_att
         marker_px = marker_size_m / gsd_m
         radius = err_m / gsd_m + 1.5 * marker_px
+        # pixels per marker side along east and north: the target's shape before its rotation
+        east = cam.project(xyz + [marker_size_m, 0.0, 0.0]) - px
+        north = cam.project(xyz + [0.0, marker_size_m, 0.0]) - px
         for j, name in enumerate(names):
             x, y = px[j]
             if not (np.isfinite(x) and np.isfinite(y)) or name not in ids:
@@ -179,9 +192,36 @@ def predict_windows(
             slack = max(0.0, narrow - 1.5 * marker_px[j])
             if not in_frame(x, y, w, h, mx - slack, my - slack):
                 continue
+            jac = (east[j, 0], north[j, 0], east[j, 1], north[j, 1])
             out.setdefault(cam.photo.image, []).append(
-                Window(name, ids[name], float(x), float(y), narrow, float(marker_px[j]), wide if narrow < wide else 0.0)
+                Window(
+                    name,
+                    ids[name],
+                    float(x),
+                    float(y),
+                    narrow,
+                    float(marker_px[j]),
+                    wide if narrow < wide else 0.0,
+                    tuple(float(v) for v in jac) if np.isfinite(jac).all() else (),
+                )
             )
+    if residual_m is not None:
+        # two GCPs predicted in one window: a target without an id could be either
+        for image, wins in out.items():
+            out[image] = [
+                replace(
+                    w,
+                    ambiguous_with=next(
+                        (
+                            o.gcp
+                            for o in wins
+                            if o is not w and math.hypot(o.x_px - w.x_px, o.y_px - w.y_px) <= w.radius_px
+                        ),
+                        "",
+                    ),
+                )
+                for w in wins
+            ]
     return out
 
 
@@ -202,6 +242,7 @@ def gcp_find(
     height_uncertainty_m: float = 5.0,
     attitude_uncertainty_deg: float = 3.0,
     workers: int = 0,
+    target: FindTarget = "aruco",
     *,
     feedback: Feedback | None = None,
 ) -> GcpFindResult:
@@ -250,12 +291,35 @@ def gcp_find(
         How far the recorded gimbal attitude may be off, degrees.
     workers : int
         Processes for detection; 0 uses every core.
+    target : str
+        What the GCPs look like on the ground: aruco or apriltag (coded markers of the
+        dictionary: decoded, and verified by model fit where the detector gives up),
+        checkerboard (2 × 2 squares: its saddle point), cross (two bars: where their centre
+        lines cross), circle (a disc: its ellipse's centre), or auto (each tried on the
+        first photos; the one found most is used, and said). Targets without a code are
+        told apart by position only: two GCPs predicted in one window are both refused.
     """
     fb = as_feedback(feedback)
     s_read, s_detect, s_write = split(fb, [1, 8, 1])
     get_dictionary(dictionary)  # fail early on a bad name
+    if target not in (*TARGETS, "auto"):
+        raise InputError(f"unknown target {target!r}; choose one of {', '.join(TARGETS)}, auto")
+    if target == "apriltag" and "APRILTAG" not in str(dictionary).upper():
+        raise InputError(
+            f"--target apriltag needs an AprilTag --dictionary (e.g. DICT_APRILTAG_36H11), not {dictionary}"
+        )
     gcps = read_gcp_file(gcp_file, gcp_crs)
-    ids = _marker_ids(gcps, dictionary)
+    auto_kinds: tuple[str, ...] = ()
+    if target == "auto":
+        coded = "apriltag" if "APRILTAG" in str(dictionary).upper() else "aruco"
+        try:  # names ending in marker ids: coded markers are a candidate
+            ids = _marker_ids(gcps, dictionary)
+            auto_kinds = (coded, "checkerboard", "cross", "circle")
+        except InputError:
+            ids = _marker_ids(gcps, dictionary, "checkerboard")
+            auto_kinds = ("checkerboard", "cross", "circle")
+    else:
+        ids = _marker_ids(gcps, dictionary, target)
     uncertainty = dict(
         margin_pct=margin,
         position_uncertainty_m=position_uncertainty_m,
@@ -271,11 +335,13 @@ def gcp_find(
             raise InputError(f"no readable photo ({photos.summary()})", path=images)
         plan = _plan(photos.photos, gcps, ids, dsm, takeoff_elevation_m, uncertainty, fb)
         s_read.progress(1.0)
-        results, windows, offset_m = _search(plan, pool, workers, dictionary, ids, uncertainty, s_detect)
+        results, windows, offset_m, used = _search(
+            plan, pool, workers, dictionary, ids, uncertainty, s_detect, target, auto_kinds
+        )
     work = plan.work
 
     frames = {p.image: (p.width_px, p.height_px) for p in photos.photos}
-    observations = _judge(results, windows, ids, fb, frames, margin)
+    observations = _judge(results, windows, ids, fb, frames, margin, coded=used in CODED)
     s_detect.progress(1.0)
     # ODM works in a projected CRS: a geographic GCP file is written in the photos' UTM zone.
     out_crs = parse_crs(crs) if crs else (work if gcps.crs.is_geographic and work is not None else gcps.crs)
@@ -389,6 +455,9 @@ def _none_inside(
     return msg
 
 
+Results = list[tuple[str, list[Detection], str, float]]
+
+
 def _search(
     plan: _Plan,
     pool: Executor | None,
@@ -397,20 +466,26 @@ def _search(
     ids: dict[str, int],
     uncertainty: dict[str, float],
     fb: Feedback,
-) -> tuple[list[tuple[str, list[Detection], str]], dict[str, list[Window]], tuple[float, float] | None]:
+    target: str = "aruco",
+    auto_kinds: tuple[str, ...] = (),
+) -> tuple[Results, dict[str, list[Window]], tuple[float, float] | None, str]:
     """Detect in a few pilot photos with the stated uncertainty, measure the flight's common
-    offset there, then search the rest in windows sized by what was measured."""
+    offset there, then search the rest in windows sized by what was measured. ``auto``: the
+    pilot photos are searched for each target type and the one found most is used."""
     windows = dict(plan.windows)
     searched = [im for im in plan.cams if im in windows]
     pilot = _pilot_images(searched, windows, plan.cams, workers)
     rest = [im for im in searched if im not in set(pilot)]
-    whole = [(plan.path_of[p.image], [Window("", -1, 0.0, 0.0, 0.0)], dictionary) for p in plan.unplaced]
-    s_pilot, s_rest = split(fb, [len(pilot), len(rest) + len(whole)])
+    s_pilot, s_rest = split(fb, [len(pilot), len(rest) + len(plan.unplaced)])
 
-    def run(items: list[tuple[str, list[Window], str]], f: Feedback) -> list[tuple[str, list[Detection], str]]:
+    def run(images: list[str], kind: str, f: Feedback) -> Results:
+        items = [(plan.path_of[im], windows[im], dictionary, kind) for im in images]
         return map_ordered(detect_task, items, workers=1 if pool is None else workers, executor=pool, feedback=f)
 
-    results = run([(plan.path_of[im], windows[im], dictionary) for im in pilot], s_pilot)
+    if target == "auto":
+        target, results = _choose_target(pilot, windows, run, auto_kinds, s_pilot)
+    else:
+        results = run(pilot, target, s_pilot)
     offset = _flight_offset(results, windows, plan.cams, dict(zip(plan.names, plan.xyz)))
     if offset is not None:
         shift_m, residual_m, n_used = offset
@@ -427,12 +502,67 @@ def _search(
             residual_m=residual_m,
             **uncertainty,
         )
+        if target not in CODED:
+            # a target without an id is told by position: search every photo again, in windows
+            # placed with the measured offset (the pilot's were sized for the stated uncertainty)
+            narrowed.update(
+                predict_windows(
+                    [plan.cams[im] for im in pilot],
+                    plan.names,
+                    plan.xyz + [shift_m[0], shift_m[1], 0.0],
+                    ids,
+                    residual_m=residual_m,
+                    **uncertainty,
+                )
+            )
+            rest, results = rest + pilot, []
         for im in rest:
-            windows.pop(im)
+            windows.pop(im, None)
         windows.update(narrowed)
         rest = [im for im in rest if im in windows]
-    results += run([(plan.path_of[im], windows[im], dictionary) for im in rest] + whole, s_rest)
-    return results, windows, None if offset is None else (float(offset[0][0]), float(offset[0][1]))
+    whole = [p.image for p in plan.unplaced] if target in CODED else []
+    for im in whole:
+        windows.setdefault(im, [])
+    items = [(plan.path_of[im], windows[im], dictionary, target) for im in rest]
+    items += [(plan.path_of[im], [Window("", -1, 0.0, 0.0, 0.0)], dictionary, target) for im in whole]
+    results += map_ordered(detect_task, items, workers=1 if pool is None else workers, executor=pool, feedback=s_rest)
+    for im in whole:
+        windows.pop(im, None)
+    return results, windows, None if offset is None else (float(offset[0][0]), float(offset[0][1])), target
+
+
+def _choose_target(
+    pilot: list[str],
+    windows: dict[str, list[Window]],
+    run: Any,
+    kinds: tuple[str, ...],
+    fb: Feedback,
+) -> tuple[str, Results]:
+    """``--target auto``: the type found in most pilot windows (coded markers first: a decoded id
+    is proof). Said as an info line with every type's count."""
+    counts: dict[str, int] = {}
+    best: tuple[str, Results] | None = None
+    steps = split(fb, [1] * len(kinds))
+    for kind, step in zip(kinds, steps):
+        res = run(pilot, kind, step)
+        n = sum(
+            1
+            for path, dets, *_ in res
+            for k, win in enumerate(windows[Path(path).name])
+            if (f := _nearest(dets, k, win)) is not None and f[1] <= win.max_radius_px
+        )
+        counts[kind] = n
+        if best is None or n > counts[best[0]]:
+            best = (kind, res)
+        if kind in CODED and n >= 3:
+            break  # decoded ids: no other type needs trying
+    assert best is not None
+    fb.info(
+        f"target: {best[0]} (found in the first {len(pilot)} photos: "
+        + ", ".join(f"{k} {n}" for k, n in counts.items())
+        + ")"
+    )
+    return best
 
 
 def _has_pose(p: Photo) -> bool:
@@ -457,7 +587,7 @@ def _pilot_images(
 
 
 def _flight_offset(
-    results: list[tuple[str, list[Detection], str]],
+    results: Results,
     windows: dict[str, list[Window]],
     cams: dict[str, PhotoCamera],
     xyz_of: dict[str, np.ndarray],
@@ -469,7 +599,7 @@ def _flight_offset(
     left varies per photo (attitude, height, GPS noise). Needs 3 detections.
     """
     shifts = []
-    for path, dets, _ in results:
+    for path, dets, *_ in results:
         image = Path(path).name
         cam = cams[image]
         for k, win in enumerate(windows[image]):
@@ -477,6 +607,8 @@ def _flight_offset(
             if found is None or found[1] > win.max_radius_px:
                 continue
             d = found[0]
+            if d.attempt == "fitted" and _closer_prediction(d, found[1], win, windows[image]):
+                continue
             ray = pixel_rays(np.array([[d.x_px, d.y_px]]), cam.intrinsics, cam.pose)[0]
             g = xyz_of[win.gcp]
             if ray[2] > -1e-3:
@@ -497,23 +629,25 @@ def _nearest(dets: list[Detection], k: int, win: Window) -> tuple[Detection, flo
     mine = [
         (d, math.hypot(d.x_px - win.x_px, d.y_px - win.y_px))
         for d in dets
-        if d.window == k and d.marker_id == win.marker_id
+        if d.window == k and d.marker_id == win.marker_id and not d.reason
     ]
     return min(mine, key=lambda de: de[1]) if mine else None
 
 
 def _judge(
-    results: list[tuple[str, list[Detection], str]],
+    results: Results,
     windows: dict[str, list[Window]],
     ids: dict[str, int],
     fb: Feedback,
     frames: dict[str, tuple[int, int]],
     margin_pct: float,
+    *,
+    coded: bool = True,
 ) -> list[Observation]:
     """Turn raw detections into accepted observations and rejected candidates."""
     by_id = {v: k for k, v in ids.items()}
     obs: list[Observation] = []
-    for path, dets, error in results:
+    for path, dets, error, photo_blur in results:
         image = Path(path).name
         if error:
             fb.warning(f"{image}: {error}")
@@ -539,30 +673,45 @@ def _judge(
                         attempt=d.attempt,
                         side_px=d.side_px,
                         corners_px=d.corners_px,
+                        method="decoded",
+                        photo_blur_px=photo_blur,
                     )
                 )
             continue
         for k, win in enumerate(wins):
-            px, py = win.x_px, win.y_px
             base: dict[str, Any] = dict(
                 image=image,
                 gcp=win.gcp,
-                marker_id=win.marker_id,
-                predicted_x_px=px,
-                predicted_y_px=py,
+                marker_id=win.marker_id if coded else -1,
+                predicted_x_px=win.x_px,
+                predicted_y_px=win.y_px,
                 window_px=win.max_radius_px,
+                photo_blur_px=photo_blur,
             )
+            if win.ambiguous_with and not coded:
+                obs.append(
+                    Observation(
+                        **base, status=AMBIGUOUS, reason=f"{win.ambiguous_with} is predicted in the same window"
+                    )
+                )
+                continue
             found = _nearest(dets, k, win)
             if found is None:
-                obs.append(Observation(**base, status=NOT_FOUND))
+                refused = [d for d in dets if d.window == k and d.reason]
+                why = max(refused, key=lambda d: d.score).reason if refused else ""
+                obs.append(Observation(**base, status=NOT_FOUND, reason=why))
                 continue
             d, err = found
-            status = DETECTED if err <= win.max_radius_px else TOO_FAR
+            status, reason = (DETECTED if err <= win.max_radius_px else TOO_FAR), ""
             w, h = frames[image]
             if status == DETECTED and not in_frame(
                 d.x_px, d.y_px, w, h, w * margin_pct / 100.0, h * margin_pct / 100.0
             ):
                 status = IN_MARGIN
+            if status == DETECTED and not coded:
+                other = _closer_prediction(d, err, win, wins)
+                if other:
+                    status, reason = AMBIGUOUS, f"the target found is as near {other}'s prediction"
             obs.append(
                 Observation(
                     **base,
@@ -573,10 +722,16 @@ def _judge(
                     attempt=d.attempt,
                     side_px=d.side_px,
                     corners_px=d.corners_px,
+                    method=d.attempt if d.attempt in ("verified", "fitted") else "decoded",
+                    score=d.score,
+                    id_margin=d.id_margin,
+                    position_margin=d.position_margin,
+                    blur_px=d.blur_px,
+                    reason=reason,
                 )
             )
         # markers seen whose id is in no GCP file: recorded, never written
-        for mid in sorted({d.marker_id for d in dets if d.marker_id not in by_id}):
+        for mid in sorted({d.marker_id for d in dets if d.marker_id not in by_id and coded}):
             d = next(d for d in dets if d.marker_id == mid)
             obs.append(Observation(image, "", mid, WRONG_ID, x_px=d.x_px, y_px=d.y_px, attempt=d.attempt))
     # one observation per (image, GCP): windows of two GCPs can overlap
@@ -590,6 +745,17 @@ def _judge(
             seen_pairs.add(key)
         unique.append(o)
     return unique
+
+
+def _closer_prediction(d: Detection, err_px: float, win: Window, wins: list[Window]) -> str:
+    """A target without an id belongs to the window only when no other GCP is predicted about as
+    near it: another prediction within twice the own distance plus three target sides."""
+    for o in wins:
+        if o is win:
+            continue
+        if math.hypot(d.x_px - o.x_px, d.y_px - o.y_px) <= 2 * err_px + 3 * max(win.side_px, 1.0):
+            return o.gcp
+    return ""
 
 
 def _warn_counts(observations: list[Observation], fb: Feedback) -> None:

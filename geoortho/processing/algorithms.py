@@ -51,6 +51,9 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             WORKERS,
             Param("pathology", "string"),
             Param("plan", "file", extensions=(".gpkg",), advanced=True),
+            Param("target", "enum", advanced=True),
+            Param("blur_px", "number", unit="px", minimum=0.0, maximum=200.0, advanced=True),
+            Param("glare", "number", minimum=0.0, maximum=1.0, advanced=True),
         ),
         outputs=(
             Output("output", "folder"),
@@ -117,6 +120,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("height_uncertainty_m", "number", unit="m", minimum=0.0, advanced=True),
             Param("attitude_uncertainty_deg", "number", unit="deg", minimum=0.0, maximum=45.0, advanced=True),
             WORKERS,
+            Param("target", "enum"),
         ),
         outputs=(
             Output("output", "file"),

@@ -1,0 +1,531 @@
+"""Predict-and-verify: find a target of known look where the prediction puts it, by fitting its model.
+
+A detector (OpenCV's ArUco) needs sharp, unsaturated cells to decode an id. Where it
+gives up — motion blur, defocus, a glare spot, or a target with no code at all —
+geoortho still knows which target should be where, at which size and (from the
+pose) with which perspective; only its rotation on the ground is unknown. So:
+
+1. Render the expected target (its reflectance pattern, :func:`geoortho.markers.target_reflectance`)
+   through the local affine of the projection, blurred by the photo's estimated motion
+   blur, at each rotation; correlate it with the window (OpenCV ``matchTemplate``, normalised,
+   masked to the target's own area).
+2. From the best peak, fit the model to the pixels: centre, rotation, scale, a small
+   shape correction, blur length/direction and defocus, with gain and offset solved in
+   closed form (scipy ``least_squares``, soft-L1 so a glare spot does not pull it);
+   saturated pixels are masked out, never trusted.
+3. Accept only with a correlation score and margins that keep precision at 1.0: over
+   the second-best position in the window (a look-alike nearby) and, for coded markers,
+   over every other id of the dictionary in every rotation, rendered at the fitted
+   geometry.
+
+The fitted model is the whole target, so its centre is what the issue asks of each
+shape: a checkerboard's saddle (then polished by OpenCV ``cornerSubPix``, which finds
+exactly that), a cross's two bar centre lines crossing, a circle's ellipse centre.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cache
+
+import cv2
+import numpy as np
+
+from ..markers import CODED, CROSS_BAR, get_dictionary, target_half_extent, target_reflectance
+
+__all__ = ["Fit", "estimate_motion_blur", "fit_target", "THRESHOLDS"]
+
+#: Acceptance thresholds (normalised correlation, masked). Chosen on synthetic surveys with
+#: seeds the tests do not use (scripts in benchmarks/bench_gcp.py --calibrate print the
+#: distributions): the lowest true score seen was well above ``score``, the highest score
+#: of a wrong target (--target mismatched, decoys, empty windows) well below it.
+THRESHOLDS = {
+    "score": 0.80,  # the fitted model explains the window
+    "id_margin": 0.10,  # coded: over the best other id / rotation at the same place
+    "position_margin": 0.12,  # over the best look-alike elsewhere in the window
+}
+SATURATED = 250  # grey levels at or above: glare, not target
+SUBSAMPLES = 32  # per pixel: pixel area, motion path and defocus at once
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A fitted target: where and how it looks, and how sure."""
+
+    x_px: float
+    y_px: float
+    angle_deg: float
+    scale: float
+    blur_px: float
+    blur_deg: float
+    defocus_px: float
+    score: float
+    id_margin: float  # NaN for targets without an id
+    position_margin: float
+    corners_px: tuple[tuple[float, float], ...]
+    reason: str = ""  # why it was refused; "" = accepted
+
+    @property
+    def accepted(self) -> bool:
+        return not self.reason
+
+
+@cache
+def _offsets(n: int = SUBSAMPLES) -> tuple[np.ndarray, ...]:
+    """Fixed sample offsets per pixel: (x, y) uniform in the pixel, t along the motion path
+    (−½…½), (nx, ny) standard normal for defocus.
+
+    A low-discrepancy (additive recurrence) sequence: the template is a smooth,
+    deterministic function of the parameters, which the least-squares fit needs."""
+    from scipy.special import ndtri
+
+    steps = np.sqrt(np.array([2.0, 3.0, 5.0, 7.0, 11.0])) % 1.0
+    q = (0.5 + np.outer(np.arange(1, n + 1), steps)) % 1.0
+    normal = ndtri(np.clip(q[:, 3:], 1e-3, 1 - 1e-3))
+    cols = np.c_[q[:, :3] - 0.5, normal]
+    cols -= cols.mean(axis=0)  # no bias: a sample set off-centre would shift every fitted centre
+    cols[:, 3:] /= cols[:, 3:].std(axis=0)
+    return tuple(cols.T)
+
+
+def _fit_reflectance(kind: str, u: np.ndarray, v: np.ndarray, cells: np.ndarray | None, bar: float) -> np.ndarray:
+    """The model's reflectance: the target, with NaN outside the area the model covers.
+
+    A cross is painted on unknown ground: the ground inside its span is modelled as one
+    dark level. A circle's board may stand at any rotation: only the disc inscribed in it."""
+    if kind == "cross":
+        out = target_reflectance(kind, u, v, bar=bar)
+        span = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
+        return np.where(span & np.isnan(out), 0.0, out)
+    out = target_reflectance(kind, u, v, cells)
+    if kind == "circle":
+        out = np.where(u * u + v * v <= target_half_extent(kind) ** 2, out, np.nan)
+    return out
+
+
+def _affine(base: np.ndarray, angle_deg: float, scale: float, e1: float, e2: float) -> np.ndarray:
+    """Marker frame (u right, v up, in sides) → pixel offsets: the pose's ground Jacobian × the
+    target's rotation on the ground × scale, with a small symmetric shape correction."""
+    a = math.radians(angle_deg)
+    rot = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
+    shape = np.array([[1 + e1, e2], [e2, 1 - e1]])
+    return scale * shape @ base @ rot
+
+
+class _Renderer:
+    """Renders the target model into a fixed grid of pixels (a patch of the photo)."""
+
+    def __init__(self, kind: str, cells: np.ndarray | None, xs: np.ndarray, ys: np.ndarray, bar: float = CROSS_BAR):
+        self.kind, self.cells, self.bar = kind, cells, bar
+        self.xs, self.ys = xs.astype(float).ravel(), ys.astype(float).ravel()
+        self.sx, self.sy, self.st, self.nx, self.ny = (o[None, :] for o in _offsets())
+
+    def uv(
+        self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Marker-frame coordinates of every sample of every pixel."""
+        b = math.radians(blur_deg)
+        # blur direction anticlockwise from x as seen (image y points down)
+        px = self.xs[:, None] - cx + self.sx + blur_px * math.cos(b) * self.st + defocus_px * self.nx
+        py = self.ys[:, None] - cy + self.sy - blur_px * math.sin(b) * self.st + defocus_px * self.ny
+        inv = np.linalg.inv(A)
+        return inv[0, 0] * px + inv[0, 1] * py, inv[1, 0] * px + inv[1, 1] * py
+
+    def render(
+        self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Mean reflectance per pixel, and the share of its samples that fall on the model."""
+        u, v = self.uv(cx, cy, A, blur_px, blur_deg, defocus_px)
+        r = _fit_reflectance(self.kind, u, v, self.cells, self.bar)
+        ok = np.isfinite(r)
+        cover = ok.mean(axis=1)
+        value = np.where(ok, r, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
+        return value, cover
+
+    def render_ids(
+        self,
+        cx: float,
+        cy: float,
+        A: np.ndarray,
+        blur_px: float,
+        blur_deg: float,
+        defocus_px: float,
+        all_cells: np.ndarray,
+    ) -> np.ndarray:
+        """Every coded pattern of ``all_cells`` (k, n, n) at the same place: (k, pixels)."""
+        u, v = self.uv(cx, cy, A, blur_px, blur_deg, defocus_px)
+        n = all_cells.shape[1]
+        half = target_half_extent(self.kind, n)
+        board = (np.abs(u) <= half) & (np.abs(v) <= half)
+        ci = np.floor((u + 0.5) * n).astype(int)
+        ri = np.floor((0.5 - v) * n).astype(int)
+        inside = board & (ci >= 0) & (ci < n) & (ri >= 0) & (ri < n)
+        flat = all_cells.reshape(len(all_cells), -1).astype(np.float32)
+        idx = np.where(inside, ri * n + ci, 0)
+        vals = np.where(inside[None], flat[:, idx], 1.0)  # quiet zone white
+        return np.where(board[None], vals, 0.0).sum(axis=2) / np.maximum(board.sum(axis=1), 1)[None]
+
+
+def _ncc(img: np.ndarray, tpl: np.ndarray, w: np.ndarray) -> float:
+    """Weighted normalised correlation."""
+    sw = w.sum()
+    if sw < 8:
+        return -1.0
+    mi, mt = (w * img).sum() / sw, (w * tpl).sum() / sw
+    di, dt = img - mi, tpl - mt
+    den = math.sqrt(float((w * di * di).sum() * (w * dt * dt).sum()))
+    return float((w * di * dt).sum() / den) if den > 1e-12 else -1.0
+
+
+@cache
+def _coded_alternatives(dictionary: str, marker_id: int) -> np.ndarray:
+    """Every id of the dictionary in its four rotations, bar the expected one upright: (k, n, n)."""
+    d = get_dictionary(dictionary)
+    side = d.markerSize + 2
+    alts = []
+    for i in range(d.bytesList.shape[0]):
+        cells = cv2.aruco.generateImageMarker(d, i, side, borderBits=1) > 127
+        for k in range(4):
+            if i == marker_id and k == 0:
+                continue
+            alts.append(np.rot90(cells, k))
+    return np.array(alts)
+
+
+def estimate_motion_blur(gray: np.ndarray, tile_px: int = 128, max_tiles: int = 24) -> tuple[float, float]:
+    """A photo's motion blur (length px, direction deg from the x axis, anticlockwise in the image)
+    from the cepstrum of its texture: a straight blur of length L puts a negative peak at L along
+    its direction (the zeros of its sinc spectrum repeat every 1/L). (0, 0) when none stands out."""
+    h, w = gray.shape[:2]
+    if h < tile_px or w < tile_px:
+        return 0.0, 0.0
+    g = gray.astype(np.float32)
+    starts = [(y, x) for y in range(0, h - tile_px + 1, tile_px) for x in range(0, w - tile_px + 1, tile_px)]
+    var = np.array([g[y : y + tile_px, x : x + tile_px].var() for y, x in starts])
+    keep = [starts[i] for i in np.argsort(-var)[:max_tiles] if var[i] > 4.0]
+    if not keep:
+        return 0.0, 0.0
+    win = np.outer(np.hanning(tile_px), np.hanning(tile_px)).astype(np.float32)
+    power = np.zeros((tile_px, tile_px), np.float64)
+    for y, x in keep:
+        t = g[y : y + tile_px, x : x + tile_px]
+        power += np.abs(np.fft.fft2((t - t.mean()) * win)) ** 2
+    cep = np.fft.fftshift(np.real(np.fft.ifft2(np.log(power / len(keep) + 1e-3))))
+    c = tile_px // 2
+    yy, xx = np.mgrid[-c : tile_px - c, -c : tile_px - c]
+    r = np.hypot(xx, yy)
+    ring = (r >= 2.5) & (r <= tile_px / 3)
+    vals = np.where(ring, cep, np.inf)
+    k = int(np.argmin(vals))
+    ky, kx = divmod(k, tile_px)
+    spread = float(np.std(cep[ring]))
+    if -cep[ky, kx] < 4.0 * spread:
+        return 0.0, 0.0
+    dx, dy = xx[ky, kx], yy[ky, kx]
+    return float(math.hypot(dx, dy)), float(math.degrees(math.atan2(-dy, dx)) % 180.0)
+
+
+def fit_target(
+    gray: np.ndarray,
+    box: tuple[int, int, int, int],
+    kind: str,
+    base: np.ndarray,
+    *,
+    cells: np.ndarray | None = None,
+    dictionary: str = "",
+    marker_id: int = -1,
+    blur: tuple[float, float] = (0.0, 0.0),
+    predicted_xy: tuple[float, float] | None = None,
+) -> Fit | None:
+    """Find and fit one target of ``kind`` in ``box`` (x0, y0, x1, y1) of a grey photo.
+
+    ``base``: 2 × 2 pixels per marker side along the target's u (east at angle 0) and v
+    (north): the projection's Jacobian at the GCP times the marker side. ``blur``: the
+    photo's motion blur (length px, direction deg). ``predicted_xy``: for targets without an
+    id, where the GCP is predicted (photo pixels): of the targets in the box that pass the
+    score, the one nearest it is taken, unless another is about as near (ambiguous).
+    None when the box is too small."""
+    x0, y0, x1, y1 = box
+    crop = gray[y0:y1, x0:x1].astype(np.float32)
+    if crop.shape[0] < 8 or crop.shape[1] < 8:
+        return None
+    by_place = predicted_xy is not None and kind not in CODED
+    coarse = _coarse(crop, kind, base, cells, blur, max_peaks=4 if by_place else 6, absolute=by_place)
+    if not coarse:
+        return None
+    fits = sorted(
+        (_score(crop, kind, base * f, cells, (cx, cy, a), blur) for cx, cy, a, f, _ in coarse), key=lambda f: -f[0]
+    )
+    side = float(np.sqrt(abs(np.linalg.det(base))))
+    ambiguous = ""
+    if by_place:
+        # several targets of one kind may share a window: the prediction tells them apart
+        assert predicted_xy is not None
+        px, py = predicted_xy[0] - x0, predicted_xy[1] - y0
+        # every plausible fit counts for nearness; the nearest must also pass the score
+        near: list[tuple] = []
+        board = 2 * target_half_extent(kind) * side  # fits closer than a board apart: one target
+        for f in fits:  # best first
+            if f[0] >= 0.75 and all(math.hypot(f[1] - g[1], f[2] - g[2]) > board for g in near):
+                near.append(f)
+        near = near or fits[:1]
+        near.sort(key=lambda f: math.hypot(f[1] - px, f[2] - py))
+        own = math.hypot(near[0][1] - px, near[0][2] - py)
+        dists = [math.hypot(f[1] - px, f[2] - py) for f in near[1:]]
+        pos_margin = (min(dists) - (2 * own + 3 * side)) / side if dists else math.inf
+        if pos_margin < 0:
+            ambiguous = f"two {kind} targets about as near the prediction ({own:.0f} and {min(dists):.0f} px)"
+        fits = near
+    score, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight = fits[0]
+    if not by_place:
+        others = (f[0] for f in fits[1:] if math.hypot(f[1] - cx, f[2] - cy) > 0.75 * side)
+        pos_margin = score - max(others, default=-1.0)
+    id_margin = math.nan
+    if kind in CODED and dictionary and cells is not None:
+        # ids differ only inside the border: score the code cells alone, the expected id
+        # against every other id and rotation rendered at the same place
+        u, v = rend.uv(cx, cy, A, blen, bdeg, dpx)
+        lim = 0.5 - 1.0 / cells.shape[0]
+        inner = weight * ((np.abs(u) <= lim) & (np.abs(v) <= lim)).all(axis=1)
+        both = rend.render_ids(
+            cx, cy, A, blen, bdeg, dpx, np.r_[cells[None], _coded_alternatives(dictionary, marker_id)]
+        )
+        mine = _ncc(pix, both[0], inner)
+        id_margin = mine - max(_ncc(pix, t, inner) for t in both[1:])
+    if kind == "checkerboard":
+        cx, cy = _saddle(crop, cx, cy, A)
+    corners = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]]) @ A.T + [cx + x0, cy + y0]
+    reason = ""
+    t = THRESHOLDS
+    if score < t["score"]:
+        reason = f"best {kind} match scores {score:.2f} < {t['score']:.2f}"
+    elif kind in CODED and id_margin < t["id_margin"]:
+        reason = f"id {marker_id} beats the next id or rotation by only {id_margin:.2f} < {t['id_margin']:.2f}"
+    elif ambiguous:
+        reason = ambiguous
+    elif not by_place and pos_margin < t["position_margin"]:
+        reason = f"a look-alike in the window scores within {pos_margin:.2f} < {t['position_margin']:.2f}"
+    elif not (0 <= cx < crop.shape[1] and 0 <= cy < crop.shape[0]):
+        reason = "the fit left the window"
+    return Fit(
+        float(cx + x0),
+        float(cy + y0),
+        float(angle % 360.0),
+        float(scale),
+        float(blen),
+        float(bdeg % 180.0),
+        float(dpx),
+        float(score),
+        float(id_margin),
+        float(pos_margin),
+        tuple(map(tuple, corners.tolist())),
+        reason,
+    )
+
+
+def _score(
+    crop: np.ndarray,
+    kind: str,
+    base: np.ndarray,
+    cells: np.ndarray | None,
+    start: tuple[float, float, float],
+    blur: tuple[float, float],
+) -> tuple:
+    """Refine from one candidate; its final score on every pixel the model covers (saturated out)."""
+    fit, glare = _refine(crop, kind, base, cells, start, blur)
+    cx, cy, angle, scale, e1, e2, blen, bdeg, dpx, bar = fit
+    if glare is not None:
+        # take the fitted glare spot off (saturated pixels stay out of the score)
+        gx0, gy0, spot = glare
+        crop = crop.copy()
+        sub = crop[gy0 : gy0 + spot.shape[0], gx0 : gx0 + spot.shape[1]]
+        hot = sub >= SATURATED
+        sub -= spot.astype(np.float32)
+        sub[hot] = 255.0
+    A = _affine(base, angle, scale, e1, e2)
+    half = target_half_extent(kind, 6 if cells is None else cells.shape[0])
+    reach = int(math.ceil(np.abs(A).sum(axis=1).max() * half + blen / 2 + 2 * dpx + 2))
+    gx0, gx1 = max(0, int(cx) - reach), min(crop.shape[1], int(cx) + reach + 2)
+    gy0, gy1 = max(0, int(cy) - reach), min(crop.shape[0], int(cy) + reach + 2)
+    ys, xs = np.mgrid[gy0:gy1, gx0:gx1]
+    rend = _Renderer(kind, cells, xs, ys, bar)
+    tpl, cover = rend.render(cx, cy, A, blen, bdeg, dpx)
+    pix = crop[gy0:gy1, gx0:gx1].ravel()
+    weight = ((cover > 0.999) & (pix < SATURATED)).astype(np.float64)
+    return _ncc(pix, tpl, weight), cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight
+
+
+def _angles(kind: str) -> np.ndarray:
+    period = {"checkerboard": 180.0, "cross": 90.0, "circle": 360.0}.get(kind, 360.0)
+    if kind == "circle":
+        return np.array([0.0])
+    return np.arange(0.0, period, 10.0)
+
+
+def _coarse(
+    crop: np.ndarray,
+    kind: str,
+    base: np.ndarray,
+    cells: np.ndarray | None,
+    blur: tuple[float, float],
+    max_peaks: int = 3,
+    absolute: bool = False,
+) -> list[tuple[float, float, float, float, float]] | None:
+    """Candidate positions, rotations and sizes by masked template matching, best first."""
+    half = target_half_extent(kind, 6 if cells is None else cells.shape[0])
+    reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.2 + blur[0] / 2 + 1))
+    size = 2 * reach + 1
+    if size >= min(crop.shape):
+        return None
+    ys, xs = np.mgrid[0:size, 0:size]
+    rend = _Renderer(kind, cells, xs, ys)
+    best: tuple[float, float, float, float] | None = None
+    maps, used = [], []
+    # the predicted size is off by the camera height's error (10 % is common): three sizes
+    for angle, scale in ((a, f) for a in _angles(kind) for f in (0.88, 1.0, 1.12)):
+        A = _affine(base, float(angle), scale, 0.0, 0.0)
+        tpl, cover = rend.render(reach, reach, A, blur[0], blur[1], 0.5)
+        t = tpl.reshape(size, size).astype(np.float32)
+        m = (cover.reshape(size, size) > 0.999).astype(np.float32)
+        if m.sum() < 8 or t[m > 0].std() < 1e-3:
+            continue
+        res = cv2.matchTemplate(crop, t, cv2.TM_CCOEFF_NORMED, mask=m)
+        res = np.nan_to_num(res, nan=-1.0, posinf=-1.0, neginf=-1.0)
+        maps.append(res)
+        used.append((float(angle), scale))
+        _, mx, _, loc = cv2.minMaxLoc(res)
+        if best is None or mx > best[3]:
+            best = (loc[0] + reach, loc[1] + reach, float(angle), float(mx))
+    if best is None:
+        return None
+    # the peaks of every rotation at distinct places, best first (a glare spot can lower the
+    # true one below a look-alike: each is refined and the fits compete)
+    top = np.max(maps, axis=0)
+    angle_of = np.argmax(maps, axis=0)
+    side = float(np.sqrt(abs(np.linalg.det(base))))
+    out: list[tuple[float, float, float, float, float]] = []
+    work = top.copy()
+    for _ in range(max_peaks):
+        _, mx, _, loc = cv2.minMaxLoc(work)
+        if mx < (0.6 if absolute else 0.3) or (out and mx < out[0][4] - (0.3 if absolute else 0.5)):
+            break
+        a, f = used[angle_of[loc[1], loc[0]]]
+        out.append((loc[0] + reach, loc[1] + reach, a, f, float(mx)))
+        cv2.circle(work, loc, int(math.ceil(0.75 * side)), -2.0, -1)
+    return out
+
+
+def _refine(
+    crop: np.ndarray,
+    kind: str,
+    base: np.ndarray,
+    cells: np.ndarray | None,
+    start: tuple[float, float, float],
+    blur: tuple[float, float],
+) -> tuple[tuple[float, ...], tuple[int, int, np.ndarray] | None]:
+    """Least-squares fit of the model's geometry, blur and defocus to the pixels around ``start``."""
+    from scipy.optimize import least_squares
+
+    cx0, cy0, angle0 = start
+    half = target_half_extent(kind, 6 if cells is None else cells.shape[0])
+    reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.15 + blur[0] / 2 + 3))
+    gx0, gx1 = max(0, int(cx0) - reach), min(crop.shape[1], int(cx0) + reach + 1)
+    gy0, gy1 = max(0, int(cy0) - reach), min(crop.shape[0], int(cy0) + reach + 1)
+    ys, xs = np.mgrid[gy0:gy1, gx0:gx1]
+    pix = crop[gy0:gy1, gx0:gx1].ravel().astype(np.float64)
+    rend = _Renderer(kind, cells, xs, ys)
+    A0 = _affine(base, angle0, 1.0, 0.0, 0.0)
+    _, cover0 = rend.render(cx0, cy0, A0 * 0.9, 0.0, 0.0, 0.0)
+    use = (cover0 > 0.999) & (pix < SATURATED)
+    if use.sum() < 12:
+        use = cover0 > 0.5
+    bx, by = blur[0] * math.cos(math.radians(blur[1])), blur[0] * math.sin(math.radians(blur[1]))
+    side = float(np.sqrt(abs(np.linalg.det(base))))
+    # A glare spot: an additive bright blob (its saturated core is masked), fitted as one more
+    # term where the patch has saturated pixels, started at their centroid.
+    hot = pix >= SATURATED
+    glare = bool(hot.any())
+    gx, gy = (xs.ravel()[hot].mean(), ys.ravel()[hot].mean()) if glare else (cx0, cy0)
+    # blur as a vector (x, y): no wrap-around of its direction for the optimiser
+    x0 = np.array([cx0, cy0, angle0, 0.0, 0.0, 0.0, bx, by, 0.7, CROSS_BAR, gx, gy, math.log(0.25 * side)])
+    free = [i for i in range(13) if (i != 9 or kind == "cross") and (i < 10 or glare)]
+    xf, yf = xs.ravel()[use].astype(float), ys.ravel()[use].astype(float)
+
+    def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
+        rend.bar = float(np.clip(bar, 0.08, 0.45))
+        A = _affine(base, ang, math.exp(ls), e1, e2)
+        blen, bdeg = math.hypot(vx, vy), math.degrees(math.atan2(vy, vx))
+        return rend.render(cx, cy, A, blen, bdeg, abs(dpx))
+
+    def design(p: np.ndarray) -> np.ndarray:
+        t = model(p)[0][use]
+        cols = [t, np.ones_like(t)]
+        if glare:
+            cols.append(np.exp(-((xf - p[10]) ** 2 + (yf - p[11]) ** 2) / (2 * math.exp(2 * p[12]))))
+        return np.column_stack(cols)
+
+    def residuals(q: np.ndarray) -> np.ndarray:
+        p = x0.copy()
+        p[free] = q
+        d = design(p)
+        # gain, offset (and glare amplitude) in closed form
+        coef, *_ = np.linalg.lstsq(d, pix[use], rcond=None)
+        return (d @ coef - pix[use]) / 8.0
+
+    lo = np.array([cx0 - reach, cy0 - reach, angle0 - 25, -0.25, -0.2, -0.2, -60, -60, 0.0, 0.08])
+    hi = np.array([cx0 + reach, cy0 + reach, angle0 + 25, 0.25, 0.2, 0.2, 60, 60, 6.0, 0.45])
+    lo = np.r_[lo, gx - side, gy - side, math.log(0.05 * side + 0.5)]
+    hi = np.r_[hi, gx + side, gy + side, math.log(side + 1.0)]
+    scales = np.array([0.3, 0.3, 2.0, 0.03, 0.03, 0.03, 1.0, 1.0, 0.3, 0.02, 1.0, 1.0, 0.1])
+    try:
+        sol = least_squares(
+            residuals,
+            x0[free],
+            bounds=(lo[free], hi[free]),
+            loss="soft_l1",
+            f_scale=2.0,
+            diff_step=1e-3,
+            max_nfev=80,
+            x_scale=scales[free],
+        )
+        p = x0.copy()
+        p[free] = sol.x
+    except (ValueError, np.linalg.LinAlgError):
+        p = x0
+    glare_img = None
+    if glare:
+        # the fitted glare, to take off the pixels before scoring
+        d = design(p)
+        coef, *_ = np.linalg.lstsq(d, pix[use], rcond=None)
+        gxx, gyy = xs.astype(float), ys.astype(float)
+        glare_img = coef[2] * np.exp(-((gxx - p[10]) ** 2 + (gyy - p[11]) ** 2) / (2 * math.exp(2 * p[12])))
+    cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
+    return (
+        float(cx),
+        float(cy),
+        float(ang),
+        float(math.exp(ls)),
+        float(e1),
+        float(e2),
+        float(math.hypot(vx, vy)),
+        float(math.degrees(math.atan2(vy, vx))),
+        float(abs(dpx)),
+        float(bar),
+    ), (None if glare_img is None else (gx0, gy0, glare_img))
+
+
+def _saddle(crop: np.ndarray, cx: float, cy: float, A: np.ndarray) -> tuple[float, float]:
+    """A checkerboard's centre polished as the saddle point (OpenCV cornerSubPix), kept only when
+    it stays within a quarter square of the fit."""
+    quarter = float(np.sqrt(abs(np.linalg.det(A)))) / 4
+    win = int(max(2, min(10, round(quarter))))
+    pt = np.array([[[cx, cy]]], np.float32)
+    if not (win + 1 <= cx < crop.shape[1] - win - 1 and win + 1 <= cy < crop.shape[0] - win - 1):
+        return cx, cy
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.001)
+    out = cv2.cornerSubPix(crop.astype(np.float32), pt.copy(), (win, win), (-1, -1), crit)[0, 0]
+    if math.hypot(out[0] - cx, out[1] - cy) <= quarter:
+        return float(out[0]), float(out[1])
+    return cx, cy
