@@ -6,40 +6,12 @@ import csv
 import json
 import os
 
-import numpy as np
 import pytest
+from test_gcp_find import _score
 
 from geoortho.gcp.find import gcp_find
 from geoortho.gcp.targets import estimate_motion_blur
 from geoortho.synthetic import synth
-
-
-def _score(survey, gcp_list) -> dict:
-    truth = {
-        m["image"]: {mm["gcp"]: mm for mm in m["markers"]}
-        for m in json.loads((survey.truth / "markers.json").read_text())
-    }
-    rows = [ln.split() for ln in gcp_list.read_text().splitlines()[1:]]
-    errors, wrong, found = [], 0, set()
-    for r in rows:
-        t = truth[r[5]].get(r[6])
-        if t is None or t["decoy"]:
-            wrong += 1
-            continue
-        e = float(np.hypot(float(r[3]) - t["x_px"], float(r[4]) - t["y_px"]))
-        errors.append(e)
-        wrong += e > 3.0
-        found.add((r[5], r[6]))
-    visible = {
-        (i, g) for i, ms in truth.items() for g, m in ms.items() if m["inside"] and not m["decoy"] and not m["occluded"]
-    }
-    return {
-        "written": len(rows),
-        "precision": (len(rows) - wrong) / max(1, len(rows)),
-        "recall": len(found & visible) / max(1, len(visible)),
-        "n_visible": len(visible),
-        "mean_error_px": float(np.mean(errors)) if errors else np.nan,
-    }
 
 
 @pytest.fixture(scope="module")
