@@ -13,6 +13,7 @@ from .errors import InputError
 __all__ = [
     "DICTIONARIES",
     "TARGETS",
+    "coded_cells_at",
     "get_dictionary",
     "marker_cells",
     "target_half_extent",
@@ -85,13 +86,27 @@ CROSS_BAR = 0.2
 CIRCLE_BOARD = 1.5
 
 
-def target_half_extent(kind: str, cells: int = 6) -> float:
-    """Half the side of the square the target occupies, in marker sides (the board with its quiet zone)."""
+def target_half_extent(kind: str, cells: np.ndarray | int | None = None) -> float:
+    """Half the side of the square the target occupies, in marker sides (the board with its quiet zone).
+
+    ``cells``: a coded marker's cells (or their count across, border included; 6 when not given)."""
     if kind in CODED:
-        return 0.5 + 1.0 / cells
+        n = 6 if cells is None else cells if isinstance(cells, int) else cells.shape[0]
+        return 0.5 + 1.0 / n
     if kind == "circle":
         return CIRCLE_BOARD / 2
     return 0.5
+
+
+def coded_cells_at(u: np.ndarray, v: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where marker-frame points fall on a coded marker of ``n`` cells across (border included):
+    on its board (quiet zone included), on a cell, and that cell's row-major index (0 off the cells)."""
+    half = target_half_extent("aruco", n)
+    board = (np.abs(u) <= half) & (np.abs(v) <= half)
+    ci = np.floor((u + 0.5) * n).astype(int)
+    ri = np.floor((0.5 - v) * n).astype(int)
+    inside = board & (ci >= 0) & (ci < n) & (ri >= 0) & (ri < n)
+    return board, inside, np.where(inside, ri * n + ci, 0)
 
 
 def target_reflectance(
@@ -107,17 +122,13 @@ def target_reflectance(
     u = np.asarray(u, float)
     v = np.asarray(v, float)
     out = np.full(np.broadcast(u, v).shape, np.nan)
-    half = target_half_extent(kind, 6 if cells is None else cells.shape[0])
+    half = target_half_extent(kind, cells)
     if kind in CODED:
         if cells is None:
             raise ValueError("a coded marker needs its cells")
-        n = cells.shape[0]
-        board = (np.abs(u) <= half) & (np.abs(v) <= half)
+        board, inside, index = coded_cells_at(u, v, cells.shape[0])
         out[board] = 1.0
-        ci = np.floor((u + 0.5) * n).astype(int)
-        ri = np.floor((0.5 - v) * n).astype(int)
-        inside = board & (ci >= 0) & (ci < n) & (ri >= 0) & (ri < n)
-        out[inside] = np.where(cells[ri[inside], ci[inside]], 1.0, 0.0)
+        out[inside] = np.where(cells.ravel()[index[inside]], 1.0, 0.0)
     elif kind == "checkerboard":
         board = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
         out[board] = ((u[board] >= 0) == (v[board] >= 0)).astype(float)

@@ -836,7 +836,7 @@ def _marker_truth_and_antialias(
 ) -> list[dict[str, Any]]:
     """Exact projected marker centres, and 4×4 supersampled marker pixels (markers lie on flat pads)."""
     s = scene.marker_size_m
-    quiet = s * target_half_extent(scene.target, next(iter(scene.marker_cells.values()), np.zeros((6, 6))).shape[0])
+    quiet = s * target_half_extent(scene.target, next(iter(scene.marker_cells.values()), None))
     h, w = img.shape[:2]
     out = []
     sub = (np.arange(4) + 0.5) / 4 - 0.5

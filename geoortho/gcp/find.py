@@ -478,14 +478,16 @@ def _search(
     rest = [im for im in searched if im not in set(pilot)]
     s_pilot, s_rest = split(fb, [len(pilot), len(rest) + len(plan.unplaced)])
 
-    def run(images: list[str], kind: str, f: Feedback) -> Results:
-        items = [(plan.path_of[im], windows[im], dictionary, kind) for im in images]
+    def run(jobs: list[tuple[str, list[Window]]], kind: str, f: Feedback) -> Results:
+        items = [(plan.path_of[im], wins, dictionary, kind) for im, wins in jobs]
         return map_ordered(detect_task, items, workers=1 if pool is None else workers, executor=pool, feedback=f)
 
     if target == "auto":
-        target, results = _choose_target(pilot, windows, run, auto_kinds, s_pilot)
+        target, results = _choose_target(
+            pilot, windows, lambda ims, kind, f: run([(im, windows[im]) for im in ims], kind, f), auto_kinds, s_pilot
+        )
     else:
-        results = run(pilot, target, s_pilot)
+        results = run([(im, windows[im]) for im in pilot], target, s_pilot)
     offset = _flight_offset(results, windows, plan.cams, dict(zip(plan.names, plan.xyz)))
     if offset is not None:
         shift_m, residual_m, n_used = offset
@@ -494,6 +496,10 @@ def _search(
             f"{shift_m[1]:+.2f} m N; windows sized for a {residual_m:.1f} m residual "
             f"(wide fallback: the stated uncertainty)"
         )
+        if target not in CODED:
+            # a target without an id is told by position: search every photo again, in windows
+            # placed with the measured offset (the pilot's were sized for the stated uncertainty)
+            rest, results = rest + pilot, []
         narrowed = predict_windows(
             [plan.cams[im] for im in rest],
             plan.names,
@@ -502,32 +508,14 @@ def _search(
             residual_m=residual_m,
             **uncertainty,
         )
-        if target not in CODED:
-            # a target without an id is told by position: search every photo again, in windows
-            # placed with the measured offset (the pilot's were sized for the stated uncertainty)
-            narrowed.update(
-                predict_windows(
-                    [plan.cams[im] for im in pilot],
-                    plan.names,
-                    plan.xyz + [shift_m[0], shift_m[1], 0.0],
-                    ids,
-                    residual_m=residual_m,
-                    **uncertainty,
-                )
-            )
-            rest, results = rest + pilot, []
         for im in rest:
-            windows.pop(im, None)
+            windows.pop(im)
         windows.update(narrowed)
         rest = [im for im in rest if im in windows]
-    whole = [p.image for p in plan.unplaced] if target in CODED else []
-    for im in whole:
-        windows.setdefault(im, [])
-    items = [(plan.path_of[im], windows[im], dictionary, target) for im in rest]
-    items += [(plan.path_of[im], [Window("", -1, 0.0, 0.0, 0.0)], dictionary, target) for im in whole]
-    results += map_ordered(detect_task, items, workers=1 if pool is None else workers, executor=pool, feedback=s_rest)
-    for im in whole:
-        windows.pop(im, None)
+    # photos without a pose are searched whole, for coded markers only (nothing else tells a target)
+    whole = [Window("", -1, 0.0, 0.0, 0.0)]
+    jobs = [(im, windows[im]) for im in rest] + [(p.image, whole) for p in plan.unplaced if target in CODED]
+    results += run(jobs, target, s_rest)
     return results, windows, None if offset is None else (float(offset[0][0]), float(offset[0][1])), target
 
 
