@@ -229,3 +229,16 @@ def test_no_gcp_in_any_photo_says_why(tiny_survey, tmp_path, how, hint):
     msg = str(e.value)
     assert "none of the" in msg and "gcps.txt" in msg and hint in msg and "EPSG:32629" in msg, msg
     assert not (tmp_path / "gcp_list.txt").exists()
+
+
+def test_opencv_refinement_assertion_does_not_end_the_run():
+    """A window of the real toledo DJI_0091.JPG on which OpenCV's contour corner refinement
+    asserts ("nContours.size() >= 2") in the glare attempt: it used to end gcp-find with an
+    unexpected error; now the attempt falls back to sub-pixel corner refinement."""
+    from geoortho.gcp.detect import _run
+    from geoortho.photos import decode_photo
+
+    gray = decode_photo(str(real_data("toledo_dji") / "images" / "DJI_0091.JPG"), grey=True)
+    crop = gray[1251 : 1251 + 362, 800 : 800 + 361]
+    hits = _run(crop, "glare", "DICT_4X4_50", 11.72)
+    assert all(c.shape == (4, 2) for _, c in hits)

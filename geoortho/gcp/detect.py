@@ -103,11 +103,13 @@ def marker_centre(corners: np.ndarray) -> np.ndarray:
     return mean + w * (diag - mean)
 
 
-def _detector(dictionary: str, glare: bool = False, threshold_win_px: int = 0) -> cv2.aruco.ArucoDetector:
+def _detector(
+    dictionary: str, glare: bool = False, threshold_win_px: int = 0, refine: int = cv2.aruco.CORNER_REFINE_CONTOUR
+) -> cv2.aruco.ArucoDetector:
     params = cv2.aruco.DetectorParameters()
     if threshold_win_px:
         params.adaptiveThreshWinSizeMin = params.adaptiveThreshWinSizeMax = threshold_win_px
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
+    params.cornerRefinementMethod = refine
     params.cornerRefinementWinSize = 3
     params.cornerRefinementMaxIterations = 50
     params.cornerRefinementMinAccuracy = 0.01
@@ -139,7 +141,13 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
         # compress the highlights so a glare spot does not swamp the threshold
         lut = (255.0 * (np.arange(256) / 255.0) ** 1.8).astype(np.uint8)
         img = cv2.LUT(gray, lut)
-    corners, ids, _ = _detector(dictionary, glare=attempt == "glare", threshold_win_px=win).detectMarkers(img)
+    glare = attempt == "glare"
+    try:
+        corners, ids, _ = _detector(dictionary, glare, win).detectMarkers(img)
+    except cv2.error:
+        # OpenCV's contour refinement asserts on some degenerate candidates (seen on the toledo
+        # photos: "nContours.size() >= 2"); its corner sub-pixel refinement does not
+        corners, ids, _ = _detector(dictionary, glare, win, cv2.aruco.CORNER_REFINE_SUBPIX).detectMarkers(img)
     if ids is None:
         return []
     out = []
