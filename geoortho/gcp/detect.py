@@ -70,6 +70,9 @@ class Detection:
     id_margin: float = math.nan
     position_margin: float = math.nan
     blur_px: float = math.nan  # model fit: motion blur length at the target
+    contrast_dn: float = math.nan  # model fit: white − black, grey levels
+    worst_part: float = math.nan  # model fit, no id: largest mean residual over a part / contrast
+    shape_margin: float = math.nan  # model fit, no id: over the best plain edge, bar, corner or blob
     reason: str = ""  # model fit refused: why (the detection is then not a find)
 
 
@@ -249,6 +252,9 @@ def _fit(
         fit.id_margin,
         fit.position_margin,
         fit.blur_px,
+        fit.contrast_dn,
+        fit.worst_part,
+        fit.shape_margin,
         fit.reason,
     )
 

@@ -83,6 +83,9 @@ class Observation:
     id_margin: float = math.nan  # verified: over the best other id or rotation
     position_margin: float = math.nan  # model fit: over the best look-alike in the window
     blur_px: float = math.nan  # model fit: motion blur length at the target
+    contrast_dn: float = math.nan  # model fit: the target's white − black, grey levels
+    worst_part: float = math.nan  # model fit, no id: largest mean residual over a part, share of the contrast
+    shape_margin: float = math.nan  # model fit, no id: over the best plain edge, bar, corner or blob
     photo_blur_px: float = math.nan  # the photo's motion blur, estimated from its texture
     reason: str = ""  # why a candidate was not accepted, when there is more to say than its status
 
@@ -149,12 +152,14 @@ def predict_windows(
     attitude_uncertainty_deg: float,
     marker_size_m: float,
     residual_m: float | None = None,
+    wide_fallback: bool = True,
 ) -> dict[str, list[Window]]:
     """Per image: the windows to search, centred on each GCP's predicted pixel, that reach the frame.
 
     With ``residual_m`` (the flight's measured prediction error, after its common
     offset is applied to ``xyz``) each window is that small, and the stated
-    uncertainties size its wide fallback.
+    uncertainties size its wide fallback (none without ``wide_fallback``: a target
+    without an id is only trusted where the measured prediction puts it).
     """
     out: dict[str, list[Window]] = {}
     tan_att = math.tan(math.radians(attitude_uncertainty_deg))
@@ -201,7 +206,7 @@ def predict_windows(
                     float(y),
                     narrow,
                     float(marker_px[j]),
-                    wide if narrow < wide else 0.0,
+                    wide if narrow < wide and wide_fallback else 0.0,
                     tuple(float(v) for v in jac) if np.isfinite(jac).all() else (),
                 )
             )
@@ -488,7 +493,24 @@ def _search(
         )
     else:
         results = run([(im, windows[im]) for im in pilot], target, s_pilot)
-    offset = _flight_offset(results, windows, plan.cams, dict(zip(plan.names, plan.xyz)))
+    coded = target in CODED
+    offset = _flight_offset(
+        results,
+        windows,
+        plan.cams,
+        dict(zip(plan.names, plan.xyz)),
+        consensus_m=None if coded else max(1.5, 2.0 * uncertainty["marker_size_m"]),
+    )
+    if offset is None and not coded:
+        # Without an id, a fit is trusted only where the flight's measured offset puts its GCP:
+        # fits that agree on no common offset are texture, or the GCPs are not where the file says.
+        why = (
+            f"the {target} fits in the first {len(pilot)} photos agree on no common flight offset "
+            "(at least 3 fits of 2 GCPs within a few metres): not the targets, or the GCP file is off"
+        )
+        fb.warning(f"nothing accepted: {why}")
+        results = [(p, [replace(d, reason=d.reason or why) for d in dets], e, b) for p, dets, e, b in results]
+        return results, windows, None, target
     if offset is not None:
         shift_m, residual_m, n_used = offset
         fb.info(
@@ -506,6 +528,7 @@ def _search(
             plan.xyz + [shift_m[0], shift_m[1], 0.0],
             ids,
             residual_m=residual_m,
+            wide_fallback=coded,
             **uncertainty,
         )
         for im in rest:
@@ -579,14 +602,18 @@ def _flight_offset(
     windows: dict[str, list[Window]],
     cams: dict[str, PhotoCamera],
     xyz_of: dict[str, np.ndarray],
+    consensus_m: float | None = None,
 ) -> tuple[np.ndarray, float, int] | None:
     """The flight's common ground offset of the predictions and the largest residual, metres.
 
     A detected marker's ray, cast from the recorded pose onto the GCP's height,
     lands at the GCP plus the GPS bias (the part common to the flight); what is
     left varies per photo (attitude, height, GPS noise). Needs 3 detections.
+    ``consensus_m`` (targets without an id, where a fit may be texture): only the
+    largest set of offsets that agree within this many metres counts, and it must hold
+    3 detections of 2 GCPs (of 1 when the file has one) — texture lands anywhere.
     """
-    shifts = []
+    shifts, gcp_of = [], []
     for path, dets, *_ in results:
         image = Path(path).name
         cam = cams[image]
@@ -603,9 +630,17 @@ def _flight_offset(
                 continue
             hit = cam.pose.center + (g[2] - cam.pose.center[2]) / ray[2] * ray
             shifts.append(hit[:2] - g[:2])
+            gcp_of.append(win.gcp)
     if len(shifts) < 3:
         return None
     s = np.array(shifts)
+    if consensus_m is not None:
+        near = np.linalg.norm(s[:, None] - s[None], axis=2) <= consensus_m
+        keep = near[int(np.argmax(near.sum(axis=1)))]
+        keep = np.linalg.norm(s - np.median(s[keep], axis=0), axis=1) <= consensus_m
+        if keep.sum() < 3 or len({g for g, k in zip(gcp_of, keep) if k}) < min(2, len(xyz_of)):
+            return None
+        s = s[keep]
     shift_m = np.median(s, axis=0)
     worst_m = float(np.linalg.norm(s - shift_m, axis=1).max())
     # half again the worst residual seen, never under a metre: the pilot photos are a sample
@@ -715,6 +750,9 @@ def _judge(
                     id_margin=d.id_margin,
                     position_margin=d.position_margin,
                     blur_px=d.blur_px,
+                    contrast_dn=d.contrast_dn,
+                    worst_part=d.worst_part,
+                    shape_margin=d.shape_margin,
                     reason=reason,
                 )
             )

@@ -44,6 +44,9 @@ THRESHOLDS = {
     "score": 0.80,  # the fitted model explains the window
     "id_margin": 0.10,  # coded: over the best other id / rotation at the same place
     "position_margin": 0.12,  # over the best look-alike elsewhere in the window
+    "contrast_dn": 60.0,  # a board is black and white (100+ grey levels apart): faint texture fits any shape
+    "shape_margin": 0.12,  # no id: over the best plain edge, bar, corner or blob at the place
+    "worst_part": 0.12,  # no id: mean residual over any part (quadrant, arm, ...) / contrast
 }
 SATURATED = 250  # grey levels at or above: glare, not target
 SUBSAMPLES = 32  # per pixel: pixel area, motion path and defocus at once
@@ -64,6 +67,9 @@ class Fit:
     id_margin: float  # NaN for targets without an id
     position_margin: float
     corners_px: tuple[tuple[float, float], ...]
+    contrast_dn: float = math.nan  # fitted white − black, grey levels
+    worst_part: float = math.nan  # no id: the largest mean residual over a part, share of the contrast
+    shape_margin: float = math.nan  # targets without an id: over the best simpler pattern at the place
     reason: str = ""  # why it was refused; "" = accepted
 
 
@@ -168,6 +174,67 @@ def _ncc(img: np.ndarray, tpl: np.ndarray, w: np.ndarray) -> float:
     return float((w * di * dt).sum() / den) if den > 1e-12 else -1.0
 
 
+#: Simpler patterns that texture matches about as well as a target: a target without an id must
+#: explain its pixels better than each of them (either polarity, any rotation, a small shift) at
+#: the fitted place and size. A circle's own alternative (a blob) is the circle: none for it.
+ALTERNATIVES = {
+    "checkerboard": ("edge", "bar", "corner", "blob"),
+    "cross": ("edge", "bar", "corner", "ell", "blob"),
+    "circle": ("edge", "bar", "corner"),
+}
+_ALT_SAMPLES = 8  # per pixel: enough for the margin, a quarter of the fit's cost
+
+
+def _alternative_templates(kind: str, u: np.ndarray, v: np.ndarray, bar: float) -> np.ndarray:
+    """Every alternative of ``kind`` (rotations × shifts × sizes) at marker-frame samples ``u, v``
+    (pixels × samples): (k, pixels), each the share of a pixel's samples that are 'on'."""
+    out = []
+    shifts = (-0.3, -0.15, 0.0, 0.15, 0.3)
+    for alt in ALTERNATIVES[kind]:
+        period = 180 if alt in ("edge", "bar") else 360
+        angles = np.radians(np.arange(0, period, 15)) if alt != "blob" else np.zeros(1)
+        for a in angles:
+            c, s = math.cos(a), math.sin(a)
+            ur, vr = c * u + s * v, -s * u + c * v
+            if alt == "edge":
+                out += [(ur >= d).mean(axis=1) for d in shifts]
+            elif alt == "bar":
+                out += [(np.abs(ur - d) <= w / 2).mean(axis=1) for d in shifts for w in (bar, 2 * bar)]
+            else:
+                for du in (-0.2, 0.0, 0.2):
+                    for dv in (-0.2, 0.0, 0.2):
+                        x, y = ur - du, vr - dv
+                        if alt == "corner":
+                            on = (x >= 0) & (y >= 0)
+                        elif alt == "blob":
+                            out += [(x * x + y * y <= r * r).mean(axis=1) for r in (0.2, 0.35, 0.5)]
+                            continue
+                        else:  # ell: two arms of the cross (a corner of paths, kerbs)
+                            arm_x = (np.abs(y) <= bar / 2) & (x >= -bar / 2) & (x <= 0.5)
+                            arm_y = (np.abs(x) <= bar / 2) & (y >= -bar / 2) & (y <= 0.5)
+                            on = arm_x | arm_y
+                        out.append(on.mean(axis=1))
+    return np.array(out, np.float64)
+
+
+def _best_alternative(
+    kind: str, rend: _Renderer, fit: tuple, pix: np.ndarray, weight: np.ndarray, bar: float
+) -> float:
+    """The best |normalised correlation| of any simpler pattern at the fitted place."""
+    cx, cy, A, blen, bdeg, dpx = fit
+    u, v = rend.uv(cx, cy, A, blen, bdeg, dpx)
+    step = max(1, u.shape[1] // _ALT_SAMPLES)
+    tpl = _alternative_templates(kind, u[:, ::step], v[:, ::step], bar)
+    sw = weight.sum()
+    if sw < 8:
+        return 1.0
+    di = pix - (weight * pix).sum() / sw
+    dt = tpl - (tpl @ weight / sw)[:, None]
+    den = np.sqrt((dt * dt) @ weight * float((weight * di * di).sum()))
+    ncc = np.where(den > 1e-12, (dt @ (weight * di)) / np.maximum(den, 1e-12), 0.0)
+    return float(np.abs(ncc).max())
+
+
 @cache
 def _coded_alternatives(dictionary: str, marker_id: int) -> np.ndarray:
     """Every id of the dictionary in its four rotations, bar the expected one upright: (k, n, n)."""
@@ -248,26 +315,29 @@ def fit_target(
         (_score(crop, kind, base * f, cells, (cx, cy, a), blur) for cx, cy, a, f, _ in coarse), key=lambda f: -f[0]
     )
     side = float(np.sqrt(abs(np.linalg.det(base))))
+    t = THRESHOLDS
+    margins = [_shape_margin(kind, f) for f in fits]
     ambiguous = ""
     if by_place:
-        # several targets of one kind may share a window: the prediction tells them apart
+        # several targets of one kind may share a window: the prediction tells them apart. Only fits
+        # that pass as targets themselves count (texture that fits a little is no rival).
         assert predicted_xy is not None
         px, py = predicted_xy[0] - x0, predicted_xy[1] - y0
-        # every plausible fit counts for nearness; the nearest must also pass the score
-        near: list[tuple] = []
         board = 2 * target_half_extent(kind) * side  # fits closer than a board apart: one target
-        for f in fits:  # best first
-            if f[0] >= 0.75 and all(math.hypot(f[1] - g[1], f[2] - g[2]) > board for g in near):
-                near.append(f)
-        near = near or fits[:1]
-        near.sort(key=lambda f: math.hypot(f[1] - px, f[2] - py))
-        own = math.hypot(near[0][1] - px, near[0][2] - py)
-        dists = [math.hypot(f[1] - px, f[2] - py) for f in near[1:]]
+        near: list[int] = []
+        for i, f in enumerate(fits):  # best first
+            if _passes(f, margins[i]) and all(math.hypot(f[1] - fits[j][1], f[2] - fits[j][2]) > board for j in near):
+                near.append(i)
+        near.sort(key=lambda i: math.hypot(fits[i][1] - px, fits[i][2] - py))
+        near = near or [0]  # none passes: the best, to say why
+        own = math.hypot(fits[near[0]][1] - px, fits[near[0]][2] - py)
+        dists = [math.hypot(fits[i][1] - px, fits[i][2] - py) for i in near[1:]]
         pos_margin = (min(dists) - (2 * own + 3 * side)) / side if dists else math.inf
         if pos_margin < 0:
             ambiguous = f"two {kind} targets about as near the prediction ({own:.0f} and {min(dists):.0f} px)"
-        fits = near
-    score, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight = fits[0]
+        fits, margins = [fits[i] for i in near], [margins[i] for i in near]
+    score, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, contrast, worst_part = fits[0]
+    shape_margin = margins[0]
     if not by_place:
         others = (f[0] for f in fits[1:] if math.hypot(f[1] - cx, f[2] - cy) > 0.75 * side)
         pos_margin = score - max(others, default=-1.0)
@@ -287,9 +357,14 @@ def fit_target(
         cx, cy = _saddle(crop, cx, cy, A)
     corners = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]]) @ A.T + [cx + x0, cy + y0]
     reason = ""
-    t = THRESHOLDS
     if score < t["score"]:
         reason = f"best {kind} match scores {score:.2f} < {t['score']:.2f}"
+    elif contrast < t["contrast_dn"]:
+        reason = f"the {kind} fitted has a contrast of {contrast:.0f} < {t['contrast_dn']:.0f} grey levels"
+    elif worst_part > t["worst_part"]:
+        reason = f"a part of the {kind} is off by {worst_part:.0%} of its contrast > {t['worst_part']:.0%}"
+    elif kind in ALTERNATIVES and shape_margin < t["shape_margin"]:
+        reason = f"a plain edge, bar, corner or blob fits within {shape_margin:.2f} < {t['shape_margin']:.2f}"
     elif kind in CODED and id_margin < t["id_margin"]:
         reason = f"id {marker_id} beats the next id or rotation by only {id_margin:.2f} < {t['id_margin']:.2f}"
     elif ambiguous:
@@ -310,7 +385,29 @@ def fit_target(
         float(id_margin),
         float(pos_margin),
         tuple(map(tuple, corners.tolist())),
+        float(contrast),
+        float(worst_part),
+        float(shape_margin),
         reason,
+    )
+
+
+def _shape_margin(kind: str, f: tuple) -> float:
+    """A fit's score over the best simpler pattern at its place (NaN: coded, or not worth asking)."""
+    if kind not in ALTERNATIVES or f[0] < THRESHOLDS["score"] or f[12] < THRESHOLDS["contrast_dn"]:
+        return math.nan
+    score, cx, cy, _, _, blen, bdeg, dpx, A, rend, pix, weight, *_ = f
+    return score - _best_alternative(kind, rend, (cx, cy, A, blen, bdeg, dpx), pix, weight, rend.bar)
+
+
+def _passes(f: tuple, shape_margin: float) -> bool:
+    """Would this fit of a target without an id be accepted on its own (score, contrast, shape)?"""
+    t = THRESHOLDS
+    return (
+        f[0] >= t["score"]
+        and f[12] >= t["contrast_dn"]
+        and shape_margin >= t["shape_margin"]
+        and not f[13] > t["worst_part"]
     )
 
 
@@ -343,7 +440,56 @@ def _score(
     tpl, cover = rend.render(cx, cy, A, blen, bdeg, dpx)
     pix = crop[gy0:gy1, gx0:gx1].ravel()
     weight = ((cover > 0.999) & (pix < SATURATED)).astype(np.float64)
-    return _ncc(pix, tpl, weight), cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight
+    # the fitted contrast (white − black, grey levels): the least-squares gain of the model
+    sw = max(weight.sum(), 1e-9)
+    dt = tpl - (weight * tpl).sum() / sw
+    gain = float((weight * dt * pix).sum() / max((weight * dt * dt).sum(), 1e-12))
+    worst = _worst_part(kind, xs.ravel() - cx, ys.ravel() - cy, A, pix, tpl, weight, gain)
+    return _ncc(pix, tpl, weight), cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, gain, worst
+
+
+def _parts(kind: str, u: np.ndarray, v: np.ndarray) -> np.ndarray | None:
+    """Each pixel's part of the target (−1: none): checkerboard quadrants; a cross's four arms and
+    the four corners of ground between them; a circle's disc and four sectors of its board."""
+    if kind == "checkerboard":
+        return np.where((np.abs(u) <= 0.5) & (np.abs(v) <= 0.5), (u >= 0) * 1 + (v >= 0) * 2, -1)
+    quad = (u >= v) * 1 + (u >= -v) * 2  # the four sectors between the diagonals
+    if kind == "cross":
+        # its four arms (the ground between them is whatever it is: grass, tarmac, not the target)
+        span = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
+        arm = np.minimum(np.abs(u), np.abs(v)) <= CROSS_BAR / 2 - 0.04
+        return np.where(span & arm, quad, -1)
+    if kind == "circle":
+        r = np.hypot(u, v)
+        return np.where(r <= 0.4, 4, np.where((r >= 0.6) & (r <= target_half_extent(kind)), quad, -1))
+    return None
+
+
+def _worst_part(
+    kind: str,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    A: np.ndarray,
+    pix: np.ndarray,
+    tpl: np.ndarray,
+    weight: np.ndarray,
+    gain: float,
+) -> float:
+    """The largest mean residual over any part of the target, as a share of its contrast: texture
+    that fits a target as a whole rarely has every part of it (NaN for coded markers)."""
+    inv = np.linalg.inv(A)
+    part = _parts(kind, inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy)
+    if part is None or gain <= 0:
+        return math.nan
+    sw = max(weight.sum(), 1e-9)
+    resid = pix - gain * tpl
+    resid = resid - (weight * resid).sum() / sw  # the offset
+    worst = 0.0
+    for k in range(int(part.max()) + 1):
+        w = weight * (part == k)
+        if w.sum() >= 3:
+            worst = max(worst, abs(float((w * resid).sum() / w.sum())))
+    return worst / gain
 
 
 def _angles(kind: str) -> np.ndarray:
@@ -460,8 +606,15 @@ def _refine(
         coef, *_ = np.linalg.lstsq(d, pix[use], rcond=None)
         return (d @ coef - pix[use]) / 8.0
 
-    lo = np.array([cx0 - reach, cy0 - reach, angle0 - 25, -0.25, -0.2, -0.2, -60, -60, 0.0, 0.08])
-    hi = np.array([cx0 + reach, cy0 + reach, angle0 + 25, 0.25, 0.2, 0.2, 60, 60, 6.0, 0.45])
+    # Motion blur is the photo's (measured from its texture), so the target's stays near it, and
+    # defocus is a pixel or two: a model free to smear itself fits any texture.
+    tol = max(2.5, 0.4 * blur[0])
+    max_defocus = 1.0 + 0.08 * side
+    x0[8] = min(x0[8], 0.9 * max_defocus)
+    # the estimate can be wrong on real texture: the box holds both no blur and the estimate
+    bx_lo, bx_hi, by_lo, by_hi = min(0.0, bx) - tol, max(0.0, bx) + tol, min(0.0, by) - tol, max(0.0, by) + tol
+    lo = np.array([cx0 - reach, cy0 - reach, angle0 - 25, -0.25, -0.2, -0.2, bx_lo, by_lo, 0.0, 0.08])
+    hi = np.array([cx0 + reach, cy0 + reach, angle0 + 25, 0.25, 0.2, 0.2, bx_hi, by_hi, max_defocus, 0.45])
     lo = np.r_[lo, gx - side, gy - side, math.log(0.05 * side + 0.5)]
     hi = np.r_[hi, gx + side, gy + side, math.log(side + 1.0)]
     scales = np.array([0.3, 0.3, 2.0, 0.03, 0.03, 0.03, 1.0, 1.0, 0.3, 0.02, 1.0, 1.0, 0.1])

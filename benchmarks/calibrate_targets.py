@@ -1,0 +1,218 @@
+"""Calibration of gcp-find's model-fit thresholds on real backgrounds: how they were chosen.
+
+Positives: a target (checkerboard, cross, circle, or a coded ArUco marker) rendered into a crop
+of a real drone photo (``../shared/data/real``: toledo, Brighton, Mini 4 Pro, findgcp) — 8 × 8
+supersampled from :func:`geoortho.markers.target_reflectance`, then the whole crop motion-blurred
+with synth's kernel (half the trials, up to half the marker side), a saturating glare spot on a
+third, sensor noise and JPEG — at a random size (10–40 px), rotation, perspective shear and
+contrast, predicted a few pixels off as gcp-find would. Impostors: the same crops with nothing
+rendered (real texture), another target type rendered (a wrong ``--target``), or for coded
+markers another id. Every fit's measures are kept, so the printout shows the separation each
+threshold leaves (``geoortho.gcp.targets.THRESHOLDS``), not just the outcome.
+
+    python benchmarks/calibrate_targets.py [--trials 200] [--kinds checkerboard,cross,circle,aruco]
+        [--csv fits.csv] [--seed 0]
+
+Accepted = what gcp-find would write. Recall counts targets accepted within 1 px of the truth;
+precision counts impostors accepted and targets accepted > 3 px off as wrong.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import time
+import zlib
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+CROP = 640  # the photo's blur is estimated on the whole crop, as on a photo
+DICTIONARY = "DICT_4X4_50"
+
+
+def real_photos() -> list[Path]:
+    return sorted(p for p in REAL.glob("*/images/*") if p.suffix.lower() in (".jpg", ".jpeg"))
+
+
+def render_into(
+    img: np.ndarray, kind: str, cx: float, cy: float, A: np.ndarray, cells, white: float, black: float
+) -> None:
+    """Paint the target (8 × 8 samples per pixel) into ``img`` (float, in place)."""
+    from geoortho.markers import target_half_extent, target_reflectance
+
+    reach = int(math.ceil(np.abs(A).sum(axis=1).max() * target_half_extent(kind, cells) + 2))
+    x0, x1 = max(0, int(cx) - reach), min(img.shape[1], int(cx) + reach + 2)
+    y0, y1 = max(0, int(cy) - reach), min(img.shape[0], int(cy) + reach + 2)
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    sx, sy = np.meshgrid(sub, sub)
+    px = xs.ravel()[:, None] + sx.ravel()[None] - cx
+    py = ys.ravel()[:, None] + sy.ravel()[None] - cy
+    inv = np.linalg.inv(A)
+    u, v = inv[0, 0] * px + inv[0, 1] * py, inv[1, 0] * px + inv[1, 1] * py
+    r = target_reflectance(kind, u, v, cells)
+    bg = img[y0:y1, x0:x1].reshape(-1, 1)
+    val = np.where(np.isnan(r), bg, black + (white - black) * np.nan_to_num(r))
+    img[y0:y1, x0:x1] = val.mean(axis=1).reshape(ys.shape)
+
+
+def trial(args: tuple[int, str, str]) -> dict:
+    """One fit: ``role`` positive (target rendered), texture (nothing), wrong-kind or wrong-id."""
+    seed, kind, role = args
+    from geoortho.gcp.targets import THRESHOLDS, _affine, estimate_motion_blur, fit_target
+    from geoortho.markers import CODED, TARGETS, marker_cells
+    from geoortho.synthetic import motion_kernel
+
+    rng = np.random.default_rng(seed)
+    photos = real_photos()
+    gray = cv2.imread(str(photos[seed % len(photos)]), cv2.IMREAD_GRAYSCALE)
+    h, w = gray.shape
+    y0, x0 = int(rng.integers(0, h - CROP)), int(rng.integers(0, w - CROP))
+    img = gray[y0 : y0 + CROP, x0 : x0 + CROP].astype(np.float64)
+    side = float(rng.uniform(10, 40))
+    yaw = rng.uniform(0, 2 * math.pi)
+    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    tilt = np.diag([1.0, -1.0]) @ np.array([[1.0, rng.normal(0, 0.05)], [0.0, 1 + rng.normal(0, 0.08)]])
+    base = side * rot @ tilt  # pixels per side along east and north, as a Window gives it
+    cx, cy = CROP / 2 + rng.uniform(-60, 60), CROP / 2 + rng.uniform(-60, 60)
+    marker_id = int(rng.integers(0, 50))
+    cells = marker_cells(DICTIONARY, marker_id) if kind in CODED else None
+    painted = {"positive": kind, "wrong-kind": None, "wrong-id": kind, "texture": None}[role]
+    if role == "wrong-kind":
+        painted = str(rng.choice([k for k in TARGETS if k not in (kind, "apriltag")]))
+    if painted is not None:
+        p_cells = cells
+        if painted in CODED:
+            other = marker_id if role != "wrong-id" else int((marker_id + rng.integers(1, 50)) % 50)
+            p_cells = marker_cells(DICTIONARY, other)
+        white, black = rng.uniform(150, 250), rng.uniform(5, 70)
+        if painted == "cross":
+            white = rng.uniform(200, 250)  # white paint on the ground
+        A_true = _affine(base, float(rng.uniform(0, 360)), float(1 + rng.normal(0, 0.04)), 0.0, 0.0)
+        render_into(img, painted, cx, cy, A_true, p_cells, white, black)
+    blur_px = float(rng.uniform(side / 6, side / 2)) if rng.random() < 0.5 else 0.0
+    glare = painted is not None and rng.random() < 0.3
+    if glare:
+        gx, gy = cx + rng.normal(0, 0.25) * side, cy + rng.normal(0, 0.25) * side
+        sigma = side * rng.uniform(0.15, 0.3)
+        yy, xx = np.mgrid[0:CROP, 0:CROP]
+        img += 255 * rng.uniform(0.5, 1.0) * np.exp(-((xx - gx) ** 2 + (yy - gy) ** 2) / (2 * sigma**2))
+    if blur_px > 0:
+        img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(blur_px, float(rng.uniform(0, 180))))
+    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    img = cv2.imdecode(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1], cv2.IMREAD_GRAYSCALE)
+    est = estimate_motion_blur(img)
+    err = side * 0.3
+    px, py = cx + rng.normal(0, err), cy + rng.normal(0, err)
+    radius = 1.5 * side + rng.uniform(4, 30)
+    box = (
+        max(0, int(px - radius)),
+        max(0, int(py - radius)),
+        min(CROP, int(px + radius) + 1),
+        min(CROP, int(py + radius) + 1),
+    )
+    t = time.perf_counter()
+    fit = fit_target(
+        img,
+        box,
+        kind,
+        base,
+        cells=cells,
+        dictionary=DICTIONARY if kind in CODED else "",
+        marker_id=marker_id,
+        blur=est,
+        predicted_xy=(px, py),
+    )
+    row = dict(kind=kind, role=role, painted=painted or "", side_px=side, blur_px=blur_px, glare=glare, seed=seed)
+    row["seconds"] = time.perf_counter() - t
+    if fit is None:
+        return row | dict(accepted=False, reason="no fit")
+    row |= {k: getattr(fit, k) for k in ("score", "contrast_dn", "worst_part", "shape_margin", "id_margin", "position_margin", "reason")}
+    row["fit_blur_px"] = fit.blur_px
+    row["est_blur_px"] = est[0]
+    row["accepted"] = not fit.reason
+    row["error_px"] = math.hypot(fit.x_px - cx, fit.y_px - cy) if role == "positive" else math.nan
+    row["thresholds"] = ";".join(f"{k}={v}" for k, v in THRESHOLDS.items())
+    return row
+
+
+def summarise(rows: list[dict]) -> None:
+    from geoortho.gcp.targets import THRESHOLDS
+
+    print("thresholds:", ", ".join(f"{k} {v}" for k, v in THRESHOLDS.items()))
+    for kind in sorted({r["kind"] for r in rows}):
+        mine = [r for r in rows if r["kind"] == kind]
+        pos = [r for r in mine if r["role"] == "positive"]
+        acc = [r for r in pos if r["accepted"]]
+        good = [r for r in acc if r["error_px"] <= 1.0]
+        off = [r for r in acc if r["error_px"] > 3.0]
+        imp = [r for r in mine if r["role"] != "positive"]
+        imp_acc = [r for r in imp if r["accepted"]]
+        n_wrong = len(off) + len(imp_acc)
+        n_acc = len(acc) + len(imp_acc)
+        print(
+            f"{kind}: positives {len(pos)}, recall {len(good) / max(1, len(pos)):.3f}, "
+            f"mean error {np.mean([r['error_px'] for r in good]) if good else math.nan:.3f} px; "
+            f"impostors {len(imp)} ({', '.join(sorted({r['role'] for r in imp}))}), accepted {len(imp_acc)}; "
+            f"precision {(n_acc - n_wrong) / max(1, n_acc):.3f} (accepted 1-3 px off: {len(acc) - len(good) - len(off)}); "
+            f"{np.mean([r['seconds'] for r in mine]):.2f} s per fit"
+        )
+        # separation per measure: the true targets' low end against the impostors' high end
+        for key in ("score", "contrast_dn", "worst_part", "shape_margin", "id_margin"):
+            tv = [r[key] for r in pos if key in r and np.isfinite(r.get(key, math.nan)) and r["error_px"] <= 1.0]
+            iv = [r[key] for r in imp if key in r and np.isfinite(r.get(key, math.nan))]
+            if tv and iv:
+                print(
+                    f"  {key:13s} targets p5 {np.percentile(tv, 5):7.3f} min {min(tv):7.3f}   "
+                    f"impostors p95 {np.percentile(iv, 95):7.3f} max {max(iv):7.3f}"
+                )
+        misses = [r for r in pos if not (r["accepted"] and r["error_px"] <= 1.0)]
+        for r in misses[:8]:
+            print(
+                f"  miss: side {r['side_px']:.0f} blur {r['blur_px']:.1f} glare {r['glare']} "
+                f"err {r.get('error_px', math.nan):.2f}: {r.get('reason', '')}"
+            )
+        for r in imp_acc[:8]:
+            print(f"  impostor accepted: {r['role']} {r['painted']} side {r['side_px']:.0f} score {r['score']:.2f}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=200, help="per kind and role")
+    ap.add_argument("--kinds", default="checkerboard,cross,circle,aruco")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--csv", type=Path)
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    if not real_photos():
+        print(f"no real photos under {REAL}", file=sys.stderr)
+        return 2
+    jobs = []
+    for kind in args.kinds.split(","):
+        roles = ["positive", "texture", "wrong-kind"] + (["wrong-id"] if kind in ("aruco", "apriltag") else [])
+        for role in roles:
+            for i in range(args.trials):
+                seed = zlib.crc32(f"{args.seed} {kind} {role} {i}".encode())
+                jobs.append((seed, kind, role))
+    t = time.perf_counter()
+    with ProcessPoolExecutor(args.workers) as ex:
+        rows = list(ex.map(trial, jobs, chunksize=4))
+    print(f"{len(rows)} fits in {time.perf_counter() - t:.0f} s")
+    summarise(rows)
+    if args.csv:
+        keys = sorted({k for r in rows for k in r})
+        with args.csv.open("w", newline="") as f:
+            wr = csv.DictWriter(f, fieldnames=keys)
+            wr.writeheader()
+            wr.writerows(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
