@@ -133,7 +133,8 @@ def trial(args: tuple[int, str, str]) -> dict:
     row["seconds"] = time.perf_counter() - t
     if fit is None:
         return row | dict(accepted=False, reason="no fit")
-    row |= {k: getattr(fit, k) for k in ("score", "contrast_dn", "worst_part", "shape_margin", "id_margin", "position_margin", "reason")}
+    measures = ("score", "contrast_dn", "worst_part", "shape_margin", "id_margin", "position_margin", "reason")
+    row |= {k: getattr(fit, k) for k in measures}
     row["fit_blur_px"] = fit.blur_px
     row["est_blur_px"] = est[0]
     row["accepted"] = not fit.reason
@@ -160,7 +161,8 @@ def summarise(rows: list[dict]) -> None:
             f"{kind}: positives {len(pos)}, recall {len(good) / max(1, len(pos)):.3f}, "
             f"mean error {np.mean([r['error_px'] for r in good]) if good else math.nan:.3f} px; "
             f"impostors {len(imp)} ({', '.join(sorted({r['role'] for r in imp}))}), accepted {len(imp_acc)}; "
-            f"precision {(n_acc - n_wrong) / max(1, n_acc):.3f} (accepted 1-3 px off: {len(acc) - len(good) - len(off)}); "
+            f"precision {(n_acc - n_wrong) / max(1, n_acc):.3f} "
+            f"(accepted 1-3 px off: {len(acc) - len(good) - len(off)}); "
             f"{np.mean([r['seconds'] for r in mine]):.2f} s per fit"
         )
         # separation per measure: the true targets' low end against the impostors' high end

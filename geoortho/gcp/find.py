@@ -152,14 +152,12 @@ def predict_windows(
     attitude_uncertainty_deg: float,
     marker_size_m: float,
     residual_m: float | None = None,
-    wide_fallback: bool = True,
 ) -> dict[str, list[Window]]:
     """Per image: the windows to search, centred on each GCP's predicted pixel, that reach the frame.
 
     With ``residual_m`` (the flight's measured prediction error, after its common
     offset is applied to ``xyz``) each window is that small, and the stated
-    uncertainties size its wide fallback (none without ``wide_fallback``: a target
-    without an id is only trusted where the measured prediction puts it).
+    uncertainties size its wide fallback.
     """
     out: dict[str, list[Window]] = {}
     tan_att = math.tan(math.radians(attitude_uncertainty_deg))
@@ -206,7 +204,7 @@ def predict_windows(
                     float(y),
                     narrow,
                     float(marker_px[j]),
-                    wide if narrow < wide and wide_fallback else 0.0,
+                    wide if narrow < wide else 0.0,
                     tuple(float(v) for v in jac) if np.isfinite(jac).all() else (),
                 )
             )
@@ -528,9 +526,10 @@ def _search(
             plan.xyz + [shift_m[0], shift_m[1], 0.0],
             ids,
             residual_m=residual_m,
-            wide_fallback=coded,
             **uncertainty,
         )
+        if not coded:  # a target without an id is only trusted where the measured offset puts it
+            narrowed = {im: [replace(w, wide_radius_px=0.0) for w in ws] for im, ws in narrowed.items()}
         for im in rest:
             windows.pop(im)
         windows.update(narrowed)
