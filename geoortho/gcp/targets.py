@@ -217,9 +217,7 @@ def _alternative_templates(kind: str, u: np.ndarray, v: np.ndarray, bar: float) 
     return np.array(out, np.float64)
 
 
-def _best_alternative(
-    kind: str, rend: _Renderer, fit: tuple, pix: np.ndarray, weight: np.ndarray, bar: float
-) -> float:
+def _best_alternative(kind: str, rend: _Renderer, fit: tuple, pix: np.ndarray, weight: np.ndarray, bar: float) -> float:
     """The best |normalised correlation| of any simpler pattern at the fitted place."""
     cx, cy, A, blen, bdeg, dpx = fit
     u, v = rend.uv(cx, cy, A, blen, bdeg, dpx)
