@@ -109,3 +109,19 @@ def test_apriltag_target_needs_an_apriltag_dictionary(tiny_survey, tmp_path):
 
     with pytest.raises(InputError, match="AprilTag"):
         gcp_find(tiny_survey.images, tiny_survey.gcp_file, tmp_path / "o.txt", target="apriltag")
+
+
+@pytest.mark.parametrize("target", ["checkerboard", "cross", "circle"])
+def test_real_texture_is_not_a_target(tmp_path, target):
+    """toledo's GCPs are natural features (a path crossing, a box, tree crowns): asked for painted
+    targets, gcp-find must write nothing and say why (before the fix: 11-14 texture fits written)."""
+    from realdata import real_data
+
+    base = real_data("toledo_dji")
+    out = tmp_path / "gcp_list.txt"
+    det = tmp_path / "det.csv"
+    result = gcp_find(base / "images", base / "gcp" / "gcp_list.txt", out, target=target, detections=det)
+    assert result.n_observations == 0
+    assert out.read_text().splitlines()[1:] == []
+    rows = list(csv.DictReader(det.open()))
+    assert rows and all(r["status"] != "detected" and r["reason"] for r in rows)

@@ -720,7 +720,7 @@ def _judge(
             found = _nearest(dets, k, win)
             if found is None:
                 refused = [d for d in dets if d.window == k and d.reason]
-                why = max(refused, key=lambda d: d.score).reason if refused else ""
+                why = max(refused, key=lambda d: d.score).reason if refused else "nothing like the target in the window"
                 obs.append(Observation(**base, status=NOT_FOUND, reason=why))
                 continue
             d, err = found
@@ -759,6 +759,8 @@ def _judge(
         for mid in sorted({d.marker_id for d in dets if d.marker_id not in by_id and coded}):
             d = next(d for d in dets if d.marker_id == mid)
             obs.append(Observation(image, "", mid, WRONG_ID, x_px=d.x_px, y_px=d.y_px, attempt=d.attempt))
+    if not coded:
+        obs = _agree_within_photos(obs)
     # one observation per (image, GCP): windows of two GCPs can overlap
     seen_pairs: set[tuple[str, str]] = set()
     unique = []
@@ -770,6 +772,46 @@ def _judge(
             seen_pairs.add(key)
         unique.append(o)
     return unique
+
+
+def _agree_within_photos(obs: list[Observation]) -> list[Observation]:
+    """Targets without an id: in one photo, the pose's error moves every GCP's prediction nearly
+    alike, so each fit's offset from its prediction must agree with the photo's other fits (within
+    2.5 target sides, plus 3 % of the distance for a yaw or scale error). A fit that disagrees is
+    refused; of two that disagree, both."""
+    out = list(obs)
+    by_image: dict[str, list[int]] = {}
+    for i, o in enumerate(obs):
+        if o.status == DETECTED:
+            by_image.setdefault(o.image, []).append(i)
+    for idx in by_image.values():
+        if len(idx) < 2:
+            continue
+        off = np.array([[obs[i].x_px - obs[i].predicted_x_px, obs[i].y_px - obs[i].predicted_y_px] for i in idx])
+        at = np.array([[obs[i].predicted_x_px, obs[i].predicted_y_px] for i in idx])
+        for k, i in enumerate(idx):
+            others = [j for j in range(len(idx)) if j != k]
+            spread = float(np.median(np.linalg.norm(at[others] - at[k], axis=1)))
+            tol = 2.5 * max(obs[i].side_px, 1.0) + 0.03 * spread
+            if len(others) >= 2:
+                # the others' errors as a similarity (shift, rotation, scale: yaw and height errors)
+                a = np.array([[x, -y, 1, 0] for x, y in at[others]] + [[y, x, 0, 1] for x, y in at[others]])
+                b = np.r_[at[others, 0] + off[others, 0], at[others, 1] + off[others, 1]]
+                q, *_ = np.linalg.lstsq(a, b, rcond=None)
+                fit_px = np.abs(a @ q - b).max()
+                x, y = at[k]
+                expected = np.array([q[0] * x - q[1] * y + q[2], q[1] * x + q[0] * y + q[3]]) - at[k]
+                dev = float(np.linalg.norm(off[k] - expected))
+                tol = 2.5 * max(obs[i].side_px, 1.0) + float(fit_px)
+            else:
+                dev = float(np.linalg.norm(off[k] - off[others[0]]))
+            if dev > tol:
+                out[i] = replace(
+                    obs[i],
+                    status=NOT_FOUND,
+                    reason=f"{dev:.0f} px from where this photo's other targets put it (> {tol:.0f} px)",
+                )
+    return out
 
 
 def _closer_prediction(d: Detection, err_px: float, win: Window, wins: list[Window]) -> str:

@@ -324,12 +324,18 @@ def fit_target(
         board = 2 * target_half_extent(kind) * side  # fits closer than a board apart: one target
         near: list[int] = []
         for i, f in enumerate(fits):  # best first
-            if _passes(f, margins[i]) and all(math.hypot(f[1] - fits[j][1], f[2] - fits[j][2]) > board for j in near):
+            if _passes(kind, f, margins[i]) and all(
+                math.hypot(f[1] - fits[j][1], f[2] - fits[j][2]) > board for j in near
+            ):
                 near.append(i)
         near.sort(key=lambda i: math.hypot(fits[i][1] - px, fits[i][2] - py))
         near = near or [0]  # none passes: the best, to say why
         own = math.hypot(fits[near[0]][1] - px, fits[near[0]][2] - py)
         dists = [math.hypot(fits[i][1] - px, fits[i][2] - py) for i in near[1:]]
+        # a rival counts when it is about as near, and inside the part of the window the
+        # prediction's error spans (the window less a target and a half each side)
+        reach = max(px, py, (x1 - x0) - px, (y1 - y0) - py) - 1.5 * side  # the box may be cut by the frame
+        dists = [d for d in dists if d <= reach]
         pos_margin = (min(dists) - (2 * own + 3 * side)) / side if dists else math.inf
         if pos_margin < 0:
             ambiguous = f"two {kind} targets about as near the prediction ({own:.0f} and {min(dists):.0f} px)"
@@ -398,11 +404,11 @@ def _shape_margin(kind: str, f: tuple) -> float:
     return score - _best_alternative(kind, rend, (cx, cy, A, blen, bdeg, dpx), pix, weight, rend.bar)
 
 
-def _passes(f: tuple, shape_margin: float) -> bool:
+def _passes(kind: str, f: tuple, shape_margin: float) -> bool:
     """Would this fit of a target without an id be accepted on its own (score, contrast, shape)?"""
     t = THRESHOLDS
     return (
-        f[0] >= t["score"]
+        f[0] >= THRESHOLDS["score"]
         and f[12] >= t["contrast_dn"]
         and shape_margin >= t["shape_margin"]
         and not f[13] > t["worst_part"]
