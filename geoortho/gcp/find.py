@@ -884,7 +884,8 @@ def write_detections(path: Path, observations: list[Observation], gcps: GcpSet) 
 def write_review(
     path: Path, observations: list[Observation], paths: dict[str, Path], crop_px: int = 128, columns: int = 8
 ) -> Path:
-    """PNG contact sheet: a crop around each detection, centre marked, labelled GCP / image."""
+    """PNG contact sheet: a crop around each detection, centre marked, labelled GCP / image; model
+    fits are marked (V verified on blue, F fitted on orange, a yellow centre), decoded ones plain."""
     import cv2
 
     from ..outputs import atomic_path
@@ -905,9 +906,13 @@ def write_review(
         scale = max(1.0, (crop_px * 0.5) / max(o.side_px, 1.0))
         m = np.array([[scale, 0, half - scale * o.x_px], [0, scale, half - scale * o.y_px]])
         tile = cv2.warpAffine(img, m, (crop_px, crop_px + 18), flags=cv2.INTER_LINEAR, borderValue=(40, 40, 40))
-        cv2.drawMarker(tile, (half, half), (0, 0, 255), cv2.MARKER_CROSS, 14, 1)
-        label = f"{o.gcp} {Path(o.image).stem}"[:22]
-        cv2.rectangle(tile, (0, crop_px), (crop_px, crop_px + 18), (0, 0, 0), -1)
+        # a person checks verified and fitted detections (model fits, no id decoded) first:
+        # their label says so, on a colour of its own
+        look = {"verified": ("V ", (160, 60, 0), (0, 255, 255)), "fitted": ("F ", (0, 90, 200), (0, 255, 255))}
+        prefix, bar_bgr, mark_bgr = look.get(o.method, ("", (0, 0, 0), (0, 0, 255)))
+        cv2.drawMarker(tile, (half, half), mark_bgr, cv2.MARKER_CROSS, 14, 1)
+        label = f"{prefix}{o.gcp} {Path(o.image).stem}"[:22]
+        cv2.rectangle(tile, (0, crop_px), (crop_px, crop_px + 18), bar_bgr, -1)
         cv2.putText(tile, label, (2, crop_px + 13), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
         tiles.append(tile)
     if not tiles:
