@@ -791,8 +791,6 @@ def _agree_within_photos(obs: list[Observation]) -> list[Observation]:
         at = np.array([[obs[i].predicted_x_px, obs[i].predicted_y_px] for i in idx])
         for k, i in enumerate(idx):
             others = [j for j in range(len(idx)) if j != k]
-            spread = float(np.median(np.linalg.norm(at[others] - at[k], axis=1)))
-            tol = 2.5 * max(obs[i].side_px, 1.0) + 0.03 * spread
             if len(others) >= 2:
                 # the others' errors as a similarity (shift, rotation, scale: yaw and height errors)
                 a = np.array([[x, -y, 1, 0] for x, y in at[others]] + [[y, x, 0, 1] for x, y in at[others]])
@@ -803,8 +801,9 @@ def _agree_within_photos(obs: list[Observation]) -> list[Observation]:
                 expected = np.array([q[0] * x - q[1] * y + q[2], q[1] * x + q[0] * y + q[3]]) - at[k]
                 dev = float(np.linalg.norm(off[k] - expected))
                 tol = 2.5 * max(obs[i].side_px, 1.0) + float(fit_px)
-            else:
+            else:  # one other: a shift, with 3 % of the distance for a yaw or scale error
                 dev = float(np.linalg.norm(off[k] - off[others[0]]))
+                tol = 2.5 * max(obs[i].side_px, 1.0) + 0.03 * float(np.linalg.norm(at[others[0]] - at[k]))
             if dev > tol:
                 out[i] = replace(
                     obs[i],

@@ -219,13 +219,13 @@ def _alternative_templates(kind: str, u: np.ndarray, v: np.ndarray, bar: float) 
 
 def _best_alternative(kind: str, rend: _Renderer, fit: tuple, pix: np.ndarray, weight: np.ndarray, bar: float) -> float:
     """The best |normalised correlation| of any simpler pattern at the fitted place."""
+    sw = weight.sum()
+    if sw < 8:
+        return 1.0
     cx, cy, A, blen, bdeg, dpx = fit
     u, v = rend.uv(cx, cy, A, blen, bdeg, dpx)
     step = max(1, u.shape[1] // _ALT_SAMPLES)
     tpl = _alternative_templates(kind, u[:, ::step], v[:, ::step], bar)
-    sw = weight.sum()
-    if sw < 8:
-        return 1.0
     di = pix - (weight * pix).sum() / sw
     dt = tpl - (tpl @ weight / sw)[:, None]
     den = np.sqrt((dt * dt) @ weight * float((weight * di * di).sum()))
@@ -324,9 +324,7 @@ def fit_target(
         board = 2 * target_half_extent(kind) * side  # fits closer than a board apart: one target
         near: list[int] = []
         for i, f in enumerate(fits):  # best first
-            if _passes(kind, f, margins[i]) and all(
-                math.hypot(f[1] - fits[j][1], f[2] - fits[j][2]) > board for j in near
-            ):
+            if _passes(f, margins[i]) and all(math.hypot(f[1] - fits[j][1], f[2] - fits[j][2]) > board for j in near):
                 near.append(i)
         near.sort(key=lambda i: math.hypot(fits[i][1] - px, fits[i][2] - py))
         near = near or [0]  # none passes: the best, to say why
@@ -404,11 +402,11 @@ def _shape_margin(kind: str, f: tuple) -> float:
     return score - _best_alternative(kind, rend, (cx, cy, A, blen, bdeg, dpx), pix, weight, rend.bar)
 
 
-def _passes(kind: str, f: tuple, shape_margin: float) -> bool:
-    """Would this fit of a target without an id be accepted on its own (score, contrast, shape)?"""
+def _passes(f: tuple, shape_margin: float) -> bool:
+    """Would this fit of a target without an id be accepted on its own (score, contrast, parts, shape)?"""
     t = THRESHOLDS
     return (
-        f[0] >= THRESHOLDS["score"]
+        f[0] >= t["score"]
         and f[12] >= t["contrast_dn"]
         and shape_margin >= t["shape_margin"]
         and not f[13] > t["worst_part"]
