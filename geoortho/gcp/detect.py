@@ -197,7 +197,10 @@ def detect_in_image(
                     continue
         elif win.ambiguous_with:
             continue
-        if len(win.ground_px) != 4 or not in_frame(win.x_px, win.y_px, w, h, -win.side_px, -win.side_px):
+        # a model is fitted only to a target predicted wholly in the photo: one cut by the frame
+        # cannot be told from texture, and its centre may not even be in the photo
+        half = 0.5 * win.side_px
+        if len(win.ground_px) != 4 or not in_frame(win.x_px, win.y_px, w, h, half, half):
             continue
         if blur is None:
             blur = estimate_motion_blur(gray)

@@ -26,6 +26,7 @@ exactly that), a cross's two bar centre lines crossing, a circle's ellipse centr
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
 
@@ -424,6 +425,7 @@ def _score(
     """Refine from one candidate; its final score on every pixel the model covers (saturated out)."""
     fit, glare = _refine(crop, kind, base, cells, start, blur)
     cx, cy, angle, scale, e1, e2, blen, bdeg, dpx, bar = fit
+    crops = [crop]
     if glare is not None:
         # take the fitted glare spot off (saturated pixels stay out of the score)
         gx0, gy0, spot = glare
@@ -432,6 +434,10 @@ def _score(
         hot = sub >= SATURATED
         sub -= spot.astype(np.float32)
         sub[hot] = 255.0
+        # saturated white paint looks like glare to the fit: the photo as it is may be the better
+        # explanation (taken only where it is; for coded markers glare is always taken off)
+        crops = [crop] if kind in CODED else [crop, crops[0]]
+    as_is = crops[-1]
     A = _affine(base, angle, scale, e1, e2)
     half = target_half_extent(kind, cells)
     reach = int(math.ceil(np.abs(A).sum(axis=1).max() * half + blen / 2 + 2 * dpx + 2))
@@ -440,14 +446,37 @@ def _score(
     ys, xs = np.mgrid[gy0:gy1, gx0:gx1]
     rend = _Renderer(kind, cells, xs, ys, bar)
     tpl, cover = rend.render(cx, cy, A, blen, bdeg, dpx)
-    pix = crop[gy0:gy1, gx0:gx1].ravel()
-    weight = ((cover > 0.999) & (pix < SATURATED)).astype(np.float64)
+    band = _cross_band(xs.ravel() - cx, ys.ravel() - cy, A, bar) if kind == "cross" else True
+    best = -math.inf
+    for c in crops:
+        p = c[gy0:gy1, gx0:gx1].ravel()
+        unsaturated = p < SATURATED
+        if kind not in CODED and c is as_is:
+            # white paint in sun clips: where no glare is taken off, a saturated pixel where the
+            # model is white says what it should (only on the dark parts is it glare). Coded ids
+            # keep them out: a clipped cell must not vote for the id that has it white.
+            unsaturated |= tpl >= 0.5
+        w = ((cover > 0.999) & unsaturated & band).astype(np.float64)
+        score = _ncc(p, tpl, w)
+        if score > best:
+            best, pix, weight = score, p, w
     # the fitted contrast (white − black, grey levels): the least-squares gain of the model
     sw = max(weight.sum(), 1e-9)
     dt = tpl - (weight * tpl).sum() / sw
     gain = float((weight * dt * pix).sum() / max((weight * dt * dt).sum(), 1e-12))
     worst = _worst_part(kind, xs.ravel() - cx, ys.ravel() - cy, A, pix, tpl, weight, gain)
-    return _ncc(pix, tpl, weight), cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, gain, worst
+    return best, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, gain, worst
+
+
+def _cross_band(dx: np.ndarray, dy: np.ndarray, A: np.ndarray, bar: float) -> np.ndarray:
+    """Pixels (offsets from the centre) on a cross's bars or the ground right beside them.
+
+    A cross is its bars and their edges: the ground further in between the arms (grass,
+    tarmac) is not part of the target and, textured, only lowers the score of the true one."""
+    inv = np.linalg.inv(A)
+    u, v = inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy
+    side_px = math.sqrt(abs(np.linalg.det(A)))
+    return np.minimum(np.abs(u), np.abs(v)) <= bar / 2 + max(0.1, 1.5 / side_px)
 
 
 def _parts(kind: str, u: np.ndarray, v: np.ndarray) -> np.ndarray | None:
@@ -463,7 +492,7 @@ def _parts(kind: str, u: np.ndarray, v: np.ndarray) -> np.ndarray | None:
         return np.where(span & arm, quad, -1)
     if kind == "circle":
         r = np.hypot(u, v)
-        return np.where(r <= 0.4, 4, np.where((r >= 0.6) & (r <= target_half_extent(kind)), quad, -1))
+        return np.where(r <= 0.3, 4, np.where((r >= 0.62) & (r <= target_half_extent(kind)), quad, -1))
     return None
 
 
@@ -487,18 +516,22 @@ def _worst_part(
     resid = pix - gain * tpl
     resid = resid - (weight * resid).sum() / sw  # the offset
     worst = 0.0
-    for k in range(int(part.max()) + 1):
-        w = weight * (part == k)
-        if w.sum() >= 3:
+    groups = [part == k for k in range(int(part.max()) + 1)]
+    if kind == "circle":  # a small circle's board sectors hold a few pixels each: the ring as a whole too
+        groups.append((part >= 0) & (part < 4))
+    for g in groups:
+        w = weight * g
+        if w.sum() >= 6:  # a mean of fewer pixels is noise
             worst = max(worst, abs(float((w * resid).sum() / w.sum())))
     return worst / gain
 
 
 def _angles(kind: str) -> np.ndarray:
-    """Rotations to try, 10° apart over the target's period (a circle has none)."""
+    """Rotations to try, 10° apart over the target's period (a circle has none). A coded marker is
+    searched by its border alone, square: over 90°, its quarter turn told by the code after."""
     if kind == "circle":
         return np.array([0.0])
-    return np.arange(0.0, {"checkerboard": 180.0, "cross": 90.0}.get(kind, 360.0), 10.0)
+    return np.arange(0.0, {"checkerboard": 180.0}.get(kind, 90.0), 10.0)
 
 
 def _coarse(
@@ -518,13 +551,19 @@ def _coarse(
         return None
     ys, xs = np.mgrid[0:size, 0:size]
     rend = _Renderer(kind, cells, xs, ys)
+    coded = kind in CODED and cells is not None
     maps, used = [], []
     # the predicted size is off by the camera height's error (10 % is common): three sizes
     for angle, scale in ((a, f) for a in _angles(kind) for f in (0.88, 1.0, 1.12)):
         A = _affine(base, float(angle), scale, 0.0, 0.0)
         tpl, cover = rend.render(reach, reach, A, blur[0], blur[1], 0.5)
         t = tpl.reshape(size, size).astype(np.float32)
-        m = (cover.reshape(size, size) > 0.999).astype(np.float32)
+        keep = cover > 0.999
+        if kind == "cross":
+            keep &= _cross_band(xs.ravel() - reach, ys.ravel() - reach, A, CROSS_BAR)
+        elif coded:
+            keep &= ~_code_cells(xs.ravel() - reach, ys.ravel() - reach, A, cells)
+        m = keep.reshape(size, size).astype(np.float32)
         if m.sum() < 8 or t[m > 0].std() < 1e-3:
             continue
         res = cv2.matchTemplate(crop, t, cv2.TM_CCOEFF_NORMED, mask=m)
@@ -545,8 +584,41 @@ def _coarse(
         if mx < (0.6 if absolute else 0.3) or (out and mx < out[0][4] - (0.3 if absolute else 0.5)):
             break
         a, f = used[angle_of[loc[1], loc[0]]]
+        if coded:
+            a = _quarter_turn(crop, rend, loc, base, a, f, blur)
         out.append((loc[0] + reach, loc[1] + reach, a, f, float(mx)))
         cv2.circle(work, loc, int(math.ceil(0.75 * side)), -2.0, -1)
+    return out
+
+
+def _code_cells(dx: np.ndarray, dy: np.ndarray, A: np.ndarray, cells: np.ndarray | None) -> np.ndarray:
+    """Pixels (offsets from the centre) on a coded marker's code cells, inside its black border."""
+    inv = np.linalg.inv(A)
+    u, v = inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy
+    lim = 0.5 - 1.0 / (6 if cells is None else cells.shape[0])
+    return (np.abs(u) < lim) & (np.abs(v) < lim)
+
+
+def _quarter_turn(
+    crop: np.ndarray,
+    rend: _Renderer,
+    loc: Sequence[int],
+    base: np.ndarray,
+    angle: float,
+    scale: float,
+    blur: tuple[float, float],
+) -> float:
+    """Of a coded marker's border found at ``angle``, the quarter turn whose code matches best."""
+    size = int(math.isqrt(rend.xs.size))
+    reach = size // 2
+    patch = crop[loc[1] : loc[1] + size, loc[0] : loc[0] + size].astype(np.float64).ravel()
+    best, out = -math.inf, angle
+    for k in range(4):
+        a = angle + 90.0 * k
+        tpl, cover = rend.render(reach, reach, _affine(base, a, scale, 0.0, 0.0), blur[0], blur[1], 0.5)
+        score = _ncc(patch, tpl, (cover > 0.999).astype(np.float64))
+        if score > best:
+            best, out = score, a
     return out
 
 
