@@ -116,6 +116,12 @@ def _affine(base: np.ndarray, angle_deg: float, scale: float, e1: float, e2: flo
     return scale * shape @ base @ rot
 
 
+def _to_marker(dx: np.ndarray, dy: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel offsets from the centre → marker-frame coordinates (sides), through ``A``'s inverse."""
+    inv = np.linalg.inv(A)
+    return inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy
+
+
 class _Renderer:
     """Renders the target model into a fixed grid of pixels (a patch of the photo)."""
 
@@ -132,8 +138,7 @@ class _Renderer:
         # blur direction anticlockwise from x as seen (image y points down)
         px = self.xs[:, None] - cx + self.sx + blur_px * math.cos(b) * self.st + defocus_px * self.nx
         py = self.ys[:, None] - cy + self.sy - blur_px * math.sin(b) * self.st + defocus_px * self.ny
-        inv = np.linalg.inv(A)
-        return inv[0, 0] * px + inv[0, 1] * py, inv[1, 0] * px + inv[1, 1] * py
+        return _to_marker(px, py, A)
 
     def render(
         self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
@@ -473,8 +478,7 @@ def _cross_band(dx: np.ndarray, dy: np.ndarray, A: np.ndarray, bar: float) -> np
 
     A cross is its bars and their edges: the ground further in between the arms (grass,
     tarmac) is not part of the target and, textured, only lowers the score of the true one."""
-    inv = np.linalg.inv(A)
-    u, v = inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy
+    u, v = _to_marker(dx, dy, A)
     side_px = math.sqrt(abs(np.linalg.det(A)))
     return np.minimum(np.abs(u), np.abs(v)) <= bar / 2 + max(0.1, 1.5 / side_px)
 
@@ -508,8 +512,7 @@ def _worst_part(
 ) -> float:
     """The largest mean residual over any part of the target, as a share of its contrast: texture
     that fits a target as a whole rarely has every part of it (NaN for coded markers)."""
-    inv = np.linalg.inv(A)
-    part = _parts(kind, inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy)
+    part = _parts(kind, *_to_marker(dx, dy, A))
     if part is None or gain <= 0:
         return math.nan
     sw = max(weight.sum(), 1e-9)
@@ -593,8 +596,7 @@ def _coarse(
 
 def _code_cells(dx: np.ndarray, dy: np.ndarray, A: np.ndarray, cells: np.ndarray | None) -> np.ndarray:
     """Pixels (offsets from the centre) on a coded marker's code cells, inside its black border."""
-    inv = np.linalg.inv(A)
-    u, v = inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy
+    u, v = _to_marker(dx, dy, A)
     lim = 0.5 - 1.0 / (6 if cells is None else cells.shape[0])
     return (np.abs(u) < lim) & (np.abs(v) < lim)
 
