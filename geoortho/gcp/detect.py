@@ -170,6 +170,7 @@ def detect_in_image(
     attempts: tuple[str, ...] = ATTEMPTS,
     target: str = "aruco",
     blur: tuple[float, float] | None = None,
+    fit: bool = True,
 ) -> list[Detection]:
     """Detect markers in each window (the whole image when ``radius_px`` is 0).
 
@@ -177,6 +178,7 @@ def detect_in_image(
     seen on the way is returned, so the caller can judge wrong ids too. Where none decodes,
     the expected marker is verified by fitting its model (:mod:`.targets`). Targets without
     a code are fitted in every window. ``blur``: the photo's motion blur (estimated when needed).
+    ``fit`` False: coded markers by the detector alone (no model fits).
     """
     h, w = gray.shape[:2]
     coded = target in CODED
@@ -195,6 +197,8 @@ def detect_in_image(
             if win.wide_radius_px > win.radius_px and in_frame(win.x_px, win.y_px, w, h):
                 if _search(gray, _square(win, win.wide_radius_px, w, h), win, attempts, dictionary, k, found):
                     continue
+            if not fit:
+                continue
         elif win.ambiguous_with:
             continue
         # a model is fitted only to a target predicted wholly in the photo: one cut by the frame
@@ -309,9 +313,10 @@ def _search(
     return False
 
 
-def detect_task(args: tuple[str, list[Window], str, str]) -> tuple[str, list[Detection], str, float]:
-    """Worker entry: decode one photo (grey) and search its windows; and the photo's motion blur (px)."""
-    path, windows, dictionary, target = args
+def detect_task(args: tuple[str, list[Window], str, str, bool]) -> tuple[str, list[Detection], str, float]:
+    """Worker entry: decode one photo (grey) and search its windows (``fit``: coded markers the
+    detector misses are verified by a model fit); and the photo's motion blur (px)."""
+    path, windows, dictionary, target, fit = args
     from ..photos import decode_photo
 
     try:  # strict: a corrupt scan would be searched as grey smears, with libjpeg noise on stderr
@@ -323,7 +328,7 @@ def detect_task(args: tuple[str, list[Window], str, str]) -> tuple[str, list[Det
     if gray is None:
         return path, [], "cannot decode the image", math.nan
     blur = estimate_motion_blur(gray)
-    return path, detect_in_image(gray, windows, dictionary, target=target, blur=blur), "", blur[0]
+    return path, detect_in_image(gray, windows, dictionary, target=target, blur=blur, fit=fit), "", blur[0]
 
 
 def init_worker() -> None:

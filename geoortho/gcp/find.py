@@ -479,26 +479,47 @@ def _search(
     searched = [im for im in plan.cams if im in windows]
     pilot = _pilot_images(searched, windows, plan.cams, workers)
     rest = [im for im in searched if im not in set(pilot)]
-    s_pilot, s_rest = split(fb, [len(pilot), len(rest) + len(plan.unplaced)])
+    s_pilot, s_refit, s_rest = split(fb, [len(pilot), 0.5 * len(pilot), len(rest) + len(plan.unplaced)])
 
-    def run(jobs: list[tuple[str, list[Window]]], kind: str, f: Feedback) -> Results:
-        items = [(plan.path_of[im], wins, dictionary, kind) for im, wins in jobs]
+    def run(jobs: list[tuple[str, list[Window]]], kind: str, f: Feedback, fit: bool = True) -> Results:
+        items = [(plan.path_of[im], wins, dictionary, kind, fit) for im, wins in jobs]
         return map_ordered(detect_task, items, workers=1 if pool is None else workers, executor=pool, feedback=f)
 
+    # Coded markers in the pilot: the detector alone first. A model fit in a window sized for the
+    # stated uncertainty costs seconds; in the window narrowed by the measured offset, a fraction.
+    def pilot_run(ims: list[str], kind: str, f: Feedback) -> Results:
+        return run([(im, windows[im]) for im in ims], kind, f, fit=kind not in CODED)
+
     if target == "auto":
-        target, results = _choose_target(
-            pilot, windows, lambda ims, kind, f: run([(im, windows[im]) for im in ims], kind, f), auto_kinds, s_pilot
-        )
+        target, results = _choose_target(pilot, windows, pilot_run, auto_kinds, s_pilot)
     else:
-        results = run([(im, windows[im]) for im in pilot], target, s_pilot)
+        results = pilot_run(pilot, target, s_pilot)
     coded = target in CODED
-    offset = _flight_offset(
-        results,
-        windows,
-        plan.cams,
-        dict(zip(plan.names, plan.xyz)),
-        consensus_m=None if coded else max(1.5, 2.0 * uncertainty["marker_size_m"]),
-    )
+
+    def offset_of(results: Results) -> tuple[np.ndarray, float, int] | None:
+        return _flight_offset(
+            results,
+            windows,
+            plan.cams,
+            dict(zip(plan.names, plan.xyz)),
+            consensus_m=None if coded else max(1.5, 2.0 * uncertainty["marker_size_m"]),
+        )
+
+    offset = offset_of(results)
+    # pilot photos where the detector missed a coded marker: fitted in their narrowed windows
+    # with the rest, or here (in the wide ones) when the decoded markers were too few to measure
+    unfitted = [
+        Path(path).name
+        for path, dets, *_ in results
+        if coded and any(_nearest(dets, k, w) is None for k, w in enumerate(windows[Path(path).name]))
+    ]
+    if unfitted and offset is None:
+        again = {Path(r[0]).name: r for r in run([(im, windows[im]) for im in unfitted], target, s_refit)}
+        results = [again.get(Path(r[0]).name, r) for r in results]
+        offset, unfitted = offset_of(results), []
+    elif unfitted:
+        rest += unfitted
+        results = [r for r in results if Path(r[0]).name not in set(unfitted)]
     if offset is None and not coded:
         # Without an id, a fit is trusted only where the flight's measured offset puts its GCP:
         # fits that agree on no common offset are texture, or the GCPs are not where the file says.

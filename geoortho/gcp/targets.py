@@ -261,17 +261,19 @@ def estimate_motion_blur(gray: np.ndarray, tile_px: int = 128, max_tiles: int = 
     h, w = gray.shape[:2]
     if h < tile_px or w < tile_px:
         return 0.0, 0.0
-    g = gray.astype(np.float32)
-    starts = [(y, x) for y in range(0, h - tile_px + 1, tile_px) for x in range(0, w - tile_px + 1, tile_px)]
-    var = np.array([g[y : y + tile_px, x : x + tile_px].var() for y, x in starts])
-    keep = [starts[i] for i in np.argsort(-var)[:max_tiles] if var[i] > 4.0]
+    ny, nx = h // tile_px, w // tile_px
+    # the most textured tiles, ranked on every 4th pixel (16x cheaper; a ranking needs no more)
+    sub = gray[: ny * tile_px : 4, : nx * tile_px : 4].astype(np.float32)
+    var = sub.reshape(ny, tile_px // 4, nx, tile_px // 4).var(axis=(1, 3)).ravel()
+    keep = [divmod(int(i), nx) for i in np.argsort(-var)[:max_tiles] if var[i] > 4.0]
     if not keep:
         return 0.0, 0.0
     win = np.outer(np.hanning(tile_px), np.hanning(tile_px)).astype(np.float32)
     power = np.zeros((tile_px, tile_px), np.float64)
-    for y, x in keep:
-        t = g[y : y + tile_px, x : x + tile_px]
-        power += np.abs(np.fft.fft2((t - t.mean()) * win)) ** 2
+    for ty, tx in keep:
+        t = gray[ty * tile_px : (ty + 1) * tile_px, tx * tile_px : (tx + 1) * tile_px].astype(np.float32)
+        spec = cv2.dft((t - t.mean()) * win, flags=cv2.DFT_COMPLEX_OUTPUT)
+        power += cv2.magnitude(spec[..., 0], spec[..., 1]) ** 2
     cep = np.fft.fftshift(np.real(np.fft.ifft2(np.log(power / len(keep) + 1e-3))))
     c = tile_px // 2
     yy, xx = np.mgrid[-c : tile_px - c, -c : tile_px - c]
