@@ -133,7 +133,16 @@ def trial(args: tuple[int, str, str]) -> dict:
     row["seconds"] = time.perf_counter() - t
     if fit is None:
         return row | dict(accepted=False, reason="no fit")
-    measures = ("score", "contrast_dn", "worst_part", "shape_margin", "id_margin", "position_margin", "reason")
+    measures = (
+        "score",
+        "contrast_dn",
+        "worst_part",
+        "shape_margin",
+        "id_margin",
+        "id_score",
+        "position_margin",
+        "reason",
+    )
     row |= {k: getattr(fit, k) for k in measures}
     row["fit_blur_px"] = fit.blur_px
     row["est_blur_px"] = est[0]

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..camera import in_frame
 from ..markers import CODED, get_dictionary
-from .targets import estimate_motion_blur, fit_target
+from .targets import SATURATED, estimate_motion_blur, fit_target
 
 __all__ = [
     "Detection",
@@ -201,13 +201,20 @@ def detect_in_image(
                 continue
         elif win.ambiguous_with:
             continue
-        # a model is fitted only to a target predicted wholly in the photo: one cut by the frame
-        # cannot be told from texture, and its centre may not even be in the photo
-        half = 0.5 * win.side_px
-        if len(win.ground_px) != 4 or not in_frame(win.x_px, win.y_px, w, h, half, half):
+        # A target is fitted only where predicted wholly in the photo: one cut by the frame cannot
+        # be told from texture. A coded one predicted nearer the edge than half its side is
+        # fitted too (kept only if the marker fitted is wholly inside) where the detector had
+        # cause to miss a whole one: the photo is blurred or the window holds glare. On a sharp,
+        # glare-free photo a miss there is a marker cut by the frame; its fit would cost seconds.
+        if len(win.ground_px) != 4 or not in_frame(win.x_px, win.y_px, w, h):
             continue
         if blur is None:
             blur = estimate_motion_blur(gray)
+        half = 0.5 * win.side_px
+        if not in_frame(win.x_px, win.y_px, w, h, half, half):
+            x0, y0, x1, y1 = _square(win, win.radius_px, w, h)
+            if not (coded and (blur[0] >= 2.0 or bool((gray[y0:y1, x0:x1] >= SATURATED).any()))):
+                continue
         radii = [win.radius_px] + ([win.wide_radius_px] if win.wide_radius_px > win.radius_px else [])
         for radius in radii:
             d = _fit(gray, win, k, _square(win, radius, w, h), target, dictionary, blur)
@@ -246,7 +253,11 @@ def _fit(
     )
     if fit is None:
         return None
-    side = float(np.sqrt(abs(cv2.contourArea(np.array(fit.corners_px, np.float32)))))
+    reason = fit.reason
+    corners = np.array(fit.corners_px)
+    if coded and not reason and not np.all(in_frame(corners[:, 0], corners[:, 1], gray.shape[1], gray.shape[0], 1, 1)):
+        reason = "the marker fitted is cut by the photo's edge"
+    side = float(np.sqrt(abs(cv2.contourArea(corners.astype(np.float32)))))
     return Detection(
         win.marker_id,
         fit.x_px,
@@ -262,7 +273,7 @@ def _fit(
         fit.contrast_dn,
         fit.worst_part,
         fit.shape_margin,
-        fit.reason,
+        reason,
     )
 
 
