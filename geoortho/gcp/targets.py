@@ -246,7 +246,7 @@ def _coded_patterns(dictionary: str) -> np.ndarray:
     """Every id of the dictionary in its four rotations, id-major: (4 × ids, n, n)."""
     d = get_dictionary(dictionary)
     side = d.markerSize + 2
-    out = []
+    out: list[np.ndarray] = []
     for i in range(d.bytesList.shape[0]):
         cells = cv2.aruco.generateImageMarker(d, i, side, borderBits=1) > 127
         out.extend(np.rot90(cells, k) for k in range(4))
