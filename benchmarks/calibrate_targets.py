@@ -40,33 +40,11 @@ def real_photos() -> list[Path]:
     return sorted(p for p in REAL.glob("*/images/*") if p.suffix.lower() in (".jpg", ".jpeg"))
 
 
-def render_into(
-    img: np.ndarray, kind: str, cx: float, cy: float, A: np.ndarray, cells, white: float, black: float
-) -> None:
-    """Paint the target (8 × 8 samples per pixel) into ``img`` (float, in place)."""
-    from geoortho.markers import target_half_extent, target_reflectance
-
-    reach = int(math.ceil(np.abs(A).sum(axis=1).max() * target_half_extent(kind, cells) + 2))
-    x0, x1 = max(0, int(cx) - reach), min(img.shape[1], int(cx) + reach + 2)
-    y0, y1 = max(0, int(cy) - reach), min(img.shape[0], int(cy) + reach + 2)
-    ys, xs = np.mgrid[y0:y1, x0:x1]
-    sub = (np.arange(8) + 0.5) / 8 - 0.5
-    sx, sy = np.meshgrid(sub, sub)
-    px = xs.ravel()[:, None] + sx.ravel()[None] - cx
-    py = ys.ravel()[:, None] + sy.ravel()[None] - cy
-    inv = np.linalg.inv(A)
-    u, v = inv[0, 0] * px + inv[0, 1] * py, inv[1, 0] * px + inv[1, 1] * py
-    r = target_reflectance(kind, u, v, cells)
-    bg = img[y0:y1, x0:x1].reshape(-1, 1)
-    val = np.where(np.isnan(r), bg, black + (white - black) * np.nan_to_num(r))
-    img[y0:y1, x0:x1] = val.mean(axis=1).reshape(ys.shape)
-
-
 def trial(args: tuple[int, str, str]) -> dict:
     """One fit: ``role`` positive (target rendered), texture (nothing), wrong-kind or wrong-id."""
     seed, kind, role = args
     from geoortho.gcp.targets import THRESHOLDS, _affine, estimate_motion_blur, fit_target
-    from geoortho.markers import CODED, TARGETS, marker_cells
+    from geoortho.markers import CODED, TARGETS, marker_cells, paint_target
     from geoortho.synthetic import motion_kernel
 
     rng = np.random.default_rng(seed)
@@ -95,7 +73,7 @@ def trial(args: tuple[int, str, str]) -> dict:
         if painted == "cross":
             white = rng.uniform(200, 250)  # white paint on the ground
         A_true = _affine(base, float(rng.uniform(0, 360)), float(1 + rng.normal(0, 0.04)), 0.0, 0.0)
-        render_into(img, painted, cx, cy, A_true, p_cells, white, black)
+        paint_target(img, painted, cx, cy, A_true, p_cells, white, black)
     blur_px = float(rng.uniform(side / 6, side / 2)) if rng.random() < 0.5 else 0.0
     glare = painted is not None and rng.random() < 0.3
     if glare:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from functools import cache
 from typing import Literal, get_args
 
@@ -142,3 +143,33 @@ def target_reflectance(
     else:
         raise InputError(f"unknown target {kind!r}; choose one of {', '.join(TARGETS)}")
     return out
+
+
+def paint_target(
+    img: np.ndarray,
+    kind: str,
+    cx: float,
+    cy: float,
+    A: np.ndarray,
+    cells: np.ndarray | None,
+    white: float,
+    black: float,
+) -> None:
+    """Paint a target into a float image in place, 8 × 8 samples a pixel (tests and calibration).
+
+    ``(cx, cy)``: its centre (pixel-centre convention); ``A``: marker frame (u right, v up, in
+    sides) → pixel offsets; ``white``/``black``: grey levels. The ground shows where it does."""
+    reach = int(math.ceil(np.abs(A).sum(axis=1).max() * target_half_extent(kind, cells) + 2))
+    x0, x1 = max(0, int(cx) - reach), min(img.shape[1], int(cx) + reach + 2)
+    y0, y1 = max(0, int(cy) - reach), min(img.shape[0], int(cy) + reach + 2)
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    sx, sy = np.meshgrid(sub, sub)
+    px = xs.ravel()[:, None] + sx.ravel()[None] - cx
+    py = ys.ravel()[:, None] + sy.ravel()[None] - cy
+    inv = np.linalg.inv(A)
+    u, v = inv[0, 0] * px + inv[0, 1] * py, inv[1, 0] * px + inv[1, 1] * py
+    r = target_reflectance(kind, u, v, cells)
+    bg = img[y0:y1, x0:x1].reshape(-1, 1)
+    val = np.where(np.isnan(r), bg, black + (white - black) * np.nan_to_num(r))
+    img[y0:y1, x0:x1] = val.mean(axis=1).reshape(ys.shape)

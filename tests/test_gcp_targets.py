@@ -136,7 +136,7 @@ def _blurred_marker(marker_id: int, side_px: float, blur_px: float, seed: int = 
     import cv2
     import numpy as np
 
-    from geoortho.markers import marker_cells, target_reflectance
+    from geoortho.markers import marker_cells, paint_target
     from geoortho.synthetic import motion_kernel
 
     rng = np.random.default_rng(seed)
@@ -144,16 +144,8 @@ def _blurred_marker(marker_id: int, side_px: float, blur_px: float, seed: int = 
     img = cv2.GaussianBlur(rng.normal(120, 25, (size, size)), (0, 0), 2.0)
     a = math.radians(17.0)
     A = side_px * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])  # v up
-    sub = (np.arange(8) + 0.5) / 8 - 0.5
-    ys, xs = np.mgrid[0:size, 0:size]
-    sx, sy = np.meshgrid(sub, sub)
-    px = xs.ravel()[:, None] + sx.ravel()[None] - cx
-    py = ys.ravel()[:, None] + sy.ravel()[None] - cy
-    inv = np.linalg.inv(A)
-    u, v = inv[0, 0] * px + inv[0, 1] * py, inv[1, 0] * px + inv[1, 1] * py
-    r = target_reflectance("aruco", u, v, marker_cells("DICT_4X4_50", marker_id))
-    paint = np.where(np.isnan(r), img.ravel()[:, None], 30 + 190 * np.nan_to_num(r)).mean(axis=1)
-    img = cv2.filter2D(paint.reshape(size, size).astype(np.float32), -1, motion_kernel(blur_px, 30.0))
+    paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", marker_id), 220.0, 30.0)
+    img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(blur_px, 30.0))
     img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
     return img, (cx, cy), A
 

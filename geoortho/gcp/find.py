@@ -516,10 +516,11 @@ def _search(
     if unfitted and offset is None:
         again = {Path(r[0]).name: r for r in run([(im, windows[im]) for im in unfitted], target, s_refit)}
         results = [again.get(Path(r[0]).name, r) for r in results]
-        offset, unfitted = offset_of(results), []
+        offset = offset_of(results)
     elif unfitted:
         rest += unfitted
-        results = [r for r in results if Path(r[0]).name not in set(unfitted)]
+        refit = set(unfitted)
+        results = [r for r in results if Path(r[0]).name not in refit]
     if offset is None and not coded:
         # Without an id, a fit is trusted only where the flight's measured offset puts its GCP:
         # fits that agree on no common offset are texture, or the GCPs are not where the file says.

@@ -33,7 +33,15 @@ from functools import cache
 import cv2
 import numpy as np
 
-from ..markers import CODED, CROSS_BAR, coded_cells_at, get_dictionary, target_half_extent, target_reflectance
+from ..markers import (
+    CODED,
+    CROSS_BAR,
+    coded_cells_at,
+    get_dictionary,
+    marker_cells,
+    target_half_extent,
+    target_reflectance,
+)
 
 __all__ = ["Fit", "estimate_motion_blur", "fit_target", "THRESHOLDS"]
 
@@ -244,13 +252,8 @@ def _best_alternative(kind: str, rend: _Renderer, fit: tuple, pix: np.ndarray, w
 @cache
 def _coded_patterns(dictionary: str) -> np.ndarray:
     """Every id of the dictionary in its four rotations, id-major: (4 × ids, n, n)."""
-    d = get_dictionary(dictionary)
-    side = d.markerSize + 2
-    out: list[np.ndarray] = []
-    for i in range(d.bytesList.shape[0]):
-        cells = cv2.aruco.generateImageMarker(d, i, side, borderBits=1) > 127
-        out.extend(np.rot90(cells, k) for k in range(4))
-    return np.array(out)
+    n_ids = get_dictionary(dictionary).bytesList.shape[0]
+    return np.array([np.rot90(marker_cells(dictionary, i), k) for i in range(n_ids) for k in range(4)])
 
 
 def estimate_motion_blur(gray: np.ndarray, tile_px: int = 128, max_tiles: int = 24) -> tuple[float, float]:
