@@ -29,6 +29,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -320,7 +321,7 @@ def fit_target(
     if not coarse:
         return None
     fits = sorted(
-        (_score(crop, kind, base * f, cells, (cx, cy, a), blur) for cx, cy, a, f, _ in coarse), key=lambda f: -f[0]
+        (_score(crop, kind, base * f, cells, (cx, cy, a), blur) for cx, cy, a, f, _ in coarse), key=lambda f: -f.score
     )
     side = float(np.sqrt(abs(np.linalg.det(base))))
     t = THRESHOLDS
@@ -334,12 +335,12 @@ def fit_target(
         board = 2 * target_half_extent(kind) * side  # fits closer than a board apart: one target
         near: list[int] = []
         for i, f in enumerate(fits):  # best first
-            if _passes(f, margins[i]) and all(math.hypot(f[1] - fits[j][1], f[2] - fits[j][2]) > board for j in near):
+            if _passes(f, margins[i]) and all(math.hypot(f.cx - fits[j].cx, f.cy - fits[j].cy) > board for j in near):
                 near.append(i)
-        near.sort(key=lambda i: math.hypot(fits[i][1] - px, fits[i][2] - py))
+        near.sort(key=lambda i: math.hypot(fits[i].cx - px, fits[i].cy - py))
         near = near or [0]  # none passes: the best, to say why
-        own = math.hypot(fits[near[0]][1] - px, fits[near[0]][2] - py)
-        dists = [math.hypot(fits[i][1] - px, fits[i][2] - py) for i in near[1:]]
+        own = math.hypot(fits[near[0]].cx - px, fits[near[0]].cy - py)
+        dists = [math.hypot(fits[i].cx - px, fits[i].cy - py) for i in near[1:]]
         # a rival counts when it is about as near, and inside the part of the window the
         # prediction's error spans (the window less a target and a half each side)
         reach = max(px, py, (x1 - x0) - px, (y1 - y0) - py) - 1.5 * side  # the box may be cut by the frame
@@ -351,7 +352,7 @@ def fit_target(
     score, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, contrast, worst_part = fits[0]
     shape_margin = margins[0]
     if not by_place:
-        others = (f[0] for f in fits[1:] if math.hypot(f[1] - cx, f[2] - cy) > 0.75 * side)
+        others = (f.score for f in fits[1:] if math.hypot(f.cx - cx, f.cy - cy) > 0.75 * side)
         pos_margin = score - max(others, default=-1.0)
     id_margin = id_score = math.nan
     if kind in CODED and dictionary and cells is not None:
@@ -412,23 +413,42 @@ def fit_target(
     )
 
 
-def _shape_margin(kind: str, f: tuple) -> float:
+def _shape_margin(kind: str, f: _Candidate) -> float:
     """A fit's score over the best simpler pattern at its place (NaN: coded, or not worth asking)."""
-    if kind not in ALTERNATIVES or f[0] < THRESHOLDS["score"] or f[12] < THRESHOLDS["contrast_dn"]:
+    if kind not in ALTERNATIVES or f.score < THRESHOLDS["score"] or f.contrast < THRESHOLDS["contrast_dn"]:
         return math.nan
-    score, cx, cy, _, _, blen, bdeg, dpx, A, rend, pix, weight, *_ = f
-    return score - _best_alternative(kind, rend, (cx, cy, A, blen, bdeg, dpx), pix, weight, rend.bar)
+    alt = _best_alternative(kind, f.rend, (f.cx, f.cy, f.A, f.blen, f.bdeg, f.dpx), f.pix, f.weight, f.rend.bar)
+    return f.score - alt
 
 
-def _passes(f: tuple, shape_margin: float) -> bool:
+def _passes(f: _Candidate, shape_margin: float) -> bool:
     """Would this fit of a target without an id be accepted on its own (score, contrast, parts, shape)?"""
     t = THRESHOLDS
     return (
-        f[0] >= t["score"]
-        and f[12] >= t["contrast_dn"]
+        f.score >= t["score"]
+        and f.contrast >= t["contrast_dn"]
         and shape_margin >= t["shape_margin"]
-        and not f[13] > t["worst_part"]
+        and not f.worst_part > t["worst_part"]
     )
+
+
+class _Candidate(NamedTuple):
+    """One refined fit in a window, with what acceptance asks of it."""
+
+    score: float  # masked normalised correlation of the model with the pixels
+    cx: float  # centre, window pixels
+    cy: float
+    angle: float
+    scale: float
+    blen: float  # motion blur length px, direction deg, defocus px
+    bdeg: float
+    dpx: float
+    A: np.ndarray  # marker frame → pixel offsets
+    rend: _Renderer
+    pix: np.ndarray  # the scored pixels, their weights
+    weight: np.ndarray
+    contrast: float  # fitted white − black, grey levels
+    worst_part: float
 
 
 def _score(
@@ -438,7 +458,7 @@ def _score(
     cells: np.ndarray | None,
     start: tuple[float, float, float],
     blur: tuple[float, float],
-) -> tuple:
+) -> _Candidate:
     """Refine from one candidate; its final score on every pixel the model covers (saturated out)."""
     fit, glare = _refine(crop, kind, base, cells, start, blur)
     cx, cy, angle, scale, e1, e2, blen, bdeg, dpx, bar = fit
@@ -482,7 +502,7 @@ def _score(
     dt = tpl - (weight * tpl).sum() / sw
     gain = float((weight * dt * pix).sum() / max((weight * dt * dt).sum(), 1e-12))
     worst = _worst_part(kind, xs.ravel() - cx, ys.ravel() - cy, A, pix, tpl, weight, gain)
-    return best, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, gain, worst
+    return _Candidate(best, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, gain, worst)
 
 
 def _cross_band(dx: np.ndarray, dy: np.ndarray, A: np.ndarray, bar: float) -> np.ndarray:
