@@ -1,25 +1,41 @@
-"""Per-item work on a process pool, in order, with progress and cancellation.
+"""Per-item work on a process pool or a Dask cluster, in order, with progress and cancellation.
 
-One place for the pattern every per-photo stage uses (rendering, detection):
-``spawn`` workers (a caller may have started OpenCV's thread pool, which fork
-does not survive), results in input order, progress per finished item, and
-Cancel or an error stopping what has not started.
+One place for the pattern every per-photo and per-tile stage uses (metadata, rendering,
+detection, depth maps, mosaic tiles): ``spawn`` workers (a caller may have started OpenCV's
+thread pool, which fork does not survive), results in input order, progress per finished
+item, and Cancel or an error stopping what has not started.
+
+Inside :func:`use_scheduler` (the CLI's ``--scheduler ADDRESS`` or ``GEOORTHO_SCHEDULER``)
+the same work goes to a ``dask.distributed`` cluster instead of a local pool: every pool
+this module would start is the cluster's executor, with the pool's initializer run once in
+each worker process (again in a worker that replaces a dead one). Workers read and write by
+the same paths as the caller: a shared file system.
 """
 
 from __future__ import annotations
 
 import collections
 import concurrent.futures as cf
+import contextvars
 import itertools
 import multiprocessing
 import os
+import threading
+import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, TypeVar
 
+from .errors import DependencyError, InputError
 from .feedback import Feedback, as_feedback
 
-__all__ = ["imap_ordered", "map_ordered", "process_pool"]
+__all__ = ["SCHEDULER_ENV", "active_client", "imap_ordered", "map_ordered", "process_pool", "use_scheduler"]
+
+#: The environment variable naming a Dask scheduler, for runs not given ``--scheduler``.
+SCHEDULER_ENV = "GEOORTHO_SCHEDULER"
+CONNECT_TIMEOUT_S = 10.0  # a scheduler that does not answer in this time is reported, not waited on
+_client: contextvars.ContextVar[Any] = contextvars.ContextVar("geoortho_dask_client", default=None)
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -75,6 +91,13 @@ def imap_ordered(
     stays bounded by that window, not by the number of items (tiles of a mosaic)."""
     fb = as_feedback(feedback)
     window = in_flight or 2 * (workers or os.cpu_count() or 1)
+    if executor is None and active_client() is not None and len(items) >= min_items_for_pool:
+        with process_pool(
+            workers, len(items), initializer=initializer, initargs=initargs, min_items_for_pool=min_items_for_pool
+        ) as cluster:
+            assert cluster is not None
+            yield from _imap_on(cluster, fn, items, fb, in_flight or 2 * _cluster_slots())
+        return
     if executor is not None:
         yield from _imap_on(executor, fn, items, fb, window)
         return
@@ -124,7 +147,16 @@ def process_pool(
     min_items_for_pool: int = 2,
 ) -> Iterator[cf.Executor | None]:
     """A spawn pool to share between several ``map_ordered`` calls (one start-up), or None
-    (after running ``initializer`` here) when in-process is the better choice."""
+    (after running ``initializer`` here) when in-process is the better choice. Inside
+    :func:`use_scheduler`: the cluster (``workers`` is then the cluster's business)."""
+    client = active_client()
+    if client is not None and n_items >= min_items_for_pool:
+        ex = _ClusterExecutor(client, initializer, initargs)
+        try:
+            yield ex
+        finally:
+            ex.shutdown(wait=False, cancel_futures=True)
+        return
     n_workers = workers or os.cpu_count() or 1
     if n_workers <= 1 or n_items < min_items_for_pool:
         if initializer is not None:
@@ -168,3 +200,131 @@ def _worker_start(parent_pid: int, initializer: Callable[..., Any] | None, inita
         os._exit(1)
     if initializer is not None:
         initializer(*initargs)
+
+
+# -- Dask ---------------------------------------------------------------------------------------
+
+
+def active_client() -> Any:
+    """The ``distributed.Client`` of the enclosing :func:`use_scheduler`, or None."""
+    return _client.get()
+
+
+@contextmanager
+def use_scheduler(
+    address: str | None = None, *, must_see: Sequence[str | os.PathLike[str]] = (), timeout_s: float = CONNECT_TIMEOUT_S
+) -> Iterator[Any]:
+    """Run the per-photo and per-tile work of the enclosed calls on the Dask cluster at ``address``
+    (default: ``$GEOORTHO_SCHEDULER``; neither: the local pool, and this yields None).
+
+    Refuses in ``timeout_s`` a scheduler that does not answer or has no worker, and a cluster
+    whose workers do not see every path of ``must_see`` (for an output: its nearest existing
+    folder) — they read and write by the caller's paths.
+
+    >>> with use_scheduler("tcp://10.0.0.5:8786"):  # doctest: +SKIP
+    ...     geoortho.gcp_find("photos", "gcps.txt", "gcp_list.txt")
+    """
+    address = (address or os.environ.get(SCHEDULER_ENV, "")).strip()
+    if not address:
+        yield None
+        return
+    try:
+        from distributed import Client
+    except ImportError:
+        raise DependencyError(
+            f"a Dask scheduler ({address}) was given but dask.distributed is not installed: "
+            "pip install 'geoortho[dask]'"
+        ) from None
+    try:
+        client = Client(address, timeout=timeout_s, set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as e:
+        raise InputError(
+            f"the Dask scheduler at {address} does not answer ({' '.join(str(e).split())[:160]}); "
+            f"start it, or give another address (--scheduler or {SCHEDULER_ENV})"
+        ) from None
+    try:
+        try:
+            client.wait_for_workers(1, timeout=timeout_s)
+        except TimeoutError:
+            raise InputError(
+                f"the Dask scheduler at {address} has no worker (start one: dask worker {address})"
+            ) from None
+        _check_workers_see(client, address, must_see)
+        token = _client.set(client)
+        try:
+            yield client
+        finally:
+            _client.reset(token)
+    finally:
+        client.close()
+
+
+def _nearest_existing(path: str | os.PathLike[str]) -> str:
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return str(p)
+
+
+def _missing(paths: list[str]) -> list[str]:
+    """On a worker: the paths it does not see."""
+    return [p for p in paths if not os.path.exists(p)]
+
+
+def _check_workers_see(client: Any, address: str, paths: Sequence[str | os.PathLike[str]]) -> None:
+    wanted = sorted({_nearest_existing(p) for p in paths})
+    if not wanted:
+        return
+    for worker, missing in sorted(client.run(_missing, wanted).items()):
+        if missing:
+            raise InputError(
+                f"Dask worker {worker} of {address} does not see {missing[0]}: workers read and write "
+                "by the same paths as this run (mount the same shared file system there)"
+            )
+
+
+def _cluster_slots() -> int:
+    client = active_client()
+    info = client.scheduler_info() if client is not None else {}
+    return max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
+
+
+_initialised: set[str] = set()
+_init_lock = threading.Lock()
+
+
+def _run_initialised(
+    fn: Callable[[T], R], initializer: Callable[..., Any] | None, token: str, item: T, *initargs: Any
+) -> R:
+    """On a Dask worker: the pool's initializer once per worker process (per run), then ``fn(item)``."""
+    if initializer is not None and token not in _initialised:
+        with _init_lock:
+            if token not in _initialised:
+                initializer(*initargs)
+                _initialised.add(token)
+    return fn(item)
+
+
+class _ClusterExecutor(cf.Executor):
+    """The cluster as a pool: each submit runs ``fn(item)`` on a worker after the pool's initializer.
+
+    The initializer's arguments go to every worker once (scattered), not with each item."""
+
+    def __init__(self, client: Any, initializer: Callable[..., Any] | None, initargs: tuple[Any, ...]) -> None:
+        self._ex = client.get_executor(pure=False)
+        self._initializer = initializer
+        self._token = uuid.uuid4().hex
+        self._initargs: list[Any] = []
+        if initializer is not None and initargs:
+            self._initargs = list(client.scatter(list(initargs), broadcast=True, hash=False))
+
+    def submit(self, fn: Callable[..., R], /, *args: Any, **kwargs: Any) -> cf.Future[R]:
+        if kwargs or len(args) != 1:
+            return self._ex.submit(fn, *args, **kwargs)  # type: ignore[no-any-return]
+        return self._ex.submit(  # type: ignore[no-any-return]
+            _run_initialised, fn, self._initializer, self._token, args[0], *self._initargs
+        )
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._ex.shutdown(wait=wait and not cancel_futures)  # (not waiting cancels, as a pool would)
+        self._initargs = []  # the scattered data is released with its last reference

@@ -90,6 +90,14 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
         help="machine-readable progress and messages on stderr, one JSON object a line",
     )
     g.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    g = parser.add_argument_group("cluster")
+    g.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="run the per-photo and per-tile work on the Dask cluster at ADDRESS (tcp://host:8786; "
+        "default $GEOORTHO_SCHEDULER); its workers must see the same paths (a shared file system)",
+    )
 
 
 def _add_algorithm(sub: Any, alg: Algorithm) -> None:
@@ -194,7 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return code
 
     try:
-        outputs = run_algorithm(alg, values, feedback)
+        outputs = run_algorithm(alg, values, feedback, scheduler=args.scheduler)
     except InputError as e:
         return fail("error", f"error: {_one_line(e)}", 2)
     except (CanceledError, KeyboardInterrupt):

@@ -227,14 +227,27 @@ def _jsonable(v: Any) -> Any:
 
 
 def run_algorithm(
-    algorithm_id: str | Algorithm, values: dict[str, Any], feedback: Feedback | None = None
+    algorithm_id: str | Algorithm,
+    values: dict[str, Any],
+    feedback: Feedback | None = None,
+    *,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
-    """Validate ``values``, call the core function with a feedback, return its outputs."""
+    """Validate ``values``, call the core function with a feedback, return its outputs.
+
+    ``scheduler``: a Dask scheduler's address (default ``$GEOORTHO_SCHEDULER``) to run the
+    per-photo and per-tile work on; its workers must see every input and output path."""
+    from ..parallel import use_scheduler
+
     alg = algorithm_id if isinstance(algorithm_id, Algorithm) else get_algorithm(algorithm_id)
     kwargs = convert_values(alg, values)
     _clean_beside_outputs(alg, kwargs)
     fb = as_feedback(feedback)
-    result = alg.function(**kwargs, feedback=fb)
+    paths = [kwargs[p.name] for p in alg.params if p.type in PATH_TYPES and kwargs.get(p.name) is not None]
+    with use_scheduler(scheduler, must_see=paths) as client:
+        if client is not None:
+            fb.info(f"per-photo and per-tile work on the Dask cluster at {client.scheduler.address}")
+        result = alg.function(**kwargs, feedback=fb)
     fb.progress(1.0)
     return outputs_of(alg, result)
 

@@ -1,0 +1,173 @@
+"""Per-photo and per-tile work on a real Dask cluster (``LocalCluster``, 2 worker processes):
+the same products as the local pool, a worker killed mid-run, and the refusals."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+from geoortho.errors import InputError
+from geoortho.parallel import SCHEDULER_ENV, use_scheduler
+
+distributed = pytest.importorskip("distributed", reason="the dev set-up installs dask.distributed")
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
+    ) as c:
+        yield c
+
+
+def test_gcp_find_on_the_cluster_is_the_local_run(cluster, small_survey, tmp_path):
+    from geoortho.gcp.find import gcp_find
+
+    local = gcp_find(small_survey.images, small_survey.gcp_file, tmp_path / "local.txt", detections=tmp_path / "l.csv")
+    with use_scheduler(cluster.scheduler_address, must_see=[small_survey.images]) as client:
+        with distributed.get_task_stream(client) as ts:
+            on = gcp_find(
+                small_survey.images, small_survey.gcp_file, tmp_path / "dask.txt", detections=tmp_path / "d.csv"
+            )
+        n_tasks = len(ts.data)
+    assert n_tasks >= len(list(small_survey.images.glob("*.JPG")))  # every photo's detection ran there
+    assert local.n_observations == on.n_observations > 50
+    assert (tmp_path / "local.txt").read_bytes() == (tmp_path / "dask.txt").read_bytes()
+    assert (tmp_path / "l.csv").read_bytes() == (tmp_path / "d.csv").read_bytes()
+
+
+def test_synth_rendering_on_the_cluster_is_the_local_run(cluster, tiny_survey, tmp_path):
+    from geoortho.synthetic import synth
+
+    with use_scheduler(cluster.scheduler_address, must_see=[tmp_path]) as client:
+        with distributed.get_task_stream(client) as ts:
+            r = synth(tmp_path / "tiny", preset="tiny", seed=3)
+        n_tasks = len(ts.data)
+    assert n_tasks >= r.n_photos
+    for mine in sorted(r.images.glob("*.JPG")):
+        assert mine.read_bytes() == (tiny_survey.images / mine.name).read_bytes(), mine.name
+
+
+def test_ortho_tiles_on_the_cluster_are_the_local_run(cluster, tiny_survey, tmp_path):
+    import json
+
+    from geoortho.orthophoto.mosaic import ortho
+
+    home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
+    args = dict(dsm=tiny_survey.dsm, takeoff_elevation_m=home["ground_z"], tile_px=256)
+    ortho(tiny_survey.images, tmp_path / "local.tif", workers=2, **args)
+    with use_scheduler(cluster.scheduler_address, must_see=[tiny_survey.images, tmp_path]) as client:
+        with distributed.get_task_stream(client) as ts:
+            ortho(tiny_survey.images, tmp_path / "dask.tif", **args)
+        n_tasks = len(ts.data)
+    assert n_tasks >= 4
+    with rasterio.open(tmp_path / "local.tif") as a, rasterio.open(tmp_path / "dask.tif") as b:
+        assert a.profile == b.profile
+        assert np.array_equal(a.read(), b.read())
+
+
+def test_a_worker_killed_mid_run_does_not_change_the_result(cluster, small_survey, tmp_path):
+    from geoortho.gcp.find import gcp_find
+
+    gcp_find(small_survey.images, small_survey.gcp_file, tmp_path / "local.txt")
+    killed: list[int] = []
+    with use_scheduler(cluster.scheduler_address) as client:
+        pids = client.run(os.getpid)
+
+        def kill_when_busy() -> None:
+            # as soon as the scheduler has work on a worker, SIGKILL that worker's process
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and not killed:
+                busy = [w for w, tasks in client.processing().items() if tasks]
+                if busy:
+                    os.kill(pids[busy[0]], signal.SIGKILL)
+                    killed.append(pids[busy[0]])
+                time.sleep(0.05)
+
+        killer = threading.Thread(target=kill_when_busy)
+        killer.start()
+        gcp_find(small_survey.images, small_survey.gcp_file, tmp_path / "dask.txt")
+        killer.join()
+        assert killed, "no worker was busy to kill"
+        # the nanny started a new worker process in place of the killed one
+        client.wait_for_workers(2, timeout=30)
+        assert killed[0] not in client.run(os.getpid).values()
+    assert (tmp_path / "local.txt").read_bytes() == (tmp_path / "dask.txt").read_bytes()
+
+
+def test_a_scheduler_that_does_not_answer_is_one_line_exit_2_within_10_s(tmp_path):
+    env = {**os.environ, SCHEDULER_ENV: "tcp://127.0.0.1:9"}  # the discard port: nobody listens
+    t = time.monotonic()
+    p = subprocess.run(
+        [sys.executable, "-m", "geoortho", "footprints", "--images", str(tmp_path), "--output", "f.gpkg"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+    )
+    elapsed = time.monotonic() - t
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and "tcp://127.0.0.1:9 does not answer" in lines[0], p.stderr
+    assert elapsed < 10 + 5  # the connect timeout and a start-up
+
+
+def test_workers_that_do_not_see_the_photos_are_refused(cluster, small_survey, tmp_path):
+    """A worker in its own mount namespace, with an empty file system over the photos' folder."""
+    if shutil.which("unshare") is None or os.geteuid() != 0:
+        pytest.fail("this test needs util-linux unshare and root (the CI machine has both)")
+    photos = tmp_path / "photos"
+    shutil.copytree(small_survey.images, photos)
+    scheduler = distributed.LocalCluster(n_workers=0, processes=True, dashboard_address=None, silence_logs=40)
+    worker = subprocess.Popen(
+        [
+            "unshare",
+            "--mount",
+            "--propagation",
+            "private",
+            "sh",
+            "-c",
+            f'mount -t tmpfs none "{tmp_path}" && exec "{sys.executable}" -m distributed.cli.dask_worker '
+            f"{scheduler.scheduler_address} --nworkers 1 --nthreads 1 --no-dashboard",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        with pytest.raises(InputError, match=r"does not see .*photos.*shared file system"):
+            with use_scheduler(scheduler.scheduler_address, must_see=[photos], timeout_s=30):
+                pass
+        # the same check through the CLI: exit 2, one line
+        p = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "geoortho",
+                "footprints",
+                "--images",
+                str(photos),
+                "--output",
+                str(Path(tmp_path / "f.gpkg")),
+                "--scheduler",
+                scheduler.scheduler_address,
+            ],
+            capture_output=True,
+            text=True,
+        )
+        assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+        assert "does not see" in p.stderr
+        assert not (tmp_path / "f.gpkg").exists()
+    finally:
+        worker.terminate()
+        worker.wait(timeout=30)
+        scheduler.close()
