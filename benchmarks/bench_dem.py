@@ -9,9 +9,12 @@ points) as a LAS file, then in one run:
 * the whole ``dem`` run (read LAS in chunks, DSM, SMRF, DTM, fill, COGs)
   in a child process, so its peak memory is its own;
 * the same cloud with 10 far outliers (100 km off, one 10 km up): same DSM and DTM, and
-  the peak memory against the clean run (issue 23).
+  the peak memory against the clean run (issue 23);
+* the same DSM + DTM run made in tiles (``geoortho.demtiles``, which ``dem`` uses on its own
+  past 8 M cells) and held whole, each in a child: peak memory, time, and how far the
+  grids differ (issue 25: < 1 GB for 50 M points at any resolution; ``--points 50e6``).
 
-    python benchmarks/bench_dem.py [--points 10e6] [--resolution-m 0.25]
+    python benchmarks/bench_dem.py [--points 10e6] [--resolution-m 0.25] [--skip-outliers]
 """
 
 from __future__ import annotations
@@ -30,6 +33,9 @@ import numpy as np
 CHILD = """
 import json, resource, runpy, sys
 sys.argv = json.loads(sys.argv[1])
+if len(sys.argv) > 1 and sys.argv[1].startswith("whole-max-cells="):  # tiles or the whole grid
+    import geoortho.demtiles
+    geoortho.demtiles.WHOLE_GRID_MAX_CELLS = int(sys.argv.pop(1).split("=")[1])
 try:
     runpy.run_module("geoortho", run_name="__main__")
 finally:
@@ -65,6 +71,7 @@ def main() -> int:
     ap.add_argument("--points", type=float, default=10e6)
     ap.add_argument("--resolution-m", type=float, default=0.5)
     ap.add_argument("--outliers", type=int, default=10, help="far outlier points in the outlier comparison")
+    ap.add_argument("--skip-outliers", action="store_true", help="not the outlier comparison (long at 50 M points)")
     args = ap.parse_args()
     n = int(args.points)
     from scipy.stats import binned_statistic_2d
@@ -130,8 +137,36 @@ def main() -> int:
                 f"dem {label}: {dt:.1f} s, {n / dt / 1e6:.2f} M points/s end to end (read, grid, fill, write), "
                 f"peak RSS {peak_kb / 1024:.0f} MB; ground {res['n_ground']:,} of {res['n_points']:,}"
             )
-        _outliers(las, Path(d), args.resolution_m, args.outliers)
+        _tiles_vs_whole(las, Path(d), args.resolution_m, n)
+        if not args.skip_outliers:
+            _outliers(las, Path(d), args.resolution_m, args.outliers)
     return 0
+
+
+def _tiles_vs_whole(las: Path, d: Path, resolution_m: float, n: int) -> None:
+    """The DSM + DTM run in tiles and held whole: memory, time, and the grids' differences."""
+    import rasterio
+
+    runs = {}
+    for label, cells in (("tiles", 0), ("whole", 10**12)):
+        out, dtm = d / f"{label}.tif", d / f"{label}_dtm.tif"
+        argv = ["geoortho", f"whole-max-cells={cells}", "dem", "--points", str(las), "--output", str(out)]
+        dt, peak_kb, _ = _run_dem([*argv, "--dtm", str(dtm), "--resolution-m", str(resolution_m), "--json", "--quiet"])
+        with rasterio.open(out) as a, rasterio.open(dtm) as b:
+            runs[label] = (dt, peak_kb, a.read(1).astype(float), b.read(1).astype(float), a.width * a.height)
+        print(f"dem DSM + DTM {label}: {dt:.1f} s, peak RSS {peak_kb / 1024:.0f} MB")
+    (t1, m1, s1, d1, cells), (t2, m2, s2, d2, _) = runs["tiles"], runs["whole"]
+    for name, a, b in (("DSM", s1, s2), ("DTM", d1, d2)):
+        both = (a != -9999) & (b != -9999)
+        diff = np.abs(a - b)[both]
+        print(
+            f"  {name}: nodata differs in {int(((a == -9999) != (b == -9999)).sum())} of {cells:,} cells; "
+            f"|tiles - whole| p99.9 {np.percentile(diff, 99.9):.4f}, max {diff.max():.3f}"
+        )
+    print(
+        f"dem in tiles, {n / 1e6:.0f} M points, {cells / 1e6:.0f} M cells: peak RSS {m1 / 1024:.0f} MB vs "
+        f"{m2 / 1024:.0f} MB whole (x{m1 / m2:.2f}; target < 1024 MB), time x{t1 / t2:.2f}"
+    )
 
 
 def _run_dem(argv: list[str]) -> tuple[float, int, dict]:

@@ -386,13 +386,18 @@ def dem(
     scan = _scan_extent(src, s_scan)
     src = scan.src
     src.notes.extend(scan.notes)
-    plan = _plan_grid(src, resolution_m, fb)
+    plan = _plan_grid(src, resolution_m, fb, tiles_allowed=not (want_ground and ground_method == "csf"))
     params = SmrfParams(smrf_cell_m, smrf_slope, smrf_window_m, smrf_threshold_m, smrf_scalar, smrf_margin_m)
     if want_ground and ground_method == "smrf":
         params = _check_smrf(src, params, fb)
     if engine == "pdal":
         return _run_pdal(src, plan.grid, output, dtm, method, ground_method, max_gap_m, params, fb)
 
+    if _in_tiles(plan.grid, ground_method, want_ground):
+        return _dem_tiled(
+            src, plan, method, ground_method, params, scan.keep, output, dtm, classified, hillshade,
+            max_gap_m, smooth_px, s_pass1, s_write, fb,
+        )  # fmt: skip
     ground = GROUND_FILTERS[ground_method](src, params) if want_ground else None
     dtm_acc = _Accumulator(plan.grid, "idw") if dtm is not None else None
     first = _first_pass(src, plan.grid, method, ground, dtm_acc, scan.keep, s_pass1, fb)
@@ -417,6 +422,116 @@ def dem(
         fb.info(f"ground: {n_ground} of {first.n_used} points ({ground_method})")
     s_write.progress(1.0)
     return result
+
+
+def _in_tiles(grid: Grid, ground_method: str, want_ground: bool) -> bool:
+    """A grid too large to hold whole is made in tiles (CSF needs every point at once: not it)."""
+    return float(grid.rows) * grid.cols > _whole_grid_max_cells() and not (want_ground and ground_method == "csf")
+
+
+def _dem_tiled(
+    src: PointSource,
+    plan: _GridPlan,
+    method: str,
+    ground_method: str,
+    params: SmrfParams,
+    keep: Box | None,
+    output: Path,
+    dtm: Path | None,
+    classified: Path | None,
+    hillshade: Path | None,
+    max_gap_m: float,
+    smooth_px: int,
+    progress: Feedback,
+    s_write: Feedback,
+    fb: Feedback,
+) -> DemResult:
+    """:func:`dem` for a grid too large to hold whole: tile by tile (:mod:`geoortho.demtiles`)."""
+    from .demtiles import make_tiled, work_folder
+
+    grid = plan.grid
+    want_ground = dtm is not None or classified is not None
+    max_gap_cells = min(max_gap_m / plan.resolution_m, math.hypot(grid.rows, grid.cols))
+    unit_tag = _unit_tag(src.vertical_unit) if method != "count" else ""
+    with work_folder(Path(output)) as work:
+        tiles = make_tiled(
+            src, grid, plan.resolution_m, method, ground_method if want_ground else None, params, keep,
+            dtm is not None, max_gap_cells, _finish, smooth_px, Path(work), fb, progress,
+        )  # fmt: skip
+        with atomic_paths(output, dtm, hillshade, commit_check=fb.check_canceled) as (t_dsm, t_dtm, t_shade):
+            assert t_dsm is not None
+            _cog_of(tiles.dsm_tif, t_dsm, "dsm", unit_tag)
+            if t_dtm is not None and tiles.dtm_tif is not None:
+                _cog_of(tiles.dtm_tif, t_dtm, "dtm", _unit_tag(src.vertical_unit))
+            if t_shade is not None:
+                _hillshade_of(tiles.dtm_tif or tiles.dsm_tif, t_shade, src.vertical_m / src.horizontal_m)
+    if classified is not None:
+        assert tiles.ground is not None
+        writer = _ClassifiedWriter(src, classified)
+        try:
+            for i in range(0, src.count, CHUNK_POINTS):
+                fb.check_canceled()
+                writer.write(tiles.ground[i : i + CHUNK_POINTS])
+            writer.close()
+        finally:
+            writer.abort()
+    if dtm is not None:
+        fb.info(f"ground: {tiles.n_ground} of {tiles.n_used} points ({ground_method})")
+    s_write.progress(1.0)
+    notes = [
+        *src.notes,
+        f"values in {src.vertical_unit}" if method != "count" else "values: points per cell",
+        f"made in {tiles.n_tiles} tiles (the grid is too large to hold whole)",
+    ]
+    return DemResult(
+        Path(output),
+        None if dtm is None else Path(dtm),
+        None if classified is None else Path(classified),
+        None if hillshade is None else Path(hillshade),
+        plan.cell,
+        crs_to_text(src.crs),
+        src.describe_units(),
+        tiles.n_used,
+        tiles.n_ground,
+        tuple(notes),
+    )
+
+
+def _cog_of(tif: Path, target: Path, name: str, units: str) -> None:
+    """A tiled GeoTIFF made a COG by GDAL, block by block (as write_cog makes one from an array)."""
+    import rasterio
+    from rasterio.shutil import copy as rio_copy
+
+    with rasterio.open(tif, "r+") as ds:
+        ds.set_band_description(1, name)
+        if units:
+            ds.set_band_unit(1, units)
+    with rasterio.Env(GDAL_CACHEMAX=128):
+        rio_copy(
+            tif,
+            target,
+            driver="COG",
+            compress="DEFLATE",
+            predictor=3,
+            overview_resampling="nearest",
+            BIGTIFF="IF_SAFER",
+        )
+
+
+#: The hillshade of a tiled grid is a preview: at most this many pixels a side.
+MAX_HILLSHADE_PX = 4096
+
+
+def _hillshade_of(tif: Path, target: Path, z_per_xy: float) -> None:
+    import rasterio
+    from rasterio.enums import Resampling
+
+    with rasterio.open(tif) as ds:
+        f = max(1.0, max(ds.width, ds.height) / MAX_HILLSHADE_PX)
+        shape = (max(1, round(ds.height / f)), max(1, round(ds.width / f)))
+        z = ds.read(1, out_shape=shape, resampling=Resampling.nearest, masked=True).astype(np.float64).filled(np.nan)
+        cell = ds.transform.a * ds.width / shape[1]
+    write_hillshade(target, z, cell, z_per_xy)
 
 
 def _check_options(
@@ -482,7 +597,13 @@ class _GridPlan:
     cell: float  # the same in the cloud's horizontal units
 
 
-def _plan_grid(src: PointSource, resolution_m: float | None, fb: Feedback) -> _GridPlan:
+def _whole_grid_max_cells() -> int:
+    from .demtiles import WHOLE_GRID_MAX_CELLS
+
+    return WHOLE_GRID_MAX_CELLS
+
+
+def _plan_grid(src: PointSource, resolution_m: float | None, fb: Feedback, tiles_allowed: bool = True) -> _GridPlan:
     res_m = resolution_m or _auto_resolution_m(src)
     cell = res_m / src.horizontal_m
     xmin, ymin, _, xmax, ymax, _ = src.bounds
@@ -507,7 +628,8 @@ def _plan_grid(src: PointSource, resolution_m: float | None, fb: Feedback) -> _G
             f"{cells / src.count:,.0f} cells; the points are ~{spacing_m:.2g} m apart): "
             f"give {1.05 * spacing_m / math.sqrt(MAX_CELLS_PER_POINT):.2g} m or coarser",
         )
-    _check_memory(grid, res_m, src, width_m, height_m)
+    if not tiles_allowed or cells <= _whole_grid_max_cells():  # larger grids are made in tiles
+        _check_memory(grid, res_m, src, width_m, height_m)
     fb.info(
         f"grid {grid.cols} x {grid.rows} cells of {res_m:g} m ({cell:g} {src.horizontal_unit})"
         + ("" if resolution_m else ", from the point density")

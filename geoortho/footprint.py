@@ -32,7 +32,7 @@ from .errors import InputError
 from .feedback import Feedback, as_feedback, split, warn_grouped
 from .heights import GpsAltitude, HeightModel, resolve_heights
 from .photos import Photo, PhotoSet, read_photos
-from .surface import FlatSurface, Surface, read_surface
+from .surface import FlatSurface, GridSurface, Surface, read_surface
 
 __all__ = [
     "PhotoCamera",
@@ -60,6 +60,53 @@ class PhotoCamera:
         """
         px, _ = project_points(points_xyz, self.intrinsics, self.pose)
         return px
+
+
+#: Cells of the DSM read under a flight (64 MB of float32): footprints need the ground's shape,
+#: not every 5 cm cell of it.
+DSM_MAX_CELLS = 16_000_000
+
+
+def _dsm_under(
+    dsm: Path,
+    photos: Sequence[Photo],
+    crs: CRS,
+    takeoff_elevation_m: float | None,
+    flight_height_m: float | None,
+    gps_altitude: GpsAltitude,
+    max_range_m: float,
+) -> GridSurface:
+    """Only the DSM the footprints need (a county's DSM for one flight is not read whole): the
+    footprints on a coarse read of the flight's area out to the longest ray say where, then
+    that window (and a margin) is read at full resolution, up to DSM_MAX_CELLS."""
+    reach = _flight_bounds(photos, crs, max_range_m)
+    coarse = read_surface(dsm, crs, extend=True, bounds=reach, max_cells=COARSE_DSM_CELLS)
+    cams, heights = photo_cameras(
+        photos, crs, coarse, takeoff_elevation_m, flight_height_m=flight_height_m, gps_altitude=gps_altitude
+    )
+    rings = compute_footprints(cams, heights.surface, per_side=4, max_range_m=max_range_m).rings.reshape(-1, 2)
+    ok = np.isfinite(rings).all(axis=1)
+    if not ok.any():
+        return read_surface(dsm, crs, extend=True, bounds=reach, max_cells=DSM_MAX_CELLS)
+    (x0, y0), (x1, y1) = rings[ok].min(axis=0), rings[ok].max(axis=0)
+    # the coarse ground is within a coarse cell or two of the fine one: a margin of several
+    margin = 0.05 * max(x1 - x0, y1 - y0) + 8 * coarse.cell_m
+    bounds = (float(x0 - margin), float(y0 - margin), float(x1 + margin), float(y1 + margin))
+    return read_surface(dsm, crs, extend=True, bounds=bounds, max_cells=DSM_MAX_CELLS)
+
+
+#: Cells of the first, coarse read of the DSM under a flight (it only says where to read).
+COARSE_DSM_CELLS = 1_000_000
+
+
+def _flight_bounds(photos: Sequence[Photo], crs: CRS, reach_m: float) -> tuple[float, float, float, float]:
+    """The photos' positions in ``crs`` (metres), widened by the longest ray."""
+    from pyproj import Transformer
+
+    t = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    lonlat = np.array([[p.longitude_deg, p.latitude_deg] for p in photos if p.has_gps])
+    x, y = t.transform(lonlat[:, 0], lonlat[:, 1])
+    return float(x.min() - reach_m), float(y.min() - reach_m), float(x.max() + reach_m), float(y.max() + reach_m)
 
 
 def working_crs(photos: Sequence[Photo], crs: CRS | str | None = None) -> CRS:
@@ -306,7 +353,9 @@ def footprints(
     work = working_crs(photos.photos, out_crs)
     surface: Surface | None = None
     if dsm is not None:
-        surface = read_surface(dsm, work, extend=True)
+        surface = _dsm_under(dsm, photos.photos, work, takeoff_elevation_m, flight_height_m, gps_altitude, max_range_m)
+        if surface.decimated:
+            fb.info(f"DSM read at {surface.cell_m:.2g} m cells (at most {DSM_MAX_CELLS:,} under the flight)")
     elif ground_elevation_m is not None:
         surface = FlatSurface(float(ground_elevation_m))
     cams, heights = photo_cameras(

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -114,6 +116,7 @@ class GridSurface(Surface):
     transform: Affine
     crs: CRS | None = None
     extend: bool = False
+    decimated: bool = False  # read coarser than the raster (read_surface's max_cells)
 
     def __post_init__(self) -> None:
         g = np.ascontiguousarray(self.grid, dtype=np.float32)
@@ -362,22 +365,58 @@ class GridSurface(Surface):
 
 
 def read_surface(
-    path: str | os.PathLike[str], crs: CRS | None = None, *, band: int = 1, extend: bool = False
+    path: str | os.PathLike[str],
+    crs: CRS | None = None,
+    *,
+    band: int = 1,
+    extend: bool = False,
+    bounds: tuple[float, float, float, float] | None = None,
+    max_cells: int | None = None,
 ) -> GridSurface:
     """Read a DSM/DTM raster into a north-up :class:`GridSurface`, in ``crs`` if given.
 
     Vertical units are taken as metres; a raster in another CRS is warped
-    (bilinear) into ``crs``.
+    (bilinear) into ``crs``. ``bounds`` (xmin, ymin, xmax, ymax in ``crs``): read only the
+    window that covers them (a DSM of a whole county for one flight); ``max_cells``: read
+    it decimated (nearest) to at most that many cells. Memory then follows the window.
 
     Raises
     ------
     InputError
-        The file cannot be read or has no CRS.
+        The file cannot be read, has no CRS, or does not reach ``bounds``.
     """
     import rasterio
     from rasterio.enums import Resampling
     from rasterio.errors import RasterioIOError
     from rasterio.vrt import WarpedVRT
+    from rasterio.windows import Window, from_bounds
+
+    decimated = False
+
+    def read(ds: Any, masked: bool) -> tuple[np.ndarray, Any]:
+        nonlocal decimated
+        win = None
+        if bounds is not None:
+            full = Window(0, 0, ds.width, ds.height)
+            try:
+                win = from_bounds(*bounds, transform=ds.transform).round_offsets().round_lengths()
+                win = win.intersection(full)
+            except rasterio.errors.WindowError:
+                raise InputError(
+                    f"the elevation raster does not reach the area needed ({bounds[0]:.0f}, {bounds[1]:.0f} to "
+                    f"{bounds[2]:.0f}, {bounds[3]:.0f} in its CRS): give one that covers it",
+                    path=path,
+                ) from None
+        h, w = (ds.height, ds.width) if win is None else (int(win.height), int(win.width))
+        f = math.sqrt(h * w / max_cells) if max_cells and h * w > max_cells else 1.0
+        shape = (max(1, int(h / f)), max(1, int(w / f)))
+        decimated = shape != (h, w)
+        grid = ds.read(band, window=win, out_shape=shape, out_dtype="float32", masked=masked,
+                       resampling=Resampling.nearest)  # fmt: skip
+        if masked:
+            grid = grid.filled(np.nan)
+        transform = ds.transform if win is None else ds.window_transform(win)
+        return grid, transform @ Affine.scale(w / shape[1], h / shape[0])
 
     try:
         with rasterio.open(path) as src:
@@ -388,16 +427,14 @@ def read_surface(
                 with WarpedVRT(
                     src, crs=crs.to_wkt(), resampling=Resampling.bilinear, src_nodata=src.nodata, nodata=float("nan")
                 ) as vrt:
-                    grid = vrt.read(band, out_dtype="float32")
-                    transform = vrt.transform
+                    grid, transform = read(vrt, False)
                 out_crs = crs
             else:
-                grid = src.read(band, out_dtype="float32", masked=True).filled(np.nan)
-                transform = src.transform
+                grid, transform = read(src, True)
                 out_crs = src_crs
     except RasterioIOError as e:
         raise InputError(f"cannot read elevation raster: {e}", path=path) from None
     try:
-        return GridSurface(grid, transform, out_crs, extend)
+        return GridSurface(grid, transform, out_crs, extend, decimated)
     except ValueError as e:
         raise InputError(str(e), path=path) from None

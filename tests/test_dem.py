@@ -396,3 +396,35 @@ def test_points_without_an_area_are_refused(tiny_survey, tmp_path, case):
     with pytest.raises(InputError, match="a line or a spot, not an area"):
         dem(cloud, tmp_path / "dsm.tif")
     assert not (tmp_path / "dsm.tif").exists()
+
+
+def test_a_grid_made_in_tiles_is_the_whole_grid(small_survey, tmp_path, monkeypatch):
+    """Tiles (here forced small: 6 of them, halo and all) give the DSM, DTM and ground classes of
+    the whole grid; only where the harmonic fill's iterations meet a tile's halo may a filled
+    cell differ, by its convergence (millimetres)."""
+    import geoortho.demtiles as demtiles
+
+    whole = dem(small_survey.points, tmp_path / "w.tif", dtm=tmp_path / "w_dtm.tif", classified=tmp_path / "w.laz")
+    monkeypatch.setattr(demtiles, "WHOLE_GRID_MAX_CELLS", 0)
+    monkeypatch.setattr(demtiles, "TILE_CELLS", 64)
+    fb = RecordingFeedback()
+    tiled = dem(
+        small_survey.points,
+        tmp_path / "t.tif",
+        dtm=tmp_path / "t_dtm.tif",
+        classified=tmp_path / "t.laz",
+        hillshade=tmp_path / "t.png",
+        feedback=fb,
+    )
+    assert any("tiles" in n for n in tiled.notes) and any("made in" in m for m in fb.infos)
+    assert (tiled.n_points, tiled.n_ground) == (whole.n_points, whole.n_ground)
+    for w, t in (("w.tif", "t.tif"), ("w_dtm.tif", "t_dtm.tif")):
+        with rasterio.open(tmp_path / w) as a, rasterio.open(tmp_path / t) as b:
+            assert a.profile == b.profile and a.descriptions == b.descriptions and a.units == b.units
+            za, zb = a.read(1).astype(float), b.read(1).astype(float)
+        assert np.array_equal(za == -9999, zb == -9999)
+        assert np.abs(za - zb).max() <= 0.005, w
+    ca = np.asarray(laspy.read(tmp_path / "w.laz").classification)
+    cb = np.asarray(laspy.read(tmp_path / "t.laz").classification)
+    assert np.array_equal(ca, cb)
+    assert (tmp_path / "t.png").stat().st_size > 1000

@@ -10,7 +10,7 @@ import sys
 import geopandas as gpd
 import numpy as np
 import pytest
-from conftest import real_data
+from conftest import RecordingFeedback, real_data
 from pyproj import CRS
 
 from geoortho.errors import InputError
@@ -347,3 +347,52 @@ def test_garbage_photos_are_skipped_with_their_reason_the_batch_goes_on(tiny_sur
     assert {p.image for p in ps.photos} == {s.name for s in srcs[1:]} | {"focal0.jpg"}
     r = footprints(folder, tmp_path / "fp.gpkg")
     assert r.n_photos == len(srcs) and r.n_skipped == 3
+
+
+def test_a_dsm_far_larger_than_the_flight_is_read_only_under_it(tiny_survey, tmp_path, monkeypatch):
+    """The tiny survey's DSM set in a 40 km square of nodata (a county's DSM, 1.6 G cells at 1 m
+    if read whole): footprints read the window under the flight (out to the longest ray), and
+    give the footprints of the DSM alone; a window over the cell budget is read decimated."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    import geoortho.footprint as fpmod
+    from geoortho import surface as surf
+
+    home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
+    with rasterio.open(tiny_survey.dsm) as src:
+        z, tr, prof = src.read(1), src.transform, src.profile
+    side = round(40_000 / tr.a)
+    big = tmp_path / "county.tif"
+    x0, y0 = tr.c - 20_000, tr.f + 20_000
+    prof.update(width=side, height=side, transform=from_origin(x0, y0, tr.a, -tr.e), tiled=True, compress="deflate")
+    prof.update(blockxsize=512, blockysize=512, BIGTIFF="YES")
+    with rasterio.open(big, "w", **prof) as dst:  # sparse: only the DSM's blocks are written
+        col, row = round((tr.c - x0) / tr.a), round((y0 - tr.f) / -tr.e)
+        dst.write(z, 1, window=rasterio.windows.Window(col, row, z.shape[1], z.shape[0]))
+    shapes = []
+    real = surf.read_surface
+
+    def spy(*a, **k):
+        s = real(*a, **k)
+        shapes.append(s.grid.shape)
+        return s
+
+    monkeypatch.setattr(fpmod, "read_surface", spy)
+    args = dict(takeoff_elevation_m=home["ground_z"])
+    a = footprints(tiny_survey.images, tmp_path / "a.gpkg", dsm=tiny_survey.dsm, **args)
+    b = footprints(tiny_survey.images, tmp_path / "b.gpkg", dsm=big, **args)
+    rows, cols = shapes[-1]
+    assert rows * cols < 0.001 * side * side  # the window, not the county
+    ga = gpd.read_file(tmp_path / "a.gpkg", layer="footprints").set_index("image")
+    gb = gpd.read_file(tmp_path / "b.gpkg", layer="footprints").set_index("image")
+    assert a.n_photos == b.n_photos and list(ga.index) == list(gb.index)
+    ious = [_iou(ga.geometry[n], gb.geometry[n]) for n in ga.index]
+    assert min(ious) > 0.999, (ious, ga.outside_dsm.tolist(), gb.outside_dsm.tolist())
+    monkeypatch.setattr(fpmod, "DSM_MAX_CELLS", 10_000)
+    fb = RecordingFeedback()
+    c = footprints(tiny_survey.images, tmp_path / "c.gpkg", dsm=big, feedback=fb, **args)
+    assert shapes[-1][0] * shapes[-1][1] <= 10_000
+    assert any(m.startswith("DSM read at") for m in fb.infos), fb.infos
+    gc = gpd.read_file(tmp_path / "c.gpkg", layer="footprints").set_index("image")
+    assert c.n_photos == a.n_photos and np.mean([_iou(ga.geometry[n], gc.geometry[n]) for n in ga.index]) > 0.95
