@@ -39,7 +39,9 @@ if len(sys.argv) > 1 and sys.argv[1].startswith("whole-max-cells="):  # tiles or
 try:
     runpy.run_module("geoortho", run_name="__main__")
 finally:
-    print("peak_rss_kb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
+    # VmHWM, not ru_maxrss: a child inherits its parent's ru_maxrss across fork and exec
+    hwm = next(int(s.split()[1]) for s in open("/proc/self/status") if s[:6] == "VmHWM:")
+    print("peak_rss_kb", hwm, file=sys.stderr)
 """
 
 

@@ -60,7 +60,8 @@ t["mapping"] = time.perf_counter() - t0
 best = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
 t["registered"] = best.num_reg_images() if best else 0
 print(json.dumps(t))
-print("peak_rss_kb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
+# VmHWM, not ru_maxrss: a child inherits its parent's ru_maxrss across fork and exec
+print("peak_rss_kb", next(int(s.split()[1]) for s in open("/proc/self/status") if s[:6] == "VmHWM:"), file=sys.stderr)
 """
 
 OURS = r"""
@@ -69,7 +70,9 @@ sys.argv = json.loads(sys.argv[1])
 try:
     runpy.run_module("geoortho", run_name="__main__")
 finally:
-    print("peak_rss_kb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
+    # VmHWM, not ru_maxrss: a child inherits its parent's ru_maxrss across fork and exec
+    hwm = next(int(s.split()[1]) for s in open("/proc/self/status") if s[:6] == "VmHWM:")
+    print("peak_rss_kb", hwm, file=sys.stderr)
 """
 
 

@@ -859,6 +859,8 @@ def sfm(
     seed: int = 0,
     workers: int = 0,
     mapper: Mapper = "incremental",
+    split: int = 0,
+    split_overlap_m: float = 30.0,
     *,
     feedback: Feedback | None = None,
 ) -> SfmResult:
@@ -901,6 +903,13 @@ def sfm(
     mapper : str
         incremental (COLMAP's, GPS-prior weighted) or global (GLOMAP: rotation averaging and
         global positioning; see benchmarks/bench_sfm.py --mappers for which is faster here).
+    split : int
+        Split-merge for large blocks: reconstruct submodels of at most this many photos
+        (clustered by GPS position; on the Dask cluster when one is given), align and merge
+        them into one model (0 = one block).
+    split_overlap_m : float
+        Each submodel also takes the photos of its neighbours within this distance (m): the
+        shared photos that tie the submodels together.
     """
     fb = as_feedback(feedback)
     t_start = time.perf_counter()
@@ -915,21 +924,31 @@ def sfm(
     work = Path(tempfile.mkdtemp(prefix=temp_prefix("sfm-work"), dir=output))
     try:
         db = work / "database.db"
-        mapped = _reconstruct(
-            inputs,
-            db,
-            work,
-            matching,
-            mapper,
-            camera_model,
-            max_image_size,
-            max_features,
-            gps_sigma_m,
-            seed,
-            workers,
-            timer,
-            fb,
-        )
+        sub_stats: list[dict[str, Any]] = []
+        if split and len(inputs.photos) > split:
+            sub_kwargs = dict(
+                gcp_list=gcp_list, checkpoints=checkpoints, crs=inputs.crs_text or crs, matching=matching,
+                max_image_size=max_image_size, max_features=max_features, camera_model=camera_model,
+                takeoff_elevation_m=takeoff_elevation_m, gps_sigma_m=gps_sigma_m, seed=seed, workers=workers,
+                mapper=mapper,
+            )  # fmt: skip
+            mapped, sub_stats = _split_reconstruct(inputs, work, split, split_overlap_m, sub_kwargs, timer, fb)
+        else:
+            mapped = _reconstruct(
+                inputs,
+                db,
+                work,
+                matching,
+                mapper,
+                camera_model,
+                max_image_size,
+                max_features,
+                gps_sigma_m,
+                seed,
+                workers,
+                timer,
+                fb,
+            )
         notes += mapped.notes
         t0 = time.perf_counter()
         geo = _georeference_by_gps(mapped.rec, inputs, gps_sigma_m)
@@ -947,9 +966,8 @@ def sfm(
         n_points = _write_model(output, work, db, mapped, inputs, notes)
         timer.add("outputs", t0)
         figures = _figures(mapped.rec, inputs, geo)
-        write_json(
-            output / "report.json", _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes)
-        )
+        report = _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes)
+        write_json(output / "report.json", report | ({"submodels": sub_stats} if sub_stats else {}))
     finally:
         shutil.rmtree(work, ignore_errors=True)
     _announce(notes, mapped, inputs, geo, figures, n_points, fb)
@@ -1177,6 +1195,56 @@ def _reconstruct(
     return _Mapped(rec, len(models), frozenset(registered), reasons, how, bool(ill), focal_prior, tuple(notes))
 
 
+def _split_reconstruct(
+    inputs: _Inputs,
+    work: Path,
+    split: int,
+    overlap_m: float,
+    sub_kwargs: dict[str, Any],
+    timer: _Timer,
+    fb: Feedback,
+) -> tuple[_Mapped, list[dict[str, Any]]]:
+    """Split-merge (:mod:`geoortho.splitmerge`): submodels by position, each reconstructed by
+    :func:`sfm`, merged into one model for the georeferencing that follows."""
+    from .parallel import map_ordered
+    from .splitmerge import merge, partition, run_submodel
+
+    if split < 3 or overlap_m < 0:
+        raise InputError(f"split {split}: submodels need at least 3 photos, and an overlap of 0 m or more")
+    placed = [p for p in inputs.photos if inputs.names[p.path] in inputs.priors.positions]
+    if len(placed) < len(inputs.photos) // 2 or len(placed) < 3:
+        raise InputError("split-merge places photos by their GPS positions: most photos have none", path=inputs.root)
+    names = [inputs.names[p.path] for p in placed]
+    xy = np.array([inputs.priors.positions[n][:2] for n in names])
+    groups, home = partition(names, xy, split, overlap_m)
+    path_of = {inputs.names[p.path]: p.path for p in inputs.photos}
+    fb.info(
+        f"split into {len(groups)} submodels of at most {split} photos (+ neighbours within {overlap_m:g} m): "
+        + ", ".join(str(len(g)) for g in groups)
+        + " photos"
+    )
+    t0 = time.perf_counter()
+    tasks = [(k, [str(path_of[n]) for n in g], work / f"submodel_{k:02d}", sub_kwargs) for k, g in enumerate(groups)]
+    subs = map_ordered(run_submodel, tasks, workers=1, feedback=fb)
+    timer.add("submodels", t0)
+    for s in subs:
+        if not s.ok:
+            fb.warning(f"submodel {s.index} ({len(s.photos)} photos) failed: {s.message}")
+    t0 = time.perf_counter()
+    rec, left_out, stats = merge(subs, dict(zip(names, home)), inputs.priors.offset, fb)
+    for n in path_of:
+        if n not in dict(zip(names, home)):
+            left_out.setdefault(n, "no GPS position: split-merge cannot place it in a submodel")
+    timer.add("merge", t0)
+    if rec.num_reg_images() < 3:
+        raise InputError("no submodel could be reconstructed and merged (see the warnings)", path=inputs.root)
+    registered = frozenset(rec.image(i).name for i in rec.reg_image_ids())
+    focal = {cid: _focal_px(cam) for cid, cam in rec.cameras.items()}
+    how = f"split-merge: {len(groups)} submodels of at most {split} photos, {overlap_m:g} m overlap"
+    notes = [f"{how}; {sum(s.ok for s in subs)} reconstructed"]
+    return _Mapped(rec, len(groups), registered, left_out, how, False, focal, tuple(notes)), stats
+
+
 @dataclass(frozen=True)
 class _Georeference:
     """How the model was put in the CRS, and the GCPs' state after it."""
@@ -1284,7 +1352,8 @@ def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _I
     if model_dir.exists():
         shutil.rmtree(model_dir)
     os.replace(tmp_model, model_dir)
-    os.replace(db, output / "database.db")
+    if db.exists():  # (a merged split model has none: its submodels had one each)
+        os.replace(db, output / "database.db")
     if inputs.out_crs is None:
         notes.append("no CRS: points.laz and cameras.gpkg are not written (local frame only)")
         return 0

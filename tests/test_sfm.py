@@ -210,3 +210,71 @@ def test_cli_bad_checkpoint_exit_2(small_survey, tmp_path, capsys):
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "gcp_list.txt" in err[0] or "observations" in err[0]
+
+
+# --- split-merge -------------------------------------------------------------------------------
+
+
+def test_partition_is_balanced_compact_and_overlapping():
+    from geoortho.splitmerge import partition
+
+    rng = np.random.default_rng(0)
+    xy = np.c_[rng.uniform(0, 400, 100), rng.uniform(0, 100, 100)]
+    names = [f"p{i}" for i in range(100)]
+    groups, home = partition(names, xy, 25, 40.0)
+    homes = [[n for n, h in zip(names, home) if h == k] for k in range(len(groups))]
+    assert len(groups) == 4 and sorted(len(h) for h in homes) == [25, 25, 25, 25]
+    for g, h in zip(groups, homes):
+        assert set(h) <= set(g) and len(g) > len(h)  # its own photos, and neighbours'
+        mine = xy[[names.index(n) for n in h]]
+        assert np.ptp(mine[:, 0]) < 150  # cut along the long (x) axis: compact strips
+        for n in set(g) - set(h):  # an overlap photo is within 40 m of one of the group's own
+            assert np.hypot(*(mine - xy[names.index(n)]).T).min() <= 40.0
+
+
+def test_split_merge_is_one_model_as_accurate_as_the_block(sfm_with_gcps, small_survey, tmp_path):
+    whole, checkpoints = sfm_with_gcps
+    gcp_list = whole.output.parent / "gcp_list.txt"
+    poses, _ = _truth(small_survey)
+    r = sfm(
+        small_survey.images, tmp_path / "split", gcp_list=gcp_list, checkpoints=",".join(checkpoints), split=20, **FAST
+    )
+    rep = json.loads(r.report.read_text())
+    subs = rep["submodels"]
+    assert len(subs) == 2 and all(s["registered"] >= 20 for s in subs)
+    assert subs[1]["shared_photos"] >= 3 and subs[1]["shared_centre_rms_m"] < 0.05
+    assert r.n_registered >= 0.95 * r.n_photos and "split-merge" in rep["matching"]
+    # one model: every photo once, one georeference, GCP-controlled
+    cams = gpd.read_file(r.cameras)
+    assert cams.image.is_unique and len(cams) == r.n_photos
+    assert "GCP" in r.georeferenced_by and rep["models"] == 2
+    e_split = np.sqrt((_centre_errors(r, poses) ** 2).sum(axis=1).mean())
+    e_whole = np.sqrt((_centre_errors(whole, poses) ** 2).sum(axis=1).mean())
+    assert e_split <= max(2 * e_whole, 0.01), (e_split, e_whole)
+    assert r.checkpoint_rmse_m <= max(2 * whole.checkpoint_rmse_m, 0.01)
+    assert 0 < r.mean_reprojection_error_px < 1.0
+    with laspy.open(r.points) as f:
+        assert f.header.point_count > 1000
+
+
+def test_a_failed_submodel_is_reported_and_the_rest_merged(sfm_with_gcps, small_survey, tmp_path, monkeypatch):
+    import geoortho.reconstruction as rc
+
+    whole, checkpoints = sfm_with_gcps
+    real = rc.sfm
+
+    def flaky(images, output, **kw):
+        if output.name == "submodel_00":
+            raise InputError("no model could be built: the photos do not overlap enough")
+        return real(images, output, **kw)
+
+    monkeypatch.setattr(rc, "sfm", flaky)
+    fb = RecordingFeedback()
+    r = real(small_survey.images, tmp_path / "s", gcp_list=whole.output.parent / "gcp_list.txt", split=20, feedback=fb,
+             **FAST)  # fmt: skip
+    rep = json.loads(r.report.read_text())
+    assert any("submodel 0" in w and "failed" in w for w in fb.warnings)
+    lost = {n: why for n, why in rep["unregistered"].items() if "submodel 0 failed" in why}
+    # its own photos that its neighbour did not share are lost; the shared ones come from the neighbour
+    assert 1 <= len(lost) <= 20 and r.n_registered == r.n_photos - len(rep["unregistered"])
+    assert r.n_registered >= 15 and [s["submodel"] for s in rep["submodels"]] == [1]

@@ -190,6 +190,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             _advanced(SEED),
             WORKERS,
             Param("mapper", "enum", advanced=True),
+            Param("split", "integer", minimum=0, advanced=True),
+            Param("split_overlap_m", "number", unit="m", minimum=0.0, advanced=True, aliases=("split_overlap",)),
         ),
         outputs=(
             Output("output", "folder"),

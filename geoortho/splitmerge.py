@@ -1,0 +1,206 @@
+"""Split-merge SfM for large blocks: submodels of about N photos, reconstructed apart, merged.
+
+A block of thousands of photos is one mapping problem whose time grows faster than the photo
+count. OpenDroneMap splits it: cluster the photos by position into overlapping submodels,
+reconstruct each (on other nodes when there are some), align them and merge. Here:
+
+1. **Split** (:func:`partition`): the photos' GPS positions are cut in two at the median of
+   the longer axis, again and again, until every group holds at most N photos (groups of equal
+   size, compact); each group then takes in the photos of the others within M metres of one
+   of its own — the overlap that ties neighbours together.
+2. **Reconstruct** each submodel with :func:`geoortho.reconstruction.sfm` on its photos (GPS
+   and the GCPs it sees georeference it on its own), as a task of :mod:`geoortho.parallel`:
+   on the Dask cluster when there is one, else one after the other (pycolmap uses every core).
+   A submodel that fails is reported with its photos; the others are merged.
+3. **Align**: a submodel without GCP control is put on its already merged neighbours by a
+   similarity fitted to the camera centres of the photos they share (≥ 3), when they share
+   enough; GCP-controlled submodels are in the CRS already.
+4. **Merge** into one COLMAP model: every photo from its *home* submodel (the group it fell in
+   before the overlap), the 3D points whose tracks keep two or more such photos. ``sfm`` then
+   georeferences the merged model by GPS and GCPs as it would any (a similarity, the GCP
+   bundle adjustment) and measures it with the same checkpoints.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import GeoorthoError
+from .feedback import Feedback
+
+__all__ = ["partition", "Submodel"]
+
+
+def partition(names: Sequence[str], xy: np.ndarray, size: int, overlap_m: float) -> tuple[list[list[str]], list[int]]:
+    """Groups of at most ``size`` photos by position (recursive median cuts along the longer axis),
+    each widened by the photos of other groups within ``overlap_m`` of one of its own.
+
+    Returns the widened groups and each photo's home group (its group before widening)."""
+    home = np.zeros(len(names), int)
+    stack = [np.arange(len(names))]
+    groups: list[np.ndarray] = []
+    while stack:
+        idx = stack.pop()
+        if len(idx) <= size:
+            groups.append(idx)
+            continue
+        pts = xy[idx]
+        axis = int(np.ptp(pts[:, 0]) < np.ptp(pts[:, 1]))
+        order = idx[np.argsort(pts[:, axis], kind="stable")]
+        # cut into parts that each fill whole groups as evenly as possible
+        n_parts = math.ceil(len(idx) / size)
+        cut = len(idx) * (n_parts // 2) // n_parts
+        stack += [order[cut:], order[:cut]]
+    groups.sort(key=lambda g: (float(xy[g, 0].mean()), float(xy[g, 1].mean())))
+    widened = []
+    for k, g in enumerate(groups):
+        home[g] = k
+        d = np.hypot(xy[:, None, 0] - xy[None, g, 0], xy[:, None, 1] - xy[None, g, 1]).min(axis=1)
+        widened.append([names[int(i)] for i in np.flatnonzero(d <= overlap_m)])
+    return widened, home.tolist()
+
+
+@dataclass(frozen=True)
+class Submodel:
+    """One submodel's run: its photos, where its output is, and how it went."""
+
+    index: int
+    photos: tuple[str, ...]
+    output: Path
+    ok: bool
+    message: str  # why it failed, or how it was georeferenced
+    n_registered: int = 0
+    gcp_rmse_m: float = math.nan
+    checkpoint_rmse_m: float = math.nan
+    seconds: float = 0.0
+
+
+def run_submodel(args: tuple[int, list[str], Path, dict[str, Any]]) -> Submodel:
+    """A task: reconstruct one submodel (on a pool or cluster worker, or here)."""
+    import time
+
+    from .reconstruction import sfm
+
+    k, paths, output, kwargs = args
+    t = time.perf_counter()
+    names = tuple(Path(p).name for p in paths)
+    try:
+        r = sfm([Path(p) for p in paths], output, **kwargs)  # type: ignore[arg-type]
+    except GeoorthoError as e:
+        return Submodel(k, names, output, False, " ".join(str(e).split()), seconds=time.perf_counter() - t)
+    return Submodel(
+        k,
+        names,
+        output,
+        True,
+        r.georeferenced_by,
+        r.n_registered,
+        r.gcp_rmse_m,
+        r.checkpoint_rmse_m,
+        time.perf_counter() - t,
+    )
+
+
+def merge(
+    subs: Sequence[Submodel], home: dict[str, int], offset: np.ndarray, fb: Feedback
+) -> tuple[Any, dict[str, str], list[dict[str, Any]]]:
+    """One reconstruction in the frame ``CRS − offset`` from the submodels that succeeded.
+
+    Returns it, the photos not in it (with why), and per-submodel statistics (shared photos and
+    how far their centres disagree with the merged ones)."""
+    import json
+
+    from .reconstruction import load_pycolmap
+
+    pycolmap = load_pycolmap()
+    merged = pycolmap.Reconstruction()
+    placed: dict[str, np.ndarray] = {}  # image name -> centre in the merged frame
+    left_out: dict[str, str] = {}
+    stats: list[dict[str, Any]] = []
+    ok = [s for s in subs if s.ok]
+    # GCP-controlled submodels first (they are in the CRS), then by size
+    ok.sort(key=lambda s: ("GCP" not in s.message, -s.n_registered))
+    # a photo's home: its group's submodel if that one succeeded, else the first that has it
+    owner: dict[str, int] = {}
+    for s in ok:
+        for n in s.photos:
+            if home.get(n) == s.index or (n not in owner and not any(t.index == home.get(n) for t in ok)):
+                owner.setdefault(n, s.index)
+    next_camera = 1
+    next_image = 1
+    for s in ok:
+        model = s.output / "model"
+        rec = pycolmap.Reconstruction(str(model))
+        sub_offset = np.asarray(json.loads((model / "georeference.json").read_text())["offset"], float)
+        shift = sub_offset - offset  # merged frame = submodel frame + shift
+        rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), shift))
+        centres = {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+        shared = sorted(set(centres) & set(placed))
+        aligned = ""
+        if "GCP" not in s.message and len(shared) >= 3:
+            src = np.array([centres[n] for n in shared])
+            dst = np.array([placed[n] for n in shared])
+            sim = pycolmap.estimate_sim3d(src, dst)
+            if sim is not None:
+                rec.transform(sim)
+                centres = {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+                aligned = f"aligned on {len(shared)} shared photos"
+        gaps = [float(np.linalg.norm(centres[n] - placed[n])) for n in shared]
+        stats.append(
+            {
+                "submodel": s.index,
+                "photos": len(s.photos),
+                "registered": s.n_registered,
+                "georeferenced_by": s.message,
+                "aligned": aligned or "as georeferenced",
+                "shared_photos": len(shared),
+                "shared_centre_rms_m": round(math.sqrt(float(np.mean(np.square(gaps)))), 4) if gaps else None,
+                "gcp_rmse_m": None if not math.isfinite(s.gcp_rmse_m) else round(s.gcp_rmse_m, 4),
+                "checkpoint_rmse_m": None if not math.isfinite(s.checkpoint_rmse_m) else round(s.checkpoint_rmse_m, 4),
+                "seconds": round(s.seconds, 1),
+            }
+        )
+        cam_ids: dict[int, int] = {}
+        image_ids: dict[int, int] = {}
+        for i in sorted(rec.reg_image_ids()):
+            im = rec.image(i)
+            if owner.get(im.name) != s.index or im.name in placed:
+                continue
+            if im.camera_id not in cam_ids:
+                c = rec.camera(im.camera_id)
+                cam = pycolmap.Camera(
+                    model=c.model, width=c.width, height=c.height, params=c.params, camera_id=next_camera
+                )
+                merged.add_camera_with_trivial_rig(cam)
+                cam_ids[im.camera_id] = next_camera
+                next_camera += 1
+            points = pycolmap.Point2DList([pycolmap.Point2D(p.xy) for p in im.points2D])
+            new = pycolmap.Image(name=im.name, points2D=points, camera_id=cam_ids[im.camera_id], image_id=next_image)
+            merged.add_image_with_trivial_frame(new, im.cam_from_world())
+            image_ids[i] = next_image
+            placed[im.name] = centres[im.name]
+            next_image += 1
+        for p in rec.points3D.values():
+            els = [(image_ids[e.image_id], e.point2D_idx) for e in p.track.elements if e.image_id in image_ids]
+            if len({i for i, _ in els}) < 2:
+                continue
+            track = pycolmap.Track()
+            for i, j in els:
+                track.add_element(i, j)
+            merged.add_point3D(p.xyz, track, p.color)
+    failed = {s.index: s.message for s in subs if not s.ok}
+    for n, k in home.items():
+        if n not in placed:
+            left_out[n] = f"submodel {k} failed: {failed[k]}" if k in failed else f"not registered in submodel {k}"
+    merged.update_point_3d_errors()
+    fb.info(
+        f"merged {len(ok)} of {len(subs)} submodels: {len(placed)} photos, {merged.num_points3D():,} points"
+        + (f"; {len(left_out)} photos left out" if left_out else "")
+    )
+    return merged, left_out, stats
