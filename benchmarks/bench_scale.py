@@ -1,0 +1,132 @@
+"""Benchmark: how each stage grows with the survey — time and peak memory per stage per size.
+
+Synthetic surveys of increasing size (the ``small`` scene widened, photos at a small image
+size so that hundreds render in minutes) go through footprints, gcp-find, sfm (spatial matching;
+split-merge at the largest size), dense, dem and ortho, each as ``python -m geoortho`` in a child
+process whose peak memory is its own (VmHWM; its pool workers, one per core, are processes of
+their own and not counted: this is the coordinating process's growth). Printed: a table of seconds and MB per stage and
+size, then per stage the exponent b of time ∝ photos^b fitted over the sizes (target: b ≲ 1.1,
+every stage about linear) and the memory growth from the smallest size to the largest (target:
+flat for the per-photo and per-tile stages).
+
+    python benchmarks/bench_scale.py [--photos 35,100,400] [--image-px 800] [--split 150]
+        [--stages footprints,gcp-find,sfm,dense,dem,ortho] [--scheduler ADDRESS]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+CHILD = """
+import json, runpy, sys
+sys.argv = json.loads(sys.argv[1])
+try:
+    runpy.run_module("geoortho", run_name="__main__")
+finally:
+    hwm = next(int(s.split()[1]) for s in open("/proc/self/status") if s[:6] == "VmHWM:")
+    print("peak_rss_kb", hwm, file=sys.stderr)
+"""
+STAGES = ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho")
+
+
+def make_survey(folder: Path, n_photos: int, image_px: int, seed: int = 0) -> tuple[Path, int]:
+    """The small scene widened to about ``n_photos`` photos (same altitude and overlaps)."""
+    from geoortho import synthetic
+
+    base = synthetic.PRESETS["small"]
+    k = math.sqrt(n_photos / 35.0)  # the small preset flies 35 photos over 80 x 60 m
+    name = f"scale{n_photos}"
+    synthetic.PRESETS[name] = replace(
+        base,
+        name=name,
+        area_m=(base.area_m[0] * k, base.area_m[1] * k),
+        image_px=(image_px, round(image_px * 2 / 3)),
+        n_buildings=max(1, round(base.n_buildings * k * k)),
+        n_trees=max(1, round(base.n_trees * k * k)),
+        n_markers=max(4, round(base.n_markers * k)),
+        points_per_m2=4.0,
+    )
+    r = synthetic.synth(folder, preset=name, seed=seed)  # type: ignore[arg-type]
+    return folder, r.n_photos
+
+
+def run(argv: list[str], scheduler: str | None) -> tuple[float, float]:
+    """Seconds and peak MB of one ``python -m geoortho`` run."""
+    if scheduler:
+        argv = [*argv, "--scheduler", scheduler]
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", CHILD, json.dumps(["geoortho", *argv])], capture_output=True, text=True)
+    dt = time.perf_counter() - t
+    if r.returncode:
+        raise SystemExit(f"{argv[0]} failed: {r.stderr.strip().splitlines()[-2:]}")
+    return dt, int(r.stderr.strip().splitlines()[-1].split()[-1]) / 1024
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--photos", default="35,100,400")
+    ap.add_argument("--image-px", type=int, default=800)
+    ap.add_argument("--split", type=int, default=150, help="sfm split-merge for surveys above this many photos")
+    ap.add_argument("--stages", default=",".join(STAGES))
+    ap.add_argument("--scheduler", default=None, help="a Dask scheduler for every stage")
+    args = ap.parse_args()
+    stages = [s for s in args.stages.split(",") if s]
+    table: dict[str, dict[int, tuple[float, float]]] = {s: {} for s in stages}
+    sizes = []
+    with tempfile.TemporaryDirectory() as d:
+        for want in (int(x) for x in args.photos.split(",")):
+            s = Path(d) / f"s{want}"
+            t = time.perf_counter()
+            _, n = make_survey(s, want, args.image_px)
+            print(f"survey of {n} photos ({args.image_px} px wide) rendered in {time.perf_counter() - t:.0f} s")
+            sizes.append(n)
+            img, gcp, out = s / "images", s / "truth" / "gcp_utm.txt", s / "out"
+            argv = {
+                "footprints": [
+                    "footprints",
+                    "--images",
+                    img,
+                    "--output",
+                    out / "fp.gpkg",
+                    "--dsm",
+                    s / "truth/dsm.tif",
+                ],
+                "gcp-find": ["gcp-find", "--images", img, "--gcp-file", gcp, "--output", out / "gcp_list.txt"],
+                "sfm": ["sfm", "--images", img, "--output", out / "sfm", "--gcp-list", out / "gcp_list.txt"]
+                + ["--max-image-size", str(args.image_px), "--matching", "spatial"]
+                + (["--split", str(args.split)] if n > args.split else []),
+                "dense": ["dense", "--sfm", out / "sfm", "--images", img, "--output", out / "dense.laz"],
+                "dem": ["dem", "--points", out / "dense.laz", "--output", out / "dsm.tif", "--dtm", out / "dtm.tif"],
+                "ortho": ["ortho", "--images", img, "--output", out / "ortho.tif", "--sfm", out / "sfm"]
+                + ["--dsm", out / "dsm.tif"],
+            }
+            out.mkdir(parents=True, exist_ok=True)
+            for st in stages:
+                dt, mb = run([str(a) for a in argv[st]] + ["--quiet"], args.scheduler)
+                table[st][n] = (dt, mb)
+                print(f"  {st:10s} {n:5d} photos: {dt:7.1f} s  {mb:7.0f} MB  ({n / dt:.2f} photos/s)", flush=True)
+    print("\nstage       " + "".join(f"{n:>16d}" for n in sizes) + "   time exponent   memory x (last/first)")
+    for st in stages:
+        row = table[st]
+        ns = np.array(sorted(row))
+        ts = np.array([row[n][0] for n in ns])
+        ms = np.array([row[n][1] for n in ns])
+        b = float(np.polyfit(np.log(ns), np.log(ts), 1)[0]) if len(ns) >= 2 else math.nan
+        cells = "".join(f"{row[n][0]:8.1f}s{row[n][1]:6.0f}MB" for n in ns)
+        print(f"{st:10s}  {cells}   {b:8.2f}        x{ms[-1] / ms[0]:.2f}")
+    print("(target: time exponent <= ~1.1 for every stage; memory flat for per-photo and per-tile stages)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
