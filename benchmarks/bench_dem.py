@@ -28,21 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-# the CLI in a child that reports its own peak memory on its last stderr line
-CHILD = """
-import json, resource, runpy, sys
-sys.argv = json.loads(sys.argv[1])
-if len(sys.argv) > 1 and sys.argv[1].startswith("whole-max-cells="):  # tiles or the whole grid
-    import geoortho.demtiles
-    geoortho.demtiles.WHOLE_GRID_MAX_CELLS = int(sys.argv.pop(1).split("=")[1])
-try:
-    runpy.run_module("geoortho", run_name="__main__")
-finally:
-    # VmHWM, not ru_maxrss: a child inherits its parent's ru_maxrss across fork and exec
-    hwm = next(int(s.split()[1]) for s in open("/proc/self/status") if s[:6] == "VmHWM:")
-    print("peak_rss_kb", hwm, file=sys.stderr)
-"""
+from bench_sfm import OURS
 
 
 def make_cloud(path: Path, n: int, seed: int = 0) -> float:
@@ -126,7 +112,7 @@ def main() -> int:
                 "--quiet",
                 *extra,
             ]
-            cmd = [sys.executable, "-c", CHILD, json.dumps(argv)]
+            cmd = [sys.executable, "-c", OURS, json.dumps(argv)]
             t = time.perf_counter()
             r = subprocess.run(cmd, capture_output=True, text=True)
             dt = time.perf_counter() - t
@@ -152,7 +138,8 @@ def _tiles_vs_whole(las: Path, d: Path, resolution_m: float, n: int) -> None:
     runs = {}
     for label, cells in (("tiles", 0), ("whole", 10**12)):
         out, dtm = d / f"{label}.tif", d / f"{label}_dtm.tif"
-        argv = ["geoortho", f"whole-max-cells={cells}", "dem", "--points", str(las), "--output", str(out)]
+        tiles = f"set:geoortho.demtiles.WHOLE_GRID_MAX_CELLS={cells}"
+        argv = ["geoortho", tiles, "dem", "--points", str(las), "--output", str(out)]
         dt, peak_kb, _ = _run_dem([*argv, "--dtm", str(dtm), "--resolution-m", str(resolution_m), "--json", "--quiet"])
         with rasterio.open(out) as a, rasterio.open(dtm) as b:
             runs[label] = (dt, peak_kb, a.read(1).astype(float), b.read(1).astype(float), a.width * a.height)
@@ -174,7 +161,7 @@ def _tiles_vs_whole(las: Path, d: Path, resolution_m: float, n: int) -> None:
 def _run_dem(argv: list[str]) -> tuple[float, int, dict]:
     """Seconds, peak RSS (kB) and the JSON result of one dem run in a child process."""
     t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-c", CHILD, json.dumps(argv)], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-c", OURS, json.dumps(argv)], capture_output=True, text=True)
     dt = time.perf_counter() - t
     if r.returncode:
         raise SystemExit(r.stderr)

@@ -16,9 +16,7 @@ flat for the per-photo and per-tile stages).
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import subprocess
 import sys
 import tempfile
 import time
@@ -26,16 +24,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from bench_sfm import OURS, _child
 
-CHILD = """
-import json, runpy, sys
-sys.argv = json.loads(sys.argv[1])
-try:
-    runpy.run_module("geoortho", run_name="__main__")
-finally:
-    hwm = next(int(s.split()[1]) for s in open("/proc/self/status") if s[:6] == "VmHWM:")
-    print("peak_rss_kb", hwm, file=sys.stderr)
-"""
 STAGES = ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho")
 
 
@@ -64,12 +54,8 @@ def run(argv: list[str], scheduler: str | None) -> tuple[float, float]:
     """Seconds and peak MB of one ``python -m geoortho`` run."""
     if scheduler:
         argv = [*argv, "--scheduler", scheduler]
-    t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-c", CHILD, json.dumps(["geoortho", *argv])], capture_output=True, text=True)
-    dt = time.perf_counter() - t
-    if r.returncode:
-        raise SystemExit(f"{argv[0]} failed: {r.stderr.strip().splitlines()[-2:]}")
-    return dt, int(r.stderr.strip().splitlines()[-1].split()[-1]) / 1024
+    dt, _, peak_kb = _child(OURS, ["geoortho", *argv])
+    return dt, peak_kb / 1024
 
 
 def main() -> int:

@@ -64,9 +64,15 @@ print(json.dumps(t))
 print("peak_rss_kb", next(int(s.split()[1]) for s in open("/proc/self/status") if s[:6] == "VmHWM:"), file=sys.stderr)
 """
 
+# The CLI in a child that reports its own peak memory on its last stderr line. Arguments
+# "set:module.NAME=INT" before the algorithm set a module constant first (bench_dem: tiles or not).
 OURS = r"""
-import json, resource, runpy, sys
+import importlib, json, resource, runpy, sys
 sys.argv = json.loads(sys.argv[1])
+while len(sys.argv) > 1 and sys.argv[1].startswith("set:"):
+    target, value = sys.argv.pop(1)[4:].split("=")
+    module, name = target.rsplit(".", 1)
+    setattr(importlib.import_module(module), name, int(value))
 try:
     runpy.run_module("geoortho", run_name="__main__")
 finally:
