@@ -134,6 +134,8 @@ def merge(
                 owner.setdefault(n, s.index)
     next_camera = 1
     next_image = 1
+    recs: list[tuple[Any, dict[int, int]]] = []  # each submodel, in the merged frame, and its photos' ids
+    keypoints: dict[int, np.ndarray] = {}  # merged image -> its keypoints
     for s in ok:
         model = s.output / "model"
         rec = pycolmap.Reconstruction(str(model))
@@ -186,21 +188,57 @@ def merge(
             image_ids[i] = next_image
             placed[im.name] = centres[im.name]
             next_image += 1
+        recs.append((rec, image_ids))
+        for i, new_id in image_ids.items():
+            keypoints[new_id] = np.array([p.xy for p in rec.image(i).points2D])
+    # Points, from every submodel onto the merged photos. A photo a submodel shares with another is
+    # the same photo with the same features (extraction is deterministic): its observations join the
+    # owner's copy, and points seen from both submodels become one — the tie that lets the bundle
+    # adjustment that follows make the submodels one block, not several held only by the GCPs.
+    by_name = {merged.image(i).name: i for i in merged.reg_image_ids()}
+    occupied: dict[tuple[int, int], int] = {}  # (merged image, keypoint) -> merged point
+    n_joined = 0
+    for rec, image_ids in recs:
+        to_merged = dict(image_ids)
+        for i in rec.reg_image_ids():
+            name = rec.image(i).name
+            if i not in to_merged and name in by_name:
+                kp = np.array([p.xy for p in rec.image(i).points2D])
+                mine = keypoints[by_name[name]]
+                if kp.shape == mine.shape and np.allclose(kp, mine, atol=1e-3):
+                    to_merged[i] = by_name[name]
         for p in rec.points3D.values():
-            els = [(image_ids[e.image_id], e.point2D_idx) for e in p.track.elements if e.image_id in image_ids]
-            if len({i for i, _ in els}) < 2:
+            els: dict[int, int] = {}  # merged image -> keypoint (one observation per photo)
+            for e in p.track.elements:
+                if e.image_id in to_merged:
+                    els.setdefault(to_merged[e.image_id], e.point2D_idx)
+            if len(els) < 2:
+                continue
+            known = {occupied[(i, j)] for i, j in els.items() if (i, j) in occupied}
+            if known:
+                # seen already from another submodel: its new observations join that point
+                target = min(known)
+                seen = {e.image_id for e in merged.point3D(target).track.elements}
+                for i, j in els.items():
+                    if (i, j) not in occupied and i not in seen:
+                        merged.add_observation(target, pycolmap.TrackElement(i, j))
+                        occupied[(i, j)] = target
+                        seen.add(i)
+                n_joined += 1
                 continue
             track = pycolmap.Track()
-            for i, j in els:
+            for i, j in els.items():
                 track.add_element(i, j)
-            merged.add_point3D(p.xyz, track, p.color)
+            pid = merged.add_point3D(p.xyz, track, p.color)
+            for i, j in els.items():
+                occupied[(i, j)] = pid
     failed = {s.index: s.message for s in subs if not s.ok}
     for n, k in home.items():
         if n not in placed:
             left_out[n] = f"submodel {k} failed: {failed[k]}" if k in failed else f"not registered in submodel {k}"
     merged.update_point_3d_errors()
     fb.info(
-        f"merged {len(ok)} of {len(subs)} submodels: {len(placed)} photos, {merged.num_points3D():,} points"
-        + (f"; {len(left_out)} photos left out" if left_out else "")
+        f"merged {len(ok)} of {len(subs)} submodels: {len(placed)} photos, {merged.num_points3D():,} points "
+        f"({n_joined:,} seen from two submodels joined)" + (f"; {len(left_out)} photos left out" if left_out else "")
     )
     return merged, left_out, stats
