@@ -24,14 +24,15 @@ import math
 import os
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .feedback import Feedback
+from .feedback import Feedback, split
 from .ground import SmrfParams, ground_mask, smrf_surface
+from .parallel import imap_ordered
 
 __all__ = ["TILE_CELLS", "WHOLE_GRID_MAX_CELLS", "TiledGrids", "make_tiled", "tile_halo_m", "work_folder"]
 
@@ -84,7 +85,7 @@ def make_tiled(
     """Sort the points into tiles, then make and write each tile (see the module's doc)."""
     import rasterio
 
-    from .elevation import NODATA, Grid, _Accumulator, _finite
+    from .elevation import NODATA, Grid, _finite
 
     smrf = params if ground_method == "smrf" else None
     gap_halo_m, smrf_halo_m = tile_halo_m(max_gap_cells * resolution_m, smrf, resolution_m)
@@ -99,7 +100,7 @@ def make_tiled(
         f"grid of {grid.cols:,} x {grid.rows:,} cells made in {n_tiles} tiles of {t} cells "
         f"(halo {halo_cells} cells; points within {points_halo * hm:.0f} m)"
     )
-    s_sort, s_tiles = progress, progress  # progress is shared: sorting half, tiles half
+    s_sort, s_tiles = split(progress, [1, 1])
     files = [work / f"tile_{k}.bin" for k in range(n_tiles)]
     n_used = 0
     n_bad = 0
@@ -123,7 +124,7 @@ def make_tiled(
         for part, k in zip(np.split(rec, cuts), home[np.r_[0, cuts]] if len(home) else []):
             with open(files[int(k)], "ab") as fh:
                 part.tofile(fh)
-        s_sort.progress(0.5 * min(1.0, (ch.start + len(ch.x)) / max(src.count, 1)))
+        s_sort.progress(min(1.0, (ch.start + len(ch.x)) / max(src.count, 1)))
     if n_bad:
         fb.warning(f"{n_bad} points with non-finite coordinates skipped")
     ground_flags = np.zeros(src.count, bool) if ground_method is not None else None
@@ -147,46 +148,105 @@ def make_tiled(
     )
     dsm_tif, dtm_tif = work / "dsm.tif", (work / "dtm.tif" if want_dtm else None)
     n_ground = 0
+    base = _TileJob(
+        k=0,
+        files=files,
+        grid=grid,
+        t=t,
+        n_tr=n_tr,
+        n_tc=n_tc,
+        halo_cells=halo_cells,
+        points_halo=points_halo,
+        method=method,
+        ground_method=ground_method,
+        smrf_grid=smrf_grid,
+        params=params,
+        horizontal_m=src.horizontal_m,
+        vertical_m=src.vertical_m,
+        want_dtm=want_dtm,
+        max_gap_cells=max_gap_cells,
+        finish=finish,
+        smooth_px=smooth_px,
+    )
+    jobs = [replace(base, k=k) for k in range(n_tiles)]
     with rasterio.Env(GDAL_CACHEMAX=64), rasterio.open(dsm_tif, "w", **profile) as dsm_out:
         dtm_out = rasterio.open(dtm_tif, "w", **profile) if dtm_tif is not None else None
         try:
-            for k in range(n_tiles):
-                fb.check_canceled()
-                tr, tc = divmod(k, n_tc)
-                r0, c0 = tr * t, tc * t
-                r1, c1 = min(grid.rows, r0 + t), min(grid.cols, c0 + t)
-                # the tile with its halo, as a grid of its own on the same cells
-                hr0, hc0 = max(0, r0 - halo_cells), max(0, c0 - halo_cells)
-                hr1, hc1 = min(grid.rows, r1 + halo_cells), min(grid.cols, c1 + halo_cells)
-                sub = Grid(grid.x0 + hc0 * grid.cell, grid.y0 - hr0 * grid.cell, grid.cell, hr1 - hr0, hc1 - hc0)
-                x0, x1 = grid.x0 + c0 * grid.cell - points_halo, grid.x0 + c1 * grid.cell + points_halo
-                y1, y0 = grid.y0 - r0 * grid.cell + points_halo, grid.y0 - r1 * grid.cell - points_halo
-                pts = _neighbourhood(files, tr, tc, n_tr, n_tc, (x0, y0, x1, y1))
-                acc = _Accumulator(sub, method)
-                _add(acc, pts)
-                inner = np.s_[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
-                win = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
-                dsm_out.write(_nodata(finish(acc.result(), max_gap_cells, smooth_px)[inner], NODATA), 1, window=win)
-                del acc
-                if ground_method is None:
-                    continue
-                g = _ground(pts, ground_method, smrf_grid, params, src)
-                home_r, home_c = grid.index(pts["x"], pts["y"])
-                own = (home_r // t == tr) & (home_c // t == tc)
-                assert ground_flags is not None
-                ground_flags[pts["i"][own]] = g[own]
-                n_ground += int(g[own].sum())
-                if dtm_out is not None:
-                    acc = _Accumulator(sub, "idw")
-                    _add(acc, pts[g])
-                    dtm_out.write(_nodata(finish(acc.result(), max_gap_cells, smooth_px)[inner], NODATA), 1, window=win)
-                s_tiles.progress(0.5 + 0.5 * (k + 1) / n_tiles)
+            # one tile at a time here (memory follows one tile); on the Dask cluster when one is given
+            for _k, win, dsm_z, dtm_z, own_i, own_g in imap_ordered(make_tile, jobs, workers=1, feedback=s_tiles):
+                dsm_out.write(dsm_z, 1, window=win)
+                if dtm_out is not None and dtm_z is not None:
+                    dtm_out.write(dtm_z, 1, window=win)
+                if ground_flags is not None:
+                    ground_flags[own_i] = own_g
+                    n_ground += int(own_g.sum())
         finally:
             if dtm_out is not None:
                 dtm_out.close()
     for f in files:
         f.unlink(missing_ok=True)
     return TiledGrids(dsm_tif, dtm_tif, ground_flags, n_used, n_ground, n_tiles)
+
+
+@dataclass(frozen=True)
+class _TileJob:
+    """Everything one tile needs (sent to a worker when the tiles run on a cluster)."""
+
+    k: int
+    files: list[Path]
+    grid: Any
+    t: int  # tile side, cells
+    n_tr: int
+    n_tc: int
+    halo_cells: int
+    points_halo: float  # cloud units
+    method: str
+    ground_method: str | None
+    smrf_grid: Any
+    params: SmrfParams
+    horizontal_m: float
+    vertical_m: float
+    want_dtm: bool
+    max_gap_cells: float
+    finish: Callable[[np.ndarray, float, int], np.ndarray]
+    smooth_px: int
+
+
+def make_tile(job: _TileJob) -> tuple[int, Any, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """One tile: its DSM (and DTM) cells, and its own points' ground flags (source indices)."""
+    import rasterio
+
+    from .elevation import NODATA, Grid, _Accumulator
+
+    grid, t, halo = job.grid, job.t, job.halo_cells
+    tr, tc = divmod(job.k, job.n_tc)
+    r0, c0 = tr * t, tc * t
+    r1, c1 = min(grid.rows, r0 + t), min(grid.cols, c0 + t)
+    # the tile with its halo, as a grid of its own on the same cells
+    hr0, hc0 = max(0, r0 - halo), max(0, c0 - halo)
+    hr1, hc1 = min(grid.rows, r1 + halo), min(grid.cols, c1 + halo)
+    sub = Grid(grid.x0 + hc0 * grid.cell, grid.y0 - hr0 * grid.cell, grid.cell, hr1 - hr0, hc1 - hc0)
+    ph = job.points_halo
+    x0, x1 = grid.x0 + c0 * grid.cell - ph, grid.x0 + c1 * grid.cell + ph
+    y1, y0 = grid.y0 - r0 * grid.cell + ph, grid.y0 - r1 * grid.cell - ph
+    pts = _neighbourhood(job.files, tr, tc, job.n_tr, job.n_tc, (x0, y0, x1, y1))
+    inner = np.s_[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
+    win = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
+    acc = _Accumulator(sub, job.method)
+    _add(acc, pts)
+    dsm_z = _nodata(job.finish(acc.result(), job.max_gap_cells, job.smooth_px)[inner], NODATA)
+    del acc
+    if job.ground_method is None:
+        return job.k, win, dsm_z, None, np.empty(0, np.int64), np.empty(0, bool)
+    g = _ground(pts, job.ground_method, job.smrf_grid, job.params, job.horizontal_m, job.vertical_m)
+    home_r, home_c = grid.index(pts["x"], pts["y"])
+    own = (home_r // t == tr) & (home_c // t == tc)
+    dtm_z = None
+    if job.want_dtm:
+        acc = _Accumulator(sub, "idw")
+        _add(acc, pts[g])
+        dtm_z = _nodata(job.finish(acc.result(), job.max_gap_cells, job.smooth_px)[inner], NODATA)
+    return job.k, win, dsm_z, dtm_z, pts["i"][own], g[own]
 
 
 def _neighbourhood(
@@ -206,7 +266,9 @@ def _neighbourhood(
     return np.concatenate(parts) if parts else np.empty(0, _POINT)
 
 
-def _ground(pts: np.ndarray, ground_method: str, smrf_grid: Any, params: SmrfParams, src: Any) -> np.ndarray:
+def _ground(
+    pts: np.ndarray, ground_method: str, smrf_grid: Any, params: SmrfParams, horizontal_m: float, vertical_m: float
+) -> np.ndarray:
     """Which of the tile's points are ground: the file's class 2, or SMRF on the global SMRF grid's
     cells that the points cover."""
     from .elevation import GROUND, Grid, _Accumulator
@@ -221,12 +283,12 @@ def _ground(pts: np.ndarray, ground_method: str, smrf_grid: Any, params: SmrfPar
     sub = Grid(g.x0 + c0 * g.cell, g.y0 - r0 * g.cell, g.cell, r1 - r0, c1 - c0)
     zmin = _Accumulator(sub, "min")
     _add(zmin, pts)
-    surface = smrf_surface(zmin.result(), g.cell, params, src.horizontal_m, src.vertical_m)
+    surface = smrf_surface(zmin.result(), g.cell, params, horizontal_m, vertical_m)
     out = np.empty(len(pts), bool)
     for i in range(0, len(pts), SLICE_POINTS):  # its temporaries follow the slice, not the tile
         p = pts[i : i + SLICE_POINTS]
         out[i : i + len(p)] = ground_mask(
-            p["x"], p["y"], p["z"], surface, sub.x0, sub.y0, g.cell, params, src.horizontal_m, src.vertical_m
+            p["x"], p["y"], p["z"], surface, sub.x0, sub.y0, g.cell, params, horizontal_m, vertical_m
         )
     return out
 

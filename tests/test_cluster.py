@@ -76,6 +76,29 @@ def test_ortho_tiles_on_the_cluster_are_the_local_run(cluster, tiny_survey, tmp_
         assert np.array_equal(a.read(), b.read())
 
 
+def test_dem_tiles_on_the_cluster_are_the_local_run(cluster, small_survey, tmp_path, monkeypatch):
+    import geoortho.demtiles as demtiles
+    from geoortho.elevation import dem
+
+    monkeypatch.setattr(demtiles, "WHOLE_GRID_MAX_CELLS", 0)  # tiles (6 of them) on a small cloud
+    monkeypatch.setattr(demtiles, "TILE_CELLS", 64)
+    args = dict(dtm=tmp_path / "l_dtm.tif", classified=tmp_path / "l.laz")
+    local = dem(small_survey.points, tmp_path / "l.tif", **args)
+    with use_scheduler(cluster.scheduler_address, must_see=[small_survey.points, tmp_path]) as client:
+        with distributed.get_task_stream(client) as ts:
+            on = dem(small_survey.points, tmp_path / "d.tif", dtm=tmp_path / "d_dtm.tif", classified=tmp_path / "d.laz")
+        n_tasks = len(ts.data)
+    n_tiles = int(next(n for n in on.notes if "tiles" in n).split()[2])
+    assert n_tasks >= n_tiles >= 4
+    assert (local.n_points, local.n_ground) == (on.n_points, on.n_ground)
+    for a, b in (("l.tif", "d.tif"), ("l_dtm.tif", "d_dtm.tif")):
+        with rasterio.open(tmp_path / a) as x, rasterio.open(tmp_path / b) as y:
+            assert np.array_equal(x.read(), y.read())
+    import laspy
+
+    assert np.array_equal(laspy.read(tmp_path / "l.laz").classification, laspy.read(tmp_path / "d.laz").classification)
+
+
 def test_a_worker_killed_mid_run_does_not_change_the_result(cluster, small_survey, tmp_path):
     from geoortho.gcp.find import gcp_find
 
