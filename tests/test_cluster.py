@@ -24,10 +24,17 @@ distributed = pytest.importorskip("distributed", reason="the dev set-up installs
 
 @pytest.fixture(scope="module")
 def cluster():
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
-    ) as c:
-        yield c
+    # Dask's nannies set OMP_NUM_THREADS=1 (and MKL, OpenBLAS) in *this* process's environment for
+    # their workers: every process the test session starts later would inherit it, single-threaded
+    saved = dict(os.environ)
+    try:
+        with distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
+        ) as c:
+            yield c
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
 
 
 def test_gcp_find_on_the_cluster_is_the_local_run(cluster, small_survey, tmp_path):
