@@ -386,14 +386,15 @@ def dem(
     scan = _scan_extent(src, s_scan)
     src = scan.src
     src.notes.extend(scan.notes)
-    plan = _plan_grid(src, resolution_m, fb, tiles_allowed=not (want_ground and ground_method == "csf"))
+    tiles_allowed = not (want_ground and ground_method == "csf")  # CSF needs every point at once
+    plan = _plan_grid(src, resolution_m, fb, tiles_allowed=tiles_allowed)
     params = SmrfParams(smrf_cell_m, smrf_slope, smrf_window_m, smrf_threshold_m, smrf_scalar, smrf_margin_m)
     if want_ground and ground_method == "smrf":
         params = _check_smrf(src, params, fb)
     if engine == "pdal":
         return _run_pdal(src, plan.grid, output, dtm, method, ground_method, max_gap_m, params, fb)
 
-    if _in_tiles(plan.grid, ground_method, want_ground):
+    if tiles_allowed and float(plan.grid.rows) * plan.grid.cols > _whole_grid_max_cells():
         return _dem_tiled(
             src, plan, method, ground_method, params, scan.keep, output, dtm, classified, hillshade,
             max_gap_m, smooth_px, s_pass1, s_write, fb,
@@ -422,11 +423,6 @@ def dem(
         fb.info(f"ground: {n_ground} of {first.n_used} points ({ground_method})")
     s_write.progress(1.0)
     return result
-
-
-def _in_tiles(grid: Grid, ground_method: str, want_ground: bool) -> bool:
-    """A grid too large to hold whole is made in tiles (CSF needs every point at once: not it)."""
-    return float(grid.rows) * grid.cols > _whole_grid_max_cells() and not (want_ground and ground_method == "csf")
 
 
 def _dem_tiled(
@@ -502,20 +498,14 @@ def _cog_of(tif: Path, target: Path, name: str, units: str) -> None:
     import rasterio
     from rasterio.shutil import copy as rio_copy
 
+    from .outputs import cog_options
+
     with rasterio.open(tif, "r+") as ds:
         ds.set_band_description(1, name)
         if units:
             ds.set_band_unit(1, units)
     with rasterio.Env(GDAL_CACHEMAX=128):
-        rio_copy(
-            tif,
-            target,
-            driver="COG",
-            compress="DEFLATE",
-            predictor=3,
-            overview_resampling="nearest",
-            BIGTIFF="IF_SAFER",
-        )
+        rio_copy(tif, target, driver="COG", **cog_options("DEFLATE", is_float=True))
 
 
 #: The hillshade of a tiled grid is a preview: at most this many pixels a side.

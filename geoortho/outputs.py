@@ -192,15 +192,21 @@ def write_cog(
                 for i in range(1, count + 1):
                     ds.set_band_unit(i, units)
         with mem.open() as src, atomic_path(target) as tmp:
-            options: dict[str, Any] = {
-                "compress": compress,
-                "overview_resampling": overview_resampling or ("average" if not is_float else "nearest"),
-                "BIGTIFF": "IF_SAFER",
-            }
-            if compress.upper() in ("DEFLATE", "LZW", "ZSTD"):
-                options["predictor"] = 3 if is_float else 2
-            rio_copy(src, tmp, driver="COG", **options)
+            rio_copy(src, tmp, driver="COG", **cog_options(compress, is_float, overview_resampling))
     return Path(target)
+
+
+def cog_options(compress: str, is_float: bool, overview_resampling: str | None = None) -> dict[str, Any]:
+    """GDAL COG driver options for a raster: the floating-point predictor for floats, overviews by
+    average (by nearest for floats: elevations are not to be blended)."""
+    options: dict[str, Any] = {
+        "compress": compress,
+        "overview_resampling": overview_resampling or ("average" if not is_float else "nearest"),
+        "BIGTIFF": "IF_SAFER",
+    }
+    if compress.upper() in ("DEFLATE", "LZW", "ZSTD"):
+        options["predictor"] = 3 if is_float else 2
+    return options
 
 
 #: OGR driver by file extension.

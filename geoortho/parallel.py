@@ -294,19 +294,24 @@ _init_lock = threading.Lock()
 
 
 def _run_initialised(
-    fn: Callable[[T], R], initializer: Callable[..., Any] | None, token: str, item: T, *initargs: Any
+    fn: Callable[..., R],
+    initializer: Callable[..., Any] | None,
+    token: str,
+    args: tuple[Any, ...],
+    kwargs: dict[str, Any],
+    *initargs: Any,
 ) -> R:
-    """On a Dask worker: the pool's initializer once per worker process (per run), then ``fn(item)``."""
+    """On a Dask worker: the pool's initializer once per worker process (per run), then the call."""
     if initializer is not None and token not in _initialised:
         with _init_lock:
             if token not in _initialised:
                 initializer(*initargs)
                 _initialised.add(token)
-    return fn(item)
+    return fn(*args, **kwargs)
 
 
 class _ClusterExecutor(cf.Executor):
-    """The cluster as a pool: each submit runs ``fn(item)`` on a worker after the pool's initializer.
+    """The cluster as a pool: each submitted call runs on a worker after the pool's initializer.
 
     The initializer's arguments go to every worker once (scattered), not with each item."""
 
@@ -319,10 +324,8 @@ class _ClusterExecutor(cf.Executor):
             self._initargs = list(client.scatter(list(initargs), broadcast=True, hash=False))
 
     def submit(self, fn: Callable[..., R], /, *args: Any, **kwargs: Any) -> cf.Future[R]:
-        if kwargs or len(args) != 1:
-            return self._ex.submit(fn, *args, **kwargs)  # type: ignore[no-any-return]
         return self._ex.submit(  # type: ignore[no-any-return]
-            _run_initialised, fn, self._initializer, self._token, args[0], *self._initargs
+            _run_initialised, fn, self._initializer, self._token, args, kwargs, *self._initargs
         )
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:

@@ -1231,9 +1231,10 @@ def _split_reconstruct(
         if not s.ok:
             fb.warning(f"submodel {s.index} ({len(s.photos)} photos) failed: {s.message}")
     t0 = time.perf_counter()
-    rec, left_out, stats = merge(subs, dict(zip(names, home)), inputs.priors.offset, fb)
+    home_of = dict(zip(names, home))
+    rec, left_out, stats = merge(subs, home_of, inputs.priors.offset, fb)
     for n in path_of:
-        if n not in dict(zip(names, home)):
+        if n not in home_of:
             left_out.setdefault(n, "no GPS position: split-merge cannot place it in a submodel")
     timer.add("merge", t0)
     if rec.num_reg_images() < 3:

@@ -10,7 +10,6 @@ import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,10 +36,24 @@ def cluster():
         os.environ.update(saved)
 
 
-def test_gcp_find_on_the_cluster_is_the_local_run(cluster, small_survey, tmp_path):
+@pytest.fixture(scope="module")
+def local_gcp_find(small_survey, tmp_path_factory):
+    """gcp-find on the small survey with the local pool: what every cluster run must give."""
     from geoortho.gcp.find import gcp_find
 
-    local = gcp_find(small_survey.images, small_survey.gcp_file, tmp_path / "local.txt", detections=tmp_path / "l.csv")
+    d = tmp_path_factory.mktemp("local_gcp")
+    return gcp_find(small_survey.images, small_survey.gcp_file, d / "local.txt", detections=d / "l.csv"), d
+
+
+def _geoortho(*args: str, **run: object) -> subprocess.CompletedProcess[str]:
+    """``python -m geoortho ARGS`` in a child, its output captured."""
+    return subprocess.run([sys.executable, "-m", "geoortho", *args], capture_output=True, text=True, **run)
+
+
+def test_gcp_find_on_the_cluster_is_the_local_run(cluster, small_survey, local_gcp_find, tmp_path):
+    from geoortho.gcp.find import gcp_find
+
+    local, d = local_gcp_find
     with use_scheduler(cluster.scheduler_address, must_see=[small_survey.images]) as client:
         with distributed.get_task_stream(client) as ts:
             on = gcp_find(
@@ -49,8 +62,8 @@ def test_gcp_find_on_the_cluster_is_the_local_run(cluster, small_survey, tmp_pat
         n_tasks = len(ts.data)
     assert n_tasks >= len(list(small_survey.images.glob("*.JPG")))  # every photo's detection ran there
     assert local.n_observations == on.n_observations > 50
-    assert (tmp_path / "local.txt").read_bytes() == (tmp_path / "dask.txt").read_bytes()
-    assert (tmp_path / "l.csv").read_bytes() == (tmp_path / "d.csv").read_bytes()
+    assert (d / "local.txt").read_bytes() == (tmp_path / "dask.txt").read_bytes()
+    assert (d / "l.csv").read_bytes() == (tmp_path / "d.csv").read_bytes()
 
 
 def test_synth_rendering_on_the_cluster_is_the_local_run(cluster, tiny_survey, tmp_path):
@@ -106,10 +119,10 @@ def test_dem_tiles_on_the_cluster_are_the_local_run(cluster, small_survey, tmp_p
     assert np.array_equal(laspy.read(tmp_path / "l.laz").classification, laspy.read(tmp_path / "d.laz").classification)
 
 
-def test_a_worker_killed_mid_run_does_not_change_the_result(cluster, small_survey, tmp_path):
+def test_a_worker_killed_mid_run_does_not_change_the_result(cluster, small_survey, local_gcp_find, tmp_path):
     from geoortho.gcp.find import gcp_find
 
-    gcp_find(small_survey.images, small_survey.gcp_file, tmp_path / "local.txt")
+    _, d = local_gcp_find
     killed: list[int] = []
     with use_scheduler(cluster.scheduler_address) as client:
         pids = client.run(os.getpid)
@@ -132,19 +145,13 @@ def test_a_worker_killed_mid_run_does_not_change_the_result(cluster, small_surve
         # the nanny started a new worker process in place of the killed one
         client.wait_for_workers(2, timeout=30)
         assert killed[0] not in client.run(os.getpid).values()
-    assert (tmp_path / "local.txt").read_bytes() == (tmp_path / "dask.txt").read_bytes()
+    assert (d / "local.txt").read_bytes() == (tmp_path / "dask.txt").read_bytes()
 
 
 def test_a_scheduler_that_does_not_answer_is_one_line_exit_2_within_10_s(tmp_path):
     env = {**os.environ, SCHEDULER_ENV: "tcp://127.0.0.1:9"}  # the discard port: nobody listens
     t = time.monotonic()
-    p = subprocess.run(
-        [sys.executable, "-m", "geoortho", "footprints", "--images", str(tmp_path), "--output", "f.gpkg"],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=tmp_path,
-    )
+    p = _geoortho("footprints", "--images", str(tmp_path), "--output", "f.gpkg", env=env, cwd=tmp_path)
     elapsed = time.monotonic() - t
     assert p.returncode == 2, p.stderr
     lines = p.stderr.strip().splitlines()
@@ -178,22 +185,10 @@ def test_workers_that_do_not_see_the_photos_are_refused(cluster, small_survey, t
             with use_scheduler(scheduler.scheduler_address, must_see=[photos], timeout_s=30):
                 pass
         # the same check through the CLI: exit 2, one line
-        p = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "geoortho",
-                "footprints",
-                "--images",
-                str(photos),
-                "--output",
-                str(Path(tmp_path / "f.gpkg")),
-                "--scheduler",
-                scheduler.scheduler_address,
-            ],
-            capture_output=True,
-            text=True,
-        )
+        p = _geoortho(
+            "footprints", "--images", str(photos), "--output", str(tmp_path / "f.gpkg"),
+            "--scheduler", scheduler.scheduler_address,
+        )  # fmt: skip
         assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
         assert "does not see" in p.stderr
         assert not (tmp_path / "f.gpkg").exists()
