@@ -246,3 +246,43 @@ def test_a_resolution_that_makes_no_product_is_refused(tiny_survey, tmp_path, ca
     )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "median GSD" in err[0] and not (tmp_path / "o.tif").exists(), err
+
+
+def test_seam_pass_streams_photos_and_loses_no_overlap(small_survey):
+    """Issue 25: the coarse seam/gain pass holds only the views a later photo can still overlap,
+    and gets the same gains as every pair solved with every view held."""
+    import math
+
+    from affine import Affine
+
+    from geoortho.feedback import as_feedback
+    from geoortho.orthophoto.mosaic import _place
+    from geoortho.orthophoto.rectify import bounds_window
+    from geoortho.orthophoto.seams import _coarse_view, _pair_stat, plan_seams, solve_gains
+
+    surf = read_surface(small_survey.dsm)
+    placed = _place(_true_cameras(small_survey), surf, as_feedback(None))
+    cams, boxes = list(placed.cams), list(placed.boxes)
+    n = len(cams)
+    res = 0.5
+    xmin, ymin, xmax, ymax = surf.bounds
+    transform = Affine(res, 0, xmin, 0, -res, ymax)
+    shape = (math.ceil((ymax - ymin) / res), math.ceil((xmax - xmin) / res))
+    plan = plan_seams(cams, boxes, list(placed.gsds), surf, [None] * n, transform, shape, 2, seams="voronoi")
+    views = [
+        _coarse_view(i, c, surf, None, plan.transform, w, g)
+        for i, (c, b, g) in enumerate(zip(cams, boxes, placed.gsds))
+        if (w := bounds_window(plan.transform, plan.labels.shape, b)) is not None
+    ]
+    # held at once: the most windows that cross one sweep line, along the grid's longer axis
+    rows_first = plan.labels.shape[0] >= plan.labels.shape[1]
+    spans = [
+        (v.win.row0, v.win.row0 + v.win.height) if rows_first else (v.win.col0, v.win.col0 + v.win.width) for v in views
+    ]
+    crossing = max(sum(a <= s0 < b for a, b in spans) for s0, _ in spans)
+    assert plan.views_held_max == crossing < n  # not the survey: photos stream through
+    rows = [s for a in range(len(views)) for b in range(a + 1, len(views)) if (s := _pair_stat(views[a], views[b]))]
+    assert len(rows) > n
+    held = solve_gains(rows, n, exposure=[math.nan] * n)
+    np.testing.assert_allclose(plan.gains, held.gains, rtol=1e-6)
+    assert not np.allclose(plan.gains, 1.0)

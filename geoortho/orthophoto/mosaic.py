@@ -529,7 +529,7 @@ def mosaic(
         seconds=times,
     )
     gains = {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)}
-    _write_report(result, totals, gains, time.perf_counter() - t0)
+    _write_report(result, totals, gains, time.perf_counter() - t0, plan.views_held_max)
     fb.info(
         f"ortho: {output} ({shape[1]}x{shape[0]} px, {result.n_used} photos used); seam mismatch "
         f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing"
@@ -543,7 +543,11 @@ def _ratio(totals: dict[str, float], a: str, n: str) -> float:
 
 
 def _write_report(
-    result: OrthoResult, totals: dict[str, float], gains_bgr: dict[str, list[float]], seconds_total: float
+    result: OrthoResult,
+    totals: dict[str, float],
+    gains_bgr: dict[str, list[float]],
+    seconds_total: float,
+    coarse_views_held_max: int,
 ) -> None:
     """``<name>_report.json``: the result's figures, and the seam and gain details behind them."""
     write_json(
@@ -556,6 +560,8 @@ def _write_report(
             "texture_step_dn": _ratio(totals, "step_other", "other_n"),
             "seam_pixels": int(totals.get("seam_n", 0)),
             "gains_bgr": gains_bgr,
+            # the seam pass streams photos: how many coarse views it held at once (memory)
+            "coarse_views_held_max": coarse_views_held_max,
             "seconds_total": seconds_total,
         },
     )

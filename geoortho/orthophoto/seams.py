@@ -51,6 +51,7 @@ class SeamPlan:
     gains: np.ndarray  # float32 (n_cameras, 3), BGR
     skipped: tuple[tuple[str, str], ...]
     notes: tuple[str, ...] = ()
+    views_held_max: int = 0  # coarse views held at once while streaming (the survey's count if not streamed)
 
     def labels_for(self, out_transform: Affine, win: Window) -> np.ndarray:
         """The coarse labels read (nearest) at the centres of an output window's pixels."""
@@ -110,11 +111,28 @@ class _View:
     cost: np.ndarray  # float32, inf where not valid
 
 
+@dataclass(frozen=True, eq=False)
+class _Band:
+    """What the graph cut needs of one photo: its coarse view cropped to the band around what it owns."""
+
+    index: int
+    corner: tuple[int, int]  # (col, row) on the coarse grid
+    mask: np.ndarray  # uint8 0/255
+    image: np.ndarray  # uint8 (rows, cols, 3)
+    cost: np.ndarray  # float32
+
+
+def _coarse_projection(
+    cam: OrthoCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine, win: Window
+) -> Any:
+    x, y, z = window_xyz(transform, win, surface)
+    return project_window(cam, x, y, z, vis)
+
+
 def _coarse_view(
     i: int, cam: OrthoCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine, win: Window, gsd_m: float
 ) -> _View:
-    x, y, z = window_xyz(transform, win, surface)
-    proj = project_window(cam, x, y, z, vis)
+    proj = _coarse_projection(cam, surface, vis, transform, win)
     reduction = 1
     for r in (2, 4, 8):  # decode no finer than the coarse cell needs
         if math.isfinite(gsd_m) and r * gsd_m <= transform.a:
@@ -146,36 +164,103 @@ def plan_seams(
     band_m: float = 4.0,
     feedback: Feedback | None = None,
 ) -> SeamPlan:
-    """Coarse labels and gains for the mosaic on ``out_transform`` (cells ``factor`` times coarser)."""
+    """Coarse labels and gains for the mosaic on ``out_transform`` (cells ``factor`` times coarser).
+
+    Photos stream through: the Voronoi split needs only each photo's projection (no pixels);
+    the photos are then decoded in order along the mosaic's longer axis, and a coarse view is
+    held only while a later photo's window can still overlap it (its pairwise colour means go
+    to the gains, its band around what it owns to the graph cut). Memory follows the photos
+    across one sweep line, not the survey. A photo that fails to decode is left out and the
+    plan made again without it."""
     fb = as_feedback(feedback)
     cres = out_transform.a * factor
     ctr = Affine(cres, 0, out_transform.c, 0, -cres, out_transform.f)
     cshape = (math.ceil(out_shape[0] / factor), math.ceil(out_shape[1] / factor))
-    views: list[_View] = []
+    failed: dict[int, str] = {}
+    while True:
+        plan = _plan(cams, boxes, gsd_m, surface, vis, ctr, cshape, failed, seams, balance, band_m, fb)
+        if isinstance(plan, SeamPlan):
+            return plan
+        for i, why in plan.items():
+            fb.warning(f"skipped {cams[i].name}: {why}")
+        failed.update(plan)
+
+
+def _plan(
+    cams: Sequence[OrthoCamera],
+    boxes: Sequence[tuple[float, float, float, float] | None],
+    gsd_m: Sequence[float],
+    surface: Surface,
+    vis: Sequence[VisibilityGrid | None],
+    ctr: Affine,
+    cshape: tuple[int, int],
+    failed: dict[int, str],
+    seams: str,
+    balance: str,
+    band_m: float,
+    fb: Feedback,
+) -> SeamPlan | dict[int, str]:
+    """One streamed plan, or the photos that newly failed to decode (the caller plans again without them)."""
+    full = Window(0, 0, *cshape)
     skipped: list[tuple[str, str]] = []
+    wins: dict[int, Window] = {}
+    # Voronoi-like first split: each cell to the photo that sees it best.
+    best = np.full(cshape, np.inf, np.float32)
+    labels = np.full(cshape, -1, np.int16)
     for i, (cam, box) in enumerate(zip(cams, boxes)):
         fb.check_canceled()
+        if i in failed:
+            skipped.append((cam.name, failed[i]))
+            continue
         win = bounds_window(ctr, cshape, box) if box is not None else None
         if win is None:
             skipped.append((cam.name, "its footprint lies outside the mosaic"))
             continue
-        try:
-            views.append(_coarse_view(i, cam, surface, vis[i], ctr, win, gsd_m[i]))
-        except OSError as e:
-            skipped.append((cam.name, str(e)))
-            fb.warning(f"skipped {cam.name}: {e}")
-        fb.progress(0.6 * (i + 1) / len(cams))
+        wins[i] = win
+        keep_best(best, labels, win.slices(full), _coarse_projection(cam, surface, vis[i], ctr, win).cost, i)
+        fb.progress(0.2 * (i + 1) / len(cams))
 
-    # Voronoi-like first split: each cell to the photo that sees it best.
-    best = np.full(cshape, np.inf, np.float32)
-    labels = np.full(cshape, -1, np.int16)
-    for v in views:
-        keep_best(best, labels, v.win.slices(Window(0, 0, *cshape)), v.cost, v.index)
+    band_px = max(1, int(round(band_m / ctr.a)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
+    along_rows = cshape[0] >= cshape[1]  # sweep along the longer axis: fewer photos cross a sweep line
+
+    def span(w: Window) -> tuple[int, int]:
+        return (w.row0, w.row0 + w.height) if along_rows else (w.col0, w.col0 + w.width)
+
+    pairs: list[tuple[int, int, float, np.ndarray]] = []
+    bands: list[_Band] = []
+    active: list[_View] = []
+    new_failures: dict[int, str] = {}
+    held_max = 0
+    for k, i in enumerate(sorted(wins, key=lambda j: (span(wins[j])[0], j))):
+        fb.check_canceled()
+        start = span(wins[i])[0]
+        active = [v for v in active if span(v.win)[1] > start]  # no later photo can overlap these
+        try:
+            view = _coarse_view(i, cams[i], surface, vis[i], ctr, wins[i], gsd_m[i])
+        except OSError as e:
+            new_failures[i] = str(e)
+            continue
+        if balance != "none":
+            for other in active:
+                stat = _pair_stat(other, view) if other.index < view.index else _pair_stat(view, other)
+                if stat is not None:
+                    pairs.append(stat)
+        if seams == "graphcut":
+            band = _band(view, labels, full, kernel)
+            if band is not None:
+                bands.append(band)
+        active.append(view)
+        held_max = max(held_max, len(active))
+        fb.progress(0.2 + 0.4 * (k + 1) / len(wins))
+    if new_failures:
+        return new_failures
 
     notes: tuple[str, ...] = ()
     if balance != "none":
+        pairs.sort(key=lambda p: (p[0], p[1]))  # the solution does not depend on the decoding order
         sol = solve_gains(
-            views, len(cams), per_channel=balance == "channels", exposure=[_exposure(c.path) for c in cams]
+            pairs, len(cams), per_channel=balance == "channels", exposure=[_exposure(c.path) for c in cams]
         )
         gains, notes = sol.gains, sol.notes
         if sol.exposure_seeded:
@@ -186,10 +271,52 @@ def plan_seams(
         gains = np.ones((len(cams), 3), np.float32)
     fb.progress(0.75)
 
-    if seams == "graphcut" and len(views) > 1:
-        labels = _graph_cut(views, labels, cshape, max(1, int(round(band_m / cres))), gains)
+    if seams == "graphcut" and len(wins) > 1:
+        # in photo order, as OpenCV cuts pairs one after another: the same seams whatever the sweep
+        labels = _graph_cut(sorted(bands, key=lambda b: b.index), labels, cshape, gains)
     fb.progress(1.0)
-    return SeamPlan(ctr, labels, gains, tuple(skipped), notes)
+    return SeamPlan(ctr, labels, gains, tuple(skipped), notes, held_max)
+
+
+def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int, float, np.ndarray] | None:
+    """(a, b, weight, log mean colour of a − of b) over the cells both photos see unclipped."""
+    inter = va.win.intersect(vb.win)
+    if inter is None:
+        return None
+    sa, sb = inter.slices(va.win), inter.slices(vb.win)
+    ia, ib = va.image[sa], vb.image[sb]
+    # both see it, neither is clipped (a saturated pixel says nothing about exposure)
+    both = (
+        va.valid[sa]
+        & vb.valid[sb]
+        & (ia.max(axis=2) < 250)
+        & (ib.max(axis=2) < 250)
+        & (ia.min(axis=2) > 3)
+        & (ib.min(axis=2) > 3)
+    )
+    k = int(both.sum())
+    if k < min_overlap_px:
+        return None
+    ma = ia[both].astype(np.float64).mean(axis=0)
+    mb = ib[both].astype(np.float64).mean(axis=0)
+    return (va.index, vb.index, math.sqrt(k), np.log(ma) - np.log(mb))
+
+
+def _band(view: _View, labels: np.ndarray, full: Window, kernel: np.ndarray) -> _Band | None:
+    """The view cropped to the band (``kernel`` wide) around the cells it owns after the Voronoi split."""
+    own = (labels[view.win.slices(full)] == view.index).astype(np.uint8)
+    if not own.any():
+        return None
+    band = cv2.dilate(own, kernel) & view.valid.astype(np.uint8)
+    # Cropped to the band: OpenCV cuts every pair whose rectangles overlap, over the whole overlap.
+    x, y, w, h = cv2.boundingRect(band)
+    return _Band(
+        view.index,
+        (view.win.col0 + x, view.win.row0 + y),
+        np.ascontiguousarray(band[y : y + h, x : x + w] * 255),
+        view.image[y : y + h, x : x + w].copy(),
+        view.cost[y : y + h, x : x + w].copy(),
+    )
 
 
 @dataclass(frozen=True)
@@ -204,48 +331,23 @@ class GainSolution:
 
 
 def solve_gains(
-    views: Sequence[_View],
+    rows: Sequence[tuple[int, int, float, np.ndarray]],
     n: int,
     *,
     per_channel: bool = True,
-    min_overlap_px: int = 50,
     prior_weight: float = 0.2,
     exposure: Sequence[float] | None = None,
     max_gain: float = 2.0,
 ) -> GainSolution:
     """Per-photo gains (n, 3) BGR that make overlapping photos agree.
 
+    ``rows``: per overlapping pair (a, b, weight, log mean colour of a − of b), from :func:`_pair_stat`.
     Least squares on log colour means over each pairwise overlap, weighted by the overlap's size,
     with every photo pulled towards its prior gain: 1, or the inverse of its EXIF exposure
     (ISO · t / N², relative to the median) where ``exposure`` gives one. The pull holds chains of
     overlaps from drifting along a flight line (vignetting and sun angle bias each link a little);
     the mean log-gain is anchored at the priors'. Gains are kept within 1/max_gain..max_gain, and
     if they do not lower the overlaps' mismatch they are dropped for the priors (and said)."""
-    rows: list[tuple[int, int, float, np.ndarray]] = []
-    for a in range(len(views)):
-        va = views[a]
-        for b in range(a + 1, len(views)):
-            vb = views[b]
-            inter = va.win.intersect(vb.win)
-            if inter is None:
-                continue
-            sa, sb = inter.slices(va.win), inter.slices(vb.win)
-            ia, ib = va.image[sa], vb.image[sb]
-            # both see it, neither is clipped (a saturated pixel says nothing about exposure)
-            both = (
-                va.valid[sa]
-                & vb.valid[sb]
-                & (ia.max(axis=2) < 250)
-                & (ib.max(axis=2) < 250)
-                & (ia.min(axis=2) > 3)
-                & (ib.min(axis=2) > 3)
-            )
-            k = int(both.sum())
-            if k < min_overlap_px:
-                continue
-            ma = ia[both].astype(np.float64).mean(axis=0)
-            mb = ib[both].astype(np.float64).mean(axis=0)
-            rows.append((va.index, vb.index, math.sqrt(k), np.log(ma) - np.log(mb)))
     prior = np.zeros(n)
     seeded = 0
     if exposure is not None:
@@ -307,37 +409,24 @@ def solve_gains(
     return GainSolution(gains, before, after, seeded, tuple(notes))
 
 
-def _graph_cut(
-    views: list[_View], labels: np.ndarray, cshape: tuple[int, int], band_px: int, gains: np.ndarray
-) -> np.ndarray:
-    """Move each Voronoi seam, within ``band_px`` of where it was, onto a low-difference path."""
-    full = Window(0, 0, *cshape)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
-    masks, images, corners, used = [], [], [], []
-    for v in views:
-        sl = v.win.slices(full)
-        own = (labels[sl] == v.index).astype(np.uint8)
-        if not own.any():
-            continue
-        band = cv2.dilate(own, kernel) & v.valid.astype(np.uint8)
-        # Cropped to the band: OpenCV cuts every pair whose rectangles overlap, over the whole overlap.
-        x, y, w, h = cv2.boundingRect(band)
-        masks.append(cv2.UMat(np.ascontiguousarray(band[y : y + h, x : x + w] * 255)))  # type: ignore[call-overload]
-        # Balanced colours: the cut should follow content, not exposure differences.
-        images.append(v.image[y : y + h, x : x + w].astype(np.float32) * gains[v.index])
-        corners.append((v.win.col0 + x, v.win.row0 + y))
-        used.append((v, (y, x, h, w)))
-    if len(used) < 2:
+def _graph_cut(bands: list[_Band], labels: np.ndarray, cshape: tuple[int, int], gains: np.ndarray) -> np.ndarray:
+    """Move each Voronoi seam, within its band, onto a low-difference path."""
+    if len(bands) < 2:
         return labels
+    full = Window(0, 0, *cshape)
+    masks = [cv2.UMat(b.mask) for b in bands]  # type: ignore[call-overload]
+    # Balanced colours: the cut should follow content, not exposure differences.
+    images = [b.image.astype(np.float32) * gains[b.index] for b in bands]
     finder = cv2.detail.GraphCutSeamFinder("COST_COLOR_GRAD")
-    cut = finder.find(images, corners, masks)
+    cut = finder.find(images, [b.corner for b in bands], masks)
     # Owners after the cut; cells claimed by several (or by none) keep the best-seeing photo among them.
     out_best = np.full(cshape, np.inf, np.float32)
     out = np.full(cshape, -1, np.int16)
-    for (v, (y, x, h, w)), m in zip(used, cut):
+    for b, m in zip(bands, cut):
         seam_mask = (m.get() if isinstance(m, cv2.UMat) else np.asarray(m)) > 0
-        sl = Window(v.win.row0 + y, v.win.col0 + x, h, w).slices(full)
-        keep_best(out_best, out, sl, np.where(seam_mask, v.cost[y : y + h, x : x + w], np.inf), v.index)
+        h, w = b.mask.shape
+        sl = Window(b.corner[1], b.corner[0], h, w).slices(full)
+        keep_best(out_best, out, sl, np.where(seam_mask, b.cost, np.inf), b.index)
     unclaimed = (out < 0) & (labels >= 0)
     out[unclaimed] = labels[unclaimed]
     return out
