@@ -169,7 +169,7 @@ def flight_height_range_m(photos: Sequence[Photo], xy: np.ndarray) -> tuple[floa
             continue
         course = math.degrees(math.atan2(xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1]))
         rel = abs(((p.yaw_deg - course) + 90.0) % 180.0 - 90.0)  # 0: image top along the course
-        known_yaw = "course" not in p.attitude_source and p.attitude_source != "assumed nadir"
+        known_yaw = not p.yaw_unknown and "course" not in p.attitude_source
         side_px = p.height_px if (not known_yaw or rel < 45.0) else p.width_px
         ratios.append(d * p.focal_px / side_px)
     if len(ratios) < 3:

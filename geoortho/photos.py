@@ -96,14 +96,81 @@ SENSOR_WIDTHS_MM: dict[str, float] = {
 
 _XMP_ATTR = re.compile(rb"([A-Za-z][\w.-]*):([A-Za-z]\w*)\s*=\s*([\"'])(.*?)\3", re.S)
 _XMP_ELEM = re.compile(rb"<([A-Za-z][\w.-]*):([A-Za-z]\w*)>([^<]*)</\1:\2>")
+# A struct: an element whose fields are its attributes or its child elements (Skydio's
+# CameraOrientationNED, in either form); its fields are keyed ``prefix:Struct:Field``.
+_XMP_STRUCT = re.compile(rb"<(?!rdf:|x:)([A-Za-z][\w.-]*):([A-Za-z]\w*)\b([^>]*?)(?:/>|>(.*?)</\1:\2>)", re.S)
 
-# XMP attitude tags, first found wins: (yaw, pitch, roll) names, pitch offset to our
-# convention, roll sign. DJI writes pitch −90 at nadir; the Camera: namespace
-# (MicaSense, Sentera, Parrot, senseFly, Pix4D) writes 0 at nadir.
-_GIMBAL = ("drone-dji:GimbalYawDegree", "drone-dji:GimbalPitchDegree", "drone-dji:GimbalRollDegree")
-_CAMERA = ("Camera:Yaw", "Camera:Pitch", "Camera:Roll")
+
+@dataclass(frozen=True)
+class _Family:
+    """One maker's attitude tags: the camera's (gimbal) and the aircraft's, and how to turn them
+    into our convention (yaw clockwise from true north, pitch −90 = nadir, roll right side down)."""
+
+    source: str  # stated per photo (Photo.attitude_source)
+    camera: tuple[str, str, str]  # yaw, pitch, roll tag names
+    aircraft: tuple[str, str, str] | None = None
+    pitch_offset_deg: float = 0.0  # added to the tag's pitch
+    makes: tuple[str, ...] = ()  # only for these EXIF makes (lower case); () = any
+
+
+# First family whose camera pitch is present wins. Documents followed: DJI's XMP drone-dji
+# tags (DJI Mobile SDK / Thermal SDK tag list); Autel's newer firmware, which writes DJI's names
+# under the prefix ``drone:`` (as observed in EVO II photos; Autel publishes no list); Parrot's
+# "Embedded photo metadata" (developer.parrot.com/docs/pdraw/photo-metadata.html: CameraPitchDegree
+# is NED, −90 = nadir, and the same photo's Camera:Pitch is 90° more); Skydio's "camera and
+# metadata overview" (support.skydio.com 4417425974683: CameraOrientationNED Yaw/Pitch/Roll,
+# a struct); Pix4D's "Specifications of xmp.camera tags" (support.pix4d.com 360016450032,
+# angles per article 202558969: pitch 0 = nadir), written by MicaSense, Sentera, Parrot
+# Sequoia, senseFly (its own namespace URI, same names), WingtraHub and older Autel firmware.
+_FAMILIES: tuple[_Family, ...] = (
+    _Family(
+        "gimbal",
+        ("drone-dji:GimbalYawDegree", "drone-dji:GimbalPitchDegree", "drone-dji:GimbalRollDegree"),
+        ("drone-dji:FlightYawDegree", "drone-dji:FlightPitchDegree", "drone-dji:FlightRollDegree"),
+    ),
+    _Family(
+        "gimbal (Autel)",
+        ("drone:GimbalYawDegree", "drone:GimbalPitchDegree", "drone:GimbalRollDegree"),
+        ("drone:FlightYawDegree", "drone:FlightPitchDegree", "drone:FlightRollDegree"),
+    ),
+    _Family(
+        "gimbal (Parrot)",
+        ("drone-parrot:CameraYawDegree", "drone-parrot:CameraPitchDegree", "drone-parrot:CameraRollDegree"),
+        ("drone-parrot:DroneYawDegree", "drone-parrot:DronePitchDegree", "drone-parrot:DroneRollDegree"),
+    ),
+    _Family(
+        "gimbal (Skydio)",
+        (
+            "drone-skydio:CameraOrientationNED:Yaw",
+            "drone-skydio:CameraOrientationNED:Pitch",
+            "drone-skydio:CameraOrientationNED:Roll",
+        ),
+        (
+            "drone-skydio:FlightOrientationNED:Yaw",
+            "drone-skydio:FlightOrientationNED:Pitch",
+            "drone-skydio:FlightOrientationNED:Roll",
+        ),
+    ),
+    _Family("camera", ("Camera:Yaw", "Camera:Pitch", "Camera:Roll"), pitch_offset_deg=-90.0),
+)
 _NO_ATTITUDE = "no attitude in the metadata: assumed nadir, image top to the north"
-_FLIGHT = ("drone-dji:FlightYawDegree", "drone-dji:FlightPitchDegree", "drone-dji:FlightRollDegree")
+# Position and altitudes where EXIF GPS is missing, and the relative/absolute altitudes, by maker.
+_LATITUDE = ("drone-dji:GpsLatitude", "drone-dji:Latitude", "drone:GpsLatitude", "drone-skydio:Latitude")
+_LONGITUDE = (
+    "drone-dji:GpsLongitude",
+    "drone-dji:GpsLongtitude",  # sic: some DJI and Autel firmware
+    "drone-dji:Longitude",
+    "drone:GpsLongitude",
+    "drone:GpsLongtitude",
+    "drone-skydio:Longitude",
+)
+_RELATIVE = (
+    "drone-dji:RelativeAltitude",
+    "drone:RelativeAltitude",
+    "drone-skydio:RelativeAltitude",
+    "Camera:AboveGroundAltitude",
+)
+_ABSOLUTE = ("drone-dji:AbsoluteAltitude", "drone:AbsoluteAltitude", "drone-skydio:AbsoluteAltitude")
 
 
 @dataclass(frozen=True)
@@ -154,6 +221,12 @@ class Photo:
     def has_altitude(self) -> bool:
         """Any of RelativeAltitude, AbsoluteAltitude or GPSAltitude."""
         return any(math.isfinite(v) for v in (self.relative_altitude_m, self.absolute_altitude_m, self.gps_altitude_m))
+
+    @property
+    def yaw_unknown(self) -> bool:
+        """No yaw in the metadata (0 was assumed) and none taken from the course yet."""
+        src = self.attitude_source
+        return (src == "assumed nadir" or "yaw assumed" in src) and "course" not in src
 
     @property
     def exposure_value(self) -> float:
@@ -218,6 +291,15 @@ def parse_xmp(xmp: bytes | str | None) -> dict[str, str]:
                 continue
             value = (m.group(4) if rx is _XMP_ATTR else m.group(3)).decode("utf-8", "replace").strip()
             out.setdefault(f"{prefix}:{name}", value)
+    for m in _XMP_STRUCT.finditer(data):
+        prefix, name = m.group(1).decode(), m.group(2).decode()
+        inner = (m.group(3) or b"") + b" " + (m.group(4) or b"")
+        for rx in (_XMP_ATTR, _XMP_ELEM):
+            for f in rx.finditer(inner):
+                if f.group(1) in (b"xmlns", b"xml", b"rdf"):
+                    continue
+                value = (f.group(4) if rx is _XMP_ATTR else f.group(3)).decode("utf-8", "replace").strip()
+                out.setdefault(f"{prefix}:{name}:{f.group(2).decode()}", value)
     return out
 
 
@@ -326,8 +408,7 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     lat = _dms_deg(gps.get(2), gps.get(1), "S") if gps else math.nan
     lon = _dms_deg(gps.get(4), gps.get(3), "W") if gps else math.nan
     if not (math.isfinite(lat) and math.isfinite(lon)):
-        lat = _xmp_float(tags, "drone-dji:GpsLatitude", "drone-dji:Latitude")
-        lon = _xmp_float(tags, "drone-dji:GpsLongitude", "drone-dji:GpsLongtitude", "drone-dji:Longitude")
+        lat, lon = _xmp_float(tags, *_LATITUDE), _xmp_float(tags, *_LONGITUDE)
     if math.isfinite(lat) and math.isfinite(lon) and lat == 0.0 and lon == 0.0:
         lat = lon = math.nan  # a GPS without a fix writes 0, 0
     if (math.isfinite(lat) and abs(lat) > 90) or (math.isfinite(lon) and abs(lon) > 180):
@@ -336,9 +417,12 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     if gps and math.isfinite(gps_alt) and gps.get(5) in (1, b"\x01"):
         gps_alt = -gps_alt
 
-    rel = _xmp_float(tags, "drone-dji:RelativeAltitude", "Camera:AboveGroundAltitude")
-    absolute = _xmp_float(tags, "drone-dji:AbsoluteAltitude")
-    yaw, pitch, roll, source = _attitude(tags, make, warnings)
+    rel = _xmp_float(tags, *_RELATIVE)
+    absolute = _xmp_float(tags, *_ABSOLUTE)
+    direction = _float(gps.get(17)) if gps else math.nan  # GPSImgDirection
+    if math.isfinite(direction) and _text(gps.get(16)).upper().startswith("M"):
+        warnings.append("GPSImgDirection is magnetic: read as true north (declination not applied)")
+    yaw, pitch, roll, source, body = _attitude(tags, make, direction, warnings)
     focal_mm = _float(exif_ifd.get(0x920A))
     focal_35 = _float(exif_ifd.get(0xA405))
     # No camera has a lens under 1.5 mm (35 mm equivalent under 8 mm): 0 and 1 are placeholders.
@@ -370,9 +454,9 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         pitch_deg=pitch,
         roll_deg=roll,
         attitude_source=source,
-        flight_yaw_deg=_xmp_float(tags, _FLIGHT[0]),
-        flight_pitch_deg=_xmp_float(tags, _FLIGHT[1]),
-        flight_roll_deg=_xmp_float(tags, _FLIGHT[2]),
+        flight_yaw_deg=body[0],
+        flight_pitch_deg=body[1],
+        flight_roll_deg=body[2],
         focal_mm=focal_mm,
         focal_35mm=focal_35,
         sensor_width_mm=sw,
@@ -399,36 +483,47 @@ def _check_jpeg_complete(path: Path) -> None:
         raise OSError("truncated JPEG (no end-of-image marker)")
 
 
-def _attitude(tags: dict[str, str], make: str, warnings: list[str]) -> tuple[float, float, float, str]:
-    """Camera yaw/pitch/roll in our convention, and where they came from."""
-    g = [_xmp_float(tags, n) for n in _GIMBAL]
-    c = [_xmp_float(tags, n) for n in _CAMERA]
-    f = [_xmp_float(tags, n) for n in _FLIGHT]
-    if math.isfinite(c[1]) and not math.isfinite(g[1]):
-        # Camera: namespace, 0 = nadir; senseFly writes roll with the opposite sign.
-        sign = -1.0 if make.lower() == "sensefly" else 1.0
-        return (
-            _wrap(c[0]) if math.isfinite(c[0]) else 0.0,
-            c[1] - 90.0,
-            sign * c[2] if math.isfinite(c[2]) else 0.0,
-            "camera",
-        )
-    if all(math.isfinite(v) for v in g):
-        return _wrap(g[0]), g[1], g[2], "gimbal"
-    if not any(math.isfinite(v) for v in g + f):
-        warnings.append(_NO_ATTITUDE)
-        return 0.0, -90.0, 0.0, "assumed nadir"
-    # Partly known: take what the gimbal has, the aircraft's for the rest, nadir otherwise.
-    parts = []
-    yaw = g[0] if math.isfinite(g[0]) else f[0]
-    if not math.isfinite(g[0]):
-        parts.append("yaw from the aircraft" if math.isfinite(f[0]) else "yaw assumed 0")
-    pitch = g[1] if math.isfinite(g[1]) else -90.0
-    if not math.isfinite(g[1]):
-        parts.append("pitch assumed nadir")
-    roll = g[2] if math.isfinite(g[2]) else 0.0
-    warnings.append("incomplete gimbal attitude: " + ", ".join(parts or ["roll assumed 0"]))
-    return _wrap(yaw if math.isfinite(yaw) else 0.0), pitch, roll, "gimbal+flight" if math.isfinite(f[0]) else "partial"
+def _attitude(
+    tags: dict[str, str], make: str, direction_deg: float, warnings: list[str]
+) -> tuple[float, float, float, str, tuple[float, float, float]]:
+    """Camera yaw/pitch/roll in our convention, where they came from, and the aircraft's attitude
+    (NaN where not written): the camera's (gimbal) tags first, the aircraft's for what they lack,
+    then EXIF GPSImgDirection for the yaw, nadir otherwise."""
+    nan3 = (math.nan, math.nan, math.nan)
+    for fam in _FAMILIES:
+        g = [_xmp_float(tags, n) for n in fam.camera]
+        f = [_xmp_float(tags, n) for n in fam.aircraft] if fam.aircraft else list(nan3)
+        if not any(math.isfinite(v) for v in g + f):
+            continue
+        body = (f[0], f[1], f[2])
+        source, notes = fam.source, []
+        pitch = g[1] + fam.pitch_offset_deg if math.isfinite(g[1]) else math.nan
+        roll = g[2] if math.isfinite(g[2]) else 0.0
+        if fam.source == "camera" and make.lower() == "sensefly":
+            roll = -roll  # senseFly writes roll with the opposite sign
+        yaw = g[0]
+        if not math.isfinite(yaw):
+            if math.isfinite(f[0]):
+                yaw, source = f[0], source + "+flight"
+                notes.append("yaw from the aircraft")
+            elif math.isfinite(direction_deg):
+                yaw, source = direction_deg, source + "+direction"
+                notes.append("yaw from GPSImgDirection")
+            else:
+                yaw, source = 0.0, source + ", yaw assumed"
+                notes.append("yaw assumed 0")
+        if not math.isfinite(pitch):
+            pitch, source = -90.0, source + ", pitch assumed"
+            notes.append("pitch assumed nadir")
+        if notes:
+            warnings.append("incomplete gimbal attitude: " + ", ".join(notes))
+        return _wrap(yaw), pitch, roll, source, body
+    if math.isfinite(direction_deg):
+        # Plain EXIF (fixed-wing and camera geotaggers): where the camera's top pointed.
+        warnings.append("attitude from EXIF GPSImgDirection: pitch assumed nadir, roll 0")
+        return _wrap(direction_deg), -90.0, 0.0, "exif direction", nan3
+    warnings.append(_NO_ATTITUDE)
+    return 0.0, -90.0, 0.0, "assumed nadir", nan3
 
 
 def _wrap(a: float) -> float:
@@ -548,8 +643,7 @@ def yaw_from_course(photos: Sequence[Photo], max_gap_s: float = 30.0, min_move_m
     unless told otherwise; the course is a far better guess than north. Photos
     with a known yaw, or no neighbour within ``max_gap_s``, are left alone.
     """
-    unknown = {"assumed nadir", "partial"}
-    if not any(p.attitude_source in unknown for p in photos):
+    if not any(p.yaw_unknown for p in photos):
         return list(photos)
     timed = sorted((tt, i) for i, p in enumerate(photos) if math.isfinite(tt := photo_seconds(p)) and p.has_gps)
     # Segment k joins timed photo k to k+1: its course, or None (gap in time, no movement).
@@ -568,7 +662,7 @@ def yaw_from_course(photos: Sequence[Photo], max_gap_s: float = 30.0, min_move_m
     out = list(photos)
     for k, (_, i) in enumerate(timed):
         p = photos[i]
-        if p.attitude_source not in unknown:
+        if not p.yaw_unknown:
             continue
         c_in = courses[k - 1] if k > 0 else None
         c_out = courses[k] if k < len(courses) else None

@@ -26,7 +26,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
@@ -102,6 +102,19 @@ PRESETS: dict[str, SynthPreset] = {
 # Modelled on the DJI Phantom 4 Pro camera (FC6310): 1" sensor, 8.8 mm lens.
 CAMERA_MAKE = "DJI"
 CAMERA_MODEL = "FC6310"
+# Whose metadata the photos carry (synth's ``maker``): the same attitude and position written
+# with each maker family's tags and conventions (geoortho.photos._FAMILIES names the documents).
+Maker = Literal["dji", "autel", "parrot", "skydio", "pix4d", "sensefly", "exif"]
+MAKERS: tuple[str, ...] = get_args(Maker)
+MAKER_MAKE = {
+    "dji": "DJI",
+    "autel": "Autel Robotics",
+    "parrot": "Parrot",
+    "skydio": "Skydio",
+    "pix4d": "MicaSense",
+    "sensefly": "senseFly",
+    "exif": "Wingtra",
+}
 SENSOR_WIDTH_MM = 13.2
 SENSOR_HEIGHT_MM = 8.8
 FOCAL_MM = 8.8
@@ -564,6 +577,7 @@ class Shot:
     exposure_gain: float = 1.0
     exposure_time_s: float = 1.0 / 800.0
     exif_focal_mm: float = FOCAL_MM  # what EXIF says (the wrong-focal pathology lies)
+    maker: str = "dji"  # whose tags carry the metadata (MAKERS)
 
 
 def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
@@ -908,26 +922,84 @@ def _dms(value: float) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int
 
 
 def _xmp(shot: Shot) -> bytes:
+    """The photo's XMP packet as its maker writes it (``shot.maker``)."""
+
     def f(v: float) -> str:
         return f"{v:+.2f}"
 
+    def opt(name: str, v: float) -> str:
+        return f'    {name}="{f(v)}"\n' if math.isfinite(v) else ""
+
+    make = MAKER_MAKE[shot.maker]
+    ns = {
+        "dji": 'xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"',
+        "autel": 'xmlns:drone="http://www.autelrobotics.cn/drone/1.0/"',
+        "parrot": 'xmlns:drone-parrot="http://www.parrot.com/drone-parrot/1.0/" '
+        'xmlns:Camera="http://pix4d.com/camera/1.0/"',
+        "skydio": 'xmlns:drone-skydio="https://www.skydio.com/drone-skydio/1.0/"',
+        "pix4d": 'xmlns:Camera="http://pix4d.com/camera/1.0/"',
+        "sensefly": 'xmlns:Camera="http://ns.sensefly.com/Camera/1.0/"',
+    }[shot.maker]
+    attrs, body = "", ""
+    if shot.maker in ("dji", "autel"):
+        p = "drone-dji" if shot.maker == "dji" else "drone"
+        attrs = (
+            opt(f"{p}:AbsoluteAltitude", shot.rec_abs_alt_m)
+            + opt(f"{p}:RelativeAltitude", shot.rec_rel_alt_m)
+            + opt(f"{p}:GimbalRollDegree", shot.rec_roll_deg)
+            + opt(f"{p}:GimbalYawDegree", shot.rec_yaw_deg)
+            + opt(f"{p}:GimbalPitchDegree", shot.rec_pitch_deg)
+            + opt(f"{p}:FlightRollDegree", shot.flight_roll_deg)
+            + opt(f"{p}:FlightYawDegree", shot.flight_yaw_deg)
+            + opt(f"{p}:FlightPitchDegree", shot.flight_pitch_deg)
+        )
+    elif shot.maker == "parrot":
+        # Parrot writes its NED angles and the same attitude in Pix4D's Camera: convention.
+        body = (
+            f"   <drone-parrot:CameraRollDegree>{f(shot.rec_roll_deg)}</drone-parrot:CameraRollDegree>\n"
+            f"   <drone-parrot:CameraPitchDegree>{f(shot.rec_pitch_deg)}</drone-parrot:CameraPitchDegree>\n"
+            f"   <drone-parrot:CameraYawDegree>{f(shot.rec_yaw_deg)}</drone-parrot:CameraYawDegree>\n"
+            f"   <Camera:Roll>{f(shot.rec_roll_deg)}</Camera:Roll>\n"
+            f"   <Camera:Pitch>{f(shot.rec_pitch_deg + 90.0)}</Camera:Pitch>\n"
+            f"   <Camera:Yaw>{f(shot.rec_yaw_deg)}</Camera:Yaw>\n"
+            + (
+                f"   <Camera:AboveGroundAltitude>{f(shot.rec_rel_alt_m)}</Camera:AboveGroundAltitude>\n"
+                if math.isfinite(shot.rec_rel_alt_m)
+                else ""
+            )
+        )
+    elif shot.maker == "skydio":
+        # Several frames share the field names: the camera's is CameraOrientationNED (a struct),
+        # written after a body-frame struct that must not be taken for it.
+        attrs = opt("drone-skydio:AbsoluteAltitude", shot.rec_abs_alt_m) + opt(
+            "drone-skydio:RelativeAltitude", shot.rec_rel_alt_m
+        )
+        body = (
+            '   <drone-skydio:CameraOrientationFLU rdf:parseType="Resource">\n'
+            "    <drone-skydio:Yaw>+12.00</drone-skydio:Yaw><drone-skydio:Pitch>+3.00</drone-skydio:Pitch>"
+            "<drone-skydio:Roll>+1.00</drone-skydio:Roll>\n"
+            "   </drone-skydio:CameraOrientationFLU>\n"
+            '   <drone-skydio:CameraOrientationNED rdf:parseType="Resource">\n'
+            f"    <drone-skydio:Yaw>{f(shot.rec_yaw_deg)}</drone-skydio:Yaw>\n"
+            f"    <drone-skydio:Pitch>{f(shot.rec_pitch_deg)}</drone-skydio:Pitch>\n"
+            f"    <drone-skydio:Roll>{f(shot.rec_roll_deg)}</drone-skydio:Roll>\n"
+            "   </drone-skydio:CameraOrientationNED>\n"
+        )
+    elif shot.maker in ("pix4d", "sensefly"):
+        roll = -shot.rec_roll_deg if shot.maker == "sensefly" else shot.rec_roll_deg
+        attrs = (
+            opt("Camera:Yaw", shot.rec_yaw_deg)
+            + opt("Camera:Pitch", shot.rec_pitch_deg + 90.0)
+            + opt("Camera:Roll", roll)
+            + opt("Camera:AboveGroundAltitude", shot.rec_rel_alt_m)
+        )
     return (
         '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
         '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
         ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
-        '  <rdf:Description rdf:about="DJI Meta Data"\n'
-        '    xmlns:tiff="http://ns.adobe.com/tiff/1.0/"\n'
-        '    xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"\n'
-        f'    tiff:Make="{CAMERA_MAKE}" tiff:Model="{CAMERA_MODEL}"\n'
-        + (f'    drone-dji:AbsoluteAltitude="{f(shot.rec_abs_alt_m)}"\n' if math.isfinite(shot.rec_abs_alt_m) else "")
-        + (f'    drone-dji:RelativeAltitude="{f(shot.rec_rel_alt_m)}"\n' if math.isfinite(shot.rec_rel_alt_m) else "")
-        + f'    drone-dji:GimbalRollDegree="{f(shot.rec_roll_deg)}"\n'
-        f'    drone-dji:GimbalYawDegree="{f(shot.rec_yaw_deg)}"\n'
-        f'    drone-dji:GimbalPitchDegree="{f(shot.rec_pitch_deg)}"\n'
-        f'    drone-dji:FlightRollDegree="{f(shot.flight_roll_deg)}"\n'
-        f'    drone-dji:FlightYawDegree="{f(shot.flight_yaw_deg)}"\n'
-        f'    drone-dji:FlightPitchDegree="{f(shot.flight_pitch_deg)}">\n'
-        "  </rdf:Description>\n"
+        f'  <rdf:Description rdf:about="{make} Meta Data"\n'
+        f'    xmlns:tiff="http://ns.adobe.com/tiff/1.0/" {ns}\n'
+        f'    tiff:Make="{make}" tiff:Model="{CAMERA_MODEL}"\n' + attrs + "  >\n" + body + "  </rdf:Description>\n"
         " </rdf:RDF>\n"
         "</x:xmpmeta>\n"
         '<?xpacket end="w"?>'
@@ -941,7 +1013,7 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
     from .outputs import atomic_path
 
     zeroth = {
-        piexif.ImageIFD.Make: CAMERA_MAKE.encode(),
+        piexif.ImageIFD.Make: MAKER_MAKE[shot.maker].encode(),
         piexif.ImageIFD.Model: CAMERA_MODEL.encode(),
         piexif.ImageIFD.Orientation: 1,
         piexif.ImageIFD.Software: b"geoortho.synth",
@@ -968,10 +1040,13 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
             piexif.GPSIFD.GPSAltitudeRef: 0 if shot.rec_gps_alt_m >= 0 else 1,
             piexif.GPSIFD.GPSAltitude: (int(round(abs(shot.rec_gps_alt_m) * 1000)), 1000),
         }
+        if shot.maker == "exif":  # no XMP: where the image top points, true north
+            gps[piexif.GPSIFD.GPSImgDirectionRef] = b"T"
+            gps[piexif.GPSIFD.GPSImgDirection] = (int(round(shot.rec_yaw_deg % 360.0 * 100)), 100)
     exif_bytes = piexif.dump({"0th": zeroth, "Exif": exif, "GPS": gps})
     buf = io.BytesIO()
     kwargs: dict[str, Any] = {"exif": exif_bytes, "quality": 92}
-    if shot.has_xmp:
+    if shot.has_xmp and shot.maker != "exif":
         kwargs["xmp"] = _xmp(shot)
     Image.fromarray(pixels).save(buf, format="JPEG", **kwargs)
     data = buf.getvalue()
@@ -1039,6 +1114,7 @@ def synth(
     target: Target = "aruco",
     blur_px: float = 0.0,
     glare: float = 0.0,
+    maker: Maker = "dji",
     *,
     feedback: Feedback | None = None,
 ) -> SynthResult:
@@ -1087,6 +1163,11 @@ def synth(
     glare : float
         Share (0–1) of the targets in each photo under a specular glare spot that saturates
         part of them (markers.json marks each).
+    maker : str
+        Whose metadata tags the photos carry: dji (drone-dji:), autel (drone:), parrot
+        (drone-parrot: and Camera:), skydio (drone-skydio: structs), pix4d (Camera:, as MicaSense
+        writes it), sensefly (Camera:, roll negated) or exif (EXIF GPS and GPSImgDirection only,
+        as a fixed-wing geotagger writes it). The same attitude and position in each.
 
     Returns
     -------
@@ -1121,7 +1202,9 @@ def synth(
     if "water" in pathologies:
         scene.water = _place_water(scene)
     planned = fly_plan(Path(plan), p, scene, rng) if plan is not None else plan_flight(p, scene, rng)
-    shots = _record(planned, scene, p, rng)
+    if maker not in MAKERS:
+        raise InputError(f"unknown maker {maker!r}; choose one of {', '.join(MAKERS)}")
+    shots = [replace(s, maker=maker) for s in _record(planned, scene, p, rng)]
     undulation = 0.0
     if pathologies:
         from .crs import geoid_undulation_m
@@ -1192,7 +1275,7 @@ def _write_truth(
     _write_poses_and_footprints(truth, scene, shots, intr, results)
     steps[1].progress(1.0)
     _write_gcp_files(truth, scene)
-    _write_survey_json(truth, scene, intr, p, seed, pathologies, undulation_m)
+    _write_survey_json(truth, scene, intr, p, seed, pathologies, undulation_m, shots[0].maker if shots else "dji")
     steps[2].progress(1.0)
     _write_true_ortho(truth / "ortho.tif", scene, p.ortho_cell_m, steps[3])
     _write_points(truth / "points.laz", scene, p, np.random.default_rng(seed + 7))
@@ -1307,6 +1390,7 @@ def _write_survey_json(
     seed: int,
     pathologies: Sequence[str],
     undulation_m: float,
+    maker: str = "dji",
 ) -> None:
     from .outputs import write_json
 
@@ -1320,7 +1404,7 @@ def _write_survey_json(
             "pixel_convention": "(0,0) is the centre of the top-left pixel (OpenCV, OpenDroneMap gcp_list.txt)",
             "attitude_convention": "yaw clockwise from north, pitch -90 nadir, roll right-down positive",
             "camera": {
-                "make": CAMERA_MAKE,
+                "make": MAKER_MAKE[maker],
                 "model": CAMERA_MODEL,
                 "sensor_width_mm": SENSOR_WIDTH_MM,
                 "sensor_height_mm": SENSOR_HEIGHT_MM,

@@ -396,3 +396,90 @@ def test_a_dsm_far_larger_than_the_flight_is_read_only_under_it(tiny_survey, tmp
     assert any(m.startswith("DSM read at") for m in fb.infos), fb.infos
     gc = gpd.read_file(tmp_path / "c.gpkg", layer="footprints").set_index("image")
     assert c.n_photos == a.n_photos and np.mean([_iou(ga.geometry[n], gc.geometry[n]) for n in ga.index]) > 0.95
+
+
+def _retag(survey, folder, maker: str, absolute: bool = True):
+    """The survey's photos with the same recorded metadata written in ``maker``'s tags
+    (``absolute``: with the AbsoluteAltitude where the family has one)."""
+    from PIL import Image
+
+    from geoortho import synthetic
+    from geoortho.camera import Intrinsics
+
+    folder.mkdir()
+    cam = json.loads((survey.truth / "survey.json").read_text())["camera"]
+    intr = Intrinsics(cam["width_px"], cam["height_px"], cam["focal_px"])
+    for t in json.loads((survey.truth / "poses.json").read_text()):
+        if not t["has_xmp"] or t["corrupt"]:
+            continue
+        rec = t["recorded"]
+        shot = synthetic.Shot(
+            t["image"],
+            t["x"],
+            t["y"],
+            t["z"],
+            t["yaw_deg"],
+            t["pitch_deg"],
+            t["roll_deg"],
+            rec_lat=rec["latitude_deg"],
+            rec_lon=rec["longitude_deg"],
+            rec_gps_alt_m=rec["gps_altitude_m"],
+            rec_rel_alt_m=rec["relative_altitude_m"],
+            rec_abs_alt_m=rec["absolute_altitude_m"] if absolute else math.nan,
+            rec_yaw_deg=rec["gimbal_yaw_deg"],
+            rec_pitch_deg=rec["gimbal_pitch_deg"],
+            rec_roll_deg=rec["gimbal_roll_deg"],
+            flight_yaw_deg=rec["flight_yaw_deg"],
+            time="2026:05:01 10:00:00",
+            maker=maker,
+        )
+        with Image.open(survey.images / t["image"]) as im:
+            synthetic._write_jpeg(folder / t["image"], np.asarray(im.convert("RGB")), shot, intr)
+    return folder
+
+
+@pytest.mark.parametrize("maker", ["autel", "parrot", "skydio", "pix4d", "sensefly", "exif"])
+def test_every_maker_family_reads_back_and_gives_the_dji_footprint(tiny_survey, tmp_path, maker):
+    """Issue 26: attitude read back from each maker's tags as the header states it; the footprint
+    of a photo written with that family's tags is the DJI-tagged one."""
+    folder = _retag(tiny_survey, tmp_path / maker, maker)
+    dji = {p.image: p for p in read_photos(tiny_survey.images).photos}
+    theirs = read_photos(folder).photos
+    assert len(theirs) >= 8
+    for p in theirs:
+        d = dji[p.image]
+        assert p.latitude_deg == pytest.approx(d.latitude_deg, abs=1e-7)
+        assert p.longitude_deg == pytest.approx(d.longitude_deg, abs=1e-7)
+        if maker == "exif":  # no XMP: GPSImgDirection is the yaw, the rest assumed and said
+            assert p.attitude_source == "exif direction" and (p.pitch_deg, p.roll_deg) == (-90.0, 0.0)
+            assert p.yaw_deg == pytest.approx(d.yaw_deg, abs=0.01)
+            assert any("GPSImgDirection" in w for w in p.warnings)
+            continue
+        assert (p.yaw_deg, p.pitch_deg, p.roll_deg) == pytest.approx((d.yaw_deg, d.pitch_deg, d.roll_deg), abs=0.006)
+        assert p.relative_altitude_m == pytest.approx(d.relative_altitude_m, abs=0.006)
+        assert p.attitude_source == {"pix4d": "camera", "sensefly": "camera"}.get(maker, f"gimbal ({maker.title()})")
+    if maker == "exif":
+        return
+    # against DJI tags carrying what this family carries (Parrot, MicaSense, senseFly: no AbsoluteAltitude)
+    dji_tags = _retag(tiny_survey, tmp_path / "dji", "dji", absolute=maker in ("autel", "skydio"))
+    ours = footprints(folder, tmp_path / "f.gpkg", dsm=tiny_survey.dsm)
+    ref = footprints(dji_tags, tmp_path / "ref.gpkg", dsm=tiny_survey.dsm)
+    a = gpd.read_file(ours.output, layer="footprints").set_index("image")
+    b = gpd.read_file(ref.output, layer="footprints").set_index("image")
+    assert set(a["attitude_source"]) == {theirs[0].attitude_source}
+    ious = [_iou(a.loc[n].geometry, b.loc[n].geometry) for n in a.index]
+    assert len(ious) >= 8 and min(ious) > 0.999, ious
+
+
+def test_skydio_struct_in_attribute_form_and_other_frames():
+    """Skydio's older firmware writes the struct's fields as attributes; its other frames (FLU,
+    the body's) share the field names and must not be read as the camera's."""
+    xmp = (
+        b'<rdf:Description><drone-skydio:CameraOrientationFLU drone-skydio:Roll="1.0" drone-skydio:Pitch="5.0" '
+        b'drone-skydio:Yaw="44.0"/><drone-skydio:CameraOrientationNED drone-skydio:Roll="0.2" '
+        b'drone-skydio:Pitch="-84.0" drone-skydio:Yaw="146.5"/></rdf:Description>'
+    )
+    tags = parse_xmp(xmp)
+    assert tags["drone-skydio:CameraOrientationNED:Pitch"] == "-84.0"
+    assert tags["drone-skydio:CameraOrientationNED:Yaw"] == "146.5"
+    assert tags["drone-skydio:CameraOrientationFLU:Yaw"] == "44.0"
