@@ -39,12 +39,14 @@ __all__ = [
     "list_images",
     "parse_xmp",
     "photo_seconds",
+    "sensor_width_from_table",
 ]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff")
 
-# Sensor width (mm) by EXIF Model, lower case. Published sensor sizes; the
-# width spans the full image width, also for 16:9 crops of a 4:3 sensor.
+# Sensor width (mm) by EXIF Model, lower case: DJI and survey payloads, looked up before
+# OpenSfM's table of 3,709 cameras (geoortho/data). Published sensor sizes; the width spans
+# the full image width, also for 16:9 crops of a 4:3 sensor.
 SENSOR_WIDTHS_MM: dict[str, float] = {
     # Phantom 3 / 4 family, Inspire 1
     "fc300s": 6.17,
@@ -92,6 +94,12 @@ SENSOR_WIDTHS_MM: dict[str, float] = {
     "fc550raw": 17.3,
     "zenmuseh20": 7.6,
     "zenmuseh20t": 7.6,
+    # Fixed-wing survey payloads missing from OpenSfM's table (EXIF Model as Sony writes it)
+    "dsc-rx1rm2": 35.9,  # WingtraOne RX1R II
+    "ilce-7rm4": 35.7,  # WingtraOne / eBee X A7R IV
+    "ilce-7rm4a": 35.7,
+    "ilce-7rm5": 35.7,
+    "rededge-m": 4.8,  # MicaSense, 1280 px × 3.75 µm
 }
 
 _XMP_ATTR = re.compile(rb"([A-Za-z][\w.-]*):([A-Za-z]\w*)\s*=\s*([\"'])(.*?)\3", re.S)
@@ -347,18 +355,50 @@ def _dms_deg(value: Any, ref: Any, negative: str) -> float:
     return deg
 
 
-def _sensor_width(
-    model: str, focal_mm: float, focal_35mm: float, exif_ifd: dict[int, Any], longer_px: int, user_mm: float | None
-) -> tuple[float, str]:
-    """Sensor width: user option, then the camera database, 35 mm equivalent, focal-plane resolution."""
-    if user_mm:
-        return float(user_mm), "user"
+@functools.lru_cache(maxsize=1)
+def _sensor_table() -> dict[str, float]:
+    """OpenSfM's public table (3,709 cameras, "MAKE MODEL" → width mm; geoortho/data/README.md),
+    keyed in lower case with single spaces."""
+    import json
+
+    raw = json.loads((Path(__file__).parent / "data" / "sensor_data.json").read_text())
+    return {" ".join(k.lower().split()): float(v) for k, v in raw.items() if float(v) > 0}
+
+
+def sensor_width_from_table(make: str, model: str) -> float:
+    """Sensor width (mm) of a camera by its EXIF Make and Model: geoortho's DJI table (by model),
+    then OpenSfM's by "make model" (also the make's first word: "NIKON CORPORATION" → "nikon",
+    and the model alone where it already names the make); NaN when unknown."""
     key = model.lower().replace(" ", "")
     if key in SENSOR_WIDTHS_MM:
-        return SENSOR_WIDTHS_MM[key], "database"
+        return SENSOR_WIDTHS_MM[key]
+    table = _sensor_table()
+    mk, md = " ".join(make.lower().split()), " ".join(model.lower().split())
+    if not md:
+        return math.nan
+    for k in (f"{mk} {md}", f"{mk.split()[0]} {md}" if mk else "", md):
+        if k and k in table:
+            return table[k]
+    return math.nan
+
+
+def _sensor_width(
+    make: str,
+    model: str,
+    focal_mm: float,
+    focal_35mm: float,
+    exif_ifd: dict[int, Any],
+    size_px: tuple[int, int],
+    user_mm: float | None,
+) -> tuple[float, str]:
+    """Sensor width: user option, then the camera tables, 35 mm equivalent, focal-plane resolution."""
+    if user_mm:
+        return float(user_mm), "user"
+    width = sensor_width_from_table(make, model)
+    if math.isfinite(width):
+        return width, "database"
     if math.isfinite(focal_35mm) and focal_35mm > 0 and math.isfinite(focal_mm):
-        # The 35 mm equivalent as drone makers compute it scales the 36 mm frame width.
-        return focal_mm * 36.0 / focal_35mm, "35mm equivalent"
+        return _width_from_35mm(focal_mm, focal_35mm, size_px)
     xres = _float(exif_ifd.get(0xA20E))
     if not (math.isfinite(xres) and xres > 0):
         return math.nan, ""
@@ -366,9 +406,26 @@ def _sensor_width(
     unit = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}.get(int(unit_code) if math.isfinite(unit_code) else 2, 25.4)
     # The resolution refers to the image size the camera wrote in EXIF (not a later downscale).
     sizes = [_float(exif_ifd.get(t)) for t in (0xA002, 0xA003)]
-    exif_w = max((v for v in sizes if math.isfinite(v)), default=0.0) or longer_px
+    exif_w = max((v for v in sizes if math.isfinite(v)), default=0.0) or max(size_px)
     return exif_w / xres * unit, "focal plane resolution"
-    return math.nan, ""
+
+
+FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # 43.27 mm
+
+
+def _width_from_35mm(focal_mm: float, focal_35mm: float, size_px: tuple[int, int]) -> tuple[float, str]:
+    """The sensor width (longer side) from the 35 mm equivalent focal length, by the diagonal as
+    makers define it (CIPA DC-008: same angle of view across the diagonal as on a 36 × 24 mm frame).
+
+    The diagonal is the full sensor's: a 16:9 (or wider) photo is taken as a crop of a 4:3 sensor of
+    the same width, as drone cameras make it, their 35 mm figure staying that of the whole sensor."""
+    diag_mm = focal_mm * FULL_FRAME_DIAGONAL_MM / focal_35mm
+    long_px, short_px = max(size_px), min(size_px)
+    aspect = long_px / short_px if short_px else 4 / 3
+    note = "35mm equivalent (diagonal)"
+    if aspect > 1.6:  # 16:9 and wider: a crop of a 4:3 sensor
+        aspect, note = 4 / 3, "35mm equivalent (diagonal; a 16:9 crop of a 4:3 sensor assumed)"
+    return diag_mm * aspect / math.hypot(aspect, 1.0), note
 
 
 def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = None) -> Photo:
@@ -432,10 +489,11 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     if math.isfinite(focal_35) and focal_35 < 8:
         warnings.append(f"FocalLengthIn35mmFilm {focal_35:g} mm is not a lens: ignored")
         focal_35 = math.nan
-    sw, sw_source = _sensor_width(model, focal_mm, focal_35, exif_ifd, max(width, height), sensor_width_mm)
+    sw, sw_source = _sensor_width(make, model, focal_mm, focal_35, exif_ifd, (width, height), sensor_width_mm)
     if not math.isfinite(focal_mm) and math.isfinite(focal_35):
         # No true focal length: the 35 mm equivalent on a 36 mm-wide virtual sensor.
-        focal_mm, sw, sw_source = focal_35, 36.0, "35mm equivalent"
+        focal_mm = focal_35
+        sw, sw_source = _width_from_35mm(focal_35, focal_35, (width, height))
     taken = _text(exif_ifd.get(0x9003)) or _text(exif.get(306))
     if re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d.*", taken):
         taken = taken[:10].replace(":", "-") + "T" + taken[11:19]

@@ -142,7 +142,7 @@ def test_real_mini4pro_partial_xmp():
 def test_real_phone_photo_with_trailer_is_not_truncated():
     folder = real_data("findgcp_aruco") / "images"
     ps = read_photos(folder, require_gps=False)
-    assert len(ps.photos) == 2 and ps.photos[0].sensor_source == "35mm equivalent"
+    assert len(ps.photos) == 2 and ps.photos[0].sensor_source == "35mm equivalent (diagonal)"
 
 
 # --- footprints ----------------------------------------------------------------------------
@@ -483,3 +483,42 @@ def test_skydio_struct_in_attribute_form_and_other_frames():
     assert tags["drone-skydio:CameraOrientationNED:Pitch"] == "-84.0"
     assert tags["drone-skydio:CameraOrientationNED:Yaw"] == "146.5"
     assert tags["drone-skydio:CameraOrientationFLU:Yaw"] == "44.0"
+
+
+def test_sensor_table_of_thousands_of_cameras():
+    """Issue 26: OpenSfM's public table ships with the package; our DJI entries win where more precise."""
+    from geoortho.photos import _sensor_table, sensor_width_from_table
+
+    assert len(_sensor_table()) > 3600
+    assert sensor_width_from_table("Canon", "PowerShot S110") == 7.53  # the eBee's old camera
+    assert sensor_width_from_table("NIKON CORPORATION", "NIKON D800") == 35.9  # make's first word
+    assert sensor_width_from_table("DJI", "FC330") == 6.17  # ours (OpenSfM: 6.25)
+    assert sensor_width_from_table("SONY", "DSC-RX1RM2") == 35.9  # WingtraOne, ours
+    assert math.isnan(sensor_width_from_table("Nobody", "X-1"))
+
+
+@pytest.mark.parametrize(
+    ("folder", "model", "width_mm", "tol"),
+    [
+        # Mini 4 Pro, 4:3: the width rule gave 10.08 mm (4 % off); the diagonal 9.69
+        ("dji_mini4pro_defects", "fc8482", 9.7, 0.002),
+        # Phantom 3 in 16:9 (4000 x 2250) on its 4:3 sensor: f35 stays the whole sensor's (20 mm)
+        ("brighton_dji_xmp_pair", "fc300s", 6.17, 0.015),
+        # Phantom 3, 4:3 photos downscaled to 2400 x 1800
+        ("toledo_dji", "fc300x", 6.17, 0.015),
+    ],
+)
+def test_35mm_fallback_by_the_diagonal_on_real_photos(monkeypatch, folder, model, width_mm, tol):
+    """A camera missing from every table: its width from the 35 mm equivalent by the diagonal,
+    crop modes included, and the GSD this gives against physics (pixel pitch x height / focal)."""
+    import geoortho.photos as photos
+
+    monkeypatch.delitem(photos.SENSOR_WIDTHS_MM, model)
+    monkeypatch.setattr(photos, "sensor_width_from_table", lambda make, model: math.nan)
+    p = read_photos(real_data(folder) / "images", require_gps=False).photos[0]
+    assert p.sensor_source.startswith("35mm equivalent (diagonal")
+    assert p.sensor_width_mm == pytest.approx(width_mm, rel=tol)
+    # GSD at 100 m: the fallback's against the published sensor's, within 2 %
+    gsd = 100.0 / p.focal_px
+    true_gsd = 100.0 * width_mm / p.focal_mm / max(p.width_px, p.height_px)
+    assert gsd == pytest.approx(true_gsd, rel=0.02)
