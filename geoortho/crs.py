@@ -9,10 +9,20 @@ import re
 from functools import lru_cache
 from typing import Any
 
+import numpy as np
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
-__all__ = ["WGS84", "parse_crs", "utm_crs_for", "transformer", "crs_to_text", "horizontal_unit_m", "geoid_undulation_m"]
+__all__ = [
+    "WGS84",
+    "parse_crs",
+    "utm_crs_for",
+    "transformer",
+    "crs_to_text",
+    "horizontal_unit_m",
+    "geoid_undulation_m",
+    "grid_north",
+]
 
 WGS84 = CRS.from_epsg(4326)
 WGS84_3D = CRS.from_epsg(4979)
@@ -88,6 +98,31 @@ def horizontal_unit_m(crs: CRS) -> float:
     if axis is None or axis.unit_conversion_factor in (None, 0):
         return 1.0
     return float(axis.unit_conversion_factor)
+
+
+def grid_north(crs: CRS, lon_deg: Any, lat_deg: Any, step_m: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """Meridian convergence and point scale of a projected CRS at WGS84 points.
+
+    Returns the grid azimuth of true north (degrees clockwise from grid north: a true azimuth
+    ψ is ψ + this on the grid; about Δλ·sin φ in Transverse Mercator, 1.9° at a UTM zone edge
+    at 40° N) and the grid metres per ground metre on the ellipsoid (UTM: 0.9996 on the central
+    meridian, 1.001 at a zone edge). Measured by a ``step_m`` step due north and one due east."""
+    from pyproj import Geod
+
+    lon = np.atleast_1d(np.asarray(lon_deg, float))
+    lat = np.atleast_1d(np.asarray(lat_deg, float))
+    geod = Geod(ellps="WGS84")
+    lon_n, lat_n, _ = geod.fwd(lon, lat, np.zeros_like(lon), np.full_like(lon, step_m))
+    lon_e, lat_e, _ = geod.fwd(lon, lat, np.full_like(lon, 90.0), np.full_like(lon, step_m))
+    t = transformer(WGS84, crs)
+    x0, y0 = t.transform(lon, lat)
+    xn, yn = t.transform(lon_n, lat_n)
+    xe, ye = t.transform(lon_e, lat_e)
+    unit = horizontal_unit_m(crs)
+    convergence = np.degrees(np.arctan2(xn - x0, yn - y0))
+    # the mean of the two directions' scales (equal in a conformal projection)
+    scale = (np.hypot(xn - x0, yn - y0) + np.hypot(xe - x0, ye - y0)) / (2 * step_m) * unit
+    return convergence, scale
 
 
 # EGM96 on a 15' grid: PROJ's current name and the legacy one Debian's proj-data ships.

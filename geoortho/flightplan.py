@@ -28,10 +28,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pyproj import CRS, Geod
+from pyproj import CRS
 
 from .camera import Intrinsics, Pose, rotation_from_ypr
-from .crs import WGS84, crs_to_text, parse_crs, transformer, utm_crs_for
+from .crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
 from .markers import Dictionary, get_dictionary, marker_cells
@@ -1002,13 +1002,10 @@ def _ground_under(
 
 
 def _true_headings(xy: np.ndarray, grid_heading: np.ndarray, crs: CRS) -> np.ndarray:
-    """Grid headings as azimuths from true north (meridian convergence applied), by geodesy."""
-    t = transformer(crs, WGS84)
-    a = np.radians(grid_heading)
-    lon0, lat0 = t.transform(xy[:, 0], xy[:, 1])
-    lon1, lat1 = t.transform(xy[:, 0] + 10 * np.sin(a), xy[:, 1] + 10 * np.cos(a))
-    az, _, _ = Geod(ellps="WGS84").inv(lon0, lat0, lon1, lat1)
-    return np.asarray((np.asarray(az) + 180.0) % 360.0 - 180.0)
+    """Grid headings as azimuths from true north (the meridian convergence taken off)."""
+    lon, lat = transformer(crs, WGS84).transform(xy[:, 0], xy[:, 1])
+    convergence, _ = grid_north(crs, lon, lat)
+    return np.asarray((np.asarray(grid_heading) - convergence + 180.0) % 360.0 - 180.0)
 
 
 def _flight_length(shots: list[dict[str, Any]]) -> float:

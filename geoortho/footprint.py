@@ -27,7 +27,7 @@ import numpy as np
 from pyproj import CRS
 
 from .camera import Intrinsics, Pose, project_points, rotation_from_ypr, undistort_pixels
-from .crs import WGS84, crs_to_text, parse_crs, transformer, utm_crs_for
+from .crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split, warn_grouped
 from .heights import GpsAltitude, HeightModel, resolve_heights
@@ -52,6 +52,10 @@ class PhotoCamera:
     intrinsics: Intrinsics
     pose: Pose
     height_source: str
+    # Meridian convergence applied to the yaw (grid azimuth of true north, degrees) and the CRS's
+    # point scale (grid metres per ground metre) at the photo: crs.grid_north.
+    grid_convergence_deg: float = 0.0
+    grid_scale: float = 1.0
 
     def project(self, points_xyz: np.ndarray) -> np.ndarray:
         """World points (N, 3) → pixel coordinates (N, 2), NaN behind the camera.
@@ -152,11 +156,21 @@ def photo_cameras(
         gnss_takeoff=gnss_takeoff,
         ground_label=ground_label,
     )
+    # Yaw is from true north; the CRS's grid north differs by the meridian convergence (1.9° at
+    # a UTM zone edge at 40° N, 0.7° between UTM 29N and PT-TM06 in Lisbon).
+    convergence, scale = grid_north(crs, lon, lat)
     cams = []
     for i, p in enumerate(photos):
-        rot = rotation_from_ypr(p.yaw_deg, p.pitch_deg, p.roll_deg)
+        rot = rotation_from_ypr(p.yaw_deg + convergence[i], p.pitch_deg, p.roll_deg)
         cams.append(
-            PhotoCamera(p, p.intrinsics(), Pose(np.array([x[i], y[i], heights.z_m[i]]), rot), heights.sources[i])
+            PhotoCamera(
+                p,
+                p.intrinsics(),
+                Pose(np.array([x[i], y[i], heights.z_m[i]]), rot),
+                heights.sources[i],
+                float(convergence[i]),
+                float(scale[i]),
+            )
         )
     return cams, heights
 
@@ -218,6 +232,11 @@ def compute_footprints(
     flat_d = dirs.reshape(-1, 3)
     hits = surface.intersect(flat_o, flat_d, max_range_m=max_range_m)
     pts = hits.points.reshape(n, m + 1, 3)
+    # Rays are cast in ground metres; the CRS's grid is k times larger horizontally (UTM: 0.9996
+    # to 1.001), so the footprint's offsets from the camera are scaled into grid units.
+    k = np.array([getattr(c, "grid_scale", 1.0) for c in cams], float)
+    if np.any(k != 1.0):
+        pts[..., :2] = origins[:, None, :2] + k[:, None, None] * (pts[..., :2] - origins[:, None, :2])
     hit = hits.hit.reshape(n, m + 1)
     rng = hits.range_m.reshape(n, m + 1)
     # GSD as the side of the ground area one pixel covers (level ground locally):
@@ -445,6 +464,7 @@ def _footprint_layers(
         "height_source": [f"{ground}; {c.height_source}" for c in cams],
         "vertical_datum": [heights.datum] * len(cams),
         "attitude_source": [c.photo.attitude_source for c in cams],
+        "grid_convergence_deg": [c.grid_convergence_deg for c in cams],
         "camera": [f"{c.photo.make} {c.photo.model}".strip() for c in cams],
         "focal_px": [c.intrinsics.focal_px for c in cams],
         "taken_at": [c.photo.taken_at for c in cams],

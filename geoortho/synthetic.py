@@ -672,12 +672,18 @@ def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random
     bias = rng.normal(0, GPS_BIAS_SIGMA_M, 2)
     alt_bias = rng.normal(0, GPS_ALT_BIAS_SIGMA_M)
     t0 = dt.datetime(2026, 5, 14, 10, 0, 0)
+    # The drone writes yaw from true north; the truth's yaw is from the grid's north.
+    from .crs import grid_north
+
+    lon_t, lat_t = to_ll.transform(np.array([s.x for s in shots]), np.array([s.y for s in shots]))
+    convergence, _ = grid_north(scene.crs, lon_t, lat_t)
     out = []
     for i, s in enumerate(shots):
         ex, ey = s.x + bias[0] + rng.normal(0, GPS_NOISE_SIGMA_M), s.y + bias[1] + rng.normal(0, GPS_NOISE_SIGMA_M)
         lon, lat = to_ll.transform(ex, ey)
         n = ATTITUDE_NOISE_SIGMA_DEG
-        fyaw = s.yaw_deg + rng.normal(0, 2.0)  # the aircraft points a little off the gimbal
+        true_yaw = s.yaw_deg - float(convergence[i])
+        fyaw = true_yaw + rng.normal(0, 2.0)  # the aircraft points a little off the gimbal
         out.append(
             replace(
                 s,
@@ -687,7 +693,7 @@ def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random
                 rec_gps_alt_m=s.z + alt_bias + rng.normal(0, 0.3),
                 rec_rel_alt_m=s.z - scene.home[2] + rng.normal(0, REL_ALT_NOISE_SIGMA_M),
                 rec_abs_alt_m=s.z + alt_bias + rng.normal(0, 0.3),
-                rec_yaw_deg=_wrap180(s.yaw_deg + rng.normal(0, n)),
+                rec_yaw_deg=_wrap180(true_yaw + rng.normal(0, n)),
                 rec_pitch_deg=s.pitch_deg + rng.normal(0, n),
                 rec_roll_deg=s.roll_deg + rng.normal(0, n),
                 flight_yaw_deg=_wrap180(fyaw),

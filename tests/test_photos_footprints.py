@@ -522,3 +522,22 @@ def test_35mm_fallback_by_the_diagonal_on_real_photos(monkeypatch, folder, model
     gsd = 100.0 / p.focal_px
     true_gsd = 100.0 * width_mm / p.focal_mm / max(p.width_px, p.height_px)
     assert gsd == pytest.approx(true_gsd, rel=0.02)
+
+
+def test_footprints_agree_across_projected_crs(tiny_survey, tmp_path):
+    """Issue 26: yaw is from true north; in a projected CRS the footprint turns by the meridian
+    convergence and grows by the point scale. Written in PT-TM06 (EPSG:3763), UTM 29N and UTM 30N
+    (photos 6° west of its central meridian: convergence 3.9°, scale 1.0036) and reprojected to one CRS,
+    they agree (before: 1.03 % of the area apart between 3763 and UTM 29N, 0.10 % with the rotation alone)."""
+    layers = {}
+    for crs in ("EPSG:3763", "EPSG:32629", "EPSG:32630"):
+        r = footprints(tiny_survey.images, tmp_path / f"{crs[5:]}.gpkg", crs=crs, ground_elevation_m=0)
+        layers[crs] = gpd.read_file(r.output, layer="footprints").set_index("image")
+    ref = layers["EPSG:3763"]
+    assert abs(ref["grid_convergence_deg"].mean() - 0.66) < 0.01  # Lisbon: 0.66° in PT-TM06
+    for crs in ("EPSG:32629", "EPSG:32630"):
+        other = layers[crs].to_crs("EPSG:3763")
+        for name, row in ref.iterrows():
+            a, b = row.geometry, other.loc[name].geometry
+            assert a.symmetric_difference(b).area / a.area < 1e-4, (crs, name)
+    assert layers["EPSG:32630"]["grid_convergence_deg"].mean() > 3.5  # west of its meridian
