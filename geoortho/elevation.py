@@ -21,13 +21,13 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from .crs import crs_to_text
+from .crs import crs_to_text, parse_crs
 from .errors import DependencyError, InputError, ParameterError
 from .feedback import Feedback, as_feedback, split
 from .gapfill import fill_harmonic, gap_mask
 from .ground import SmrfParams, ground_mask, smrf_surface
 from .outputs import atomic_paths
-from .pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points
+from .pointcloud import CHUNK_POINTS, Chunk, PointSource, _inside_area, open_points, reprojected
 
 __all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
 
@@ -324,6 +324,7 @@ def dem(
     smrf_scalar: float = SmrfParams.scalar,
     smrf_margin_m: float = SmrfParams.margin_m,
     engine: Engine = "native",
+    points_crs: str | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> DemResult:
@@ -351,7 +352,9 @@ def dem(
     ground_method : str
         Ground points for the DTM: smrf (filter), csf (cloth simulation) or classification (the file's class 2).
     crs : str
-        CRS of the points when the file has none (or to override a wrong one).
+        Output CRS (projected): the points are reprojected into it (x, y; heights unchanged)
+        before gridding. Default: the points' CRS. For points without a CRS (PLY, arrays),
+        it is also taken as theirs.
     max_gap_m : float
         Fill gaps up to this far from data (on both sides); farther cells stay nodata.
     smooth_px : int
@@ -374,10 +377,19 @@ def dem(
         Objects found by SMRF are grown by this before the ground is refilled (0 = as published).
     engine : str
         native, or pdal (PDAL's pipeline, when the pdal module is installed).
+    points_crs : str
+        CRS of the points, when the file has none or states a wrong one (overrides it).
     """
     fb = as_feedback(feedback)
     _check_options(method, ground_method, resolution_m, max_gap_m, smooth_px, engine)
-    src = open_points(points, crs)
+    src = open_points(points, points_crs, default_crs=crs)
+    if crs is not None and parse_crs(crs) != src.crs:
+        _check_in_area(src)
+        if engine == "pdal":
+            raise ParameterError("engine", "reprojection (--crs) runs on the native engine only")
+        src = reprojected(src, crs)
+        if classified is not None:
+            src.notes.append(f"the classified cloud keeps the points' CRS ({src.file_crs.name})")
     _check_source(src, classified, ground_method)
     for n in src.notes:
         fb.info(n)
@@ -537,6 +549,18 @@ def _check_options(
         raise ParameterError("resolution_m", "resolution, max gap and smoothing must not be negative")
     if engine not in ENGINES:
         raise ParameterError("engine", f"unknown engine {engine!r}; use one of {', '.join(ENGINES)}")
+
+
+def _check_in_area(src: PointSource) -> None:
+    """Before reprojecting: the points must lie where their CRS is used, or that CRS is wrong
+    (the old meaning of --crs was to override it; --points-crs does that now)."""
+    xmin, ymin, _, xmax, ymax, _ = src.bounds
+    if _inside_area(src.crs, (xmin + xmax) / 2, (ymin + ymax) / 2) is False:
+        raise InputError(
+            f"the points lie outside the area of their CRS ({src.crs.name}), so they cannot be reprojected "
+            "to --crs: give the CRS they are really in with --points-crs",
+            path=src.path,
+        )
 
 
 def _check_source(src: PointSource, classified: Path | None, ground_method: str) -> None:

@@ -14,10 +14,11 @@ use only in its units; the reason is reported.
 from __future__ import annotations
 
 import copy
+import math
 import os
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -60,9 +61,24 @@ class PointSource:
     notes: list[str] = field(default_factory=list)  # how the CRS and units were decided
     _array: np.ndarray | None = None
     _classes: np.ndarray | None = None
+    _reproject_from: CRS | None = None  # the file's CRS when the points are read into ``crs``
+
+    @property
+    def file_crs(self) -> CRS:
+        """The CRS the file's coordinates are in (``crs`` unless reprojected)."""
+        return self._reproject_from or self.crs
 
     def chunks(self, size: int = CHUNK_POINTS) -> Iterator[Chunk]:
         """The points, ``size`` at a time (NaN coordinates are the caller's to judge)."""
+        if self._reproject_from is None:
+            yield from self._file_chunks(size)
+            return
+        t = transformer(self._reproject_from, self.crs)
+        for ch in self._file_chunks(size):
+            x, y = t.transform(ch.x, ch.y)
+            yield Chunk(np.asarray(x, float), np.asarray(y, float), ch.z, ch.classification, ch.start)
+
+    def _file_chunks(self, size: int) -> Iterator[Chunk]:
         if self._array is not None:
             for i in range(0, self.count, size):
                 a = self._array[i : i + size]
@@ -109,12 +125,16 @@ def open_points(
     crs: str | CRS | None = None,
     *,
     classification: np.ndarray | None = None,
+    default_crs: str | CRS | None = None,
 ) -> PointSource:
     """Open a LAS/LAZ/PLY file or wrap an (N, 3) array (x, y, z in ``crs``).
 
-    ``crs`` overrides the file's CRS (and is required when it has none).
+    ``crs`` overrides the file's CRS; ``default_crs`` is taken only when the file has none
+    (one of them is required then).
     """
     override = parse_crs(crs) if crs is not None else None
+    if override is None and default_crs is not None and _has_no_crs(source):
+        override = parse_crs(default_crs)
     if isinstance(source, np.ndarray):
         return _from_array(source, override, classification, None, [])
     path = Path(source)
@@ -126,6 +146,49 @@ def open_points(
     if ext == ".ply":
         return _open_ply(path, override)
     raise InputError(f"unknown point cloud format {ext!r} (use {', '.join(POINT_EXTENSIONS)})", path=path)
+
+
+def _has_no_crs(source: str | os.PathLike[str] | np.ndarray) -> bool:
+    """An array or PLY (never a CRS), or a LAS/LAZ whose header has none (or none readable)."""
+    if isinstance(source, np.ndarray) or Path(source).suffix.lower() == ".ply":
+        return True
+    try:
+        import laspy
+
+        with laspy.open(str(source)) as reader:
+            return reader.header.parse_crs() is None
+    except Exception:
+        return True
+
+
+def reprojected(src: PointSource, crs: str | CRS) -> PointSource:
+    """The same points in another projected CRS (x, y transformed by pyproj as they are read;
+    heights unchanged). The source itself if it already is in ``crs``."""
+    target = parse_crs(crs)
+    if target == src.crs:
+        return src
+    if not target.is_projected:
+        raise InputError(f"the output CRS {target.name} is not projected: a DEM needs metres or feet")
+    t = transformer(src.crs, target)
+    xmin, ymin, zmin, xmax, ymax, zmax = src.bounds
+    if all(map(math.isfinite, (xmin, ymin, xmax, ymax))):
+        bx0, by0, bx1, by1 = t.transform_bounds(xmin, ymin, xmax, ymax, densify_pts=21)
+    else:
+        bx0 = by0 = bx1 = by1 = math.nan
+    h_name, h_m = _units_of(target)
+    note = (
+        f"reprojected from {src.crs.name} to {target.name} (x, y by pyproj; heights unchanged, "
+        f"in {src.vertical_unit} of the points' vertical datum)"
+    )
+    return replace(
+        src,
+        crs=target,
+        bounds=(bx0, by0, zmin, bx1, by1, zmax),
+        horizontal_unit=h_name,
+        horizontal_m=h_m,
+        notes=[*src.notes, note],
+        _reproject_from=src.crs,
+    )
 
 
 def write_las(
@@ -299,7 +362,9 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
             except Exception as e:  # a broken CRS record is reported, not fatal when --crs is given
                 file_crs = None
                 if override is None:
-                    raise InputError(f"unreadable CRS in the LAS header ({e}); give the CRS (--crs)", path=path) from e
+                    raise InputError(
+                        f"unreadable CRS in the LAS header ({e}); give the points' CRS (--points-crs)", path=path
+                    ) from e
             keys = _geokeys(h)
     except InputError:
         raise
@@ -312,7 +377,7 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
         crs = override
         notes.append(f"CRS given: {crs.name}")
     elif file_crs is None:
-        raise InputError("no CRS in the LAS header; give the CRS (--crs)", path=path)
+        raise InputError("no CRS in the LAS header; give the points' CRS (--points-crs)", path=path)
     else:
         crs = file_crs
         notes.append(f"CRS from the LAS header: {crs.name}" + (f" (EPSG:{crs.to_epsg()})" if crs.to_epsg() else ""))
@@ -336,7 +401,7 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
     if crs.is_geographic:
         raise InputError(
             "geographic coordinates (degrees): reproject the cloud to a projected CRS or give "
-            "the projected CRS it is in (--crs)",
+            "the projected CRS it is in (--points-crs)",
             path=path,
         )
     h_name, h_m = _units_of(crs)
@@ -366,7 +431,7 @@ def _open_ply(path: Path, override: CRS | None) -> PointSource:
     names = v.data.dtype.names or ()
     cls = np.asarray(v["classification"], np.uint8) if "classification" in names else None
     if override is None:
-        raise InputError("PLY files carry no CRS; give it (--crs)", path=path)
+        raise InputError("PLY files carry no CRS; give the points' CRS (--points-crs)", path=path)
     return _from_array(xyz, override, cls, path, [f"CRS given: {override.name}"])
 
 

@@ -169,7 +169,7 @@ def test_csf_on_a_building_dominated_tile(tmp_path):
     # sample_c: one building covers most of the tile; SMRF's 18 m window cannot remove it, CSF can
     pytest.importorskip("CSF", reason="cloth-simulation-filter is in the dev extra")
     path = real_data("pdal_las") / "sample_c.las"
-    r = dem(path, tmp_path / "dsm.tif", crs="EPSG:32610", ground_method="csf", classified=tmp_path / "c.las")
+    r = dem(path, tmp_path / "dsm.tif", points_crs="EPSG:32610", ground_method="csf", classified=tmp_path / "c.las")
     truth = np.asarray(laspy.read(path).classification) == 2
     k, _, _ = _kappa(np.asarray(laspy.read(r.classified).classification) == 2, truth)
     assert k >= 0.95, k  # measured 0.986 (SMRF: 0.008)
@@ -190,8 +190,8 @@ def test_mvk_thin_units_key_wins_over_the_epsg_code(tmp_path):
 
 def test_las_and_laz_give_the_same_dsm(tmp_path):
     d = real_data("pdal_las")
-    a = dem(d / "simple.las", tmp_path / "a.tif", crs="EPSG:2992", resolution_m=5.0)
-    b = dem(d / "simple.laz", tmp_path / "b.tif", crs="EPSG:2992", resolution_m=5.0)
+    a = dem(d / "simple.las", tmp_path / "a.tif", points_crs="EPSG:2992", resolution_m=5.0)
+    b = dem(d / "simple.laz", tmp_path / "b.tif", points_crs="EPSG:2992", resolution_m=5.0)
     with rasterio.open(a.dsm) as x, rasterio.open(b.dsm) as y:
         assert np.array_equal(x.read(1), y.read(1))
 
@@ -428,3 +428,38 @@ def test_a_grid_made_in_tiles_is_the_whole_grid(small_survey, tmp_path, monkeypa
     cb = np.asarray(laspy.read(tmp_path / "t.laz").classification)
     assert np.array_equal(ca, cb)
     assert (tmp_path / "t.png").stat().st_size > 1000
+
+
+def test_output_crs_reprojects_and_points_crs_overrides(tmp_path):
+    """Issue 26: dem --crs is the output CRS (points reprojected before gridding, heights unchanged);
+    --points-crs says what the points are in. A smooth surface in UTM 29N made in PT-TM06 matches
+    the surface evaluated at each cell centre."""
+    from pyproj import CRS
+
+    from geoortho.crs import transformer
+
+    rng = np.random.default_rng(3)
+    x = rng.uniform(483_000, 483_200, 400_000)
+    y = rng.uniform(4_288_000, 4_288_150, 400_000)
+
+    def surface(x, y):
+        return 100.0 + 0.05 * (x - 483_000) + 3.0 * np.sin((y - 4_288_000) / 20.0)
+
+    xyz = np.c_[x, y, surface(x, y)]
+    r = dem(xyz, tmp_path / "pt.tif", points_crs="EPSG:32629", crs="EPSG:3763", resolution_m=1.0, method="mean")
+    with rasterio.open(r.dsm) as src:
+        assert CRS(src.crs).to_epsg() == 3763
+        z = src.read(1, masked=True)
+        rows, cols = np.nonzero(~np.ma.getmaskarray(z))
+        cx, cy = rasterio.transform.xy(src.transform, rows, cols)
+    ux, uy = transformer(CRS.from_epsg(3763), CRS.from_epsg(32629)).transform(np.asarray(cx), np.asarray(cy))
+    err = z.compressed() - surface(ux, uy)
+    inner = (ux > 483_005) & (ux < 483_195) & (uy > 4_288_005) & (uy < 4_288_145)
+    assert np.sqrt(np.mean(err[inner] ** 2)) < 0.05  # a placement error of 1 m would be ~0.1 m RMS
+    assert any("reprojected" in n for n in r.notes)
+    # The old meaning (--crs naming a wrong CRS of the points) is caught: they lie outside it.
+    with pytest.raises(InputError, match="--points-crs"):
+        dem(xyz, tmp_path / "x.tif", points_crs="EPSG:3763", crs="EPSG:32629", resolution_m=1.0)
+    # Points without a CRS: --crs alone is theirs, as before.
+    r2 = dem(xyz[:50_000], tmp_path / "same.tif", crs="EPSG:32629", resolution_m=2.0)
+    assert "32629" in r2.crs and not any("reprojected" in n for n in r2.notes)

@@ -157,6 +157,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("smrf_scalar", "number", minimum=0.0, advanced=True),
             Param("smrf_margin_m", "number", unit="m", minimum=0.0, advanced=True),
             Param("engine", "enum", advanced=True),
+            Param("points_crs", "crs", advanced=True),
         ),
         outputs=(
             Output("dsm", "raster"),
