@@ -209,6 +209,10 @@ def _gather(
     return out, ok
 
 
+VISIBLE_SEAM_DN = 10.0
+_FEATHER_PX = 8  # feathering ramps over twice this across a seam
+
+
 def _seam_stats(
     lab: np.ndarray, patches: dict[int, _Patch], gains: np.ndarray, result: np.ndarray, core: tuple[slice, slice]
 ) -> dict[str, float]:
@@ -223,6 +227,7 @@ def _seam_stats(
         "step_n": 0.0,
         "step_other": 0.0,
         "other_n": 0.0,
+        "seam_visible": 0.0,
     }
     sub = lab[core]
     res = result[core].astype(np.float32)
@@ -252,8 +257,10 @@ def _seam_stats(
             continue
         ga, gb = gains[a[seam][ok]], gains[b[seam][ok]]
         stats["seam_raw"] += float(np.abs(va[ok] - vb[ok]).mean(axis=1).sum())
-        stats["seam_bal"] += float(np.abs(va[ok] * ga - vb[ok] * gb).mean(axis=1).sum())
+        diff = np.abs(va[ok] * ga - vb[ok] * gb).mean(axis=1)
+        stats["seam_bal"] += float(diff.sum())
         stats["seam_n"] += float(ok.sum())
+        stats["seam_visible"] += float((diff > VISIBLE_SEAM_DN).sum())
     return stats
 
 
@@ -306,7 +313,9 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     # The plan's owner where it sees the pixel at full resolution, else the best photo that does.
     lab = np.where(planned_ok, planned, best_lab).astype(np.int16)
 
-    radius = 2**_BANDS if ctx.blend == "multiband" else (8 if ctx.blend == "feather" else 0)
+    # Each photo's pixels are rendered this far beyond what it owns: the multiband pyramid reads
+    # them, feathering overlaps them, and without blending one pixel lets the seam be measured.
+    radius = 2**_BANDS if ctx.blend == "multiband" else (_FEATHER_PX if ctx.blend == "feather" else 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 1, 2 * radius + 1)) if radius else None
     patches: dict[int, _Patch] = {}
     for i in np.unique(lab[lab >= 0]):
@@ -333,7 +342,10 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
         )
         blender.prepare((0, 0, shape[1], shape[0]))
         for i, patch in patches.items():
-            m = ((lab[patch.sl] == i) & patch.valid).astype(np.uint8) * 255
+            # Multiband blends across the seam masks by its pyramid; feathering needs the masks to
+            # overlap (OpenCV weighs each mask by the distance to its own edge): the grown region.
+            own = (lab[patch.sl] == i) if ctx.blend == "multiband" else patch.valid
+            m = (own & patch.valid).astype(np.uint8) * 255
             img16 = np.clip(patch.bgr * gains[i] + 0.5, 0, 255).astype(np.int16)
             blender.feed(img16, m, (patch.sl[1].start, patch.sl[0].start))
         res, _ = blender.blend(None, None)  # type: ignore[call-overload]  # OpenCV allocates the outputs
@@ -559,6 +571,9 @@ def _write_report(
             "seam_step_dn": _ratio(totals, "step_seam", "step_n"),
             "texture_step_dn": _ratio(totals, "step_other", "other_n"),
             "seam_pixels": int(totals.get("seam_n", 0)),
+            # seam pixels where the two balanced photos differ by more than VISIBLE_SEAM_DN (low-passed):
+            # the seam one can see, which a long seam through agreeing ground does not inflate
+            "seam_visible_pixels": int(totals.get("seam_visible", 0)),
             "gains_bgr": gains_bgr,
             # the seam pass streams photos: how many coarse views it held at once (memory)
             "coarse_views_held_max": coarse_views_held_max,

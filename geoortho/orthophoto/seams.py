@@ -4,9 +4,9 @@
 Every photo is rectified at the coarse cell (decoded at a reduced size by the
 JPEG decoder itself). Each cell first goes to the photo that sees it best
 (:func:`~geoortho.orthophoto.rectify.preference_cost`): a Voronoi-like split. A band
-around each of those borders is then handed to OpenCV's graph-cut seam finder,
-which moves the seam inside the band to where the two photos agree (around a
-building rather than through it). Gains are solved jointly over all overlaps
+around each of those borders is then handed to OpenCV's graph-cut seam finder
+with a colour-difference cost on the balanced photos, which moves the seam inside
+the band to where the two photos agree (around a building rather than through it). Gains are solved jointly over all overlaps
 by least squares on log colour means (:func:`solve_gains`).
 """
 
@@ -417,7 +417,11 @@ def _graph_cut(bands: list[_Band], labels: np.ndarray, cshape: tuple[int, int], 
     masks = [cv2.UMat(b.mask) for b in bands]  # type: ignore[call-overload]
     # Balanced colours: the cut should follow content, not exposure differences.
     images = [b.image.astype(np.float32) * gains[b.index] for b in bands]
-    finder = cv2.detail.GraphCutSeamFinder("COST_COLOR_GRAD")
+    # The cut's cost is how much the two balanced photos disagree in colour on either side of it:
+    # agreement is rewarded, not edges. OpenCV's COST_COLOR_GRAD divides by the gradients, which
+    # drew seams along edges, where any misregistration shows (small survey: 2.76 DN across seams,
+    # Voronoi 2.42; this cost: 2.30; toledo 12.23 / 12.88 / 10.64).
+    finder = cv2.detail.GraphCutSeamFinder("COST_COLOR")
     cut = finder.find(images, [b.corner for b in bands], masks)
     # Owners after the cut; cells claimed by several (or by none) keep the best-seeing photo among them.
     out_best = np.full(cshape, np.inf, np.float32)
