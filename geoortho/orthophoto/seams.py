@@ -6,8 +6,9 @@ JPEG decoder itself). Each cell first goes to the photo that sees it best
 (:func:`~geoortho.orthophoto.rectify.preference_cost`): a Voronoi-like split. A band
 around each of those borders is then handed to OpenCV's graph-cut seam finder
 with a colour-difference cost on the balanced photos, which moves the seam inside
-the band to where the two photos agree (around a building rather than through it). Gains are solved jointly over all overlaps
-by least squares on log colour means (:func:`solve_gains`).
+the band to where the two photos agree (around a building rather than through it).
+Gains are solved jointly over all overlaps by least squares on log colour means
+(:func:`solve_gains`).
 """
 
 from __future__ import annotations
