@@ -285,6 +285,35 @@ def _square(win: Window, radius_px: float, w: int, h: int) -> tuple[int, int, in
     return x0, y0, x1, y1
 
 
+def plausible_quad(corners: np.ndarray, win: Window) -> bool:
+    """A decoded quadrilateral shaped like a marker: convex, opposite sides within 1.5x of each
+    other (a small square seen in perspective is near a parallelogram, however foreshortened);
+    where the window predicts the view, no more than 1.6x as uneven as predicted (and 2x allowed)
+    and its size within 2x of the predicted side. Weak dictionaries (AprilTag 16h5: 5 bits apart)
+    decode texture beside a real marker as a skewed quad (sides 37, 9.5, 32, 35 px); no marker
+    looks like that, while a phone's low view of one is 88 x 38 px and stays."""
+    c = np.asarray(corners, float).reshape(4, 2)
+    sides = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)
+    if sides.min() <= 0 or not cv2.isContourConvex(c.astype(np.float32)):
+        return False
+    if max(sides[0], sides[2]) > 1.5 * min(sides[0], sides[2]) or max(sides[1], sides[3]) > 1.5 * min(
+        sides[1], sides[3]
+    ):
+        return False
+    if len(win.ground_px) == 4:
+        m = np.asarray(win.ground_px, float).reshape(2, 2)
+        a, b = np.linalg.norm(m[:, 0]), np.linalg.norm(m[:, 1])
+        expected = max(a, b) / min(a, b) if min(a, b) > 0 else 1.0
+        uneven = float(sides.max() / sides.min())
+        if uneven > 2.0 and uneven > 1.6 * expected:
+            return False
+    if win.side_px > 0:
+        side = math.sqrt(abs(float(cv2.contourArea(c.astype(np.float32)))))
+        if not 0.5 <= side / win.side_px <= 2.0:
+            return False
+    return True
+
+
 def _search(
     gray: np.ndarray,
     box: tuple[int, int, int, int],
@@ -311,7 +340,7 @@ def _search(
             continue
         if attempt not in ("fast", "plain") and not in_frame(win.x_px, win.y_px, w, h):
             continue
-        hits = _run(crop, attempt, dictionary, win.side_px)
+        hits = [(mid, c) for mid, c in _run(crop, attempt, dictionary, win.side_px) if plausible_quad(c, win)]
         for mid, c in hits:
             c = c + [x0, y0]
             centre = marker_centre(c)

@@ -179,6 +179,49 @@ class _Renderer:
         vals = np.where(inside[None], flat[:, idx], 1.0)  # quiet zone white
         return np.where(board[None], vals, 0.0).sum(axis=2) / np.maximum(board.sum(axis=1), 1)[None]
 
+    def ncc_ids(
+        self,
+        img: np.ndarray,
+        w: np.ndarray,
+        cx: float,
+        cy: float,
+        A: np.ndarray,
+        blur_px: float,
+        blur_deg: float,
+        defocus_px: float,
+        all_cells: np.ndarray,
+    ) -> np.ndarray:
+        """:func:`_ncc` of ``img`` with every pattern :meth:`render_ids` renders, without rendering
+        them: a template is linear in its cells (pixel = Σ cell share × cell + quiet-zone share), so
+        each correlation's sums are dot products with the cells. A dictionary of 2,320 ids in four
+        turns took 8 s per fit rendered; this is a few ms."""
+        u, v = self.uv(cx, cy, A, blur_px, blur_deg, defocus_px)
+        n = all_cells.shape[1]
+        board, inside, idx = coded_cells_at(u, v, n)
+        nb = np.maximum(board.sum(axis=1), 1).astype(float)
+        rows = np.nonzero(inside)[0]
+        W = np.zeros((len(img), n * n))
+        np.add.at(W, (rows, idx[inside]), 1.0 / nb[rows])
+        const = (board & ~inside).sum(axis=1) / nb
+        img = np.asarray(img, float)
+        w = np.asarray(w, float)
+        sw = w.sum()
+        if sw < 8:
+            return np.full(len(all_cells), -1.0)
+        f = all_cells.reshape(len(all_cells), -1).astype(float)
+        s_t = f @ (W.T @ w) + float(w @ const)
+        s_it = f @ (W.T @ (w * img)) + float(w @ (img * const))
+        s_tt = (
+            np.einsum("ki,ij,kj->k", f, W.T @ (w[:, None] * W), f) + 2 * f @ (W.T @ (w * const)) + float(w @ const**2)
+        )
+        mi = float(w @ img) / sw
+        var_i = float(w @ (img - mi) ** 2)
+        mt = s_t / sw
+        num = s_it - sw * mi * mt
+        var_t = np.maximum(s_tt - sw * mt * mt, 0.0)
+        den = np.sqrt(var_i * var_t)
+        return np.where(den > 1e-12, num / np.where(den > 1e-12, den, 1.0), -1.0)
+
 
 def _ncc(img: np.ndarray, tpl: np.ndarray, w: np.ndarray) -> float:
     """Weighted normalised correlation."""
@@ -366,7 +409,7 @@ def fit_target(
         inner = weight * on_code
         # the expected id in any quarter turn (a marker is laid at any heading; the border alone
         # fixed the fit's) against every other id in any quarter turn
-        scores = [_ncc(pix, t, inner) for t in rend.render_ids(cx, cy, A, blen, bdeg, dpx, _coded_patterns(dictionary))]
+        scores = list(rend.ncc_ids(pix, inner, cx, cy, A, blen, bdeg, dpx, _coded_patterns(dictionary)))
         mine = slice(4 * marker_id, 4 * marker_id + 4)
         id_score = max(scores[mine])
         id_margin = id_score - max(scores[: mine.start] + scores[mine.stop :])
