@@ -130,36 +130,19 @@ class _Family:
 # a struct); Pix4D's "Specifications of xmp.camera tags" (support.pix4d.com 360016450032,
 # angles per article 202558969: pitch 0 = nadir), written by MicaSense, Sentera, Parrot
 # Sequoia, senseFly (its own namespace URI, same names), WingtraHub and older Autel firmware.
+def _ypr(pattern: str) -> tuple[str, str, str]:
+    """Yaw, pitch and roll tag names from one pattern: ``"drone-dji:Gimbal{}Degree"``."""
+    return pattern.format("Yaw"), pattern.format("Pitch"), pattern.format("Roll")
+
+
 _FAMILIES: tuple[_Family, ...] = (
+    _Family("gimbal", _ypr("drone-dji:Gimbal{}Degree"), _ypr("drone-dji:Flight{}Degree")),
+    _Family("gimbal (Autel)", _ypr("drone:Gimbal{}Degree"), _ypr("drone:Flight{}Degree")),
+    _Family("gimbal (Parrot)", _ypr("drone-parrot:Camera{}Degree"), _ypr("drone-parrot:Drone{}Degree")),
     _Family(
-        "gimbal",
-        ("drone-dji:GimbalYawDegree", "drone-dji:GimbalPitchDegree", "drone-dji:GimbalRollDegree"),
-        ("drone-dji:FlightYawDegree", "drone-dji:FlightPitchDegree", "drone-dji:FlightRollDegree"),
+        "gimbal (Skydio)", _ypr("drone-skydio:CameraOrientationNED:{}"), _ypr("drone-skydio:FlightOrientationNED:{}")
     ),
-    _Family(
-        "gimbal (Autel)",
-        ("drone:GimbalYawDegree", "drone:GimbalPitchDegree", "drone:GimbalRollDegree"),
-        ("drone:FlightYawDegree", "drone:FlightPitchDegree", "drone:FlightRollDegree"),
-    ),
-    _Family(
-        "gimbal (Parrot)",
-        ("drone-parrot:CameraYawDegree", "drone-parrot:CameraPitchDegree", "drone-parrot:CameraRollDegree"),
-        ("drone-parrot:DroneYawDegree", "drone-parrot:DronePitchDegree", "drone-parrot:DroneRollDegree"),
-    ),
-    _Family(
-        "gimbal (Skydio)",
-        (
-            "drone-skydio:CameraOrientationNED:Yaw",
-            "drone-skydio:CameraOrientationNED:Pitch",
-            "drone-skydio:CameraOrientationNED:Roll",
-        ),
-        (
-            "drone-skydio:FlightOrientationNED:Yaw",
-            "drone-skydio:FlightOrientationNED:Pitch",
-            "drone-skydio:FlightOrientationNED:Roll",
-        ),
-    ),
-    _Family("camera", ("Camera:Yaw", "Camera:Pitch", "Camera:Roll"), pitch_offset_deg=-90.0),
+    _Family("camera", _ypr("Camera:{}"), pitch_offset_deg=-90.0),
 )
 _NO_ATTITUDE = "no attitude in the metadata: assumed nadir, image top to the north"
 # Position and altitudes where EXIF GPS is missing, and the relative/absolute altitudes, by maker.

@@ -162,23 +162,6 @@ class _Renderer:
         value = np.where(ok, r, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
         return value, cover
 
-    def render_ids(
-        self,
-        cx: float,
-        cy: float,
-        A: np.ndarray,
-        blur_px: float,
-        blur_deg: float,
-        defocus_px: float,
-        all_cells: np.ndarray,
-    ) -> np.ndarray:
-        """Every coded pattern of ``all_cells`` (k, n, n) at the same place: (k, pixels)."""
-        u, v = self.uv(cx, cy, A, blur_px, blur_deg, defocus_px)
-        board, inside, idx = coded_cells_at(u, v, all_cells.shape[1])
-        flat = all_cells.reshape(len(all_cells), -1).astype(np.float32)
-        vals = np.where(inside[None], flat[:, idx], 1.0)  # quiet zone white
-        return np.where(board[None], vals, 0.0).sum(axis=2) / np.maximum(board.sum(axis=1), 1)[None]
-
     def ncc_ids(
         self,
         img: np.ndarray,
@@ -191,10 +174,10 @@ class _Renderer:
         defocus_px: float,
         all_cells: np.ndarray,
     ) -> np.ndarray:
-        """:func:`_ncc` of ``img`` with every pattern :meth:`render_ids` renders, without rendering
-        them: a template is linear in its cells (pixel = Σ cell share × cell + quiet-zone share), so
-        each correlation's sums are dot products with the cells. A dictionary of 2,320 ids in four
-        turns took 8 s per fit rendered; this is a few ms."""
+        """:func:`_ncc` of ``img`` with every coded pattern of ``all_cells`` (k, n, n) rendered at
+        the same place, without rendering them: a template is linear in its cells (pixel = Σ cell
+        share × cell + quiet-zone share), so each correlation's sums are dot products with the
+        cells. A dictionary of 2,320 ids in four turns took 8 s per fit rendered; this, a few ms."""
         u, v = self.uv(cx, cy, A, blur_px, blur_deg, defocus_px)
         n = all_cells.shape[1]
         board, inside, idx = coded_cells_at(u, v, n)
