@@ -756,6 +756,7 @@ def _write_cameras(
     priors: _Priors,
     crs: Any,
     reasons: dict[str, str],
+    submodel: dict[str, int] | None = None,
 ) -> None:
     import geopandas as gpd
     import shapely
@@ -774,6 +775,8 @@ def _write_cameras(
             "reason": reasons.get(name, ""),
             "camera": f"{p.make} {p.model}".strip(),
         }
+        if submodel:  # split-merge: which submodel placed the photo (-1: none)
+            row["submodel"] = submodel.get(name, -1)
         if name in reg:
             im = rec.image(reg[name])
             c = im.projection_center()
@@ -1127,6 +1130,7 @@ class _Mapped:
     focal_held: bool
     focal_prior: dict[int, float]  # camera id -> the focal length (px) it started from
     notes: tuple[str, ...]
+    submodel: dict[str, int] = field(default_factory=dict)  # split-merge: image name -> its submodel
 
 
 def _reconstruct(
@@ -1232,7 +1236,7 @@ def _split_reconstruct(
             fb.warning(f"submodel {s.index} ({len(s.photos)} photos) failed: {s.message}")
     t0 = time.perf_counter()
     home_of = dict(zip(names, home))
-    rec, left_out, stats = merge(subs, home_of, inputs.priors.offset, fb)
+    rec, left_out, stats, came_from = merge(subs, home_of, inputs.priors.offset, fb)
     for n in path_of:
         if n not in home_of:
             left_out.setdefault(n, "no GPS position: split-merge cannot place it in a submodel")
@@ -1243,7 +1247,7 @@ def _split_reconstruct(
     focal = {cid: _focal_px(cam) for cid, cam in rec.cameras.items()}
     how = f"split-merge: {len(groups)} submodels of at most {split} photos, {overlap_m:g} m overlap"
     notes = [f"{how}; {sum(s.ok for s in subs)} reconstructed"]
-    return _Mapped(rec, len(groups), registered, left_out, how, False, focal, tuple(notes)), stats
+    return _Mapped(rec, len(groups), registered, left_out, how, False, focal, tuple(notes), came_from), stats
 
 
 @dataclass(frozen=True)
@@ -1360,7 +1364,14 @@ def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _I
         return 0
     n_points = _write_points(output / "points.laz", rec, priors.offset, inputs.out_crs)
     _write_cameras(
-        output / "cameras.gpkg", rec, inputs.photos, inputs.names, priors, inputs.out_crs, mapped.unregistered
+        output / "cameras.gpkg",
+        rec,
+        inputs.photos,
+        inputs.names,
+        priors,
+        inputs.out_crs,
+        mapped.unregistered,
+        mapped.submodel,
     )
     return n_points
 

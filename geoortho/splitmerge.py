@@ -109,11 +109,12 @@ def run_submodel(args: tuple[int, list[str], Path, dict[str, Any]]) -> Submodel:
 
 def merge(
     subs: Sequence[Submodel], home: dict[str, int], offset: np.ndarray, fb: Feedback
-) -> tuple[Any, dict[str, str], list[dict[str, Any]]]:
+) -> tuple[Any, dict[str, str], list[dict[str, Any]], dict[str, int]]:
     """One reconstruction in the frame ``CRS − offset`` from the submodels that succeeded.
 
-    Returns it, the photos not in it (with why), and per-submodel statistics (shared photos and
-    how far their centres disagree with the merged ones)."""
+    Returns it, the photos not in it (with why), per-submodel statistics (shared photos and
+    how far their centres disagree with the merged ones), and the submodel each photo in it
+    came from."""
     import json
 
     from .reconstruction import load_pycolmap
@@ -241,4 +242,4 @@ def merge(
         f"merged {len(ok)} of {len(subs)} submodels: {len(placed)} photos, {merged.num_points3D():,} points "
         f"({n_joined:,} seen from two submodels joined)" + (f"; {len(left_out)} photos left out" if left_out else "")
     )
-    return merged, left_out, stats
+    return merged, left_out, stats, {n: owner[n] for n in placed}

@@ -247,6 +247,9 @@ def test_split_merge_is_one_model_as_accurate_as_the_block(sfm_with_gcps, small_
     # one model: every photo once, one georeference, GCP-controlled
     cams = gpd.read_file(r.cameras)
     assert cams.image.is_unique and len(cams) == r.n_photos
+    # each registered photo says which submodel placed it; both submodels placed some
+    reg = cams[cams.registered]
+    assert set(reg.submodel) == {0, 1} and (cams[~cams.registered].submodel == -1).all()
     assert "GCP" in r.georeferenced_by and rep["models"] == 2
     e_split = np.sqrt((_centre_errors(r, poses) ** 2).sum(axis=1).mean())
     e_whole = np.sqrt((_centre_errors(whole, poses) ** 2).sum(axis=1).mean())
