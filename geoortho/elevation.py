@@ -27,7 +27,7 @@ from .feedback import Feedback, as_feedback, split
 from .gapfill import fill_harmonic, gap_mask
 from .ground import SmrfParams, ground_mask, smrf_surface
 from .outputs import atomic_paths
-from .pointcloud import CHUNK_POINTS, Chunk, PointSource, _inside_area, open_points, reprojected
+from .pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
 
 __all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
 
@@ -384,7 +384,6 @@ def dem(
     _check_options(method, ground_method, resolution_m, max_gap_m, smooth_px, engine)
     src = open_points(points, points_crs, default_crs=crs)
     if crs is not None and parse_crs(crs) != src.crs:
-        _check_in_area(src)
         if engine == "pdal":
             raise ParameterError("engine", "reprojection (--crs) runs on the native engine only")
         src = reprojected(src, crs)
@@ -549,18 +548,6 @@ def _check_options(
         raise ParameterError("resolution_m", "resolution, max gap and smoothing must not be negative")
     if engine not in ENGINES:
         raise ParameterError("engine", f"unknown engine {engine!r}; use one of {', '.join(ENGINES)}")
-
-
-def _check_in_area(src: PointSource) -> None:
-    """Before reprojecting: the points must lie where their CRS is used, or that CRS is wrong
-    (the old meaning of --crs was to override it; --points-crs does that now)."""
-    xmin, ymin, _, xmax, ymax, _ = src.bounds
-    if _inside_area(src.crs, (xmin + xmax) / 2, (ymin + ymax) / 2) is False:
-        raise InputError(
-            f"the points lie outside the area of their CRS ({src.crs.name}), so they cannot be reprojected "
-            "to --crs: give the CRS they are really in with --points-crs",
-            path=src.path,
-        )
 
 
 def _check_source(src: PointSource, classified: Path | None, ground_method: str) -> None:

@@ -118,10 +118,16 @@ class _Family:
     camera: tuple[str, str, str]  # yaw, pitch, roll tag names
     aircraft: tuple[str, str, str] | None = None
     pitch_offset_deg: float = 0.0  # added to the tag's pitch
+    roll_sign: float = 1.0  # -1: the maker writes roll the other way round
     makes: tuple[str, ...] = ()  # only for these EXIF makes (lower case); () = any
 
 
-# First family whose camera pitch is present wins. Documents followed: DJI's XMP drone-dji
+def _ypr(pattern: str) -> tuple[str, str, str]:
+    """Yaw, pitch and roll tag names from one pattern: ``"drone-dji:Gimbal{}Degree"``."""
+    return pattern.format("Yaw"), pattern.format("Pitch"), pattern.format("Roll")
+
+
+# First family with any of its tags wins. Documents followed: DJI's XMP drone-dji
 # tags (DJI Mobile SDK / Thermal SDK tag list); Autel's newer firmware, which writes DJI's names
 # under the prefix ``drone:`` (as observed in EVO II photos; Autel publishes no list); Parrot's
 # "Embedded photo metadata" (developer.parrot.com/docs/pdraw/photo-metadata.html: CameraPitchDegree
@@ -130,11 +136,6 @@ class _Family:
 # a struct); Pix4D's "Specifications of xmp.camera tags" (support.pix4d.com 360016450032,
 # angles per article 202558969: pitch 0 = nadir), written by MicaSense, Sentera, Parrot
 # Sequoia, senseFly (its own namespace URI, same names), WingtraHub and older Autel firmware.
-def _ypr(pattern: str) -> tuple[str, str, str]:
-    """Yaw, pitch and roll tag names from one pattern: ``"drone-dji:Gimbal{}Degree"``."""
-    return pattern.format("Yaw"), pattern.format("Pitch"), pattern.format("Roll")
-
-
 _FAMILIES: tuple[_Family, ...] = (
     _Family("gimbal", _ypr("drone-dji:Gimbal{}Degree"), _ypr("drone-dji:Flight{}Degree")),
     _Family("gimbal (Autel)", _ypr("drone:Gimbal{}Degree"), _ypr("drone:Flight{}Degree")),
@@ -142,6 +143,7 @@ _FAMILIES: tuple[_Family, ...] = (
     _Family(
         "gimbal (Skydio)", _ypr("drone-skydio:CameraOrientationNED:{}"), _ypr("drone-skydio:FlightOrientationNED:{}")
     ),
+    _Family("camera", _ypr("Camera:{}"), pitch_offset_deg=-90.0, roll_sign=-1.0, makes=("sensefly",)),
     _Family("camera", _ypr("Camera:{}"), pitch_offset_deg=-90.0),
 )
 _NO_ATTITUDE = "no attitude in the metadata: assumed nadir, image top to the north"
@@ -532,6 +534,8 @@ def _attitude(
     then EXIF GPSImgDirection for the yaw, nadir otherwise."""
     nan3 = (math.nan, math.nan, math.nan)
     for fam in _FAMILIES:
+        if fam.makes and make.lower() not in fam.makes:
+            continue
         g = [_xmp_float(tags, n) for n in fam.camera]
         f = [_xmp_float(tags, n) for n in fam.aircraft] if fam.aircraft else list(nan3)
         if not any(math.isfinite(v) for v in g + f):
@@ -539,9 +543,7 @@ def _attitude(
         body = (f[0], f[1], f[2])
         source, notes = fam.source, []
         pitch = g[1] + fam.pitch_offset_deg if math.isfinite(g[1]) else math.nan
-        roll = g[2] if math.isfinite(g[2]) else 0.0
-        if fam.source == "camera" and make.lower() == "sensefly":
-            roll = -roll  # senseFly writes roll with the opposite sign
+        roll = fam.roll_sign * g[2] if math.isfinite(g[2]) else 0.0
         yaw = g[0]
         if not math.isfinite(yaw):
             if math.isfinite(f[0]):

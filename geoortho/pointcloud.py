@@ -133,44 +133,40 @@ def open_points(
     (one of them is required then).
     """
     override = parse_crs(crs) if crs is not None else None
-    if override is None and default_crs is not None and _has_no_crs(source):
-        override = parse_crs(default_crs)
+    default = parse_crs(default_crs) if default_crs is not None else None
     if isinstance(source, np.ndarray):
-        return _from_array(source, override, classification, None, [])
+        return _from_array(source, override or default, classification, None, [])
     path = Path(source)
     if not path.is_file():
         raise InputError("no such file", path=path)
     ext = path.suffix.lower()
     if ext in (".las", ".laz"):
-        return _open_las(path, override)
+        return _open_las(path, override, default)
     if ext == ".ply":
-        return _open_ply(path, override)
+        return _open_ply(path, override or default)
     raise InputError(f"unknown point cloud format {ext!r} (use {', '.join(POINT_EXTENSIONS)})", path=path)
-
-
-def _has_no_crs(source: str | os.PathLike[str] | np.ndarray) -> bool:
-    """An array or PLY (never a CRS), or a LAS/LAZ whose header has none (or none readable)."""
-    if isinstance(source, np.ndarray) or Path(source).suffix.lower() == ".ply":
-        return True
-    try:
-        import laspy
-
-        with laspy.open(str(source)) as reader:
-            return reader.header.parse_crs() is None
-    except Exception:
-        return True
 
 
 def reprojected(src: PointSource, crs: str | CRS) -> PointSource:
     """The same points in another projected CRS (x, y transformed by pyproj as they are read;
-    heights unchanged). The source itself if it already is in ``crs``."""
+    heights unchanged). The source itself if it already is in ``crs``.
+
+    Refused when the points lie outside their own CRS's area: that CRS is then wrong (the old
+    meaning of dem's --crs was to override it; --points-crs does that now), and reprojecting
+    from it would write garbage."""
     target = parse_crs(crs)
     if target == src.crs:
         return src
     if not target.is_projected:
         raise InputError(f"the output CRS {target.name} is not projected: a DEM needs metres or feet")
-    t = transformer(src.crs, target)
     xmin, ymin, zmin, xmax, ymax, zmax = src.bounds
+    if _inside_area(src.crs, (xmin + xmax) / 2, (ymin + ymax) / 2) is False:
+        raise InputError(
+            f"the points lie outside the area of their CRS ({src.crs.name}), so they cannot be reprojected "
+            "to --crs: give the CRS they are really in with --points-crs",
+            path=src.path,
+        )
+    t = transformer(src.crs, target)
     if all(map(math.isfinite, (xmin, ymin, xmax, ymax))):
         bx0, by0, bx1, by1 = t.transform_bounds(xmin, ymin, xmax, ymax, densify_pts=21)
     else:
@@ -348,7 +344,7 @@ def _check_chunk_table(path: Path, to_points: int, size: int, bad: Any) -> None:
         raise bad(f"{n_chunks:,} LAZ chunks in a file of {size:,} bytes")
 
 
-def _open_las(path: Path, override: CRS | None) -> PointSource:
+def _open_las(path: Path, override: CRS | None, default: CRS | None = None) -> PointSource:
     import laspy
 
     _check_las_header(path)
@@ -361,7 +357,7 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
                 file_crs = h.parse_crs()
             except Exception as e:  # a broken CRS record is reported, not fatal when --crs is given
                 file_crs = None
-                if override is None:
+                if override is None and default is None:
                     raise InputError(
                         f"unreadable CRS in the LAS header ({e}); give the points' CRS (--points-crs)", path=path
                     ) from e
@@ -376,6 +372,9 @@ def _open_las(path: Path, override: CRS | None) -> PointSource:
     if override is not None:
         crs = override
         notes.append(f"CRS given: {crs.name}")
+    elif file_crs is None and default is not None:
+        crs = override = default  # as if given: the header's unit keys are not read either
+        notes.append(f"no CRS in the LAS header: taken to be the output CRS, {crs.name}")
     elif file_crs is None:
         raise InputError("no CRS in the LAS header; give the points' CRS (--points-crs)", path=path)
     else:

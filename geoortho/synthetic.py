@@ -100,7 +100,6 @@ PRESETS: dict[str, SynthPreset] = {
 }
 
 # Modelled on the DJI Phantom 4 Pro camera (FC6310): 1" sensor, 8.8 mm lens.
-CAMERA_MAKE = "DJI"
 CAMERA_MODEL = "FC6310"
 # Whose metadata the photos carry (synth's ``maker``): the same attitude and position written
 # with each maker family's tags and conventions (geoortho.photos._FAMILIES names the documents).
@@ -1408,7 +1407,8 @@ def _write_survey_json(
             "crs": f"EPSG:{scene.crs.to_epsg()}",
             "vertical": "WGS84 ellipsoidal height, m",
             "pixel_convention": "(0,0) is the centre of the top-left pixel (OpenCV, OpenDroneMap gcp_list.txt)",
-            "attitude_convention": "yaw clockwise from north, pitch -90 nadir, roll right-down positive",
+            "attitude_convention": "yaw clockwise from north, pitch -90 nadir, roll right-down positive; "
+            "poses.json's yaw_deg from the CRS's grid north, the photos' recorded yaw from true north",
             "camera": {
                 "make": MAKER_MAKE[maker],
                 "model": CAMERA_MODEL,

@@ -26,6 +26,7 @@ from ..feedback import Feedback, as_feedback
 from ..surface import Surface
 from .cameras import OrthoCamera
 from .rectify import (
+    Projection,
     VisibilityGrid,
     Window,
     bounds_window,
@@ -125,7 +126,9 @@ class _Band:
 
 def _coarse_projection(
     cam: OrthoCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine, win: Window
-) -> Any:
+) -> Projection:
+    """A photo's projection over a coarse window: computed once for the Voronoi split (its cost)
+    and again when the photo is decoded (its maps), so that no window's arrays outlive their use."""
     x, y, z = window_xyz(transform, win, surface)
     return project_window(cam, x, y, z, vis)
 
