@@ -2,10 +2,13 @@
 
 Positives: a target (checkerboard, cross, circle, or a coded ArUco marker) rendered into a crop
 of a real drone photo (``../shared/data/real``: toledo, Brighton, Mini 4 Pro, findgcp) — 8 × 8
-supersampled from :func:`geoortho.markers.target_reflectance`, then the whole crop motion-blurred
+supersampled from :func:`geoortho.markers.target_reflectance`, as neutral paint (the same level in
+each channel of the colour crop), then the whole crop motion-blurred
 with synth's kernel (half the trials, up to half the marker side), a saturating glare spot on a
 third, sensor noise and JPEG — at a random size (10–40 px), rotation, perspective shear and
-contrast, predicted a few pixels off as gcp-find would. Impostors: the same crops with nothing
+contrast, predicted a few pixels off as gcp-find would; saved as a colour JPEG (chroma at half
+resolution) and fitted as gcp-find fits it (coded markers in grey, other targets in
+:func:`geoortho.gcp.detect.paint_channel`). Impostors: the same crops with nothing
 rendered (real texture), another target type rendered (a wrong ``--target``), or for coded
 markers another id. Every fit's measures are kept, so the printout shows the separation each
 threshold leaves (``geoortho.gcp.targets.THRESHOLDS``), not just the outcome.
@@ -43,16 +46,17 @@ def real_photos() -> list[Path]:
 def trial(args: tuple[int, str, str]) -> dict:
     """One fit: ``role`` positive (target rendered), texture (nothing), wrong-kind or wrong-id."""
     seed, kind, role = args
+    from geoortho.gcp.detect import paint_channel
     from geoortho.gcp.targets import THRESHOLDS, _affine, estimate_motion_blur, fit_target
     from geoortho.markers import CODED, TARGETS, marker_cells, paint_target
     from geoortho.synthetic import motion_kernel
 
     rng = np.random.default_rng(seed)
     photos = real_photos()
-    gray = cv2.imread(str(photos[seed % len(photos)]), cv2.IMREAD_GRAYSCALE)
-    h, w = gray.shape
+    photo = cv2.imread(str(photos[seed % len(photos)]), cv2.IMREAD_COLOR)
+    h, w = photo.shape[:2]
     y0, x0 = int(rng.integers(0, h - CROP)), int(rng.integers(0, w - CROP))
-    img = gray[y0 : y0 + CROP, x0 : x0 + CROP].astype(np.float64)
+    img = photo[y0 : y0 + CROP, x0 : x0 + CROP].astype(np.float64)
     side = float(rng.uniform(10, 40))
     yaw = rng.uniform(0, 2 * math.pi)
     rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
@@ -73,19 +77,23 @@ def trial(args: tuple[int, str, str]) -> dict:
         if painted == "cross":
             white = rng.uniform(200, 250)  # white paint on the ground
         A_true = _affine(base, float(rng.uniform(0, 360)), float(1 + rng.normal(0, 0.04)), 0.0, 0.0)
-        paint_target(img, painted, cx, cy, A_true, p_cells, white, black)
+        for c in range(3):  # neutral paint: the same level in every channel, over coloured ground
+            paint_target(img[:, :, c], painted, cx, cy, A_true, p_cells, white, black)
     blur_px = float(rng.uniform(side / 6, side / 2)) if rng.random() < 0.5 else 0.0
     glare = painted is not None and rng.random() < 0.3
     if glare:
         gx, gy = cx + rng.normal(0, 0.25) * side, cy + rng.normal(0, 0.25) * side
         sigma = side * rng.uniform(0.15, 0.3)
         yy, xx = np.mgrid[0:CROP, 0:CROP]
-        img += 255 * rng.uniform(0.5, 1.0) * np.exp(-((xx - gx) ** 2 + (yy - gy) ** 2) / (2 * sigma**2))
+        img += (255 * rng.uniform(0.5, 1.0) * np.exp(-((xx - gx) ** 2 + (yy - gy) ** 2) / (2 * sigma**2)))[:, :, None]
     if blur_px > 0:
         img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(blur_px, float(rng.uniform(0, 180))))
     img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
-    img = cv2.imdecode(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1], cv2.IMREAD_GRAYSCALE)
-    est = estimate_motion_blur(img)
+    # colour JPEG as a drone writes it (chroma at half resolution, 4:2:0)
+    img = cv2.imdecode(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1], cv2.IMREAD_COLOR)
+    gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    est = estimate_motion_blur(gray)
+    img = gray if kind in CODED else paint_channel(img)  # what gcp-find fits in
     err = side * 0.3
     px, py = cx + rng.normal(0, err), cy + rng.normal(0, err)
     radius = 1.5 * side + rng.uniform(4, 30)

@@ -201,19 +201,20 @@ def detect_in_image(
                 continue
         elif win.ambiguous_with:
             continue
-        # A target is fitted only where predicted wholly in the photo: one cut by the frame cannot
-        # be told from texture. A coded one predicted nearer the edge than half its side is
-        # fitted too (kept only if the marker fitted is wholly inside) where the detector had
-        # cause to miss a whole one: the photo is blurred or the window holds glare. On a sharp,
-        # glare-free photo a miss there is a marker cut by the frame; its fit would cost seconds.
+        # A target is kept only where the fit lies wholly in the photo: one cut by the frame cannot
+        # be told from texture. One predicted nearer the edge than half its side may still be
+        # whole (the prediction errs by a few sides): targets without a code are fitted in every
+        # window; a coded one only where the detector had cause to miss a whole one (a blurred
+        # photo, glare in the window). On a sharp, glare-free photo a coded miss there is a
+        # marker cut by the frame; its fit would cost seconds.
         if len(win.ground_px) != 4 or not in_frame(win.x_px, win.y_px, w, h):
             continue
         if blur is None:
             blur = estimate_motion_blur(gray)
         half = 0.5 * win.side_px
-        if not in_frame(win.x_px, win.y_px, w, h, half, half):
+        if coded and not in_frame(win.x_px, win.y_px, w, h, half, half):
             x0, y0, x1, y1 = _square(win, win.radius_px, w, h)
-            if not (coded and (blur[0] >= 2.0 or bool((gray[y0:y1, x0:x1] >= SATURATED).any()))):
+            if not (blur[0] >= 2.0 or bool((gray[y0:y1, x0:x1] >= SATURATED).any())):
                 continue
         radii = [win.radius_px] + ([win.wide_radius_px] if win.wide_radius_px > win.radius_px else [])
         for radius in radii:
@@ -255,8 +256,8 @@ def _fit(
         return None
     reason = fit.reason
     corners = np.array(fit.corners_px)
-    if coded and not reason and not np.all(in_frame(corners[:, 0], corners[:, 1], gray.shape[1], gray.shape[0], 1, 1)):
-        reason = "the marker fitted is cut by the photo's edge"
+    if not reason and not np.all(in_frame(corners[:, 0], corners[:, 1], gray.shape[1], gray.shape[0], 1, 1)):
+        reason = f"the {'marker' if coded else target} fitted is cut by the photo's edge"
     side = float(np.sqrt(abs(cv2.contourArea(corners.astype(np.float32)))))
     return Detection(
         win.marker_id,
@@ -353,22 +354,39 @@ def _search(
     return False
 
 
+def paint_channel(bgr: np.ndarray) -> np.ndarray:
+    """The image a target without a code is fitted in: each pixel's darkest colour channel.
+
+    Targets are neutral paint (white bars, black and white boards) while the ground seldom is:
+    grass and soil are low in blue, so in grey a white cross on yellow grass is 90 grey levels
+    over a ground that varies by 46, in the darkest channel 120 over 35. Neutral paint keeps
+    its level in every channel, so the target's own contrast is what grey gives; grey ground
+    (asphalt, concrete) is unchanged."""
+    return bgr.min(axis=2) if bgr.ndim == 3 else bgr
+
+
 def detect_task(args: tuple[str, list[Window], str, str, bool]) -> tuple[str, list[Detection], str, float]:
-    """Worker entry: decode one photo (grey) and search its windows (``fit``: coded markers the
-    detector misses are verified by a model fit); and the photo's motion blur (px)."""
+    """Worker entry: decode one photo and search its windows (``fit``: coded markers the
+    detector misses are verified by a model fit); and the photo's motion blur (px). Coded
+    markers are searched in grey, as the detector reads them; other targets are fitted in
+    :func:`paint_channel`."""
     path, windows, dictionary, target, fit = args
     from ..photos import decode_photo
 
+    coded = target in CODED
     try:  # strict: a corrupt scan would be searched as grey smears, with libjpeg noise on stderr
-        gray = decode_photo(path, grey=True)
+        img = decode_photo(path, grey=coded)
     except OSError as e:
         return path, [], str(e), math.nan
-    if gray is None:
-        gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
-    if gray is None:
+    if img is None:
+        flags = cv2.IMREAD_GRAYSCALE if coded else cv2.IMREAD_COLOR
+        img = cv2.imread(path, flags | cv2.IMREAD_IGNORE_ORIENTATION)
+    if img is None:
         return path, [], "cannot decode the image", math.nan
+    gray = img if coded else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     blur = estimate_motion_blur(gray)
-    return path, detect_in_image(gray, windows, dictionary, target=target, blur=blur, fit=fit), "", blur[0]
+    searched = gray if coded else paint_channel(img)
+    return path, detect_in_image(searched, windows, dictionary, target=target, blur=blur, fit=fit), "", blur[0]
 
 
 def init_worker() -> None:
