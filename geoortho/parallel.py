@@ -291,6 +291,37 @@ def _cluster_slots() -> int:
 
 _initialised: set[str] = set()
 _init_lock = threading.Lock()
+_allocator_checked = False
+
+#: glibc's ceiling for its dynamic mmap threshold (64-bit), and the trim threshold it pairs with it
+MMAP_THRESHOLD_BYTES = 32 << 20
+TRIM_THRESHOLD_BYTES = 2 * MMAP_THRESHOLD_BYTES
+
+
+def _restore_allocator() -> bool:
+    """Undo a fixed ``MALLOC_TRIM_THRESHOLD_`` in this process (glibc): True if it did.
+
+    Dask's nanny starts every worker with ``MALLOC_TRIM_THRESHOLD_=65536`` (to hand memory back
+    to the OS). Fixing any threshold turns off glibc's dynamic mmap threshold, so every array
+    over 128 KiB is a fresh mmap, its pages faulted in and zeroed again at each use: mosaic tiles
+    ran 45 % slower on a LocalCluster than in a local pool (medium survey, 54 s against 37 s;
+    8 % with this). The thresholds are set where the dynamic rule would end for arrays of tile
+    size (32 MiB, twice that before trimming): freed memory is reused, not re-faulted."""
+    import ctypes
+    import platform
+
+    fixed = any(os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_"))
+    if not fixed or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL(None)
+        m_trim_threshold, m_mmap_threshold = -1, -3  # malloc.h
+        return bool(
+            libc.mallopt(m_mmap_threshold, MMAP_THRESHOLD_BYTES)
+            and libc.mallopt(m_trim_threshold, TRIM_THRESHOLD_BYTES)
+        )
+    except (OSError, AttributeError):
+        return False
 
 
 def _run_initialised(
@@ -302,6 +333,12 @@ def _run_initialised(
     *initargs: Any,
 ) -> R:
     """On a Dask worker: the pool's initializer once per worker process (per run), then the call."""
+    global _allocator_checked
+    if not _allocator_checked:
+        with _init_lock:
+            if not _allocator_checked:
+                _restore_allocator()
+                _allocator_checked = True
     if initializer is not None and token not in _initialised:
         with _init_lock:
             if token not in _initialised:
