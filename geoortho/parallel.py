@@ -17,6 +17,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures as cf
 import contextvars
+import functools
 import itertools
 import multiprocessing
 import os
@@ -291,21 +292,21 @@ def _cluster_slots() -> int:
 
 _initialised: set[str] = set()
 _init_lock = threading.Lock()
-_allocator_checked = False
 
 #: glibc's ceiling for its dynamic mmap threshold (64-bit), and the trim threshold it pairs with it
 MMAP_THRESHOLD_BYTES = 32 << 20
 TRIM_THRESHOLD_BYTES = 2 * MMAP_THRESHOLD_BYTES
 
 
+@functools.cache  # once per process: the setting is the process's
 def _restore_allocator() -> bool:
     """Undo a fixed ``MALLOC_TRIM_THRESHOLD_`` in this process (glibc): True if it did.
 
     Dask's nanny starts every worker with ``MALLOC_TRIM_THRESHOLD_=65536`` (to hand memory back
     to the OS). Fixing any threshold turns off glibc's dynamic mmap threshold, so every array
     over 128 KiB is a fresh mmap, its pages faulted in and zeroed again at each use: mosaic tiles
-    ran 45 % slower on a LocalCluster than in a local pool (medium survey, 54 s against 37 s;
-    8 % with this). The thresholds are set where the dynamic rule would end for arrays of tile
+    ran 45 % slower on a LocalCluster than in a local pool (medium survey, 54 s against 36-37 s;
+    38 s with this). The thresholds are set where the dynamic rule would end for arrays of tile
     size (32 MiB, twice that before trimming): freed memory is reused, not re-faulted."""
     import ctypes
     import platform
@@ -333,12 +334,7 @@ def _run_initialised(
     *initargs: Any,
 ) -> R:
     """On a Dask worker: the pool's initializer once per worker process (per run), then the call."""
-    global _allocator_checked
-    if not _allocator_checked:
-        with _init_lock:
-            if not _allocator_checked:
-                _restore_allocator()
-                _allocator_checked = True
+    _restore_allocator()
     if initializer is not None and token not in _initialised:
         with _init_lock:
             if token not in _initialised:
