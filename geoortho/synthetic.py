@@ -841,13 +841,21 @@ def render_photo(
 
 
 def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
-    """A straight motion-blur kernel: a line ``length_px`` long (odd size) at ``angle_deg`` from the x axis."""
-    k = int(round(length_px)) | 1
-    kernel = np.zeros((k, k), np.float32)
-    kernel[k // 2, :] = 1.0 / k
-    rot = cv2.getRotationMatrix2D((k / 2 - 0.5, k / 2 - 0.5), float(angle_deg), 1.0)
-    kernel = np.asarray(cv2.warpAffine(kernel, rot, (k, k)), np.float32)
-    return kernel / kernel.sum()
+    """A straight motion-blur kernel: the path of a point moving ``length_px`` at ``angle_deg``
+    (anticlockwise from the x axis as seen), its exact length: a camera's blur is not a whole
+    number of pixels (an odd-sized line kernel made 7.6 px a 9 px blur while the truth said 7.6).
+    The path is sampled finely and spread over the pixels it crosses (bilinear)."""
+    n = max(2, int(math.ceil(16 * length_px)))
+    t = ((np.arange(n) + 0.5) / n - 0.5) * length_px
+    a = math.radians(angle_deg)
+    r = int(math.ceil(length_px / 2)) + 1
+    x, y = r + t * math.cos(a), r - t * math.sin(a)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    kernel = np.zeros((2 * r + 1, 2 * r + 1), np.float64)
+    for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        np.add.at(kernel, (y0 + dy, x0 + dx), wgt)
+    return (kernel / kernel.sum()).astype(np.float32)
 
 
 def _marker_truth_and_antialias(

@@ -301,3 +301,26 @@ def test_bad_preset_is_an_input_error(tmp_path):
 
     with pytest.raises(InputError, match="unknown preset"):
         synth(tmp_path, preset="huge")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("length_px, angle_deg", [(7.6, 72.0), (4.0, 0.0), (3.3, 135.0)])
+def test_motion_kernel_is_the_blur_it_is_said_to_be(length_px, angle_deg):
+    """The truth's blur_px is the kernel's: a path of exactly that length (an odd whole-pixel line
+    made 7.6 px a 9 px blur), centred, along its angle (anticlockwise from x, y down): its
+    spread along the path is a box's, L / sqrt(12), plus the bilinear spread's 1/6 px²."""
+    import math
+
+    import numpy as np
+
+    from geoortho.synthetic import motion_kernel
+
+    k = motion_kernel(length_px, angle_deg).astype(float)
+    c = k.shape[0] // 2
+    ys, xs = np.mgrid[: k.shape[0], : k.shape[1]] - c
+    a = math.radians(angle_deg)
+    along = xs * math.cos(a) - ys * math.sin(a)
+    across = xs * math.sin(a) + ys * math.cos(a)
+    assert abs(k.sum() - 1) < 1e-5
+    assert abs((k * xs).sum()) < 1e-4 and abs((k * ys).sum()) < 1e-4
+    assert math.sqrt((k * along**2).sum()) == pytest.approx(math.sqrt(length_px**2 / 12 + 1 / 6), abs=0.02)
+    assert (k * across**2).sum() < 0.2
