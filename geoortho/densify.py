@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -130,7 +131,7 @@ def dense(
         Processes for the depth maps (0 = every core).
     """
     from .orthophoto.cameras import cameras_from_sfm
-    from .pointcloud import write_las
+    from .pointcloud import write_las_parts
 
     fb = as_feedback(feedback)
     seconds: dict[str, float] = {}
@@ -164,24 +165,35 @@ def dense(
     ]
     seconds["plan"] = _lap(clock)
     s_maps, s_write = split(fb, [9, 1])
-    fusion = _Fusion(voxel)
-    n_matched = n_consistent = n_maps = 0
-    for got in imap_ordered(_depth_task, jobs, workers=workers, feedback=s_maps):
-        n_matched += got.n_matched
-        n_consistent += got.n_consistent
-        if got.n_consistent:
-            n_maps += 1
-            fusion.add(got.xyz, got.rgb, got.counts)
-    seconds["depth_maps"] = _lap(clock) - seconds["plan"]
-    xyz, rgb = fusion.result()
-    seconds["fusion"] = fusion.seconds
-    peak_before_write_mb = _peak_memory_mb()["main"]
-    if not len(xyz):
-        raise InputError("no depth could be measured (textureless photos, or poses that do not fit)", path=sfm)
-    t_write = time.perf_counter()
-    rgb /= 255.0  # in place: no second copy of the cloud's colours
-    write_las(output, xyz, crs, rgb=rgb, offset=origin)
-    seconds["write"] = time.perf_counter() - t_write
+    from .demtiles import work_folder
+
+    with work_folder(output) as spill:
+        fusion = _Fusion(voxel, spill_dir=Path(spill))
+        n_matched = n_consistent = n_maps = 0
+        for got in imap_ordered(_depth_task, jobs, workers=workers, feedback=s_maps):
+            n_matched += got.n_matched
+            n_consistent += got.n_consistent
+            if got.n_consistent:
+                n_maps += 1
+                fusion.add(got.xyz, got.rgb, got.counts)
+        seconds["depth_maps"] = _lap(clock) - seconds["plan"]
+        peak_before_write_mb = _peak_memory_mb()["main"]
+        if not np.isfinite(fusion.lo).all():
+            raise InputError("no depth could be measured (textureless photos, or poses that do not fit)", path=sfm)
+        t_write = time.perf_counter()
+        n_written = 0
+
+        def parts() -> Iterator[tuple[np.ndarray, np.ndarray, None]]:
+            nonlocal n_written
+            for xyz, rgb in fusion.chunks():
+                n_written += len(xyz)
+                rgb /= 255.0  # in place: no second copy of the cloud's colours
+                yield xyz, rgb, None
+
+        spilled = fusion.spilled
+        write_las_parts(output, parts(), crs, lowest=fusion.lo, offset=origin)
+        seconds["fusion"] = fusion.seconds  # merges, spills and (spilled) the tiles' merges
+        seconds["write"] = time.perf_counter() - t_write  # a spilled cloud's tiles merged included
     s_write.progress(1.0)
     seconds["total"] = _lap(clock)
     report = output.with_name(output.stem + "_report.json")
@@ -203,7 +215,8 @@ def dense(
             "depth_map_megapixels": sum(j.ref.size[0] * j.ref.size[1] for j in jobs) / 1e6,
             "points_matched": n_matched,
             "points_consistent": n_consistent,
-            "points_written": len(xyz),
+            "points_written": n_written,
+            "fusion_spilled_to_disk": spilled,
             "voxel_m": voxel,
             "seconds": seconds,
             "peak_memory_mb": {**_peak_memory_mb(), "main_before_write": peak_before_write_mb},
@@ -211,10 +224,10 @@ def dense(
         },
     )
     fb.info(
-        f"dense: {len(xyz)} points from {n_maps} depth maps ({n_matched} matched, {n_consistent} consistent) "
+        f"dense: {n_written} points from {n_maps} depth maps ({n_matched} matched, {n_consistent} consistent) "
         f"in {seconds['total']:.0f} s"
     )
-    return DenseResult(output, report, len(cams), n_maps, len(xyz), crs_text, tuple(notes))
+    return DenseResult(output, report, len(cams), n_maps, n_written, crs_text, tuple(notes))
 
 
 def _lap(clock: float) -> float:
@@ -462,23 +475,68 @@ def _voxel_means(
 
 class _Fusion:
     """One point per voxel over every depth map, merged as the maps arrive: memory holds the cloud
-    so far and the maps not yet merged, not every map's points."""
+    so far and the maps not yet merged, not every map's points.
 
-    def __init__(self, voxel_m: float, merge_every: int = 4_000_000) -> None:
+    Past ``max_points`` held, the cloud would still grow with the survey's area; the points are
+    then spilled to files on disk, one per square tile of ``TILE_VOXELS`` voxels (a voxel lies
+    in one tile, so a tile's voxel means are the whole cloud's there), and each tile is merged
+    on its own at the end: memory then follows a tile, not the survey."""
+
+    TILE_VOXELS = 1024
+
+    def __init__(
+        self, voxel_m: float, merge_every: int = 4_000_000, max_points: int = 24_000_000, spill_dir: Path | None = None
+    ) -> None:
         self.voxel_m = voxel_m
         self.merge_every = merge_every
+        self.max_points = max_points
+        self.spill_dir = spill_dir
         self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.pending = 0
         self.merged = 0
         self.seconds = 0.0
+        self.tiles: dict[tuple[int, int], Path] = {}
+        self.lo = np.full(3, np.inf)
+
+    @property
+    def spilled(self) -> bool:
+        return bool(self.tiles)
 
     def add(self, xyz: np.ndarray, rgb: np.ndarray, counts: np.ndarray) -> None:
+        if len(xyz):
+            self.lo = np.minimum(self.lo, xyz.min(axis=0))
+        if self.spilled:
+            self._spill(xyz, rgb, counts)
+            return
         self.parts.append((xyz, rgb, counts))
         self.pending += len(xyz)
         # merged when the maps not yet merged are a quarter of the cloud so far: each point is merged
         # O(log n) times, and the last merge holds at most 1.25 x the cloud
         if self.pending >= max(self.merge_every, self.merged // 4):
             self._merge()
+            if self.merged > self.max_points and self.spill_dir is not None:
+                parts, self.parts, self.merged = self.parts, [], 0
+                for part in parts:
+                    self._spill(*part)
+
+    def _spill(self, xyz: np.ndarray, rgb: np.ndarray, counts: np.ndarray) -> None:
+        assert self.spill_dir is not None
+        t0 = time.perf_counter()
+        tx = np.floor(np.floor(xyz[:, 0] / self.voxel_m) / self.TILE_VOXELS).astype(np.int64)
+        ty = np.floor(np.floor(xyz[:, 1] / self.voxel_m) / self.TILE_VOXELS).astype(np.int64)
+        rows = np.empty((len(xyz), 7), np.float32)
+        rows[:, :3], rows[:, 3:6], rows[:, 6] = xyz, rgb, counts
+        order = np.lexsort((ty, tx))
+        keys = np.c_[tx[order], ty[order]]
+        cut = np.flatnonzero(np.any(np.diff(keys, axis=0) != 0, axis=1)) + 1
+        for idx in np.split(order, cut):
+            if not len(idx):
+                continue
+            key = (int(tx[idx[0]]), int(ty[idx[0]]))
+            path = self.tiles.setdefault(key, self.spill_dir / f"dense_{key[0]}_{key[1]}.f32")
+            with path.open("ab") as f:
+                rows[idx].tofile(f)
+        self.seconds += time.perf_counter() - t0
 
     def _merge(self) -> None:
         t0 = time.perf_counter()
@@ -492,9 +550,30 @@ class _Fusion:
         self.seconds += time.perf_counter() - t0
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
-        """Positions (N, 3, local frame) and colours (N, 3, 0..255) of the fused cloud."""
+        """Positions (N, 3, local frame) and colours (N, 3, 0..255) of the fused cloud, held whole
+        (the cloud was never spilled)."""
+        assert not self.spilled
         self._merge()
         if not self.parts:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
         xyz, rgb, _ = self.parts[0]
         return xyz, np.clip(rgb, 0.0, 255.0)
+
+    def chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """The fused cloud a part at a time (the whole, or a spilled tile after another): positions
+        and colours as :meth:`result` gives them."""
+        if not self.spilled:
+            xyz, rgb = self.result()
+            if len(xyz):
+                yield xyz, rgb
+            return
+        for key in sorted(self.tiles):
+            t0 = time.perf_counter()
+            path = self.tiles[key]
+            rows = np.fromfile(path, np.float32).reshape(-1, 7)
+            path.unlink()
+            xyz, rgb, _ = _voxel_means(rows[:, :3], rows[:, 3:6], rows[:, 6].astype(np.float64), self.voxel_m)
+            del rows
+            self.seconds += time.perf_counter() - t0
+            yield xyz, np.clip(rgb, 0.0, 255.0)
+        self.tiles = {}

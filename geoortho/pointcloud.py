@@ -17,7 +17,7 @@ import copy
 import math
 import os
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -204,28 +204,50 @@ def write_las(
     in 0..1. Written atomically, ``chunk_points`` at a time: memory holds one chunk, not a copy of
     the cloud.
     """
+    xyz = np.asarray(xyz).reshape(-1, 3)
+    parts = (
+        (
+            xyz[start : start + chunk_points],
+            None if rgb is None else rgb[start : start + chunk_points],
+            None if classification is None else classification[start : start + chunk_points],
+        )
+        for start in range(0, len(xyz), chunk_points)
+    )
+    lowest = xyz.min(axis=0).astype(float) if len(xyz) else np.zeros(3)
+    return write_las_parts(path, parts, crs, lowest=lowest, offset=offset)
+
+
+def write_las_parts(
+    path: str | os.PathLike[str],
+    parts: Iterable[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]],
+    crs: CRS | str | None,
+    *,
+    lowest: np.ndarray,
+    offset: np.ndarray | None = None,
+) -> Path:
+    """:func:`write_las` for a cloud that comes a part at a time — (xyz, rgb or None, class or
+    None), each as there — and is never held whole. ``lowest``: the cloud's smallest x, y, z (in
+    ``xyz``'s frame), known before the first part, for the header's offsets. Atomic."""
     import laspy
 
     from .outputs import atomic_path
 
-    xyz = np.asarray(xyz).reshape(-1, 3)
     base = np.zeros(3) if offset is None else np.asarray(offset, float).reshape(3)
     header = laspy.LasHeader(point_format=3, version="1.4")
-    header.offsets = np.floor(xyz.min(axis=0).astype(float) + base) if len(xyz) else np.zeros(3)
+    header.offsets = np.floor(np.asarray(lowest, float) + base)
     header.scales = [0.001, 0.001, 0.001]
     if crs is not None:
         header.add_crs(parse_crs(crs))
     with atomic_path(path) as tmp:
         with laspy.open(str(tmp), mode="w", header=header) as writer:
-            for start in range(0, len(xyz), chunk_points):
-                part = slice(start, start + chunk_points)
-                pts = xyz[part].astype(np.float64) + base
+            for xyz, rgb, classification in parts:
+                pts = np.asarray(xyz).reshape(-1, 3).astype(np.float64) + base
                 rec = laspy.ScaleAwarePointRecord.zeros(len(pts), header=header)
                 rec.x, rec.y, rec.z = pts[:, 0], pts[:, 1], pts[:, 2]
                 if classification is not None:
-                    rec.classification = np.asarray(classification[part], np.uint8)
+                    rec.classification = np.asarray(classification, np.uint8)
                 if rgb is not None:
-                    col16 = np.clip(np.asarray(rgb[part], float) * 65535.0 + 0.5, 0, 65535).astype(np.uint16)
+                    col16 = np.clip(np.asarray(rgb, float) * 65535.0 + 0.5, 0, 65535).astype(np.uint16)
                     rec.red, rec.green, rec.blue = col16[:, 0], col16[:, 1], col16[:, 2]
                 writer.write_points(rec)
     return Path(path)

@@ -209,3 +209,40 @@ def test_a_pair_that_cannot_be_searched_is_skipped_not_fatal():
     close = _View("c", None, K, np.zeros(5), (1024, 768), down, np.array([20.0, 0.0, 100.0]))
     got = _pair(a, close, img, img, (95.0, 105.0)) or _pair(close, a, img, img, (95.0, 105.0))
     assert got is not None  # a searchable pair still gives points
+
+
+def test_fusion_spilled_to_tiles_on_disk_equals_the_cloud_held_whole(tmp_path):
+    """Past its point budget the fusion spills the depth maps' points to tile files and merges
+    each tile at the end: a voxel lies in one tile, so the cloud is the one held whole (the same
+    voxels, means within float32 rounding), written in tile order."""
+    import numpy as np
+
+    from geoortho.densify import _Fusion
+
+    rng = np.random.default_rng(4)
+    voxel = 0.05
+    maps = []
+    for _ in range(12):  # overlapping depth maps over 3 tiles' width, several points per voxel
+        n = 40_000
+        xyz = np.c_[rng.uniform(-60, 90, n), rng.uniform(-20, 40, n), rng.normal(100, 2, n)].astype(np.float32)
+        maps.append((xyz, rng.uniform(0, 255, (n, 3)).astype(np.float32), rng.integers(1, 4, n).astype(np.float32)))
+    whole = _Fusion(voxel, merge_every=50_000)
+    spilled = _Fusion(voxel, merge_every=50_000, max_points=60_000, spill_dir=tmp_path)
+    for m in maps:
+        whole.add(*m)
+        spilled.add(*m)
+    assert spilled.spilled and not whole.spilled
+    assert len(spilled.tiles) >= 3
+    a = [np.concatenate(p) for p in zip(*whole.chunks())]
+    b = [np.concatenate(p) for p in zip(*spilled.chunks())]
+    assert not list(tmp_path.iterdir())  # the tile files are gone once merged
+    assert len(a[0]) == len(b[0]) > 400_000
+
+    # each point has its twin (a mean on a voxel's edge may be keyed to the next one in float32,
+    # so the twins are matched by position, not by key)
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(a[0]).query(b[0])
+    assert dist.max() < 1e-4
+    assert len(np.unique(idx)) == len(idx)
+    assert np.abs(a[1][idx] - b[1]).max() < 1e-2
