@@ -482,10 +482,10 @@ class _Fusion:
     in one tile, so a tile's voxel means are the whole cloud's there), and each tile is merged
     on its own at the end: memory then follows a tile, not the survey."""
 
-    TILE_VOXELS = 1024
+    TILE_VOXELS = 512
 
     def __init__(
-        self, voxel_m: float, merge_every: int = 4_000_000, max_points: int = 24_000_000, spill_dir: Path | None = None
+        self, voxel_m: float, merge_every: int = 2_000_000, max_points: int = 4_000_000, spill_dir: Path | None = None
     ) -> None:
         self.voxel_m = voxel_m
         self.merge_every = merge_every
