@@ -34,7 +34,15 @@ from .feedback import Feedback, split
 from .ground import SmrfParams, ground_mask, smrf_surface
 from .parallel import imap_ordered
 
-__all__ = ["TILE_CELLS", "WHOLE_GRID_MAX_CELLS", "TiledGrids", "make_tiled", "tile_halo_m", "work_folder"]
+__all__ = [
+    "TILE_CELLS",
+    "WHOLE_GRID_MAX_CELLS",
+    "TiledGrids",
+    "append_by_tile",
+    "make_tiled",
+    "tile_halo_m",
+    "work_folder",
+]
 
 #: Cells of a tile's side (without its halo): with the halo of a 25 m gap at 0.1 m cells, 4 M cells.
 TILE_CELLS = 1024
@@ -131,13 +139,7 @@ def make_tiled(
         rec["i"] = (ch.start + np.flatnonzero(ok))[inside]
         rec["c"] = fin.classification[inside] if fin.classification is not None else 0
         n_used += len(rec)
-        home = (r[inside] // t) * n_tc + (c[inside] // t)
-        order = np.argsort(home, kind="stable")
-        home, rec = home[order], rec[order]
-        cuts = np.flatnonzero(np.diff(home)) + 1
-        for part, k in zip(np.split(rec, cuts), home[np.r_[0, cuts]] if len(home) else []):
-            with open(files[int(k)], "ab") as fh:
-                part.tofile(fh)
+        append_by_tile(rec, (r[inside] // t) * n_tc + (c[inside] // t), lambda k: files[k])
         s_sort.progress(min(1.0, (ch.start + len(ch.x)) / max(src.count, 1)))
     if n_bad:
         fb.warning(f"{n_bad} points with non-finite coordinates skipped")
@@ -312,6 +314,16 @@ def _add(acc: Any, pts: np.ndarray) -> None:
     for i in range(0, len(pts), SLICE_POINTS):
         p = pts[i : i + SLICE_POINTS]
         acc.add(p["x"], p["y"], p["z"])
+
+
+def append_by_tile(rows: np.ndarray, tile: np.ndarray, file_of: Callable[[int], Path]) -> None:
+    """Append each row to the file of its tile (``tile``: an integer per row), one write a tile."""
+    order = np.argsort(tile, kind="stable")
+    tile, rows = tile[order], rows[order]
+    cuts = np.flatnonzero(np.diff(tile)) + 1
+    for part, k in zip(np.split(rows, cuts), tile[np.r_[0, cuts]] if len(tile) else []):
+        with open(file_of(int(k)), "ab") as fh:
+            part.tofile(fh)
 
 
 def work_folder(near: Path) -> tempfile.TemporaryDirectory[str]:

@@ -495,7 +495,7 @@ class _Fusion:
         self.pending = 0
         self.merged = 0
         self.seconds = 0.0
-        self.tiles: dict[tuple[int, int], Path] = {}
+        self.tiles: dict[int, Path] = {}
         self.lo = np.full(3, np.inf)
 
     @property
@@ -520,22 +520,20 @@ class _Fusion:
                     self._spill(*part)
 
     def _spill(self, xyz: np.ndarray, rgb: np.ndarray, counts: np.ndarray) -> None:
+        from .demtiles import append_by_tile
+
         assert self.spill_dir is not None
+        spill_dir = self.spill_dir
         t0 = time.perf_counter()
-        tx = np.floor(np.floor(xyz[:, 0] / self.voxel_m) / self.TILE_VOXELS).astype(np.int64)
-        ty = np.floor(np.floor(xyz[:, 1] / self.voxel_m) / self.TILE_VOXELS).astype(np.int64)
+        tx, ty = (np.floor(np.floor(xyz[:, k] / self.voxel_m) / self.TILE_VOXELS).astype(np.int64) for k in (0, 1))
         rows = np.empty((len(xyz), 7), np.float32)
         rows[:, :3], rows[:, 3:6], rows[:, 6] = xyz, rgb, counts
-        order = np.lexsort((ty, tx))
-        keys = np.c_[tx[order], ty[order]]
-        cut = np.flatnonzero(np.any(np.diff(keys, axis=0) != 0, axis=1)) + 1
-        for idx in np.split(order, cut):
-            if not len(idx):
-                continue
-            key = (int(tx[idx[0]]), int(ty[idx[0]]))
-            path = self.tiles.setdefault(key, self.spill_dir / f"dense_{key[0]}_{key[1]}.f32")
-            with path.open("ab") as f:
-                rows[idx].tofile(f)
+
+        def file_of(key: int) -> Path:
+            return self.tiles.setdefault(key, spill_dir / f"dense_{key}.f32")
+
+        # one integer a tile: the local frame is near the survey, so |tx|, |ty| < 2^20
+        append_by_tile(rows, tx * (1 << 21) + ty, file_of)
         self.seconds += time.perf_counter() - t0
 
     def _merge(self) -> None:
@@ -549,23 +547,14 @@ class _Fusion:
         self.pending = 0
         self.seconds += time.perf_counter() - t0
 
-    def result(self) -> tuple[np.ndarray, np.ndarray]:
-        """Positions (N, 3, local frame) and colours (N, 3, 0..255) of the fused cloud, held whole
-        (the cloud was never spilled)."""
-        assert not self.spilled
-        self._merge()
-        if not self.parts:
-            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
-        xyz, rgb, _ = self.parts[0]
-        return xyz, np.clip(rgb, 0.0, 255.0)
-
     def chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """The fused cloud a part at a time (the whole, or a spilled tile after another): positions
-        and colours as :meth:`result` gives them."""
+        (N, 3, local frame) and colours (N, 3, 0..255)."""
         if not self.spilled:
-            xyz, rgb = self.result()
-            if len(xyz):
-                yield xyz, rgb
+            self._merge()
+            if self.parts and len(self.parts[0][0]):
+                xyz, rgb, _ = self.parts[0]
+                yield xyz, np.clip(rgb, 0.0, 255.0)
             return
         for key in sorted(self.tiles):
             t0 = time.perf_counter()
