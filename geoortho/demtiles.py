@@ -4,19 +4,30 @@
 would follow the grid (64 bytes a cell at the peak: 50 M points at 0.5 m took 3.7 GB), so:
 
 1. one pass over the cloud sorts every kept point into the file of its *home tile* (a square
-   of TILE cells; x, y, z, its index in the source, its class), on disk beside the output;
-2. each tile is then made on its own, from the points of its home file and of its eight
-   neighbours' that fall within a halo around it: the DSM (and the ground filter's minimum
-   grid, on the global SMRF grid's cells), SMRF, the ground points, the DTM, the gap fill —
-   the same functions as the whole grid, on the tile plus its halo;
-3. the tile's own cells are written into a tiled GeoTIFF, made a COG at the end by GDAL
-   (which streams it).
+   of TILE cells; x, y, z, its index in the source, its class), on disk beside the output, and
+   grids the SMRF minimum surface of the whole cloud (1 m cells: small), from which the
+   provisional ground is made once, as when the grid is held whole;
+2. each tile is gridded from the points of its home file and its neighbours' within two cells
+   (IDW's reach): the DSM, its points' ground flags against that surface, the DTM — unfilled,
+   into temporary float64 GeoTIFFs; block means of them make a coarse copy of each grid;
+3. each tile's gaps are filled (and it is smoothed) in a window of the unfilled grid with a halo
+   of what a cell's value depends on: twice the widest gap filled, and the median's radius;
+4. the tile's own cells go into a tiled GeoTIFF, made a COG at the end by GDAL (which streams it).
 
-The halo covers what a cell's value depends on: the widest gap filled (``max_gap_m``), the SMRF
-window (an object's opening and refill reach about twice it) and a cell for IDW. Where a gap or
-an object is wider than that, a tile border may show. Elsewhere the tiled grids are the whole
-grid's up to the gap fill's convergence (the small survey forced into tiles: identical; 50 M
-points: DSM identical, DTM within 1 mm). Memory then follows the tile and its halo, not the grid.
+Where that halo would pass HALO_MAX_CELLS (fine cells and wide gaps: 0.05 m cells and 25 m gaps
+make 1,000 cells), it is cut there, so the work stays within (1 + 2 halo / tile)² of the grid's:
+the gap mask is then taken with the data going on past the window's inner edges (and kept where
+the coarse grid's own gap mask agrees), and a gap crossing such an edge is held there at the
+coarse grid's harmonic fill. A gap wider than the halo is thus filled from the coarse fill at its
+crossing and from its own rim everywhere else.
+
+Where the SMRF grid itself is too large to hold (SMRF_WHOLE_MAX_CELLS: 8 km² at 1 m), SMRF runs
+per tile on the global SMRF grid's cells, from the points within its window's reach around the
+tile (objects wider than that may differ at tile borders).
+
+Elsewhere the tiled grids are the whole grid's up to the gap fill's convergence (the small survey
+forced into tiles: identical classes, grids within millimetres). Memory follows a tile and its
+halo, not the grid.
 """
 
 from __future__ import annotations
@@ -31,34 +42,39 @@ from typing import Any
 import numpy as np
 
 from .feedback import Feedback, split
-from .ground import SmrfParams, ground_mask, smrf_surface
+from .ground import SmrfParams, bilinear, ground_mask, smrf_surface
 from .parallel import imap_ordered
 
 __all__ = [
+    "HALO_MAX_CELLS",
+    "SMRF_WHOLE_MAX_CELLS",
     "TILE_CELLS",
     "WHOLE_GRID_MAX_CELLS",
     "TiledGrids",
     "append_by_tile",
     "make_tiled",
-    "tile_halo_m",
     "work_folder",
 ]
 
-#: Cells of a tile's side (without its halo): with the halo of a 25 m gap at 0.1 m cells, 4 M cells.
+#: Cells of a tile's side (without its halo).
 TILE_CELLS = 1024
 #: Grids of more cells than this are made in tiles.
 WHOLE_GRID_MAX_CELLS = 8_000_000
+#: The widest halo of the gap fill, cells: past it a gap is held at the coarse grid's fill.
+HALO_MAX_CELLS = 256
+#: The coarse grids (for gaps wider than the halo) have at most this many cells.
+COARSE_MAX_CELLS = 4_000_000
+#: SMRF grids of more cells than this run per tile.
+SMRF_WHOLE_MAX_CELLS = 8_000_000
 READ_POINTS = 1_000_000  # points read from a tile file at a time
 SLICE_POINTS = 250_000  # points gridded or classified at a time
 _POINT = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8"), ("i", "i8"), ("c", "u1")])
 
 
-def tile_halo_m(max_gap_m: float, params: SmrfParams | None, cell_m: float) -> tuple[float, float]:
-    """How far (metres) around a tile its cells' values can depend on points: through the gap fill
-    (a closing by the widest gap looks twice its radius out) and through SMRF (an opening by its
-    window, the objects grown by the margin and refilled)."""
-    smrf = 2.5 * params.window_m + params.margin_m + 2 * params.cell_m if params is not None else 0.0
-    return 2 * max_gap_m + 2 * cell_m, smrf
+def _smrf_reach_m(params: SmrfParams) -> float:
+    """How far (metres) SMRF's surface at a place depends on points: an opening by its window,
+    the objects grown by the margin and refilled."""
+    return 2.5 * params.window_m + params.margin_m + 2 * params.cell_m
 
 
 @dataclass(frozen=True)
@@ -74,56 +90,81 @@ class TiledGrids:
     n_tiles: int
 
 
+@dataclass(frozen=True)
+class _Tiling:
+    """The grid cut into tiles of ``t`` cells, ``n_tr`` x ``n_tc`` of them."""
+
+    grid: Any
+    t: int
+    n_tr: int
+    n_tc: int
+
+    def window(self, k: int, halo: int = 0) -> tuple[int, int, int, int]:
+        """Rows and columns (r0, r1, c0, c1) of tile ``k`` with ``halo`` cells around it, in the grid."""
+        tr, tc = divmod(k, self.n_tc)
+        g, t = self.grid, self.t
+        return (
+            max(0, tr * t - halo),
+            min(g.rows, (tr + 1) * t + halo),
+            max(0, tc * t - halo),
+            min(g.cols, (tc + 1) * t + halo),
+        )
+
+
+def _coarse_factor(grid: Any) -> int:
+    """Cells of the grid per coarse cell a side: a power of two, the coarse grid within COARSE_MAX_CELLS."""
+    f = 1
+    while math.ceil(grid.rows / f) * math.ceil(grid.cols / f) > COARSE_MAX_CELLS:
+        f *= 2
+    return f
+
+
 def make_tiled(
     src: Any,
     grid: Any,
-    resolution_m: float,
     method: str,
     ground_method: str | None,
     params: SmrfParams,
     keep: Any,
     want_dtm: bool,
     max_gap_cells: float,
-    finish: Callable[[np.ndarray, float, int], np.ndarray],
+    finish: Callable[..., np.ndarray],
     smooth_px: int,
     work: Path,
     fb: Feedback,
     progress: Feedback,
 ) -> TiledGrids:
-    """Sort the points into tiles, then make and write each tile (see the module's doc)."""
+    """Sort the points into tiles, grid each tile, fill each tile's gaps (see the module's doc)."""
     import rasterio
 
-    from .elevation import NODATA, Grid, _finite
+    from .elevation import NODATA, Grid, _Accumulator, _finite
 
-    smrf = params if ground_method == "smrf" else None
-    gap_halo_m, smrf_halo_m = tile_halo_m(max_gap_cells * resolution_m, smrf, resolution_m)
     hm = src.horizontal_m
-    halo_cells = int(math.ceil(gap_halo_m / resolution_m))
-    points_halo = max(gap_halo_m, smrf_halo_m) / hm  # cloud units
-    # a tile at least as wide as the halo: a tile's points are in its 3 x 3 neighbourhood
-    t = max(TILE_CELLS, int(math.ceil(points_halo / grid.cell)), halo_cells, 16)
-    n_tr, n_tc = math.ceil(grid.rows / t), math.ceil(grid.cols / t)
-    n_tiles = n_tr * n_tc
+    smrf_grid, smrf_whole = None, False
+    if ground_method == "smrf":
+        xmin, ymin, _, xmax, ymax, _ = src.bounds
+        smrf_grid = Grid.covering(xmin, ymin, xmax, ymax, params.cell_m / hm)
+        smrf_whole = smrf_grid.rows * smrf_grid.cols <= SMRF_WHOLE_MAX_CELLS
+    points_halo = 2 * grid.cell  # IDW: a point feeds the cells within cell·√2 of it
+    if smrf_grid is not None and not smrf_whole:
+        points_halo = max(points_halo, _smrf_reach_m(params) / hm)
+    reach = int(math.ceil(2 * max_gap_cells + 2)) + smooth_px if max_gap_cells > 0 else smooth_px
+    halo = min(reach, HALO_MAX_CELLS)
+    f = _coarse_factor(grid) if reach > halo else 0
+    # a tile at least as wide as the points' halo (a tile's points are in its 3 x 3 neighbourhood),
+    # a whole number of coarse cells
+    t = max(TILE_CELLS, int(math.ceil(points_halo / grid.cell)), 16)
+    t = -(-t // f) * f if f else t
+    tiling = _Tiling(grid, t, math.ceil(grid.rows / t), math.ceil(grid.cols / t))
+    n_tiles = tiling.n_tr * tiling.n_tc
     fb.info(
-        f"grid of {grid.cols:,} x {grid.rows:,} cells made in {n_tiles} tiles of {t} cells "
-        f"(halo {halo_cells} cells; points within {points_halo * hm:.0f} m)"
+        f"grid of {grid.cols:,} x {grid.rows:,} cells made in {n_tiles} tiles of {t} cells (gap fill halo {halo} cells"
+        + (f"; gaps wider than it held at a {f}x coarser grid's fill" if f else "")
+        + (")" if smrf_grid is None or smrf_whole else "; SMRF per tile: its grid is too large to hold whole)")
     )
-    # Cells made, halos included, against the grid's: the halo is metres (gap fill, SMRF), the
-    # tile cells, so fine cells and a wide gap fill make every tile mostly halo (0.07 m cells,
-    # 25 m gaps: 12x the grid's work, 1,450 s for 25 M points where 5.5 M cells whole took 21 s).
-    overhead = sum(
-        (min(grid.rows, (tr + 1) * t + halo_cells) - max(0, tr * t - halo_cells))
-        * (min(grid.cols, (tc + 1) * t + halo_cells) - max(0, tc * t - halo_cells))
-        for tr in range(n_tr)
-        for tc in range(n_tc)
-    ) / max(1, grid.rows * grid.cols)
-    if overhead > 3.0:
-        fb.warning(
-            f"the tiles' halos make {overhead:.0f}x the grid's cells to compute (halo {halo_cells} cells around "
-            f"tiles of {t}): slow; a coarser --resolution-m or a smaller --max-gap-m cuts it"
-        )
-    s_sort, s_tiles = split(progress, [1, 1])
+    s_sort, s_tiles, s_fill = split(progress, [1, 1, 1])
     files = [work / f"tile_{k}.bin" for k in range(n_tiles)]
+    zmin = _Accumulator(smrf_grid, "min") if smrf_grid is not None and smrf_whole else None
     n_used = 0
     n_bad = 0
     for ch in src.chunks(READ_POINTS):
@@ -132,6 +173,8 @@ def make_tiled(
         n_bad += int((~np.isfinite(ch.x) | ~np.isfinite(ch.y) | ~np.isfinite(ch.z)).sum())
         if not len(fin.x):
             continue
+        if zmin is not None:
+            zmin.add(fin.x, fin.y, fin.z)
         r, c = grid.index(fin.x, fin.y)
         inside = r >= 0
         rec = np.empty(int(inside.sum()), _POINT)
@@ -139,15 +182,20 @@ def make_tiled(
         rec["i"] = (ch.start + np.flatnonzero(ok))[inside]
         rec["c"] = fin.classification[inside] if fin.classification is not None else 0
         n_used += len(rec)
-        append_by_tile(rec, (r[inside] // t) * n_tc + (c[inside] // t), lambda k: files[k])
+        append_by_tile(rec, (r[inside] // t) * tiling.n_tc + (c[inside] // t), lambda k: files[k])
         s_sort.progress(min(1.0, (ch.start + len(ch.x)) / max(src.count, 1)))
     if n_bad:
         fb.warning(f"{n_bad} points with non-finite coordinates skipped")
+    surface_npy = None
+    if zmin is not None:
+        assert smrf_grid is not None
+        # the provisional ground of the whole cloud, once, as when the grid is held whole
+        surface = smrf_surface(zmin.result(), smrf_grid.cell, params, hm, src.vertical_m)
+        del zmin
+        surface_npy = work / "smrf_surface.npy"
+        np.save(surface_npy, surface)
+        del surface
     ground_flags = np.zeros(src.count, bool) if ground_method is not None else None
-    smrf_grid = None
-    if ground_method == "smrf":
-        xmin, ymin, _, xmax, ymax, _ = src.bounds
-        smrf_grid = Grid.covering(xmin, ymin, xmax, ymax, params.cell_m / hm)
     profile = dict(
         driver="GTiff",
         width=grid.cols,
@@ -162,107 +210,207 @@ def make_tiled(
         blockysize=256,
         BIGTIFF="YES",
     )
-    dsm_tif, dtm_tif = work / "dsm.tif", (work / "dtm.tif" if want_dtm else None)
+    raw_profile = {**profile, "dtype": "float64", "nodata": np.nan}
+    layers = ["dsm", "dtm"] if want_dtm else ["dsm"]
+    raw = {name: work / f"{name}_unfilled.tif" for name in layers}
     n_ground = 0
     base = _TileJob(
         k=0,
         files=files,
-        grid=grid,
-        t=t,
-        n_tr=n_tr,
-        n_tc=n_tc,
-        halo_cells=halo_cells,
+        tiling=tiling,
         points_halo=points_halo,
         method=method,
         ground_method=ground_method,
         smrf_grid=smrf_grid,
+        smrf_surface=surface_npy,
         params=params,
-        horizontal_m=src.horizontal_m,
+        horizontal_m=hm,
         vertical_m=src.vertical_m,
         want_dtm=want_dtm,
-        max_gap_cells=max_gap_cells,
-        finish=finish,
-        smooth_px=smooth_px,
     )
-    jobs = [replace(base, k=k) for k in range(n_tiles)]
-    with rasterio.Env(GDAL_CACHEMAX=64), rasterio.open(dsm_tif, "w", **profile) as dsm_out:
-        dtm_out = rasterio.open(dtm_tif, "w", **profile) if dtm_tif is not None else None
+    coarse = {name: _CoarseSums(grid, f) for name in layers} if f else {}
+    with rasterio.Env(GDAL_CACHEMAX=64):
+        outs = {name: rasterio.open(raw[name], "w", **raw_profile) for name in layers}
         try:
             # one tile at a time here (memory follows one tile); on the Dask cluster when one is given
-            for _k, win, dsm_z, dtm_z, own_i, own_g in imap_ordered(make_tile, jobs, workers=1, feedback=s_tiles):
-                dsm_out.write(dsm_z, 1, window=win)
-                if dtm_out is not None and dtm_z is not None:
-                    dtm_out.write(dtm_z, 1, window=win)
+            jobs = [replace(base, k=k) for k in range(n_tiles)]
+            for k, grids, own_i, own_g in imap_ordered(make_tile, jobs, workers=1, feedback=s_tiles):
+                r0, r1, c0, c1 = tiling.window(k)
+                win = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
+                for name, z in zip(layers, grids):
+                    outs[name].write(z, 1, window=win)
+                    if name in coarse:
+                        coarse[name].add(z, r0, c0)
                 if ground_flags is not None:
                     ground_flags[own_i] = own_g
                     n_ground += int(own_g.sum())
         finally:
-            if dtm_out is not None:
-                dtm_out.close()
-    for f in files:
-        f.unlink(missing_ok=True)
-    return TiledGrids(dsm_tif, dtm_tif, ground_flags, n_used, n_ground, n_tiles)
+            for o in outs.values():
+                o.close()
+    for file in files:
+        file.unlink(missing_ok=True)
+    coarse_npy = {name: c.filled(max_gap_cells, work / f"{name}_coarse") for name, c in coarse.items()}
+    filled = {name: work / f"{name}.tif" for name in layers}
+    fill_jobs = [
+        _FillJob(k, name, tiling, halo, raw[name], coarse_npy.get(name), f, max_gap_cells, smooth_px, finish)
+        for name in layers
+        for k in range(n_tiles)
+    ]
+    with rasterio.Env(GDAL_CACHEMAX=64):
+        outs = {name: rasterio.open(filled[name], "w", **profile) for name in layers}
+        try:
+            for job, z in zip(fill_jobs, imap_ordered(fill_tile, fill_jobs, workers=1, feedback=s_fill)):
+                r0, r1, c0, c1 = tiling.window(job.k)
+                outs[job.layer].write(z, 1, window=rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0))
+        finally:
+            for o in outs.values():
+                o.close()
+    for path in raw.values():
+        path.unlink(missing_ok=True)
+    return TiledGrids(filled["dsm"], filled.get("dtm"), ground_flags, n_used, n_ground, n_tiles)
 
 
 @dataclass(frozen=True)
 class _TileJob:
-    """Everything one tile needs (sent to a worker when the tiles run on a cluster)."""
+    """Everything gridding one tile needs (sent to a worker when the tiles run on a cluster)."""
 
     k: int
     files: list[Path]
-    grid: Any
-    t: int  # tile side, cells
-    n_tr: int
-    n_tc: int
-    halo_cells: int
+    tiling: _Tiling
     points_halo: float  # cloud units
     method: str
     ground_method: str | None
     smrf_grid: Any
+    smrf_surface: Path | None  # the whole cloud's SMRF surface (None: SMRF per tile)
     params: SmrfParams
     horizontal_m: float
     vertical_m: float
     want_dtm: bool
-    max_gap_cells: float
-    finish: Callable[[np.ndarray, float, int], np.ndarray]
-    smooth_px: int
 
 
-def make_tile(job: _TileJob) -> tuple[int, Any, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-    """One tile: its DSM (and DTM) cells, and its own points' ground flags (source indices)."""
-    import rasterio
+def make_tile(job: _TileJob) -> tuple[int, list[np.ndarray], np.ndarray, np.ndarray]:
+    """One tile's unfilled DSM (and DTM) cells (NaN: no point) and its own points' ground flags
+    (their source indices and flags)."""
+    from .elevation import Grid, _Accumulator
 
-    from .elevation import Grid, _Accumulator, _nodata
-
-    grid, t, halo = job.grid, job.t, job.halo_cells
-    tr, tc = divmod(job.k, job.n_tc)
-    r0, c0 = tr * t, tc * t
-    r1, c1 = min(grid.rows, r0 + t), min(grid.cols, c0 + t)
-    # the tile with its halo, as a grid of its own on the same cells
-    hr0, hc0 = max(0, r0 - halo), max(0, c0 - halo)
-    hr1, hc1 = min(grid.rows, r1 + halo), min(grid.cols, c1 + halo)
+    tiling = job.tiling
+    grid, t = tiling.grid, tiling.t
+    tr, tc = divmod(job.k, tiling.n_tc)
+    r0, r1, c0, c1 = tiling.window(job.k)
+    # gridded on the tile and a ring of one cell: the points beyond it feed no cell of the tile
+    hr0, hr1, hc0, hc1 = tiling.window(job.k, 1)
     sub = Grid(grid.x0 + hc0 * grid.cell, grid.y0 - hr0 * grid.cell, grid.cell, hr1 - hr0, hc1 - hc0)
     ph = job.points_halo
     x0, x1 = grid.x0 + c0 * grid.cell - ph, grid.x0 + c1 * grid.cell + ph
     y1, y0 = grid.y0 - r0 * grid.cell + ph, grid.y0 - r1 * grid.cell - ph
-    pts = _neighbourhood(job.files, tr, tc, job.n_tr, job.n_tc, (x0, y0, x1, y1))
+    pts = _neighbourhood(job.files, tr, tc, tiling.n_tr, tiling.n_tc, (x0, y0, x1, y1))
     inner = np.s_[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
-    win = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
     acc = _Accumulator(sub, job.method)
     _add(acc, pts)
-    dsm_z = _nodata(job.finish(acc.result(), job.max_gap_cells, job.smooth_px)[inner])
+    grids = [acc.result()[inner]]
     del acc
     if job.ground_method is None:
-        return job.k, win, dsm_z, None, np.empty(0, np.int64), np.empty(0, bool)
-    g = _ground(pts, job.ground_method, job.smrf_grid, job.params, job.horizontal_m, job.vertical_m)
+        return job.k, grids, np.empty(0, np.int64), np.empty(0, bool)
+    g = _ground(pts, job)
     home_r, home_c = grid.index(pts["x"], pts["y"])
     own = (home_r // t == tr) & (home_c // t == tc)
-    dtm_z = None
     if job.want_dtm:
         acc = _Accumulator(sub, "idw")
         _add(acc, pts[g])
-        dtm_z = _nodata(job.finish(acc.result(), job.max_gap_cells, job.smooth_px)[inner])
-    return job.k, win, dsm_z, dtm_z, pts["i"][own], g[own]
+        grids.append(acc.result()[inner])
+    return job.k, grids, pts["i"][own], g[own]
+
+
+class _CoarseSums:
+    """Block sums of a grid's known cells, ``f`` x ``f`` cells a block, fed tile by tile."""
+
+    def __init__(self, grid: Any, f: int):
+        self.f = f
+        shape = (math.ceil(grid.rows / f), math.ceil(grid.cols / f))
+        self.sums, self.counts = np.zeros(shape), np.zeros(shape)
+
+    def add(self, z: np.ndarray, r0: int, c0: int) -> None:
+        f = self.f
+        h, w = z.shape
+        hp, wp = -(-h // f) * f, -(-w // f) * f
+        known = np.isfinite(z)
+        zz, kk = np.zeros((hp, wp)), np.zeros((hp, wp))
+        zz[:h, :w] = np.where(known, z, 0.0)
+        kk[:h, :w] = known
+        at = np.s_[r0 // f : r0 // f + hp // f, c0 // f : c0 // f + wp // f]
+        self.sums[at] += zz.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+        self.counts[at] += kk.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+
+    def filled(self, max_gap_cells: float, stem: Path) -> tuple[Path, Path]:
+        """The coarse grid's harmonic gap fill and its gap-closed outline, saved."""
+        from .gapfill import fill_harmonic, gap_mask
+
+        known = self.counts > 0
+        z = np.where(known, self.sums / np.maximum(self.counts, 1), np.nan)
+        gap = gap_mask(known, max_gap_cells / self.f)
+        values, closed = stem.with_name(stem.name + "_values.npy"), stem.with_name(stem.name + "_closed.npy")
+        np.save(values, fill_harmonic(z, known, gap))
+        np.save(closed, known | gap)
+        return values, closed
+
+
+@dataclass(frozen=True)
+class _FillJob:
+    """One tile's gap fill and smoothing, in a window of the unfilled grid."""
+
+    k: int
+    layer: str
+    tiling: _Tiling
+    halo: int
+    raw: Path
+    coarse: tuple[Path, Path] | None  # the coarse fill and its gap-closed outline (gaps wider than the halo)
+    f: int
+    max_gap_cells: float
+    smooth_px: int
+    finish: Callable[..., np.ndarray]
+
+
+def fill_tile(job: _FillJob) -> np.ndarray:
+    """The tile's final cells (float32, nodata as NODATA)."""
+    import rasterio
+
+    from .elevation import _nodata
+    from .gapfill import gap_mask
+
+    grid = job.tiling.grid
+    r0, r1, c0, c1 = job.tiling.window(job.k)
+    hr0, hr1, hc0, hc1 = job.tiling.window(job.k, job.halo)
+    with rasterio.open(job.raw) as src:
+        z = src.read(1, window=rasterio.windows.Window(hc0, hr0, hc1 - hc0, hr1 - hr0)).astype(np.float64)
+    inner = np.s_[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
+    if job.coarse is None or job.max_gap_cells <= 0:
+        return _nodata(job.finish(z, job.max_gap_cells, job.smooth_px)[inner])
+    # the halo is cut short of the widest gap: past the window's inner edges the data goes on where
+    # the coarse grid's gap-closed outline says so
+    f = job.f
+    rows, cols = np.arange(hr0 - 1, hr1 + 1) // f, np.arange(hc0 - 1, hc1 + 1) // f
+    # the coarse grids around the window, a cell of margin for the interpolation
+    crop = np.s_[max(0, rows[0] - 1) : rows[-1] + 2, max(0, cols[0] - 1) : cols[-1] + 2]
+    cr0, cc0 = crop[0].start, crop[1].start
+    values_npy, closed_npy = job.coarse
+    closed = np.asarray(np.load(closed_npy, mmap_mode="r")[crop])
+    rows, cols = np.clip(rows - cr0, 0, closed.shape[0] - 1), np.clip(cols - cc0, 0, closed.shape[1] - 1)
+    ring = closed[np.ix_(rows, cols)]  # the window and one cell around it
+    open_edges = (hr0 > 0, hr1 < grid.rows, hc0 > 0, hc1 < grid.cols)
+    beyond = (ring[0, 1:-1], ring[-1, 1:-1], ring[1:-1, 0], ring[1:-1, -1])
+    gap = gap_mask(np.isfinite(z), job.max_gap_cells, tuple(b if o else None for o, b in zip(open_edges, beyond)))
+    gap &= ring[1:-1, 1:-1]
+    edge = np.zeros_like(gap)
+    edge[0, :], edge[-1, :] = open_edges[0], open_edges[1]
+    edge[:, 0] |= open_edges[2]
+    edge[:, -1] |= open_edges[3]
+    edge &= gap
+    if edge.any():
+        # a gap crossing the window's edge is held there at the coarse grid's fill
+        values = np.asarray(np.load(values_npy, mmap_mode="r")[crop])
+        er, ec = np.nonzero(edge)
+        z[er, ec] = bilinear(values, (hc0 + ec + 0.5) / f - 0.5 - cc0, (hr0 + er + 0.5) / f - 0.5 - cr0)
+    return _nodata(job.finish(z, job.max_gap_cells, job.smooth_px, gap)[inner])
 
 
 def _neighbourhood(
@@ -282,29 +430,34 @@ def _neighbourhood(
     return np.concatenate(parts) if parts else np.empty(0, _POINT)
 
 
-def _ground(
-    pts: np.ndarray, ground_method: str, smrf_grid: Any, params: SmrfParams, horizontal_m: float, vertical_m: float
-) -> np.ndarray:
-    """Which of the tile's points are ground: the file's class 2, or SMRF on the global SMRF grid's
-    cells that the points cover."""
+def _ground(pts: np.ndarray, job: _TileJob) -> np.ndarray:
+    """Which of the tile's points are ground: the file's class 2, or SMRF's test against the whole
+    cloud's surface (or, where that is too large to hold, one made on the global SMRF grid's cells
+    that the points cover)."""
     from .elevation import GROUND, Grid, _Accumulator
 
-    if ground_method == "classification":
+    if job.ground_method == "classification":
         return np.asarray(pts["c"] == GROUND)
     if not len(pts):
         return np.zeros(0, bool)
-    r, c = smrf_grid.index(pts["x"], pts["y"])
-    r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
-    g = smrf_grid
-    sub = Grid(g.x0 + c0 * g.cell, g.y0 - r0 * g.cell, g.cell, r1 - r0, c1 - c0)
-    zmin = _Accumulator(sub, "min")
-    _add(zmin, pts)
-    surface = smrf_surface(zmin.result(), g.cell, params, horizontal_m, vertical_m)
+    g = job.smrf_grid
+    r, c = g.index(pts["x"], pts["y"])
+    if job.smrf_surface is not None:
+        # the surface around the points, two cells of margin: its slope there is the whole one's
+        r0, c0 = max(0, int(r.min()) - 2), max(0, int(c.min()) - 2)
+        r1, c1 = min(g.rows, int(r.max()) + 3), min(g.cols, int(c.max()) + 3)
+        surface = np.asarray(np.load(job.smrf_surface, mmap_mode="r")[r0:r1, c0:c1])
+    else:
+        r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
+        zmin = _Accumulator(Grid(g.x0 + c0 * g.cell, g.y0 - r0 * g.cell, g.cell, r1 - r0, c1 - c0), "min")
+        _add(zmin, pts)
+        surface = smrf_surface(zmin.result(), g.cell, job.params, job.horizontal_m, job.vertical_m)
+    x0, y0 = g.x0 + c0 * g.cell, g.y0 - r0 * g.cell
     out = np.empty(len(pts), bool)
     for i in range(0, len(pts), SLICE_POINTS):  # its temporaries follow the slice, not the tile
         p = pts[i : i + SLICE_POINTS]
         out[i : i + len(p)] = ground_mask(
-            p["x"], p["y"], p["z"], surface, sub.x0, sub.y0, g.cell, params, horizontal_m, vertical_m
+            p["x"], p["y"], p["z"], surface, x0, y0, g.cell, job.params, job.horizontal_m, job.vertical_m
         )
     return out
 

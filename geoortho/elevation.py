@@ -462,7 +462,7 @@ def _dem_tiled(
     unit_tag = _unit_tag(src.vertical_unit) if method != "count" else ""
     with work_folder(Path(output)) as work:
         tiles = make_tiled(
-            src, grid, plan.resolution_m, method, ground_method if want_ground else None, params, keep,
+            src, grid, method, ground_method if want_ground else None, params, keep,
             dtm is not None, max_gap_cells, _finish, smooth_px, Path(work), fb, progress,
         )  # fmt: skip
         with atomic_paths(output, dtm, hillshade, commit_check=fb.check_canceled) as (t_dsm, t_dtm, t_shade):
@@ -521,6 +521,7 @@ def _cog_of(tif: Path, target: Path, name: str, units: str) -> None:
 
 #: The hillshade of a tiled grid is a preview: at most this many pixels a side.
 MAX_HILLSHADE_PX = 4096
+HILLSHADE_STRIP_ROWS = 256
 
 
 def _hillshade_of(tif: Path, target: Path, z_per_xy: float) -> None:
@@ -905,9 +906,12 @@ def _unit_tag(name: str) -> str:
     return {"metre": "m", "foot": "ft", "US survey foot": "US survey foot"}.get(name, name)
 
 
-def _finish(grid: np.ndarray, max_gap_cells: float, smooth_px: int) -> np.ndarray:
+def _finish(grid: np.ndarray, max_gap_cells: float, smooth_px: int, gap: np.ndarray | None = None) -> np.ndarray:
+    """Gaps filled (``gap``: the cells to fill; default, the gaps up to ``max_gap_cells``), then smoothed."""
     known = np.isfinite(grid)
-    out = fill_harmonic(grid, known, gap_mask(known, max_gap_cells)) if max_gap_cells > 0 else grid
+    if gap is None and max_gap_cells > 0:
+        gap = gap_mask(known, max_gap_cells)
+    out = fill_harmonic(grid, known, gap) if gap is not None else grid
     if smooth_px > 0:
         from scipy import ndimage
 
@@ -935,13 +939,20 @@ def write_hillshade(
     from .outputs import atomic_path
 
     valid = np.isfinite(z)
-    zz = np.where(valid, z, np.nanmean(z) if valid.any() else 0.0) * z_per_xy
-    gy, gx = np.gradient(zz, cell)
-    slope = np.arctan(np.hypot(gx, gy))
-    aspect = np.arctan2(-gx, gy)  # downhill direction, clockwise from north (rows go south)
+    fill = np.nanmean(z) if valid.any() else 0.0
     az, alt = math.radians(azimuth_deg), math.radians(altitude_deg)
-    shade = np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect)
-    grey = np.clip(shade * 255, 0, 255).astype(np.uint8)
+    grey = np.empty(z.shape, np.uint8)
+    # in strips of rows (a row of margin each side, so the slopes are the whole grid's): a 4096 px
+    # preview's dozen temporaries held whole took 900 MB
+    for r0 in range(0, z.shape[0], HILLSHADE_STRIP_ROWS):
+        r1 = min(z.shape[0], r0 + HILLSHADE_STRIP_ROWS)
+        a, b = max(0, r0 - 1), min(z.shape[0], r1 + 1)
+        zz = np.where(valid[a:b], z[a:b], fill) * z_per_xy
+        gy, gx = np.gradient(zz, cell)
+        slope = np.arctan(np.hypot(gx, gy))
+        aspect = np.arctan2(-gx, gy)  # downhill direction, clockwise from north (rows go south)
+        shade = np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect)
+        grey[r0:r1] = np.clip(shade[r0 - a : r1 - a] * 255, 0, 255).astype(np.uint8)
     rgba = np.dstack([grey, grey, grey, np.where(valid, 255, 0).astype(np.uint8)])
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), rgba):

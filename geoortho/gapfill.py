@@ -20,17 +20,35 @@ __all__ = ["fill_harmonic", "gap_mask"]
 OVERRELAX = 1.7  # measured best of 1.0-1.85 on a ramp through a 40-cell hole
 
 
-def gap_mask(known: np.ndarray, max_gap_cells: float) -> np.ndarray:
+def gap_mask(
+    known: np.ndarray, max_gap_cells: float, beyond: tuple[np.ndarray | None, ...] = (None,) * 4
+) -> np.ndarray:
     """Unknown cells that are gaps inside the data: within ``max_gap_cells`` of known cells on
-    both sides (a morphological closing by a disc), not the outside of the cloud's outline."""
-    if known.all() or not known.any():
+    both sides (a morphological closing by a disc), not the outside of the cloud's outline.
+
+    ``beyond`` (top, bottom, left, right): for a window of a larger grid, which cells of the row
+    or column just past that edge count as known (the data goes on there); None: no data past it."""
+    if known.all() or not (known.any() or any(e is not None and e.any() for e in beyond)):
         return np.zeros_like(known)
-    # closing with no data beyond the grid's edge: pad, dilate by the radius, erode by it
+    # closing with no data beyond the grid's edge: pad, dilate by the radius, erode by it; past a
+    # window's edge one row of what is known there is enough (no distance is measured past the array)
     pad = int(math.ceil(max_gap_cells)) + 2
-    k = np.pad(known, pad)
+    top, bottom, left, right = (1 if e is not None else pad for e in beyond)
+    h, w = known.shape
+    k = np.pad(known, ((top, bottom), (left, right)))
+    strips = (
+        np.s_[top - 1, left : left + w],
+        np.s_[top + h, left : left + w],
+        np.s_[top : top + h, left - 1],
+        np.s_[top : top + h, left + w],
+    )
+    for edge, strip in zip(beyond, strips):
+        if edge is not None:
+            k[strip] = edge
     near = ndimage.distance_transform_edt(~k) <= max_gap_cells
-    closed = ndimage.distance_transform_edt(near) > max_gap_cells
-    return closed[pad:-pad, pad:-pad] & ~known
+    # (an array with no zero has no distances: scipy then measures from a corner beyond it)
+    closed = ndimage.distance_transform_edt(near) > max_gap_cells if not near.all() else near
+    return closed[top : top + h, left : left + w] & ~known
 
 
 def fill_harmonic(z: np.ndarray, known: np.ndarray, fill: np.ndarray | None = None, *, sweeps: int = 30) -> np.ndarray:
