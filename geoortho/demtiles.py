@@ -291,7 +291,7 @@ class _TileJob:
 def make_tile(job: _TileJob) -> tuple[int, list[np.ndarray], np.ndarray, np.ndarray]:
     """One tile's unfilled DSM (and DTM) cells (NaN: no point) and its own points' ground flags
     (their source indices and flags)."""
-    from .elevation import Grid, _Accumulator
+    from .elevation import _Accumulator
 
     tiling = job.tiling
     grid, t = tiling.grid, tiling.t
@@ -299,7 +299,7 @@ def make_tile(job: _TileJob) -> tuple[int, list[np.ndarray], np.ndarray, np.ndar
     r0, r1, c0, c1 = tiling.window(job.k)
     # gridded on the tile and a ring of one cell: the points beyond it feed no cell of the tile
     hr0, hr1, hc0, hc1 = tiling.window(job.k, 1)
-    sub = Grid(grid.x0 + hc0 * grid.cell, grid.y0 - hr0 * grid.cell, grid.cell, hr1 - hr0, hc1 - hc0)
+    sub = grid.window(hr0, hc0, hr1 - hr0, hc1 - hc0)
     ph = job.points_halo
     x0, x1 = grid.x0 + c0 * grid.cell - ph, grid.x0 + c1 * grid.cell + ph
     y1, y0 = grid.y0 - r0 * grid.cell + ph, grid.y0 - r1 * grid.cell - ph
@@ -434,7 +434,7 @@ def _ground(pts: np.ndarray, job: _TileJob) -> np.ndarray:
     """Which of the tile's points are ground: the file's class 2, or SMRF's test against the whole
     cloud's surface (or, where that is too large to hold, one made on the global SMRF grid's cells
     that the points cover)."""
-    from .elevation import GROUND, Grid, _Accumulator
+    from .elevation import GROUND, _Accumulator
 
     if job.ground_method == "classification":
         return np.asarray(pts["c"] == GROUND)
@@ -449,7 +449,7 @@ def _ground(pts: np.ndarray, job: _TileJob) -> np.ndarray:
         surface = np.asarray(np.load(job.smrf_surface, mmap_mode="r")[r0:r1, c0:c1])
     else:
         r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
-        zmin = _Accumulator(Grid(g.x0 + c0 * g.cell, g.y0 - r0 * g.cell, g.cell, r1 - r0, c1 - c0), "min")
+        zmin = _Accumulator(g.window(r0, c0, r1 - r0, c1 - c0), "min")
         _add(zmin, pts)
         surface = smrf_surface(zmin.result(), g.cell, job.params, job.horizontal_m, job.vertical_m)
     x0, y0 = g.x0 + c0 * g.cell, g.y0 - r0 * g.cell

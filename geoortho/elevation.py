@@ -43,13 +43,19 @@ GROUND = 2
 
 @dataclass(frozen=True)
 class Grid:
-    """A north-up grid: top-left corner, cell size and shape, in the cloud's units."""
+    """A north-up grid: top-left corner, cell size and shape, in the cloud's units.
+
+    A window of a larger grid keeps that grid's corner and says where it starts (``row0``,
+    ``col0``): its cells are then the larger grid's, computed the same way to the last bit (a
+    point on a cell's edge — a millimetre lattice at 5 cm cells — falls in the same cell)."""
 
     x0: float
     y0: float  # top edge
     cell: float
     rows: int
     cols: int
+    row0: int = 0
+    col0: int = 0
 
     @classmethod
     def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float, cell: float) -> Grid:
@@ -61,20 +67,39 @@ class Grid:
         rows = int(math.floor((y0 - ymin) / cell)) + 1
         return cls(x0, y0, cell, rows, cols)
 
+    def window(self, row0: int, col0: int, rows: int, cols: int) -> Grid:
+        """The cells ``row0 .. row0 + rows``, ``col0 .. col0 + cols`` of this grid, as a grid."""
+        return replace(self, rows=rows, cols=cols, row0=self.row0 + row0, col0=self.col0 + col0)
+
     def index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cell (row, col) of each point; -1 outside."""
-        c = np.floor((x - self.x0) / self.cell).astype(np.int64)
-        r = np.floor((self.y0 - y) / self.cell).astype(np.int64)
+        c = np.floor((x - self.x0) / self.cell).astype(np.int64) - self.col0
+        r = np.floor((self.y0 - y) / self.cell).astype(np.int64) - self.row0
         out = (c < 0) | (c >= self.cols) | (r < 0) | (r >= self.rows)
         c[out] = -1
         r[out] = -1
         return r, c
 
+    def centres(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """x, y of the centres of cells (rows, cols)."""
+        return (
+            self.x0 + (cols + self.col0 + 0.5) * self.cell,
+            self.y0 - (rows + self.row0 + 0.5) * self.cell,
+        )
+
+    @property
+    def left(self) -> float:
+        return self.x0 + self.col0 * self.cell
+
+    @property
+    def top(self) -> float:
+        return self.y0 - self.row0 * self.cell
+
     @property
     def transform(self) -> Any:
         from rasterio.transform import from_origin
 
-        return from_origin(self.x0, self.y0, self.cell, self.cell)
+        return from_origin(self.left, self.top, self.cell, self.cell)
 
 
 class _Accumulator:
@@ -119,8 +144,7 @@ class _Accumulator:
                 for dc in (-1, 0, 1):
                     rr, cc = r + dr, c + dc
                     inside = (rr >= 0) & (rr < g.rows) & (cc >= 0) & (cc < g.cols)
-                    cx = g.x0 + (cc + 0.5) * g.cell
-                    cy = g.y0 - (rr + 0.5) * g.cell
+                    cx, cy = g.centres(rr, cc)
                     d = np.hypot(x - cx, y - cy)
                     use = inside & (d <= radius)
                     wgt = 1.0 / np.maximum(d[use], 1e-3 * g.cell) ** 2

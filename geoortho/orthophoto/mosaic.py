@@ -453,57 +453,60 @@ def mosaic(
     transform, shape = _grid(placed.boxes, surface, resolution_m)
     if shape[0] * shape[1] > 4e9:
         raise InputError(f"the mosaic would be {shape[1]}x{shape[0]} px: give a coarser resolution")
-    vis = tuple(
-        visibility_grid(cam, surface, box) if options.occlusion and isinstance(surface, GridSurface) else None
-        for cam, box in zip(placed.cams, placed.boxes)
-    )
-    times["visibility"] = time.perf_counter() - t0
-
-    t1 = time.perf_counter()
-    # Seams and gains are decided on cells 8x coarser (and no more than 2 Mpx): the graph cut's time
-    # grows with the cells in the seam bands.
-    factor = max(8, int(math.ceil(math.sqrt(shape[0] * shape[1] / 2.0e6))))
-    plan = plan_seams(
-        list(placed.cams),
-        list(placed.boxes),
-        list(placed.gsds),
-        surface,
-        list(vis),
-        transform,
-        shape,
-        factor,
-        seams=options.seams,
-        balance=options.balance,
-        feedback=st_plan,
-    )
-    skipped += plan.skipped
-    notes.extend(plan.notes)
-    bad = {name for name, _ in plan.skipped}
-    box_windows = tuple(
-        None if c.name in bad else bounds_window(transform, shape, b) for c, b in zip(placed.cams, placed.boxes)
-    )
-    times["seams_and_balance"] = time.perf_counter() - t1
-    fb.info(
-        f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(placed.cams) - len(bad)} photos; "
-        f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}"
-    )
-
-    t2 = time.perf_counter()
-    ctx = _Context(
-        placed.cams,
-        box_windows,
-        vis,
-        surface,
-        transform,
-        shape,
-        plan,
-        options.blend,
-        int(options.max_hole_px),
-        2 ** (_BANDS + 1),
-        _INTERPOLATION[options.interpolation],
-    )
+    # the temporaries (visibility grids, the tiled mosaic) beside the output, on the same disk
     output.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
+        vis = tuple(
+            visibility_grid(cam, surface, box, Path(work_dir) / f"visibility_{i}.npy")
+            if options.occlusion and isinstance(surface, GridSurface)
+            else None
+            for i, (cam, box) in enumerate(zip(placed.cams, placed.boxes))
+        )
+        times["visibility"] = time.perf_counter() - t0
+
+        t1 = time.perf_counter()
+        # Seams and gains are decided on cells 8x coarser (and no more than 2 Mpx): the graph cut's time
+        # grows with the cells in the seam bands.
+        factor = max(8, int(math.ceil(math.sqrt(shape[0] * shape[1] / 2.0e6))))
+        plan = plan_seams(
+            list(placed.cams),
+            list(placed.boxes),
+            list(placed.gsds),
+            surface,
+            list(vis),
+            transform,
+            shape,
+            factor,
+            seams=options.seams,
+            balance=options.balance,
+            feedback=st_plan,
+        )
+        skipped += plan.skipped
+        notes.extend(plan.notes)
+        bad = {name for name, _ in plan.skipped}
+        box_windows = tuple(
+            None if c.name in bad else bounds_window(transform, shape, b) for c, b in zip(placed.cams, placed.boxes)
+        )
+        times["seams_and_balance"] = time.perf_counter() - t1
+        fb.info(
+            f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(placed.cams) - len(bad)} photos; "
+            f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}"
+        )
+
+        t2 = time.perf_counter()
+        ctx = _Context(
+            placed.cams,
+            box_windows,
+            vis,
+            surface,
+            transform,
+            shape,
+            plan,
+            options.blend,
+            int(options.max_hole_px),
+            2 ** (_BANDS + 1),
+            _INTERPOLATION[options.interpolation],
+        )
         tiled = Path(work_dir) / "mosaic.tif"
         totals, used = _render(ctx, crs, tiled, options, st_tiles)
         times["tiles"] = time.perf_counter() - t2

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -70,20 +71,40 @@ def bounds_window(
 
 @dataclass(frozen=True, eq=False)
 class VisibilityGrid:
-    """1.0 where the camera sees the DSM cell, 0.0 where the DSM hides it; on a window of the DSM grid."""
+    """1 where the camera sees the DSM cell, 0 where the DSM hides it; on a window of the DSM grid.
 
-    grid: np.ndarray  # float32
+    Held in a file (``path``, uint8 .npy, mapped when read), not in memory: a survey's photos'
+    grids would otherwise be held at once, in every worker that renders tiles."""
+
+    path: Path
     transform: Affine
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         t = self.transform
-        return sample_grid(self.grid, (x - t.c) / t.a - 0.5, (y - t.f) / t.e - 0.5)
+        cols, rows = (x - t.c) / t.a - 0.5, (y - t.f) / t.e - 0.5
+        grid = np.load(self.path, mmap_mode="r")
+        ok = np.isfinite(cols) & np.isfinite(rows)
+        if not ok.any():
+            return np.full(np.shape(cols), np.nan, np.float32)
+        # the cells around the samples only (a cell of margin: their bilinear neighbours)
+        h, w = grid.shape
+        c0 = int(np.clip(np.floor(cols[ok].min()) - 1, 0, w))
+        c1 = int(np.clip(np.ceil(cols[ok].max()) + 2, c0, w))
+        r0 = int(np.clip(np.floor(rows[ok].min()) - 1, 0, h))
+        r1 = int(np.clip(np.ceil(rows[ok].max()) + 2, r0, h))
+        if c1 <= c0 or r1 <= r0:
+            return np.full(np.shape(cols), np.nan, np.float32)
+        return sample_grid(np.asarray(grid[r0:r1, c0:c1], np.float32), cols - c0, rows - r0)
 
 
 def visibility_grid(
-    cam: OrthoCamera, surface: GridSurface, bounds: tuple[float, float, float, float], tolerance_m: float = 0.05
+    cam: OrthoCamera,
+    surface: GridSurface,
+    bounds: tuple[float, float, float, float],
+    path: Path,
+    tolerance_m: float = 0.05,
 ) -> VisibilityGrid | None:
-    """Line of sight from each DSM cell in ``bounds`` to the camera, marched over the DSM."""
+    """Line of sight from each DSM cell in ``bounds`` to the camera, marched over the DSM; kept in ``path``."""
     win = bounds_window(surface.transform, surface.grid.shape, bounds)
     if win is None:
         return None
@@ -117,7 +138,8 @@ def visibility_grid(
         idx = idx[~blocked & (freach[idx] > t + step * 0.5)]
         k += 1
     vis = vis & ~occluded.reshape(z.shape)
-    return VisibilityGrid(vis.astype(np.float32), Affine(tr.a, 0, tr.c + c0 * tr.a, 0, tr.e, tr.f + r0 * tr.e))
+    np.save(path, vis.astype(np.uint8))
+    return VisibilityGrid(Path(path), Affine(tr.a, 0, tr.c + c0 * tr.a, 0, tr.e, tr.f + r0 * tr.e))
 
 
 def window_xyz(transform: Affine, win: Window, surface: Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
