@@ -14,6 +14,7 @@ __all__ = [
     "ParameterError",
     "CanceledError",
     "DependencyError",
+    "ClusterError",
     "GeoorthoWarning",
 ]
 
@@ -63,6 +64,10 @@ class CanceledError(GeoorthoError):
 
 class DependencyError(GeoorthoError, ImportError):
     """An optional dependency (pdal, dask.distributed) is missing."""
+
+
+class ClusterError(GeoorthoError, RuntimeError):
+    """The Dask cluster a run was given went away mid-run (its scheduler died or was unreachable)."""
 
 
 class GeoorthoWarning(UserWarning):

@@ -28,7 +28,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
-from .errors import DependencyError, InputError
+from .errors import ClusterError, DependencyError, InputError
 from .feedback import Feedback, as_feedback
 
 __all__ = ["SCHEDULER_ENV", "active_client", "imap_ordered", "map_ordered", "process_pool", "use_scheduler"]
@@ -121,10 +121,10 @@ def _imap_on(
     consumer stopping) cancels what has not started."""
     pending: collections.deque[cf.Future[R]] = collections.deque()
     it = iter(items)
+    done = 0
     try:
         for item in itertools.islice(it, in_flight):
             pending.append(executor.submit(fn, item))
-        done = 0
         while pending:
             fb.check_canceled()
             result = pending.popleft().result()
@@ -133,6 +133,15 @@ def _imap_on(
             done += 1
             fb.progress(done / len(items))
             yield result
+    except Exception as e:
+        # a lost scheduler surfaces as cancelled futures or a closed client, which say nothing
+        if isinstance(executor, _ClusterExecutor) and executor.lost():
+            raise ClusterError(
+                f"the Dask scheduler at {executor.address} was lost mid-run ({done} of {len(items)} tasks done): "
+                "this run stopped and wrote no product; start the scheduler and run again, "
+                "or run without --scheduler"
+            ) from e
+        raise
     finally:
         for f_ in pending:
             f_.cancel()
@@ -349,6 +358,8 @@ class _ClusterExecutor(cf.Executor):
     The initializer's arguments go to every worker once (scattered), not with each item."""
 
     def __init__(self, client: Any, initializer: Callable[..., Any] | None, initargs: tuple[Any, ...]) -> None:
+        self._client = client
+        self.address = str(getattr(client.scheduler, "address", "") or "the given address")
         self._ex = client.get_executor(pure=False)
         self._initializer = initializer
         self._token = uuid.uuid4().hex
@@ -360,6 +371,10 @@ class _ClusterExecutor(cf.Executor):
         return self._ex.submit(  # type: ignore[no-any-return]
             _run_initialised, fn, self._initializer, self._token, args, kwargs, *self._initargs
         )
+
+    def lost(self) -> bool:
+        """The client no longer has its scheduler (reconnecting, or given up and closed)."""
+        return str(self._client.status) not in ("running", "newly-created")
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         self._ex.shutdown(wait=wait and not cancel_futures)  # (not waiting cancels, as a pool would)

@@ -237,3 +237,59 @@ def test_workers_that_do_not_see_the_photos_are_refused(cluster, small_survey, t
         worker.terminate()
         worker.wait(timeout=30)
         scheduler.close()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_a_scheduler_killed_mid_run_stops_the_run_with_one_line_and_no_product(small_survey, tmp_path):
+    """A real ``dask scheduler`` and ``dask worker`` (processes of their own); the scheduler is
+    SIGKILLed while its workers hold gcp-find's tasks: the run ends at once, exit 1, its last line
+    says the scheduler was lost and what to do, Dask's reconnection tracebacks are not on stderr,
+    and the output folder is as it was (no product, no temporary)."""
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    scheduler = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
+         "--no-dashboard"], **quiet,
+    )  # fmt: skip
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nworkers", "2", "--nthreads", "1",
+         "--no-dashboard"], **quiet,
+    )  # fmt: skip
+    out = tmp_path / "out"
+    out.mkdir()
+    try:
+        with distributed.Client(address, timeout=30, set_as_default=False) as watcher:
+            watcher.wait_for_workers(2, timeout=60)
+            run = subprocess.Popen(
+                [sys.executable, "-m", "geoortho", "gcp-find", "--images", str(small_survey.images), "--gcp-file",
+                 str(small_survey.gcp_file), "--output", str(out / "gcp_list.txt"), "--scheduler", address],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            )  # fmt: skip
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and run.poll() is None:
+                if any(watcher.processing().values()):
+                    break
+                time.sleep(0.02)
+            assert run.poll() is None, "the run ended before any task was on a worker"
+        scheduler.send_signal(signal.SIGKILL)
+        killed_at = time.monotonic()
+        _, err = run.communicate(timeout=120)
+        took_s = time.monotonic() - killed_at
+    finally:
+        for p in (worker, scheduler):
+            p.kill()
+            p.wait(timeout=30)
+    assert run.returncode == 1, err
+    last = err.strip().splitlines()[-1]
+    assert f"the Dask scheduler at {address} was lost mid-run" in last and "run again" in last, err
+    assert "Traceback" not in err and "distributed.client" not in err, err
+    assert took_s < 30, took_s  # Dask's reconnection gives up after the client's 10 s at most
+    assert list(out.iterdir()) == []

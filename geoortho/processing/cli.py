@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import warnings
@@ -17,6 +18,7 @@ from typing import Any, NoReturn
 
 from ..errors import CanceledError, GeoorthoError, InputError
 from ..feedback import Feedback, JsonLinesFeedback, TerminalFeedback
+from ..parallel import SCHEDULER_ENV
 from .registry import describe_json, list_algorithms, run_algorithm
 from .spec import PARAM_TYPES, Algorithm, Param
 
@@ -182,6 +184,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # numpy's "invalid value encountered" and the like are not for a surveyor: what matters is
         # said through the feedback; --debug shows them
         warnings.filterwarnings("ignore", category=RuntimeWarning)
+        if args.scheduler or os.environ.get(SCHEDULER_ENV):
+            _quiet_dask()
     values = {p.name: getattr(args, p.name) for p in alg.params}
     feedback: Feedback
     if args.progress_json:
@@ -225,6 +229,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not isinstance(v, (dict, list)):
                 print(f"{k}: {v}")
     return 0
+
+
+def _quiet_dask() -> None:
+    """Dask's client logs its reconnection attempts and their tracebacks on stderr; the run's own
+    last line says what happened (--debug keeps them). Set after the import, which configures them."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        return  # the run says that the extra is missing
+    names = [n for n in logging.root.manager.loggerDict if n.split(".")[0] in ("distributed", "tornado")]
+    for name in ["distributed", "tornado", *names]:
+        logging.getLogger(name).setLevel(logging.CRITICAL)
 
 
 def _one_line(e: BaseException) -> str:
