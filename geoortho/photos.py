@@ -43,6 +43,8 @@ __all__ = [
 ]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff")
+#: Photos read per task: a pool (or the cluster) pays off from 4 chunks (256 photos) on
+PHOTOS_PER_CHUNK = 64
 
 # Sensor width (mm) by EXIF Model, lower case: DJI and survey payloads, looked up before
 # OpenSfM's table of 3,709 cameras (geoortho/data). Published sensor sizes; the width spans
@@ -612,9 +614,8 @@ def read_photos(
     """
     fb = as_feedback(feedback)
     paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
-    chunk = 64
+    chunk = PHOTOS_PER_CHUNK
     chunks = [[str(p) for p in paths[i : i + chunk]] for i in range(0, len(paths), chunk)]
-    # a pool pays off from a few hundred photos on; below that, in-process
     per_chunk = map_ordered(
         functools.partial(_read_chunk, sensor_width_mm=sensor_width_mm),
         chunks,

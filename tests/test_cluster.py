@@ -96,6 +96,44 @@ def test_ortho_tiles_on_the_cluster_are_the_local_run(cluster, tiny_survey, tmp_
         assert np.array_equal(a.read(), b.read())
 
 
+
+def test_photo_metadata_and_footprints_on_the_cluster_are_the_local_run(cluster, small_survey, tmp_path, monkeypatch):
+    import geopandas as gpd
+
+    import geoortho.photos as photos
+    from geoortho.footprint import footprints
+
+    monkeypatch.setattr(photos, "PHOTOS_PER_CHUNK", 8)  # 5 chunks: past the 4 from which a pool is used
+    footprints(small_survey.images, tmp_path / "local.gpkg", dsm=small_survey.dsm)
+    with use_scheduler(cluster.scheduler_address, must_see=[small_survey.images, tmp_path]) as client:
+        with distributed.get_task_stream(client) as ts:
+            footprints(small_survey.images, tmp_path / "dask.gpkg", dsm=small_survey.dsm)
+        n_tasks = len(ts.data)
+    assert n_tasks >= 5
+    a, b = gpd.read_file(tmp_path / "local.gpkg"), gpd.read_file(tmp_path / "dask.gpkg")
+    assert len(a) == len(list(small_survey.images.glob("*.JPG")))
+    assert a.equals(b)
+
+
+def test_dense_depth_maps_on_the_cluster_are_the_local_run(cluster, sfm_with_gcps, small_survey, tmp_path):
+    import laspy
+
+    from geoortho.densify import dense
+
+    r_sfm, _ = sfm_with_gcps
+    args = dict(max_image_size=320)  # the depth maps' size: the product, not the survey, is compared
+    local = dense(r_sfm.output, small_survey.images, tmp_path / "local.laz", workers=2, **args)
+    with use_scheduler(cluster.scheduler_address, must_see=[small_survey.images, r_sfm.output, tmp_path]) as client:
+        with distributed.get_task_stream(client) as ts:
+            on = dense(r_sfm.output, small_survey.images, tmp_path / "dask.laz", **args)
+        n_tasks = len(ts.data)
+    assert n_tasks >= len(list(small_survey.images.glob("*.JPG")))  # a depth map a photo
+    assert local.n_points == on.n_points > 100_000
+    a, b = laspy.read(tmp_path / "local.laz"), laspy.read(tmp_path / "dask.laz")
+    for dim in ("X", "Y", "Z", "red", "green", "blue"):
+        assert np.array_equal(a[dim], b[dim]), dim
+
+
 _MMAPPED = """
 def mmapped_mib(_=None):
     import ctypes, numpy as np
