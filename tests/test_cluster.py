@@ -96,7 +96,6 @@ def test_ortho_tiles_on_the_cluster_are_the_local_run(cluster, tiny_survey, tmp_
         assert np.array_equal(a.read(), b.read())
 
 
-
 def test_photo_metadata_and_footprints_on_the_cluster_are_the_local_run(cluster, small_survey, tmp_path, monkeypatch):
     import geopandas as gpd
 
