@@ -27,6 +27,8 @@ import numpy as np
 from bench_sfm import OURS, _child
 
 STAGES = ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho")
+#: 4x4 markers as the presets' DICT_4X4_50, with ids enough for the GCPs and decoys of a wide survey
+DICTIONARY = "DICT_4X4_250"
 
 
 def make_survey(folder: Path, n_photos: int, image_px: int, seed: int = 0) -> tuple[Path, int]:
@@ -46,7 +48,7 @@ def make_survey(folder: Path, n_photos: int, image_px: int, seed: int = 0) -> tu
         n_markers=max(4, round(base.n_markers * k)),
         points_per_m2=4.0,
     )
-    r = synthetic.synth(folder, preset=name, seed=seed)  # type: ignore[arg-type]
+    r = synthetic.synth(folder, preset=name, seed=seed, dictionary=DICTIONARY)  # type: ignore[arg-type]
     return folder, r.n_photos
 
 
@@ -87,7 +89,8 @@ def main() -> int:
                     "--dsm",
                     s / "truth/dsm.tif",
                 ],
-                "gcp-find": ["gcp-find", "--images", img, "--gcp-file", gcp, "--output", out / "gcp_list.txt"],
+                "gcp-find": ["gcp-find", "--images", img, "--gcp-file", gcp, "--output", out / "gcp_list.txt"]
+                + ["--dictionary", DICTIONARY],
                 "sfm": ["sfm", "--images", img, "--output", out / "sfm", "--gcp-list", out / "gcp_list.txt"]
                 + ["--max-image-size", str(args.image_px), "--matching", "spatial"]
                 + (["--split", str(args.split)] if n > args.split else []),
