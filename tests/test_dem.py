@@ -111,6 +111,39 @@ def test_harmonic_fill_has_no_ringing_and_respects_max_gap():
     assert not gap_mask(k, 5)[30, 30] and gap_mask(k, 25)[30, 30]
 
 
+def test_gaps_filled_by_windows_are_the_whole_grids_gaps():
+    """ortho's DSM hole fill, window by window: the same gap cells as gap_mask on the whole grid
+    (tiles of 32 cells, so most gaps and the outline cross tile edges), a plane recovered in them,
+    the outside and a gap wider than the limit left open."""
+    from scipy import ndimage
+
+    from geoortho.gapfill import fill_gaps_by_windows
+
+    rng = np.random.default_rng(4)
+    rows, cols = np.mgrid[0:300, 0:400]
+    plane = (50.0 + 0.03 * cols - 0.02 * rows).astype(np.float32)
+    inside = (rows - 150) ** 2 / 140**2 + (cols - 200) ** 2 / 190**2 < 1  # the cloud's outline
+    z = np.where(inside, plane, np.nan).astype(np.float32)
+    for r, c in rng.integers([20, 20], [280, 380], size=(40, 2)):
+        z[r : r + rng.integers(1, 9), c : c + rng.integers(1, 9)] = np.nan  # holes, some on the outline
+    z[140:160, 100:300] = np.nan  # 20 cells wide: wider than 2 x 8, stays open
+    filled, n = fill_gaps_by_windows(z, max_gap_cells=8, tile_cells=32)
+    known = np.isfinite(z)
+    whole = gap_mask(known, 8)
+    assert n == int(whole.sum()) > 500
+    assert np.array_equal(np.isfinite(filled), known | whole)
+    # a plane is harmonic: recovered in gaps enclosed by data; a gap open to the outside is solved
+    # with part of the outside free (the whole grid's fill: 0.018 m off the plane there, here 0.023)
+    err = np.abs(filled - plane)
+    outside = ndimage.binary_dilation(~known & ~whole, structure=np.ones((3, 3), bool))
+    labels, _ = ndimage.label(whole, structure=np.ones((3, 3), bool))
+    enclosed = whole & ~np.isin(labels, labels[outside & whole])
+    assert enclosed.sum() > 400 and err[enclosed].max() < 1e-3
+    assert err[whole].max() < 0.03
+    assert np.isnan(filled[150, 200]) and np.isnan(filled[0, 0])
+    assert np.array_equal(filled[known], z[known])
+
+
 def test_gridding_methods_by_hand():
     g = Grid.covering(0.0, 0.01, 1.99, 0.99, 1.0)
     assert (g.rows, g.cols) == (1, 2)

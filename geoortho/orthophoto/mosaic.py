@@ -28,7 +28,7 @@ from ..feedback import Feedback, as_feedback, split
 from ..footprint import compute_footprints
 from ..heights import GpsAltitude
 from ..outputs import atomic_path, temp_prefix, write_json
-from ..parallel import imap_ordered
+from ..parallel import imap_ordered, map_ordered
 from ..surface import FlatSurface, GridSurface, Surface
 from .cameras import OrthoCamera, cameras_from_metadata, cameras_from_sfm
 from .rectify import (
@@ -162,6 +162,21 @@ def _init_worker(ctx: _Context) -> None:
     _CTX = ctx
     _CACHE.clear()
     cv2.setNumThreads(1)
+
+
+_VIS_SURFACE: GridSurface | None = None
+
+
+def _init_visibility(surface: GridSurface) -> None:
+    global _VIS_SURFACE
+    _VIS_SURFACE = surface
+
+
+def _visibility_task(job: tuple[OrthoCamera, tuple[float, float, float, float], str]) -> VisibilityGrid | None:
+    """One photo's visibility grid, written to its file (a pool or cluster task)."""
+    assert _VIS_SURFACE is not None
+    cam, box, path = job
+    return visibility_grid(cam, _VIS_SURFACE, box, Path(path))
 
 
 def _photo(path: Path) -> np.ndarray:
@@ -446,7 +461,7 @@ def mosaic(
     output = Path(output)
     notes = list(notes)
     skipped = list(skipped)
-    st_plan, st_tiles, st_write = split(fb, [2, 10, 1])
+    st_vis, st_plan, st_tiles, st_write = split(fb, [2, 2, 10, 1])
     placed = _place(cams, surface, fb)
     skipped += placed.skipped
     resolution_m, median_gsd = _resolution(resolution_m, placed.gsds, notes, fb)
@@ -456,12 +471,23 @@ def mosaic(
     # the temporaries (visibility grids, the tiled mosaic) beside the output, on the same disk
     output.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
-        vis = tuple(
-            visibility_grid(cam, surface, box, Path(work_dir) / f"visibility_{i}.npy")
-            if options.occlusion and isinstance(surface, GridSurface)
-            else None
-            for i, (cam, box) in enumerate(zip(placed.cams, placed.boxes))
-        )
+        vis: tuple[VisibilityGrid | None, ...] = (None,) * len(placed.cams)
+        if options.occlusion and isinstance(surface, GridSurface):
+            jobs = [
+                (cam, box, str(Path(work_dir) / f"visibility_{i}.npy"))
+                for i, (cam, box) in enumerate(zip(placed.cams, placed.boxes))
+            ]
+            # a photo's rays march over its DSM window: seconds a photo on a fine DSM, so in parallel
+            vis = tuple(
+                map_ordered(
+                    _visibility_task,
+                    jobs,
+                    workers=options.workers,
+                    initializer=_init_visibility,
+                    initargs=(surface,),
+                    feedback=st_vis,
+                )
+            )
         times["visibility"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
@@ -976,18 +1002,13 @@ def _check_dsm_against_points(
 
 def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurface:
     """The DSM in the output CRS, its small nodata holes filled (reported)."""
-    from ..gapfill import fill_harmonic, gap_mask
+    from ..gapfill import fill_gaps_by_windows
     from ..surface import read_surface
 
     surf = read_surface(path, crs, extend=True)
-    known = np.isfinite(surf.grid)
-    if known.all():
-        return surf
-    holes = gap_mask(known, max_gap_cells=max(4.0, 10.0 / surf.cell_m))
-    if holes.any():
-        grid = fill_harmonic(surf.grid, known, holes)
-        grid = np.where(known, surf.grid, grid)
-        notes.append(f"DSM: {int(holes.sum())} nodata cells inside the data filled by interpolation")
+    grid, n_filled = fill_gaps_by_windows(surf.grid, max_gap_cells=max(4.0, 10.0 / surf.cell_m))
+    if n_filled:
+        notes.append(f"DSM: {n_filled} nodata cells inside the data filled by interpolation")
         fb.warning(notes[-1])
         surf = GridSurface(grid, surf.transform, surf.crs, extend=True)
     return surf
