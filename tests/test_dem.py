@@ -126,6 +126,8 @@ def test_gaps_filled_by_windows_are_the_whole_grids_gaps():
     z = np.where(inside, plane, np.nan).astype(np.float32)
     for r, c in rng.integers([20, 20], [280, 380], size=(40, 2)):
         z[r : r + rng.integers(1, 9), c : c + rng.integers(1, 9)] = np.nan  # holes, some on the outline
+    z[58:72, 40:130] = np.nan  # 14 cells wide, across tile edges: closed only with the halo's data
+    z[180:270, 250:263] = np.nan
     z[140:160, 100:300] = np.nan  # 20 cells wide: wider than 2 x 8, stays open
     filled, n = fill_gaps_by_windows(z, max_gap_cells=8, tile_cells=32)
     known = np.isfinite(z)
