@@ -79,6 +79,25 @@ def _ring_errors(ortho_path, survey):
     return share_off_beside_objects(ortho_path, survey.ortho, survey.dsm, survey.dtm)
 
 
+def test_visibility_march_skipping_clear_blocks_is_the_plain_march(small_survey, tmp_path):
+    """The march jumps over DSM blocks a ray clears (rectify.BlockTops); the grids must be the
+    plain cell-by-cell march's, bit for bit, with real occlusion in them (buildings, trees)."""
+    from geoortho.orthophoto.rectify import block_tops, visibility_grid
+
+    surf = read_surface(small_survey.dsm)
+    tops = block_tops(surf)
+    hidden = 0
+    for i, cam in enumerate(_true_cameras(small_survey)[::7]):
+        x, y = cam.pose.center[:2]
+        box = (x - 40.0, y - 30.0, x + 40.0, y + 30.0)
+        plain = visibility_grid(cam, surf, box, tmp_path / f"plain_{i}.npy")
+        fast = visibility_grid(cam, surf, box, tmp_path / f"fast_{i}.npy", tops=tops)
+        a, b = np.load(plain.path), np.load(fast.path)
+        assert np.array_equal(a, b), (cam.name, int((a != b).sum()))
+        hidden += int((a == 0).sum())
+    assert hidden > 1000  # the grids do hide cells: the comparison is not of empty grids
+
+
 def test_occlusion_keeps_roofs_off_the_ground_beside_buildings(true_ortho, small_survey, tmp_path):
     r, _ = true_ortho
     surf = read_surface(small_survey.dsm)

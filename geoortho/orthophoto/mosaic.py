@@ -32,8 +32,10 @@ from ..parallel import imap_ordered, map_ordered
 from ..surface import FlatSurface, GridSurface, Surface
 from .cameras import OrthoCamera, cameras_from_metadata, cameras_from_sfm
 from .rectify import (
+    BlockTops,
     VisibilityGrid,
     Window,
+    block_tops,
     bounds_window,
     keep_best,
     project_window,
@@ -164,19 +166,20 @@ def _init_worker(ctx: _Context) -> None:
     cv2.setNumThreads(1)
 
 
-_VIS_SURFACE: GridSurface | None = None
+_VIS_SURFACE: tuple[GridSurface, tuple[BlockTops, ...]] | None = None
 
 
 def _init_visibility(surface: GridSurface) -> None:
     global _VIS_SURFACE
-    _VIS_SURFACE = surface
+    _VIS_SURFACE = (surface, block_tops(surface))  # once a worker: a few full-grid passes
 
 
 def _visibility_task(job: tuple[OrthoCamera, tuple[float, float, float, float], str]) -> VisibilityGrid | None:
     """One photo's visibility grid, written to its file (a pool or cluster task)."""
     assert _VIS_SURFACE is not None
+    surface, tops = _VIS_SURFACE
     cam, box, path = job
-    return visibility_grid(cam, _VIS_SURFACE, box, Path(path))
+    return visibility_grid(cam, surface, box, Path(path), tops=tops)
 
 
 def _photo(path: Path) -> np.ndarray:

@@ -16,6 +16,7 @@ occluded, so roof colour never lands on the ground beside a wall.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +27,17 @@ from affine import Affine
 from ..surface import FlatSurface, GridSurface, Surface, sample_grid
 from .cameras import OrthoCamera
 
-__all__ = ["Window", "VisibilityGrid", "visibility_grid", "window_xyz", "project_window", "keep_best", "remap_bgr"]
+__all__ = [
+    "Window",
+    "BlockTops",
+    "VisibilityGrid",
+    "block_tops",
+    "visibility_grid",
+    "window_xyz",
+    "project_window",
+    "keep_best",
+    "remap_bgr",
+]
 
 _REMAP_MAX = 32000  # cv2.remap wants map sides below SHRT_MAX
 
@@ -97,14 +108,71 @@ class VisibilityGrid:
         return sample_grid(np.asarray(grid[r0:r1, c0:c1], np.float32), cols - c0, rows - r0)
 
 
+@dataclass(frozen=True, eq=False)
+class BlockTops:
+    """The highest DSM value a bilinear sample can read anywhere in each block of ``block`` cells
+    (the block and a ring of one cell); +inf where it may read no data or beyond the grid.
+
+    A ray rising through a block above its top cannot be blocked there: the march jumps to where
+    it leaves the block instead of sampling every cell (the same samples decide, so the same grid)."""
+
+    top: np.ndarray  # float32, (rows / block, cols / block), rounded up
+    block: int
+    transform: Affine
+
+    @classmethod
+    def of(cls, surface: GridSurface, block: int) -> BlockTops:
+        from scipy import ndimage
+
+        g = np.where(np.isfinite(surface.grid), surface.grid, np.inf).astype(np.float32)
+        g = ndimage.maximum_filter(np.pad(g, 1, constant_values=np.inf), size=3)[1:-1, 1:-1]
+        nr, nc = g.shape
+        g = np.pad(g, ((0, (-nr) % block), (0, (-nc) % block)), constant_values=np.inf)
+        top = g.reshape(g.shape[0] // block, block, g.shape[1] // block, block).max(axis=(1, 3))
+        return cls(top, block, surface.transform)
+
+    def clear_run(
+        self, x: np.ndarray, y: np.ndarray, ceiling: np.ndarray, ux: np.ndarray, uy: np.ndarray
+    ) -> np.ndarray:
+        """Horizontal metres from (x, y) along (ux, uy) to the edge of its block where the block's
+        top is at most ``ceiling``; 0 elsewhere."""
+        t, b = self.transform, self.block
+        cf, rf = (x - t.c) / t.a, (y - t.f) / t.e  # cell-corner coordinates
+        with np.errstate(invalid="ignore"):
+            bc, br = np.floor(cf / b), np.floor(rf / b)
+        out = np.zeros(np.shape(x))
+        inside = np.flatnonzero((bc >= 0) & (bc < self.top.shape[1]) & (br >= 0) & (br < self.top.shape[0]))
+        bci, bri = bc[inside].astype(np.intp), br[inside].astype(np.intp)
+        clear = self.top[bri, bci] <= ceiling[inside]
+        i, bci, bri = inside[clear], bci[clear], bri[clear]
+        dc, dr = ux[i] / t.a, uy[i] / t.e  # cells per metre along the ray
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ec = np.where(dc > 0, ((bci + 1) * b - cf[i]) / dc, np.where(dc < 0, (bci * b - cf[i]) / dc, np.inf))
+            er = np.where(dr > 0, ((bri + 1) * b - rf[i]) / dr, np.where(dr < 0, (bri * b - rf[i]) / dr, np.inf))
+        out[i] = np.maximum(np.minimum(ec, er), 0.0)
+        return out
+
+
+#: Block sides (cells) of the visibility march's skip levels, coarsest first: 128/32/8 measured
+#: 5x faster than plain marching on a 5 cm DSM (8 alone 2x, 32 alone 4x), the grids identical.
+SKIP_BLOCKS = (128, 32, 8)
+
+
+def block_tops(surface: GridSurface) -> tuple[BlockTops, ...]:
+    """The skip levels of :func:`visibility_grid` for ``surface``."""
+    return tuple(BlockTops.of(surface, b) for b in SKIP_BLOCKS)
+
+
 def visibility_grid(
     cam: OrthoCamera,
     surface: GridSurface,
     bounds: tuple[float, float, float, float],
     path: Path,
     tolerance_m: float = 0.05,
+    tops: Sequence[BlockTops] = (),
 ) -> VisibilityGrid | None:
-    """Line of sight from each DSM cell in ``bounds`` to the camera, marched over the DSM; kept in ``path``."""
+    """Line of sight from each DSM cell in ``bounds`` to the camera, marched over the DSM a cell at
+    a time (past blocks of ``tops`` that the ray clears); kept in ``path``."""
     win = bounds_window(surface.transform, surface.grid.shape, bounds)
     if win is None:
         return None
@@ -129,14 +197,26 @@ def visibility_grid(
     fx, fy, fz = x.ravel(), y.ravel(), z.ravel()
     fux, fuy, frise, freach = ux.ravel(), uy.ravel(), rise.ravel(), reach.ravel()
     occluded = np.zeros(z.size, bool)
-    k = 1
+    k = np.ones(idx.size, np.int64)  # each ray's next sample, k steps from its cell
     while idx.size:
         t = k * step
-        h = surface.elevation(fx[idx] + fux[idx] * t, fy[idx] + fuy[idx] * t)
-        blocked = h > fz[idx] + frise[idx] * t + tolerance_m
+        px, py = fx[idx] + fux[idx] * t, fy[idx] + fuy[idx] * t
+        ceiling = fz[idx] + frise[idx] * t + tolerance_m
+        jump = np.zeros(idx.size)
+        for level in tops:
+            todo = np.flatnonzero(jump <= 0)
+            if not todo.size:
+                break
+            jump[todo] = level.clear_run(px[todo], py[todo], ceiling[todo], fux[idx[todo]], fuy[idx[todo]])
+        look = jump <= 0
+        blocked = np.zeros(idx.size, bool)
+        if look.any():
+            blocked[look] = surface.elevation(px[look], py[look]) > ceiling[look]
         occluded[idx[blocked]] = True
-        idx = idx[~blocked & (freach[idx] > t + step * 0.5)]
-        k += 1
+        # a ray that cleared a block goes on at its first sample past the block's edge
+        k = np.where(look, k + 1, np.maximum(k + 1, np.ceil((t + jump) / step).astype(np.int64)))
+        keep = ~blocked & (freach[idx] > (k - 1) * step + step * 0.5)  # as if every sample were taken
+        idx, k = idx[keep], k[keep]
     vis = vis & ~occluded.reshape(z.shape)
     np.save(path, vis.astype(np.uint8))
     return VisibilityGrid(Path(path), Affine(tr.a, 0, tr.c + c0 * tr.a, 0, tr.e, tr.f + r0 * tr.e))
