@@ -446,13 +446,15 @@ def _ground(pts: np.ndarray, job: _TileJob) -> np.ndarray:
         # the surface around the points, two cells of margin: its slope there is the whole one's
         r0, c0 = max(0, int(r.min()) - 2), max(0, int(c.min()) - 2)
         r1, c1 = min(g.rows, int(r.max()) + 3), min(g.cols, int(c.max()) + 3)
+        win = g.window(r0, c0, r1 - r0, c1 - c0)
         surface = np.asarray(np.load(job.smrf_surface, mmap_mode="r")[r0:r1, c0:c1])
     else:
-        r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
-        zmin = _Accumulator(g.window(r0, c0, r1 - r0, c1 - c0), "min")
+        r0, c0 = int(r.min()), int(c.min())
+        win = g.window(r0, c0, int(r.max()) + 1 - r0, int(c.max()) + 1 - c0)
+        zmin = _Accumulator(win, "min")
         _add(zmin, pts)
         surface = smrf_surface(zmin.result(), g.cell, job.params, job.horizontal_m, job.vertical_m)
-    x0, y0 = g.x0 + c0 * g.cell, g.y0 - r0 * g.cell
+    x0, y0 = win.left, win.top
     out = np.empty(len(pts), bool)
     for i in range(0, len(pts), SLICE_POINTS):  # its temporaries follow the slice, not the tile
         p = pts[i : i + SLICE_POINTS]

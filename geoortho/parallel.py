@@ -138,8 +138,7 @@ def _imap_on(
         if isinstance(executor, _ClusterExecutor) and executor.lost():
             raise ClusterError(
                 f"the Dask scheduler at {executor.address} was lost mid-run ({done} of {len(items)} tasks done): "
-                "this run stopped and wrote no product; start the scheduler and run again, "
-                "or run without --scheduler"
+                "this run stopped unfinished; start the scheduler and run again, or run without --scheduler"
             ) from e
         raise
     finally:

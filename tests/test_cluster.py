@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 import rasterio
+from test_sfm import _centre_errors, _truth
 
 from geoortho.errors import InputError
 from geoortho.parallel import SCHEDULER_ENV, use_scheduler
@@ -354,11 +355,7 @@ def test_split_merge_submodels_on_the_cluster_make_one_model(cluster, sfm_with_g
     assert r.n_registered >= 0.95 * r.n_photos and rep["models"] == 2
     cams = gpd.read_file(r.cameras)
     assert cams.image.is_unique and len(cams) == r.n_photos
-    poses = {p["image"]: p for p in json.loads((small_survey.truth / "poses.json").read_text())}
-    reg = cams[cams.registered]
-    err = np.array(
-        [[c.x - poses[c.image]["x"], c.y - poses[c.image]["y"], c.z - poses[c.image]["z"]] for c in reg.itertuples()]
-    )
+    err = _centre_errors(r, _truth(small_survey)[0])
     rmse_m = float(np.sqrt((err**2).sum(axis=1).mean()))
     # the local split-merge of this survey: 0.013 m shared-centre RMS, checkpoints 0.0045 m (README)
     assert rmse_m <= 0.03 and r.checkpoint_rmse_m <= max(2 * whole.checkpoint_rmse_m, 0.01), (

@@ -169,9 +169,9 @@ def _init_worker(ctx: _Context) -> None:
 _VIS_SURFACE: tuple[GridSurface, tuple[BlockTops, ...]] | None = None
 
 
-def _init_visibility(surface: GridSurface) -> None:
+def _init_visibility(surface: GridSurface, tops: tuple[BlockTops, ...]) -> None:
     global _VIS_SURFACE
-    _VIS_SURFACE = (surface, block_tops(surface))  # once a worker: a few full-grid passes
+    _VIS_SURFACE = (surface, tops)
 
 
 def _visibility_task(job: tuple[OrthoCamera, tuple[float, float, float, float], str]) -> VisibilityGrid | None:
@@ -487,7 +487,8 @@ def mosaic(
                     jobs,
                     workers=options.workers,
                     initializer=_init_visibility,
-                    initargs=(surface,),
+                    # the skip levels made here once (full-grid passes), sent with the DSM (1/64 of it)
+                    initargs=(surface, block_tops(surface)),
                     feedback=st_vis,
                 )
             )
