@@ -278,3 +278,25 @@ def test_a_12px_target_is_fitted_to_convergence(kind):
         else:
             side = math.sqrt(abs(cv2.contourArea(np.array(fit.corners_px, np.float32))))
             assert abs(side / (12.0 * 1.08) - 1) < 0.025, (seed, side)
+
+
+def test_a_circle_far_from_the_predicted_size_is_refused():
+    """A dark disc 0.8 of the predicted size (a checkerboard's black square, blurred, is one) fits
+    as a circle to convergence: it is refused on its size, saying so; one 8 % off is kept."""
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp.targets import SIZE_TOLERANCE, _affine, fit_target
+    from geoortho.markers import paint_target
+
+    base = 16.0 * np.array([[1.0, 0.0], [0.0, -1.0]])  # v up
+    for scale, kept in ((0.8, False), (0.92, True)):
+        rng = np.random.default_rng(4)
+        img = 90 + cv2.GaussianBlur(rng.normal(0, 60, (112, 112)), (0, 0), 1.5)
+        paint_target(img, "circle", 56.3, 55.6, _affine(base, 0.0, scale, 0.0, 0.0), None, 230.0, 25.0)
+        img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        fit = fit_target(img, (14, 14, 99, 99), "circle", base, predicted_xy=(60.0, 52.0))
+        assert fit is not None
+        assert (not fit.reason) == kept, fit
+        if not kept:
+            assert "predicted size" in fit.reason and 1 - scale > SIZE_TOLERANCE["circle"]
