@@ -14,7 +14,7 @@ markers another id. Every fit's measures are kept, so the printout shows the sep
 threshold leaves (``geoortho.gcp.targets.THRESHOLDS``), not just the outcome.
 
     python benchmarks/calibrate_targets.py [--trials 200] [--kinds checkerboard,cross,circle,aruco]
-        [--csv fits.csv] [--seed 0]
+        [--csv fits.csv] [--seed 0] [--near]
 
 Accepted = what gcp-find would write. Recall counts targets accepted within 1 px of the truth;
 precision counts impostors accepted and targets accepted > 3 px off as wrong.
@@ -29,6 +29,7 @@ import sys
 import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -43,12 +44,14 @@ def real_photos() -> list[Path]:
     return sorted(p for p in REAL.glob("*/images/*") if p.suffix.lower() in (".jpg", ".jpeg"))
 
 
-def trial(args: tuple[int, str, str]) -> dict:
-    """One fit: ``role`` positive (target rendered), texture (nothing), wrong-kind or wrong-id."""
-    seed, kind, role = args
+def trial(args: tuple[int, str, str, bool]) -> dict:
+    """One fit: ``role`` positive (target rendered), texture (nothing), wrong-kind or wrong-id.
+    ``near``: searched as gcp-find searches a coded marker the photo's other markers place (the
+    place known to about a pixel: :func:`geoortho.gcp.detect.local_prediction`)."""
+    seed, kind, role, near = args
     from geoortho.gcp.detect import paint_channel
     from geoortho.gcp.targets import THRESHOLDS, _affine, estimate_motion_blur, fit_target
-    from geoortho.markers import CODED, TARGETS, marker_cells, paint_target
+    from geoortho.markers import CODED, TARGETS, marker_cells, paint_target, target_half_extent
     from geoortho.synthetic import motion_kernel
 
     rng = np.random.default_rng(seed)
@@ -97,6 +100,13 @@ def trial(args: tuple[int, str, str]) -> dict:
     err = side * 0.3
     px, py = cx + rng.normal(0, err), cy + rng.normal(0, err)
     radius = 1.5 * side + rng.uniform(4, 30)
+    place = None
+    if near:  # from a stream of its own: the scene is the same trial's
+        dx, dy = np.random.default_rng([seed, 2]).normal(0, 1.0, 2)
+        px, py = cx + dx, cy + dy
+        tol = max(0.25 * side, 4.0)
+        place = (px, py, tol)
+        radius = tol + np.abs(base).sum(axis=1).max() * target_half_extent(kind) * 1.2 + est[0] / 2 + 3
     box = (
         max(0, int(px - radius)),
         max(0, int(py - radius)),
@@ -114,7 +124,12 @@ def trial(args: tuple[int, str, str]) -> dict:
         marker_id=marker_id,
         blur=est,
         predicted_xy=(px, py),
+        near=place,
     )
+    if fit is not None and place is not None and not fit.reason:
+        off = math.hypot(fit.x_px - px, fit.y_px - py)
+        if off > place[2]:  # as gcp-find refuses it
+            fit = replace(fit, reason=f"{off:.1f} px from the place")
     row = dict(kind=kind, role=role, painted=painted or "", side_px=side, blur_px=blur_px, glare=glare, seed=seed)
     row["seconds"] = time.perf_counter() - t
     if fit is None:
@@ -186,6 +201,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--csv", type=Path)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--near", action="store_true", help="fit where the photo's other markers place it")
     args = ap.parse_args()
     if not real_photos():
         print(f"no real photos under {REAL}", file=sys.stderr)
@@ -196,7 +212,7 @@ def main() -> int:
         for role in roles:
             for i in range(args.trials):
                 seed = zlib.crc32(f"{args.seed} {kind} {role} {i}".encode())
-                jobs.append((seed, kind, role))
+                jobs.append((seed, kind, role, args.near))
     t = time.perf_counter()
     with ProcessPoolExecutor(args.workers) as ex:
         rows = list(ex.map(trial, jobs, chunksize=4))

@@ -58,6 +58,9 @@ NOT_FOUND = "not found"
 TOO_FAR = "too far from prediction"
 WRONG_ID = "id not in GCP file"
 IN_MARGIN = "inside the margin"
+#: The id margin a coded marker placed by its photo's other markers needs, when its id was decoded
+#: in another photo (:func:`_placed`).
+PLACED_ID_MARGIN = 0.0
 AMBIGUOUS = "ambiguous"
 
 
@@ -678,6 +681,35 @@ def _nearest(dets: list[Detection], k: int, win: Window) -> tuple[Detection, flo
     return min(mine, key=lambda de: de[1]) if mine else None
 
 
+def _decoded_gcps(results: Results, windows: dict[str, list[Window]]) -> set[str]:
+    """GCPs whose marker the detector decoded in their window of some photo."""
+    out = set()
+    for path, dets, *_ in results:
+        for k, win in enumerate(windows.get(Path(path).name, [])):
+            found = _nearest(dets, k, win)
+            if found is not None and found[0].attempt not in ("verified", "fitted") and found[1] <= win.max_radius_px:
+                out.add(win.gcp)
+    return out
+
+
+def _placed(dets: list[Detection], k: int, win: Window) -> tuple[Detection, float] | None:
+    """A coded marker fitted where the photo's other markers put it, refused only because its code
+    is too blurred to tell its id here (an id margin of :data:`PLACED_ID_MARGIN` or more): taken
+    when its GCP's id was decoded in another photo. Its place is then the proof: another marker
+    within a few pixels of where this one must be is no marker of the survey (they stand metres
+    apart), and texture there does not reach the fit's score."""
+    mine = [
+        (d, math.hypot(d.x_px - win.x_px, d.y_px - win.y_px))
+        for d in dets
+        if d.window == k
+        and d.marker_id == win.marker_id
+        and d.refused_on == "id_margin"
+        and math.isfinite(d.near_px)
+        and d.id_margin >= PLACED_ID_MARGIN
+    ]
+    return min(mine, key=lambda de: de[1]) if mine else None
+
+
 def _judge(
     results: Results,
     windows: dict[str, list[Window]],
@@ -691,6 +723,7 @@ def _judge(
     """Turn raw detections into accepted observations and rejected candidates."""
     by_id = {v: k for k, v in ids.items()}
     obs: list[Observation] = []
+    decoded = _decoded_gcps(results, windows) if coded else set()
     for path, dets, error, photo_blur in results:
         image = Path(path).name
         if error:
@@ -740,13 +773,21 @@ def _judge(
                 )
                 continue
             found = _nearest(dets, k, win)
+            note = ""
+            if found is None and win.gcp in decoded:
+                found = _placed(dets, k, win)
+                if found is not None:
+                    note = (
+                        f"id read in other photos (here {found[0].id_margin:.2f} over the next id), "
+                        "placed by this photo's other markers"
+                    )
             if found is None:
                 refused = [d for d in dets if d.window == k and d.reason]
                 why = max(refused, key=lambda d: d.score).reason if refused else "nothing like the target in the window"
                 obs.append(Observation(**base, status=NOT_FOUND, reason=why))
                 continue
             d, err = found
-            status, reason = (DETECTED if err <= win.max_radius_px else TOO_FAR), ""
+            status, reason = (DETECTED if err <= win.max_radius_px else TOO_FAR), note
             w, h = frames[image]
             if status == DETECTED and not in_frame(
                 d.x_px, d.y_px, w, h, w * margin_pct / 100.0, h * margin_pct / 100.0

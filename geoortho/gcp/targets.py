@@ -98,6 +98,7 @@ class Fit:
     shape_margin: float = math.nan  # targets without an id: over the best simpler pattern at the place
     reason: str = ""  # why it was refused; "" = accepted
     id_score: float = math.nan  # coded: the expected id's correlation over the code cells
+    refused_on: str = ""  # the first threshold it failed ("score", "id_margin", ...); "" = accepted
 
 
 @cache
@@ -344,6 +345,7 @@ def fit_target(
     marker_id: int = -1,
     blur: tuple[float, float] = (0.0, 0.0),
     predicted_xy: tuple[float, float] | None = None,
+    near: tuple[float, float, float] | None = None,
 ) -> Fit | None:
     """Find and fit one target of ``kind`` in ``box`` (x0, y0, x1, y1) of a grey photo.
 
@@ -352,13 +354,15 @@ def fit_target(
     photo's motion blur (length px, direction deg). ``predicted_xy``: for targets without an
     id, where the GCP is predicted (photo pixels): of the targets in the box that pass the
     score, the one nearest it is taken, unless another is about as near (ambiguous).
-    None when the box is too small."""
+    ``near`` (x, y, radius; photo pixels): the target's centre is known to lie within radius of
+    (x, y) — the search starts only there. None when the box is too small."""
     x0, y0, x1, y1 = box
     crop = gray[y0:y1, x0:x1].astype(np.float32)
     if crop.shape[0] < 8 or crop.shape[1] < 8:
         return None
     by_place = predicted_xy is not None and kind not in CODED
-    coarse = _coarse(crop, kind, base, cells, blur, max_peaks=4 if by_place else 6, absolute=by_place)
+    within = None if near is None else (near[0] - x0, near[1] - y0, near[2])
+    coarse = _coarse(crop, kind, base, cells, blur, max_peaks=4 if by_place else 6, absolute=by_place, near=within)
     if not coarse:
         return None
     fits = sorted(
@@ -374,24 +378,24 @@ def fit_target(
         assert predicted_xy is not None
         px, py = predicted_xy[0] - x0, predicted_xy[1] - y0
         board = 2 * target_half_extent(kind) * side  # fits closer than a board apart: one target
-        near: list[int] = []
+        kept: list[int] = []
         for i, f in enumerate(fits):  # best first
             if _passes(kind, f, margins[i]) and all(
-                math.hypot(f.cx - fits[j].cx, f.cy - fits[j].cy) > board for j in near
+                math.hypot(f.cx - fits[j].cx, f.cy - fits[j].cy) > board for j in kept
             ):
-                near.append(i)
-        near.sort(key=lambda i: math.hypot(fits[i].cx - px, fits[i].cy - py))
-        near = near or [0]  # none passes: the best, to say why
-        own = math.hypot(fits[near[0]].cx - px, fits[near[0]].cy - py)
-        dists = [math.hypot(fits[i].cx - px, fits[i].cy - py) for i in near[1:]]
-        # a rival counts when it is about as near, and inside the part of the window the
+                kept.append(i)
+        kept.sort(key=lambda i: math.hypot(fits[i].cx - px, fits[i].cy - py))
+        kept = kept or [0]  # none passes: the best, to say why
+        own = math.hypot(fits[kept[0]].cx - px, fits[kept[0]].cy - py)
+        dists = [math.hypot(fits[i].cx - px, fits[i].cy - py) for i in kept[1:]]
+        # a rival counts when it is about as kept, and inside the part of the window the
         # prediction's error spans (the window less a target and a half each side)
         reach = max(px, py, (x1 - x0) - px, (y1 - y0) - py) - 1.5 * side  # the box may be cut by the frame
         dists = [d for d in dists if d <= reach]
         pos_margin = (min(dists) - (2 * own + 3 * side)) / side if dists else math.inf
         if pos_margin < 0:
-            ambiguous = f"two {kind} targets about as near the prediction ({own:.0f} and {min(dists):.0f} px)"
-        fits, margins = [fits[i] for i in near], [margins[i] for i in near]
+            ambiguous = f"two {kind} targets about as kept the prediction ({own:.0f} and {min(dists):.0f} px)"
+        fits, margins = [fits[i] for i in kept], [margins[i] for i in kept]
     score, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, contrast, worst_part = fits[0]
     shape_margin = margins[0]
     if not by_place:
@@ -416,29 +420,47 @@ def fit_target(
     if kind == "checkerboard":
         cx, cy = _saddle(crop, cx, cy, A)
     corners = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]]) @ A.T + [cx + x0, cy + y0]
-    reason = ""
     size = math.sqrt(abs(np.linalg.det(A)) / abs(np.linalg.det(base)))  # fitted / predicted
-    if score < min_score(kind):
-        reason = f"best {kind} match scores {score:.2f} < {min_score(kind):.2f}"
-    elif kind in SIZE_TOLERANCE and abs(math.log(size)) > math.log1p(SIZE_TOLERANCE[kind]):
-        reason = f"the {kind} fitted is {size:.0%} of the predicted size (within {SIZE_TOLERANCE[kind]:.0%})"
-    elif contrast < t["contrast_dn"]:
-        reason = f"the {kind} fitted has a contrast of {contrast:.0f} < {t['contrast_dn']:.0f} grey levels"
-    elif worst_part > t["worst_part"]:
-        reason = f"a part of the {kind} is off by {worst_part:.0%} of its contrast > {t['worst_part']:.0%}"
-    elif kind in ALTERNATIVES and shape_margin < t["shape_margin"]:
-        reason = f"a plain edge, bar, corner or blob fits within {shape_margin:.2f} < {t['shape_margin']:.2f}"
-    elif kind in CODED and id_margin < t["id_margin"]:
-        reason = f"id {marker_id} beats the next id by only {id_margin:.2f} < {t['id_margin']:.2f}"
-    elif ambiguous:
-        reason = ambiguous
-    elif not by_place and kind not in CODED and pos_margin < t["position_margin"]:
+    # the first threshold the fit fails, and why in words
+    refusals = (
+        ("score", score < min_score(kind), f"best {kind} match scores {score:.2f} < {min_score(kind):.2f}"),
+        (
+            "size",
+            kind in SIZE_TOLERANCE and abs(math.log(size)) > math.log1p(SIZE_TOLERANCE.get(kind, 0.0)),
+            f"the {kind} fitted is {size:.0%} of the predicted size (within {SIZE_TOLERANCE.get(kind, 0.0):.0%})",
+        ),
+        (
+            "contrast_dn",
+            contrast < t["contrast_dn"],
+            f"the {kind} fitted has a contrast of {contrast:.0f} < {t['contrast_dn']:.0f} grey levels",
+        ),
+        (
+            "worst_part",
+            worst_part > t["worst_part"],
+            f"a part of the {kind} is off by {worst_part:.0%} of its contrast > {t['worst_part']:.0%}",
+        ),
+        (
+            "shape_margin",
+            kind in ALTERNATIVES and shape_margin < t["shape_margin"],
+            f"a plain edge, bar, corner or blob fits within {shape_margin:.2f} < {t['shape_margin']:.2f}",
+        ),
+        (
+            "id_margin",
+            kind in CODED and id_margin < t["id_margin"],
+            f"id {marker_id} beats the next id by only {id_margin:.2f} < {t['id_margin']:.2f}",
+        ),
+        ("ambiguous", bool(ambiguous), ambiguous),
         # (a coded marker is proven by its id at this place: a look-alike elsewhere in the window
         # that is not this id does not count against it; calibrate_targets: 0 of 450 impostors
         # pass score, contrast and id margin without this test, and no true marker is moved)
-        reason = f"a look-alike in the window scores within {pos_margin:.2f} < {t['position_margin']:.2f}"
-    elif not (0 <= cx < crop.shape[1] and 0 <= cy < crop.shape[0]):
-        reason = "the fit left the window"
+        (
+            "position_margin",
+            not by_place and kind not in CODED and pos_margin < t["position_margin"],
+            f"a look-alike in the window scores within {pos_margin:.2f} < {t['position_margin']:.2f}",
+        ),
+        ("window", not (0 <= cx < crop.shape[1] and 0 <= cy < crop.shape[0]), "the fit left the window"),
+    )
+    refused_on, reason = next(((name, why) for name, failed, why in refusals if failed), ("", ""))
     return Fit(
         float(cx + x0),
         float(cy + y0),
@@ -456,6 +478,7 @@ def fit_target(
         float(shape_margin),
         reason,
         float(id_score),
+        refused_on,
     )
 
 
@@ -623,8 +646,10 @@ def _coarse(
     blur: tuple[float, float],
     max_peaks: int = 3,
     absolute: bool = False,
+    near: tuple[float, float, float] | None = None,
 ) -> list[tuple[float, float, float, float, float]] | None:
-    """Candidate positions, rotations and sizes by masked template matching, best first."""
+    """Candidate positions, rotations and sizes by masked template matching, best first;
+    ``near`` (x, y, radius in crop pixels): centres within radius of (x, y) only."""
     half = target_half_extent(kind, cells)
     reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.2 + blur[0] / 2 + 1))
     size = 2 * reach + 1
@@ -660,6 +685,32 @@ def _coarse(
     side = float(np.sqrt(abs(np.linalg.det(base))))
     out: list[tuple[float, float, float, float, float]] = []
     work = top.copy()
+    if near is not None:
+        # the place is known to a few pixels, the turn is not: the best place of each rotation
+        # there, each refined (under glare the best rotation's peak can be one 20 degrees off)
+        ry, rx = np.mgrid[0 : top.shape[0], 0 : top.shape[1]]
+        outside = np.hypot(rx + reach - near[0], ry + reach - near[1]) > near[2]
+        by_angle: dict[float, tuple[float, Sequence[int], float]] = {}
+        for res, (a, f) in zip(maps, used):
+            r = np.where(outside, -2.0, res)
+            _, mx, _, loc = cv2.minMaxLoc(r)
+            if mx > by_angle.get(a, (-3.0,))[0]:
+                by_angle[a] = (float(mx), loc, f)
+        ranked = sorted(by_angle.items(), key=lambda kv: -kv[1][0])
+        for a, (mx, loc, f) in ranked[:3]:
+            if coded:
+                a = _quarter_turn(crop, rend, loc, base, a, f, blur)
+            out.append((loc[0] + reach, loc[1] + reach, a, f, mx))
+        # and every rotation from the known place itself: blur and glare pull the peaks a few
+        # pixels aside, and the short polish does not bring them back
+        at = (int(round(near[0])) - reach, int(round(near[1])) - reach)
+        if 0 <= at[0] < top.shape[1] and 0 <= at[1] < top.shape[0]:
+            for a in _angles(kind):
+                mx = max(res[at[1], at[0]] for res, (b, _) in zip(maps, used) if b == a)
+                if coded:
+                    a = _quarter_turn(crop, rend, at, base, a, 1.0, blur)
+                out.append((near[0], near[1], float(a), 1.0, float(mx)))
+        return out
     for _ in range(max_peaks):
         _, mx, _, loc = cv2.minMaxLoc(work)
         if mx < (0.6 if absolute else 0.3) or (out and mx < out[0][4] - (0.3 if absolute else 0.5)):
