@@ -15,9 +15,14 @@
    searched in windows sized by the residual left after it — a tenth of the
    area — with the stated uncertainty as a fallback when the marker is not
    there.
+   Where the detector cannot decode a marker (blur, glare), its model is
+   fitted (verified); where two other markers of the photo were found, only
+   within a few pixels of where they put it.
 4. Keep only detections with the GCP's id within the window: a wrong id, an
    id not in the GCP file, or a marker too far from its prediction is
-   reported, never written.
+   reported, never written. A verified marker whose code is too blurred to
+   tell its id in this photo is taken only when its place was given by the
+   photo's other markers and its id was decoded in another photo.
 
 Photos without a usable pose (no GPS, no altitude) are searched whole; there
 only ids of the GCP file are accepted. The take-off elevation, unless given,
