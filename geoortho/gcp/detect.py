@@ -228,7 +228,7 @@ def detect_in_image(
     assert blur is not None
     if not coded:
         for k in to_fit:
-            _fit_in_window(gray, windows[k], k, target, dictionary, blur, found)
+            _fit_model(gray, windows[k], k, target, dictionary, blur, found)
         return found
     # Coded markers the detector missed, after it has run on every window: where it decoded
     # others in this photo, they put this one within a few pixels (the pose's error moves every
@@ -246,10 +246,7 @@ def detect_in_image(
                 continue
             searched[k] = "wide" if local is None else "near"
             found[:] = [d for d in found if not (d.window == k and d.reason)]  # the new fit says why
-            if local is None:
-                _fit_in_window(gray, windows[k], k, target, dictionary, blur, found)
-            else:
-                _fit_near(gray, windows[k], k, local, target, dictionary, blur, found)
+            _fit_model(gray, windows[k], k, target, dictionary, blur, found, local)
             progress |= any(_accepted(d, windows[k]) for d in found if d.window == k)
         if not progress:
             return found
@@ -292,7 +289,7 @@ def local_prediction(windows: list[Window], found: list[Detection], k: int) -> t
     return float(x), float(y), max(0.25 * win.side_px, 3.0 + 3.0 * worst_px)
 
 
-def _fit_in_window(
+def _fit_model(
     gray: np.ndarray,
     win: Window,
     k: int,
@@ -300,36 +297,27 @@ def _fit_in_window(
     dictionary: str,
     blur: tuple[float, float],
     found: list[Detection],
+    local: tuple[float, float, float] | None = None,
 ) -> None:
-    """The target by model fit in its window, then the wide one; refusals are kept (their reason)."""
+    """The target by model fit, appended to ``found`` (refusals too, with their reason): in its
+    window, then the wide one; or, given ``local`` (:func:`local_prediction`), only around where
+    the photo's other markers put it."""
     h, w = gray.shape[:2]
-    radii = [win.radius_px] + ([win.wide_radius_px] if win.wide_radius_px > win.radius_px else [])
-    for radius in radii:
-        d = _fit(gray, win, k, _square(win, radius, w, h), target, dictionary, blur)
-        if d is not None:
-            found.append(d)
-            if not d.reason:
-                break
-
-
-def _fit_near(
-    gray: np.ndarray,
-    win: Window,
-    k: int,
-    local: tuple[float, float, float],
-    target: str,
-    dictionary: str,
-    blur: tuple[float, float],
-    found: list[Detection],
-) -> None:
-    """The target by model fit around where the photo's other markers put it (:func:`local_prediction`)."""
-    h, w = gray.shape[:2]
+    if local is None:
+        radii = [win.radius_px] + ([win.wide_radius_px] if win.wide_radius_px > win.radius_px else [])
+        for radius in radii:
+            d = _fit(gray, win, k, _square(win, radius, w, h), target, dictionary, blur)
+            if d is not None:
+                found.append(d)
+                if not d.reason:
+                    break
+        return
     x, y, tol = local
-    near = replace(win, x_px=x, y_px=y)
     # the box holds the coarse search's template (targets._coarse) centred anywhere within tol
     base = np.abs(np.array(win.ground_px, float).reshape(2, 2)).sum(axis=1).max()
     reach = base * target_half_extent(target) * 1.2 + blur[0] / 2 + 3
-    d = _fit(gray, win, k, _square(near, tol + reach, w, h), target, dictionary, blur, local)
+    box = _square(replace(win, x_px=x, y_px=y), tol + reach, w, h)
+    d = _fit(gray, win, k, box, target, dictionary, blur, local)
     if d is None:
         return
     off = math.hypot(d.x_px - x, d.y_px - y)
