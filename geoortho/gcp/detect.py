@@ -6,6 +6,7 @@ Runs in worker processes: everything here takes and returns plain data.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -276,17 +277,28 @@ def local_prediction(windows: list[Window], found: list[Detection], k: int) -> t
         return None
     at = np.array([[windows[j].x_px, windows[j].y_px] for j in anchors])
     to = np.array([[d.x_px, d.y_px] for d in anchors.values()])
+    move, worst_px = fit_similarity(at, to)
+    win = windows[k]
+    x, y = move(np.array([[win.x_px, win.y_px]]))[0]
+    return float(x), float(y), max(0.25 * win.side_px, 3.0 + 3.0 * worst_px)
+
+
+def fit_similarity(at: np.ndarray, to: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], float]:
+    """The similarity (shift, rotation, scale) taking points ``at`` (n × 2) nearest ``to`` by least
+    squares, as a function of n × 2 points, and its worst residual along x or y (px). In one photo,
+    the pose's position, yaw and height errors move every prediction by such a map."""
+    n = len(at)
     a = np.r_[
-        np.c_[at[:, 0], -at[:, 1], np.ones(len(at)), np.zeros(len(at))],
-        np.c_[at[:, 1], at[:, 0], np.zeros(len(at)), np.ones(len(at))],
+        np.c_[at[:, 0], -at[:, 1], np.ones(n), np.zeros(n)],
+        np.c_[at[:, 1], at[:, 0], np.zeros(n), np.ones(n)],
     ]
     b = np.r_[to[:, 0], to[:, 1]]
     q, *_ = np.linalg.lstsq(a, b, rcond=None)
-    worst_px = float(np.abs(a @ q - b).max())
-    win = windows[k]
-    x = q[0] * win.x_px - q[1] * win.y_px + q[2]
-    y = q[1] * win.x_px + q[0] * win.y_px + q[3]
-    return float(x), float(y), max(0.25 * win.side_px, 3.0 + 3.0 * worst_px)
+
+    def move(p: np.ndarray) -> np.ndarray:
+        return np.c_[q[0] * p[:, 0] - q[1] * p[:, 1] + q[2], q[1] * p[:, 0] + q[0] * p[:, 1] + q[3]]
+
+    return move, float(np.abs(a @ q - b).max())
 
 
 def _fit_model(

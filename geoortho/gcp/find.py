@@ -52,7 +52,7 @@ from ..markers import CODED, TARGETS, Dictionary, FindTarget, get_dictionary
 from ..parallel import map_ordered, process_pool
 from ..photos import Photo, list_images, read_photos
 from ..surface import FlatSurface, Surface, read_surface
-from .detect import Detection, Window, detect_task, init_worker
+from .detect import Detection, Window, detect_task, fit_similarity, init_worker
 from .io import GcpSet, marker_id_of, read_gcp_file
 
 __all__ = ["GcpFindResult", "gcp_find", "Observation", "predict_windows"]
@@ -861,12 +861,8 @@ def _agree_within_photos(obs: list[Observation]) -> list[Observation]:
             others = [j for j in range(len(idx)) if j != k]
             if len(others) >= 2:
                 # the others' errors as a similarity (shift, rotation, scale: yaw and height errors)
-                a = np.array([[x, -y, 1, 0] for x, y in at[others]] + [[y, x, 0, 1] for x, y in at[others]])
-                b = np.r_[at[others, 0] + off[others, 0], at[others, 1] + off[others, 1]]
-                q, *_ = np.linalg.lstsq(a, b, rcond=None)
-                fit_px = np.abs(a @ q - b).max()
-                x, y = at[k]
-                expected = np.array([q[0] * x - q[1] * y + q[2], q[1] * x + q[0] * y + q[3]]) - at[k]
+                move, fit_px = fit_similarity(at[others], at[others] + off[others])
+                expected = move(at[k : k + 1])[0] - at[k]
                 dev = float(np.linalg.norm(off[k] - expected))
                 tol = 2.5 * max(obs[i].side_px, 1.0) + float(fit_px)
             else:  # one other: a shift, with 3 % of the distance for a yaw or scale error

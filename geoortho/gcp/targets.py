@@ -388,13 +388,13 @@ def fit_target(
         kept = kept or [0]  # none passes: the best, to say why
         own = math.hypot(fits[kept[0]].cx - px, fits[kept[0]].cy - py)
         dists = [math.hypot(fits[i].cx - px, fits[i].cy - py) for i in kept[1:]]
-        # a rival counts when it is about as kept, and inside the part of the window the
+        # a rival counts when it is about as near, and inside the part of the window the
         # prediction's error spans (the window less a target and a half each side)
         reach = max(px, py, (x1 - x0) - px, (y1 - y0) - py) - 1.5 * side  # the box may be cut by the frame
         dists = [d for d in dists if d <= reach]
         pos_margin = (min(dists) - (2 * own + 3 * side)) / side if dists else math.inf
         if pos_margin < 0:
-            ambiguous = f"two {kind} targets about as kept the prediction ({own:.0f} and {min(dists):.0f} px)"
+            ambiguous = f"two {kind} targets about as near the prediction ({own:.0f} and {min(dists):.0f} px)"
         fits, margins = [fits[i] for i in kept], [margins[i] for i in kept]
     score, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, contrast, worst_part = fits[0]
     shape_margin = margins[0]
@@ -684,7 +684,6 @@ def _coarse(
     angle_of = np.argmax(maps, axis=0)
     side = float(np.sqrt(abs(np.linalg.det(base))))
     out: list[tuple[float, float, float, float, float]] = []
-    work = top.copy()
     if near is not None:
         # the place is known to a few pixels, the turn is not: the best place of each rotation
         # there, each refined (under glare the best rotation's peak can be one 20 degrees off)
@@ -711,6 +710,7 @@ def _coarse(
                     a = _quarter_turn(crop, rend, at, base, a, 1.0, blur)
                 out.append((near[0], near[1], float(a), 1.0, float(mx)))
         return out
+    work = top.copy()
     for _ in range(max_peaks):
         _, mx, _, loc = cv2.minMaxLoc(work)
         if mx < (0.6 if absolute else 0.3) or (out and mx < out[0][4] - (0.3 if absolute else 0.5)):
