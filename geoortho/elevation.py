@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Literal, get_args
 
 import numpy as np
+from affine import Affine
 
 from .crs import crs_to_text, parse_crs
 from .errors import DependencyError, InputError, ParameterError
@@ -200,6 +201,22 @@ class DemResult:
         Ground points.
     notes : tuple of str
         What was assumed or checked, in words.
+    dsm_source : Path
+        With ``sfm``: which cells of the DSM are measured (1), interpolated (2) or a fallback
+        plane (3); uint8 COG, 0 = no data.
+    dtm_source : Path
+        The same for the DTM (measured: the ground filter's surface where the DSM's measured
+        cells are ground).
+    seen_m2 : float
+        With ``sfm``: ground seen by at least two registered photos (square CRS units).
+    dsm_m2 : float
+        Area of the DSM with a value.
+    measured_share : float
+        Share of the DSM's valued cells measured from points.
+    interpolated_share : float
+        Share interpolated (gap fill, and carried to the photos' edge).
+    fallback_share : float
+        Share on the fallback plane.
     """
 
     dsm: Path
@@ -212,6 +229,13 @@ class DemResult:
     n_points: int
     n_ground: int
     notes: tuple[str, ...] = field(default_factory=tuple)
+    dsm_source: Path | None = None
+    dtm_source: Path | None = None
+    seen_m2: float = 0.0
+    dsm_m2: float = 0.0
+    measured_share: float = 1.0
+    interpolated_share: float = 0.0
+    fallback_share: float = 0.0
 
 
 def _auto_resolution_m(src: PointSource) -> float:
@@ -349,6 +373,7 @@ def dem(
     smrf_margin_m: float = SmrfParams.margin_m,
     engine: Engine = "native",
     points_crs: str | None = None,
+    sfm: Path | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> DemResult:
@@ -403,6 +428,13 @@ def dem(
         native, or pdal (PDAL's pipeline, when the pdal module is installed).
     points_crs : str
         CRS of the points, when the file has none or states a wrong one (overrides it).
+    sfm : Path
+        Output folder of the sfm run the photos' cloud came from: the DSM and DTM are then
+        carried over all the ground at least two registered photos saw (their frames cast on
+        the surface), interpolated from the measured cells and the SfM tie points across holes
+        (water, canopy, cars) and out to that edge, a plane only where nothing was measured;
+        ``<name>_source.tif`` beside each says per cell which (1 measured, 2 interpolated,
+        3 fallback plane).
     """
     fb = as_feedback(feedback)
     _check_options(method, ground_method, resolution_m, max_gap_m, smooth_px, engine)
@@ -430,10 +462,11 @@ def dem(
         return _run_pdal(src, plan.grid, output, dtm, method, ground_method, max_gap_m, params, fb)
 
     if tiles_allowed and float(plan.grid.rows) * plan.grid.cols > _whole_grid_max_cells():
-        return _dem_tiled(
+        tiled = _dem_tiled(
             src, plan, method, ground_method, params, scan.keep, output, dtm, classified, hillshade,
             max_gap_m, smooth_px, s_pass1, s_write, fb,
         )  # fmt: skip
+        return tiled if sfm is None else complete_to_photos(tiled, src, scan.keep, Path(sfm), fb)
     ground = GROUND_FILTERS[ground_method](src, params) if want_ground else None
     dtm_acc = _Accumulator(plan.grid, "idw") if dtm is not None else None
     first = _first_pass(src, plan.grid, method, ground, dtm_acc, scan.keep, s_pass1, fb)
@@ -456,6 +489,8 @@ def dem(
     )
     if dtm is not None:
         fb.info(f"ground: {n_ground} of {first.n_used} points ({ground_method})")
+    if sfm is not None:
+        result = complete_to_photos(result, src, scan.keep, Path(sfm), fb)
     s_write.progress(1.0)
     return result
 
@@ -924,6 +959,153 @@ def _write_products(
         n_ground,
         tuple(notes),
     )
+
+
+def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sfm: Path, fb: Feedback) -> DemResult:
+    """The DSM and DTM just written, carried over the ground at least two of the SfM's registered
+    photos saw, with a source raster beside each (see :mod:`geoortho.coverage`)."""
+    import rasterio
+
+    from .coverage import (
+        FALLBACK,
+        INTERPOLATED,
+        MEASURED,
+        SOURCE_DESCRIPTION,
+        complete_grid,
+        extended_grid,
+        footprint_polygons,
+        seen_count,
+    )
+    from .orthophoto.cameras import cameras_from_sfm
+    from .outputs import write_cog
+    from .surface import GridSurface
+
+    if src.horizontal_m != 1.0 or src.vertical_m != 1.0:
+        note = "not carried to the photos' edge: the cloud is not in metres"
+        fb.warning(f"dem: {note}")
+        return replace(result, notes=(*result.notes, note))
+    cams, _, tie_points, _ = cameras_from_sfm(sfm, None, src.crs, local_frame_ok=src.crs is None)
+    with rasterio.open(result.dsm) as ds:
+        dsm = ds.read(1, masked=True).filled(np.nan).astype(np.float32)
+        transform = ds.transform
+    if not np.isfinite(dsm).any():
+        raise InputError("the DSM has no value to carry to the photos' edge", path=result.dsm)
+    polys = footprint_polygons(cams, GridSurface(dsm, transform, extend=True))
+    import shapely
+
+    bounds = tuple(shapely.total_bounds(np.asarray(polys, dtype=object))) if polys else None
+    if bounds is None or not np.isfinite(bounds).all():
+        return result
+    new_t, shape, (r0, c0) = extended_grid(transform, dsm.shape, bounds)  # type: ignore[arg-type]
+    seen = seen_count(polys, new_t, shape)
+    target = seen >= 2
+    z = np.full(shape, np.nan, np.float32)
+    z[r0 : r0 + dsm.shape[0], c0 : c0 + dsm.shape[1]] = dsm
+    # crop to what has a value or must: the polygons' bounding box holds the single-photo fringe too
+    rows = np.flatnonzero((target | np.isfinite(z)).any(axis=1))
+    cols = np.flatnonzero((target | np.isfinite(z)).any(axis=0))
+    sl = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    z, seen, target = z[sl], seen[sl], target[sl]
+    new_t = new_t * Affine.translation(int(cols[0]), int(rows[0]))
+    measured = _point_cells(src, keep, new_t, z.shape)
+    done = complete_grid(z, measured, target, new_t, tie_points)
+    cell_m2 = abs(new_t.a * new_t.e)
+    have = done.source > 0
+    shares = {code: done.share(code) for code in (MEASURED, INTERPOLATED, FALLBACK)}
+    seen_m2 = float(target.sum()) * cell_m2
+    covered = float((have & target).sum()) / max(int(target.sum()), 1)
+    crs = src.crs
+    unit = _unit_tag(src.vertical_unit)
+
+    def stem_source(path: Path) -> Path:
+        return path.with_name(path.stem + "_source.tif")
+
+    write_cog(result.dsm, _nodata(done.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dsm",), units=unit)
+    dsm_source = write_cog(
+        stem_source(result.dsm), done.source, transform=new_t, crs=crs, nodata=0, band_names=(SOURCE_DESCRIPTION,)
+    )
+    notes = [
+        f"DSM carried over the {seen_m2:,.0f} m² seen by >= 2 of {len(cams)} registered photos "
+        f"({covered:.1%} of it has a value): measured {shares[MEASURED]:.1%}, interpolated "
+        f"{shares[INTERPOLATED]:.1%}, fallback plane {shares[FALLBACK]:.1%} of its cells ({dsm_source.name})"
+    ]
+    if done.fallback_plane is not None:
+        notes.append("nothing was measured under the photos: the DSM is a plane through the SfM tie points")
+    dtm_source = None
+    dtm_grid = None
+    if result.dtm is not None:
+        with rasterio.open(result.dtm) as ds:
+            d = ds.read(1, masked=True).filled(np.nan).astype(np.float32)
+            dt = ds.transform
+        grid = np.full(z.shape, np.nan, np.float32)
+        rr = int(round((new_t.f - dt.f) / new_t.a))
+        cc = int(round((dt.c - new_t.c) / new_t.a))
+        grid[rr : rr + d.shape[0], cc : cc + d.shape[1]] = d
+        # ground measured where the DSM was measured and is the ground (no object on it)
+        with np.errstate(invalid="ignore"):
+            ground_seen = measured & (np.abs(z - grid) <= max(2.0 * new_t.a, 0.1))
+        plane = _dtm_support(done, grid, new_t)
+        dtm_done = complete_grid(grid, ground_seen, target, new_t, plane)
+        dtm_grid = dtm_done.z
+        write_cog(result.dtm, _nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit)
+        dtm_source = write_cog(
+            stem_source(result.dtm), dtm_done.source, transform=new_t, crs=crs, nodata=0,
+            band_names=(SOURCE_DESCRIPTION,),
+        )  # fmt: skip
+        notes.append(
+            f"DTM: ground measured {dtm_done.share(MEASURED):.1%}, interpolated {dtm_done.share(INTERPOLATED):.1%}, "
+            f"fallback plane {dtm_done.share(FALLBACK):.1%} of its cells"
+        )
+    if result.hillshade is not None:
+        write_hillshade(result.hillshade, dtm_grid if dtm_grid is not None else done.z, new_t.a, 1.0)
+    for n in notes:
+        fb.info(n)
+    if covered < 0.98 or shares[MEASURED] < 0.5:
+        warn = (
+            f"the DSM is measured on {shares[MEASURED]:.0%} of its cells and covers {covered:.0%} of the ground "
+            ">= 2 photos saw: the rest is interpolated (see the source raster)"
+        )
+        notes.append(warn)
+        fb.warning(f"dem: {warn}")
+    return replace(
+        result,
+        dsm_source=dsm_source,
+        dtm_source=dtm_source,
+        seen_m2=seen_m2,
+        dsm_m2=float(have.sum()) * cell_m2,
+        measured_share=shares[MEASURED],
+        interpolated_share=shares[INTERPOLATED],
+        fallback_share=shares[FALLBACK],
+        notes=(*result.notes, *notes),
+    )
+
+
+def _dtm_support(dsm: Any, dtm: np.ndarray, transform: Any) -> np.ndarray | None:
+    """Where the DTM has nothing at all (water only): the DSM's cells as the plane's support."""
+    if np.isfinite(dtm).any():
+        return None
+    rows, cols = np.nonzero(np.isfinite(dsm.z))
+    if not len(rows):
+        return None
+    step = max(1, len(rows) // 20000)
+    rows, cols = rows[::step], cols[::step]
+    x, y = transform * (cols + 0.5, rows + 0.5)
+    return np.c_[x, y, dsm.z[rows, cols]]
+
+
+def _point_cells(src: PointSource, keep: Box | None, transform: Any, shape: tuple[int, int]) -> np.ndarray:
+    """Cells of the grid within one cell of a point of the cloud: measured at the points' spacing
+    (the automatic cell holds about two points, so a measured surface leaves single cells empty)."""
+    out = np.zeros(shape[0] * shape[1], bool)
+    for ch in src.chunks():
+        fin, _ = _finite(ch, keep)
+        c = np.floor((fin.x - transform.c) / transform.a).astype(np.int64)
+        r = np.floor((fin.y - transform.f) / transform.e).astype(np.int64)
+        ok = (c >= 0) & (c < shape[1]) & (r >= 0) & (r < shape[0])
+        out[r[ok] * shape[1] + c[ok]] = True
+    from scipy import ndimage
+
+    return np.asarray(ndimage.binary_dilation(out.reshape(shape), structure=np.ones((3, 3), bool)))
 
 
 def _unit_tag(name: str) -> str:

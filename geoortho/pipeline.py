@@ -176,8 +176,10 @@ STAGES: tuple[Stage, ...] = (
             "dtm": p.folder("dem") / "dtm.tif",
             "hillshade": p.folder("dem") / "dtm_hillshade.png",
             "crs": p.crs if p.points is not None else None,
+            # the photos' cloud is carried to the edge of what they saw; a lidar cloud is what it is
+            "sfm": p.folder("sfm") if p.points is None else None,
         },
-        ("points",),
+        ("points", "sfm"),
         weight=1,
     ),
     Stage(

@@ -70,7 +70,7 @@ def _find_photo(images: Path, name: str, by_name: dict[str, Path]) -> Path | Non
 @overload
 def cameras_from_sfm(
     sfm_dir: str | os.PathLike[str],
-    images: str | os.PathLike[str],
+    images: str | os.PathLike[str] | None,
     crs: CRS | str | None = None,
     *,
     local_frame_ok: Literal[False] = False,
@@ -80,7 +80,7 @@ def cameras_from_sfm(
 @overload
 def cameras_from_sfm(
     sfm_dir: str | os.PathLike[str],
-    images: str | os.PathLike[str],
+    images: str | os.PathLike[str] | None,
     crs: CRS | str | None = None,
     *,
     local_frame_ok: bool,
@@ -89,7 +89,7 @@ def cameras_from_sfm(
 
 def cameras_from_sfm(
     sfm_dir: str | os.PathLike[str],
-    images: str | os.PathLike[str],
+    images: str | os.PathLike[str] | None,
     crs: CRS | str | None = None,
     *,
     local_frame_ok: bool = False,
@@ -128,13 +128,13 @@ def cameras_from_sfm(
         from ..crs import transformer
 
         move = transformer(model_crs, out_crs)
-    images = Path(images)
-    by_name = {p.name: p for p in images.rglob("*") if p.is_file()}
+    # without a photo folder (the dem's footprints need only the poses) no photo is looked for
+    by_name = {p.name: p for p in Path(images).rglob("*") if p.is_file()} if images is not None else {}
     cams: list[OrthoCamera] = []
     skipped: list[tuple[str, str]] = []
     for image_id in sorted(rec.reg_image_ids()):
         im = rec.image(image_id)
-        path = _find_photo(images, im.name, by_name)
+        path = _find_photo(Path(images), im.name, by_name) if images is not None else Path(im.name)
         if path is None:
             skipped.append((im.name, f"not found in {images}"))
             continue

@@ -1014,5 +1014,17 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
     if n_filled:
         notes.append(f"DSM: {n_filled} nodata cells inside the data filled by interpolation")
         fb.warning(notes[-1])
+    # Wider holes take the ground plane the DSM is continued by beyond its edge: a hole is ground the
+    # photos saw (water, canopy the matcher missed), never a reason to leave the mosaic empty there.
+    rest = ~np.isfinite(grid)
+    if rest.any():
+        rows, cols = np.nonzero(rest)
+        grid = np.array(grid, np.float32, copy=True)
+        grid[rows, cols] = surf.nearest_elevation(cols.astype(float), rows.astype(float))
+        area = float(rest.sum()) * surf.cell_m**2
+        notes.append(f"DSM: {area:,.0f} m² of holes wider than {max(4.0, 10.0 / surf.cell_m) * surf.cell_m:.0f} m "
+                     "rendered on the ground plane near them (the DSM measured nothing there)")
+        fb.warning(notes[-1])
+    if n_filled or rest.any():
         surf = GridSurface(grid, surf.transform, surf.crs, extend=True)
     return surf

@@ -324,7 +324,8 @@ def project_window(
     valid = in_frame.copy()
     if visibility is not None and valid.any():
         v = visibility.sample(x[valid], y[valid])
-        valid[valid] = v >= 0.999
+        # beyond the visibility grid (the DSM's edge, where the ground is its plane) nothing hides
+        valid[valid] = ~(v < 0.999)
     cost = preference_cost(cam, x, y, np.where(ok, z, 0.0), mx, my)
     cost[~valid] = np.inf
     return Projection(mx, my, in_frame, valid, cost)
