@@ -54,7 +54,8 @@ def footprint_polygons(cams: Sequence[Any], surface: Any, max_range_m: float | N
         return []
     centres = np.array([c.pose.center for c in cams], float)
     ground = surface.elevation(centres[:, 0], centres[:, 1])
-    heights = centres[:, 2] - np.where(np.isfinite(ground), ground, np.nanmin(ground) if np.isfinite(ground).any() else 0)
+    lowest = np.nanmin(ground) if np.isfinite(ground).any() else 0.0
+    heights = centres[:, 2] - np.where(np.isfinite(ground), ground, lowest)
     if max_range_m is None:
         up = heights[heights > 0]
         max_range_m = 3.0 * float(np.median(up)) if len(up) else 1000.0

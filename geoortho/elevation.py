@@ -1047,7 +1047,9 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         plane = _dtm_support(done, grid, new_t)
         dtm_done = complete_grid(grid, ground_seen, target, new_t, plane)
         dtm_grid = dtm_done.z
-        write_cog(result.dtm, _nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit)
+        write_cog(
+            result.dtm, _nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit
+        )
         dtm_source = write_cog(
             stem_source(result.dtm), dtm_done.source, transform=new_t, crs=crs, nodata=0,
             band_names=(SOURCE_DESCRIPTION,),

@@ -1022,8 +1022,10 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
         grid = np.array(grid, np.float32, copy=True)
         grid[rows, cols] = surf.nearest_elevation(cols.astype(float), rows.astype(float))
         area = float(rest.sum()) * surf.cell_m**2
-        notes.append(f"DSM: {area:,.0f} m² of holes wider than {max(4.0, 10.0 / surf.cell_m) * surf.cell_m:.0f} m "
-                     "rendered on the ground plane near them (the DSM measured nothing there)")
+        notes.append(
+            f"DSM: {area:,.0f} m² of holes wider than {max(4.0, 10.0 / surf.cell_m) * surf.cell_m:.0f} m "
+            "rendered on the ground plane near them (the DSM measured nothing there)"
+        )
         fb.warning(notes[-1])
     if n_filled or rest.any():
         surf = GridSurface(grid, surf.transform, surf.crs, extend=True)
