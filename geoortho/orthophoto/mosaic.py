@@ -112,6 +112,19 @@ class OrthoResult:
         What was assumed or checked, in words.
     seconds : dict of str to float
         Time spent in each step.
+    area_m2 : float
+        Ground the orthophoto shows (opaque pixels).
+    seen_1_m2 : float
+        Ground seen by at least one of the photos used (their frames cast on the surface).
+    seen_2_m2 : float
+        Ground seen by at least two of them.
+    share_of_seen_1 : float
+        Share of ``seen_1_m2`` the orthophoto shows.
+    share_of_seen_2 : float
+        Share of ``seen_2_m2`` the orthophoto shows.
+    on_interpolated_m2 : float
+        Ground the orthophoto shows on DSM cells that were interpolated or a fallback plane (from the
+        DSM's ``_source.tif`` when it has one; the DSM's own holes otherwise).
     """
 
     output: Path
@@ -134,6 +147,63 @@ class OrthoResult:
     skipped: tuple[tuple[str, str], ...] = ()
     notes: tuple[str, ...] = ()
     seconds: dict[str, float] = field(default_factory=dict)
+    area_m2: float = 0.0
+    seen_1_m2: float = 0.0
+    seen_2_m2: float = 0.0
+    share_of_seen_1: float = 0.0
+    share_of_seen_2: float = 0.0
+    on_interpolated_m2: float = 0.0
+
+
+#: The orthophoto is said to fall short below this share of the ground the photos saw.
+MIN_SHARE_OF_SEEN = 0.95
+#: Coverage is measured on a grid of at most this many cells.
+COVERAGE_CELLS = 4_000_000
+
+
+def measure_coverage(
+    ortho: Path, cams: Sequence[OrthoCamera], surface: Surface, dsm_source: Path | None
+) -> dict[str, float]:
+    """The orthophoto's opaque area against the ground its photos saw (by >= 1 and >= 2 of them),
+    and how much of it lies on interpolated DSM cells, measured on a grid of at most
+    :data:`COVERAGE_CELLS` cells over the orthophoto's extent."""
+    import rasterio
+    from rasterio.enums import Resampling
+
+    from ..coverage import MEASURED, footprint_polygons, seen_count
+
+    with rasterio.open(ortho) as ds:
+        f = max(1, math.ceil(math.sqrt(ds.width * ds.height / COVERAGE_CELLS)))
+        shape = (max(1, ds.height // f), max(1, ds.width // f))
+        alpha = ds.read_masks(1, out_shape=shape, resampling=Resampling.nearest) > 0
+        t = ds.transform * Affine.scale(ds.width / shape[1], ds.height / shape[0])
+    cell_m2 = abs(t.a * t.e)
+    seen = seen_count(footprint_polygons(cams, surface), t, shape)
+    out = {
+        "area_m2": float(alpha.sum()) * cell_m2,
+        "seen_1_m2": float((seen >= 1).sum()) * cell_m2,
+        "seen_2_m2": float((seen >= 2).sum()) * cell_m2,
+        "share_of_seen_1": float((alpha & (seen >= 1)).sum()) / max(int((seen >= 1).sum()), 1),
+        "share_of_seen_2": float((alpha & (seen >= 2)).sum()) / max(int((seen >= 2).sum()), 1),
+        "on_interpolated_m2": 0.0,
+    }
+    source_path = dsm_source
+    if source_path is not None and source_path.is_file():
+        from rasterio.warp import reproject
+
+        src_grid = np.zeros(shape, np.uint8)
+        with rasterio.open(source_path) as ds:
+            reproject(rasterio.band(ds, 1), src_grid, dst_transform=t, dst_crs=ds.crs, resampling=Resampling.nearest)
+        out["on_interpolated_m2"] = float((alpha & (src_grid != MEASURED)).sum()) * cell_m2
+    elif isinstance(surface, GridSurface):
+        from ..surface import sample_grid
+
+        rows, cols = np.nonzero(alpha)
+        x, y = t * (cols + 0.5, rows + 0.5)
+        c, r = surface.colrow(np.asarray(x), np.asarray(y))
+        raw = sample_grid(surface.grid, c, r)
+        out["on_interpolated_m2"] = float((~np.isfinite(raw)).sum()) * cell_m2
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -450,6 +520,7 @@ def mosaic(
     poses: str = "given",
     notes: Sequence[str] = (),
     skipped: Sequence[tuple[str, str]] = (),
+    dsm_source: str | os.PathLike[str] | None = None,
     feedback: Feedback | None = None,
 ) -> OrthoResult:
     """Orthorectify posed photos onto ``surface`` and mosaic them into a COG at ``output``.
@@ -546,6 +617,22 @@ def mosaic(
         times["cog"] = time.perf_counter() - t3
     st_write.progress(1.0)
 
+    cover = measure_coverage(output, placed.cams, surface, Path(dsm_source) if dsm_source is not None else None)
+    line = (
+        f"the orthophoto shows {cover['area_m2']:,.0f} m²: {cover['share_of_seen_1']:.1%} of the "
+        f"{cover['seen_1_m2']:,.0f} m² its photos saw, {cover['share_of_seen_2']:.1%} of the "
+        f"{cover['seen_2_m2']:,.0f} m² seen by >= 2; {cover['on_interpolated_m2']:,.0f} m² of it on an "
+        "interpolated surface"
+    )
+    notes.append(line)
+    fb.info(line)
+    if cover["share_of_seen_1"] < MIN_SHARE_OF_SEEN:
+        notes.append(
+            f"the orthophoto misses {1 - cover['share_of_seen_1']:.0%} of the ground its photos saw "
+            f"(less than {MIN_SHARE_OF_SEEN:.0%} covered)"
+        )
+        fb.warning(notes[-1])
+
     raw, bal = _ratio(totals, "seam_raw", "seam_n"), _ratio(totals, "seam_bal", "seam_n")
     if options.balance != "none" and math.isfinite(raw) and math.isfinite(bal) and bal >= raw:
         notes.append(f"colour balance did not lower the colour mismatch across seams ({raw:.2f} → {bal:.2f} DN)")
@@ -572,6 +659,7 @@ def mosaic(
         skipped=tuple(skipped),
         notes=tuple(notes),
         seconds=times,
+        **cover,
     )
     gains = {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)}
     _write_report(result, totals, gains, time.perf_counter() - t0, plan.views_held_max)
@@ -962,6 +1050,7 @@ def ortho(
         poses=poses,
         notes=notes,
         skipped=skipped,
+        dsm_source=Path(dsm).with_name(Path(dsm).stem + "_source.tif") if dsm is not None else None,
         feedback=fb,
     )
 
@@ -1023,8 +1112,9 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
         grid[rows, cols] = surf.nearest_elevation(cols.astype(float), rows.astype(float))
         area = float(rest.sum()) * surf.cell_m**2
         notes.append(
-            f"DSM: {area:,.0f} m² of holes wider than {max(4.0, 10.0 / surf.cell_m) * surf.cell_m:.0f} m "
-            "rendered on the ground plane near them (the DSM measured nothing there)"
+            f"DSM: {area:,.0f} m² of its grid without a value (holes wider than "
+            f"{max(4.0, 10.0 / surf.cell_m) * surf.cell_m:.0f} m, or beyond its edge) rendered on the ground "
+            "plane near them"
         )
         fb.warning(notes[-1])
     if n_filled or rest.any():
