@@ -15,7 +15,7 @@ import math
 import time
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,7 @@ from .parallel import imap_ordered
 __all__ = ["DenseResult", "dense"]
 
 _MIN_SHARED_POINTS = 30
+_MIN_PAIR_POINTS = 100  # a pair that gives fewer points matched a sliver or nothing
 _MIN_BASE_RATIO = 0.08  # baseline / height: below, depth is noise
 _MAX_VIEW_ANGLE_DEG = 20.0
 # Local contrast (grey-level standard deviation over 7 x 7 px) below which a pixel has no texture to
@@ -37,6 +38,13 @@ _MAX_VIEW_ANGLE_DEG = 20.0
 # 2-5 DN at the 5th percentile (toledo_dji: 3 DN would drop 4 % of the DSM cells, 2 DN 1 %).
 _MIN_TEXTURE_DN = 2.0
 _TEXTURE_WINDOW_PX = 7
+#: ``dense`` warns when more than this share of the registered photos gives no depth map.
+MAX_SHARE_WITHOUT_MAP = 0.05
+#: Candidate partners tried per photo, as a multiple of the pairs wanted: a pair that cannot be
+#: rectified or matched (a sliver of overlap, a heading turned 90 degrees) is replaced by the next.
+_CANDIDATES_PER_PAIR = 2
+#: A reference photo whose textured share is below this gives "no texture" as its reason.
+_MIN_TEXTURED_SHARE = 0.05
 
 
 @dataclass(frozen=True)
@@ -90,11 +98,12 @@ class _Job:
     Dask's runs no initializer)."""
 
     ref: _View
-    neighbours: tuple[_View, ...]
+    neighbours: tuple[_View, ...]  # candidates, best first: more than wanted, so a failed pair is replaced
     depth_ranges: tuple[tuple[float, float], ...]
     min_views: int
     depth_tolerance: float
     voxel_m: float
+    wanted: int = 3  # pairs to match (the first that give points)
 
 
 def dense(
@@ -160,9 +169,15 @@ def dense(
         raise InputError("no pair of photos overlaps with enough baseline for depth", path=sfm)
     voxel = gsd / scale  # about one depth-map pixel on the ground
     jobs = [
-        _Job(views[i], tuple(views[j] for j in nbrs), rngs, min_views, depth_tolerance, voxel)
+        _Job(views[i], tuple(views[j] for j in nbrs), rngs, min_views, depth_tolerance, voxel, neighbours)
         for i, nbrs, rngs in pairs
     ]
+    planned = {views[i].name for i, _, _ in pairs}
+    no_map: dict[str, str] = {
+        v.name: "no partner: no other photo shares its view with a baseline for depth"
+        for v in views
+        if v.name not in planned
+    }
     seconds["plan"] = _lap(clock)
     s_maps, s_write = split(fb, [9, 1])
     from .demtiles import work_folder
@@ -170,12 +185,17 @@ def dense(
     with work_folder(output) as spill:
         fusion = _Fusion(voxel, spill_dir=Path(spill))
         n_matched = n_consistent = n_maps = 0
-        for got in imap_ordered(_depth_task, jobs, workers=workers, feedback=s_maps):
+        single_pair: list[str] = []
+        for job, got in zip(jobs, imap_ordered(_depth_task, jobs, workers=workers, feedback=s_maps)):
             n_matched += got.n_matched
             n_consistent += got.n_consistent
             if got.n_consistent:
                 n_maps += 1
                 fusion.add(got.xyz, got.rgb, got.counts)
+                if got.single_pair:
+                    single_pair.append(job.ref.name)
+            else:
+                no_map[job.ref.name] = got.reason
         seconds["depth_maps"] = _lap(clock) - seconds["plan"]
         peak_before_write_mb = _peak_memory_mb()["main"]
         if not np.isfinite(fusion.lo).all():
@@ -221,8 +241,24 @@ def dense(
             "seconds": seconds,
             "peak_memory_mb": {**_peak_memory_mb(), "main_before_write": peak_before_write_mb},
             "notes": notes,
+            "no_depth_map": dict(sorted(no_map.items())),
+            "single_pair_depth_maps": single_pair,
         },
     )
+    if no_map:
+        share = len(no_map) / len(cams)
+        listed = ", ".join(f"{k} ({v.split(':')[0]})" for k, v in sorted(no_map.items())[:5])
+        line = f"{len(no_map)} of {len(cams)} registered photos gave no depth map: {listed}"
+        notes.append(line + ("" if len(no_map) <= 5 else ", ..."))
+        if share > MAX_SHARE_WITHOUT_MAP:
+            fb.warning(f"dense: {notes[-1]}")
+        else:
+            fb.info(notes[-1])
+    if single_pair:
+        notes.append(
+            f"{len(single_pair)} depth map(s) from one pair only (no second partner agreed or existed; "
+            "left-right checked): " + ", ".join(single_pair[:5]) + (", ..." if len(single_pair) > 5 else "")
+        )
     fb.info(
         f"dense: {n_written} points from {n_maps} depth maps ({n_matched} matched, {n_consistent} consistent) "
         f"in {seconds['total']:.0f} s"
@@ -291,7 +327,7 @@ def _plan(cams: list[Any], pts: np.ndarray, neighbours: int) -> tuple[_Pairs, fl
             lo, hi = np.percentile(depth[i][shared], [1, 99])
             scored.append((n_shared * min(1.0, ratio / 0.25), j, (float(lo), float(hi))))
         scored.sort(reverse=True)
-        best = scored[:neighbours]
+        best = scored[: neighbours * _CANDIDATES_PER_PAIR]
         if best:
             jobs.append((i, tuple(j for _, j, _ in best), tuple(r for _, _, r in best)))
     return jobs, float(np.median(gsds))
@@ -311,11 +347,10 @@ def _pair(
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Points (local frame) and colours (BGR) of one rectified pair, ``a`` as the left image;
     None when the pair rectifies the other way round (then ``b`` must be the left image)."""
-    R = b.R.T @ a.R
-    T = (b.R.T @ (a.C - b.C)).reshape(3, 1)
-    R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
-        a.K, a.dist, b.K, b.dist, a.size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
-    )
+    rect = _rectify(a, b)
+    if rect is None:
+        return None
+    R1, R2, P1, P2, size = rect
     horizontal = abs(P2[0, 3]) > abs(P2[1, 3])
     shift = P2[0, 3] if horizontal else P2[1, 3]
     if shift > 0:
@@ -327,8 +362,8 @@ def _pair(
         return None
     min_d = max(0, int(math.floor(f * baseline / zmax * 0.85)))
     n_d = max(16, int(math.ceil((f * baseline / zmin * 1.15 - min_d) / 16.0)) * 16)
-    map_a = cv2.initUndistortRectifyMap(a.K, a.dist, R1, P1, a.size, cv2.CV_32FC1)
-    map_b = cv2.initUndistortRectifyMap(b.K, b.dist, R2, P2, a.size, cv2.CV_32FC1)  # one canvas for both
+    map_a = cv2.initUndistortRectifyMap(a.K, a.dist, R1, P1, size, cv2.CV_32FC1)
+    map_b = cv2.initUndistortRectifyMap(b.K, b.dist, R2, P2, size, cv2.CV_32FC1)  # one canvas for both
     left = cv2.remap(img_a, map_a[0], map_a[1], cv2.INTER_LINEAR)
     right = cv2.remap(img_b, map_b[0], map_b[1], cv2.INTER_LINEAR)
     valid = cv2.remap(np.full(img_a.shape[:2], 255, np.uint8), map_a[0], map_a[1], cv2.INTER_NEAREST)
@@ -371,6 +406,59 @@ def _pair(
     return world.astype(np.float32), left[rr, cc]
 
 
+#: A rectified canvas holds at most this many times the reference photo's pixels (the focal
+#: length is lowered to fit): a pair turned 45 degrees needs about twice.
+_MAX_CANVAS_RATIO = 2.5
+
+
+def _rectify(a: _View, b: _View) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int]] | None:
+    """Rectifying rotations and projections of the pair (``a`` left) on a canvas that holds the
+    part of ``a`` that ``b`` can match, at ``a``'s own focal length.
+
+    OpenCV's ``stereoRectify`` keeps the photo's size and zooms until the canvas holds only valid
+    pixels (alpha 0): for a pair whose headings differ (a camera turning freely from photo to
+    photo), that zoom reached 5 to 20 times, and the disparities left the canvas. Its rotations
+    are kept; the projections are made here."""
+    R = b.R.T @ a.R
+    T = (b.R.T @ (a.C - b.C)).reshape(3, 1)
+    R1, R2, _, _, _, _, _ = cv2.stereoRectify(
+        a.K, a.dist, b.K, b.dist, a.size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=-1
+    )
+    t = (R2 @ T).ravel()  # a's centre in the rectified frame of b
+    horizontal = abs(t[0]) > abs(t[1])
+    f = float(a.K[0, 0])
+
+    def extent(v: _View, rot: np.ndarray) -> np.ndarray:
+        w, h = v.size
+        n = 16
+        edge = np.linspace(0, 1, n)
+        xs = np.r_[edge * (w - 1), np.full(n, w - 1.0), edge[::-1] * (w - 1), np.zeros(n)]
+        ys = np.r_[np.zeros(n), edge * (h - 1), np.full(n, h - 1.0), edge[::-1] * (h - 1)]
+        P = np.array([[f, 0, 0], [0, f, 0], [0, 0, 1]], float)
+        out = cv2.undistortPoints(np.c_[xs, ys].reshape(-1, 1, 2).astype(np.float64), v.K, v.dist, R=rot, P=P)
+        pts = out.reshape(-1, 2)
+        return np.array([pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()])
+
+    ea, eb = extent(a, R1), extent(b, R2)
+    if not (np.isfinite(ea).all() and np.isfinite(eb).all()):
+        return None
+    # across the baseline both photos must hold the row; along it, a's pixels are the ones matched
+    if horizontal:
+        x0, x1, y0, y1 = ea[0], ea[2], max(ea[1], eb[1]), min(ea[3], eb[3])
+    else:
+        x0, x1, y0, y1 = max(ea[0], eb[0]), min(ea[2], eb[2]), ea[1], ea[3]
+    if x1 - x0 < 32 or y1 - y0 < 32:
+        return None
+    scale = min(1.0, math.sqrt(_MAX_CANVAS_RATIO * a.size[0] * a.size[1] / ((x1 - x0) * (y1 - y0))))
+    fs = f * scale
+    size = (int(math.ceil((x1 - x0) * scale)) + 1, int(math.ceil((y1 - y0) * scale)) + 1)
+    P1 = np.array([[fs, 0, -x0 * scale, 0], [0, fs, -y0 * scale, 0], [0, 0, 1, 0]], float)
+    P2 = P1.copy()
+    P2[0, 3] = fs * t[0] if horizontal else 0.0
+    P2[1, 3] = 0.0 if horizontal else fs * t[1]
+    return R1, R2, P1, P2, size
+
+
 @dataclass(frozen=True)
 class _DepthResult:
     """One reference photo's consistent points, already thinned to voxel means (with counts)."""
@@ -380,6 +468,8 @@ class _DepthResult:
     counts: np.ndarray  # (N,) float32, points averaged in each
     n_matched: int
     n_consistent: int
+    single_pair: bool = False  # one pair only gave points: kept as its left-right check left them
+    reason: str = ""  # why no point was kept
 
 
 def _textured(img: np.ndarray) -> np.ndarray:
@@ -392,7 +482,8 @@ def _textured(img: np.ndarray) -> np.ndarray:
 
 
 def _depth_task(job: _Job) -> _DepthResult:
-    """One reference photo: its pairs' points, kept where ``min_views`` pairs agree on the depth."""
+    """One reference photo: its pairs' points, kept where ``min_views`` pairs agree on the depth
+    (a photo that has one working pair only keeps that pair's left-right checked points)."""
     cv2.setNumThreads(1)  # one photo per process already fills the cores
     ref = job.ref
     img_ref = _read(ref)
@@ -401,9 +492,11 @@ def _depth_task(job: _Job) -> _DepthResult:
     zmaps = []
     n_raw = 0
     for other, rng in zip(job.neighbours, job.depth_ranges):
+        if len(per_pair) >= job.wanted:
+            break
         img_other = _read(other)
         got = _pair(ref, other, img_ref, img_other, rng) or _pair(other, ref, img_other, img_ref, rng)
-        if got is None or not len(got[0]):
+        if got is None or len(got[0]) < _MIN_PAIR_POINTS:
             continue
         xyz, rgb = got
         n_raw += len(xyz)
@@ -426,26 +519,36 @@ def _depth_task(job: _Job) -> _DepthResult:
         zmaps.append(np.where(np.isfinite(zbuf), zbuf, np.nan))
         per_pair.append((xyz, rgb, idx, np.where(inside, depth, np.nan)))
     empty = _DepthResult(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.float32), n_raw, 0)
-    if len(zmaps) < job.min_views:
-        return empty
-    stack = np.vstack(zmaps)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels (seen by no pair) are expected
-        med = np.nanmedian(stack, axis=0)
-    tol = job.depth_tolerance * med
-    agree = (np.abs(stack - med) <= tol).sum(axis=0)
-    out_xyz, out_rgb = [], []
-    for xyz, rgb, idx, depth in per_pair:
-        with np.errstate(invalid="ignore"):
-            keep = (agree[idx] >= job.min_views) & (np.abs(depth - med[idx]) <= tol[idx])
-        out_xyz.append(xyz[keep])
-        out_rgb.append(rgb[keep][:, ::-1])  # BGR -> RGB
+    if not per_pair:
+        textured = float(_textured(img_ref).mean())
+        if textured < _MIN_TEXTURED_SHARE:
+            return replace(empty, reason=f"no texture: {textured:.0%} of the photo has contrast to match")
+        return replace(empty, reason=f"matching failed: none of its {len(job.neighbours)} candidate pairs gave depth")
+    single = len(per_pair) < job.min_views
+    if single:
+        # one working pair (the survey's edge, a partner turned away): its points as the pair left them
+        xyz, rgb, idx, depth = per_pair[0]
+        keep = np.isfinite(depth)
+        out_xyz, out_rgb = [xyz[keep]], [rgb[keep][:, ::-1]]
+    else:
+        stack = np.vstack(zmaps)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels (seen by no pair) are expected
+            med = np.nanmedian(stack, axis=0)
+        tol = job.depth_tolerance * med
+        agree = (np.abs(stack - med) <= tol).sum(axis=0)
+        out_xyz, out_rgb = [], []
+        for xyz, rgb, idx, depth in per_pair:
+            with np.errstate(invalid="ignore"):
+                keep = (agree[idx] >= job.min_views) & (np.abs(depth - med[idx]) <= tol[idx])
+            out_xyz.append(xyz[keep])
+            out_rgb.append(rgb[keep][:, ::-1])  # BGR -> RGB
     xyz_all = np.concatenate(out_xyz)
     if not len(xyz_all):
-        return empty
+        return replace(empty, reason="matching failed: its pairs did not agree on any depth")
     ones = np.ones(len(xyz_all), np.float32)
     mean_xyz, mean_rgb, counts = _voxel_means(xyz_all, np.concatenate(out_rgb), ones, job.voxel_m)
-    return _DepthResult(mean_xyz, mean_rgb, counts, n_raw, len(xyz_all))
+    return _DepthResult(mean_xyz, mean_rgb, counts, n_raw, len(xyz_all), single)
 
 
 def _voxel_means(

@@ -140,6 +140,8 @@ PATHOLOGIES: dict[str, str] = {
     "dsm-datum": "truth/dsm_other_datum.tif: the DSM in orthometric (EGM96) heights, the photos' ellipsoidal",
     "partial-dsm": "truth/dsm_partial.tif: the DSM cropped to the eastern 60 % of the flight",
     "exposure-steps": "every other flight line exposed 0.7x (ExposureTime says so)",
+    "free-heading": "the camera's heading turns freely from photo to photo (a compact camera under a multirotor): "
+    "each photo's yaw is drawn at random, and its EXIF/XMP yaw says so",
     "water": "a pond of one flat colour (no texture, as calm water or a fresh tarmac) in the open ground of the "
     "flight: survey.json gives its disc (water: x, y, radius_m)",
 }
@@ -766,6 +768,14 @@ def _apply_pathologies(
             )
         if "wrong-focal" in pathologies:
             s = replace(s, exif_focal_mm=FOCAL_MM * WRONG_FOCAL_FACTOR)
+        if "free-heading" in pathologies and not s.oblique:
+            turn = float(rng.uniform(-180.0, 180.0))
+            s = replace(
+                s,
+                yaw_deg=_wrap180(s.yaw_deg + turn),
+                rec_yaw_deg=_wrap180(s.rec_yaw_deg + turn),
+                flight_yaw_deg=_wrap180(s.flight_yaw_deg + turn),
+            )
         if "exposure-steps" in pathologies and abs(_wrap180(s.yaw_deg)) > 90.0 and not s.oblique:
             s = replace(
                 s, exposure_gain=s.exposure_gain * EXPOSURE_STEP, exposure_time_s=s.exposure_time_s * EXPOSURE_STEP
