@@ -166,8 +166,9 @@ def complete_grid(
         if plane is None:
             return Completed(out, source, None)
         rows, cols = np.nonzero(need)
-        x, y = transform * (cols + 0.5, rows + 0.5)
-        out[rows, cols] = plane[0] + plane[1] * np.asarray(x) + plane[2] * np.asarray(y)
+        x = transform.c + (cols + 0.5) * transform.a  # north-up grids: no rotation terms
+        y = transform.f + (rows + 0.5) * transform.e
+        out[rows, cols] = plane[0] + plane[1] * x + plane[2] * y
         source[rows, cols] = FALLBACK
         return Completed(out, source, plane)
     coarse = fill_harmonic(cz, ck)
@@ -198,11 +199,8 @@ def _support_cells(
     support: np.ndarray | None, transform: Affine, f: int, shape: tuple[int, int], known: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The median support height of each solve cell that has no value (row, col, z)."""
-    if support is None or not len(support):
-        return None
-    s = np.asarray(support, float)
-    s = s[np.isfinite(s).all(axis=1)]
-    if not len(s):
+    s = _finite_rows(support)
+    if s is None:
         return None
     lo, hi = np.percentile(s[:, 2], [0.5, 99.5])  # a tie point far above or below all is a mismatch
     s = s[(s[:, 2] >= lo) & (s[:, 2] <= hi)]
@@ -224,13 +222,19 @@ def _support_cells(
     return k // shape[1], k % shape[1], med
 
 
-def _plane(support: np.ndarray | None) -> tuple[float, float, float] | None:
-    """A least-squares plane through the support points (level at their median when fewer than 3)."""
+def _finite_rows(support: np.ndarray | None) -> np.ndarray | None:
+    """The support points (x, y, z) with every coordinate finite; None when there are none."""
     if support is None or not len(support):
         return None
     s = np.asarray(support, float)
     s = s[np.isfinite(s).all(axis=1)]
-    if not len(s):
+    return s if len(s) else None
+
+
+def _plane(support: np.ndarray | None) -> tuple[float, float, float] | None:
+    """A least-squares plane through the support points (level at their median when fewer than 3)."""
+    s = _finite_rows(support)
+    if s is None:
         return None
     if len(s) < 3:
         return float(np.median(s[:, 2])), 0.0, 0.0
