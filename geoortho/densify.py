@@ -186,12 +186,14 @@ def dense(
         fusion = _Fusion(voxel, spill_dir=Path(spill))
         n_matched = n_consistent = n_maps = 0
         single_pair: list[str] = []
+        used: dict[str, list[str]] = {}
         for job, got in zip(jobs, imap_ordered(_depth_task, jobs, workers=workers, feedback=s_maps)):
             n_matched += got.n_matched
             n_consistent += got.n_consistent
             if got.n_consistent:
                 n_maps += 1
                 fusion.add(got.xyz, got.rgb, got.counts)
+                used[job.ref.name] = list(got.partners)
                 if got.single_pair:
                     single_pair.append(job.ref.name)
             else:
@@ -228,8 +230,9 @@ def dense(
             "crs": crs_text or None,
             "photos": len(cams),
             "depth_maps": n_maps,
-            "pairs": sum(len(nbrs) for _, nbrs, _ in pairs),
-            "views": {views[i].name: [views[j].name for j in nbrs] for i, nbrs, _ in pairs},
+            "pairs": sum(len(v) for v in used.values()),
+            "views": used,  # each depth map's partners (the pairs that gave points)
+            "candidates": {views[i].name: [views[j].name for j in nbrs] for i, nbrs, _ in pairs},
             "max_image_size": max_image_size,
             "image_scale": scale,
             "depth_map_megapixels": sum(j.ref.size[0] * j.ref.size[1] for j in jobs) / 1e6,
@@ -469,6 +472,7 @@ class _DepthResult:
     n_matched: int
     n_consistent: int
     single_pair: bool = False  # one pair only gave points: kept as its left-right check left them
+    partners: tuple[str, ...] = ()  # the photos it was matched with (the pairs that gave points)
     reason: str = ""  # why no point was kept
 
 
@@ -490,6 +494,7 @@ def _depth_task(job: _Job) -> _DepthResult:
     w, h = ref.size
     per_pair: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     zmaps = []
+    partners: list[str] = []
     n_raw = 0
     for other, rng in zip(job.neighbours, job.depth_ranges):
         if len(per_pair) >= job.wanted:
@@ -518,6 +523,7 @@ def _depth_task(job: _Job) -> _DepthResult:
         np.minimum.at(zbuf, idx[inside], depth[inside].astype(np.float32))
         zmaps.append(np.where(np.isfinite(zbuf), zbuf, np.nan))
         per_pair.append((xyz, rgb, idx, np.where(inside, depth, np.nan)))
+        partners.append(other.name)
     empty = _DepthResult(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.float32), n_raw, 0)
     if not per_pair:
         textured = float(_textured(img_ref).mean())
@@ -548,7 +554,7 @@ def _depth_task(job: _Job) -> _DepthResult:
         return replace(empty, reason="matching failed: its pairs did not agree on any depth")
     ones = np.ones(len(xyz_all), np.float32)
     mean_xyz, mean_rgb, counts = _voxel_means(xyz_all, np.concatenate(out_rgb), ones, job.voxel_m)
-    return _DepthResult(mean_xyz, mean_rgb, counts, n_raw, len(xyz_all), single)
+    return _DepthResult(mean_xyz, mean_rgb, counts, n_raw, len(xyz_all), single, partners=tuple(partners))
 
 
 def _voxel_means(
