@@ -108,7 +108,9 @@ def test_ortho_on_the_dense_dsm_is_a_true_ortho(dense_small, sfm_with_gcps, smal
     dense, flat = figures["dense"], figures["flat"]
     assert dense["median_shift_m"] <= 0.5 * gsd < flat["median_shift_m"], figures
     assert dense["ring"] <= min(0.15, 0.2 * flat["ring"]), figures
-    assert dense["open"] <= min(0.06, 0.2 * flat["open"]), figures
+    # 6.2 % since issue 46: the mosaic now also shows the ground past the DSM's edge (on its ground
+    # plane), where it was transparent before and so not counted
+    assert dense["open"] <= min(0.07, 0.2 * flat["open"]), figures
 
 
 @pytest.fixture(scope="module")
