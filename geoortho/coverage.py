@@ -11,8 +11,10 @@ fallback plane where nothing was measured at all (a survey of water or snow).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,6 +32,7 @@ __all__ = [
     "extended_grid",
     "footprint_polygons",
     "seen_count",
+    "source_path",
 ]
 
 MEASURED, INTERPOLATED, FALLBACK = 1, 2, 3
@@ -39,6 +42,12 @@ SOURCE_DESCRIPTION = "0 no data, 1 measured, 2 interpolated, 3 fallback plane"
 #: The harmonic fill is solved on a grid of at most this many cells (~120 bytes a cell), then
 #: carried to the fine grid; cells near measured data are solved again on the fine grid.
 MAX_SOLVE_CELLS = 2_000_000
+
+
+def source_path(surface_path: str | os.PathLike[str]) -> Path:
+    """Where the source raster of a DSM or DTM lies: beside it, ``<name>_source.tif``."""
+    p = Path(surface_path)
+    return p.with_name(p.stem + "_source.tif")
 
 
 def footprint_polygons(cams: Sequence[Any], surface: Any, max_range_m: float | None = None) -> list[Any]:
@@ -133,9 +142,9 @@ def complete_grid(
     Cells with a value keep it: ``measured`` ones are :data:`MEASURED`, the rest (an earlier gap
     fill) :data:`INTERPOLATED`. Target cells without one are solved from Laplace's equation with
     the valued cells and the ``support`` points (x, y, z: SfM tie points, one median per solve
-    cell where no value is) fixed: :data:`INTERPOLATED`. With no value and no support point
-    anywhere, they are a plane through nothing measured: the caller's fallback (here a level
-    plane at NaN is refused, so ``support`` must then hold at least one point): :data:`FALLBACK`.
+    cell where no value is) fixed: :data:`INTERPOLATED`. With no value and no support point in the
+    grid, they take the least-squares plane through the support points: :data:`FALLBACK`; with no
+    support point at all, they stay empty.
     """
     z = np.asarray(z, np.float32)
     known = np.isfinite(z)

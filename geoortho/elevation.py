@@ -975,6 +975,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         extended_grid,
         footprint_polygons,
         seen_count,
+        source_path,
     )
     from .orthophoto.cameras import cameras_from_sfm
     from .outputs import write_cog
@@ -1017,12 +1018,9 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     crs = src.crs
     unit = _unit_tag(src.vertical_unit)
 
-    def stem_source(path: Path) -> Path:
-        return path.with_name(path.stem + "_source.tif")
-
     write_cog(result.dsm, _nodata(done.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dsm",), units=unit)
     dsm_source = write_cog(
-        stem_source(result.dsm), done.source, transform=new_t, crs=crs, nodata=0, band_names=(SOURCE_DESCRIPTION,)
+        source_path(result.dsm), done.source, transform=new_t, crs=crs, nodata=0, band_names=(SOURCE_DESCRIPTION,)
     )
     notes = [
         f"DSM carried over the {seen_m2:,.0f} m² seen by >= 2 of {len(cams)} registered photos "
@@ -1051,7 +1049,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
             result.dtm, _nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit
         )
         dtm_source = write_cog(
-            stem_source(result.dtm), dtm_done.source, transform=new_t, crs=crs, nodata=0,
+            source_path(result.dtm), dtm_done.source, transform=new_t, crs=crs, nodata=0,
             band_names=(SOURCE_DESCRIPTION,),
         )  # fmt: skip
         notes.append(

@@ -22,6 +22,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
+from ..coverage import source_path
 from ..crs import crs_to_text, horizontal_unit_m
 from ..errors import InputError, ParameterError
 from ..feedback import Feedback, as_feedback, split
@@ -124,7 +125,7 @@ class OrthoResult:
         Share of ``seen_2_m2`` the orthophoto shows.
     on_interpolated_m2 : float
         Ground the orthophoto shows on DSM cells that were interpolated or a fallback plane (from the
-        DSM's ``_source.tif`` when it has one; the DSM's own holes otherwise).
+        DSM's ``_source.tif`` when it has one; otherwise the ground past the DSM's grid, on its plane).
     """
 
     output: Path
@@ -173,6 +174,7 @@ def measure_coverage(
     from ..coverage import MEASURED, footprint_polygons, seen_count
 
     with rasterio.open(ortho) as ds:
+        crs = ds.crs
         f = max(1, math.ceil(math.sqrt(ds.width * ds.height / COVERAGE_CELLS)))
         shape = (max(1, ds.height // f), max(1, ds.width // f))
         alpha = ds.read_masks(1, out_shape=shape, resampling=Resampling.nearest) > 0
@@ -187,15 +189,16 @@ def measure_coverage(
         "share_of_seen_2": float((alpha & (seen >= 2)).sum()) / max(int((seen >= 2).sum()), 1),
         "on_interpolated_m2": 0.0,
     }
-    source_path = dsm_source
-    if source_path is not None and source_path.is_file():
+    if dsm_source is not None and dsm_source.is_file():
         from rasterio.warp import reproject
 
         src_grid = np.zeros(shape, np.uint8)
-        with rasterio.open(source_path) as ds:
-            reproject(rasterio.band(ds, 1), src_grid, dst_transform=t, dst_crs=ds.crs, resampling=Resampling.nearest)
+        with rasterio.open(dsm_source) as ds:
+            # onto the orthophoto's grid, in its CRS (an ortho made with --crs is in another)
+            reproject(rasterio.band(ds, 1), src_grid, dst_transform=t, dst_crs=crs, resampling=Resampling.nearest)
         out["on_interpolated_m2"] = float((alpha & (src_grid != MEASURED)).sum()) * cell_m2
     elif isinstance(surface, GridSurface):
+        # the ortho's DSM has its holes filled on reading: what is left off it lies past its grid
         from ..surface import sample_grid
 
         rows, cols = np.nonzero(alpha)
@@ -1050,7 +1053,7 @@ def ortho(
         poses=poses,
         notes=notes,
         skipped=skipped,
-        dsm_source=Path(dsm).with_name(Path(dsm).stem + "_source.tif") if dsm is not None else None,
+        dsm_source=source_path(dsm) if dsm is not None else None,
         feedback=fb,
     )
 
