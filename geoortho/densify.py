@@ -369,7 +369,13 @@ def _pair(
     map_b = cv2.initUndistortRectifyMap(b.K, b.dist, R2, P2, size, cv2.CV_32FC1)  # one canvas for both
     left = cv2.remap(img_a, map_a[0], map_a[1], cv2.INTER_LINEAR)
     right = cv2.remap(img_b, map_b[0], map_b[1], cv2.INTER_LINEAR)
-    valid = cv2.remap(np.full(img_a.shape[:2], 255, np.uint8), map_a[0], map_a[1], cv2.INTER_NEAREST)
+    # Texture is measured in the photo (its border reflected), not on the canvas: there the black
+    # beyond the photo's edge lends texture to a flat pond cut by the edge. SGBM's blocks that
+    # straddle the edge match the black too, so the photo's edge band is dropped as well.
+    inside = cv2.remap(np.full(img_a.shape[:2], 255, np.uint8), map_a[0], map_a[1], cv2.INTER_NEAREST)
+    inside = cv2.erode(inside, np.ones((_TEXTURE_WINDOW_PX, _TEXTURE_WINDOW_PX), np.uint8))
+    textured = cv2.remap(_textured(img_a).astype(np.uint8) * 255, map_a[0], map_a[1], cv2.INTER_NEAREST)
+    valid = np.minimum(inside, textured)
     if not horizontal:  # vertical pairs: transposed, SGBM searches along rows
         left, right, valid = cv2.transpose(left), cv2.transpose(right), cv2.transpose(valid)
     # A search range past the canvas (toledo, two bodies: the smallest disparity alone was
@@ -394,7 +400,7 @@ def _pair(
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
     raw = sgbm.compute(left, shifted)
-    ok = (raw > 0) & (valid > 0) & _textured(left)
+    ok = (raw > 0) & (valid > 0)
     disp: np.ndarray = raw.astype(np.float32) / 16.0 + min_d
     if not horizontal:
         disp = np.asarray(cv2.transpose(disp))
