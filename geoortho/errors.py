@@ -15,6 +15,7 @@ __all__ = [
     "CanceledError",
     "DependencyError",
     "ClusterError",
+    "WorkerError",
     "GeoorthoWarning",
 ]
 
@@ -68,6 +69,10 @@ class DependencyError(GeoorthoError, ImportError):
 
 class ClusterError(GeoorthoError, RuntimeError):
     """The Dask cluster a run was given went away mid-run (its scheduler died or was unreachable)."""
+
+
+class WorkerError(GeoorthoError, RuntimeError):
+    """A worker process of the local pool ended abruptly (killed, out of memory, or dead at start-up)."""
 
 
 class GeoorthoWarning(UserWarning):

@@ -28,7 +28,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
-from .errors import ClusterError, DependencyError, InputError
+from .errors import ClusterError, DependencyError, InputError, WorkerError
 from .feedback import Feedback, as_feedback
 
 __all__ = ["SCHEDULER_ENV", "active_client", "imap_ordered", "map_ordered", "process_pool", "use_scheduler"]
@@ -133,6 +133,11 @@ def _imap_on(
             done += 1
             fb.progress(done / len(items))
             yield result
+    except cf.process.BrokenProcessPool as e:
+        raise WorkerError(
+            f"a worker process ended abruptly ({done} of {len(items)} tasks done; killed, out of memory, or dead "
+            "at start-up): run again with workers=1 (--workers 1) to see its error in this process"
+        ) from e
     except Exception as e:
         # a lost scheduler surfaces as cancelled futures or a closed client, which say nothing
         if isinstance(executor, _ClusterExecutor) and executor.lost():
@@ -177,12 +182,45 @@ def process_pool(
     pool = cf.ProcessPoolExecutor(
         n_procs, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(), initializer, initargs)
     )
-    for _ in range(n_procs):
-        pool.submit(os.getpid)  # start the workers now: they import while the caller prepares
+    with _workers_skip_main():
+        for _ in range(n_procs):
+            # start the workers now (they import while the caller prepares): a spawn pool starts
+            # one process per submit until it has them all
+            pool.submit(os.getpid)
     try:
         yield pool
     finally:
         pool.shutdown(cancel_futures=True)
+
+
+_spawn_lock = threading.Lock()
+
+
+@contextmanager
+def _workers_skip_main() -> Iterator[None]:
+    """Workers started in this block do not run the caller's main script.
+
+    A spawned worker runs ``__main__`` again (as ``__mp_main__``) before its first task. A user's
+    script that calls ``geoortho.run(...)`` at the top level, without the ``if __name__ ==
+    "__main__":`` guard, then starts a pool inside each worker: the worker dies or hangs, and the
+    pool waited for ever (a script piped to ``python -`` cannot even be found again). Every
+    function a worker runs lives in geoortho, so the worker needs nothing from the script."""
+    import multiprocessing.spawn as spawn
+
+    with _spawn_lock:
+        original = spawn.get_preparation_data
+
+        def without_main(name: str) -> dict[str, Any]:
+            data: dict[str, Any] = original(name)
+            data.pop("init_main_from_path", None)
+            data.pop("init_main_from_name", None)
+            return data
+
+        spawn.get_preparation_data = without_main
+        try:
+            yield
+        finally:
+            spawn.get_preparation_data = original
 
 
 def _die_with_parent() -> None:

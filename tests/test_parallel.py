@@ -88,3 +88,34 @@ def test_workers_die_with_a_sigkilled_parent(tmp_path):
     proc.wait()
     gone, alive = psutil.wait_procs(workers, timeout=10)
     assert not alive, f"{len(alive)} workers outlived their parent"
+
+
+def test_a_script_without_the_main_guard_runs(tmp_path):
+    """A first script calls geoortho at its top level, no ``if __name__ == "__main__":``: the
+    spawned workers must not run it again (they did, and the pool waited for ever)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "survey.py"
+    script.write_text(
+        "import geoortho\n"
+        f"s = geoortho.synth({str(tmp_path / 'survey')!r}, preset='tiny', seed=1, workers=2)\n"
+        "print('photos', len(list(s.images.iterdir())))\n"
+    )
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["photos", "9"]
+    # the same from stdin (``python - <<EOF``): there is no script for a worker to find again
+    code = "from geoortho.parallel import map_ordered\nprint(map_ordered(abs, [-1, -2, -3, -4], workers=2))\n"
+    done = subprocess.run([sys.executable, "-"], input=code, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "[1, 2, 3, 4]"
+
+
+def test_workers_dead_at_start_up_raise():
+    import os
+
+    from geoortho.errors import WorkerError
+
+    with pytest.raises(WorkerError, match="workers=1"):
+        map_ordered(abs, [1, -2, 3, -4], workers=2, initializer=os._exit, initargs=(3,))
