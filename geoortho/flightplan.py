@@ -126,7 +126,10 @@ def resolve_camera(
             f"photo {Path(camera).name} ({p.sensor_source})",
         )
     elif camera:
-        base = CAMERAS.get(camera.strip().lower())
+        words = camera.strip().lower().split()
+        # make and model as EXIF writes them ("DJI FC6310", "Hasselblad L1D-20c"): the model alone
+        # is the table's key, so the make (one word or more) is tried away
+        base = next((CAMERAS[k] for k in (" ".join(words[i:]) for i in range(len(words))) if k in CAMERAS), None)
         if base is None:
             names = sorted({c.name for c in CAMERAS.values()} | {m for _, m, *_ in _CAMERA_TABLE})
             close = difflib.get_close_matches(camera, names, n=4, cutoff=0.3)
@@ -1214,7 +1217,8 @@ def _seen_by(
     # signed distance (px) inside the allowed part of the frame; the flown pose wanders from the
     # planned one, which moves the point by sigma_px: each photo sees it with probability Phi(d/sigma)
     inside_px = np.minimum.reduce([x - (mx - 0.5), (w - 0.5 - mx) - x, y - (my - 0.5), (h - 0.5 - my) - y])
-    sigma_px = FLIGHT_POSITION_SIGMA_M / gsd + f * math.tan(math.radians(FLIGHT_ATTITUDE_SIGMA_DEG))
+    with np.errstate(divide="ignore"):  # photos behind the point (depth <= 0): masked by `front` below
+        sigma_px = FLIGHT_POSITION_SIGMA_M / gsd + f * math.tan(math.radians(FLIGHT_ATTITUDE_SIGMA_DEG))
     from scipy.special import ndtr
 
     p = np.where(front & np.isfinite(inside_px), ndtr(np.nan_to_num(inside_px) / sigma_px), 0.0)

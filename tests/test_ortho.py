@@ -360,3 +360,19 @@ def test_holes_up_to_max_hole_px_are_filled_wider_ones_stay_transparent():
     err = np.abs(img[40:46, 30:60].astype(int) - truth[40:46, 30:60].astype(int))
     assert err.max() <= 4, err.max()
     assert (img[40:70, 120:150] == 0).all()  # the wide hole stays as it was: the caller keeps it transparent
+
+
+def test_a_hole_filling_a_whole_tile_is_left_and_warns_nothing():
+    """A tile that is one hole (no edge inside it): the distance transform's huge value made the
+    width test overflow (a RuntimeWarning on real data); the hole is wider than any limit."""
+    import warnings
+
+    from geoortho.orthophoto.mosaic import _fill_holes
+
+    bgr = np.zeros((40, 40, 3), np.uint8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not _fill_holes(bgr, np.ones((40, 40), bool), 10).any()
+        small = np.zeros((40, 40), bool)
+        small[10:13, 10:13] = True
+        assert _fill_holes(bgr, small, 10).sum() == 9

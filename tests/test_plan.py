@@ -254,6 +254,7 @@ def test_aoi_not_a_polygon_refused_self_intersecting_repaired(tmp_path, capsys):
 
 def test_camera_from_table_photo_or_values(small_survey):
     assert resolve_camera("fc6310").name == "DJI Phantom 4 Pro"
+    assert resolve_camera("DJI FC6310").name == resolve_camera("Hasselblad DJI FC6310").name == "DJI Phantom 4 Pro"
     photo = resolve_camera(str(sorted(small_survey.images.iterdir())[0]))
     assert (photo.width_px, photo.height_px) == (1600, 1067) and photo.focal_mm == pytest.approx(8.8)
     given = resolve_camera("", 13.2, 8.8, 4000, 3000)

@@ -365,7 +365,8 @@ def _fill_holes(bgr: np.ndarray, holes: np.ndarray, max_hole_px: int) -> np.ndar
     dist = cv2.distanceTransform(h8, cv2.DIST_L2, 3)
     widest = np.zeros(n, np.float32)
     np.maximum.at(widest, np.asarray(comp, np.intp).ravel(), dist.ravel())
-    small = 2.0 * widest <= max_hole_px
+    # (a hole with no edge in the tile has the distance transform's huge value: no product of it)
+    small = widest <= 0.5 * max_hole_px
     small[0] = False
     fill = small[comp] & holes
     if fill.any():
