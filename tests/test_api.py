@@ -165,6 +165,16 @@ def test_presets_are_the_literal():
     assert set(typing.get_args(Preset)) == set(PRESETS)
 
 
+def test_the_ready_made_description_is_fresh_and_read_back_exactly():
+    """``--help`` reads the registry's functions ready-made; they must be what the sources say."""
+    from geoortho.processing import static
+
+    fresh = static.ready_made_text()
+    assert static.READY_MADE.read_text() == fresh, "stale: run `python tools/write_described.py` and commit it"
+    for alg in list_algorithms():
+        assert static.read_function(alg.function_ref) == static._read_source(alg.function_ref), alg.id
+
+
 def test_static_reader_refuses_what_it_cannot_read(tmp_path, monkeypatch):
     import geoortho.processing.static as static
 

@@ -18,7 +18,6 @@ from typing import Any, NoReturn
 
 from ..errors import CanceledError, GeoorthoError, InputError
 from ..feedback import Feedback, JsonLinesFeedback, TerminalFeedback
-from ..parallel import SCHEDULER_ENV
 from .registry import describe_json, list_algorithms, run_algorithm
 from .spec import PARAM_TYPES, Algorithm, Param
 
@@ -184,6 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # numpy's "invalid value encountered" and the like are not for a surveyor: what matters is
         # said through the feedback; --debug shows them
         warnings.filterwarnings("ignore", category=RuntimeWarning)
+        from ..parallel import SCHEDULER_ENV  # here: the pool's imports are no part of --help
+
         if args.scheduler or os.environ.get(SCHEDULER_ENV):
             _quiet_dask()
     values = {p.name: getattr(args, p.name) for p in alg.params}

@@ -231,8 +231,94 @@ def _choices(module: str, annotation: ast.expr | None) -> tuple[Any, ...]:
     return ()
 
 
+#: What :func:`read_function` reads, made ready (``python tools/write_described.py``): the
+#: registry's description at start-up without parsing the sources (half of ``--help``'s import).
+#: It holds the digest of every source file of the package and is used only while they match; a
+#: test keeps it fresh.
+READY_MADE = Path(__file__).with_name("described.json")
+
+
+def source_digest() -> str:
+    """Digest of every ``.py`` file of the package (names and contents)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for path in sorted(_PACKAGE_DIR.rglob("*.py")):
+        h.update(path.relative_to(_PACKAGE_DIR).as_posix().encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+def _encode(v: Any) -> Any:
+    if isinstance(v, Path):
+        return {"path": str(v)}
+    if isinstance(v, tuple):
+        return {"tuple": [_encode(x) for x in v]}
+    if v is None or isinstance(v, (bool, int, float, str)):
+        return v
+    raise StaticReadError(f"cannot keep {v!r} ready-made")
+
+
+def _decode(v: Any) -> Any:
+    if isinstance(v, dict):
+        return Path(v["path"]) if "path" in v else tuple(_decode(x) for x in v["tuple"])
+    return v
+
+
+def ready_made_text(refs: list[str] | None = None) -> str:
+    """The ready-made file's text for these function references (default: the registry's), read
+    from the sources now."""
+    import json
+
+    if refs is None:
+        from .algorithms import ALGORITHMS
+
+        refs = [a.function_ref for a in ALGORITHMS]
+
+    functions = {}
+    for ref in sorted(set(refs)):
+        f = _read_source(ref)
+        functions[ref] = {
+            "doc": f.doc,
+            "returns_doc": f.returns_doc,
+            "params": [
+                [p.name, p.has_default, _encode(p.default), _encode(p.choices), p.keyword_only] for p in f.params
+            ],
+        }
+    return json.dumps({"source_digest": source_digest(), "functions": functions}, indent=1, sort_keys=True) + "\n"
+
+
+@cache
+def _ready_made() -> dict[str, Any]:
+    import json
+    import os
+
+    if os.environ.get("GEOORTHO_NO_READY_MADE"):  # for a benchmark of what it saves
+        return {}
+    try:
+        data = json.loads(READY_MADE.read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(data, dict) or data.get("source_digest") != source_digest():
+        return {}  # a source changed since it was made: read the sources
+    return dict(data.get("functions") or {})
+
+
 @cache
 def read_function(ref: str) -> StaticFunction:
+    """The signature and docstring of ``"module:function"``: ready-made when the sources are
+    those it was made from, else read from the source."""
+    entry = _ready_made().get(ref)
+    if entry is None:
+        return _read_source(ref)
+    module, name = split_ref(ref)
+    params = tuple(
+        StaticParam(n, bool(has), _decode(default), _decode(choices), bool(kw))
+        for n, has, default, choices, kw in entry["params"]
+    )
+    return StaticFunction(module, name, entry["doc"], params, entry["returns_doc"])
+
+
+def _read_source(ref: str) -> StaticFunction:
     """The signature and docstring of ``"module:function"``, read from its source."""
     module, name = split_ref(ref)
     node = _statement(module, name)

@@ -1,0 +1,8 @@
+"""Write geoortho/processing/described.json: the registry's functions as read from their sources,
+ready-made for a quick start-up. Run it after changing a core function's signature or docstring
+(tests/test_api.py says when it is stale)."""
+
+from geoortho.processing.static import READY_MADE, ready_made_text
+
+READY_MADE.write_text(ready_made_text())
+print(f"wrote {READY_MADE}")
