@@ -289,6 +289,13 @@ class FootprintResult:
         Vertical datum of the heights.
     notes : tuple of str
         What was assumed or checked, in words.
+    altitude_m : float
+        Median height of the cameras above the ground under them, m (measured, with ``sfm``).
+    altitude_metadata_m : float
+        The same from the photos' metadata and the heights given (NaN when they give none).
+    height_check : str
+        With ``sfm``: the heights given or assumed that disagree with the measured ones (over
+        10 %, or 2 m for an elevation), in words; empty when they agree.
     """
 
     output: Path
@@ -300,6 +307,9 @@ class FootprintResult:
     height_source: str
     vertical_datum: str = ""
     notes: tuple[str, ...] = ()
+    altitude_m: float = math.nan
+    altitude_metadata_m: float = math.nan
+    height_check: str = ""
 
 
 def footprints(
@@ -315,6 +325,7 @@ def footprints(
     overlap_cell_m: float = 1.0,
     flight_height_m: float | None = None,
     gps_altitude: GpsAltitude = "auto",
+    sfm: Path | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> FootprintResult:
@@ -360,14 +371,23 @@ def footprints(
         What GPSAltitude holds when the photos have no RelativeAltitude: auto
         (decided from the photo spacing and the ground, and said), above-takeoff,
         orthometric or ellipsoidal.
+    sfm : Path
+        Output folder of the sfm algorithm: the registered photos' measured poses and
+        calibrated cameras are cast (on the DSM, else on the tie points' ground), and the
+        heights the metadata and the options give are checked against them.
     """
-    from .outputs import write_vector
-
     fb = as_feedback(feedback)
-    s_read, s_cast, s_write = split(fb, [3, 2, 1])
-    if dsm is not None and ground_elevation_m is not None:
+    if dsm is not None and ground_elevation_m is not None and sfm is None:
         raise InputError("give either a DSM or a ground elevation, not both")
     out_crs = parse_crs(crs) if crs else None
+    if sfm is not None:
+        given = Heights(flight_height_m, takeoff_elevation_m, ground_elevation_m, gps_altitude)
+        return _footprints_from_sfm(
+            images, output, Path(sfm), dsm, given, out_crs, sensor_width_mm, max_range_m, overlap, overlap_cell_m, fb
+        )
+    from .outputs import write_vector
+
+    s_read, s_cast, s_write = split(fb, [3, 2, 1])
     photos = _photos_with_altitude(images, sensor_width_mm, flight_height_m, s_read, fb)
     work = working_crs(photos.photos, out_crs)
     surface: Surface | None = None
@@ -417,7 +437,239 @@ def footprints(
         f"{ground}; {heights.method}",
         heights.datum,
         tuple(heights.notes),
+        altitude_m=_median(table.altitude_m),
+        altitude_metadata_m=_median(table.altitude_m),
     )
+
+
+def _median(values: np.ndarray) -> float:
+    ok = np.isfinite(values)
+    return float(np.median(values[ok])) if ok.any() else math.nan
+
+
+#: A height given or read that differs from the measured one by more than this share (of the
+#: height above ground), or an elevation by more than ELEVATION_TOLERANCE_M, is called wrong.
+HEIGHT_TOLERANCE = 0.10
+ELEVATION_TOLERANCE_M = 2.0
+#: Heights read from the photos alone (a take-off from GNSS heights) err by metres: on a low
+#: flight 10 % is within that, so they are called wrong only past this as well.
+ASSUMED_ALLOWANCE_M = 5.0
+
+
+@dataclass(frozen=True)
+class Heights:
+    """The height options a user gave (None: not given)."""
+
+    flight_height_m: float | None = None
+    takeoff_elevation_m: float | None = None
+    ground_elevation_m: float | None = None
+    gps_altitude: GpsAltitude = "auto"
+
+
+def _footprints_from_sfm(
+    images: Path,
+    output: Path,
+    sfm: Path,
+    dsm: Path | None,
+    given: Heights,
+    out_crs: CRS | None,
+    sensor_width_mm: float | None,
+    max_range_m: float,
+    overlap: Path | None,
+    overlap_cell_m: float,
+    fb: Feedback,
+) -> FootprintResult:
+    """Footprints of the SfM's registered cameras (measured poses, calibrated intrinsics) on the
+    DSM, and the metadata's heights checked against them."""
+    from dataclasses import replace
+
+    from .camera import ypr_from_rotation
+    from .orthophoto.cameras import cameras_from_sfm
+    from .outputs import write_vector
+
+    s_read, s_cast, s_write = split(fb, [3, 2, 1])
+    photos = read_photos(images, sensor_width_mm, feedback=s_read)
+    sfm_cams, work, tie_points, _ = cameras_from_sfm(sfm, images)
+    by_name = {p.image: p for p in photos.photos}
+    sfm_cams = [c for c in sfm_cams if c.name in by_name]
+    if not sfm_cams:
+        raise InputError("no photo of this folder is registered in the SfM model", path=sfm)
+    registered = {c.name for c in sfm_cams}
+    unregistered = [p.image for p in photos.photos if p.image not in registered]
+    photos.skipped.extend((name, "not registered by the SfM") for name in unregistered)
+    warn_grouped(fb, "no footprint: not registered by the SfM", unregistered)
+    if dsm is not None:
+        centres = np.array([c.pose.center for c in sfm_cams])
+        reach = max_range_m
+        box = (
+            float(centres[:, 0].min() - reach),
+            float(centres[:, 1].min() - reach),
+            float(centres[:, 0].max() + reach),
+            float(centres[:, 1].max() + reach),
+        )
+        grid = read_surface(dsm, work, extend=True, bounds=box, max_cells=DSM_MAX_CELLS)
+        surface: Surface = grid
+        ground = "DSM"
+        # A DSM in another vertical datum than the SfM (a lidar DSM, a model on drifting GPS
+        # heights): the cameras' height over it would be off by the difference. The tie points
+        # measure it; past ELEVATION_TOLERANCE_M the DSM is moved onto the SfM, and that is said.
+        if len(tie_points):
+            with np.errstate(invalid="ignore"):
+                under = np.asarray(surface.elevation(tie_points[:, 0], tie_points[:, 1]), float)
+            offset = _median(tie_points[:, 2] - under)
+            if math.isfinite(offset) and abs(offset) > ELEVATION_TOLERANCE_M:
+                surface = replace(grid, grid=grid.grid + np.float32(offset))
+                ground = f"DSM moved {offset:+.1f} m onto the SfM's tie points"
+                fb.warning(
+                    f"the DSM lies {-offset:+.1f} m off the SfM's tie points (another vertical datum?): the heights "
+                    "above ground are measured on it moved onto the SfM"
+                )
+    else:
+        # no surface given: the tie points' ground level (below roofs and trees)
+        z = tie_points[:, 2] if len(tie_points) else np.array([0.0])
+        surface = FlatSurface(float(np.percentile(z, 30)))
+        ground = "the SfM tie points' ground level"
+    lon = np.array([by_name[c.name].longitude_deg for c in sfm_cams], float)
+    lat = np.array([by_name[c.name].latitude_deg for c in sfm_cams], float)
+    convergence, _ = grid_north(work, lon, lat)
+    cams = []
+    for c, conv in zip(sfm_cams, np.nan_to_num(convergence)):
+        yaw, pitch, roll = ypr_from_rotation(c.pose.rotation)
+        photo = replace(
+            by_name[c.name], yaw_deg=yaw - float(conv), pitch_deg=pitch, roll_deg=roll, attitude_source="SfM"
+        )
+        cams.append(PhotoCamera(photo, c.intrinsics, c.pose, "SfM pose", float(conv), 1.0))
+    s_read.progress(1.0)
+    table = compute_footprints(cams, surface, max_range_m=max_range_m)
+    s_cast.progress(1.0)
+    altitude_m = _median(table.altitude_m)
+    check = check_given_heights([by_name[c.name] for c in sfm_cams], cams, table, work, surface, given, fb)
+    datum = "the SfM model's (its GCPs', else its GPS heights')"
+    heights = HeightModel(
+        np.array([c.pose.center[2] for c in cams]), ("SfM pose",) * len(cams), "SfM poses", datum, math.nan, surface
+    )
+    fp, cam_layer = _footprint_layers(cams, table, heights, ground, work)
+    fp["altitude_metadata_m"] = check.per_photo_m
+    overlap_path = write_overlap(overlap, fp.geometry.values, work, overlap_cell_m) if overlap is not None else None
+    if out_crs is not None and not out_crs.equals(work):
+        fp, cam_layer = fp.to_crs(out_crs), cam_layer.to_crs(out_crs)
+    write_vector(output, {"footprints": fp, "cameras": cam_layer})
+    s_write.progress(1.0)
+    median_gsd = float(np.nanmedian(table.gsd_cm))
+    fb.info(
+        f"{len(cams)} footprints of the SfM cameras on the {ground}, median GSD {median_gsd:.2f} cm, "
+        f"{altitude_m:.1f} m above the ground; {photos.summary()}"
+    )
+    return FootprintResult(
+        Path(output),
+        crs_to_text(out_crs or work),
+        len(cams),
+        len(photos.skipped),
+        median_gsd,
+        overlap_path,
+        f"{ground}; SfM poses (measured)",
+        datum,
+        check.notes,
+        altitude_m=altitude_m,
+        altitude_metadata_m=check.altitude_m,
+        height_check=check.problem,
+    )
+
+
+@dataclass(frozen=True)
+class HeightCheck:
+    """The metadata's heights against the measured ones."""
+
+    altitude_m: float  # median height above ground from the metadata (NaN: none to be had)
+    per_photo_m: np.ndarray  # the same per photo
+    problem: str  # the disagreement, in words ("" when they agree)
+    notes: tuple[str, ...]
+
+
+def check_given_heights(
+    photos: Sequence[Photo],
+    measured: Sequence[PhotoCamera],
+    table: FootprintTable,
+    crs: CRS,
+    surface: Surface,
+    given: Heights,
+    fb: Feedback,
+) -> HeightCheck:
+    """Place the photos as their metadata and ``given`` would, on the measured surface, and
+    compare the cameras' heights with the measured ones. A disagreement over HEIGHT_TOLERANCE (or
+    ELEVATION_TOLERANCE_M for an elevation given; for heights read from the photos alone, also
+    over ASSUMED_ALLOWANCE_M) is warned about, naming the option to fix."""
+    n = len(photos)
+    nothing = np.full(n, np.nan)
+    measured_alt = _median(table.altitude_m)
+    with_alt = [i for i, p in enumerate(photos) if p.has_altitude or given.flight_height_m is not None]
+    if not with_alt:
+        note = f"no altitude in the photos' metadata: heights measured by the SfM ({measured_alt:.1f} m above ground)"
+        fb.info(note)
+        return HeightCheck(math.nan, nothing, "", (note,))
+    try:
+        meta, model = photo_cameras(
+            [photos[i] for i in with_alt],
+            crs,
+            surface if given.ground_elevation_m is None else FlatSurface(float(given.ground_elevation_m)),
+            given.takeoff_elevation_m,
+            flight_height_m=given.flight_height_m,
+            gps_altitude=given.gps_altitude,
+        )
+    except InputError as e:
+        note = (
+            f"the photos' altitudes give no height above ground ({' '.join(str(e).split())}); "
+            f"heights measured by the SfM: {measured_alt:.1f} m above the ground"
+        )
+        fb.info(note)
+        return HeightCheck(math.nan, nothing, "", (note,))
+    idx = np.asarray(with_alt)
+    z_meta = np.array([c.pose.center[2] for c in meta])
+    xy_meta = np.array([c.pose.center[:2] for c in meta])
+    with np.errstate(invalid="ignore"):
+        ground_meta = np.asarray(surface.elevation(xy_meta[:, 0], xy_meta[:, 1]), float)
+    per_photo = nothing.copy()
+    per_photo[idx] = z_meta - ground_meta
+    z_sfm = np.array([measured[i].pose.center[2] for i in idx])
+    offset_m = _median(z_meta - z_sfm)  # + : the metadata puts the cameras higher than measured
+    meta_alt = _median(per_photo)
+    notes = [
+        f"camera heights: metadata {model.method}: {meta_alt:.1f} m above the ground; measured {measured_alt:.1f} m"
+    ]
+    problem = ""
+    share = offset_m / measured_alt if measured_alt > 0 else math.nan
+    if given.flight_height_m is not None and abs(share) > HEIGHT_TOLERANCE:
+        problem = (
+            f"flight_height_m {given.flight_height_m:g} m disagrees with the SfM: the cameras flew "
+            f"{measured_alt:.1f} m above the ground, not {meta_alt:.1f} m ({share:+.0%}); the products use the "
+            "measured heights: check flight_height_m"
+        )
+    elif given.takeoff_elevation_m is not None and abs(offset_m) > ELEVATION_TOLERANCE_M:
+        problem = (
+            f"takeoff_elevation_m {given.takeoff_elevation_m:g} m disagrees with the SfM by {offset_m:+.1f} m "
+            f"(the cameras' measured elevations put the take-off at {given.takeoff_elevation_m - offset_m:.1f} m); "
+            "the products use the measured heights: check takeoff_elevation_m and its datum"
+        )
+    elif given.ground_elevation_m is not None:
+        under = np.asarray(surface.elevation(xy_meta[:, 0], xy_meta[:, 1]), float)
+        off = float(given.ground_elevation_m) - _median(under)
+        if abs(off) > ELEVATION_TOLERANCE_M:
+            problem = (
+                f"ground_elevation_m {given.ground_elevation_m:g} m disagrees with the measured surface by "
+                f"{off:+.1f} m (its median under the cameras: {_median(under):.1f} m); the products use the "
+                "measured surface: check ground_elevation_m and its datum"
+            )
+    elif abs(share) > HEIGHT_TOLERANCE and abs(offset_m) > ASSUMED_ALLOWANCE_M:
+        problem = (
+            f"the photos' altitudes ({model.method}) put the cameras {meta_alt:.1f} m above the ground; the SfM "
+            f"measured {measured_alt:.1f} m ({share:+.0%}); the products use the measured heights"
+        )
+    if problem:
+        fb.warning(problem)
+        notes.append(problem)
+    else:
+        fb.info(notes[0])
+    return HeightCheck(meta_alt, per_photo, problem, tuple(notes))
 
 
 def _photos_with_altitude(

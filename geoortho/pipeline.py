@@ -24,6 +24,7 @@ from typing import Any, Literal
 
 from .errors import CanceledError, GeoorthoError, InputError
 from .feedback import Feedback, as_feedback, split
+from .heights import GpsAltitude
 
 __all__ = [
     "STAGES",
@@ -44,7 +45,7 @@ REPORT_NAME = "report.html"
 #: Prefix of a path inside the project, as the ledger keeps it.
 PROJECT_PREFIX = "PROJECT/"
 
-StageName = Literal["footprints", "gcp-find", "sfm", "dense", "dem", "ortho", "report"]
+StageName = Literal["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "report"]
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,9 @@ class Project:
     dsm: Path | None = None
     crs: str | None = None
     takeoff_elevation_m: float | None = None
+    flight_height_m: float | None = None
+    ground_elevation_m: float | None = None
+    gps_altitude: GpsAltitude = "auto"
     workers: int = 0
     options: dict[str, dict[str, Any]] = field(default_factory=dict)  # stage -> its own options
 
@@ -110,20 +114,6 @@ def _cloud(p: Project) -> Path:
 
 STAGES: tuple[Stage, ...] = (
     Stage(
-        "footprints",
-        lambda p: True,
-        lambda p, d: {
-            "images": p.images,
-            "output": p.folder("footprints") / "footprints.gpkg",
-            "overlap": p.folder("footprints") / "overlap.tif",
-            "dsm": p.dsm,
-            "crs": p.crs,
-            "takeoff_elevation_m": p.takeoff_elevation_m,
-        },
-        ("images", "dsm"),
-        weight=1,
-    ),
-    Stage(
         "gcp-find",
         lambda p: p.gcp_file is not None,
         lambda p, d: {
@@ -135,6 +125,7 @@ STAGES: tuple[Stage, ...] = (
             "dsm": p.dsm,
             "crs": p.crs,
             "takeoff_elevation_m": p.takeoff_elevation_m,
+            "flight_height_m": p.flight_height_m,
             "workers": p.workers,
         },
         ("images", "gcp_file", "dsm"),
@@ -180,6 +171,27 @@ STAGES: tuple[Stage, ...] = (
             "sfm": p.folder("sfm") if p.points is None else None,
         },
         ("points", "sfm"),
+        weight=1,
+    ),
+    # The footprints of the cameras the SfM measured, on the surface made (or given): the report's
+    # GSD and area are measured, not read from a flight height; the heights the metadata and the
+    # options give are checked against them (a disagreement is a red problem).
+    Stage(
+        "footprints",
+        lambda p: True,
+        lambda p, d: {
+            "images": p.images,
+            "output": p.folder("footprints") / "footprints.gpkg",
+            "overlap": p.folder("footprints") / "overlap.tif",
+            "sfm": p.folder("sfm"),
+            "dsm": p.dsm if p.dsm is not None else p.folder("dem") / "dsm.tif",
+            "crs": p.crs,
+            "takeoff_elevation_m": p.takeoff_elevation_m,
+            "flight_height_m": p.flight_height_m,
+            "ground_elevation_m": p.ground_elevation_m,
+            "gps_altitude": p.gps_altitude,
+        },
+        ("images", "sfm", "dsm"),
         weight=1,
     ),
     Stage(
@@ -424,6 +436,8 @@ def _stage_problems(stage: str, outputs: dict[str, Any], project: Project) -> li
                 "the products' absolute accuracy is the GPS's, not the survey's",
             }
         )
+    if stage == "footprints" and outputs.get("height_check"):
+        out.append({"stage": stage, "level": "error", "message": str(outputs["height_check"])})
     observed = Path(outputs["output"]) if stage == "gcp-find" and outputs.get("n_observations") else None
     if stage == "footprints" and project.gcp_list is not None:
         observed = project.gcp_list
@@ -710,6 +724,9 @@ def run(
     dsm: Path | None = None,
     crs: str | None = None,
     takeoff_elevation_m: float | None = None,
+    flight_height_m: float | None = None,
+    ground_elevation_m: float | None = None,
+    gps_altitude: GpsAltitude = "auto",
     stage_options: str = "",
     rerun_from: StageName | None = None,
     force: bool = False,
@@ -719,8 +736,10 @@ def run(
 ) -> RunResult:
     """Run the whole chain on a folder of photos, resumably, and write a quality report.
 
-    The stages that apply, in order: footprints, gcp-find (with a GCP file), sfm (on the found
-    GCPs), dense (unless a lidar cloud is given), dem (DSM and DTM), ortho (on the DSM), report.
+    The stages that apply, in order: gcp-find (with a GCP file), sfm (on the found GCPs), dense
+    (unless a lidar cloud is given), dem (DSM and DTM), footprints (of the SfM's cameras on the
+    DSM, with the heights given checked against them), ortho (on the DSM), report. No flight
+    height is needed: the SfM measures it.
     Each writes into its own subfolder of the project at stable names; ``run.json`` records
     what each was run with. Run again and only the stages whose inputs or options changed are
     re-done, with everything after them; a run that was killed resumes at the stage it was in.
@@ -750,6 +769,15 @@ def run(
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
         photos by geoortho.heights (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
+    flight_height_m : float
+        Flight height above the take-off ground, for photos whose altitudes give none: used to
+        predict the GCPs in the photos. Never needed: the SfM measures the heights, and a
+        flight height more than 10 % off what it measured is reported in red.
+    ground_elevation_m : float
+        Ground elevation under the flight (datum of the GCPs), checked against the surface made.
+    gps_altitude : str
+        What GPSAltitude holds when the photos have no RelativeAltitude: auto, above-takeoff,
+        orthometric or ellipsoidal (see footprints).
     stage_options : str
         Options of each stage as JSON, or a JSON file: {"sfm": {"max_image_size": 2048},
         "ortho": {"resolution_m": 0.05}}; names and values are the stages' own parameters.
@@ -775,6 +803,9 @@ def run(
         dsm=Path(dsm) if dsm is not None else None,
         crs=str(crs) if crs is not None else None,
         takeoff_elevation_m=takeoff_elevation_m,
+        flight_height_m=flight_height_m,
+        ground_elevation_m=ground_elevation_m,
+        gps_altitude=gps_altitude,
         workers=workers,
         options=options,
     )

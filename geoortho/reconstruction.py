@@ -423,16 +423,74 @@ def _levelling_rotation(rec: Any, photos_by_name: dict[str, Photo]) -> np.ndarra
     return r
 
 
+#: Camera centres farther than this from the flight's plane (take-off, landing, a line flown at
+#: another height) do not level the model.
+PLANE_OUTLIER_M = 3.0
+
+
+def _camera_plane_levelling(centres: np.ndarray) -> tuple[np.ndarray, float, int] | None:
+    """The rotation that makes the plane through the camera centres level (a drone on a height
+    hold flies level lines), its tilt in degrees, and the centres it was fitted to; None for too
+    few centres or ones that span no plane (a single line). Centres off the plane by more than
+    PLANE_OUTLIER_M of the flight's scale (take-off, landing) are dropped, then it is fitted again."""
+    if len(centres) < 6:
+        return None
+    keep = np.ones(len(centres), bool)
+    normal = np.array([0.0, 0.0, 1.0])
+    scale = 1.0
+    for _ in range(4):
+        pts = centres[keep]
+        mid = pts.mean(axis=0)
+        _, sv, vt = np.linalg.svd(pts - mid)
+        if sv[1] < 0.05 * sv[0]:  # one line: no plane to level by
+            return None
+        normal = vt[2] if vt[2, 2] >= 0 else -vt[2]
+        # the model's scale is unknown here: the spread of the centres along the flight sets it
+        scale = float(sv[0]) / math.sqrt(len(pts))
+        dist = np.abs((centres - mid) @ normal)
+        spread = max(1.4826 * float(np.median(dist[keep])), 1e-3 * scale)
+        new = dist <= max(4.0 * spread, 0.02 * scale)
+        if new.sum() < 6 or (new == keep).all():
+            keep = new if new.sum() >= 6 else keep
+            break
+        keep = new
+    up = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(normal, up)
+    sin_t, cos_t = float(np.linalg.norm(axis)), float(normal @ up)
+    tilt = math.degrees(math.atan2(sin_t, cos_t))
+    if sin_t < 1e-12:
+        return np.eye(3), 0.0, int(keep.sum())
+    k = axis / sin_t
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    rot = np.eye(3) + sin_t * kx + (1 - cos_t) * (kx @ kx)
+    return rot, tilt, int(keep.sum())
+
+
+def _plane_tilt(rec: Any) -> float | None:
+    """Tilt of the plane through the georeferenced model's camera centres, degrees (None: no plane)."""
+    plane = _camera_plane_levelling(np.array(list(_centres(rec).values())).reshape(-1, 3))
+    return None if plane is None else round(plane[1], 3)
+
+
+def _attitude_recorded(photos: Sequence[Photo]) -> bool:
+    """Most photos carry a pitch and roll of their own (not the nadir assumed for none)."""
+    assumed = sum(p.attitude_source.startswith("assumed") for p in photos)
+    return assumed < 0.5 * max(len(photos), 1)
+
+
 def _tilt_deg(rec: Any, photos_by_name: dict[str, Photo]) -> float:
     """How far the (georeferenced) model's vertical is from gravity as the photos' attitude gives it."""
     r = _levelling_rotation(rec, photos_by_name)
     return math.nan if r is None else math.degrees(math.acos(float(np.clip(r[2, 2], -1.0, 1.0))))
 
 
-def _align_horizontal(rec: Any, priors: _Priors, photos_by_name: dict[str, Photo], sigma_h_m: float) -> Any:
-    """Georeference with untrusted GPS heights: level the model from the photos' attitude, then a
-    robust 2-D similarity onto the GPS positions (scale, heading, east/north); the vertical offset
-    is the median GPS height's (GCPs, when given, correct it next)."""
+def _align_horizontal(
+    rec: Any, priors: _Priors, photos_by_name: dict[str, Photo], sigma_h_m: float, notes: list[str]
+) -> tuple[Any, str]:
+    """Georeference with untrusted GPS heights: level the model from the photos' attitude (with no
+    pitch and roll recorded: on the plane of the camera centres), then a robust 2-D similarity onto
+    the GPS positions (scale, heading, east/north); the vertical offset is the median GPS height's
+    (GCPs, when given, correct it next). Returns the similarity and how the model was levelled."""
     from skimage.measure import ransac
     from skimage.transform import SimilarityTransform
 
@@ -441,7 +499,21 @@ def _align_horizontal(rec: Any, priors: _Priors, photos_by_name: dict[str, Photo
     centres = _centres(rec)
     names = [n for n in centres if n in priors.positions]
     if level is None or len(names) < 3:
-        return None
+        return None, ""
+    how = "from the photos' attitude"
+    if not _attitude_recorded(list(photos_by_name.values())):
+        # No pitch or roll in the metadata: the nadir assumed levels the model only as well as the
+        # camera hung plumb (a fixed mount tilted 3.5 deg tilted a real model 3.5 deg). A drone on
+        # a height hold flies level lines: the plane of the camera centres is levelled instead.
+        plane = _camera_plane_levelling(np.array([level @ centres[n] for n in centres]))
+        if plane is not None:
+            rot, tilt, used = plane
+            level = rot @ level
+            how = "on the plane of the camera centres"
+            notes.append(
+                f"no pitch or roll in the photos and no trusted GPS heights: the model is levelled on the plane "
+                f"of {used} camera centres (a flight at one height); the nadir assumed was {tilt:.1f} deg off it"
+            )
     src = np.array([level @ centres[n] for n in names])
     tgt = np.array([priors.positions[n] for n in names])
     model, inliers = ransac(
@@ -453,14 +525,14 @@ def _align_horizontal(rec: Any, priors: _Priors, photos_by_name: dict[str, Photo
         rng=0,
     )
     if model is None or inliers is None or inliers.sum() < 3:
-        return None
+        return None, ""
     scale = float(model.scale)
     c, s_ = math.cos(model.rotation), math.sin(model.rotation)
     rot = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ level
     tz = float(np.median(tgt[inliers, 2] - scale * src[inliers, 2]))
     sim = pc.Sim3d(scale, pc.Rotation3d(rot), np.array([*model.translation, tz]))
     rec.transform(sim)
-    return sim
+    return sim, how
 
 
 def _ill_conditioned(photos: Sequence[Photo], priors: _Priors) -> str:
@@ -1278,17 +1350,18 @@ def _georeference_by_gps(rec: Any, inputs: _Inputs, gps_sigma_m: float) -> _Geor
             georef = f"GPS of {n_gps} photos"
         # The GPS heights may still be wrong in a way no trend shows: a model they tilt
         # away from the gravity the gimbals saw is put on the GPS horizontally instead.
-        if math.isfinite(tilt) and tilt > MAX_TILT_DEG:
+        # (without a recorded pitch and roll the nadir assumed is no gravity to hold them against)
+        if math.isfinite(tilt) and tilt > MAX_TILT_DEG and _attitude_recorded(list(by_name.values())):
             notes.append(
                 f"the GPS heights tilt the model {tilt:.1f} deg from the photos' vertical: "
                 "GPS heights not trusted, model levelled from the photos' attitude"
             )
             gps_sim = None
     if gps_sim is None and (not priors.vertical_trusted or math.isfinite(tilt)):
-        gps_sim = _align_horizontal(rec, priors, by_name, gps_sigma_m)
+        gps_sim, levelled = _align_horizontal(rec, priors, by_name, gps_sigma_m, notes)
         if gps_sim is not None:
             georef = (
-                f"GPS of {len(priors.positions)} photos horizontally, levelled from the photos' attitude, "
+                f"GPS of {len(priors.positions)} photos horizontally, levelled {levelled}, "
                 "height from the median GPS altitude"
             )
             tilt = _tilt_deg(rec, by_name)
@@ -1425,6 +1498,8 @@ def _report(
         "heights": inputs.priors.heights,
         "vertical_gps_trusted": inputs.priors.vertical_trusted,
         "model_tilt_deg": None if not math.isfinite(geo.tilt_deg) else round(geo.tilt_deg, 3),
+        # the other prior of the vertical: how far the camera centres' plane is from level
+        "camera_plane_tilt_deg": _plane_tilt(rec),
         "intrinsics": intrinsics,
         "georeferenced_by": geo.how,
         "gps": _gps_residuals(rec, inputs.priors),

@@ -271,6 +271,7 @@ def _summary(ctx: _Context) -> str:
             ("Area covered", f"{area_m2 / 1e4:.2f} ha ({area_m2:,.0f} m²)"),
             ("GSD min / median / max", f"{gsd.min():.2f} / {gsd.median():.2f} / {gsd.max():.2f} cm"),
             ("Flight date", _flight_time(taken)),
+            ("Height above ground", _height_line(ctx.done("footprints") or {})),
             ("Heights", "; ".join(sorted(set(fp["height_source"].astype(str)))) if "height_source" in fp else "–"),
             (
                 "Vertical datum",
@@ -303,6 +304,20 @@ def _summary(ctx: _Context) -> str:
             ("DSM / DTM", f"cells of {d.get('resolution'):g} ({d.get('units', '')}), {d.get('n_points'):,} points")
         )
     return _kv(pairs)
+
+
+def _height_line(done: dict[str, Any]) -> str:
+    """The cameras' height above the ground as measured (SfM poses over the DSM), and as the
+    metadata and the options gave it."""
+    measured, meta = (float(done.get(k) or "nan") for k in ("altitude_m", "altitude_metadata_m"))
+    if not math.isfinite(measured):
+        return "–"
+    line = f"{measured:.1f} m measured (SfM cameras over the DSM)"
+    if math.isfinite(meta):
+        line += f"; {meta:.1f} m from the metadata and the heights given ({(meta - measured) / measured:+.0%})"
+    else:
+        line += "; none from the metadata"
+    return line
 
 
 def _flight_time(taken: list[str]) -> str:

@@ -33,7 +33,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
-from .camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_ypr
+from .camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_ypr, ypr_from_rotation
 from .crs import transformer, utm_crs_for
 from .errors import InputError
 from .feedback import Feedback, as_feedback, split
@@ -144,7 +144,17 @@ PATHOLOGIES: dict[str, str] = {
     "each photo's yaw is drawn at random, and its EXIF/XMP yaw says so",
     "water": "a pond of one flat colour (no texture, as calm water or a fresh tarmac) in the open ground of the "
     "flight: survey.json gives its disc (water: x, y, radius_m)",
+    "no-attitude": "a compact camera on a fixed mount: no attitude in the metadata (no XMP, no GPSImgDirection) "
+    "and every photo tilted 3.5 deg off nadir towards one fixed direction (survey.json: mount_tilt)",
+    "slope": "the terrain tilted 5 deg (rising towards azimuth 30 deg) under a flight at one height",
+    "wrong-flight-height": "the user's flight height is 50 % off: survey.json gives it (user_flight_height_m) "
+    "beside the true one (flight_height_m, above take-off) for a test to pass it",
 }
+WRONG_FLIGHT_HEIGHT_FACTOR = 1.5
+MOUNT_TILT_DEG = 3.5
+MOUNT_TILT_AZIMUTH_DEG = 120.0
+SLOPE_DEG = 5.0
+SLOPE_AZIMUTH_DEG = 30.0
 WRONG_FOCAL_FACTOR = 1.12
 WATER_RGB = (0.16, 0.27, 0.33)
 WATER_RADIUS_M = 6.0
@@ -258,14 +268,26 @@ def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], blur: float)
 
 
 def build_scene(
-    preset: SynthPreset, rng: np.random.Generator, *, lat: float, lon: float, dictionary: str, marker_size_m: float
+    preset: SynthPreset,
+    rng: np.random.Generator,
+    *,
+    lat: float,
+    lon: float,
+    dictionary: str,
+    marker_size_m: float,
+    slope_deg: float = 0.0,
 ) -> Scene:
     """The DTM, DSM, texture layers and marker layout for a preset.
 
     The stages draw from ``rng`` in a fixed order (terrain, landcover, markers, buildings and
-    trees, texture noise): the same seed gives the same scene, byte for byte."""
+    trees, texture noise): the same seed gives the same scene, byte for byte. ``slope_deg``
+    tilts the terrain (rising towards SLOPE_AZIMUTH_DEG) and draws nothing."""
     g = _scene_grid(preset, lat, lon)
     dtm = _terrain(g, preset, rng)
+    if slope_deg:
+        lx, ly = g.local
+        az = math.radians(SLOPE_AZIMUTH_DEG)
+        dtm = dtm + math.tan(math.radians(slope_deg)) * (lx * math.sin(az) + ly * math.cos(az))
     landcover, n_fields = _landcover(g, preset, rng)
     taken = _Occupancy()
     markers, pad_r = _place_markers(g, preset, rng, dictionary, marker_size_m, taken)
@@ -572,6 +594,7 @@ class Shot:
     time: str = ""
     oblique: bool = False
     has_xmp: bool = True
+    has_attitude: bool = True  # EXIF GPSImgDirection where there is no XMP
     has_gps: bool = True
     corrupt: bool = False
     blur_px: float = 0.0
@@ -756,6 +779,10 @@ def _apply_pathologies(
     """Make the recorded metadata as wrong as the named consumer-drone pathologies make it."""
     out = list(shots)
     n = len(out)
+    # a rotation of MOUNT_TILT_DEG about the horizontal axis square to its azimuth
+    az = math.radians(MOUNT_TILT_AZIMUTH_DEG)
+    axis = np.array([math.cos(az), -math.sin(az), 0.0])  # east-north: square to (sin az, cos az)
+    mount = cv2.Rodrigues(math.radians(MOUNT_TILT_DEG) * axis)[0]
     for i, s in enumerate(out):
         orthometric = s.rec_gps_alt_m - undulation_m  # the recorded GNSS height, made orthometric
         if "no-relative-altitude" in pathologies or "altitude-drift" in pathologies:
@@ -776,6 +803,10 @@ def _apply_pathologies(
                 rec_yaw_deg=_wrap180(s.rec_yaw_deg + turn),
                 flight_yaw_deg=_wrap180(s.flight_yaw_deg + turn),
             )
+        if "no-attitude" in pathologies:
+            # the true camera tilted towards one fixed direction; nothing of it in the metadata
+            yaw, pitch, roll = ypr_from_rotation(mount @ rotation_from_ypr(s.yaw_deg, s.pitch_deg, s.roll_deg))
+            s = replace(s, yaw_deg=yaw, pitch_deg=pitch, roll_deg=roll, has_xmp=False, has_attitude=False, maker="exif")
         if "exposure-steps" in pathologies and abs(_wrap180(s.yaw_deg)) > 90.0 and not s.oblique:
             s = replace(
                 s, exposure_gain=s.exposure_gain * EXPOSURE_STEP, exposure_time_s=s.exposure_time_s * EXPOSURE_STEP
@@ -1063,7 +1094,7 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
             piexif.GPSIFD.GPSAltitudeRef: 0 if shot.rec_gps_alt_m >= 0 else 1,
             piexif.GPSIFD.GPSAltitude: (int(round(abs(shot.rec_gps_alt_m) * 1000)), 1000),
         }
-        if shot.maker == "exif":  # no XMP: where the image top points, true north
+        if shot.maker == "exif" and shot.has_attitude:  # no XMP: where the image top points, true north
             gps[piexif.GPSIFD.GPSImgDirectionRef] = b"T"
             gps[piexif.GPSIFD.GPSImgDirection] = (int(round(shot.rec_yaw_deg % 360.0 * 100)), 100)
     exif_bytes = piexif.dump({"0th": zeroth, "Exif": exif, "GPS": gps})
@@ -1172,7 +1203,8 @@ def synth(
     pathology : str
         Comma-separated consumer-drone pathologies to build in: no-relative-altitude,
         ellipsoidal-gps, altitude-drift, wrong-focal, dsm-datum, partial-dsm,
-        exposure-steps, water (truth/survey.json says what each did).
+        exposure-steps, free-heading, water, no-attitude, slope, wrong-flight-height
+        (truth/survey.json says what each did).
     plan : Path
         Fly this plan (a ``plan`` output folder or its plan.gpkg) instead of the preset's
         flight, over the preset's scene: the round trip that checks a plan.
@@ -1219,7 +1251,15 @@ def synth(
     if not 0.0 <= glare <= 1.0 or not 0.0 <= blur_px <= 200.0:
         raise InputError("glare is a share 0–1 and blur_px 0–200 pixels")
     rng = np.random.default_rng(seed)
-    scene = build_scene(p, rng, lat=latitude_deg, lon=longitude_deg, dictionary=dictionary, marker_size_m=marker_size_m)
+    scene = build_scene(
+        p,
+        rng,
+        lat=latitude_deg,
+        lon=longitude_deg,
+        dictionary=dictionary,
+        marker_size_m=marker_size_m,
+        slope_deg=SLOPE_DEG if "slope" in pathologies else 0.0,
+    )
     scene.target = target
     step_scene.progress(0.5)
     if "water" in pathologies:
@@ -1443,6 +1483,18 @@ def _write_survey_json(
             },
             "pathologies": {k: PATHOLOGIES[k] for k in pathologies},
             **({"water": dict(zip(("x", "y", "radius_m"), scene.water))} if scene.water is not None else {}),
+            **(
+                {"mount_tilt": {"deg": MOUNT_TILT_DEG, "azimuth_deg": MOUNT_TILT_AZIMUTH_DEG}}
+                if "no-attitude" in pathologies
+                else {}
+            ),
+            **({"slope": {"deg": SLOPE_DEG, "azimuth_deg": SLOPE_AZIMUTH_DEG}} if "slope" in pathologies else {}),
+            **(
+                {"user_flight_height_m": round(p.altitude_m * WRONG_FLIGHT_HEIGHT_FACTOR, 1)}
+                if "wrong-flight-height" in pathologies
+                else {}
+            ),
+            "flight_height_m": p.altitude_m,
             "geoid_undulation_m": undulation_m,
             "home": {"x": scene.home[0], "y": scene.home[1], "ground_z": scene.home[2]},
             "flight_box": list(scene.flight_box),

@@ -20,7 +20,8 @@ from geoortho.errors import InputError
 from geoortho.pipeline import LEDGER_NAME, REPORT_NAME, run
 
 FAST = {"sfm": {"max_image_size": 1024}, "dense": {"max_image_size": 512}}
-CHAIN = ["footprints", "gcp-find", "sfm", "dense", "dem", "ortho", "report"]
+# footprints after dem: the SfM's cameras on the surface made (measured heights, GSD and area)
+CHAIN = ["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "report"]
 
 
 def _ledger(project):
@@ -157,7 +158,7 @@ def test_an_ortho_option_redoes_only_ortho_and_the_report(first_run, tiny_survey
     r = _run(tiny_survey, project, checkpoints=checkpoint, stage_options=changed)
     assert r.stages == {**dict.fromkeys(CHAIN[:-2], "reused"), "ortho": "ran", "report": "ran"}
     r = _run(tiny_survey, project, checkpoints=checkpoint, stage_options=changed, rerun_from="dem")
-    assert r.stages == {**dict.fromkeys(CHAIN[:-3], "reused"), "dem": "ran", "ortho": "ran", "report": "ran"}
+    assert r.stages == {**dict.fromkeys(CHAIN[:3], "reused"), **dict.fromkeys(CHAIN[3:], "ran")}
 
 
 def test_a_run_killed_in_ortho_resumes_at_ortho(first_run, tiny_survey, checkpoint, tmp_path):
@@ -205,9 +206,10 @@ def test_a_failing_stage_keeps_earlier_products_and_the_report_says_which(
     ledger = _ledger(project)
     assert ledger["stages"]["dem"]["status"] == "failed" and "broken.laz" in ledger["stages"]["dem"]["error"]
     assert _last_run(project) == {
-        **dict.fromkeys(CHAIN[:3], "reused"),
+        **dict.fromkeys(CHAIN[:2], "reused"),
         "dense": "skipped",
         "dem": "failed",
+        "footprints": "not run",
         "ortho": "not run",
         "report": "ran",
     }
@@ -290,3 +292,50 @@ def test_one_progress_display_names_the_stage():
     shown = stream.getvalue()
     assert "run [2/7] sfm" in shown and "62%" in shown  # overall: 0.25 + 0.75 * 0.5
     assert "sfm  50%" in shown  # the stage's own bar
+
+
+@pytest.fixture(scope="module")
+def unhinted(tmp_path_factory):
+    """A compact camera's survey: no attitude, no RelativeAltitude, a GPS height drifting 42 m
+    (no height above ground to be read from the photos), and a user's flight height 50 % off."""
+    import geoortho
+
+    d = tmp_path_factory.mktemp("unhinted")
+    pathology = "no-attitude,altitude-drift,wrong-flight-height"
+    return geoortho.synth(d / "survey", preset="tiny", seed=4, pathology=pathology)
+
+
+def test_run_needs_no_flight_height_and_checks_a_wrong_one(unhinted, tmp_path):
+    """The photos answer the height: run goes on with none (footprints, GSD and area from the SfM's
+    cameras over the DSM); a flight height given 50 % off is a red problem and the products keep
+    the measured heights."""
+    import geopandas as gpd
+    import numpy as np
+    import rasterio
+
+    truth = json.loads((unhinted.truth / "survey.json").read_text())
+    poses = {p["image"]: p for p in json.loads((unhinted.truth / "poses.json").read_text())}
+    project = tmp_path / "project"
+    r = _run(unhinted, project, gcp_file=None)
+    assert r.stages == {"gcp-find": "skipped", "sfm": "ran", "dense": "ran", "dem": "ran",
+                        "footprints": "ran", "ortho": "ran", "report": "ran"}  # fmt: skip
+    ledger = _ledger(project)
+    out = ledger["stages"]["footprints"]["outputs"]
+    fp = gpd.read_file(project / "footprints" / "footprints.gpkg", layer="footprints")
+    with rasterio.open(unhinted.truth / "dsm.tif") as src:
+        ground = np.array([next(src.sample([(poses[n]["x"], poses[n]["y"])]))[0] for n in fp["image"]])
+    true_alt = np.array([poses[n]["z"] for n in fp["image"]]) - ground
+    assert np.median(np.abs(fp["altitude_m"] - true_alt)) < 0.05 * np.median(true_alt)
+    assert "SfM" in out["height_source"] and not out["height_check"] and np.isnan(out["altitude_metadata_m"])
+    assert not ledger["problems"]
+    page = r.report.read_text()
+    assert f"{out['altitude_m']:.1f} m measured" in page
+    # told a flight height 50 % off: red, with both figures; the GSD stays the measured one
+    wrong = truth["user_flight_height_m"]
+    again = _run(unhinted, project, gcp_file=None, flight_height_m=wrong)
+    assert again.stages["footprints"] == "ran" and again.stages["sfm"] == "reused"
+    out2 = _ledger(project)["stages"]["footprints"]["outputs"]
+    assert "flight_height_m" in out2["height_check"] and abs(out2["median_gsd_cm"] - out["median_gsd_cm"]) < 1e-6
+    assert abs(out2["altitude_metadata_m"] / out2["altitude_m"] - 1.5) < 0.15
+    assert any("flight_height_m" in p["message"] for p in _ledger(project)["problems"])
+    assert 'class="banner problem"' in again.report.read_text()

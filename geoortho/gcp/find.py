@@ -254,6 +254,7 @@ def gcp_find(
     attitude_uncertainty_deg: float = 3.0,
     workers: int = 0,
     target: FindTarget = "aruco",
+    flight_height_m: float | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> GcpFindResult:
@@ -309,6 +310,9 @@ def gcp_find(
         lines cross), circle (a disc: its ellipse's centre), or auto (each tried on the
         first photos; the one found most is used, and said). Targets without a code are
         told apart by position only: two GCPs predicted in one window are both refused.
+    flight_height_m : float
+        Flight height above the take-off ground, for photos whose altitudes give no height
+        above ground (else they are searched whole).
     """
     fb = as_feedback(feedback)
     s_read, s_detect, s_write = split(fb, [1, 8, 1])
@@ -344,7 +348,7 @@ def gcp_find(
         photos = read_photos(paths, require_gps=False, require_camera=False, feedback=s_read)
         if not photos.photos:
             raise InputError(f"no readable photo ({photos.summary()})", path=images)
-        plan = _plan(photos.photos, gcps, ids, dsm, takeoff_elevation_m, uncertainty, fb)
+        plan = _plan(photos.photos, gcps, ids, dsm, takeoff_elevation_m, flight_height_m, uncertainty, fb)
         s_read.progress(1.0)
         results, windows, offset_m, used = _search(
             plan, pool, workers, dictionary, ids, uncertainty, s_detect, target, auto_kinds
@@ -399,6 +403,7 @@ def _plan(
     ids: dict[str, int],
     dsm: Path | None,
     takeoff_elevation_m: float | None,
+    flight_height_m: float | None,
     uncertainty: dict[str, float],
     fb: Feedback,
 ) -> _Plan:
@@ -419,7 +424,12 @@ def _plan(
     surface: Surface = read_surface(dsm, work) if dsm is not None else FlatSurface(float(np.median(plan.xyz[:, 2])))
     try:
         placed_cams, heights = photo_cameras(
-            placed, work, surface, takeoff_elevation_m, ground_label="DSM" if dsm is not None else "GCPs' median height"
+            placed,
+            work,
+            surface,
+            takeoff_elevation_m,
+            flight_height_m=flight_height_m,
+            ground_label="DSM" if dsm is not None else "GCPs' median height",
         )
     except InputError as e:
         # No trustworthy camera height: predictions would be wrong, so search whole photos.

@@ -87,6 +87,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("overlap_cell_m", "number", unit="m", minimum=0.01, advanced=True),
             FLIGHT_HEIGHT,
             GPS_ALTITUDE,
+            Param("sfm", "folder"),
         ),
         outputs=(
             Output("output", "vector"),
@@ -97,6 +98,9 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("crs", "string"),
             Output("height_source", "string"),
             Output("vertical_datum", "string"),
+            Output("altitude_m", "number"),
+            Output("altitude_metadata_m", "number"),
+            Output("height_check", "string"),
         ),
     ),
     Algorithm(
@@ -122,6 +126,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("attitude_uncertainty_deg", "number", unit="deg", minimum=0.0, maximum=45.0, advanced=True),
             WORKERS,
             Param("target", "enum"),
+            FLIGHT_HEIGHT,
         ),
         outputs=(
             Output("output", "file"),
@@ -299,6 +304,9 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             DSM,
             CRS,
             TAKEOFF_ELEVATION,
+            FLIGHT_HEIGHT,
+            GROUND_ELEVATION,
+            GPS_ALTITUDE,
             Param("stage_options", "string", advanced=True),
             Param("rerun_from", "enum"),
             Param("force", "bool", advanced=True),
