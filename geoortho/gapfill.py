@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -85,15 +86,22 @@ def _solve(z: np.ndarray, known: np.ndarray, sweeps: int) -> np.ndarray:
     coarse = _solve(zc, kc, sweeps)
     cur = np.repeat(np.repeat(coarse, 2, axis=0), 2, axis=1)[:h, :w]
     cur = np.where(known, z, cur)
-    # red-black Gauss-Seidel sweeps, over-relaxed, mirrored edges (no flux through the grid border)
+    # red-black Gauss-Seidel sweeps, over-relaxed, mirrored edges (no flux through the grid border);
+    # the four neighbours' mean by OpenCV's filter (a tenth of numpy's pad-and-slice time)
     rows, cols = np.indices((h, w))
     colours = [~known & ((rows + cols) % 2 == c) for c in (0, 1)]
+    cur = np.ascontiguousarray(cur, np.float64)
     for _ in range(sweeps):
         for free in colours:
-            p = np.pad(cur, 1, mode="edge")
-            avg = 0.25 * (p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:])
-            cur = np.where(free, cur + OVERRELAX * (avg - cur), cur)
+            avg = cv2.filter2D(cur, -1, _NEIGHBOURS, borderType=cv2.BORDER_REPLICATE)
+            avg -= cur
+            avg *= OVERRELAX
+            avg += cur
+            np.copyto(cur, avg, where=free)
     return cur
+
+
+_NEIGHBOURS = np.array([[0.0, 0.25, 0.0], [0.25, 0.0, 0.25], [0.0, 0.25, 0.0]])
 
 
 def fill_gaps_by_windows(z: np.ndarray, max_gap_cells: float, tile_cells: int = 1024) -> tuple[np.ndarray, int]:

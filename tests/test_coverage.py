@@ -113,9 +113,10 @@ def free_heading(tmp_path_factory):
     s = geoortho.synth(d / "survey", preset="small", seed=3, pathology="free-heading,water")
     found = geoortho.gcp_find(s.images, s.gcp_file, d / "gcp_list.txt")
     r_sfm = geoortho.sfm(s.images, d / "sfm", gcp_list=found.output, **SFM_FAST)
-    r_dense = geoortho.dense(r_sfm.output, s.images, d / "dense.laz")
-    r_dem = geoortho.dem(r_dense.output, d / "dsm.tif", dtm=d / "dtm.tif", sfm=r_sfm.output)
-    r_ortho = geoortho.ortho(s.images, d / "ortho.tif", sfm=r_sfm.output, dsm=r_dem.dsm, workers=2)
+    # depth maps at 640 px and a 5 cm orthophoto: coverage is the point here, not detail
+    r_dense = geoortho.dense(r_sfm.output, s.images, d / "dense.laz", max_image_size=640)
+    r_dem = geoortho.dem(r_dense.output, d / "dsm.tif", dtm=d / "dtm.tif", sfm=r_sfm.output, method="idw")
+    r_ortho = geoortho.ortho(s.images, d / "ortho.tif", sfm=r_sfm.output, dsm=r_dem.dsm, workers=2, resolution_m=0.05)
     return s, r_sfm, r_dense, r_dem, r_ortho
 
 
@@ -154,6 +155,9 @@ def test_the_dsm_covers_the_ground_two_photos_saw_and_says_how(free_heading):
     gsd = json.loads((s.truth / "survey.json").read_text())["gsd_cm_at_home_height"] / 100
     dz = (z - truth)[open_ground & np.isfinite(truth)]
     assert np.median(np.abs(dz)) <= 1.5 * gsd
+    # depth maps at 640 of 1600 px: 1.8 cm bias (0.5 GSD; with the cell's highest point, as before,
+    # 8.3 cm) and 6.8 cm RMSE measured
+    assert abs(np.median(dz)) <= 0.6 * gsd and np.sqrt(np.mean(dz**2)) <= 3 * gsd
     # the pond, carried across from its shore: a harmonic fill has no curvature, and this pond lies
     # on a crest (the truth rises 0.4 m over its 12 m): measured 0.20 m median, 0.24 m at its centre
     assert np.nanmedian(np.abs((z - truth)[pond])) < 0.3
