@@ -170,6 +170,7 @@ class TerminalFeedback(Feedback):
         self._stage_bar: Any = None
         self._description = description
         self._stage: tuple[str, float, float] | None = None
+        self._stage_started = self._heartbeat = 0.0
 
     def _shown(self) -> bool:
         return not self._quiet and bool(getattr(self._stream, "isatty", lambda: False)())
@@ -181,9 +182,19 @@ class TerminalFeedback(Feedback):
             total=1000, desc=description, file=self._stream, leave=False, position=position, bar_format=self._FORMAT
         )
 
+    #: Without a terminal (stderr to a file or a pipe) a long stage says how far it is this often.
+    HEARTBEAT_S = 60.0
+
     def stage(self, name: str, index: int, count: int, start: float, width: float) -> None:
         self._stage = (name, start, width)
         if not self._shown():
+            # no bar to watch: a line per stage, and a heartbeat (set_progress), so that a log
+            # shows a 30-minute SfM alive
+            if not self._quiet:
+                import time
+
+                self._stage_started = self._heartbeat = time.monotonic()
+                self._write(f"{self._description} [{index}/{count}] {name}: started {time.strftime('%H:%M:%S')}")
             return
         if self._bar is None:
             self._bar = self._new_bar(self._description, 0)
@@ -196,6 +207,15 @@ class TerminalFeedback(Feedback):
 
     def set_progress(self, fraction: float) -> None:
         if not self._shown():
+            if not self._quiet and self._stage is not None:
+                import time
+
+                now = time.monotonic()
+                if now - self._heartbeat >= self.HEARTBEAT_S:
+                    self._heartbeat = now
+                    name, start, width = self._stage
+                    within = min(1.0, max(0.0, (fraction - start) / width)) if width > 0 else 1.0
+                    self._write(f"  {name}: {within:.0%} after {(now - self._stage_started) / 60:.1f} min")
             return
         if self._bar is None:
             self._bar = self._new_bar(self._description, 0)

@@ -93,7 +93,7 @@ def _solve(z: np.ndarray, known: np.ndarray, sweeps: int) -> np.ndarray:
     cur = np.ascontiguousarray(cur, np.float64)
     for _ in range(sweeps):
         for free in colours:
-            avg = cv2.filter2D(cur, -1, _NEIGHBOURS, borderType=cv2.BORDER_REPLICATE)
+            avg = np.asarray(cv2.filter2D(cur, -1, _NEIGHBOURS, borderType=cv2.BORDER_REPLICATE), np.float64)
             avg -= cur
             avg *= OVERRELAX
             avg += cur

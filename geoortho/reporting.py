@@ -16,7 +16,7 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -43,11 +43,17 @@ class ReportResult:
         Sections in it.
     n_problems : int
         Problems it shows in red (stages failed, GCPs not found, sections that could not be drawn).
+    verdict : str
+        green, amber or red: the worst item of the quality check (red when a problem is shown).
+    quality : Path
+        quality.json beside the report: every item's value, thresholds and state, and the verdict.
     """
 
     output: Path
     n_sections: int
     n_problems: int
+    verdict: str = "green"
+    quality: Path | None = None
 
 
 def report(project: Path, output: Path | None = None, *, feedback: Feedback | None = None) -> ReportResult:
@@ -60,7 +66,7 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
     output : Path
         The HTML file to write (default: report.html in the project).
     """
-    from .outputs import write_text
+    from .outputs import write_json, write_text
     from .pipeline import LEDGER_NAME, REPORT_NAME
 
     fb = as_feedback(feedback)
@@ -74,6 +80,7 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
         raise InputError(f"unreadable ({e})", path=ledger_path) from None
     out = Path(output) if output is not None else project / REPORT_NAME
     ctx = _Context(project, ledger)
+    _grade(ctx)
     sections: list[str] = []
     for i, (title, build) in enumerate(_SECTIONS):
         fb.progress(i / len(_SECTIONS))
@@ -85,9 +92,40 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
         if body is not None:
             sections.append(f'<section id="{_anchor(title)}"><h2>{html.escape(title)}</h2>\n{body}\n</section>')
     page = _page(ctx, sections)
+    quality = out.with_name("quality.json")
+    write_json(quality, {"verdict": ctx.verdict, "checks": [asdict(c) for c in ctx.checks], "problems": ctx.problems})
     write_text(out, page)
+    level = {"green": fb.info, "amber": fb.warning, "red": fb.warning}[ctx.verdict]
+    level(f"report: quality {ctx.verdict.upper()}" + "".join(f"; {c.label}: {c.shown}" for c in _flagged(ctx)))
     fb.progress(1.0)
-    return ReportResult(out, len(sections), len(ctx.problems))
+    return ReportResult(out, len(sections), len(ctx.problems), ctx.verdict, quality)
+
+
+def _grade(ctx: _Context) -> None:
+    """The quality check of what the stages measured (see geoortho.quality)."""
+    from .quality import assess, verdict
+
+    ctx.checks = assess(
+        ctx.sfm_report(), ctx.dense_report(), ctx.done("dem"), ctx.ortho_report(), ctx.done("footprints")
+    )
+    ctx.verdict = verdict(ctx.checks, failed=bool(ctx.problems))
+
+
+def _flagged(ctx: _Context) -> list[Any]:
+    return [c for c in ctx.checks if c.state in ("amber", "red")]
+
+
+def _quality(ctx: _Context) -> str:
+    rows = [
+        [_Raw(f'<span class="state {c.state.replace(" ", "-")}">{html.escape(c.state)}</span>'), c.label, c.shown,
+         c.green, c.red, c.detail]
+        for c in ctx.checks
+    ]  # fmt: skip
+    return (
+        '<p class="muted">Each item measured, graded against the thresholds in geoortho.quality '
+        "(the README gives each one's reason); the verdict is the worst item's.</p>"
+        + _table(["state", "item", "measured", "green", "red", "detail"], rows, "quality")
+    )
 
 
 # --- what the sections read ----------------------------------------------------------------------
@@ -114,6 +152,8 @@ class _Context:
                         {"stage": name, "level": "error", "message": f"{what}: {rec.get('error', '')}"}
                     )
         self._json: dict[Path, Any] = {}
+        self.checks: list[Any] = []
+        self.verdict = "green"
 
     def problem(self, stage: str, message: str) -> None:
         self.problems.append({"stage": stage, "level": "error", "message": message})
@@ -224,7 +264,7 @@ def _cell(v: Any) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
     if isinstance(v, float):
-        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:,.0f}"
+        return f"{v:.3g}" if abs(v) < 100 else f"{v:,.0f}"  # never 1.01e+03
     return html.escape(str(v))
 
 
@@ -400,9 +440,20 @@ def _gcp_positions(ctx: _Context) -> list[tuple[str, float, float, float]]:
     path = Path(used) if isinstance(used, str) and Path(used).is_file() else None
     if path is None:
         return []
+    from pyproj import CRS
+
+    from .crs import transformer
     from .gcp.io import read_gcp_file
 
-    return [(n, g.x, g.y, g.z) for n, g in read_gcp_file(path).by_name().items()]
+    gcps = read_gcp_file(path)
+    points = list(gcps.by_name().items())
+    # the products' CRS, whatever CRS the GCP list is in (EPSG:4326 lon/lat drew at (0, 0) of UTM axes)
+    target = (ctx.done("ortho") or {}).get("crs") or (ctx.sfm_report() or {}).get("crs")
+    if not points or not target:
+        return [(n, g.x, g.y, g.z) for n, g in points]
+    to = transformer(gcps.crs, CRS.from_user_input(target))
+    xs, ys = to.transform(np.array([g.x for _, g in points]), np.array([g.y for _, g in points]))
+    return [(n, float(x), float(y), g.z) for (n, g), x, y in zip(points, xs, ys)]
 
 
 def _overlap(ctx: _Context) -> str:
@@ -567,7 +618,7 @@ def _residual_plot(ctx: _Context, sfm: dict[str, Any]) -> str:
         cbar.set_label("vertical residual dZ (m)")
     else:  # heights not controlled: grey dots, no colour bar pretending a dZ of 0
         sc.set_facecolor("#bbbbbb")
-    ax.set_title(f"arrows ×{scale:.0f}: the longest is {100 * longest:.1f} cm", fontsize=9)
+    ax.set_title(f"arrows ×{scale:.3g}: the longest is {100 * longest:.1f} cm", fontsize=9)
     ax.set_aspect("equal")
     pad = 0.1 * span
     ax.set_xlim(xs.min() - pad, xs.max() + pad)
@@ -784,15 +835,14 @@ def _timing(ctx: _Context) -> str:
                 n,
                 _Raw(_status_html(rec.get("status", ""))),
                 this_run.get(n, "–"),
-                f"{secs[-1]:.1f}",
-                mem.get("main"),
-                mem.get("with_workers"),
+                _duration(secs[-1]),
+                _megabytes(mem.get("main")),
+                _megabytes(mem.get("with_workers")),
                 time.strftime("%Y-%m-%d %H:%M", time.localtime(started)) if started else "–",
             ]
         )
-    parts = [
-        _table(["stage", "status", "this run", "seconds", "peak MB (main)", "peak MB (with workers)", "made"], rows)
-    ]
+    header = ["stage", "status", "this run", "time", "peak memory (main)", "peak memory (with workers)", "made"]
+    parts = [_table(header, rows)]
     if current:
         parts.append(
             f"<p>The run that made this report: {current['seconds_before_report']:.1f} s before the report, of which "
@@ -805,6 +855,16 @@ def _timing(ctx: _Context) -> str:
         ax.set_xlabel("seconds (when last made)")
         parts.append(_png(fig, "time per stage"))
     return "".join(parts)
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.1f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
+
+
+def _megabytes(mb: Any) -> str:
+    if not isinstance(mb, (int, float)) or not math.isfinite(mb):
+        return "–"
+    return f"{mb:.0f} MB" if mb < 1024 else f"{mb / 1024:.2f} GB"
 
 
 def _status_html(status: str) -> str:
@@ -830,17 +890,21 @@ def _parameters(ctx: _Context) -> str:
 
 
 def _notes(ctx: _Context) -> str:
+    # one line per message, with its level: a note the stage also warned about is a warning
     rows = []
+    warned = {(name, w) for name, rec in ctx.stages.items() for w in rec.get("warnings", [])}
     for name, rep in (("sfm", ctx.sfm_report()), ("dense", ctx.dense_report()), ("ortho", ctx.ortho_report())):
         for n in (rep or {}).get("notes", []):
-            rows.append([name, "note", n])
+            if (name, n) not in warned:
+                rows.append([name, "note", n])
     for name, rec in ctx.stages.items():
-        for w in rec.get("warnings", []):
+        for w in dict.fromkeys(rec.get("warnings", [])):
             rows.append([name, "warning", w])
     return _table(["stage", "kind", "message"], rows) if rows else "<p>None.</p>"
 
 
 _SECTIONS: list[tuple[str, Callable[[_Context], str | None]]] = [
+    ("Quality check", _quality),
     ("Dataset summary", _summary),
     ("Footprints and camera positions", _map),
     ("Overlap", _overlap),
@@ -873,6 +937,10 @@ img.fig { max-width: 100%; height: auto; display: block; margin: 0.5em 0; }
 .warn { color: #9a6700; }
 .banner { border: 2px solid #b00020; background: #fdecee; padding: 0.6em 1em; margin: 1em 0; }
 .banner.good { border-color: #1a7f37; background: #eaf6ec; }
+.banner.amber { border-color: #9a6700; background: #fff8e5; }
+.state { font-weight: 600; padding: 0 0.4em; border-radius: 3px; color: #fff; }
+.state.green { background: #1a7f37; } .state.amber { background: #9a6700; } .state.red { background: #b00020; }
+.state.not-measured { background: #999; }
 nav ol { columns: 2; font-size: 0.95em; }
 @media print {
   body { max-width: none; margin: 0; font-size: 11pt; }
@@ -888,14 +956,27 @@ def _page(ctx: _Context, sections: list[str]) -> str:
 
     started = (ctx.ledger.get("current_run") or {}).get("started")
     when = time.strftime("%Y-%m-%d %H:%M", time.localtime(started)) if started else "–"
-    if ctx.problems:
-        items = "".join(
-            f"<li><b>{html.escape(p.get('stage', ''))}</b>: {html.escape(p.get('message', ''))}</li>"
-            for p in ctx.problems
+    flagged = _flagged(ctx)
+    measured = [c for c in ctx.checks if c.state != "not measured"]
+    items = "".join(
+        f"<li><b>{html.escape(p.get('stage', ''))}</b>: {html.escape(p.get('message', ''))}</li>" for p in ctx.problems
+    ) + "".join(
+        f'<li><a href="#quality-check">{html.escape(c.label)}</a>: {html.escape(c.shown)} '
+        f"({c.state}; green {html.escape(c.green)})</li>"
+        for c in sorted(flagged, key=lambda c: c.state != "red")
+    )
+    if ctx.verdict == "red":
+        banner = (
+            f'<div class="banner problem"><p>Quality: RED. Problems ({len(ctx.problems) + len(flagged)}):</p>'
+            f"<ul>{items}</ul></div>"
         )
-        banner = f'<div class="banner problem"><p>Problems ({len(ctx.problems)}):</p><ul>{items}</ul></div>'
+    elif ctx.verdict == "amber":
+        banner = f'<div class="banner amber"><p>Quality: AMBER. To look at ({len(flagged)}):</p><ul>{items}</ul></div>'
     else:
-        banner = '<div class="banner good">Every stage finished; no problem found.</div>'
+        banner = (
+            f'<div class="banner good">Quality: GREEN. Every stage finished; each of the {len(measured)} items '
+            "measured is within its green threshold; no problem found.</div>"
+        )
     toc = "".join(f'<li><a href="#{_anchor(t)}">{html.escape(t)}</a></li>' for t, _ in _SECTIONS)
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'

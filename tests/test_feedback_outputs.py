@@ -112,3 +112,26 @@ def test_a_dead_runs_temporaries_are_removed_at_the_next_start_a_live_runs_kept(
     run_algorithm("footprints", {"images": tiny_survey.images, "output": tmp_path / "fp.gpkg"})
     assert not stale_dir.exists() and not stale_file.exists() and live.exists()
     assert (tmp_path / "fp.gpkg").is_file()
+
+
+def test_without_a_terminal_each_stage_is_a_line_and_a_long_one_a_heartbeat(monkeypatch):
+    """stderr to a log file: no bar, but a line as each stage starts and one a minute while it runs
+    (a 30-minute SfM said nothing); --quiet: none."""
+    import io
+
+    from geoortho.feedback import TerminalFeedback
+
+    log = io.StringIO()
+    fb = TerminalFeedback("run", stream=log)
+    fb.stage("sfm", 3, 7, 0.2, 0.5)
+    fb.progress(0.3)  # within the minute: nothing more
+    monkeypatch.setattr(TerminalFeedback, "HEARTBEAT_S", 0.0)
+    fb.progress(0.45)
+    lines = log.getvalue().splitlines()
+    assert lines[0].startswith("run [3/7] sfm: started ") and lines[1] == "  sfm: 50% after 0.0 min"
+    assert len(lines) == 2
+    quiet = io.StringIO()
+    q = TerminalFeedback("run", stream=quiet, quiet=True)
+    q.stage("sfm", 3, 7, 0.2, 0.5)
+    q.progress(0.45)
+    assert quiet.getvalue() == ""

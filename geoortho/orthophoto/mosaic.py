@@ -126,6 +126,9 @@ class OrthoResult:
     on_interpolated_m2 : float
         Ground the orthophoto shows on DSM cells that were interpolated or a fallback plane (from the
         DSM's ``_source.tif`` when it has one; otherwise the ground past the DSM's grid, on its plane).
+    dsm_offset_m : float
+        The DSM's height above the SfM's points (median), as measured before any correction (NaN:
+        not measured: no SfM, or too few points over the DSM).
     """
 
     output: Path
@@ -154,6 +157,7 @@ class OrthoResult:
     share_of_seen_1: float = 0.0
     share_of_seen_2: float = 0.0
     on_interpolated_m2: float = 0.0
+    dsm_offset_m: float = math.nan
 
 
 #: The orthophoto is said to fall short below this share of the ground the photos saw.
@@ -525,6 +529,7 @@ def mosaic(
     notes: Sequence[str] = (),
     skipped: Sequence[tuple[str, str]] = (),
     dsm_source: str | os.PathLike[str] | None = None,
+    dsm_offset_m: float = math.nan,
     feedback: Feedback | None = None,
 ) -> OrthoResult:
     """Orthorectify posed photos onto ``surface`` and mosaic them into a COG at ``output``.
@@ -663,6 +668,7 @@ def mosaic(
         skipped=tuple(skipped),
         notes=tuple(notes),
         seconds=times,
+        dsm_offset_m=dsm_offset_m,
         **cover,
     )
     gains = {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)}
@@ -1006,6 +1012,7 @@ def ortho(
             "give crs in metres (and reproject the product if feet are wanted)"
         )
     surface: Surface
+    measured_offset = math.nan
     if dsm is not None:
         surface = _read_dsm(Path(dsm), out_crs, fb, notes)
     elif ground_elevation_m is not None:
@@ -1030,7 +1037,7 @@ def ortho(
             notes.append(note)
             fb.warning(note)
     elif isinstance(surface, GridSurface) and pts is not None and len(pts):
-        surface = _check_dsm_against_points(surface, pts, dsm_offset, max_dsm_offset_m, notes, fb)
+        surface, measured_offset = _check_dsm_against_points(surface, pts, dsm_offset, max_dsm_offset_m, notes, fb)
     if len(cams) == 0:
         raise InputError("no registered photo to rectify", path=sfm or images)
     options = MosaicOptions(
@@ -1055,13 +1062,14 @@ def ortho(
         notes=notes,
         skipped=skipped,
         dsm_source=source_path(dsm) if dsm is not None else None,
+        dsm_offset_m=measured_offset,
         feedback=fb,
     )
 
 
 def _check_dsm_against_points(
     surface: GridSurface, pts: np.ndarray, how: str, max_offset_m: float, notes: list[str], fb: Feedback
-) -> GridSurface:
+) -> tuple[GridSurface, float]:
     """Measure the DSM's vertical offset from the SfM points (median of point − DSM over the points
     inside it; the sparse points lie on the surface, roofs and trees included). Beyond
     ``max_offset_m``: move the DSM onto the points (correct), refuse, or only say it (ignore)."""
@@ -1074,7 +1082,7 @@ def _check_dsm_against_points(
     if ok.sum() < 20:
         notes.append(f"DSM vs SfM points: only {int(ok.sum())} points over the DSM, offset not measured")
         fb.warning(notes[-1])
-        return surface
+        return surface, math.nan
     d = pts[ok, 2] - dsm_z[ok]
     offset = float(np.median(d))
     spread = float(1.4826 * np.median(np.abs(d - offset)))
@@ -1085,16 +1093,16 @@ def _check_dsm_against_points(
     if abs(offset) <= max_offset_m:
         notes.append(text)
         fb.info(text)
-        return surface
+        return surface, -offset
     if how == "refuse":
         raise InputError(f"{text}: another vertical datum? give a DSM in the SfM's datum, or dsm_offset correct")
     if how == "ignore":
         notes.append(text + ": not corrected (dsm_offset ignore)")
         fb.warning(notes[-1])
-        return surface
+        return surface, -offset
     notes.append(text + f": corrected (DSM moved {offset:+.2f} m onto the points)")
     fb.warning(notes[-1])
-    return replace(surface, grid=surface.grid + np.float32(offset))
+    return replace(surface, grid=surface.grid + np.float32(offset)), -offset
 
 
 def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurface:

@@ -286,6 +286,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("area_m2", "number"),
             Output("share_of_seen_1", "number"),
             Output("share_of_seen_2", "number"),
+            Output("dsm_offset_m", "number"),
             Output("crs", "string"),
         ),
     ),
@@ -332,7 +333,13 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("project", "folder"),
             Param("output", "file", output=True, extensions=(".html",)),
         ),
-        outputs=(Output("output", "file"), Output("n_sections", "integer"), Output("n_problems", "integer")),
+        outputs=(
+            Output("output", "file"),
+            Output("n_sections", "integer"),
+            Output("n_problems", "integer"),
+            Output("verdict", "string"),
+            Output("quality", "file"),
+        ),
     ),
     Algorithm(
         id="plan",

@@ -1,0 +1,261 @@
+"""The quality verdict of a run: each item measured, graded green, amber or red against one table.
+
+Pix4D's quality check is the model: per item the measured value, the thresholds beside it, and a
+state; the verdict is the worst item's (a stage that failed is red whatever was measured). The
+thresholds are here and nowhere else, each with the reason for its value (the README lists them).
+An item the run did not measure (no GCPs, no dense stage) is said so and does not count.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+__all__ = ["THRESHOLDS", "Check", "Threshold", "assess", "verdict"]
+
+State = Literal["green", "amber", "red", "not measured"]
+_ORDER = {"not measured": 0, "green": 1, "amber": 2, "red": 3}
+
+
+@dataclass(frozen=True)
+class Threshold:
+    """Green up to ``green``, red past ``red``, amber between; ``higher_is_better`` turns it round."""
+
+    label: str
+    unit: str
+    green: float
+    red: float
+    higher_is_better: bool
+    reason: str
+
+    def grade(self, value: float) -> State:
+        if not math.isfinite(value):
+            return "not measured"
+        if self.higher_is_better:
+            return "green" if value >= self.green else ("red" if value < self.red else "amber")
+        return "green" if value <= self.green else ("red" if value > self.red else "amber")
+
+    def limits(self) -> tuple[str, str]:
+        sign_good, sign_bad = (">=", "<") if self.higher_is_better else ("<=", ">")
+        return f"{sign_good} {_fmt(self.green, self.unit)}", f"{sign_bad} {_fmt(self.red, self.unit)}"
+
+
+#: Every item's thresholds, and why.
+THRESHOLDS: dict[str, Threshold] = {
+    "ortho_coverage": Threshold(
+        "Orthophoto coverage of the ground seen by >= 2 photos",
+        "%",
+        98.0,
+        90.0,
+        True,
+        "OpenDroneMap, Pix4D and Metashape map all the stereo ground; under 90 % a user sees holes",
+    ),
+    "dsm_measured": Threshold(
+        "DSM cells measured by the dense cloud",
+        "%",
+        60.0,
+        30.0,
+        True,
+        "the rest is interpolated (water, canopy, the edge); under 30 % the DSM is mostly interpolation",
+    ),
+    "photos_registered": Threshold(
+        "Photos registered by the SfM",
+        "%",
+        98.0,
+        90.0,
+        True,
+        "a mapping flight loses at most a photo or two (take-off, a turn); more is a gap in the block",
+    ),
+    "photos_in_ortho": Threshold(
+        "Registered photos used in the orthophoto",
+        "%",
+        95.0,
+        80.0,
+        True,
+        "photos left out (oblique, off the surface) leave their ground to fewer views",
+    ),
+    "depth_maps": Threshold(
+        "Registered photos with a depth map",
+        "%",
+        95.0,
+        80.0,
+        True,
+        "every photo with stereo partners gives one; missing ones leave their ground interpolated",
+    ),
+    "gcp_rmse": Threshold(
+        "GCP residuals (control, RMSE)",
+        "GSD",
+        2.0,
+        3.0,
+        False,
+        "control points fit to about a pixel; over 3 GSD a coordinate, its CRS or its datum is wrong",
+    ),
+    "checkpoint_rmse": Threshold(
+        "Checkpoint residuals (RMSE)",
+        "GSD",
+        2.0,
+        4.0,
+        False,
+        "1-3 GSD is what a survey-grade block reaches (ASPRS 2014, Pix4D's guide); 4 GSD is not mapping grade",
+    ),
+    "gps_fit": Threshold(
+        "GPS against the photos' geometry (CE90)",
+        "m",
+        5.0,
+        15.0,
+        False,
+        "consumer GNSS fixes scatter 2-5 m; past 15 m the GPS georeference (no GCPs) is not to be trusted",
+    ),
+    "focal_drift": Threshold(
+        "Focal length refined against the EXIF's",
+        "%",
+        2.0,
+        5.0,
+        False,
+        "a lens differs from its label by 1-2 %; more means a wrong EXIF focal or a weak block",
+    ),
+    "dsm_vs_sfm": Threshold(
+        "DSM against the SfM points (median offset)",
+        "m",
+        0.10,
+        1.0,
+        False,
+        "a DSM of the same photos lies on their points; past 1 m it is in another datum or another place",
+    ),
+    "heights_given": Threshold(
+        "Heights given or read against the measured (height above ground)",
+        "%",
+        10.0,
+        10.0,
+        False,
+        "a wrong flight height or take-off scales every figure computed from it (issue 47's 87 m for 56 m)",
+    ),
+    "seam_mismatch": Threshold(
+        "Colour step across seams after balancing",
+        "DN",
+        8.0,
+        20.0,
+        False,
+        "a step under 8 grey levels is hard to see; over 20 every seam shows",
+    ),
+}
+
+
+@dataclass(frozen=True)
+class Check:
+    """One graded item."""
+
+    item: str
+    label: str
+    state: State
+    value: float
+    shown: str  # the value as the report prints it
+    green: str  # the green and red limits, in words
+    red: str
+    detail: str = ""
+
+
+def _fmt(v: float, unit: str) -> str:
+    if unit == "%":
+        return f"{v:.1f} %"
+    if unit == "GSD":
+        return f"{v:.2f} GSD"
+    if unit == "m":
+        return f"{v:.2f} m"
+    return f"{v:.1f} {unit}"
+
+
+def _check(item: str, value: float, detail: str = "") -> Check:
+    t = THRESHOLDS[item]
+    green, red = t.limits()
+    shown = _fmt(value, t.unit) if math.isfinite(value) else "–"
+    return Check(item, t.label, t.grade(value), value, shown, green, red, detail)
+
+
+def _share(n: Any, of: Any) -> float:
+    try:
+        return 100.0 * float(n) / float(of) if float(of) > 0 else math.nan
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _num(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def assess(
+    sfm: dict[str, Any] | None,
+    dense: dict[str, Any] | None,
+    dem: dict[str, Any] | None,
+    ortho: dict[str, Any] | None,
+    footprints: dict[str, Any] | None,
+) -> list[Check]:
+    """Grade what the stages measured (their reports and outputs; None for a stage not run)."""
+    sfm, dense, dem, ortho, fp = sfm or {}, dense or {}, dem or {}, ortho or {}, footprints or {}
+    gsd_m = _num(sfm.get("gsd_cm")) / 100.0
+    checks = [
+        _check("ortho_coverage", 100.0 * _num(ortho.get("share_of_seen_2", math.nan))),
+        _check("dsm_measured", 100.0 * _num(dem.get("measured_share", math.nan)) if dem.get("seen_m2") else math.nan),
+    ]
+    unregistered = [str(u.get("image", u)) if isinstance(u, dict) else str(u) for u in sfm.get("unregistered") or []]
+    checks.append(
+        _check(
+            "photos_registered",
+            _share(sfm.get("registered"), sfm.get("photos")),
+            ("not registered: " + ", ".join(unregistered[:8]) + (" …" if len(unregistered) > 8 else ""))
+            if unregistered
+            else "",
+        )
+    )
+    checks.append(_check("photos_in_ortho", _share(ortho.get("n_used"), ortho.get("n_photos"))))
+    no_map = dense.get("no_depth_map") or {}
+    checks.append(
+        _check(
+            "depth_maps",
+            _share(dense.get("depth_maps"), dense.get("photos")),
+            ("none for: " + ", ".join(list(no_map)[:8])) if no_map else "",
+        )
+    )
+    for item, key in (("gcp_rmse", "gcp_accuracy"), ("checkpoint_rmse", "checkpoint_accuracy")):
+        acc = sfm.get(key) or {}
+        if not acc:
+            checks.append(_check(item, math.nan))
+            continue
+        # 3D when the heights are controlled; placeholder heights: horizontal only
+        three_d = acc.get("rmse_3d_m") is not None
+        rmse = _num(acc.get("rmse_3d_m") if three_d else acc.get("rmse_horizontal_m"))
+        what = "3D" if three_d else "horizontal (heights not controlled)"
+        checks.append(_check(item, rmse / gsd_m, f"{100 * rmse:.1f} cm {what} over {acc.get('n')}"))
+    by_gps = str(sfm.get("georeferenced_by", "")).startswith("GPS")
+    gps = sfm.get("gps") or {}
+    checks.append(
+        _check(
+            "gps_fit",
+            _num(gps.get("ce90_m")) if by_gps else math.nan,
+            "the products' absolute accuracy is the GPS's" if by_gps else "",
+        )
+    )
+    drifts = [abs(_num(i.get("focal_drift_pct"))) for i in sfm.get("intrinsics") or []]
+    drifts = [d for d in drifts if math.isfinite(d)]
+    checks.append(_check("focal_drift", max(drifts) if drifts else math.nan))
+    checks.append(_check("dsm_vs_sfm", abs(_num(ortho.get("dsm_offset_m", math.nan)))))
+    measured, meta = _num(fp.get("altitude_m")), _num(fp.get("altitude_metadata_m"))
+    off = 100.0 * abs(meta - measured) / measured if measured > 0 else math.nan
+    heights = _check("heights_given", off, str(fp.get("height_check") or ""))
+    if fp.get("height_check") and heights.state != "red":  # an elevation 2 m off is red at any share
+        heights = Check(**{**asdict(heights), "state": "red"})
+    checks.append(heights)
+    checks.append(_check("seam_mismatch", _num(ortho.get("seam_mismatch_balanced", math.nan))))
+    return checks
+
+
+def verdict(checks: list[Check], failed: bool = False) -> State:
+    """The worst item's state; red when a stage failed."""
+    if failed:
+        return "red"
+    worst: State = max((c.state for c in checks), key=_ORDER.__getitem__, default="not measured")
+    return "green" if worst == "not measured" else worst

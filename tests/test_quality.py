@@ -1,0 +1,111 @@
+"""The quality verdict: each item graded from what the stages measured, the worst one the verdict."""
+
+from __future__ import annotations
+
+import pytest
+
+from geoortho.quality import THRESHOLDS, assess, verdict
+
+
+def _clean():
+    sfm = {
+        "photos": 50,
+        "registered": 50,
+        "unregistered": [],
+        "gsd_cm": 2.0,
+        "georeferenced_by": "GCPs (5 control)",
+        "gcp_accuracy": {"n": 5, "rmse_3d_m": 0.02, "rmse_horizontal_m": 0.015},
+        "checkpoint_accuracy": {"n": 2, "rmse_3d_m": 0.03},
+        "gps": {"ce90_m": 30.0},  # not graded: the GCPs georeference the block
+        "intrinsics": [{"focal_drift_pct": -0.8}],
+    }
+    dense = {"photos": 50, "depth_maps": 50, "no_depth_map": {}}
+    dem = {"seen_m2": 1e4, "measured_share": 0.8}
+    ortho = {"share_of_seen_2": 0.995, "n_photos": 50, "n_used": 50, "dsm_offset_m": 0.02, "seam_mismatch_balanced": 4}
+    fp = {"altitude_m": 60.0, "altitude_metadata_m": 61.0, "height_check": ""}
+    return sfm, dense, dem, ortho, fp
+
+
+def _states(*args):
+    return {c.item: c.state for c in assess(*args)}
+
+
+def test_a_clean_run_is_green_on_every_item():
+    states = _states(*_clean())
+    assert set(states) == set(THRESHOLDS)
+    assert states["gps_fit"] == "not measured"  # GCPs georeference: the GPS fit is not the products'
+    assert {s for k, s in states.items() if k != "gps_fit"} == {"green"}
+    assert verdict(assess(*_clean())) == "green" and verdict(assess(*_clean()), failed=True) == "red"
+
+
+@pytest.mark.parametrize(
+    ("change", "item", "state"),
+    [
+        (lambda s, d, m, o, f: o.update(share_of_seen_2=0.95), "ortho_coverage", "amber"),
+        (lambda s, d, m, o, f: o.update(share_of_seen_2=0.14), "ortho_coverage", "red"),
+        (lambda s, d, m, o, f: s.update(registered=44, unregistered=["A.JPG"]), "photos_registered", "red"),
+        (lambda s, d, m, o, f: d.update(depth_maps=37, photos=75), "depth_maps", "red"),
+        (lambda s, d, m, o, f: s["gcp_accuracy"].update(rmse_3d_m=0.97), "gcp_rmse", "red"),
+        (lambda s, d, m, o, f: s["gcp_accuracy"].update(rmse_3d_m=0.05), "gcp_rmse", "amber"),
+        (lambda s, d, m, o, f: s["intrinsics"][0].update(focal_drift_pct=12), "focal_drift", "red"),
+        (lambda s, d, m, o, f: o.update(dsm_offset_m=-3.0), "dsm_vs_sfm", "red"),
+        (
+            lambda s, d, m, o, f: f.update(altitude_metadata_m=87, altitude_m=56, height_check="x"),
+            "heights_given",
+            "red",
+        ),
+        (lambda s, d, m, o, f: f.update(altitude_metadata_m=60.5, height_check="2 m off"), "heights_given", "red"),
+        (lambda s, d, m, o, f: o.update(seam_mismatch_balanced=25), "seam_mismatch", "red"),
+        (lambda s, d, m, o, f: s.update(georeferenced_by="GPS of 75 photos", gcp_accuracy=None), "gps_fit", "red"),
+    ],
+)
+def test_each_item_turns_for_its_own_cause(change, item, state):
+    args = _clean()
+    change(*args)
+    states = _states(*args)
+    assert states[item] == state
+    assert verdict(assess(*args)) == ("red" if state == "red" else "amber")
+    others = {k: s for k, s in states.items() if k != item and s != "not measured"}
+    assert set(others.values()) <= {"green"}, others
+
+
+def test_placeholder_heights_grade_the_horizontal_residual_and_say_so():
+    sfm, *rest = _clean()
+    sfm["gcp_accuracy"] = {"n": 3, "rmse_3d_m": None, "rmse_horizontal_m": 0.97}
+    check = next(c for c in assess(sfm, *rest) if c.item == "gcp_rmse")
+    assert check.state == "red" and abs(check.value - 48.5) < 1e-9 and "horizontal" in check.detail
+
+
+def test_a_stage_not_run_is_not_measured_and_does_not_count():
+    checks = assess(None, None, None, None, None)
+    assert {c.state for c in checks} == {"not measured"} and verdict(checks) == "green"
+
+
+@pytest.mark.parametrize("crs", ["EPSG:4979", "EPSG:3763", "EPSG:32629"])
+def test_report_plots_gcps_in_the_products_crs_whatever_the_gcp_files(tiny_survey, tmp_path, crs):
+    """GCPs given in EPSG:4326/4979 were drawn at (0, 0) of the UTM axes: every plotted GCP is in
+    the products' CRS, from a GCP list in geographic, national-grid (PT-TM06) or UTM coordinates."""
+    import numpy as np
+    from pyproj import Transformer
+
+    from geoortho.gcp.io import read_gcp_file
+    from geoortho.reporting import _Context, _gcp_positions
+
+    truth = read_gcp_file(tiny_survey.truth / "gcp_utm.txt")
+    to = Transformer.from_crs("EPSG:32629", crs, always_xy=True)
+    lines = [crs]
+    for p in truth.points:
+        x, y = to.transform(p.x, p.y)
+        # a geographic gcp list reads latitude first (as ours writes it)
+        lines.append(f"{p.name} {y:.10f} {x:.10f} {p.z}" if crs == "EPSG:4979" else f"{p.name} {x:.4f} {y:.4f} {p.z}")
+    gcp_list = tmp_path / "gcps.txt"
+    gcp_list.write_text("\n".join(lines) + "\n")
+    ledger = {
+        "stages": {
+            "sfm": {"status": "done", "values": {"gcp_list": str(gcp_list)}, "outputs": {}},
+            "ortho": {"status": "done", "outputs": {"crs": "EPSG:32629"}},
+        }
+    }
+    got = {n: (x, y) for n, x, y, _ in _gcp_positions(_Context(tmp_path, ledger))}
+    for p in truth.points:
+        assert np.hypot(got[p.name][0] - p.x, got[p.name][1] - p.y) < 0.01, (crs, p.name)
