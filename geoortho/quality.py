@@ -99,6 +99,23 @@ THRESHOLDS: dict[str, Threshold] = {
         False,
         "1-3 GSD is what a survey-grade block reaches (ASPRS 2014, Pix4D's guide); 4 GSD is not mapping grade",
     ),
+    "gcp_scale": Threshold(
+        "Scale change the GCPs imposed on the GPS georeference",
+        "%",
+        1.0,
+        3.0,
+        False,
+        "GPS over a block fixes its scale to a few tenths of a percent; GCPs that change it more hold a wrong "
+        "coordinate, CRS or datum (a real case: 3 GCPs rescaled a model by 6.7 %)",
+    ),
+    "gcp_rotation": Threshold(
+        "Rotation the GCPs imposed on the GPS georeference",
+        "deg",
+        0.5,
+        2.0,
+        False,
+        "the GPS fixes the block's heading and level to a fraction of a degree; more is a GCP mix-up",
+    ),
     "gps_fit": Threshold(
         "GPS against the photos' geometry (CE90)",
         "m",
@@ -106,6 +123,15 @@ THRESHOLDS: dict[str, Threshold] = {
         15.0,
         False,
         "consumer GNSS fixes scatter 2-5 m; past 15 m the GPS georeference (no GCPs) is not to be trusted",
+    ),
+    "gps_fits_agree": Threshold(
+        "GPS georeference: least squares against the robust fit, at the site's edge",
+        "x CE90",
+        0.5,
+        2.0,
+        False,
+        "two fits of one GPS agree within its scatter; a least-squares fit that moves the edge by more than the "
+        "GPS's CE90 is dragged by bad fixes, and the rotation is not determined (a real case: 22 deg)",
     ),
     "focal_drift": Threshold(
         "Focal length refined against the EXIF's",
@@ -163,6 +189,8 @@ def _fmt(v: float, unit: str) -> str:
         return f"{v:.2f} GSD"
     if unit == "m":
         return f"{v:.2f} m"
+    if unit == "deg":
+        return f"{v:.2f}°"
     return f"{v:.1f} {unit}"
 
 
@@ -230,13 +258,34 @@ def assess(
         rmse = _num(acc.get("rmse_3d_m") if three_d else acc.get("rmse_horizontal_m"))
         what = "3D" if three_d else "horizontal (heights not controlled)"
         checks.append(_check(item, rmse / gsd_m, f"{100 * rmse:.1f} cm {what} over {acc.get('n')}"))
+    effect = sfm.get("gcp_vs_gps") or {}
+    edge = f"moves the site's edge {_num(effect.get('edge_shift_m')):.2f} m" if effect else ""
+    checks.append(_check("gcp_scale", abs(_num(effect.get("scale_change_pct", math.nan))), edge))
+    checks.append(_check("gcp_rotation", _num(effect.get("rotation_deg", math.nan)), edge))
     by_gps = str(sfm.get("georeferenced_by", "")).startswith("GPS")
     gps = sfm.get("gps") or {}
+    spread = (
+        f"; {100 * _num(gps.get('inlier_share')):.0f} % of the photos fit it, rotation ± "
+        f"{_num(gps.get('rotation_sd_deg')):.2f}°, scale ± {_num(gps.get('scale_sd_pct')):.2f} %"
+        if "inlier_share" in gps
+        else ""
+    )
     checks.append(
         _check(
             "gps_fit",
             _num(gps.get("ce90_m")) if by_gps else math.nan,
-            "the products' absolute accuracy is the GPS's" if by_gps else "",
+            "the products' absolute accuracy is the GPS's" + spread if by_gps else "",
+        )
+    )
+    ce90_m = _num(gps.get("ce90_m"))
+    checks.append(
+        _check(
+            "gps_fits_agree",
+            _num(gps.get("robust_vs_lsq_m")) / ce90_m if by_gps and ce90_m > 0 else math.nan,
+            f"{_num(gps.get('robust_vs_lsq_m')):.2f} m; least squares turns it "
+            f"{_num(gps.get('lsq_rotation_deg')):+.2f}°"
+            if by_gps
+            else "",
         )
     )
     drifts = [abs(_num(i.get("focal_drift_pct"))) for i in sfm.get("intrinsics") or []]

@@ -1333,6 +1333,7 @@ class _Georeference:
     heights_usable: bool = True  # GCP heights are surveyed, not placeholders
     gcp_obs_used: int = 0  # GCP observations held fixed in the bundle adjustment
     notes: tuple[str, ...] = ()
+    gcp_vs_gps: dict[str, float] | None = None  # what the GCPs changed of the GPS georeference
 
 
 def _georeference_by_gps(rec: Any, inputs: _Inputs, gps_sigma_m: float) -> _Georeference:
@@ -1394,7 +1395,18 @@ def _georeference_by_gcps(
             "GCPs control the model horizontally only and their Z residuals are not reported"
         )
     _triangulate(rec, states)
-    if _align_to_gcps(rec, states, heights_usable) is not None:
+    gcp_sim = _align_to_gcps(rec, states, heights_usable)
+    effect = None
+    if gcp_sim is not None and gps.gps_sim is not None:
+        effect = _gcp_effect(rec, gcp_sim)
+        if abs(effect["scale_change_pct"]) > GCP_SCALE_CHANGE_PCT or effect["rotation_deg"] > GCP_ROTATION_DEG:
+            notes.append(
+                f"the GCPs rescaled the GPS-georeferenced model by {effect['scale_change_pct']:+.1f} % and turned it "
+                f"{effect['rotation_deg']:.2f} deg (moving the site's edge {effect['edge_shift_m']:.2f} m): check the "
+                "GCPs' CRS and coordinates, or the photos' GPS"
+            )
+            fb.warning(notes[-1])
+    if gcp_sim is not None:
         georef = (
             f"{sum(s.role == 'control' and s.triangulated is not None for s in states)} GCPs"
             + (" (horizontally; heights from GPS)" if not heights_usable else "")
@@ -1409,7 +1421,32 @@ def _georeference_by_gcps(
         n_ok = sum(s.role == "control" and s.triangulated is not None for s in states)
         notes.append(f"only {n_ok} control GCP(s) triangulated (3 needed): GCPs not used for control")
     _triangulate(rec, states)
-    return _Georeference(georef, gps.gps_sim, gps.tilt_deg, tuple(states), heights_usable, gcp_obs_used, tuple(notes))
+    return _Georeference(
+        georef, gps.gps_sim, gps.tilt_deg, tuple(states), heights_usable, gcp_obs_used, tuple(notes), effect
+    )
+
+
+#: GCPs that change the GPS georeference's scale or rotation more than this are said (issue 48).
+GCP_SCALE_CHANGE_PCT = 1.0
+GCP_ROTATION_DEG = 0.5
+
+
+def _gcp_effect(rec: Any, sim: Any) -> dict[str, float]:
+    """What the GCPs' similarity did to the GPS-georeferenced model: its scale change, its rotation,
+    and how far these two (not the shift, the GPS's own bias) moved the camera farthest from the
+    block's middle (the site's edge)."""
+    rot = np.asarray(sim.rotation.matrix())
+    angle = math.degrees(math.acos(float(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
+    centres = np.array(list(_centres(rec).values())).reshape(-1, 3)  # already moved by ``sim``
+    inv = sim.inverse()
+    before = np.array([inv * c for c in centres]) if len(centres) else centres
+    moved = (centres - centres.mean(axis=0)) - (before - before.mean(axis=0)) if len(centres) else centres
+    shift = float(np.linalg.norm(moved, axis=1).max()) if len(centres) else math.nan
+    return {
+        "scale_change_pct": round((float(sim.scale) - 1.0) * 100.0, 4),
+        "rotation_deg": round(angle, 4),
+        "edge_shift_m": round(shift, 4),
+    }
 
 
 def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> int:
@@ -1498,6 +1535,7 @@ def _report(
         "heights": inputs.priors.heights,
         "vertical_gps_trusted": inputs.priors.vertical_trusted,
         "model_tilt_deg": None if not math.isfinite(geo.tilt_deg) else round(geo.tilt_deg, 3),
+        "gcp_vs_gps": geo.gcp_vs_gps,
         # the other prior of the vertical: how far the camera centres' plane is from level
         "camera_plane_tilt_deg": _plane_tilt(rec),
         "intrinsics": intrinsics,
@@ -1609,13 +1647,66 @@ def _gps_residuals(rec: Any, priors: _Priors) -> dict[str, Any] | None:
     d = np.array([c[n] - priors.positions[n] for n in c if n in priors.positions])
     if len(d) == 0:
         return None
-    return {
+    out: dict[str, Any] = {
         "n": len(d),
         "mean_m": d.mean(axis=0).tolist(),
         "rmse_m": np.sqrt((d**2).mean(axis=0)).tolist(),
         "ce90_m": ce90(d[:, 0], d[:, 1]),
         "le90_m": le90(d[:, 2]),
     }
+    names = [n for n in c if n in priors.positions]
+    out.update(_gps_fit_spread(np.array([c[n][:2] for n in names]), np.array([priors.positions[n][:2] for n in names])))
+    return out
+
+
+def _similarity_2d(a: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``b ≈ s R a + t`` in the plane (Umeyama): scale, rotation, shift."""
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    aa, bb = a - ma, b - mb
+    u, sv, vt = np.linalg.svd(bb.T @ aa / len(a))
+    flip = np.diag([1.0, float(np.sign(np.linalg.det(u @ vt)) or 1.0)])
+    rot = u @ flip @ vt
+    var = float((aa**2).sum() / len(a))
+    scale = float(np.trace(np.diag(sv) @ flip)) / var if var > 0 else 1.0
+    return scale, rot, mb - scale * rot @ ma
+
+
+#: Bootstrap draws of the GPS fit's spread (rotation and scale the GPS scatter allows).
+GPS_BOOTSTRAP = 200
+
+
+def _gps_fit_spread(model_xy: np.ndarray, gps_xy: np.ndarray) -> dict[str, Any]:
+    """How well the GPS fixes the georeference (the model is on the robust fit): the share of photos
+    that fit it, the least-squares fit to all of them (its rotation, scale and how far it would move
+    the site's edge from the robust one: a fit dragged by bad fixes), and the rotation and scale
+    spread the inliers' scatter allows (bootstrap)."""
+    if len(model_xy) < 5 or float(np.ptp(model_xy, axis=0).max()) <= 0:
+        return {}
+    d = np.hypot(*(model_xy - gps_xy).T)
+    sigma = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+    inlier = d <= max(3.0, float(np.median(d)) + 4.0 * sigma)
+    scale, rot, shift = _similarity_2d(model_xy, gps_xy)
+    moved = (scale * model_xy @ rot.T + shift) - model_xy
+    out: dict[str, Any] = {
+        "inlier_share": round(float(inlier.mean()), 4),
+        "lsq_rotation_deg": round(math.degrees(math.atan2(rot[1, 0], rot[0, 0])), 4),
+        "lsq_scale_change_pct": round((scale - 1.0) * 100.0, 4),
+        "robust_vs_lsq_m": round(float(np.hypot(*moved.T).max()), 4),
+    }
+    idx = np.flatnonzero(inlier)
+    if len(idx) >= 5:
+        rng = np.random.default_rng(0)
+        angles, scales = [], []
+        for _ in range(GPS_BOOTSTRAP):
+            pick = rng.choice(idx, len(idx))
+            if float(np.ptp(model_xy[pick], axis=0).max()) <= 0:
+                continue
+            s_, r_, _ = _similarity_2d(model_xy[pick], gps_xy[pick])
+            angles.append(math.degrees(math.atan2(r_[1, 0], r_[0, 0])))
+            scales.append((s_ - 1.0) * 100.0)
+        out["rotation_sd_deg"] = round(float(np.std(angles)), 4)
+        out["scale_sd_pct"] = round(float(np.std(scales)), 4)
+    return out
 
 
 def _output_crs(crs: str | None, photos: Sequence[Photo], gcps: GcpSet | None) -> Any:

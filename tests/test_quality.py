@@ -18,6 +18,7 @@ def _clean():
         "checkpoint_accuracy": {"n": 2, "rmse_3d_m": 0.03},
         "gps": {"ce90_m": 30.0},  # not graded: the GCPs georeference the block
         "intrinsics": [{"focal_drift_pct": -0.8}],
+        "gcp_vs_gps": {"scale_change_pct": 0.2, "rotation_deg": 0.1, "edge_shift_m": 0.3},
     }
     dense = {"photos": 50, "depth_maps": 50, "no_depth_map": {}}
     dem = {"seen_m2": 1e4, "measured_share": 0.8}
@@ -33,8 +34,9 @@ def _states(*args):
 def test_a_clean_run_is_green_on_every_item():
     states = _states(*_clean())
     assert set(states) == set(THRESHOLDS)
-    assert states["gps_fit"] == "not measured"  # GCPs georeference: the GPS fit is not the products'
-    assert {s for k, s in states.items() if k != "gps_fit"} == {"green"}
+    # GCPs georeference: the GPS fit is not the products'
+    assert states["gps_fit"] == states["gps_fits_agree"] == "not measured"
+    assert {s for k, s in states.items() if not k.startswith("gps_")} == {"green"}
     assert verdict(assess(*_clean())) == "green" and verdict(assess(*_clean()), failed=True) == "red"
 
 
@@ -48,6 +50,8 @@ def test_a_clean_run_is_green_on_every_item():
         (lambda s, d, m, o, f: s["gcp_accuracy"].update(rmse_3d_m=0.97), "gcp_rmse", "red"),
         (lambda s, d, m, o, f: s["gcp_accuracy"].update(rmse_3d_m=0.05), "gcp_rmse", "amber"),
         (lambda s, d, m, o, f: s["intrinsics"][0].update(focal_drift_pct=12), "focal_drift", "red"),
+        (lambda s, d, m, o, f: s["gcp_vs_gps"].update(scale_change_pct=6.7), "gcp_scale", "red"),
+        (lambda s, d, m, o, f: s["gcp_vs_gps"].update(rotation_deg=1.2), "gcp_rotation", "amber"),
         (lambda s, d, m, o, f: o.update(dsm_offset_m=-3.0), "dsm_vs_sfm", "red"),
         (
             lambda s, d, m, o, f: f.update(altitude_metadata_m=87, altitude_m=56, height_check="x"),
@@ -57,6 +61,15 @@ def test_a_clean_run_is_green_on_every_item():
         (lambda s, d, m, o, f: f.update(altitude_metadata_m=60.5, height_check="2 m off"), "heights_given", "red"),
         (lambda s, d, m, o, f: o.update(seam_mismatch_balanced=25), "seam_mismatch", "red"),
         (lambda s, d, m, o, f: s.update(georeferenced_by="GPS of 75 photos", gcp_accuracy=None), "gps_fit", "red"),
+        (
+            lambda s, d, m, o, f: s.update(
+                georeferenced_by="GPS of 75 photos",
+                gcp_accuracy=None,
+                gps={"ce90_m": 4.0, "robust_vs_lsq_m": 40.0, "lsq_rotation_deg": 22.0, "inlier_share": 0.25},
+            ),
+            "gps_fits_agree",
+            "red",
+        ),
     ],
 )
 def test_each_item_turns_for_its_own_cause(change, item, state):
