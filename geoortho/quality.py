@@ -54,10 +54,12 @@ THRESHOLDS: dict[str, Threshold] = {
     "dsm_measured": Threshold(
         "DSM cells measured by the dense cloud",
         "%",
-        60.0,
         30.0,
+        10.0,
         True,
-        "the rest is interpolated (water, canopy, the edge); under 30 % the DSM is mostly interpolation",
+        "the rest is interpolated (water, canopy, the edge); ground seen by only two photos at a block's edge "
+        "has one stereo pair and is interpolated, which on a 9-photo block is most of it (a clean one: 38 %); "
+        "under 10 % the DSM is a guess",
     ),
     "photos_registered": Threshold(
         "Photos registered by the SfM",

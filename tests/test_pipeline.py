@@ -103,6 +103,12 @@ def test_report_numbers_are_the_stages_own(first_run):
     assert checkpoint["n"] == 1 and f"{100 * checkpoint['rmse_3d_m']:.1f} cm" in page
     assert f"{100 * ortho['resolution_m']:.2f} cm" in page and f"{dense['points_written']:,}" in page
     assert "no problem found" in page and 'class="banner problem"' not in page
+    # the clean survey is green on every item it measured, and the page says what quality.json does
+    quality = json.loads((project / "quality.json").read_text())
+    assert quality["verdict"] == "green", [c for c in quality["checks"] if c["state"] not in ("green", "not measured")]
+    assert "Quality: GREEN" in page and len(quality["checks"]) >= 12
+    for c in quality["checks"]:
+        assert f'<span class="state {c["state"].replace(" ", "-")}">' in page, c["item"]
     for section in (
         "Dataset summary",
         "Overlap",
@@ -339,3 +345,7 @@ def test_run_needs_no_flight_height_and_checks_a_wrong_one(unhinted, tmp_path):
     assert abs(out2["altitude_metadata_m"] / out2["altitude_m"] - 1.5) < 0.15
     assert any("flight_height_m" in p["message"] for p in _ledger(project)["problems"])
     assert 'class="banner problem"' in again.report.read_text()
+    quality = json.loads((project / "quality.json").read_text())
+    states = {c["item"]: c["state"] for c in quality["checks"]}
+    assert quality["verdict"] == "red" and states["heights_given"] == "red"
+    assert abs(next(c["value"] for c in quality["checks"] if c["item"] == "heights_given") - 50) < 15
