@@ -681,12 +681,17 @@ def _not_used(ctx: _Context) -> str:
     for name, why in {**sfm.get("skipped", {}), **sfm.get("unregistered", {})}.items():
         rows.append([name, "sfm", why])
     dense = ctx.dense_report() or {}
-    for name, views in dense.get("views", {}).items():
-        if not views:
-            rows.append([name, "dense", "no neighbour photo to match (no depth map)"])
-    for s in (ctx.ortho_report() or {}).get("skipped", []):
+    for name, why in (dense.get("no_depth_map") or {}).items():
+        rows.append([name, "dense", f"no depth map: {why}"])
+    ortho = ctx.ortho_report() or {}
+    for s in ortho.get("skipped", []):
         rows.append([s.get("image"), "ortho", s.get("reason")])
+    for name in ortho.get("not_in_mosaic", []):
+        rows.append([name, "ortho", "rectified, but no pixel of it is in the mosaic (other photos' views were chosen)"])
     if not rows:
+        # said only when each stage says so: the ortho's own count must agree
+        if ortho and ortho.get("n_used") != ortho.get("n_photos"):
+            return f"<p>The orthophoto used {ortho.get('n_used')} of its {ortho.get('n_photos')} photos.</p>"
         return "<p>Every photo was used by every stage.</p>"
     return _table(["photo", "stage", "why"], rows)
 

@@ -672,7 +672,8 @@ def mosaic(
         **cover,
     )
     gains = {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)}
-    _write_report(result, totals, gains, time.perf_counter() - t0, plan.views_held_max)
+    unused = sorted(c.name for i, c in enumerate(placed.cams) if i not in used)
+    _write_report(result, totals, gains, time.perf_counter() - t0, plan.views_held_max, unused)
     fb.info(
         f"ortho: {output} ({shape[1]}x{shape[0]} px, {result.n_used} photos used); seam mismatch "
         f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing"
@@ -691,6 +692,7 @@ def _write_report(
     gains_bgr: dict[str, list[float]],
     seconds_total: float,
     coarse_views_held_max: int,
+    unused: list[str],
 ) -> None:
     """``<name>_report.json``: the result's figures, and the seam and gain details behind them."""
     write_json(
@@ -698,6 +700,8 @@ def _write_report(
         {
             **{k: v for k, v in result.__dict__.items() if k not in ("skipped", "notes")},
             "skipped": [{"image": n, "reason": w} for n, w in result.skipped],
+            # placed on the surface, but no pixel of theirs in the mosaic (others' views were chosen)
+            "not_in_mosaic": unused,
             "notes": list(result.notes),
             "seam_step_dn": _ratio(totals, "step_seam", "step_n"),
             "texture_step_dn": _ratio(totals, "step_other", "other_n"),
