@@ -149,7 +149,9 @@ PATHOLOGIES: dict[str, str] = {
     "slope": "the terrain tilted 5 deg (rising towards azimuth 30 deg) under a flight at one height",
     "wrong-flight-height": "the user's flight height is 50 % off: survey.json gives it (user_flight_height_m) "
     "beside the true one (flight_height_m, above take-off) for a test to pass it",
+    "poor-gps": "a consumer GPS at its worst: every photo's recorded position off by 20 m (sigma, per axis)",
 }
+POOR_GPS_SIGMA_M = 20.0
 WRONG_FLIGHT_HEIGHT_FACTOR = 1.5
 MOUNT_TILT_DEG = 3.5
 MOUNT_TILT_AZIMUTH_DEG = 120.0
@@ -803,6 +805,13 @@ def _apply_pathologies(
                 rec_yaw_deg=_wrap180(s.rec_yaw_deg + turn),
                 flight_yaw_deg=_wrap180(s.flight_yaw_deg + turn),
             )
+        if "poor-gps" in pathologies:
+            east, north = rng.normal(0.0, POOR_GPS_SIGMA_M, 2)
+            s = replace(
+                s,
+                rec_lat=s.rec_lat + float(north) / 111_320.0,
+                rec_lon=s.rec_lon + float(east) / (111_320.0 * math.cos(math.radians(s.rec_lat))),
+            )
         if "no-attitude" in pathologies:
             # the true camera tilted towards one fixed direction; nothing of it in the metadata
             yaw, pitch, roll = ypr_from_rotation(mount @ rotation_from_ypr(s.yaw_deg, s.pitch_deg, s.roll_deg))
@@ -1203,8 +1212,8 @@ def synth(
     pathology : str
         Comma-separated consumer-drone pathologies to build in: no-relative-altitude,
         ellipsoidal-gps, altitude-drift, wrong-focal, dsm-datum, partial-dsm,
-        exposure-steps, free-heading, water, no-attitude, slope, wrong-flight-height
-        (truth/survey.json says what each did).
+        exposure-steps, free-heading, water, no-attitude, slope, wrong-flight-height,
+        poor-gps (truth/survey.json says what each did).
     plan : Path
         Fly this plan (a ``plan`` output folder or its plan.gpkg) instead of the preset's
         flight, over the preset's scene: the round trip that checks a plan.

@@ -122,3 +122,54 @@ def test_report_plots_gcps_in_the_products_crs_whatever_the_gcp_files(tiny_surve
     got = {n: (x, y) for n, x, y, _ in _gcp_positions(_Context(tmp_path, ledger))}
     for p in truth.points:
         assert np.hypot(got[p.name][0] - p.x, got[p.name][1] - p.y) < 0.01, (crs, p.name)
+
+
+def _sfm_quality(survey, out, **kw):
+    import json
+
+    from conftest import SFM_FAST
+
+    import geoortho
+
+    r = geoortho.sfm(survey.images, out, **SFM_FAST, **kw)
+    report = json.loads(r.report.read_text())
+    return report, {c.item: c for c in assess(report, None, None, None, None)}
+
+
+def test_gcps_with_a_5_percent_scale_error_are_red_with_their_effect(tiny_survey, tmp_path):
+    """GCP coordinates scaled 5 % about their middle (a wrong unit or CRS): the GCPs rescale the GPS
+    georeference by about that, and the quality check says so in red."""
+    import numpy as np
+
+    import geoortho
+    from geoortho.gcp.io import read_gcp_file
+
+    found = geoortho.gcp_find(tiny_survey.images, tiny_survey.gcp_file, tmp_path / "gcp_list.txt")
+    gcps = read_gcp_file(found.output)
+    mid = np.mean([[p.x, p.y] for p in gcps.points], axis=0)
+    lines = (tmp_path / "gcp_list.txt").read_text().splitlines()
+    out = [lines[0]]
+    for line in lines[1:]:
+        f = line.split()
+        x, y = mid + 1.05 * (np.array([float(f[0]), float(f[1])]) - mid)
+        out.append(" ".join([f"{x:.4f}", f"{y:.4f}", *f[2:]]))
+    scaled = tmp_path / "scaled.txt"
+    scaled.write_text("\n".join(out) + "\n")
+    report, checks = _sfm_quality(tiny_survey, tmp_path / "sfm", gcp_list=scaled)
+    assert 4.0 < report["gcp_vs_gps"]["scale_change_pct"] < 6.0
+    assert checks["gcp_scale"].state == "red" and "edge" in checks["gcp_scale"].detail
+    assert any("rescaled" in n for n in report["notes"])
+
+
+def test_a_poor_gps_is_red_when_it_alone_georeferences(tmp_path):
+    """A consumer GPS off by 20 m a photo, no GCPs: the products are only as good as the GPS, and the
+    check says how good that is (CE90 measured against the photos' geometry)."""
+    import geoortho
+
+    s = geoortho.synth(tmp_path / "survey", preset="tiny", seed=6, pathology="poor-gps")
+    # on a 32 m block, fixes 20 m off fit no similarity at the GPS's default 2 m: refused, loudly
+    with pytest.raises(geoortho.InputError, match="could not be georeferenced"):
+        _sfm_quality(s, tmp_path / "refused")
+    report, checks = _sfm_quality(s, tmp_path / "sfm", gps_sigma_m=20.0)  # the GPS's sigma given
+    assert report["georeferenced_by"].startswith("GPS") and report["gps"]["ce90_m"] > 15
+    assert checks["gps_fit"].state == "red" and "rotation ±" in checks["gps_fit"].detail
