@@ -134,6 +134,7 @@ def _imap_on(
             fb.progress(done / len(items))
             yield result
     except cf.process.BrokenProcessPool as e:
+        fb.check_canceled()  # SIGTERM to the whole group (systemd, a batch scheduler): canceled, not broken
         raise WorkerError(
             f"a worker process ended abruptly ({done} of {len(items)} tasks done; killed, out of memory, or dead "
             "at start-up): run again with workers=1 (--workers 1) to see its error in this process"
