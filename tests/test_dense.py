@@ -187,12 +187,14 @@ def test_run_makes_the_dsm_from_the_dense_cloud_unless_a_lidar_cloud_is_given(tm
 
     photos_only = Project(images=tmp_path, output=tmp_path)
     with_lidar = Project(images=tmp_path, output=tmp_path, points=tmp_path / "lidar.laz")
-    chain = ["footprints", "sfm", "dense", "dem", "ortho", "report"]
+    chain = ["sfm", "dense", "dem", "footprints", "ortho", "report"]
     assert [s.name for s in STAGES if s.applies(photos_only)] == chain
     assert [s.name for s in STAGES if s.applies(with_lidar)] == [n for n in chain if n != "dense"]
     dem = next(s for s in STAGES if s.name == "dem")
     assert dem.values(photos_only, {})["points"] == tmp_path / "dense" / "dense.laz"
     assert dem.values(with_lidar, {})["points"] == tmp_path / "lidar.laz"
+    # the photos' noisy surface by distance-weighted mean, a lidar cloud's first returns by max
+    assert dem.values(photos_only, {})["method"] == "idw" and "method" not in dem.values(with_lidar, {})
 
 
 def test_a_pair_that_cannot_be_searched_is_skipped_not_fatal():
