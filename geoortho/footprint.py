@@ -385,7 +385,6 @@ def footprints(
         return _footprints_from_sfm(
             images, output, Path(sfm), dsm, given, out_crs, sensor_width_mm, max_range_m, overlap, overlap_cell_m, fb
         )
-    from .outputs import write_vector
 
     s_read, s_cast, s_write = split(fb, [3, 2, 1])
     photos = _photos_with_altitude(images, sensor_width_mm, flight_height_m, s_read, fb)
@@ -415,12 +414,7 @@ def footprints(
             "the nearby ground height of the DSM (column outside_dsm)"
         )
     fp, cam_layer = _footprint_layers(cams, table, heights, ground, work)
-    overlap_path = None
-    if overlap is not None:
-        overlap_path = write_overlap(overlap, fp.geometry.values, work, overlap_cell_m)
-    if out_crs is not None and not out_crs.equals(work):
-        fp, cam_layer = fp.to_crs(out_crs), cam_layer.to_crs(out_crs)
-    write_vector(output, {"footprints": fp, "cameras": cam_layer})
+    overlap_path = _write_layers(output, fp, cam_layer, work, out_crs, overlap, overlap_cell_m)
     s_write.progress(1.0)
     median_gsd = float(np.nanmedian(table.gsd_cm))
     fb.info(
@@ -440,6 +434,19 @@ def footprints(
         altitude_m=_median(table.altitude_m),
         altitude_metadata_m=_median(table.altitude_m),
     )
+
+
+def _write_layers(
+    output: Path, fp: Any, cam_layer: Any, work: CRS, out_crs: CRS | None, overlap: Path | None, cell_m: float
+) -> Path | None:
+    """The overlap raster (in the working CRS), then both layers in the output CRS; the overlap's path."""
+    from .outputs import write_vector
+
+    overlap_path = write_overlap(overlap, fp.geometry.values, work, cell_m) if overlap is not None else None
+    if out_crs is not None and not out_crs.equals(work):
+        fp, cam_layer = fp.to_crs(out_crs), cam_layer.to_crs(out_crs)
+    write_vector(output, {"footprints": fp, "cameras": cam_layer})
+    return overlap_path
 
 
 def _median(values: np.ndarray) -> float:
@@ -485,7 +492,6 @@ def _footprints_from_sfm(
 
     from .camera import ypr_from_rotation
     from .orthophoto.cameras import cameras_from_sfm
-    from .outputs import write_vector
 
     s_read, s_cast, s_write = split(fb, [3, 2, 1])
     photos = read_photos(images, sensor_width_mm, feedback=s_read)
@@ -550,10 +556,7 @@ def _footprints_from_sfm(
     )
     fp, cam_layer = _footprint_layers(cams, table, heights, ground, work)
     fp["altitude_metadata_m"] = check.per_photo_m
-    overlap_path = write_overlap(overlap, fp.geometry.values, work, overlap_cell_m) if overlap is not None else None
-    if out_crs is not None and not out_crs.equals(work):
-        fp, cam_layer = fp.to_crs(out_crs), cam_layer.to_crs(out_crs)
-    write_vector(output, {"footprints": fp, "cameras": cam_layer})
+    overlap_path = _write_layers(output, fp, cam_layer, work, out_crs, overlap, overlap_cell_m)
     s_write.progress(1.0)
     median_gsd = float(np.nanmedian(table.gsd_cm))
     fb.info(
