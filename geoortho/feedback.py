@@ -12,6 +12,7 @@ import json
 import logging
 import sys
 import threading
+import time
 from collections.abc import Iterable, Iterator, Sequence
 from typing import IO, Any, TypeVar
 
@@ -191,8 +192,6 @@ class TerminalFeedback(Feedback):
             # no bar to watch: a line per stage, and a heartbeat (set_progress), so that a log
             # shows a 30-minute SfM alive
             if not self._quiet:
-                import time
-
                 self._stage_started = self._heartbeat = time.monotonic()
                 self._write(f"{self._description} [{index}/{count}] {name}: started {time.strftime('%H:%M:%S')}")
             return
@@ -208,8 +207,6 @@ class TerminalFeedback(Feedback):
     def set_progress(self, fraction: float) -> None:
         if not self._shown():
             if not self._quiet and self._stage is not None:
-                import time
-
                 now = time.monotonic()
                 if now - self._heartbeat >= self.HEARTBEAT_S:
                     self._heartbeat = now

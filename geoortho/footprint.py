@@ -654,12 +654,11 @@ def check_given_heights(
             "the products use the measured heights: check takeoff_elevation_m and its datum"
         )
     elif given.ground_elevation_m is not None:
-        under = np.asarray(surface.elevation(xy_meta[:, 0], xy_meta[:, 1]), float)
-        off = float(given.ground_elevation_m) - _median(under)
+        off = float(given.ground_elevation_m) - _median(ground_meta)
         if abs(off) > ELEVATION_TOLERANCE_M:
             problem = (
                 f"ground_elevation_m {given.ground_elevation_m:g} m disagrees with the measured surface by "
-                f"{off:+.1f} m (its median under the cameras: {_median(under):.1f} m); the products use the "
+                f"{off:+.1f} m (its median under the cameras: {_median(ground_meta):.1f} m); the products use the "
                 "measured surface: check ground_elevation_m and its datum"
             )
     elif abs(share) > HEIGHT_TOLERANCE and abs(offset_m) > ASSUMED_ALLOWANCE_M:
