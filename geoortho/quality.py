@@ -118,6 +118,15 @@ THRESHOLDS: dict[str, Threshold] = {
         False,
         "the GPS fixes the block's heading and level to a fraction of a degree; more is a GCP mix-up",
     ),
+    "gcp_shift": Threshold(
+        "Shift the GCPs imposed on the GPS georeference (horizontal)",
+        "m",
+        10.0,
+        30.0,
+        False,
+        "a consumer GPS is biased by a few metres over a block; GCPs that move it by tens to hundreds of metres "
+        "are in another CRS or datum than their file says (ED50 read as WGS 84 moves Lisbon 237 m)",
+    ),
     "gps_fit": Threshold(
         "GPS against the photos' geometry (CE90)",
         "m",
@@ -261,9 +270,22 @@ def assess(
         what = "3D" if three_d else "horizontal (heights not controlled)"
         checks.append(_check(item, rmse / gsd_m, f"{100 * rmse:.1f} cm {what} over {acc.get('n')}"))
     effect = sfm.get("gcp_vs_gps") or {}
-    edge = f"moves the site's edge {_num(effect.get('edge_shift_m')):.2f} m" if effect else ""
+    cause = str(effect.get("likely_cause") or "")
+    k = next(i for i, c in enumerate(checks) if c.item == "gcp_rmse")
+    if cause and checks[k].state != "not measured":  # the control residuals: what most likely made them
+        checks[k] = Check(**{**asdict(checks[k]), "detail": f"{checks[k].detail}; likely cause: {cause}"})
+    edge = f"moves the site's edge {_num(effect.get('edge_shift_m')):.2f} m" if "edge_shift_m" in effect else ""
     checks.append(_check("gcp_scale", abs(_num(effect.get("scale_change_pct", math.nan))), edge))
     checks.append(_check("gcp_rotation", _num(effect.get("rotation_deg", math.nan)), edge))
+    checks.append(
+        _check(
+            "gcp_shift",
+            _num(effect.get("shift_horizontal_m", math.nan)),
+            f"{_num(effect.get('shift_vertical_m')):+.2f} m vertically" + (f"; {cause}" if cause else "")
+            if "shift_horizontal_m" in effect
+            else "",
+        )
+    )
     by_gps = str(sfm.get("georeferenced_by", "")).startswith("GPS")
     gps = sfm.get("gps") or {}
     spread = (

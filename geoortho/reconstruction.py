@@ -1341,7 +1341,7 @@ class _Georeference:
     heights_usable: bool = True  # GCP heights are surveyed, not placeholders
     gcp_obs_used: int = 0  # GCP observations held fixed in the bundle adjustment
     notes: tuple[str, ...] = ()
-    gcp_vs_gps: dict[str, float] | None = None  # what the GCPs changed of the GPS georeference
+    gcp_vs_gps: dict[str, Any] | None = None  # what the GCPs changed of the GPS georeference
 
 
 def _georeference_by_gps(rec: Any, inputs: _Inputs, gps_sigma_m: float) -> _Georeference:
@@ -1403,8 +1403,15 @@ def _georeference_by_gcps(
             "GCPs control the model horizontally only and their Z residuals are not reported"
         )
     _triangulate(rec, states)
+    swapped = _swapped_pair(states, heights_usable)
+    if swapped is not None:
+        # Controlled by a mixed-up pair the model would bend (turned 180 deg on a 4-GCP block):
+        # the pair checks instead, and the rest control if they are still 3.
+        for st in states:
+            if st.name in swapped["names"]:
+                st.role = "checkpoint"
     gcp_sim = _align_to_gcps(rec, states, heights_usable)
-    effect = None
+    effect: dict[str, Any] | None = None
     if gcp_sim is not None and gps.gps_sim is not None:
         effect = _gcp_effect(rec, gcp_sim)
         if abs(effect["scale_change_pct"]) > GCP_SCALE_CHANGE_PCT or effect["rotation_deg"] > GCP_ROTATION_DEG:
@@ -1414,6 +1421,21 @@ def _georeference_by_gcps(
                 "GCPs' CRS and coordinates, or the photos' GPS"
             )
             fb.warning(notes[-1])
+        cause = _shift_cause(effect, inputs, heights_usable and gps.how.startswith("GPS of"))
+        if cause:
+            effect["likely_cause"] = cause
+            notes.append(cause)
+            fb.warning(cause)
+    if swapped is not None:
+        effect = dict(effect or {})
+        effect["swapped"] = swapped
+        effect["likely_cause"] = (
+            f"GCPs {swapped['names'][0]} and {swapped['names'][1]} look swapped: exchanged, their fit's RMSE "
+            f"falls from {swapped['rmse_m']:.2f} m to {swapped['rmse_if_exchanged_m']:.2f} m; they are held out "
+            "as checkpoints (check their names in the GCP file)"
+        )
+        notes.append(effect["likely_cause"])
+        fb.warning(effect["likely_cause"])
     if gcp_sim is not None:
         georef = (
             f"{sum(s.role == 'control' and s.triangulated is not None for s in states)} GCPs"
@@ -1439,7 +1461,76 @@ GCP_SCALE_CHANGE_PCT = 1.0
 GCP_ROTATION_DEG = 0.5
 
 
-def _gcp_effect(rec: Any, sim: Any) -> dict[str, float]:
+#: A GCP georeference this far (horizontally) from the GPS's is not the GPS's bias (a few metres on
+#: consumer drones) but a wrong CRS or datum of the GCP file (issue 48).
+GCP_SHIFT_WARN_M = 30.0
+
+
+def _shift_cause(effect: dict[str, Any], inputs: _Inputs, heights_compared: bool) -> str:
+    """Name what a large shift between the GPS and the GCP georeference most likely is: the GCP
+    file's CRS (horizontal), or heights in another vertical datum (the geoid's undulation here)."""
+    h, v = float(effect["shift_horizontal_m"]), float(effect["shift_vertical_m"])
+    if h > GCP_SHIFT_WARN_M:
+        far = f"{h / 1000:.1f} km" if h >= 1000 else f"{h:.0f} m"
+        return (
+            f"the GCPs put the block {far} from where its photos' GPS puts it: the GCP file's CRS "
+            f"({inputs.gcps.crs.name if inputs.gcps is not None else '?'}) is likely not the one its "
+            "coordinates are in"
+        )
+    if not heights_compared or inputs.out_crs is None or abs(v) < 10.0:
+        return ""
+    from .crs import geoid_undulation_m
+
+    lon, lat = transformer(inputs.out_crs, WGS84).transform(*inputs.priors.offset[:2])
+    n = float(geoid_undulation_m(lon, lat))
+    if abs(abs(v) - abs(n)) < 5.0 and abs(n) > 10.0:
+        return (
+            f"the GCPs move the block {v:+.1f} m vertically against the GPS heights, as the geoid's undulation "
+            f"here ({n:+.1f} m): the GCP heights are likely in another vertical datum than the CRS says "
+            "(orthometric against ellipsoidal)"
+        )
+    return ""
+
+
+def _swapped_pair(states: list[_GcpState], heights_usable: bool) -> dict[str, Any] | None:
+    """Two control GCPs whose surveyed coordinates, exchanged, fit their triangulated positions far
+    better: a swapped pair of names in the GCP file (a common field mistake)."""
+    pc = load_pycolmap()
+    use = [s for s in states if s.role == "control" and s.triangulated is not None]
+    if len(use) < 4:  # with 3 a similarity bends to almost any labelling
+        return None
+    src = np.array([s.triangulated for s in use], dtype=float)
+    tgt = np.array([s.surveyed for s in use], dtype=float)
+    if not heights_usable:
+        src, tgt = src[:, :2], tgt[:, :2]
+
+    def rmse(t: np.ndarray) -> float:
+        a, b = (src, t) if src.shape[1] == 3 else (np.c_[src, np.zeros(len(src))], np.c_[t, np.zeros(len(t))])
+        sim = pc.estimate_sim3d(a, b)
+        if sim is None:
+            return math.inf
+        m = np.asarray(sim.matrix())
+        return float(np.sqrt(np.mean(np.sum((a @ m[:, :3].T + m[:, 3] - b) ** 2, axis=1))))
+
+    base = rmse(tgt)
+    if not math.isfinite(base) or base < 0.05:  # GCPs that fit to 5 cm are not mixed up
+        return None
+    best = (math.inf, -1, -1)
+    for i in range(len(use)):
+        for j in range(i + 1, len(use)):
+            t = tgt.copy()
+            t[[i, j]] = t[[j, i]]
+            best = min(best, (rmse(t), i, j))
+    if best[0] > 0.25 * base:
+        return None
+    return {
+        "names": [use[best[1]].name, use[best[2]].name],
+        "rmse_m": round(base, 4),
+        "rmse_if_exchanged_m": round(best[0], 4),
+    }
+
+
+def _gcp_effect(rec: Any, sim: Any) -> dict[str, Any]:
     """What the GCPs' similarity did to the GPS-georeferenced model: its scale change, its rotation,
     and how far these two (not the shift, the GPS's own bias) moved the camera farthest from the
     block's middle (the site's edge)."""
@@ -1450,10 +1541,15 @@ def _gcp_effect(rec: Any, sim: Any) -> dict[str, float]:
     before = np.array([inv * c for c in centres]) if len(centres) else centres
     moved = (centres - centres.mean(axis=0)) - (before - before.mean(axis=0)) if len(centres) else centres
     shift = float(np.linalg.norm(moved, axis=1).max()) if len(centres) else math.nan
+    middle = centres.mean(axis=0) - before.mean(axis=0) if len(centres) else np.full(3, math.nan)
     return {
         "scale_change_pct": round((float(sim.scale) - 1.0) * 100.0, 4),
         "rotation_deg": round(angle, 4),
         "edge_shift_m": round(shift, 4),
+        # where the GCPs moved the block's middle from the GPS's place (a GPS bias of a few metres,
+        # or a wrong CRS/datum of the GCP file)
+        "shift_horizontal_m": round(float(np.hypot(middle[0], middle[1])), 3),
+        "shift_vertical_m": round(float(middle[2]), 3),
     }
 
 

@@ -18,7 +18,13 @@ def _clean():
         "checkpoint_accuracy": {"n": 2, "rmse_3d_m": 0.03},
         "gps": {"ce90_m": 30.0},  # not graded: the GCPs georeference the block
         "intrinsics": [{"focal_drift_pct": -0.8}],
-        "gcp_vs_gps": {"scale_change_pct": 0.2, "rotation_deg": 0.1, "edge_shift_m": 0.3},
+        "gcp_vs_gps": {
+            "scale_change_pct": 0.2,
+            "rotation_deg": 0.1,
+            "edge_shift_m": 0.3,
+            "shift_horizontal_m": 2.1,
+            "shift_vertical_m": -4.0,
+        },
     }
     dense = {"photos": 50, "depth_maps": 50, "no_depth_map": {}}
     dem = {"seen_m2": 1e4, "measured_share": 0.8}
@@ -52,6 +58,8 @@ def test_a_clean_run_is_green_on_every_item():
         (lambda s, d, m, o, f: s["intrinsics"][0].update(focal_drift_pct=12), "focal_drift", "red"),
         (lambda s, d, m, o, f: s["gcp_vs_gps"].update(scale_change_pct=6.7), "gcp_scale", "red"),
         (lambda s, d, m, o, f: s["gcp_vs_gps"].update(rotation_deg=1.2), "gcp_rotation", "amber"),
+        (lambda s, d, m, o, f: s["gcp_vs_gps"].update(shift_horizontal_m=237.0), "gcp_shift", "red"),
+        (lambda s, d, m, o, f: s["gcp_vs_gps"].update(shift_horizontal_m=15.0), "gcp_shift", "amber"),
         (lambda s, d, m, o, f: o.update(dsm_offset_m=-3.0), "dsm_vs_sfm", "red"),
         (
             lambda s, d, m, o, f: f.update(altitude_metadata_m=87, altitude_m=56, height_check="x"),
@@ -134,6 +142,63 @@ def _sfm_quality(survey, out, **kw):
     r = geoortho.sfm(survey.images, out, **SFM_FAST, **kw)
     report = json.loads(r.report.read_text())
     return report, {c.item: c for c in assess(report, None, None, None, None)}
+
+
+@pytest.fixture(scope="module")
+def found_gcps(tiny_survey, tmp_path_factory):
+    """The tiny survey's GCPs found in its photos: a gcp_list.txt with pixel observations."""
+    import geoortho
+
+    out = tmp_path_factory.mktemp("found") / "gcp_list.txt"
+    geoortho.gcp_find(tiny_survey.images, tiny_survey.gcp_file, out)
+    return out
+
+
+def _rewritten(found, dst, move):
+    """``found`` with each line's coordinates passed through ``move(x, y, z, name) -> (x, y, z)``."""
+    lines = found.read_text().splitlines()
+    out = [lines[0]]
+    for line in lines[1:]:
+        f = line.split()
+        x, y, z = move(float(f[0]), float(f[1]), float(f[2]), f[-1])
+        out.append(" ".join([f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", *f[3:]]))
+    dst.write_text("\n".join(out) + "\n")
+    return dst
+
+
+def test_gcps_in_the_wrong_crs_are_red_and_the_crs_is_named(tiny_survey, found_gcps, tmp_path):
+    """GCPs surveyed in ED50 / UTM 29N, their file saying WGS 84 / UTM 29N: 237 m apart at the site, too
+    near to refuse, too far for a GPS bias. The GCPs fit each other perfectly (no residual says it);
+    the shift against the GPS does, and names the CRS as the likely cause."""
+    from pyproj import Transformer
+
+    assert found_gcps.read_text().splitlines()[0].strip() == "EPSG:32629"
+    to_ed50 = Transformer.from_crs("EPSG:32629", "EPSG:23029", always_xy=True)
+    wrong = _rewritten(found_gcps, tmp_path / "ed50.txt", lambda x, y, z, _: (*to_ed50.transform(x, y), z))
+    report, checks = _sfm_quality(tiny_survey, tmp_path / "sfm", gcp_list=wrong)
+    effect = report["gcp_vs_gps"]
+    assert 220.0 < effect["shift_horizontal_m"] < 255.0  # 237 m: the two datums' difference at Lisbon
+    assert checks["gcp_shift"].state == "red" and "CRS" in checks["gcp_shift"].detail
+    assert checks["gcp_rmse"].state == "green"  # the GCPs agree with each other: only the shift tells
+    assert any("CRS" in n and "237 m" in n for n in report["notes"]), report["notes"]
+
+
+def test_a_swapped_pair_of_gcps_is_named(tiny_survey, found_gcps, tmp_path):
+    """Two GCPs' names exchanged in the file (4 GCPs): controlled by them the model turned 180 deg.
+    The pair is named, held out as checkpoints (red), and the model stays on the GPS."""
+    from geoortho.gcp.io import read_gcp_file
+
+    points = read_gcp_file(tiny_survey.gcp_file).points
+    a, b = points[0], points[-1]
+    found = read_gcp_file(found_gcps)
+    where = {p.name: (p.x, p.y, p.z) for p in found.points}
+    swap = {a.name: where[b.name], b.name: where[a.name]}
+    swapped = _rewritten(found_gcps, tmp_path / "swapped.txt", lambda x, y, z, n: swap.get(n, (x, y, z)))
+    report, checks = _sfm_quality(tiny_survey, tmp_path / "sfm", gcp_list=swapped)
+    assert sorted(report["gcp_vs_gps"]["swapped"]["names"]) == sorted([a.name, b.name])
+    assert checks["checkpoint_rmse"].state == "red"
+    assert any("swapped" in n for n in report["notes"]) and "swapped" in checks["gcp_rmse"].detail
+    assert report["georeferenced_by"].startswith("GPS")  # 2 control GCPs left: not enough to control
 
 
 def test_gcps_with_a_5_percent_scale_error_are_red_with_their_effect(tiny_survey, tmp_path):
