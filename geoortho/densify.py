@@ -200,20 +200,32 @@ def dense(
                 no_map[job.ref.name] = got.reason
         seconds["depth_maps"] = _lap(clock) - seconds["plan"]
         peak_before_write_mb = _peak_memory_mb()["main"]
-        if not np.isfinite(fusion.lo).all():
-            raise InputError("no depth could be measured (textureless photos, or poses that do not fit)", path=sfm)
         t_write = time.perf_counter()
         n_written = 0
+        fallback = ""
+        if not np.isfinite(fusion.lo).all():
+            # Water, snow, fresh tarmac: no depth map anywhere. The SfM's tie points are the only
+            # measurement there is: they are the cloud, and that is said loudly (never an empty product).
+            fallback = f"the SfM's {len(pts)} tie points"
+            notes.append(
+                f"no depth could be measured in any photo (textureless ground: water, snow; or poses that do not "
+                f"fit): the cloud is {fallback}, and a surface made from it is mostly interpolated"
+            )
+            fb.warning(f"dense: {notes[-1]}")
+            tie = np.asarray(pts, float) - origin
+            n_written = len(tie)
+            write_las_parts(output, [(tie, None, None)], crs, lowest=tie.min(axis=0), offset=origin)
+        else:
 
-        def parts() -> Iterator[tuple[np.ndarray, np.ndarray, None]]:
-            nonlocal n_written
-            for xyz, rgb in fusion.chunks():
-                n_written += len(xyz)
-                rgb /= 255.0  # in place: no second copy of the cloud's colours
-                yield xyz, rgb, None
+            def parts() -> Iterator[tuple[np.ndarray, np.ndarray, None]]:
+                nonlocal n_written
+                for xyz, rgb in fusion.chunks():
+                    n_written += len(xyz)
+                    rgb /= 255.0  # in place: no second copy of the cloud's colours
+                    yield xyz, rgb, None
 
+            write_las_parts(output, parts(), crs, lowest=fusion.lo, offset=origin)
         spilled = fusion.spilled
-        write_las_parts(output, parts(), crs, lowest=fusion.lo, offset=origin)
         seconds["fusion"] = fusion.seconds  # merges, spills and (spilled) the tiles' merges
         seconds["write"] = time.perf_counter() - t_write  # a spilled cloud's tiles merged included
     s_write.progress(1.0)
@@ -244,6 +256,7 @@ def dense(
             "seconds": seconds,
             "peak_memory_mb": {**_peak_memory_mb(), "main_before_write": peak_before_write_mb},
             "notes": notes,
+            "fallback": fallback or None,  # what the cloud is when no depth map gave a point
             "no_depth_map": dict(sorted(no_map.items())),
             "single_pair_depth_maps": single_pair,
         },

@@ -441,6 +441,15 @@ def _stage_problems(stage: str, outputs: dict[str, Any], project: Project) -> li
                 "the products' absolute accuracy is the GPS's, not the survey's",
             }
         )
+    if stage == "dense" and outputs.get("n_depth_maps") == 0:
+        out.append(
+            {
+                "stage": stage,
+                "level": "error",
+                "message": "no depth could be measured in any photo (water, snow, or poses that do not fit): the "
+                "surface is interpolated from the SfM's tie points",
+            }
+        )
     if stage == "footprints" and outputs.get("height_check"):
         out.append({"stage": stage, "level": "error", "message": str(outputs["height_check"])})
     observed = Path(outputs["output"]) if stage == "gcp-find" and outputs.get("n_observations") else None

@@ -240,7 +240,11 @@ def assess(
         _check("ortho_coverage", 100.0 * _num(ortho.get("share_of_seen_2", math.nan))),
         _check("dsm_measured", 100.0 * _num(dem.get("measured_share", math.nan)) if dem.get("seen_m2") else math.nan),
     ]
-    unregistered = [str(u.get("image", u)) if isinstance(u, dict) else str(u) for u in sfm.get("unregistered") or []]
+    dropped = sfm.get("unregistered") or []
+    if isinstance(dropped, dict):  # image -> why, as sfm's report gives it
+        unregistered = [f"{k} ({v})" if len(dropped) <= 3 else str(k) for k, v in dropped.items()]
+    else:
+        unregistered = [str(u.get("image", u)) if isinstance(u, dict) else str(u) for u in dropped]
     checks.append(
         _check(
             "photos_registered",

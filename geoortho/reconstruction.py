@@ -899,14 +899,22 @@ def _why_unregistered(db: Path, names: list[str], registered: set[str], elsewher
                 a, b = _pair_ids(pair_id)
                 matched[a] = matched.get(a, 0) + 1
                 matched[b] = matched.get(b, 0) + 1
+        keypoints = {iid: d.num_keypoints_for_image(iid) for iid in ids.values()}
+        typical = float(np.median(list(keypoints.values()))) if keypoints else 0.0
         for name in names:
             if name in registered:
                 continue
             iid = ids.get(name)
-            if iid is None or d.num_keypoints_for_image(iid) == 0:
+            n_kp = keypoints.get(iid, 0) if iid is not None else 0
+            if n_kp == 0:
                 reasons[name] = "no features (blank, blurred or unreadable photo)"
             elif name in elsewhere:
                 reasons[name] = "registered only in a separate, smaller model (no overlap linking it)"
+            elif n_kp < 0.25 * typical:
+                # a photo with a fraction of its neighbours' features was spoiled, not off the block
+                reasons[name] = (
+                    f"few features ({n_kp} against a median of {typical:.0f}): blurred, blown out or featureless"
+                )
             elif matched.get(iid, 0) == 0:
                 reasons[name] = "no verified matches with any other photo (no overlap?)"
             else:

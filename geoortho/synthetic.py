@@ -150,6 +150,9 @@ PATHOLOGIES: dict[str, str] = {
     "wrong-flight-height": "the user's flight height is 50 % off: survey.json gives it (user_flight_height_m) "
     "beside the true one (flight_height_m, above take-off) for a test to pass it",
     "poor-gps": "a consumer GPS at its worst: every photo's recorded position off by 20 m (sigma, per axis)",
+    "dropped-photo": "one photo in the middle of the flight that no SfM can register: smeared by a motion blur of "
+    "a tenth of its width, or blown out (25x over-exposed), as the seed draws; survey.json names it "
+    "(dropped_photo: image, how)",
 }
 POOR_GPS_SIGMA_M = 20.0
 WRONG_FLIGHT_HEIGHT_FACTOR = 1.5
@@ -163,6 +166,8 @@ WATER_RADIUS_M = 6.0
 DRIFT_M = 30.0
 JUMP_M = 12.0
 EXPOSURE_STEP = 0.7
+DROPPED_BLUR_PX = 100.0  # a tenth of a 1000-px photo's width: no feature survives
+DROPPED_GAIN = 25.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -604,6 +609,7 @@ class Shot:
     exposure_time_s: float = 1.0 / 800.0
     exif_focal_mm: float = FOCAL_MM  # what EXIF says (the wrong-focal pathology lies)
     maker: str = "dji"  # whose tags carry the metadata (MAKERS)
+    dropped: str = ""  # the dropped-photo pathology: how this photo was spoiled
 
 
 def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
@@ -821,6 +827,13 @@ def _apply_pathologies(
                 s, exposure_gain=s.exposure_gain * EXPOSURE_STEP, exposure_time_s=s.exposure_time_s * EXPOSURE_STEP
             )
         out[i] = s
+    if "dropped-photo" in pathologies:
+        nadir = [i for i, s in enumerate(out) if not s.oblique]
+        k = nadir[len(nadir) // 2]
+        if rng.random() < 0.5:
+            out[k] = replace(out[k], dropped="smeared", blur_px=DROPPED_BLUR_PX)
+        else:
+            out[k] = replace(out[k], dropped="blown out", exposure_gain=out[k].exposure_gain * DROPPED_GAIN)
     return out
 
 
@@ -1347,7 +1360,10 @@ def _write_truth(
     _write_poses_and_footprints(truth, scene, shots, intr, results)
     steps[1].progress(1.0)
     _write_gcp_files(truth, scene)
-    _write_survey_json(truth, scene, intr, p, seed, pathologies, undulation_m, shots[0].maker if shots else "dji")
+    dropped = {"image": s.name, "how": s.dropped} if (s := next((s for s in shots if s.dropped), None)) else None
+    _write_survey_json(
+        truth, scene, intr, p, seed, pathologies, undulation_m, shots[0].maker if shots else "dji", dropped
+    )
     steps[2].progress(1.0)
     _write_true_ortho(truth / "ortho.tif", scene, p.ortho_cell_m, steps[3])
     _write_points(truth / "points.laz", scene, p, np.random.default_rng(seed + 7))
@@ -1463,6 +1479,7 @@ def _write_survey_json(
     pathologies: Sequence[str],
     undulation_m: float,
     maker: str = "dji",
+    dropped: dict[str, str] | None = None,
 ) -> None:
     from .outputs import write_json
 
@@ -1498,6 +1515,7 @@ def _write_survey_json(
                 else {}
             ),
             **({"slope": {"deg": SLOPE_DEG, "azimuth_deg": SLOPE_AZIMUTH_DEG}} if "slope" in pathologies else {}),
+            **({"dropped_photo": dropped} if dropped else {}),
             **(
                 {"user_flight_height_m": round(p.altitude_m * WRONG_FLIGHT_HEIGHT_FACTOR, 1)}
                 if "wrong-flight-height" in pathologies

@@ -181,3 +181,51 @@ def test_the_orthophoto_shows_all_the_ground_one_photo_saw(free_heading):
     report = json.loads(r_ortho.report.read_text())
     assert report["share_of_seen_1"] == r_ortho.share_of_seen_1
     assert r_ortho.on_interpolated_m2 > 0  # the pond and the edge: on the interpolated surface
+
+
+@pytest.mark.parametrize(
+    ("scene", "bgr"),
+    [("snow", (238.0, 240.0, 241.0)), ("water", (70.0, 62.0, 38.0))],
+)
+def test_textureless_everywhere_gives_a_stated_fallback_surface_and_a_full_orthophoto(
+    free_heading, tmp_path, scene, bgr
+):
+    """Snow or water under every photo (the poses are the SfM's, made before the ground went blank):
+    no depth map anywhere. Not an empty product nor a refusal: the cloud is the SfM's tie points,
+    said so; the DSM covers the stereo ground, mostly interpolated and labelled; the orthophoto covers
+    every photo's ground; and the quality check is red on the depth maps."""
+    import cv2
+
+    from geoortho.quality import assess, verdict
+
+    s, r_sfm, *_ = free_heading
+    blank = tmp_path / "photos"
+    blank.mkdir()
+    rng = np.random.default_rng(5)
+    for photo in sorted(s.images.glob("*.JPG")):
+        h, w = cv2.imread(str(photo)).shape[:2]
+        ramp = np.linspace(-3.0, 3.0, w)[None, :, None]  # light falling across the frame, no texture
+        img = np.asarray(bgr)[None, None, :] + ramp + rng.normal(0.0, 0.6, (h, w, 3))
+        cv2.imwrite(str(blank / photo.name), np.clip(img, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    r_dense = geoortho.dense(r_sfm.output, blank, tmp_path / "dense.laz", max_image_size=640)
+    report = json.loads(r_dense.report.read_text())
+    assert r_dense.n_depth_maps == 0 and "tie points" in report["fallback"]
+    assert r_dense.n_points > 100 and any("no depth could be measured" in n for n in r_dense.notes)
+    r_dem = geoortho.dem(r_dense.output, tmp_path / "dsm.tif", sfm=r_sfm.output, method="idw")
+    with rasterio.open(r_dem.dsm) as ds:
+        z = ds.read(1, masked=True).filled(np.nan)
+        t, crs = ds.transform, ds.crs
+    seen = _counts_on(s.truth / "footprints.gpkg", t, z.shape)
+    assert np.isfinite(z[seen >= 2]).mean() >= 0.98
+    # (the grid's cell follows the cloud's density: coarse on tie points, most cells hold one)
+    truth = _on_grid(s.dsm, t, crs, z.shape)
+    # the tie points are true measurements: the surface through them is the ground's to a few decimetres
+    assert np.nanmedian(np.abs(z - truth)[seen >= 2]) < 0.3
+    r_ortho = geoortho.ortho(blank, tmp_path / "ortho.tif", sfm=r_sfm.output, dsm=r_dem.dsm, resolution_m=0.05)
+    assert r_ortho.share_of_seen_1 >= 0.98
+    ortho_report = json.loads(r_ortho.report.read_text())
+    dem_report = {"seen_m2": r_dem.seen_m2, "measured_share": r_dem.measured_share}
+    checks = {c.item: c for c in assess(None, report, dem_report, ortho_report, None)}
+    assert checks["depth_maps"].state == "red" and checks["depth_maps"].value == 0.0
+    assert checks["ortho_coverage"].state == "green"
+    assert verdict(list(checks.values())) == "red"

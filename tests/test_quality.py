@@ -238,3 +238,21 @@ def test_a_poor_gps_is_red_when_it_alone_georeferences(tmp_path):
     report, checks = _sfm_quality(s, tmp_path / "sfm", gps_sigma_m=20.0)  # the GPS's sigma given
     assert report["georeferenced_by"].startswith("GPS") and report["gps"]["ce90_m"] > 15
     assert checks["gps_fit"].state == "red" and "rotation ±" in checks["gps_fit"].detail
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_dropped_photo_is_red_and_named_with_its_cause(tmp_path, seed):
+    """One photo no SfM can register, spoiled one of two ways (smeared by motion, blown out): the
+    check names it and why, whichever way it was spoiled."""
+    import json
+
+    import geoortho
+
+    s = geoortho.synth(tmp_path / "survey", preset="tiny", seed=seed, pathology="dropped-photo")
+    dropped = json.loads((s.truth / "survey.json").read_text())["dropped_photo"]
+    assert dropped["how"] == {1: "smeared", 2: "blown out"}[seed]  # both renderings are pinned
+    report, checks = _sfm_quality(s, tmp_path / "sfm")
+    assert list(report["unregistered"]) == [dropped["image"]]
+    assert report["registered"] == report["photos"] - 1
+    check = checks["photos_registered"]
+    assert check.state == "red" and dropped["image"] in check.detail and "few features" in check.detail
