@@ -906,7 +906,7 @@ def _why_unregistered(db: Path, names: list[str], registered: set[str], elsewher
                 continue
             iid = ids.get(name)
             n_kp = keypoints.get(iid, 0) if iid is not None else 0
-            if n_kp == 0:
+            if iid is None or n_kp == 0:
                 reasons[name] = "no features (blank, blurred or unreadable photo)"
             elif name in elsewhere:
                 reasons[name] = "registered only in a separate, smaller model (no overlap linking it)"
