@@ -12,12 +12,13 @@ not time). Paths inside the project are kept as ``PROJECT/...``, so a moved proj
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -227,19 +228,29 @@ STAGES: tuple[Stage, ...] = (
 # --- content hashes ------------------------------------------------------------------------------
 
 
+#: How much of a file's head is read on every run to trust its cached hash: a photo's EXIF/XMP
+#: lies in it, and a geotagger writing it in place may keep the size and the time stamp
+#: (``exiftool -P``).
+HEAD_BYTES = 1 << 16
+
+
 class Hasher:
-    """SHA-256 of files and folders (sorted relative names + contents), cached by size and mtime so
-    that a second run over unchanged photos reads nothing."""
+    """SHA-256 of files and folders (sorted relative names + contents), cached by size, mtime and
+    the file's head (its first 64 KiB, where a photo's metadata is), so that a second run over
+    unchanged photos reads 64 KiB of each and no more."""
 
     def __init__(self, cache: dict[str, list[Any]] | None = None) -> None:
-        self.cache: dict[str, list[Any]] = dict(cache or {})
+        self.cache: dict[str, list[Any]] = dict(cache) if isinstance(cache, dict) else {}
         self.bytes_read = 0
 
     def file(self, path: Path) -> str:
         st = path.stat()
         key = str(path.resolve())
+        with open(path, "rb") as f:
+            head = hashlib.sha256(f.read(HEAD_BYTES)).hexdigest()
+        self.bytes_read += min(st.st_size, HEAD_BYTES)
         hit = self.cache.get(key)
-        if hit is not None and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+        if isinstance(hit, list) and hit[:2] == [st.st_size, st.st_mtime_ns] and hit[3:4] == [head]:
             return str(hit[2])
         h = hashlib.sha256()
         with open(path, "rb") as f:
@@ -247,8 +258,18 @@ class Hasher:
                 h.update(block)
         self.bytes_read += st.st_size
         digest = h.hexdigest()
-        self.cache[key] = [st.st_size, st.st_mtime_ns, digest]
+        self.cache[key] = [st.st_size, st.st_mtime_ns, digest, head]
         return digest
+
+    def photos(self, folder: Path) -> str:
+        """The photos of a folder as the stages read them (its image files, not below it): notes or
+        a project folder beside them change nothing."""
+        from .photos import list_images
+
+        h = hashlib.sha256()
+        for f in list_images(folder):
+            h.update(f.name.encode() + b"\0" + self.file(f).encode() + b"\n")
+        return h.hexdigest()
 
     def path(self, path: Path) -> str:
         if path.is_file():
@@ -308,16 +329,22 @@ class Ledger:
     """``PROJECT/run.json``: per stage its status, fingerprint, options, input hashes, outputs,
     seconds, peak memory and warnings; the runs; written atomically after every change of status."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, force: bool = False) -> None:
         self.path = path
         self.data: dict[str, Any] = {"version": LEDGER_VERSION, "stages": {}, "runs": [], "hash_cache": {}}
         if path.is_file():
             try:
                 loaded = json.loads(path.read_text())
-            except ValueError as e:
-                raise InputError(f"unreadable run ledger ({e}): remove it to start afresh", path=path) from None
-            if isinstance(loaded, dict) and loaded.get("version") == LEDGER_VERSION:
-                self.data = loaded
+                why = ledger_problem(loaded)
+            except (ValueError, UnicodeDecodeError) as e:
+                why = f"not JSON ({' '.join(str(e).split())})"
+            if why and not force:
+                raise InputError(
+                    f"not a run ledger this version reads: {why}; give --force to start the project again",
+                    path=path,
+                )
+            if not why:
+                self.data = {**self.data, **loaded}
 
     def stage(self, name: str) -> dict[str, Any]:
         return dict(self.data["stages"].get(name, {}))
@@ -330,6 +357,22 @@ class Ledger:
         from .outputs import write_json
 
         write_json(self.path, self.data)
+
+
+def ledger_problem(data: Any) -> str:
+    """What is wrong with a ``run.json`` (a hand edit, another version); "" when nothing."""
+    if not isinstance(data, dict):
+        return f"it holds a {type(data).__name__}, not an object"
+    if data.get("version") != LEDGER_VERSION:
+        return f"version {data.get('version')!r}, not {LEDGER_VERSION}"
+    kinds = {"stages": dict, "runs": list, "hash_cache": dict}
+    for key, kind in kinds.items():
+        if key in data and not isinstance(data[key], kind):
+            return f"'{key}' is a {type(data[key]).__name__}, not {'an object' if kind is dict else 'a list'}"
+    bad = [k for k, v in (data.get("stages") or {}).items() if not isinstance(v, dict)]
+    if bad:
+        return f"stage '{bad[0]}' is not an object"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -478,16 +521,15 @@ def run_stages(
     stages: Sequence[Stage] = STAGES,
     runner: Callable[[str, dict[str, Any], Feedback], dict[str, Any]] | None = None,
     feedback: Feedback | None = None,
+    force: bool = False,
 ) -> list[StageRun]:
     """Run the stages that apply, re-using every one whose fingerprint is unchanged and whose
     outputs are still there; ``rerun_from`` forces that stage and every later one.
 
     A stage that fails is marked so in the ledger, the report is still written (it says which
     stage failed and keeps every earlier product), and the error is raised again, naming the stage.
+    ``force``: a ledger that cannot be read is started afresh instead of refused.
     """
-    from .processing.registry import run_algorithm
-
-    t_run = time.perf_counter()
     fb = as_feedback(feedback)
     names = [s.name for s in stages]
     if rerun_from is not None and rerun_from not in names:
@@ -497,7 +539,52 @@ def run_stages(
         raise InputError(f"options for {sorted(unknown)[0]}: not a stage; choose from {', '.join(names)}")
     project.output.mkdir(parents=True, exist_ok=True)
     root = project.output
-    ledger = Ledger(root / LEDGER_NAME)
+    with _project_lock(root):
+        return _run_stages(project, root, rerun_from, stages, runner, fb, force)
+
+
+LOCK_NAME = ".run.lock"
+
+
+@contextlib.contextmanager
+def _project_lock(root: Path) -> Iterator[None]:
+    """One run at a time on a project: a second would redo the same stages and lose a run record.
+    An advisory lock the system drops with its process (a killed run leaves none behind)."""
+    import fcntl
+
+    with open(root / LOCK_NAME, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            pid = f.read().strip() or "?"
+            raise InputError(
+                f"another run is working on this project (process {pid}): wait for it", path=root
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(str(os.getpid()))
+        f.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _run_stages(
+    project: Project,
+    root: Path,
+    rerun_from: str | None,
+    stages: Sequence[Stage],
+    runner: Callable[[str, dict[str, Any], Feedback], dict[str, Any]] | None,
+    fb: Feedback,
+    force: bool,
+) -> list[StageRun]:
+    from .processing.registry import run_algorithm
+
+    t_run = time.perf_counter()
+    names = [s.name for s in stages]
+    ledger = Ledger(root / LEDGER_NAME, force=force)
     hasher = Hasher(ledger.data.get("hash_cache"))
     versions = _versions()
     run_one = runner or (lambda name, values, f: run_algorithm(name, values, feedback=f))
@@ -524,7 +611,11 @@ def run_stages(
             continue
         values = {k: v for k, v in stage.values(project, done).items() if v is not None}
         values.update(project.options.get(stage.name, {}))
-        hashes = {k: hasher.path(Path(values[k])) for k in stage.inputs if k in values}
+        hashes = {
+            k: hasher.photos(Path(values[k])) if k == "images" else hasher.path(Path(values[k]))
+            for k in stage.inputs
+            if k in values
+        }
         if stage.name == "report":
             hashes.update(_report_inputs(ledger, [n for n in names if n != "report"], problems))
             # what the report shows of this run (not part of its fingerprint: a run that changed
@@ -545,6 +636,7 @@ def run_stages(
             and before.get("status") == "done"
             and before.get("fingerprint") == fp
             and _outputs_there(from_ledger(before.get("outputs", {}), root))
+            and _products_intact(before, root, hasher)
         ):
             outputs = from_ledger(before.get("outputs", {}), root)
             done[stage.name] = outputs
@@ -600,6 +692,7 @@ def run_stages(
                 "peak_memory_mb": {"main": round(memory.main_mb, 1), "with_workers": round(memory.total_mb, 1)},
                 "warnings": recorder.warnings,
                 "outputs": to_ledger(outputs, root),
+                "products": _product_digests(outputs, hasher),
             },
         )
         done[stage.name] = outputs
@@ -647,12 +740,37 @@ def _outputs_there(outputs: dict[str, Any]) -> bool:
     return True
 
 
+def _product_digests(outputs: dict[str, Any], hasher: Hasher) -> dict[str, str]:
+    """Each product file or folder a stage made, by its output name: its digest when made."""
+    return {
+        k: hasher.path(Path(v))
+        for k, v in outputs.items()
+        if isinstance(v, str) and os.path.isabs(v) and Path(v).exists()
+    }
+
+
+def _products_intact(record: dict[str, Any], root: Path, hasher: Hasher) -> bool:
+    """Every product is as its stage left it: one truncated, replaced or edited by hand is made again
+    (and what reads it after it)."""
+    outputs = from_ledger(record.get("outputs", {}), root)
+    for k, digest in (record.get("products") or {}).items():
+        path = outputs.get(k)
+        if not isinstance(path, str) or not Path(path).exists() or hasher.path(Path(path)) != digest:
+            return False
+    return True
+
+
 def check_project_folder(output: Path, force: bool = False) -> None:
     """Refuse a folder that holds something other than a geoortho project (no run.json), unless
     ``force``: a mistyped --output must not mix products into, or overwrite, someone's files."""
     if output.exists() and not output.is_dir():
         raise InputError("exists and is not a folder", path=output)
-    if output.is_dir() and not (output / LEDGER_NAME).is_file() and any(output.iterdir()) and not force:
+    if (
+        output.is_dir()
+        and not (output / LEDGER_NAME).is_file()
+        and any(p.name != LOCK_NAME for p in output.iterdir())
+        and not force
+    ):
         raise InputError(
             f"holds files but no {LEDGER_NAME}: not a geoortho project (give an empty or new folder, or --force)",
             path=output,
@@ -804,17 +922,23 @@ def run(
     """
     fb = as_feedback(feedback)
     t0 = time.perf_counter()
-    output = Path(output)
+    # Every path absolute from here: the ledger keeps the project's own as PROJECT/..., the rest as
+    # they are, so a project resumes from any working folder and under any path naming it.
+    output = Path(output).absolute()
     check_project_folder(output, force)
     options = parse_stage_options(stage_options)
+
+    def given(path: Path | None) -> Path | None:
+        return Path(path).absolute() if path is not None else None
+
     project = Project(
-        images=Path(images),
+        images=Path(images).absolute(),
         output=output,
-        gcp_file=Path(gcp_file) if gcp_file is not None else None,
-        gcp_list=Path(gcp_list) if gcp_list is not None else None,
+        gcp_file=given(gcp_file),
+        gcp_list=given(gcp_list),
         checkpoints=checkpoints or "",
-        points=Path(points) if points is not None else None,
-        dsm=Path(dsm) if dsm is not None else None,
+        points=given(points),
+        dsm=given(dsm),
         crs=str(crs) if crs is not None else None,
         takeoff_elevation_m=takeoff_elevation_m,
         flight_height_m=flight_height_m,
@@ -827,7 +951,7 @@ def run(
         raise InputError("give --gcp-file (markers to find) or --gcp-list (observations made), not both")
     if project.checkpoints and project.gcp_file is None and project.gcp_list is None:
         raise InputError("checkpoints are named but no GCP file is given (--gcp-file or --gcp-list)")
-    results = run_stages(project, rerun_from=rerun_from, feedback=fb)
+    results = run_stages(project, rerun_from=rerun_from, feedback=fb, force=force)
     by_name = {r.name: r for r in results}
     ran = [r.name for r in results if r.status == "ran"]
     reused = [r.name for r in results if r.status == "reused"]

@@ -14,6 +14,7 @@ import html
 import io
 import json
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -22,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, ParameterError
 from .feedback import Feedback, as_feedback
 
 __all__ = ["ReportResult", "report"]
@@ -67,7 +68,7 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
         The HTML file to write (default: report.html in the project).
     """
     from .outputs import write_json, write_text
-    from .pipeline import LEDGER_NAME, REPORT_NAME
+    from .pipeline import LEDGER_NAME, REPORT_NAME, ledger_problem
 
     fb = as_feedback(feedback)
     project = Path(project)
@@ -76,9 +77,15 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
         raise InputError(f"no {LEDGER_NAME}: not a project made by 'run'", path=project)
     try:
         ledger = json.loads(ledger_path.read_text())
-    except ValueError as e:
-        raise InputError(f"unreadable ({e})", path=ledger_path) from None
+        why = ledger_problem(ledger)
+    except (ValueError, UnicodeDecodeError) as e:
+        why = f"not JSON ({' '.join(str(e).split())})"
+    if why:
+        raise InputError(f"not a run ledger this version reads: {why}", path=ledger_path)
+    if not ledger.get("stages"):
+        raise InputError("no stage of this project has run: nothing to report (run it first)", path=ledger_path)
     out = Path(output) if output is not None else project / REPORT_NAME
+    _refuse_project_inputs(out, project, ledger)
     ctx = _Context(project, ledger)
     _grade(ctx)
     sections: list[str] = []
@@ -92,13 +99,32 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
         if body is not None:
             sections.append(f'<section id="{_anchor(title)}"><h2>{html.escape(title)}</h2>\n{body}\n</section>')
     page = _page(ctx, sections)
-    quality = out.with_name("quality.json")
+    quality = project / "quality.json"
     write_json(quality, {"verdict": ctx.verdict, "checks": [asdict(c) for c in ctx.checks], "problems": ctx.problems})
     write_text(out, page)
     level = {"green": fb.info, "amber": fb.warning, "red": fb.warning}[ctx.verdict]
     level(f"report: quality {ctx.verdict.upper()}" + "".join(f"; {c.label}: {c.shown}" for c in _flagged(ctx)))
     fb.progress(1.0)
     return ReportResult(out, len(sections), len(ctx.problems), ctx.verdict, quality)
+
+
+def _refuse_project_inputs(out: Path, project: Path, ledger: dict[str, Any]) -> None:
+    """The report must not overwrite what the project was made from (its photos, GCP files, a
+    given DSM) any more than the project's own files (the same check as every command's)."""
+    from .pipeline import from_ledger
+    from .processing.registry import refuse_writing_into
+
+    for record in ledger["stages"].values():
+        for name, value in from_ledger(record.get("values") or {}, project).items():
+            if not isinstance(value, str) or not os.path.isabs(value) or name == "output":
+                continue
+            given = Path(value)
+            if given.is_file() and out.exists() and os.path.samefile(out, given):
+                raise ParameterError(
+                    "output", f"{out} is the project's input {name}: writing it would destroy it; give another path"
+                )
+            if given.is_dir():
+                refuse_writing_into("output", out, name, given)
 
 
 def _grade(ctx: _Context) -> None:

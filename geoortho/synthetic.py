@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import datetime as dt
 import io
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -1260,10 +1261,9 @@ def synth(
     output = Path(output)
     images_dir = output / "images"
     truth_dir = output / "truth"
+    _clear_earlier_survey(images_dir, truth_dir)
     images_dir.mkdir(parents=True, exist_ok=True)
     truth_dir.mkdir(parents=True, exist_ok=True)
-    for old in images_dir.glob("*.JPG"):
-        old.unlink()
     step_scene, step_render, step_truth = split(fb, [1, 8, 2])
     pathologies = parse_pathologies(pathology)
     if target not in TARGETS:
@@ -1339,6 +1339,28 @@ def true_footprint(
         pose.center, pixel_rays(border, intr, pose), max_range_m=max_range_m, step_m=scene.transform.a
     )
     return hits.points[:, :2], not bool(hits.hit.all())
+
+
+def _clear_earlier_survey(images_dir: Path, truth_dir: Path) -> None:
+    """Remove the photos of an earlier synth in this folder (its truth/poses.json names them), so
+    that none is left over; a file synth did not make is never deleted: refused instead."""
+    if not images_dir.is_dir():
+        return
+    made: set[str] = set()
+    try:
+        made = {str(p["image"]) for p in json.loads((truth_dir / "poses.json").read_text())}
+    except (OSError, ValueError, TypeError, KeyError):
+        pass
+    present = [f for f in images_dir.iterdir() if not f.name.startswith(".")]
+    foreign = sorted(f.name for f in present if f.name not in made)
+    if foreign:
+        raise InputError(
+            f"holds {len(foreign)} file(s) an earlier synth did not make ({', '.join(foreign[:3])}"
+            f"{', ...' if len(foreign) > 3 else ''}): give a new or empty output folder",
+            path=images_dir,
+        )
+    for f in present:
+        f.unlink()
 
 
 def _write_truth(

@@ -196,9 +196,48 @@ def _refuse_overwriting_inputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
                     out_p.name,
                     f"{out_path} is also the input {in_p.name}: writing it would destroy it; give another path",
                 )
+            if in_p.type == "folder" and out_p.type != "folder":
+                refuse_writing_into(out_p.name, out_path, in_p.name, in_path)
         for other_p, other_path in outputs[:i]:
             if _same_file(out_path, other_path):
                 raise ParameterError(out_p.name, f"{out_path} is also the output {other_p.name}; give another path")
+
+
+#: Output files that may replace their own earlier copy inside an input folder: the report of a
+#: project is written into the project it reads.
+_REWRITES_IN = {("output", "project"): (".html",)}
+
+
+def _inside(path: Path, folder: Path) -> Path | None:
+    """``path`` relative to ``folder`` when it lies in it (through symlinks), else None."""
+    for a, b in ((path.resolve(), folder.resolve()), (path.absolute(), folder.absolute())):
+        try:
+            return a.relative_to(b)
+        except ValueError:
+            continue
+    return None
+
+
+def refuse_writing_into(out_name: str, out_path: Path, in_name: str, in_folder: Path) -> None:
+    """Refuse an output file whose writing would change what an input folder holds: a file of it
+    replaced (photos are read from the folder itself, not below it), or a new image that the next
+    reading of a photo folder would take for a photo."""
+    from ..photos import IMAGE_EXTENSIONS
+
+    rel = _inside(out_path, in_folder)
+    if rel is None:
+        return
+    photos = in_name == "images"
+    if photos and len(rel.parts) > 1:
+        return  # below the photos' folder: a project folder kept beside the photos
+    why = ""
+    if out_path.exists():
+        if out_path.suffix.lower() not in _REWRITES_IN.get((out_name, in_name), ()):
+            why = "is a file of the input folder: writing it would destroy it"
+    elif photos and out_path.suffix.lower() in IMAGE_EXTENSIONS:
+        why = "would be read as a photo of the input folder"
+    if why:
+        raise ParameterError(out_name, f"{out_path} {why} (the input {in_name}): give a path outside that folder")
 
 
 def outputs_of(alg: Algorithm, result: Any) -> dict[str, Any]:
