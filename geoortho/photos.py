@@ -21,6 +21,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
@@ -428,16 +429,20 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     path = Path(path)
     warnings: list[str] = []
     try:
-        with Image.open(path) as im:
-            width, height = im.size
-            exif = im.getexif()
-            xmp_raw = im.info.get("xmp")
-            if xmp_raw is None and hasattr(im, "tag_v2"):
-                xmp_raw = im.tag_v2.get(700)  # TIFF XMP tag
-            gps = exif.get_ifd(0x8825)
-            exif_ifd = exif.get_ifd(0x8769)
-            if im.format == "JPEG":
-                _check_jpeg_complete(path)
+        with catch_warnings():
+            # a header claiming 90-180 M pixels is checked against its data below, not warned of
+            simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                width, height = im.size
+                exif = im.getexif()
+                xmp_raw = im.info.get("xmp")
+                if xmp_raw is None and hasattr(im, "tag_v2"):
+                    xmp_raw = im.tag_v2.get(700)  # TIFF XMP tag
+                gps = exif.get_ifd(0x8825)
+                exif_ifd = exif.get_ifd(0x8769)
+                if im.format == "JPEG":
+                    _check_jpeg_complete(path)
+                    _check_jpeg_size(path, im, exif.get_ifd(0x8769))
     except Image.DecompressionBombError:
         raise InputError(
             f"the header claims more than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} M pixels: not a drone photo",
@@ -526,6 +531,30 @@ def _check_jpeg_complete(path: Path) -> None:
         tail = f.read()
     if b"\xff\xd9" not in tail:
         raise OSError("truncated JPEG (no end-of-image marker)")
+
+
+#: Fewer compressed bytes a pixel than any photo holds (a black lens-cap frame: about 0.02): the
+#: header's size is then checked against what the data decodes to.
+_MIN_JPEG_BYTES_PER_PX = 0.01
+
+
+def _check_jpeg_size(path: Path, im: Any, exif_ifd: Any) -> None:
+    """A JPEG whose frame header (SOF) claims far more pixels than its data holds decodes to a
+    picture that stops near its top: every figure from the claimed size would be silently wrong
+    (a GSD 13 times too fine). Checked only when the file is too small for its claimed size."""
+    width, height = im.size
+    if path.stat().st_size >= _MIN_JPEG_BYTES_PER_PX * width * height:
+        return
+    im.draft("L", (max(1, width // 8), max(1, height // 8)))
+    rows = np.asarray(im.convert("L"), dtype=np.float32)
+    flat = float(np.mean(rows.std(axis=1) < 0.5))
+    if flat > 0.5:
+        exif_size = (exif_ifd.get(0xA002), exif_ifd.get(0xA003))
+        said = f" (its EXIF says {exif_size[0]}x{exif_size[1]})" if all(exif_size) else ""
+        raise OSError(
+            f"the JPEG header claims {width}x{height} px{said}, but its data fills only {100 * (1 - flat):.0f} % "
+            "of that: a damaged header"
+        )
 
 
 def _attitude(

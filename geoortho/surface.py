@@ -117,6 +117,7 @@ class GridSurface(Surface):
     crs: CRS | None = None
     extend: bool = False
     decimated: bool = False  # read coarser than the raster (read_surface's max_cells)
+    height_unit: str = "metre"  # what the raster's heights were read as (converted to metres)
 
     def __post_init__(self) -> None:
         g = np.ascontiguousarray(self.grid, dtype=np.float32)
@@ -375,8 +376,10 @@ def read_surface(
 ) -> GridSurface:
     """Read a DSM/DTM raster into a north-up :class:`GridSurface`, in ``crs`` if given.
 
-    Vertical units are taken as metres; a raster in another CRS is warped
-    (bilinear) into ``crs``. ``bounds`` (xmin, ymin, xmax, ymax in ``crs``): read only the
+    Heights come back in metres: a raster whose CRS has a vertical axis gives its unit, one whose
+    horizontal unit is feet is read as heights in those feet (as US elevation products are), any
+    other as metres. A raster in another CRS is warped (bilinear) into ``crs``. An image (RGB,
+    RGBA, a palette) is refused: its band 1 is no height. ``bounds`` (xmin, ymin, xmax, ymax in ``crs``): read only the
     window that covers them (a DSM of a whole county for one flight); ``max_cells``: read
     it decimated (nearest) to at most that many cells. Memory then follows the window.
 
@@ -422,7 +425,9 @@ def read_surface(
         with rasterio.open(path) as src:
             if src.crs is None:
                 raise InputError("the elevation raster has no CRS", path=path)
+            _refuse_image(src, path)
             src_crs = CRS.from_user_input(src.crs)
+            unit_name, to_m = height_unit(src_crs)
             if crs is not None and not src_crs.equals(crs):
                 with WarpedVRT(
                     src, crs=crs.to_wkt(), resampling=Resampling.bilinear, src_nodata=src.nodata, nodata=float("nan")
@@ -434,7 +439,31 @@ def read_surface(
                 out_crs = src_crs
     except RasterioIOError as e:
         raise InputError(f"cannot read elevation raster: {e}", path=path) from None
+    if to_m != 1.0:
+        grid = grid * np.float32(to_m)
     try:
-        return GridSurface(grid, transform, out_crs, extend, decimated)
+        return GridSurface(grid, transform, out_crs, extend, decimated, unit_name)
     except ValueError as e:
         raise InputError(str(e), path=path) from None
+
+
+def height_unit(crs: CRS) -> tuple[str, float]:
+    """The unit a raster's heights are in, and metres per unit: the vertical axis's when the CRS
+    has one, the horizontal unit's when that is feet, else metres."""
+    axes = list(crs.axis_info or [])
+    vertical = [a for a in axes if a.direction in ("up", "down")]
+    unit = vertical[0] if vertical else (axes[0] if axes and crs.is_projected else None)
+    factor = float(unit.unit_conversion_factor) if unit is not None and unit.unit_conversion_factor else 1.0
+    if unit is None or abs(factor - 1.0) < 1e-9 or not (vertical or abs(factor - 0.3048) < 0.001):
+        return "metre", 1.0
+    return str(unit.unit_name), factor
+
+
+def _refuse_image(ds: Any, path: Any) -> None:
+    """An orthophoto or any picture given where heights are wanted: refused, not read as heights."""
+    from rasterio.enums import ColorInterp
+
+    colour = {ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha, ColorInterp.palette}
+    if ds.count >= 3 or any(c in colour for c in ds.colorinterp):
+        bands = ", ".join(c.name for c in ds.colorinterp)
+        raise InputError(f"an image ({ds.count} bands: {bands}), not an elevation raster: give a DSM", path=path)

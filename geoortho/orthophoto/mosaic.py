@@ -1087,6 +1087,12 @@ def _check_dsm_against_points(
         notes.append(f"DSM vs SfM points: only {int(ok.sum())} points over the DSM, offset not measured")
         fb.warning(notes[-1])
         return surface, math.nan
+    factor, why = _feet_against_points(pts[ok, 2], dsm_z[ok], surface.height_unit)
+    if why:
+        notes.append(why)
+        fb.warning(why)
+        surface = replace(surface, grid=surface.grid * np.float32(factor), height_unit="metre")
+        dsm_z = dsm_z * factor
     d = pts[ok, 2] - dsm_z[ok]
     offset = float(np.median(d))
     spread = float(1.4826 * np.median(np.abs(d - offset)))
@@ -1109,12 +1115,50 @@ def _check_dsm_against_points(
     return replace(surface, grid=surface.grid + np.float32(offset)), -offset
 
 
+FOOT_M = 0.3048
+
+
+def _feet_against_points(points_z: np.ndarray, dsm_z: np.ndarray, unit: str) -> tuple[float, str]:
+    """A DSM whose heights are in another unit than read (feet under a CRS in metres; metres under a
+    CRS in feet): against the SfM points (metres) its heights scale 0.3048 or 3.28, which no datum
+    shift does. With relief, the robust slope of the points on the DSM says it; on flat ground, the
+    points' median height being the DSM's so converted. The factor to apply (1: none) and why."""
+    if len(points_z) < 20:
+        return 1.0, ""
+    from scipy.stats import siegelslopes
+
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(points_z), min(len(points_z), 1500), replace=False)
+    pz, dz = points_z[pick], dsm_z[pick]
+    factor = FOOT_M if unit == "metre" else 1.0 / FOOT_M
+    what = "feet, not metres" if unit == "metre" else f"metres, not {unit} as its CRS says"
+    relief = float(np.subtract(*np.percentile(dz, [90, 10])))
+    mid_p, mid_d = float(np.median(pz)), float(np.median(dz))
+    if relief > 3.0:
+        slope = float(siegelslopes(pz, dz)[0])
+        if abs(slope / factor - 1.0) < 0.1:
+            return factor, (
+                f"the DSM's heights scale {slope:.3f} against the SfM points: they are {what} "
+                "(converted; give a DSM in metres, or with its vertical unit in its CRS)"
+            )
+        return 1.0, ""
+    if abs(mid_p - mid_d) > 5.0 and abs(mid_p - factor * mid_d) < 1.0:
+        return factor, (
+            f"the DSM lies at {mid_d:.1f} where the SfM points are at {mid_p:.1f} m: its heights are {what} "
+            "(converted; give a DSM in metres)"
+        )
+    return 1.0, ""
+
+
 def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurface:
     """The DSM in the output CRS, its small nodata holes filled (reported)."""
     from ..gapfill import fill_gaps_by_windows
     from ..surface import read_surface
 
     surf = read_surface(path, crs, extend=True)
+    if surf.height_unit != "metre":
+        notes.append(f"DSM: its CRS gives its heights in {surf.height_unit}: converted to metres")
+        fb.info(notes[-1])
     grid, n_filled = fill_gaps_by_windows(surf.grid, max_gap_cells=max(4.0, 10.0 / surf.cell_m))
     if n_filled:
         notes.append(f"DSM: {n_filled} nodata cells inside the data filled by interpolation")
