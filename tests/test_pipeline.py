@@ -350,3 +350,159 @@ def test_run_needs_no_flight_height_and_checks_a_wrong_one(unhinted, tmp_path):
     states = {c["item"]: c["state"] for c in quality["checks"]}
     assert quality["verdict"] == "red" and states["heights_given"] == "red"
     assert abs(next(c["value"] for c in quality["checks"] if c["item"] == "heights_given") - 50) < 15
+
+
+# --- resume under hostile conditions (issue 49) ---------------------------------------------------
+
+
+def _geoortho(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "geoortho", *map(str, args)], cwd=cwd, capture_output=True, text=True, timeout=600
+    )
+
+
+def _copy(first_run, tmp_path, name="copy"):
+    project = tmp_path / name
+    shutil.copytree(first_run.output, project)
+    return project
+
+
+def test_a_project_resumes_from_another_folder_and_under_a_relative_path(first_run, tiny_survey, checkpoint, tmp_path):
+    """Made with a relative --output, resumed from its parent with another relative path naming it."""
+    (tmp_path / "rk").mkdir()
+    args = _cli(tiny_survey, "proj", checkpoint, json.dumps(FAST))
+    shutil.copytree(first_run.output, tmp_path / "rk" / "proj")
+    r = _geoortho("run", *args, cwd=tmp_path / "rk")
+    assert r.returncode == 0, r.stderr
+    args = _cli(tiny_survey, "rk/proj", checkpoint, json.dumps(FAST))
+    r = _geoortho("run", *args, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert set(_last_run(tmp_path / "rk" / "proj").values()) == {"reused"}
+    assert "proj/" not in json.dumps(_ledger(tmp_path / "rk" / "proj")["stages"]).replace("PROJECT/", "")
+
+
+@pytest.mark.parametrize("harm", ["deleted", "truncated"])
+def test_a_missing_or_truncated_product_is_made_again(first_run, tiny_survey, checkpoint, tmp_path, harm):
+    project = _copy(first_run, tmp_path)
+    dsm = project / "dem" / "dsm.tif"
+    if harm == "deleted":
+        dsm.unlink()
+    else:
+        with open(dsm, "r+b") as f:
+            f.truncate(dsm.stat().st_size // 2)
+    r = _run(tiny_survey, project, checkpoints=checkpoint)
+    assert r.stages["dem"] == "ran" and r.stages["sfm"] == "reused"
+    import rasterio
+
+    with rasterio.open(dsm) as ds:
+        assert ds.read(1, masked=True).count() > 0
+
+
+def test_photos_are_hashed_not_their_folder_and_a_geotag_in_place_is_seen(first_run, tiny_survey, checkpoint, tmp_path):
+    """Notes beside the photos change nothing; a photo rewritten in place with the same size and
+    time stamp (a PPK geotagger's ``exiftool -P``) is seen, and the chain is re-done from it."""
+    images = tmp_path / "images"
+    shutil.copytree(tiny_survey.images, images, copy_function=shutil.copy2)
+    project = _copy(first_run, tmp_path)
+    args = {"checkpoints": checkpoint, "gcp_file": tiny_survey.gcp_file, "stage_options": json.dumps(FAST)}
+    r = run(images, project, **args)  # the copied photos: same bytes, other paths
+    assert set(r.stages.values()) == {"reused"}
+    (images / "flight_notes.txt").write_text("wind 5 m/s")
+    (images / "project").mkdir()
+    r = run(images, project, **args)
+    assert set(r.stages.values()) == {"reused"}
+    photo = sorted(images.glob("*.JPG"))[0]
+    st = photo.stat()
+    data = bytearray(photo.read_bytes())
+    at = data.index(b"DJI")  # a byte of the metadata changed, size and time kept
+    data[at] = ord("d")
+    photo.write_bytes(bytes(data))
+    os.utime(photo, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert photo.stat().st_size == st.st_size and photo.stat().st_mtime_ns == st.st_mtime_ns
+    r = run(images, project, **args)
+    assert r.stages["gcp-find"] == "ran"
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [
+        ('{"version": 2, "stages": []}', "'stages' is a list"),
+        ('{"version": 2, "hash_cache": "x"}', "'hash_cache' is a str"),
+        ('{"version": 1}', "version 1"),
+        ("[1]", "holds a list"),
+        ("{oops", "not JSON"),
+    ],
+)
+def test_a_hand_edited_ledger_is_one_line_and_force_starts_again(
+    first_run, tiny_survey, checkpoint, tmp_path, text, why
+):
+    project = _copy(first_run, tmp_path)
+    (project / LEDGER_NAME).write_text(text)
+    for command in (
+        ["run", *_cli(tiny_survey, project, checkpoint, json.dumps(FAST))],
+        ["report", "--project", project],
+    ):
+        r = _geoortho(*command)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and why in lines[0], r.stderr
+        assert "unexpected" not in r.stderr
+    assert (project / LEDGER_NAME).read_text() == text  # never overwritten without --force
+    if text.startswith('{"version": 2, "stages"'):
+        r = _geoortho(
+            "run", *_cli(tiny_survey, project, checkpoint, json.dumps(FAST)), "--force", "--rerun-from", "report"
+        )
+        assert r.returncode == 0, r.stderr
+
+
+def test_two_runs_on_one_project_do_not_both_run(first_run, tiny_survey, checkpoint, tmp_path):
+    project = _copy(first_run, tmp_path)
+    args = _cli(tiny_survey, project, checkpoint, json.dumps(FAST), "--rerun-from", "ortho")
+    first = subprocess.Popen([sys.executable, "-m", "geoortho", "run", *args], stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while _ledger(project)["stages"]["ortho"].get("status") != "running":
+        assert first.poll() is None and time.monotonic() < deadline
+        time.sleep(0.02)
+    second = _geoortho("run", *args)
+    assert second.returncode == 2 and "another run is working on this project" in second.stderr
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+    runs = _ledger(project)["runs"]
+    assert runs[-1]["stages"]["ortho"] == "ran"
+
+
+@pytest.mark.parametrize("unit", ["feet-under-metres", "feet-crs"])
+def test_ortho_on_a_dsm_in_feet_is_converted_and_said(first_run, tiny_survey, tmp_path, unit):
+    """A DSM whose heights are feet, under a CRS in metres (found from the SfM points: a scale of
+    0.3048) or under a CRS in US feet (read from the CRS): the orthophoto is as good as on metres."""
+    import numpy as np
+    import rasterio
+    from rasterio.warp import Resampling, calculate_default_transform, reproject
+
+    import geoortho
+
+    with rasterio.open(tiny_survey.dsm) as ds:
+        z, prof, crs, t, bounds = ds.read(1), ds.profile, ds.crs, ds.transform, ds.bounds
+    nodata = prof["nodata"]
+    out = tmp_path / "feet.tif"
+    if unit == "feet-under-metres":
+        feet, prof2 = np.where(z == nodata, z, z / 0.3048), prof
+    else:
+        ft_crs = "+proj=utm +zone=29 +datum=WGS84 +units=us-ft +no_defs"
+        t2, w, h = calculate_default_transform(crs, ft_crs, z.shape[1], z.shape[0], *bounds)
+        feet = np.full((h, w), nodata, np.float32)
+        reproject(z, feet, src_transform=t, src_crs=crs, dst_transform=t2, dst_crs=ft_crs,
+                  resampling=Resampling.bilinear, src_nodata=nodata, dst_nodata=nodata)  # fmt: skip
+        feet = np.where(feet == nodata, feet, feet / 0.3048006)
+        prof2 = dict(prof, crs=ft_crs, transform=t2, width=w, height=h)
+    with rasterio.open(out, "w", **dict(prof2, driver="GTiff")) as dst:
+        dst.write(feet.astype(np.float32), 1)
+    sfm = first_run.output / "sfm"
+    r = geoortho.ortho(tiny_survey.images, tmp_path / "o.tif", sfm=sfm, dsm=out, resolution_m=0.05)
+    assert any("feet" in n or "foot" in n for n in r.notes), r.notes
+    assert abs(r.dsm_offset_m) < 0.1  # the heights are metres again: no datum offset left
+    with rasterio.open(r.output) as a, rasterio.open(tiny_survey.truth / "ortho.tif") as b:
+        got = a.read(1).astype(float)
+        want = np.zeros_like(got)
+        reproject(b.read(1), want, src_transform=b.transform, src_crs=b.crs, dst_transform=a.transform,
+                  dst_crs=a.crs, resampling=Resampling.bilinear)  # fmt: skip
+        ok = (a.read_masks(1) > 0) & (want > 0)
+        assert np.corrcoef(got[ok], want[ok])[0, 1] > 0.85  # 0.908 on the metre DSM; 0.37 before
