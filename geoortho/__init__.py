@@ -61,13 +61,44 @@ _EXPORTS = {
 __all__ = list(_EXPORTS)
 
 
+#: The algorithms, whose arguments are checked against their declared types at the call.
+_ALGORITHMS = frozenset(
+    {"synth", "footprints", "gcp_find", "sfm", "dense", "dem", "ortho", "run", "report", "demo", "plan", "check_plan"}
+)
+
+
 def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'geoortho' has no attribute {name!r}")
     value = getattr(importlib.import_module(module), name)
+    if name in _ALGORITHMS:
+        value = _checked(value, f"{module}:{name}")
     globals()[name] = value
     return value
+
+
+def _checked(function: Any, ref: str) -> Any:
+    """``function`` with its arguments' types checked at the door (geoortho.processing.registry)."""
+    import functools
+    import inspect
+
+    signature = inspect.signature(function)
+
+    @functools.wraps(function)
+    def door(*args: Any, **kwargs: Any) -> Any:
+        from .processing.registry import check_call
+
+        try:
+            bound = signature.bind(*args, **kwargs)
+        except TypeError as e:
+            from .errors import InputError
+
+            raise InputError(f"{function.__name__}(): {e}") from None
+        check_call(ref, dict(bound.arguments))
+        return function(*args, **kwargs)
+
+    return door
 
 
 def __dir__() -> list[str]:

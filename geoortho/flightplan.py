@@ -435,7 +435,11 @@ def plan(
     surface: Surface
     if dtm is not None:
         surface = read_surface(dtm, work_crs, extend=True)
-        ground = _ground_stats(surface, area_geom)
+        ground = _ground_stats(surface, area_geom, dtm)
+        if ground.get("covered", 1.0) < 1.0:
+            warnings_.append(
+                f"the DTM covers {100 * ground['covered']:.0f} % of the AOI: the rest is its edge carried on"
+            )
         ground_label = f"DTM {Path(dtm).name}"
     else:
         surface = FlatSurface(float(takeoff_ground_m or 0.0))
@@ -471,6 +475,7 @@ def plan(
     along_len, across_w, ahead = _footprint_shape(intr, pitch_deg, spacing_agl)
     along = along_len * (1 - front_overlap / 100.0)
     across = across_w * (1 - side_overlap / 100.0)
+    _refuse_too_many_photos(area_geom, along, across, 2 if grid == "double" else 1, cam.name)
     s_setup.progress(1.0)
 
     directions = [_best_direction(area_geom, across) if direction_deg is None else float(direction_deg) % 180.0]
@@ -802,12 +807,17 @@ def _check_options(
 def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
     """The AOI as one valid (multi)polygon in the working CRS, with what was repaired."""
     import geopandas as gpd
+    import pyogrio
     import shapely
 
     if not path.exists():
         raise InputError("no such file", path=path)
     try:
+        if path.is_file() and not len(pyogrio.list_layers(path)):
+            raise InputError("the AOI file holds no layer (an empty file?): give an area", path=path)
         df = gpd.read_file(path, engine="pyogrio")
+    except InputError:
+        raise
     except Exception as e:  # pyogrio raises its own DataSourceError and friends
         raise InputError(f"cannot read the AOI: {e}", path=path) from None
     notes = []
@@ -818,6 +828,16 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
         raise InputError(f"the AOI holds no polygon ({', '.join(kinds) or 'no geometry'}): give an area", path=path)
     if df.crs is None:
         raise InputError("the AOI has no CRS", path=path)
+    xy = shapely.get_coordinates(polys)
+    if not np.isfinite(xy).all():
+        raise InputError("the AOI has a coordinate that is not a number (NaN or infinite)", path=path)
+    src_crs = CRS.from_user_input(df.crs)
+    if src_crs.is_geographic and (np.abs(xy[:, 0]).max() > 180 or np.abs(xy[:, 1]).max() > 90):
+        raise InputError(
+            f"the AOI's coordinates ({xy[0, 0]:.0f}, {xy[0, 1]:.0f}) are not degrees, though its CRS "
+            f"({src_crs.name}) says so: projected numbers? give the file its real CRS",
+            path=path,
+        )
     geom = shapely.union_all(polys)
     if not geom.is_valid:
         reason = shapely.is_valid_reason(geom)
@@ -826,11 +846,14 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
         notes.append(
             f"the AOI was not a valid polygon ({reason}): repaired by GEOS make_valid; check it in plan.gpkg, layer aoi"
         )
-    src = CRS.from_user_input(df.crs)
+    if geom.is_empty or geom.area <= 0.0:
+        raise InputError("the AOI's polygon has no area (its points lie on a line): give an area", path=path)
+    src = src_crs
     if crs is not None:
         work = parse_crs(crs)
         if not work.is_projected:
             raise InputError(f"--crs {crs} is not projected: give a projected CRS (metres)")
+        _refuse_untrue_scale(work, _reproject(geom, src, WGS84).centroid)
     elif src.is_projected:
         work = src
     else:  # the UTM zone of the AOI's centre, also when the AOI crosses a zone edge
@@ -846,6 +869,24 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
     return geom, work, notes
 
 
+#: A plan's metres are the ground's: a CRS whose scale at the AOI is further from 1 than this
+#: (Web Mercator: 1.28 at 38 deg N) would put the photos too close or too far apart.
+MAX_SCALE_ERROR = 0.01
+
+
+def _refuse_untrue_scale(crs: CRS, centre_lonlat: Any) -> None:
+    from pyproj import Proj
+
+    f = Proj(crs).get_factors(float(centre_lonlat.x), float(centre_lonlat.y))
+    k = max(abs(f.meridional_scale - 1.0), abs(f.parallel_scale - 1.0))
+    if not math.isfinite(k) or k > MAX_SCALE_ERROR:
+        raise InputError(
+            f"--crs {crs_to_text(crs)}: a metre of it is {1 / f.parallel_scale:.3f} m on the ground here, so "
+            "spacings and GSD planned in it would be off: plan in a CRS true to the ground (the default, "
+            "the AOI's UTM zone) and reproject the products if that CRS is needed"
+        )
+
+
 def _reproject(geom: Any, src: CRS, dst: CRS) -> Any:
     import shapely
 
@@ -855,18 +896,54 @@ def _reproject(geom: Any, src: CRS, dst: CRS) -> Any:
     return shapely.transform(geom, lambda c: np.c_[t.transform(c[:, 0], c[:, 1])])
 
 
-def _ground_stats(surface: Surface, area: Any) -> dict[str, float]:
+#: More photos than any one flight plan holds (a big mapping job is a few thousand): refused with
+#: the count before anything is built (a county at 2 cm would take tens of GB).
+MAX_PLAN_PHOTOS = 50_000
+
+
+def _refuse_too_many_photos(area: Any, along_m: float, across_m: float, grids: int, camera: str) -> None:
+    x0, y0, x1, y1 = area.bounds
+    lines = (max(x1 - x0, y1 - y0) / across_m + 1) * grids
+    n = grids * area.area / (along_m * across_m) + lines
+    if n > MAX_PLAN_PHOTOS:
+        count = f"{n / 1e6:.1f} M" if n >= 1e6 else f"{n:,.0f}"
+        raise InputError(
+            f"the plan would take about {count} photos ({area.area / 1e6:,.2f} km² at {along_m:.2f} x {across_m:.2f} m "
+            f"spacing with {camera}), over the {MAX_PLAN_PHOTOS:,} a plan holds: split the AOI, or fly higher "
+            "(a larger GSD)"
+        )
+
+
+def _ground_stats(surface: Surface, area: Any, dtm: Any = None) -> dict[str, float]:
     import shapely
+
+    from .surface import GridSurface, sample_grid
 
     x0, y0, x1, y1 = area.bounds
     n = 60
     xs, ys = np.meshgrid(np.linspace(x0, x1, n), np.linspace(y0, y1, n))
     inside = shapely.contains_xy(area, xs, ys)
-    z = surface.elevation(xs[inside], ys[inside]) if inside.any() else np.array([])
+    if not inside.any():
+        inside = np.ones_like(inside)
+    covered = 1.0
+    if isinstance(surface, GridSurface):
+        # the DTM itself, not the ground carried beyond its edge (read with extend)
+        c, r = surface.colrow(xs[inside], ys[inside])
+        covered = float(np.isfinite(sample_grid(surface.grid, c, r)).mean())
+        if covered < 0.5:
+            gx0, gy0 = surface.transform * (0, 0)
+            gx1, gy1 = surface.transform * (surface.grid.shape[1], surface.grid.shape[0])
+            far_m = float(np.hypot((x0 + x1 - gx0 - gx1) / 2, (y0 + y1 - gy0 - gy1) / 2))
+            raise InputError(
+                f"the DTM covers {100 * covered:.0f} % of the AOI (their centres are {far_m / 1000:,.1f} km apart): "
+                "give a DTM of this area",
+                path=dtm,
+            )
+    z = surface.elevation(xs[inside], ys[inside])
     z = z[np.isfinite(z)]
     if z.size == 0:
-        raise InputError("the DTM does not cover the AOI")
-    return {"min": float(z.min()), "median": float(np.median(z)), "max": float(z.max())}
+        raise InputError("the DTM does not cover the AOI", path=dtm)
+    return {"min": float(z.min()), "median": float(np.median(z)), "max": float(z.max()), "covered": covered}
 
 
 def _footprint_shape(intr: Intrinsics, pitch_deg: float, agl: float) -> tuple[float, float, float]:

@@ -26,6 +26,10 @@ def _path_in(p: Param, v: Any, *, want_dir: bool) -> Path:
     if want_dir and not path.is_dir():
         raise ParameterError(p.name, f"not a folder: {path}")
     if not want_dir and path.is_dir():
+        # a product's folder for its one file of the kind (plan's folder for its plan.gpkg)
+        inside = sorted(f for f in path.iterdir() if f.is_file() and f.suffix.lower() in p.extensions)
+        if len(inside) == 1:
+            return inside[0]
         raise ParameterError(p.name, f"is a folder, expected a file: {path}")
     return path
 
@@ -312,6 +316,10 @@ def _check_writable(p: Param, path: Path) -> None:
     """Before the work, not after it: the output's folder can be written and has room."""
     import shutil
 
+    if p.type == "folder" and path.exists() and not path.is_dir():
+        raise ParameterError(p.name, f"{path} exists and is a file: give a folder")
+    if p.type != "folder" and path.is_dir():
+        raise ParameterError(p.name, f"{path} is a folder: give a file's path")
     where = path if p.type == "folder" and path.is_dir() else path.parent
     while not where.exists() and where != where.parent:  # folders still to be made
         where = where.parent
@@ -374,3 +382,38 @@ def describe() -> dict[str, Any]:
 
 def describe_json(indent: int | None = 2) -> str:
     return json.dumps(describe(), indent=indent)
+
+
+_PYTHON_TYPES: dict[str, tuple[tuple[type, ...], str]] = {
+    "folder": ((str, os.PathLike), "a path"),
+    "file": ((str, os.PathLike), "a path"),
+    "raster": ((str, os.PathLike), "a path"),
+    "vector": ((str, os.PathLike), "a path"),
+    "pointcloud": ((str, os.PathLike), "a path"),
+    "number": ((int, float), "a number"),
+    "integer": ((int,), "an integer"),
+    "enum": ((str,), "one of the choices (a string)"),
+    "bool": ((bool,), "True or False"),
+    "string": ((str,), "a string"),
+}
+
+
+def check_call(function_ref: str, bound: dict[str, Any]) -> None:
+    """The Python API's door: each argument of a core function is of its declared type, refused
+    with the parameter's name (a ParameterError, as the CLI's) rather than a TypeError from deep
+    inside. Values are checked by the function itself."""
+    alg = next((a for a in list_algorithms() if a.function_ref == function_ref), None)
+    if alg is None:
+        return
+    import numpy as np
+
+    for p in alg.params:
+        value = bound.get(p.name)
+        if value is None or value is p.default or p.type == "crs":
+            continue
+        kinds, said = _PYTHON_TYPES[p.type]
+        ok = isinstance(value, kinds) and not (p.type in ("number", "integer") and isinstance(value, bool))
+        if p.type in ("number", "integer") and isinstance(value, (np.integer, np.floating)):
+            ok = p.type == "number" or isinstance(value, np.integer)
+        if not ok:
+            raise ParameterError(p.name, f"{value!r} is {type(value).__name__}, not {said}")
