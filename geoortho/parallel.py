@@ -183,7 +183,7 @@ def process_pool(
     pool = cf.ProcessPoolExecutor(
         n_procs, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(), initializer, initargs)
     )
-    with _workers_skip_main():
+    with _workers_skip_main(), _children_ignore_sigint():
         for _ in range(n_procs):
             # start the workers now (they import while the caller prepares): a spawn pool starts
             # one process per submit until it has them all
@@ -222,6 +222,24 @@ def _workers_skip_main() -> Iterator[None]:
             yield
         finally:
             spawn.get_preparation_data = original
+
+
+@contextmanager
+def _children_ignore_sigint() -> Iterator[None]:
+    """Workers started in this block ignore SIGINT (an ignored signal stays ignored through exec,
+    and Python then installs no KeyboardInterrupt): Ctrl-C reaches the whole process group, and
+    the caller alone must answer it (one "canceled" line, the pool shut), not every worker with a
+    traceback. Only the main thread may change a handler; elsewhere nothing changes."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _die_with_parent() -> None:

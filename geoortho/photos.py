@@ -429,6 +429,12 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     path = Path(path)
     warnings: list[str] = []
     try:
+        path.name.encode("utf-8")
+    except UnicodeEncodeError:
+        # the name could not be written in any product (GeoPackage, JSON, the report)
+        shown = path.name.encode("utf-8", "backslashreplace").decode("ascii", "replace")
+        raise InputError(f"the file name {shown} is not UTF-8: rename the photo") from None
+    try:
         with catch_warnings():
             # a header claiming 90-180 M pixels is checked against its data below, not warned of
             simplefilter("ignore", Image.DecompressionBombWarning)

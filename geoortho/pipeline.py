@@ -760,6 +760,36 @@ def _products_intact(record: dict[str, Any], root: Path, hasher: Hasher) -> bool
     return True
 
 
+def _check_given(project: Project) -> None:
+    """The files given are read now, not when their stage comes minutes into the run: a DSM that
+    is no elevation raster, a cloud that is no point cloud, a GCP file that does not parse."""
+    import rasterio
+    from rasterio.errors import RasterioIOError
+
+    from .gcp.io import read_gcp_file
+    from .photos import list_images
+    from .surface import _refuse_image
+
+    list_images(project.images)
+    if project.dsm is not None:
+        try:
+            with rasterio.open(project.dsm) as ds:
+                if ds.crs is None:
+                    raise InputError("the DSM has no CRS", path=project.dsm)
+                _refuse_image(ds, project.dsm)
+        except RasterioIOError as e:
+            raise InputError(f"not an elevation raster ({e})", path=project.dsm) from None
+    if project.points is not None and project.points.suffix.lower() in (".las", ".laz"):
+        from .pointcloud import _check_las_header
+
+        if not project.points.is_file():
+            raise InputError("no such file", path=project.points)
+        _check_las_header(project.points)
+    for gcps in (project.gcp_file, project.gcp_list):
+        if gcps is not None:
+            read_gcp_file(gcps)
+
+
 def check_project_folder(output: Path, force: bool = False) -> None:
     """Refuse a folder that holds something other than a geoortho project (no run.json), unless
     ``force``: a mistyped --output must not mix products into, or overwrite, someone's files."""
@@ -781,15 +811,21 @@ def parse_stage_options(text: str, stages: Sequence[Stage] = STAGES) -> dict[str
     """Stage options from JSON text or a JSON file: ``{"sfm": {"max_image_size": 2048}, ...}``.
     Each stage's options are its own algorithm's parameters (one declaration per parameter);
     the ones the chain sets itself (inputs, outputs) cannot be given."""
-    from .processing.registry import convert_value, get_algorithm
+    from .processing.registry import check_in_context, convert_value, get_algorithm
 
     if not text:
         return {}
     path = Path(text)
+    is_file = False
     try:
-        is_file = not text.lstrip().startswith("{") and path.is_file()
+        # JSON text starts with a bracket, a quote or a digit; a file name longer than the system
+        # allows is no file either
+        is_file = text.lstrip()[:1] not in set('{["0123456789-') and path.is_file()
+    except OSError:
+        pass
+    try:
         raw = json.loads(path.read_text() if is_file else text)
-    except ValueError as e:
+    except (ValueError, OSError) as e:
         raise InputError(f"stage options: not JSON ({e})", path=path if is_file else None) from None
     if not isinstance(raw, dict) or not all(isinstance(v, dict) for v in raw.values()):
         raise InputError('stage options: give {"stage": {"option": value, ...}, ...}')
@@ -805,7 +841,8 @@ def parse_stage_options(text: str, stages: Sequence[Stage] = STAGES) -> dict[str
                 raise InputError(f"stage options: {name} has no option {key}")
             if key in chained:
                 raise InputError(f"stage options: {name}.{key} is set by the run itself")
-            convert_value(params[key], value)  # a bad value is refused now, not an hour into the run
+            # a bad value is refused now, not an hour into the run
+            check_in_context(name, key, convert_value(params[key], value))
     return raw
 
 
@@ -951,6 +988,7 @@ def run(
         raise InputError("give --gcp-file (markers to find) or --gcp-list (observations made), not both")
     if project.checkpoints and project.gcp_file is None and project.gcp_list is None:
         raise InputError("checkpoints are named but no GCP file is given (--gcp-file or --gcp-list)")
+    _check_given(project)
     results = run_stages(project, rerun_from=rerun_from, feedback=fb, force=force)
     by_name = {r.name: r for r in results}
     ran = [r.name for r in results if r.status == "ran"]

@@ -204,8 +204,14 @@ def test_a_failing_stage_keeps_earlier_products_and_the_report_says_which(
 
     project = tmp_path / "failing"
     shutil.copytree(first_run.output, project)
+    import laspy
+    import numpy as np
+
+    # a cloud whose header reads (checked before any stage) but that has no CRS: dem fails on it
     bad_cloud = tmp_path / "broken.laz"
-    bad_cloud.write_bytes(b"LASF" + b"\0" * 50)
+    las = laspy.create(point_format=3, file_version="1.4")
+    las.x, las.y, las.z = np.arange(10.0), np.arange(10.0), np.zeros(10)
+    las.write(str(bad_cloud))
     code = main(["run", *_cli(tiny_survey, project, checkpoint, json.dumps(FAST), "--points", str(bad_cloud))])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "stage dem" in err[0] and "report.html" in err[0]

@@ -128,6 +128,30 @@ def _check_geographic(name: str, lat: float, lon: float, path: Path, line: int) 
         raise InputError(f"{name}: latitude {lat} / longitude {lon} out of range", path=path, line=line)
 
 
+#: A GCP this far from the others' middle is not of the same site (one survey spans kilometres).
+STRAY_KM = 100.0
+
+
+def _refuse_strays(points: list[GroundControlPoint], path: Path) -> None:
+    """A row far from all the others under a projected CRS: most often latitude and longitude among
+    eastings and northings (38.75, -9.19 read as metres lies near the grid's origin). It would be
+    predicted in no photo and dropped silently: refused, naming its line."""
+    xy = np.array([(p.x, p.y) for p in points])
+    mid = np.median(xy, axis=0)
+    far = np.hypot(*(xy - mid).T) / 1000.0
+    if len(points) < 3 or far.max() <= STRAY_KM:
+        return
+    k = int(np.argmax(far))
+    p = points[k]
+    degrees = abs(p.x) <= 180 and abs(p.y) <= 180
+    raise InputError(
+        f"GCP {p.name} ({p.x:g}, {p.y:g}) lies {far[k]:,.0f} km from the others"
+        + (": latitude and longitude among projected coordinates?" if degrees else ": is it of this site?"),
+        path=path,
+        line=p.line,
+    )
+
+
 def _finish(
     points: list[GroundControlPoint], crs: CRS, path: Path, observations: tuple[ImagePoint, ...] = ()
 ) -> GcpSet:
@@ -145,6 +169,8 @@ def _finish(
             "or a compound one such as EPSG:32629+5773)",
             path=path,
         )
+    if crs.is_projected:
+        _refuse_strays(points, path)
     seen: dict[str, GroundControlPoint] = {}
     unique = []
     for p in points:

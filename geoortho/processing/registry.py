@@ -159,14 +159,21 @@ def convert_values(alg: Algorithm, values: dict[str, Any]) -> dict[str, Any]:
             raise ParameterError(p.name, "is required")
         else:
             kwargs[p.name] = p.default
-    crs = kwargs.get("crs")
-    if crs is not None and alg.id not in _GEOGRAPHIC_CRS_OK and not crs.is_projected:
-        raise ParameterError(
-            "crs",
-            f"{crs.name} is not projected: {alg.id} needs a map grid in metres or feet (e.g. the photos' UTM zone)",
-        )
+    if kwargs.get("crs") is not None:
+        check_in_context(alg.id, "crs", kwargs["crs"])
     _refuse_overwriting_inputs(alg, kwargs)
     return kwargs
+
+
+def check_in_context(algorithm_id: str, name: str, value: Any) -> None:
+    """What a value's type alone does not say of it: a CRS must be projected for the algorithms
+    that grid in it."""
+    if name == "crs" and value is not None and algorithm_id not in _GEOGRAPHIC_CRS_OK and not value.is_projected:
+        raise ParameterError(
+            "crs",
+            f"{value.name} is not projected: {algorithm_id} needs a map grid in metres or feet (e.g. the photos' "
+            "UTM zone)",
+        )
 
 
 def _same_file(a: Path, b: Path) -> bool:
