@@ -931,8 +931,8 @@ def _ground_stats(surface: Surface, area: Any, dtm: Any = None) -> dict[str, flo
         c, r = surface.colrow(xs[inside], ys[inside])
         covered = float(np.isfinite(sample_grid(surface.grid, c, r)).mean())
         if covered < 0.5:
-            gx0, gy0 = surface.transform * (0, 0)
-            gx1, gy1 = surface.transform * (surface.grid.shape[1], surface.grid.shape[0])
+            gx0, gy0 = surface.transform @ (0, 0)
+            gx1, gy1 = surface.transform @ (surface.grid.shape[1], surface.grid.shape[0])
             far_m = float(np.hypot((x0 + x1 - gx0 - gx1) / 2, (y0 + y1 - gy0 - gy1) / 2))
             raise InputError(
                 f"the DTM covers {100 * covered:.0f} % of the AOI (their centres are {far_m / 1000:,.1f} km apart): "

@@ -183,12 +183,12 @@ def process_pool(
     pool = cf.ProcessPoolExecutor(
         n_procs, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(), initializer, initargs)
     )
-    with _workers_skip_main(), _children_ignore_sigint():
-        for _ in range(n_procs):
-            # start the workers now (they import while the caller prepares): a spawn pool starts
-            # one process per submit until it has them all
-            pool.submit(os.getpid)
-    try:
+    try:  # a Ctrl-C held while the workers start is raised as they are: the pool is shut down then too
+        with _workers_skip_main(), _children_ignore_sigint():
+            for _ in range(n_procs):
+                # start the workers now (they import while the caller prepares): a spawn pool starts
+                # one process per submit until it has them all
+                pool.submit(os.getpid)
         yield pool
     finally:
         pool.shutdown(cancel_futures=True)
@@ -226,20 +226,21 @@ def _workers_skip_main() -> Iterator[None]:
 
 @contextmanager
 def _children_ignore_sigint() -> Iterator[None]:
-    """Workers started in this block ignore SIGINT (an ignored signal stays ignored through exec,
-    and Python then installs no KeyboardInterrupt): Ctrl-C reaches the whole process group, and
-    the caller alone must answer it (one "canceled" line, the pool shut), not every worker with a
-    traceback. Only the main thread may change a handler; elsewhere nothing changes."""
+    """Workers started in this block never see SIGINT: it is blocked here while they are started,
+    and a blocked signal stays blocked through fork and exec. Ctrl-C reaches the whole process
+    group; the caller alone must answer it (one "canceled" line, the pool shut down), not every
+    worker with a traceback. Blocked, not ignored: a Ctrl-C while the workers start waits and is
+    answered right after, not lost."""
     import signal
 
-    if threading.current_thread() is not threading.main_thread():
+    if not hasattr(signal, "pthread_sigmask"):
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def _die_with_parent() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
+import re
 import subprocess
 import sys
 import typing
@@ -211,3 +212,22 @@ def test_ortho_refuses_a_crs_in_feet(tiny_survey, tmp_path):
     with pytest.raises(geoortho.InputError, match="metres"):
         geoortho.ortho(tiny_survey.images, tmp_path / "o.tif", crs="EPSG:2227")
     assert not list(Path(tmp_path).iterdir())
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda g: g.footprints(123, 456), "images: 123 is int, not a path"),
+        (lambda g: g.dem("a.laz", "b.tif", resolution_m="0.5"), "resolution_m: '0.5' is str, not a number"),
+        (lambda g: g.gcp_find("i", "g.txt", "o.txt", workers="2"), "workers: '2' is str, not an integer"),
+        (lambda g: g.ortho("i", "o.tif", blend=True), "blend: True is bool, not one of the choices"),
+        (lambda g: g.dem(), "missing a required argument: 'points'"),
+    ],
+)
+def test_the_api_checks_argument_types_at_the_door(call, message):
+    """A wrong type is refused with the parameter's name (as the CLI refuses it), before any work,
+    never a bare TypeError from deep inside."""
+    import geoortho
+
+    with pytest.raises(geoortho.InputError, match=re.escape(message)):
+        call(geoortho)

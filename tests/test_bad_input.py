@@ -103,6 +103,14 @@ def _header_30000_px(p: Path) -> None:
     p.write_bytes(bytes(data))
 
 
+def _header_100_mp(p: Path) -> None:
+    """The SOF claims 10000 x 10000 px (under PIL's bomb limit), EXIF and the data say 960 x 640."""
+    data = bytearray(p.read_bytes())
+    sof = data.find(b"\xff\xc0")
+    data[sof + 5 : sof + 9] = struct.pack(">HH", 10000, 10000)
+    p.write_bytes(bytes(data))
+
+
 def _truncated(p: Path) -> None:
     p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
 
@@ -125,6 +133,7 @@ BAD_PHOTOS: dict[str, tuple[Callable[[Path], None], str]] = {
     "far_away": (_12000_km_away, "km from"),
     "focal_0": (_focal_0, "no focal length"),  # placeholders ignored: the camera is then unknown
     "bomb": (_header_30000_px, "M pixels"),
+    "header_lies": (_header_100_mp, "damaged header"),
     "truncated": (_truncated, "truncated"),
     "text": (_text, "not a readable image"),
     "empty": (_empty, "not a readable image"),
@@ -221,7 +230,143 @@ class Case:
     outputs: tuple[str, ...] = ()  # final output paths: present with code 0, absent otherwise
 
 
+PLAN = ("plan", "--camera", "DJI FC6310", "--gsd-cm", "2")
+
+CASES_ROUND3 = [
+    # outputs that would change a file inside an input folder, or add a photo to it
+    Case(
+        "dense/output-in-sfm",
+        ("dense", "--sfm", "{h}/sfm", "--images", "{s}/images", "--output", "{h}/sfm/points.laz"),
+        2,
+        "a file of the input folder",
+    ),
+    Case(
+        "gcp-find/review-over-a-photo",
+        (
+            "gcp-find",
+            "--images",
+            "{s}/images",
+            "--gcp-file",
+            "{s}/truth/gcp_utm.txt",
+            "--output",
+            "{o}/g.txt",
+            "--review",
+            "{s}/images/DJI_0001.JPG",
+        ),  # fmt: skip
+        2,
+        "review: .* a file of the input folder",
+    ),
+    Case(
+        "ortho/preview-over-a-photo",
+        ("ortho", "--images", "{s}/images", "--output", "{o}/o.tif", "--preview", "{s}/images/DJI_0002.JPG"),
+        2,
+        "preview: .* a file of the input folder",
+    ),
+    Case("ortho/output-among-photos", ("ortho", "--images", "{s}/images", "--output", "{s}/images/o.tif"), 2, "photo"),
+    Case("synth/a-folder-not-its-own", ("synth", "--output", "{h}/synth", "--preset", "tiny"), 2, "did not make"),
+    # silently wrong before
+    Case(
+        "footprints/rgba-dsm",
+        ("footprints", "--images", "{s}/images", "--output", "{o}/fp.gpkg", "--dsm", "{s}/truth/ortho.tif"),
+        2,
+        "an image .*not an elevation raster",
+    ),
+    Case(
+        "plan/web-mercator",
+        (*PLAN, "--aoi", "{h}/aoi_good.geojson", "--output", "{o}/p", "--crs", "EPSG:3857"),
+        2,
+        "0.780 m on the ground",
+    ),  # fmt: skip
+    Case(
+        "plan/dtm-20-km-away",
+        (*PLAN, "--aoi", "{h}/aoi_good.geojson", "--output", "{o}/p", "--dtm", "{h}/dtm_far.tif"),
+        2,
+        "covers 0 % of the AOI .*20.5 km",
+    ),  # fmt: skip
+    # runaway memory
+    Case("plan/county-at-2-cm", (*PLAN, "--aoi", "{h}/aoi_county.geojson", "--output", "{o}/p"), 2, "M photos"),
+    Case(
+        "plan/16-px-camera",
+        (
+            "plan",
+            "--aoi",
+            "{h}/aoi_good.geojson",
+            "--output",
+            "{o}/p",
+            "--sensor-width-mm",
+            "6",
+            "--focal-mm",
+            "8",
+            "--image-width-px",
+            "16",
+            "--image-height-px",
+            "16",
+            "--gsd-cm",
+            "2",
+        ),  # fmt: skip
+        2,
+        "M photos",
+    ),
+    # "unexpected error" before
+    Case("plan/zero-area", (*PLAN, "--aoi", "{h}/aoi_zero.geojson", "--output", "{o}/p"), 2, "no area"),
+    Case("plan/nan", (*PLAN, "--aoi", "{h}/aoi_nan.geojson", "--output", "{o}/p"), 2, "not a number"),
+    Case(
+        "plan/utm-as-degrees", (*PLAN, "--aoi", "{h}/aoi_utm_as_degrees.geojson", "--output", "{o}/p"), 2, "not degrees"
+    ),  # fmt: skip
+    Case("plan/empty-kml", (*PLAN, "--aoi", "{h}/aoi_empty.kml", "--output", "{o}/p"), 2, "holds no layer"),
+    Case("plan/output-a-file", (*PLAN, "--aoi", "{h}/aoi_good.geojson", "--output", "{h}/a_file"), 2, "is a file"),
+    Case(
+        "plan-check/output-a-file",
+        ("plan-check", "--images", "{s}/images", "--gcp-file", "{s}/truth/gcp_utm.txt", "--output", "{h}/a_file"),
+        2,
+        "is a file",
+    ),
+    Case(
+        "run/stage-options-300-characters",
+        (
+            "run",
+            "--images",
+            "{s}/images",
+            "--output",
+            "{o}/p",
+            "--stage-options",
+            "[" + ",".join(["1234567"] * 37) + "]",
+        ),
+        2,
+        "stage options",
+    ),
+    # validated before the first stage, not minutes into the run
+    Case(
+        "run/ortho-crs-geographic",
+        (
+            "run",
+            "--images",
+            "{s}/images",
+            "--output",
+            "{o}/p",
+            "--stage-options",
+            '{{"ortho": {{"crs": "EPSG:4326"}}}}',
+        ),  # braces: str.format
+        2,
+        "not projected",
+    ),
+    Case(
+        "run/dsm-not-a-raster",
+        ("run", "--images", "{s}/images", "--output", "{o}/p", "--dsm", "{h}/dsm.tif"),
+        2,
+        "not an elevation raster",
+    ),  # fmt: skip
+    # misleading before
+    Case(
+        "gcp-find/degrees-under-utm",
+        ("gcp-find", "--images", "{s}/images", "--gcp-file", "{h}/gcp/degrees_row.txt", "--output", "{o}/g.txt"),
+        2,
+        r"degrees_row.txt:6: .*latitude and longitude",
+    ),
+]
+
 CASES = [
+    *CASES_ROUND3,
     # 3-4: photos, one bad photo never aborts a batch
     Case(
         "footprints/bad-photos",
@@ -461,6 +606,42 @@ def make_hostile(survey: Path, folder: Path) -> None:
     )
 
 
+def make_hostile_round3(survey: Path, folder: Path) -> None:
+    """Issue 49's inputs: an sfm-like folder with its cloud, AOIs no plan can fly, a DTM 20 km away,
+    a folder synth did not make, a GCP row in degrees under a UTM header, a text file as a DSM."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    (folder / "sfm").mkdir()
+    shutil.copy(folder / "points.laz", folder / "sfm" / "points.laz")
+    (folder / "synth" / "images").mkdir(parents=True)
+    (folder / "synth" / "images" / "mine.txt").write_text("my notes")
+    ring = [[-9.19, 38.747], [-9.187, 38.747], [-9.187, 38.749], [-9.19, 38.749], [-9.19, 38.747]]
+    aois = {
+        "good": ring,
+        "zero": [[-9.19, 38.747], [-9.187, 38.747], [-9.19, 38.747]],
+        "nan": [[-9.19, 38.747], [-9.187, float("nan")], [-9.187, 38.749], [-9.19, 38.747]],
+        "utm_as_degrees": [[483600, 4288700], [483800, 4288700], [483800, 4288900], [483600, 4288700]],
+        "county": [[-9.5, 38.5], [-8.3, 38.5], [-8.3, 39.4], [-9.5, 39.4], [-9.5, 38.5]],
+    }
+    for name, coords in aois.items():
+        geo = {"type": "Polygon", "coordinates": [coords]}
+        fc = {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, "geometry": geo}]}
+        (folder / f"aoi_{name}.geojson").write_text(json.dumps(fc).replace("NaN", "NaN"))
+    (folder / "aoi_empty.kml").write_text(
+        '<?xml version="1.0"?><kml xmlns="http://www.opengis.net/kml/2.2"><Document></Document></kml>'
+    )
+    with rasterio.open(
+        folder / "dtm_far.tif", "w", driver="GTiff", width=100, height=100, count=1, dtype="float32",
+        crs="EPSG:32629", transform=from_origin(503600, 4288900, 10, 10),
+    ) as dst:  # fmt: skip
+        dst.write(np.full((100, 100), 50, np.float32), 1)
+    (folder / "a_file").write_text("not a folder")
+    (folder / "dsm.tif").write_text("not a raster")
+    rows = (survey / "truth" / "gcp_utm.txt").read_text().splitlines()
+    (folder / "gcp" / "degrees_row.txt").write_text("\n".join([*rows, "GCP99 38.7476 -9.1887 100.0"]) + "\n")
+
+
 def run_case(case: Case, survey: Path, hostile: Path, out: Path, quiet: bool = True) -> Outcome:
     out.mkdir(parents=True, exist_ok=True)
     fill = {"s": str(survey), "h": str(hostile), "o": str(out)}
@@ -506,6 +687,7 @@ def judge(case: Case, got: Outcome, survey: Path, hostile: Path, out: Path) -> l
 def hostile(tiny_survey, tmp_path_factory):
     folder = tmp_path_factory.mktemp("hostile")
     make_hostile(tiny_survey.output, folder)
+    make_hostile_round3(tiny_survey.output, folder)
     return folder
 
 

@@ -512,3 +512,47 @@ def test_ortho_on_a_dsm_in_feet_is_converted_and_said(first_run, tiny_survey, tm
                   dst_crs=a.crs, resampling=Resampling.bilinear)  # fmt: skip
         ok = (a.read_masks(1) > 0) & (want > 0)
         assert np.corrcoef(got[ok], want[ok])[0, 1] > 0.85  # 0.908 on the metre DSM; 0.37 before
+
+
+def test_report_never_overwrites_what_the_project_holds_or_was_made_from(first_run, tiny_survey, tmp_path):
+    project = _copy(first_run, tmp_path)
+    photo = sorted(tiny_survey.images.glob("*.JPG"))[0]
+    before = {
+        p: p.read_bytes() for p in (project / LEDGER_NAME, photo, tiny_survey.gcp_file, project / "dem" / "dsm.tif")
+    }
+    for target in before:
+        r = _geoortho("report", "--project", project, "--output", target)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and "destroy" in lines[0], r.stderr
+    assert all(p.read_bytes() == data for p, data in before.items())
+    r = _geoortho("report", "--project", project, "--output", project / "again.html")  # its own kind: fine
+    assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize(
+    ("command", "sig", "after_s"),
+    # ortho's 2.5 s: while its workers start (a Ctrl-C then was once ignored, once a traceback)
+    [("dense", "SIGINT", 1.5), ("ortho", "SIGINT", 1.5), ("ortho", "SIGINT", 2.5), ("dense", "SIGTERM", 1.5)],
+)
+def test_ctrl_c_or_sigterm_to_the_group_is_one_line_and_exit_130(
+    first_run, tiny_survey, tmp_path, command, sig, after_s
+):
+    """The signal reaches every process of the group (the terminal's Ctrl-C, systemd's stop): the
+    workers ignore SIGINT, the command says "canceled" once, exits 130, and leaves no process
+    and no temporary file."""
+    sfm = first_run.output / "sfm"
+    out = tmp_path / ("d.laz" if command == "dense" else "o.tif")
+    argv = [sys.executable, "-m", "geoortho", command, "--sfm", str(sfm), "--images", str(tiny_survey.images),
+            "--output", str(out), "--workers", "2", "--quiet"]  # fmt: skip
+    if command == "ortho":
+        argv += ["--resolution-m", "0.01"]  # long enough to be inside the work
+    proc = subprocess.Popen(argv, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(after_s)
+    os.killpg(proc.pid, getattr(signal, sig))
+    err = proc.communicate(timeout=120)[1].strip().splitlines()
+    assert proc.returncode == 130 and err == [f"geoortho {command}: canceled"], err
+    deadline = time.monotonic() + 10
+    while subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True).returncode == 0:
+        assert time.monotonic() < deadline, "a worker outlived its command by 10 s"
+        time.sleep(0.1)
+    assert not out.exists() and not list(tmp_path.glob(".*.tmp*"))

@@ -274,6 +274,12 @@ def test_check_a_plan_and_the_flown_photos(flown, tmp_path):
         if g["name"] in planned:
             assert g["n_expected"] == planned[g["name"]]["n_photos"]  # the same count as plan gave
     assert rep["under_overlap_pct"] < 1.0  # the plan covers its AOI at the overlap it asked
+    # the plan's folder, as the help says, through the CLI (its one .gpkg is the plan)
+    from geoortho.processing.cli import main
+
+    argv = ["plan-check", "--plan", str(p.plan.parent), "--gcp-file", str(far), "--output", str(tmp_path / "c_dir")]
+    assert main([*argv, "--marker-size-m", "1", "--quiet"]) == 0
+    assert json.loads((tmp_path / "c_dir" / "check.json").read_text())["gcps"] == rep["gcps"]
     # the flown photos, from their metadata and the take-off height (GPS off by a bias of ~1 m: a
     # GCP near the edge of a line is in or out of all its photos together): what gcp-find found lies between the sure
     # and the most sightings, +-1
