@@ -432,8 +432,7 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         path.name.encode("utf-8")
     except UnicodeEncodeError:
         # the name could not be written in any product (GeoPackage, JSON, the report)
-        shown = path.name.encode("utf-8", "backslashreplace").decode("ascii", "replace")
-        raise InputError(f"the file name {shown} is not UTF-8: rename the photo") from None
+        raise InputError(f"the file name {shown_name(path.name)} is not UTF-8: rename the photo") from None
     try:
         with catch_warnings():
             # a header claiming 90-180 M pixels is checked against its data below, not warned of
@@ -621,13 +620,18 @@ def list_images(folder: str | os.PathLike[str]) -> list[Path]:
     return files
 
 
+def shown_name(name: str) -> str:
+    """A file name as it can be printed and written anywhere: bytes that are not UTF-8 as \\xNN."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def _read_chunk(paths: Sequence[str], sensor_width_mm: float | None) -> list[Photo | tuple[str, str]]:
     out: list[Photo | tuple[str, str]] = []
     for p in paths:
         try:
             out.append(read_photo(p, sensor_width_mm))
         except InputError as e:
-            out.append((Path(p).name, e.reason))
+            out.append((shown_name(Path(p).name), e.reason))
     return out
 
 

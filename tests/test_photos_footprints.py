@@ -541,3 +541,25 @@ def test_footprints_agree_across_projected_crs(tiny_survey, tmp_path):
             a, b = row.geometry, other.loc[name].geometry
             assert a.symmetric_difference(b).area / a.area < 1e-4, (crs, name)
     assert layers["EPSG:32630"]["grid_convergence_deg"].mean() > 3.5  # west of its meridian
+
+
+def test_a_photo_named_in_other_than_utf8_is_skipped_and_named(tiny_survey, tmp_path, capsys):
+    """A file name of raw bytes (a camera card from another locale): that photo is skipped with its
+    reason, the batch goes on (it killed footprints when the name reached the GeoPackage)."""
+    import os
+
+    from geoortho.processing.cli import main
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for p in sorted(tiny_survey.images.glob("*.JPG")):
+        (folder / p.name).symlink_to(p)
+    odd = os.path.join(os.fsencode(folder), b"caf\xe9.JPG")
+    os.symlink(os.fsencode(sorted(tiny_survey.images.glob("*.JPG"))[0]), odd)
+    import geoortho
+
+    r = geoortho.footprints(folder, tmp_path / "fp.gpkg")
+    assert r.n_photos == 9 and r.n_skipped == 1
+    capsys.readouterr()
+    assert main(["footprints", "--images", str(folder), "--output", str(tmp_path / "fp2.gpkg")]) == 0
+    assert "not UTF-8" in capsys.readouterr().err
