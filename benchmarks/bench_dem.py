@@ -10,7 +10,7 @@ points) as a LAS file, then in one run:
   in a child process, so its peak memory is its own;
 * the same cloud with 10 far outliers (100 km off, one 10 km up): same DSM and DTM, and
   the peak memory against the clean run (issue 23);
-* the same DSM + DTM run made in tiles (``geoortho.demtiles``, which ``dem`` uses on its own
+* the same DSM + DTM run made in tiles (``geoortho.elevation.tiles``, which ``dem`` uses on its own
   past 8 M cells) and held whole, each in a child: peak memory, time, and how far the
   grids differ (issue 25: < 1 GB for 50 M points at any resolution; ``--points 50e6``).
 
@@ -64,7 +64,7 @@ def main() -> int:
     n = int(args.points)
     from scipy.stats import binned_statistic_2d
 
-    from geoortho.elevation import Grid, grid_points
+    from geoortho.elevation.gridding import Grid, grid_points
 
     with tempfile.TemporaryDirectory() as d:
         las = Path(d) / "cloud.las"
@@ -138,7 +138,7 @@ def _tiles_vs_whole(las: Path, d: Path, resolution_m: float, n: int) -> None:
     runs = {}
     for label, cells in (("tiles", 0), ("whole", 10**12)):
         out, dtm = d / f"{label}.tif", d / f"{label}_dtm.tif"
-        tiles = f"set:geoortho.demtiles.WHOLE_GRID_MAX_CELLS={cells}"
+        tiles = f"set:geoortho.elevation.tiles.WHOLE_GRID_MAX_CELLS={cells}"
         argv = ["geoortho", tiles, "dem", "--points", str(las), "--output", str(out)]
         dt, peak_kb, _ = _run_dem([*argv, "--dtm", str(dtm), "--resolution-m", str(resolution_m), "--json", "--quiet"])
         with rasterio.open(out) as a, rasterio.open(dtm) as b:

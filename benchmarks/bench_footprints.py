@@ -26,8 +26,8 @@ def peak_rss_mb() -> float:
 
 
 def bench_metadata(n: int, work: Path) -> None:
-    from geoortho.photos import read_photos
-    from geoortho.synthetic import synth
+    from geoortho.photos.metadata import read_photos
+    from geoortho.synthetic.survey import synth
 
     survey = synth(work / "survey", preset="tiny", seed=7)
     sources = sorted(survey.images.iterdir())
@@ -56,8 +56,8 @@ def bench_metadata(n: int, work: Path) -> None:
 
 
 def synthetic_cameras(n: int, rng: np.random.Generator):
-    from geoortho.camera import Intrinsics, Pose
-    from geoortho.footprint import PhotoCamera
+    from geoortho.core.camera import Intrinsics, Pose
+    from geoortho.photos.footprint import PhotoCamera
 
     intr = Intrinsics(5472, 3648, 3666.7)
     side = int(np.ceil(np.sqrt(n)))
@@ -74,8 +74,8 @@ def synthetic_cameras(n: int, rng: np.random.Generator):
 def bench_footprints(n: int) -> None:
     from rasterio.transform import from_origin
 
-    from geoortho.footprint import compute_footprints
-    from geoortho.surface import FlatSurface, GridSurface
+    from geoortho.core.surface import FlatSurface, GridSurface
+    from geoortho.photos.footprint import compute_footprints
 
     rng = np.random.default_rng(0)
     cams, side = synthetic_cameras(n, rng)

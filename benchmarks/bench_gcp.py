@@ -178,7 +178,7 @@ def main() -> int:
     ap.add_argument("--target", default="aruco")
     ap.add_argument("--seed", type=int, default=11)
     args = ap.parse_args()
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     with tempfile.TemporaryDirectory() as d:
         work = Path(d)

@@ -57,12 +57,12 @@ def _camera_rmse(cameras: Path, truth: Path) -> float:
 
 def measure(name: str, preset: str, seed: int, work: Path) -> dict[str, object]:
     from geoortho.errors import GeoorthoError
-    from geoortho.footprint import footprints
     from geoortho.gcp.find import gcp_find
     from geoortho.orthophoto import ortho
     from geoortho.orthophoto.quality import geolocation_shifts
-    from geoortho.reconstruction import sfm
-    from geoortho.synthetic import synth
+    from geoortho.photos.footprint import footprints
+    from geoortho.reconstruction.sparse import sfm
+    from geoortho.synthetic.survey import synth
 
     out: dict[str, object] = {"pathology": name}
     t0 = time.perf_counter()

@@ -30,14 +30,14 @@ COMMON = r"""
 import json, resource, sys, time
 import numpy as np
 from pathlib import Path
-from geoortho.camera import Intrinsics, Pose
-from geoortho.orthophoto import OrthoCamera
-from geoortho.surface import read_surface
+from geoortho.core.camera import Intrinsics, Pose
+from geoortho.core.camera import PosedCamera
+from geoortho.core.surface import read_surface
 
 def true_cameras(survey):
     c = json.loads((survey / "truth/survey.json").read_text())["camera"]
     intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"], tuple(c["distortion"]))
-    return [OrthoCamera(p["image"], survey / "images" / p["image"], intr,
+    return [PosedCamera(p["image"], survey / "images" / p["image"], intr,
                         Pose(np.array([p["x"], p["y"], p["z"]]), np.array(p["rotation_world_from_camera"])))
             for p in json.loads((survey / "truth/poses.json").read_text()) if not p["corrupt"]]
 
@@ -70,7 +70,7 @@ import rasterio
 from rasterio.control import GroundControlPoint
 from rasterio.merge import merge
 from rasterio.warp import reproject, Resampling
-from geoortho.camera import pixel_rays
+from geoortho.core.camera import pixel_rays
 survey, out, resolution, workers = json.loads(sys.argv[1])
 survey, out = Path(survey), Path(out)
 surf = read_surface(survey / "truth/dsm.tif")
@@ -128,7 +128,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as d:
         survey = args.survey
         if survey is None:
-            from geoortho.synthetic import synth
+            from geoortho.synthetic.survey import synth
 
             survey = synth(Path(d) / "survey", preset=args.preset).output
         res = json.loads((survey / "truth" / "survey.json").read_text())["gsd_cm_at_home_height"] / 100.0

@@ -26,7 +26,7 @@ E0, N0, CRS = 487000.0, 4290000.0, "EPSG:32629"
 
 
 def _hill_dtm(path: Path) -> None:
-    from geoortho.outputs import write_cog
+    from geoortho.core.outputs import write_cog
 
     cell = 10.0
     cols, rows = 600, 450
@@ -43,10 +43,10 @@ def _again_footprints(plan: Path, dtm: Path | None) -> None:
     """compute_footprints on the plan's own cameras (what plan timed inside itself)."""
     import json
 
-    from geoortho.camera import Intrinsics, Pose, rotation_from_ypr
-    from geoortho.flightplan import _Cam
-    from geoortho.footprint import compute_footprints
-    from geoortho.surface import FlatSurface, read_surface
+    from geoortho.core.camera import Intrinsics, Pose, rotation_from_ypr
+    from geoortho.core.surface import FlatSurface, read_surface
+    from geoortho.photos.footprint import compute_footprints
+    from geoortho.planning.plan import _Cam
 
     photos = gpd.read_file(plan, layer="photos")
     c = json.loads(plan.with_name("summary.json").read_text())["camera"]
@@ -59,7 +59,7 @@ def _again_footprints(plan: Path, dtm: Path | None) -> None:
 
 def main() -> None:
     import geoortho
-    from geoortho.flightplan import min_module_px
+    from geoortho.planning.plan import min_module_px
 
     work = Path(tempfile.mkdtemp(prefix="bench_plan_"))
     aoi = work / "aoi.geojson"

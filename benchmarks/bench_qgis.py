@@ -49,7 +49,7 @@ def main() -> None:
         return
 
     from geoortho.qgis_provider.interpreter import load_description
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     work = Path(tempfile.mkdtemp(prefix="bench-qgis-"))
     survey = synth(work / "survey", preset=args.preset, seed=1)

@@ -33,7 +33,7 @@ DICTIONARY = "DICT_4X4_250"
 
 def make_survey(folder: Path, n_photos: int, image_px: int, seed: int = 0) -> tuple[Path, int]:
     """The small scene widened to about ``n_photos`` photos (same altitude and overlaps)."""
-    from geoortho import synthetic
+    from geoortho.synthetic import survey as synthetic
 
     base = synthetic.PRESETS["small"]
     k = math.sqrt(n_photos / 35.0)  # the small preset flies 35 photos over 80 x 60 m

@@ -165,7 +165,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as d:
         survey = args.survey
         if survey is None:
-            from geoortho.synthetic import synth
+            from geoortho.synthetic.survey import synth
 
             survey = synth(Path(d) / "survey", preset=args.preset).output
         images = survey / "images"

@@ -2,7 +2,7 @@
 
 Positives: a target (checkerboard, cross, circle, or a coded ArUco marker) rendered into a crop
 of a real drone photo (``../shared/data/real``: toledo, Brighton, Mini 4 Pro, findgcp) — 8 × 8
-supersampled from :func:`geoortho.markers.target_reflectance`, as neutral paint (the same level in
+supersampled from :func:`geoortho.gcp.markers.target_reflectance`, as neutral paint (the same level in
 each channel of the colour crop), then the whole crop motion-blurred
 with synth's kernel (half the trials, up to half the marker side), a saturating glare spot on a
 third, sensor noise and JPEG — at a random size (10–40 px), rotation, perspective shear and
@@ -50,9 +50,9 @@ def trial(args: tuple[int, str, str, bool]) -> dict:
     place known to about a pixel: :func:`geoortho.gcp.detect.local_prediction`)."""
     seed, kind, role, near = args
     from geoortho.gcp.detect import paint_channel
+    from geoortho.gcp.markers import CODED, TARGETS, marker_cells, paint_target, target_half_extent
     from geoortho.gcp.targets import THRESHOLDS, _affine, estimate_motion_blur, fit_target
-    from geoortho.markers import CODED, TARGETS, marker_cells, paint_target, target_half_extent
-    from geoortho.synthetic import motion_kernel
+    from geoortho.synthetic.survey import motion_kernel
 
     rng = np.random.default_rng(seed)
     photos = real_photos()
@@ -64,7 +64,7 @@ def trial(args: tuple[int, str, str, bool]) -> dict:
     yaw = rng.uniform(0, 2 * math.pi)
     rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
     tilt = np.diag([1.0, -1.0]) @ np.array([[1.0, rng.normal(0, 0.05)], [0.0, 1 + rng.normal(0, 0.08)]])
-    base = side * rot @ tilt  # pixels per side along east and north, as a Window gives it
+    base = side * rot @ tilt  # pixels per side along east and north, as a SearchWindow gives it
     cx, cy = CROP / 2 + rng.uniform(-60, 60), CROP / 2 + rng.uniform(-60, 60)
     marker_id = int(rng.integers(0, 50))
     cells = marker_cells(DICTIONARY, marker_id) if kind in CODED else None

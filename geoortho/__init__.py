@@ -10,7 +10,7 @@ import importlib
 import logging
 from typing import Any
 
-__version__ = "0.1.0"
+from geoortho.version import __version__ as __version__  # the package's own attribute
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
@@ -19,36 +19,36 @@ logging.getLogger(__name__).addHandler(logging.NullHandler())
 # never replace one of these with a submodule), with its result dataclass.
 _EXPORTS = {
     # the algorithms, in the order of the chain
-    "synth": "geoortho.synthetic",
-    "footprints": "geoortho.footprint",
+    "synth": "geoortho.synthetic.survey",
+    "footprints": "geoortho.photos.footprint",
     "gcp_find": "geoortho.gcp.find",
-    "sfm": "geoortho.reconstruction",
-    "dense": "geoortho.densify",
-    "dem": "geoortho.elevation",
+    "sfm": "geoortho.reconstruction.sparse",
+    "dense": "geoortho.reconstruction.dense",
+    "dem": "geoortho.elevation.gridding",
     "ortho": "geoortho.orthophoto.mosaic",
-    "run": "geoortho.pipeline",
-    "report": "geoortho.reporting",
-    "demo": "geoortho.demonstration",
-    "plan": "geoortho.flightplan",
-    "check_plan": "geoortho.flightplan",
+    "run": "geoortho.chain.pipeline",
+    "report": "geoortho.chain.reporting",
+    "demo": "geoortho.chain.demonstration",
+    "plan": "geoortho.planning.plan",
+    "check_plan": "geoortho.planning.plan",
     # what they return
-    "SynthResult": "geoortho.synthetic",
-    "FootprintResult": "geoortho.footprint",
+    "SynthResult": "geoortho.synthetic.survey",
+    "FootprintResult": "geoortho.photos.footprint",
     "GcpFindResult": "geoortho.gcp.find",
-    "SfmResult": "geoortho.reconstruction",
-    "DenseResult": "geoortho.densify",
-    "DemResult": "geoortho.elevation",
+    "SfmResult": "geoortho.reconstruction.sparse",
+    "DenseResult": "geoortho.reconstruction.dense",
+    "DemResult": "geoortho.elevation.gridding",
     "OrthoResult": "geoortho.orthophoto.mosaic",
-    "RunResult": "geoortho.pipeline",
-    "ReportResult": "geoortho.reporting",
-    "DemoResult": "geoortho.demonstration",
-    "PlanResult": "geoortho.flightplan",
-    "PlanCheckResult": "geoortho.flightplan",
+    "RunResult": "geoortho.chain.pipeline",
+    "ReportResult": "geoortho.chain.reporting",
+    "DemoResult": "geoortho.chain.demonstration",
+    "PlanResult": "geoortho.planning.plan",
+    "PlanCheckResult": "geoortho.planning.plan",
     # the building blocks around them
     "run_algorithm": "geoortho.processing.registry",
-    "read_photos": "geoortho.photos",
-    "read_photo": "geoortho.photos",
-    "Photo": "geoortho.photos",
+    "read_photos": "geoortho.photos.metadata",
+    "read_photo": "geoortho.photos.metadata",
+    "Photo": "geoortho.photos.metadata",
     "read_gcp_file": "geoortho.gcp.io",
     "GcpSet": "geoortho.gcp.io",
     "Feedback": "geoortho.feedback",
@@ -87,12 +87,12 @@ def _checked(function: Any, ref: str) -> Any:
 
     @functools.wraps(function)
     def door(*args: Any, **kwargs: Any) -> Any:
-        from .processing.registry import check_call
+        from geoortho.processing.registry import check_call
 
         try:
             bound = signature.bind(*args, **kwargs)
         except TypeError as e:
-            from .errors import InputError
+            from geoortho.errors import InputError
 
             raise InputError(f"{function.__name__}(): {e}") from None
         check_call(ref, dict(bound.arguments))

@@ -2,7 +2,7 @@
 
 import sys
 
-from .processing.cli import main
+from geoortho.processing.cli import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -16,7 +16,7 @@ import time
 from collections.abc import Iterable, Iterator, Sequence
 from typing import IO, Any, TypeVar
 
-from .errors import CanceledError
+from geoortho.errors import CanceledError
 
 __all__ = [
     "Feedback",

@@ -186,7 +186,7 @@ def main():
     C = np.concatenate(allc)
     t_pairs = time.perf_counter() - t1
     print(f"{len(neigh)} reference photos, {n_raw} raw points, {len(P)} consistent in {t_pairs:.1f}s")
-    from geoortho.pointcloud import write_las
+    from geoortho.core.pointcloud import write_las
 
     write_las(out / "dense.laz", P, crs=crs, rgb=C.astype(np.float64) / 255.0)
     print(json.dumps({"points": len(P), "seconds": time.perf_counter() - t0}))

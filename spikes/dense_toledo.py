@@ -66,7 +66,7 @@ def _pair_shifts(a, b, surface, ground_z: float) -> list[float]:
 def main() -> None:
     import geoortho
     from geoortho.orthophoto.cameras import cameras_from_sfm
-    from geoortho.surface import FlatSurface, read_surface
+    from geoortho.core.surface import FlatSurface, read_surface
 
     work = Path(sys.argv[1] if len(sys.argv) > 1 else "/tmp/dense_toledo")
     work.mkdir(parents=True, exist_ok=True)

@@ -12,28 +12,28 @@ from geoortho.feedback import Feedback
 
 @pytest.fixture(scope="session")
 def tiny_survey(tmp_path_factory: pytest.TempPathFactory):
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     return synth(tmp_path_factory.mktemp("tiny"), preset="tiny", seed=3, workers=os.cpu_count() or 1)
 
 
 @pytest.fixture(scope="session")
 def small_survey(tmp_path_factory: pytest.TempPathFactory):
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     return synth(tmp_path_factory.mktemp("small"), preset="small", seed=1)
 
 
 @pytest.fixture(scope="session")
 def oblique_survey(tmp_path_factory: pytest.TempPathFactory):
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     return synth(tmp_path_factory.mktemp("oblique"), preset="oblique", seed=2)
 
 
 @pytest.fixture(scope="session")
 def hard_survey(tmp_path_factory: pytest.TempPathFactory):
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     return synth(tmp_path_factory.mktemp("hard"), preset="hard", seed=4)
 
@@ -64,7 +64,7 @@ SFM_FAST = {"max_image_size": 1024, "max_features": 4096}
 def sfm_with_gcps(small_survey, tmp_path_factory):
     """SfM of the small survey with the GCPs gcp-find located; every third GCP is a checkpoint."""
     from geoortho.gcp.find import gcp_find
-    from geoortho.reconstruction import sfm
+    from geoortho.reconstruction.sparse import sfm
 
     d = tmp_path_factory.mktemp("sfm_gcp")
     found = gcp_find(small_survey.images, small_survey.gcp_file, d / "gcp_list.txt")
@@ -77,7 +77,7 @@ def sfm_with_gcps(small_survey, tmp_path_factory):
 @pytest.fixture(scope="session")
 def toledo_sfm(tmp_path_factory):
     """SfM of the real toledo_dji photos with their gcp_list.txt."""
-    from geoortho.reconstruction import sfm
+    from geoortho.reconstruction.sparse import sfm
 
     base = real_data("toledo_dji")
     return sfm(

@@ -562,7 +562,7 @@ def make_hostile(survey: Path, folder: Path) -> None:
     """Every hostile input the cases name under {h}."""
     import laspy
 
-    from geoortho.pointcloud import write_las
+    from geoortho.core.pointcloud import write_las
 
     hostile_photos(survey / "images", folder / "photos")
     hostile_gcp_files(survey / "truth", folder / "gcp")
@@ -763,7 +763,7 @@ def test_sigterm_stops_dem_before_writing_anything(tiny_survey, tmp_path):
 
     src = tmp_path / "big.laz"
     make_big = (
-        "import numpy as np, laspy; from geoortho.pointcloud import write_las;"
+        "import numpy as np, laspy; from geoortho.core.pointcloud import write_las;"
         f"las = laspy.read({str(tiny_survey.points)!r}); xyz = np.c_[las.x, las.y, las.z];"
         "rng = np.random.default_rng(0); k = 60;"
         "big = np.vstack([xyz + [0, 0, rng.normal(0, 0.01)] for _ in range(k)]);"
@@ -829,7 +829,7 @@ def test_gcp_list_with_spaces_in_image_names_round_trips(tiny_survey, tmp_path):
 def _counts() -> None:
     import tempfile
 
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     with tempfile.TemporaryDirectory() as d:
         root = Path(d)

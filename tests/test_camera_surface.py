@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from rasterio.transform import from_origin
 
-from geoortho.camera import (
+from geoortho.core.camera import (
     Intrinsics,
     Pose,
     pixel_rays,
@@ -16,7 +16,7 @@ from geoortho.camera import (
     rotation_from_ypr,
     ypr_from_rotation,
 )
-from geoortho.surface import FlatSurface, GridSurface
+from geoortho.core.surface import FlatSurface, GridSurface
 
 # Camera axes: x = image right, y = image down, z = optical axis.
 RIGHT, DOWN, AXIS = np.eye(3)

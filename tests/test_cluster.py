@@ -16,8 +16,8 @@ import pytest
 import rasterio
 from test_sfm import _centre_errors, _truth
 
+from geoortho.core.parallel import SCHEDULER_ENV, use_scheduler
 from geoortho.errors import InputError
-from geoortho.parallel import SCHEDULER_ENV, use_scheduler
 
 distributed = pytest.importorskip("distributed", reason="the dev set-up installs dask.distributed")
 
@@ -68,7 +68,7 @@ def test_gcp_find_on_the_cluster_is_the_local_run(cluster, small_survey, local_g
 
 
 def test_synth_rendering_on_the_cluster_is_the_local_run(cluster, tiny_survey, tmp_path):
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     with use_scheduler(cluster.scheduler_address, must_see=[tmp_path]) as client:
         with distributed.get_task_stream(client) as ts:
@@ -100,8 +100,8 @@ def test_ortho_tiles_on_the_cluster_are_the_local_run(cluster, tiny_survey, tmp_
 def test_photo_metadata_and_footprints_on_the_cluster_are_the_local_run(cluster, small_survey, tmp_path, monkeypatch):
     import geopandas as gpd
 
-    import geoortho.photos as photos
-    from geoortho.footprint import footprints
+    import geoortho.photos.metadata as photos
+    from geoortho.photos.footprint import footprints
 
     monkeypatch.setattr(photos, "PHOTOS_PER_CHUNK", 8)  # 5 chunks: past the 4 from which a pool is used
     footprints(small_survey.images, tmp_path / "local.gpkg", dsm=small_survey.dsm)
@@ -118,7 +118,7 @@ def test_photo_metadata_and_footprints_on_the_cluster_are_the_local_run(cluster,
 def test_dense_depth_maps_on_the_cluster_are_the_local_run(cluster, sfm_with_gcps, small_survey, tmp_path):
     import laspy
 
-    from geoortho.densify import dense
+    from geoortho.reconstruction.dense import dense
 
     r_sfm, _ = sfm_with_gcps
     args = dict(max_image_size=320)  # the depth maps' size: the product, not the survey, is compared
@@ -156,7 +156,7 @@ def test_cluster_workers_reuse_freed_arrays(cluster):
     threshold: every array is a fresh mmap, zeroed and faulted in again (mosaic tiles 45 % slower
     than in a local pool). geoortho's tasks restore it in each worker: an 8 MiB array asked for
     after one was freed comes from the heap, as in a plain process."""
-    from geoortho.parallel import map_ordered
+    from geoortho.core.parallel import map_ordered
 
     ns: dict = {}
     exec(_MMAPPED, ns)
@@ -176,8 +176,8 @@ def test_cluster_workers_reuse_freed_arrays(cluster):
 
 
 def test_dem_tiles_on_the_cluster_are_the_local_run(cluster, small_survey, tmp_path, monkeypatch):
-    import geoortho.demtiles as demtiles
-    from geoortho.elevation import dem
+    import geoortho.elevation.tiles as demtiles
+    from geoortho.elevation.gridding import dem
 
     monkeypatch.setattr(demtiles, "WHOLE_GRID_MAX_CELLS", 0)  # tiles (6 of them) on a small cloud
     monkeypatch.setattr(demtiles, "TILE_CELLS", 64)
@@ -340,7 +340,7 @@ def test_split_merge_submodels_on_the_cluster_make_one_model(cluster, sfm_with_g
 
     import geopandas as gpd
 
-    from geoortho.reconstruction import sfm
+    from geoortho.reconstruction.sparse import sfm
 
     whole, checkpoints = sfm_with_gcps
     gcp_list = whole.output.parent / "gcp_list.txt"

@@ -15,7 +15,7 @@ from conftest import SFM_FAST
 from rasterio.warp import Resampling, reproject
 
 import geoortho
-from geoortho.coverage import FALLBACK, INTERPOLATED, MEASURED, complete_grid, extended_grid, seen_count
+from geoortho.elevation.coverage import FALLBACK, INTERPOLATED, MEASURED, complete_grid, extended_grid, seen_count
 
 # --- the completion on its own: exact answers ----------------------------------------------------
 
@@ -196,7 +196,7 @@ def test_textureless_everywhere_gives_a_stated_fallback_surface_and_a_full_ortho
     every photo's ground; and the quality check is red on the depth maps."""
     import cv2
 
-    from geoortho.quality import assess, verdict
+    from geoortho.chain.quality import assess, verdict
 
     s, r_sfm, *_ = free_heading
     blank = tmp_path / "photos"

@@ -15,10 +15,10 @@ from conftest import RecordingFeedback, real_data
 from rasterio.warp import Resampling, reproject
 from scipy import ndimage
 
-from geoortho.elevation import Grid, dem, grid_points
+from geoortho.core.gapfill import fill_harmonic, gap_mask
+from geoortho.core.pointcloud import open_points
+from geoortho.elevation.gridding import Grid, dem, grid_points
 from geoortho.errors import InputError, ParameterError
-from geoortho.gapfill import fill_harmonic, gap_mask
-from geoortho.pointcloud import open_points
 
 
 def _on_our_grid(truth_path, ours_path, resampling=Resampling.average):
@@ -117,7 +117,7 @@ def test_gaps_filled_by_windows_are_the_whole_grids_gaps():
     the outside and a gap wider than the limit left open."""
     from scipy import ndimage
 
-    from geoortho.gapfill import fill_gaps_by_windows
+    from geoortho.core.gapfill import fill_gaps_by_windows
 
     rng = np.random.default_rng(4)
     rows, cols = np.mgrid[0:300, 0:400]
@@ -217,7 +217,7 @@ def test_mvk_thin_units_key_wins_over_the_epsg_code(tmp_path):
     assert any("ProjLinearUnits" in n for n in src.notes)
     from pyproj import CRS
 
-    from geoortho.crs import transformer
+    from geoortho.core.crs import transformer
 
     lon, lat = transformer(src.crs, CRS.from_epsg(4326)).transform(2.0475e6, 1.27e6)
     assert -91.7 < lon < -89.3 and 31 < lat < 35.1  # Mississippi, not New Jersey
@@ -238,7 +238,7 @@ def test_array_and_ply_input(tmp_path):
     with rasterio.open(r.dsm) as ds:
         z = ds.read(1, masked=True)
         assert np.allclose(z.compressed(), 12.5)
-    from geoortho.elevation import grid_points as gp
+    from geoortho.elevation.gridding import grid_points as gp
 
     g = Grid.covering(500000, 4e6, 500050, 4e6 + 50, 2.0)
     assert np.nanmax(gp(xyz[:, 0], xyz[:, 1], xyz[:, 2], g)) == 12.5
@@ -338,7 +338,7 @@ def test_far_outliers_are_dropped_and_the_dsm_is_the_clean_one(tiny_survey, tmp_
     import laspy
     import rasterio
 
-    from geoortho.pointcloud import write_las
+    from geoortho.core.pointcloud import write_las
 
     las = laspy.read(tiny_survey.points)
     xyz = np.c_[las.x, las.y, las.z]
@@ -356,9 +356,9 @@ def test_far_outliers_are_dropped_and_the_dsm_is_the_clean_one(tiny_survey, tmp_
 
 
 def test_many_points_far_apart_are_data_not_outliers():
-    from geoortho.elevation import _scan_extent
+    from geoortho.core.pointcloud import open_points
+    from geoortho.elevation.gridding import _scan_extent
     from geoortho.feedback import Feedback
-    from geoortho.pointcloud import open_points
 
     rng = np.random.default_rng(0)
     a = np.c_[rng.uniform(0, 50, (10_000, 2)), rng.uniform(0, 2, 10_000)]
@@ -417,7 +417,7 @@ def test_points_without_an_area_are_refused(tiny_survey, tmp_path, case):
 
     import laspy
 
-    from geoortho.pointcloud import write_las
+    from geoortho.core.pointcloud import write_las
 
     if case == "line":
         t = np.linspace(0, 30, 500)
@@ -437,7 +437,7 @@ def test_a_grid_made_in_tiles_is_the_whole_grid(small_survey, tmp_path, monkeypa
     """Tiles (here forced small: 6 of them, halo and all) give the DSM, DTM and ground classes of
     the whole grid; only where the harmonic fill's iterations meet a tile's halo may a filled
     cell differ, by its convergence (millimetres)."""
-    import geoortho.demtiles as demtiles
+    import geoortho.elevation.tiles as demtiles
 
     whole = dem(small_survey.points, tmp_path / "w.tif", dtm=tmp_path / "w_dtm.tif", classified=tmp_path / "w.laz")
     monkeypatch.setattr(demtiles, "WHOLE_GRID_MAX_CELLS", 0)
@@ -474,7 +474,7 @@ def test_gaps_wider_than_a_tiles_halo_are_filled_as_in_the_whole_grid(tmp_path, 
     harmonic fill's convergence."""
     from scipy import ndimage
 
-    import geoortho.demtiles as demtiles
+    import geoortho.elevation.tiles as demtiles
 
     rng = np.random.default_rng(5)
     x, y = rng.uniform(0, 160, 500_000), rng.uniform(0, 100, 500_000)
@@ -516,7 +516,7 @@ def test_output_crs_reprojects_and_points_crs_overrides(tmp_path):
     the surface evaluated at each cell centre."""
     from pyproj import CRS
 
-    from geoortho.crs import transformer
+    from geoortho.core.crs import transformer
 
     rng = np.random.default_rng(3)
     x = rng.uniform(483_000, 483_200, 400_000)

@@ -183,7 +183,7 @@ def test_cli_bad_input_exit_2(tmp_path, capsys):
 
 
 def test_run_makes_the_dsm_from_the_dense_cloud_unless_a_lidar_cloud_is_given(tmp_path):
-    from geoortho.pipeline import STAGES, Project
+    from geoortho.chain.pipeline import STAGES, Project
 
     photos_only = Project(images=tmp_path, output=tmp_path)
     with_lidar = Project(images=tmp_path, output=tmp_path, points=tmp_path / "lidar.laz")
@@ -200,7 +200,7 @@ def test_run_makes_the_dsm_from_the_dense_cloud_unless_a_lidar_cloud_is_given(tm
 def test_a_pair_that_cannot_be_searched_is_skipped_not_fatal():
     """Toledo (two camera bodies) gave a pair whose smallest disparity was past the canvas; SGBM
     cannot search it and dense died with a broadcast error. Such a pair is skipped."""
-    from geoortho.densify import _pair, _View
+    from geoortho.reconstruction.dense import _pair, _View
 
     K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])
     down = np.diag([1.0, -1.0, -1.0])  # camera looking down
@@ -221,7 +221,7 @@ def test_fusion_spilled_to_tiles_on_disk_equals_the_cloud_held_whole(tmp_path):
     voxels, means within float32 rounding), written in tile order."""
     import numpy as np
 
-    from geoortho.densify import _Fusion
+    from geoortho.reconstruction.dense import _Fusion
 
     rng = np.random.default_rng(4)
     voxel = 0.05

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from conftest import RecordingFeedback
 
+from geoortho.core.outputs import atomic_path, write_cog
 from geoortho.errors import CanceledError, InputError
 from geoortho.feedback import JsonLinesFeedback, split, track
-from geoortho.outputs import atomic_path, write_cog
 
 
 def test_split_maps_substeps_onto_weighted_ranges():
@@ -81,7 +81,7 @@ def test_every_offered_vector_format_is_whole_under_its_final_name(tmp_path, ext
     import pyogrio
     import shapely
 
-    from geoortho.outputs import write_vector
+    from geoortho.core.outputs import write_vector
 
     g = gpd.GeoDataFrame(
         {"image": ["a", "b"]}, geometry=[shapely.box(0, 0, 1, 1), shapely.box(1, 1, 2, 3)], crs="EPSG:32629"

@@ -57,7 +57,7 @@ HEADERS = _jpeg_headers() if REAL_DATA.exists() else []
 
 
 def _read_photo_only_input_errors(data: bytes) -> None:
-    from geoortho.photos import read_photo
+    from geoortho.photos.metadata import read_photo
 
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "fuzz.JPG"
@@ -85,7 +85,7 @@ def test_random_bytes_as_a_photo_raise_only_input_errors(data):
 @FUZZ
 @given(text=st.one_of(st.text(max_size=2000), st.binary(max_size=2000).map(lambda b: b.decode("latin-1"))))
 def test_random_xmp_parses_to_a_dict_of_strings(text):
-    from geoortho.photos import parse_xmp
+    from geoortho.photos.metadata import parse_xmp
 
     tags = parse_xmp(text)
     assert isinstance(tags, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in tags.items())
@@ -146,7 +146,7 @@ LAS = _las_seeds() if REAL_DATA.exists() else []
 @FUZZ
 @given(which=st.integers(0, 10), edits=EDITS, cut=CUTS, suffix=st.sampled_from([".las", ".laz"]))
 def test_mutated_las_headers_raise_only_input_errors(which, edits, cut, suffix):
-    from geoortho.pointcloud import open_points
+    from geoortho.core.pointcloud import open_points
 
     data = _mutate(LAS[which % len(LAS)], edits, cut, region=375)  # the LAS 1.4 public header
     with tempfile.TemporaryDirectory() as d:

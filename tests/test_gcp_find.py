@@ -164,7 +164,7 @@ def test_real_findgcp_photos_without_gps_match_upstream(tmp_path):
 
 def test_marker_centre_follows_the_diagonals_under_perspective():
     # a square seen in perspective: the projected centre is not the mean of the corners
-    from geoortho.camera import Intrinsics, Pose, project_points
+    from geoortho.core.camera import Intrinsics, Pose, project_points
 
     intr = Intrinsics(1000, 800, 800.0)
     square = np.array([[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0], [0, 0, 0]], float)
@@ -236,7 +236,7 @@ def test_opencv_refinement_assertion_does_not_end_the_run():
     asserts ("nContours.size() >= 2") in the glare attempt: it used to end gcp-find with an
     unexpected error; now the attempt falls back to sub-pixel corner refinement."""
     from geoortho.gcp.detect import _run
-    from geoortho.photos import decode_photo
+    from geoortho.photos.metadata import decode_photo
 
     gray = decode_photo(str(real_data("toledo_dji") / "images" / "DJI_0091.JPG"), grey=True)
     crop = gray[1251 : 1251 + 362, 800 : 800 + 361]
@@ -249,7 +249,7 @@ def test_apriltag_dictionaries_like_aruco(tmp_path, dictionary):
     """Issue 26: AprilTag surveys found as exactly as ArUco ones. 16h5 (ids 5 bits apart) decoded
     texture beside a real tag as a skewed quad 200 px off (precision 0.92): decodes must be shaped
     like the marker the window expects. Measured: 36h11 17/17 at 0.035 px, 16h5 12/12 at 0.047 px."""
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     s = synth(tmp_path / "s", preset="tiny", seed=3, target="apriltag", dictionary=dictionary, workers=2)
     out = tmp_path / "gcp_list.txt"
@@ -263,8 +263,8 @@ def test_apriltag_dictionaries_like_aruco(tmp_path, dictionary):
 def test_id_scores_without_rendering_every_id_equal_the_rendered_ones():
     """The id margin's correlations by dot products equal those of every id rendered (2,320 ids x 4
     turns for AprilTag 36h10: 8 s per fit rendered)."""
+    from geoortho.gcp.markers import coded_cells_at, marker_cells
     from geoortho.gcp.targets import _coded_patterns, _ncc, _Renderer
-    from geoortho.markers import coded_cells_at, marker_cells
 
     cells = marker_cells("DICT_APRILTAG_25H9", 7)
     ys, xs = np.mgrid[0:40, 0:40]

@@ -11,7 +11,7 @@ from test_gcp_find import _score
 
 from geoortho.gcp.find import gcp_find
 from geoortho.gcp.targets import THRESHOLDS, estimate_motion_blur
-from geoortho.synthetic import synth
+from geoortho.synthetic.survey import synth
 
 
 @pytest.fixture(scope="module")
@@ -136,14 +136,14 @@ def test_real_texture_is_not_a_target(tmp_path, target):
 
 def _blurred_marker(marker_id: int, side_px: float, blur_px: float, seed: int = 0):
     """A 4x4 ArUco marker ``side_px`` wide on grey noise texture, motion-blurred ``blur_px`` at 30°:
-    the photo crop, where the centre is, and the 2 x 2 pixels-per-side a Window would give."""
+    the photo crop, where the centre is, and the 2 x 2 pixels-per-side a SearchWindow would give."""
     import math
 
     import cv2
     import numpy as np
 
-    from geoortho.markers import marker_cells, paint_target
-    from geoortho.synthetic import motion_kernel
+    from geoortho.gcp.markers import marker_cells, paint_target
+    from geoortho.synthetic.survey import motion_kernel
 
     rng = np.random.default_rng(seed)
     size, cx, cy = 160, 80.3, 79.6
@@ -163,8 +163,8 @@ def test_verification_of_a_16px_marker_blurred_to_half_its_side(blur_px):
     the id margin was noise); the same place painted with another id is refused."""
     import math
 
+    from geoortho.gcp.markers import marker_cells
     from geoortho.gcp.targets import fit_target
-    from geoortho.markers import marker_cells
 
     img, (cx, cy), A = _blurred_marker(7, 16.0, blur_px)
     blur = estimate_motion_blur(img) if blur_px else (0.0, 0.0)
@@ -184,13 +184,13 @@ def test_verification_of_a_16px_marker_blurred_to_half_its_side(blur_px):
 def _cross_on_yellow_grass(cx: float, cy: float, size: tuple[int, int] = (160, 160), seed: int = 1):
     """A white cross (26 px) painted on yellow-green grass whose brightness varies as much as the
     paint stands out from it in grey, as a colour JPEG (chroma at half resolution): the photo and
-    the 2 x 2 pixels-per-side a Window would give."""
+    the 2 x 2 pixels-per-side a SearchWindow would give."""
     import math
 
     import cv2
     import numpy as np
 
-    from geoortho.markers import paint_target
+    from geoortho.gcp.markers import paint_target
 
     rng = np.random.default_rng(seed)
     lum = 140 + cv2.GaussianBlur(rng.normal(0, 300, size), (0, 0), 2.0)  # grey std 40
@@ -239,11 +239,11 @@ def test_a_target_predicted_at_the_edge_is_kept_only_when_wholly_in_the_photo():
 
     import numpy as np
 
-    from geoortho.gcp.detect import Window, detect_in_image, paint_channel
+    from geoortho.gcp.detect import SearchWindow, detect_in_image, paint_channel
 
     for cx, whole in ((24.4, True), (3.2, False)):
         bgr, A = _cross_on_yellow_grass(cx, 80.0)
-        win = Window("GCP01", 0, 5.0, 84.0, 60.0, 26.0, 0.0, tuple(np.ravel(A).tolist()))
+        win = SearchWindow("GCP01", 0, 5.0, 84.0, 60.0, 26.0, 0.0, tuple(np.ravel(A).tolist()))
         dets = detect_in_image(paint_channel(bgr), [win], "DICT_4X4_50", target="cross", blur=(0.0, 0.0))
         kept = [d for d in dets if not d.reason]
         if whole:
@@ -265,8 +265,8 @@ def test_a_12px_target_is_fitted_to_convergence(kind):
     import cv2
     import numpy as np
 
+    from geoortho.gcp.markers import paint_target
     from geoortho.gcp.targets import _affine, fit_target
-    from geoortho.markers import paint_target
 
     for seed in range(4):
         rng = np.random.default_rng(seed)
@@ -292,8 +292,8 @@ def test_a_circle_far_from_the_predicted_size_is_refused():
     import cv2
     import numpy as np
 
+    from geoortho.gcp.markers import paint_target
     from geoortho.gcp.targets import SIZE_TOLERANCE, _affine, fit_target
-    from geoortho.markers import paint_target
 
     base = 16.0 * np.array([[1.0, 0.0], [0.0, -1.0]])  # v up
     for scale, kept in ((0.8, False), (0.92, True)):
@@ -315,13 +315,13 @@ def test_the_photos_other_markers_place_a_missed_one():
 
     import numpy as np
 
-    from geoortho.gcp.detect import Detection, Window, local_prediction
+    from geoortho.gcp.detect import Detection, SearchWindow, local_prediction
 
     a, f, shift = math.radians(2.0), 1.03, np.array([12.0, -7.0])  # yaw 2°, height 3 %, position
     rot = f * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     predicted = np.array([[300.0, 200.0], [1400.0, 260.0], [820.0, 900.0], [700.0, 500.0]])
     truth = predicted @ rot.T + shift
-    wins = [Window(f"GCP{i}", i, x, y, 150.0, side_px=16.0) for i, (x, y) in enumerate(predicted)]
+    wins = [SearchWindow(f"GCP{i}", i, x, y, 150.0, side_px=16.0) for i, (x, y) in enumerate(predicted)]
     found = [Detection(i, *truth[i], (), "fast", i, 16.0) for i in range(3)]
     x, y, tol = local_prediction(wins, found, 3)
     assert math.hypot(x - truth[3, 0], y - truth[3, 1]) < 1e-6
@@ -346,10 +346,10 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
     from dataclasses import replace
 
     from geoortho.feedback import as_feedback
-    from geoortho.gcp.detect import Detection, Window
+    from geoortho.gcp.detect import Detection, SearchWindow
     from geoortho.gcp.find import DETECTED, PLACED_ID_MARGIN, _judge
 
-    win = Window("GCP07", 7, 500.0, 400.0, 60.0, side_px=16.0)
+    win = SearchWindow("GCP07", 7, 500.0, 400.0, 60.0, side_px=16.0)
     corners = ((492.0, 393.0), (508.0, 393.0), (508.0, 409.0), (492.0, 409.0))
     unread = Detection(
         7, 503.0, 401.0, corners, "verified", 0, 16.0, score=0.88, id_margin=PLACED_ID_MARGIN + 0.03,

@@ -20,16 +20,16 @@ import pytest
 import rasterio
 from conftest import RecordingFeedback, real_data
 
-from geoortho.crs import geoid_undulation_m
+from geoortho.core.crs import geoid_undulation_m
+from geoortho.core.surface import FlatSurface
 from geoortho.errors import InputError
-from geoortho.footprint import footprints
-from geoortho.heights import check_altitudes, flight_height_range_m, resolve_heights
-from geoortho.photos import Photo
-from geoortho.surface import FlatSurface
+from geoortho.photos.footprint import footprints
+from geoortho.photos.heights import check_altitudes, flight_height_range_m, resolve_heights
+from geoortho.photos.metadata import Photo
 
 
 def _survey(tmp_path_factory, name, pathology):
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     return synth(tmp_path_factory.mktemp(name), preset="tiny", seed=3, workers=os.cpu_count() or 1, pathology=pathology)
 
@@ -266,7 +266,7 @@ def _camera_rmse(result, survey) -> float:
 
 @pytest.fixture(scope="module")
 def clean_sfm(tiny_survey, tmp_path_factory):
-    from geoortho.reconstruction import sfm
+    from geoortho.reconstruction.sparse import sfm
 
     d = tmp_path_factory.mktemp("clean_sfm")
     return sfm(tiny_survey.images, d / "out", gcp_list=_gcp_list(tiny_survey, d), **SFM_FAST)
@@ -332,7 +332,7 @@ def test_ortho_partial_dsm_keeps_every_photo(clean_sfm, tiny_survey, tmp_path):
 
 
 def test_sfm_drifting_altitude_levelled_then_on_the_gcps(drift, clean_sfm_rmse, tmp_path):
-    from geoortho.reconstruction import sfm
+    from geoortho.reconstruction.sparse import sfm
 
     r0 = sfm(drift.images, tmp_path / "gps", **SFM_FAST)
     rep0 = json.loads(r0.report.read_text())
@@ -344,7 +344,7 @@ def test_sfm_drifting_altitude_levelled_then_on_the_gcps(drift, clean_sfm_rmse, 
 
 
 def test_sfm_wrong_exif_focal_held_reported_then_fixed_by_gcps(tmp_path_factory, clean_sfm_rmse):
-    from geoortho.reconstruction import sfm
+    from geoortho.reconstruction.sparse import sfm
 
     survey = _survey(tmp_path_factory, "wrong_focal", "wrong-focal")
     d = tmp_path_factory.mktemp("wf")
@@ -366,7 +366,7 @@ def test_toledo_height_source_gsd_and_focal(toledo_sfm, tmp_path):
     base = real_data("toledo_dji")
     r = footprints(base / "images", tmp_path / "fp.gpkg")
     assert "above take-off" in r.height_source
-    from geoortho.photos import read_photos
+    from geoortho.photos.metadata import read_photos
 
     photos = read_photos(base / "images").photos
     # physics at the flown height: GSD = height · sensor width / (focal · image width)
@@ -397,7 +397,7 @@ def test_exposure_steps_balanced_from_exif_and_the_overlaps(tmp_path_factory):
 
 
 def test_warnings_grouped_and_quiet(hard_survey, tmp_path):
-    from geoortho.photos import read_photos
+    from geoortho.photos.metadata import read_photos
 
     fb = RecordingFeedback()
     read_photos(hard_survey.images, feedback=fb)

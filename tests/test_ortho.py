@@ -12,11 +12,11 @@ import rasterio
 from conftest import RecordingFeedback, real_data
 from scipy import ndimage
 
-from geoortho.camera import Intrinsics, Pose
+from geoortho.core.camera import Intrinsics, Pose, PosedCamera
+from geoortho.core.surface import read_surface
 from geoortho.errors import InputError
-from geoortho.orthophoto import MosaicOptions, OrthoCamera, mosaic, ortho
+from geoortho.orthophoto import MosaicOptions, mosaic, ortho
 from geoortho.orthophoto.quality import geolocation_shifts, share_off_beside_objects
-from geoortho.surface import read_surface
 
 TRUE_CELL_M = 0.05  # the small preset's true ortho: our grid lands on its pixels
 
@@ -25,7 +25,7 @@ def _true_cameras(survey):
     c = json.loads((survey.truth / "survey.json").read_text())["camera"]
     intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"], tuple(c["distortion"]))
     return [
-        OrthoCamera(
+        PosedCamera(
             p["image"],
             survey.images / p["image"],
             intr,
@@ -41,7 +41,7 @@ def test_project_grid_is_the_camera_model():
     from geoortho.orthophoto.rectify import project_grid
 
     intr = Intrinsics(1600, 1067, 1066.7, 800.3, 533.1, (-0.02, 0.01, 0.001, -0.002, 0.003))
-    cam = OrthoCamera("a", None, intr, Pose.from_ypr((500000.0, 4300000.0, 140.0), 30, -80, 2))
+    cam = PosedCamera("a", None, intr, Pose.from_ypr((500000.0, 4300000.0, 140.0), 30, -80, 2))
     rng = np.random.default_rng(0)
     x = 500000 + rng.uniform(-20, 20, (50, 40))
     y = 4300000 + rng.uniform(-20, 20, (50, 40))
@@ -165,8 +165,8 @@ def test_bad_photos_are_reported_and_skipped(small_survey, tmp_path):
     broken.write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
     far = cams[1].pose.center + np.array([5000.0, 0.0, 0.0])
     cams = cams + [
-        OrthoCamera("broken.JPG", broken, cams[0].intrinsics, cams[0].pose),
-        OrthoCamera("far.JPG", cams[1].path, cams[1].intrinsics, Pose(far, cams[1].pose.rotation)),
+        PosedCamera("broken.JPG", broken, cams[0].intrinsics, cams[0].pose),
+        PosedCamera("far.JPG", cams[1].path, cams[1].intrinsics, Pose(far, cams[1].pose.rotation)),
     ]
     surf = read_surface(small_survey.dsm)
     fb = RecordingFeedback()

@@ -7,9 +7,9 @@ import threading
 
 import pytest
 
+from geoortho.core.parallel import imap_ordered, map_ordered
 from geoortho.errors import CanceledError
 from geoortho.feedback import Feedback
-from geoortho.parallel import imap_ordered, map_ordered
 
 
 def _square(x: int) -> int:
@@ -106,7 +106,7 @@ def test_a_script_without_the_main_guard_runs(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split() == ["photos", "9"]
     # the same from stdin (``python - <<EOF``): there is no script for a worker to find again
-    code = "from geoortho.parallel import map_ordered\nprint(map_ordered(abs, [-1, -2, -3, -4], workers=2))\n"
+    code = "from geoortho.core.parallel import map_ordered\nprint(map_ordered(abs, [-1, -2, -3, -4], workers=2))\n"
     done = subprocess.run([sys.executable, "-"], input=code, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "[1, 2, 3, 4]"

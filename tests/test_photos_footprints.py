@@ -14,8 +14,8 @@ from conftest import RecordingFeedback, real_data
 from pyproj import CRS
 
 from geoortho.errors import InputError
-from geoortho.footprint import compute_footprints, footprints, photo_cameras
-from geoortho.photos import parse_xmp, read_photo, read_photos
+from geoortho.photos.footprint import compute_footprints, footprints, photo_cameras
+from geoortho.photos.metadata import parse_xmp, read_photo, read_photos
 
 
 def _truth(survey):
@@ -150,9 +150,9 @@ def test_real_phone_photo_with_trailer_is_not_truncated():
 
 def test_footprints_with_true_poses_reproduce_the_truth(tiny_survey):
     """With the exact poses and the DSM, our footprints are the true ones (geometry check)."""
-    from geoortho.camera import Intrinsics, Pose
-    from geoortho.footprint import PhotoCamera
-    from geoortho.surface import read_surface
+    from geoortho.core.camera import Intrinsics, Pose
+    from geoortho.core.surface import read_surface
+    from geoortho.photos.footprint import PhotoCamera
 
     poses, info = _truth(tiny_survey)
     c = info["camera"]
@@ -238,9 +238,9 @@ def test_oblique_footprints_iou(oblique_survey, tmp_path):
 
 
 def test_rays_above_horizon_are_clipped():
-    from geoortho.camera import Intrinsics, Pose
-    from geoortho.footprint import PhotoCamera
-    from geoortho.surface import FlatSurface
+    from geoortho.core.camera import Intrinsics, Pose
+    from geoortho.core.surface import FlatSurface
+    from geoortho.photos.footprint import PhotoCamera
 
     photo = None
     intr = Intrinsics(400, 300, 300.0)
@@ -356,8 +356,8 @@ def test_a_dsm_far_larger_than_the_flight_is_read_only_under_it(tiny_survey, tmp
     import rasterio
     from rasterio.transform import from_origin
 
-    import geoortho.footprint as fpmod
-    from geoortho import surface as surf
+    import geoortho.photos.footprint as fpmod
+    from geoortho.core import surface as surf
 
     home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
     with rasterio.open(tiny_survey.dsm) as src:
@@ -403,8 +403,8 @@ def _retag(survey, folder, maker: str, absolute: bool = True):
     (``absolute``: with the AbsoluteAltitude where the family has one)."""
     from PIL import Image
 
-    from geoortho import synthetic
-    from geoortho.camera import Intrinsics
+    from geoortho.core.camera import Intrinsics
+    from geoortho.synthetic import survey as synthetic
 
     folder.mkdir()
     cam = json.loads((survey.truth / "survey.json").read_text())["camera"]
@@ -487,7 +487,7 @@ def test_skydio_struct_in_attribute_form_and_other_frames():
 
 def test_sensor_table_of_thousands_of_cameras():
     """Issue 26: OpenSfM's public table ships with the package; our DJI entries win where more precise."""
-    from geoortho.photos import _sensor_table, sensor_width_from_table
+    from geoortho.photos.metadata import _sensor_table, sensor_width_from_table
 
     assert len(_sensor_table()) > 3600
     assert sensor_width_from_table("Canon", "PowerShot S110") == 7.53  # the eBee's old camera
@@ -511,7 +511,7 @@ def test_sensor_table_of_thousands_of_cameras():
 def test_35mm_fallback_by_the_diagonal_on_real_photos(monkeypatch, folder, model, width_mm, tol):
     """A camera missing from every table: its width from the 35 mm equivalent by the diagonal,
     crop modes included, and the GSD this gives against physics (pixel pitch x height / focal)."""
-    import geoortho.photos as photos
+    import geoortho.photos.metadata as photos
 
     monkeypatch.delitem(photos.SENSOR_WIDTHS_MM, model)
     monkeypatch.setattr(photos, "sensor_width_from_table", lambda make, model: math.nan)

@@ -16,8 +16,8 @@ import time
 
 import pytest
 
+from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, run
 from geoortho.errors import InputError
-from geoortho.pipeline import LEDGER_NAME, REPORT_NAME, run
 
 FAST = {"sfm": {"max_image_size": 1024}, "dense": {"max_image_size": 512}}
 # footprints after dem: the SfM's cameras on the surface made (measured heights, GSD and area)
@@ -268,7 +268,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, tiny_survey, capsys):
 
 
 def test_stage_options_are_the_stages_own_parameters(tmp_path):
-    from geoortho.pipeline import parse_stage_options
+    from geoortho.chain.pipeline import parse_stage_options
 
     assert parse_stage_options('{"sfm": {"max_image_size": 2048}}') == {"sfm": {"max_image_size": 2048}}
     f = tmp_path / "opts.json"

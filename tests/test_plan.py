@@ -16,7 +16,7 @@ from rasterio.transform import from_origin
 
 import geoortho
 from geoortho.errors import InputError
-from geoortho.flightplan import (
+from geoortho.planning.plan import (
     LITCHI_HEADER,
     default_gcp_count,
     line_overlaps,
@@ -115,7 +115,7 @@ def test_terrain_following_keeps_the_gsd_and_constant_altitude_reports_the_sprea
     X, Y = np.meshgrid(x, y)
     hill_m = 60.0
     z = 200 + hill_m * np.exp(-(((X - E0 - 300) / 180) ** 2 + ((Y - N0 - 300) / 180) ** 2))
-    from geoortho.outputs import write_cog
+    from geoortho.core.outputs import write_cog
 
     dtm = write_cog(
         tmp_path / "hill.tif",
@@ -177,9 +177,9 @@ def test_gcp_proposal_spread_and_seen(tmp_path):
 
 
 def test_min_module_px_is_what_the_detector_decodes():
-    from geoortho.flightplan import _render_marker
-    from geoortho.gcp.detect import Window, detect_in_image
-    from geoortho.markers import marker_cells
+    from geoortho.gcp.detect import SearchWindow, detect_in_image
+    from geoortho.gcp.markers import marker_cells
+    from geoortho.planning.plan import _render_marker
 
     m = min_module_px("DICT_4X4_50")
     assert 1.25 <= m <= 4.0  # measured: 2.25 px
@@ -189,7 +189,7 @@ def test_min_module_px_is_what_the_detector_decodes():
         cells = marker_cells("DICT_4X4_50", mid)
         img = _render_marker(cells, module, angle, rng)
         c = (img.shape[1] - 1) / 2
-        win = Window("m", mid, c, c, 40.0, cells.shape[0] * module)
+        win = SearchWindow("m", mid, c, c, 40.0, cells.shape[0] * module)
         return any(d.marker_id == mid for d in detect_in_image(img, [win], "DICT_4X4_50"))
 
     # fresh rotations and ids: at 1.5x the measured size (what plans print) every one decodes;

@@ -173,7 +173,7 @@ def test_cancel_stops_the_process_and_leaves_no_temporary(tmp_path):
 def test_remove_partial_outputs_touches_only_temporaries(tmp_path):
     # The runner cannot import geoortho (it runs in QGIS), so it knows the
     # temporary name by convention: check it against the writer's own.
-    from geoortho.outputs import atomic_path
+    from geoortho.core.outputs import atomic_path
 
     (tmp_path / "dsm.tif").write_bytes(b"whole")
     (tmp_path / ".other.tmp-1.tif").write_bytes(b"someone else's")

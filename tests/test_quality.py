@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from geoortho.quality import THRESHOLDS, assess, verdict
+from geoortho.chain.quality import THRESHOLDS, assess, verdict
 
 
 def _clean():
@@ -109,8 +109,8 @@ def test_report_plots_gcps_in_the_products_crs_whatever_the_gcp_files(tiny_surve
     import numpy as np
     from pyproj import Transformer
 
+    from geoortho.chain.reporting import _Context, _gcp_positions
     from geoortho.gcp.io import read_gcp_file
-    from geoortho.reporting import _Context, _gcp_positions
 
     truth = read_gcp_file(tiny_survey.truth / "gcp_utm.txt")
     to = Transformer.from_crs("EPSG:32629", crs, always_xy=True)

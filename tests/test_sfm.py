@@ -12,10 +12,10 @@ import pytest
 import rasterio
 from conftest import RecordingFeedback
 
-from geoortho.camera import rotation_from_ypr
+from geoortho.core.camera import rotation_from_ypr
 from geoortho.errors import InputError
-from geoortho.photos import read_photos
-from geoortho.reconstruction import _bodies, ce90, le90, sfm
+from geoortho.photos.metadata import read_photos
+from geoortho.reconstruction.sparse import _bodies, ce90, le90, sfm
 
 FAST = {"max_image_size": 1024, "max_features": 4096}
 
@@ -216,7 +216,7 @@ def test_cli_bad_checkpoint_exit_2(small_survey, tmp_path, capsys):
 
 
 def test_partition_is_balanced_compact_and_overlapping():
-    from geoortho.splitmerge import partition
+    from geoortho.reconstruction.splitmerge import partition
 
     rng = np.random.default_rng(0)
     xy = np.c_[rng.uniform(0, 400, 100), rng.uniform(0, 100, 100)]
@@ -261,7 +261,7 @@ def test_split_merge_is_one_model_as_accurate_as_the_block(sfm_with_gcps, small_
 
 
 def test_a_failed_submodel_is_reported_and_the_rest_merged(sfm_with_gcps, small_survey, tmp_path, monkeypatch):
-    import geoortho.reconstruction as rc
+    import geoortho.reconstruction.sparse as rc
 
     whole, checkpoints = sfm_with_gcps
     real = rc.sfm

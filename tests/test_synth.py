@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pyproj import Transformer
 
-from geoortho.camera import Intrinsics, Pose, project_points
+from geoortho.core.camera import Intrinsics, Pose, project_points
 
 
 def _poses(survey) -> list[dict]:
@@ -132,7 +132,7 @@ def test_marker_truth_matches_projection(tiny_survey):
 
 
 def _detect(path: Path, dictionary: str) -> dict[int, np.ndarray]:
-    from geoortho.markers import get_dictionary
+    from geoortho.gcp.markers import get_dictionary
 
     gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     params = cv2.aruco.DetectorParameters()
@@ -223,7 +223,7 @@ def test_rasters_and_points(tiny_survey):
 
 
 def test_deterministic_for_a_seed(tmp_path, tiny_survey):
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     again = synth(tmp_path / "again", preset="tiny", seed=3, workers=1)
     for name in ("poses.json", "markers.json", "gcp_utm.txt"):
@@ -264,8 +264,8 @@ def test_hard_preset_has_its_defects(hard_survey):
 def test_oblique_plan_and_footprints():
     """The oblique preset adds photos at pitch -45..-70 with free yaw; their true footprints reach
     far from the drone on the side it looks at (checked on the plan, to keep the suite fast)."""
-    from geoortho.camera import Intrinsics
-    from geoortho.synthetic import (
+    from geoortho.core.camera import Intrinsics
+    from geoortho.synthetic.survey import (
         FOCAL_MM,
         PRESETS,
         SENSOR_WIDTH_MM,
@@ -297,7 +297,7 @@ def test_oblique_plan_and_footprints():
 
 def test_bad_preset_is_an_input_error(tmp_path):
     from geoortho.errors import InputError
-    from geoortho.synthetic import synth
+    from geoortho.synthetic.survey import synth
 
     with pytest.raises(InputError, match="unknown preset"):
         synth(tmp_path, preset="huge")  # type: ignore[arg-type]
@@ -312,7 +312,7 @@ def test_motion_kernel_is_the_blur_it_is_said_to_be(length_px, angle_deg):
 
     import numpy as np
 
-    from geoortho.synthetic import motion_kernel
+    from geoortho.synthetic.survey import motion_kernel
 
     k = motion_kernel(length_px, angle_deg).astype(float)
     c = k.shape[0] // 2

@@ -12,13 +12,13 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from ..camera import in_frame
-from ..markers import CODED, get_dictionary, target_half_extent
-from .targets import SATURATED, estimate_motion_blur, fit_target
+from geoortho.core.camera import in_frame
+from geoortho.gcp.markers import CODED, get_dictionary, target_half_extent
+from geoortho.gcp.targets import SATURATED, estimate_motion_blur, fit_target
 
 __all__ = [
     "Detection",
-    "Window",
+    "SearchWindow",
     "detect_in_image",
     "detect_task",
     "init_worker",
@@ -33,7 +33,7 @@ ATTEMPTS = ("fast", "plain", "clahe", "upscale", "glare")
 
 
 @dataclass(frozen=True)
-class Window:
+class SearchWindow:
     """Where to look: a square around a predicted pixel. ``radius_px`` 0 = the whole photo.
 
     ``wide_radius_px`` (when larger) is searched too if the marker is not in the
@@ -168,7 +168,7 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
 
 def detect_in_image(
     gray: np.ndarray,
-    windows: list[Window],
+    windows: list[SearchWindow],
     dictionary: str,
     attempts: tuple[str, ...] = ATTEMPTS,
     target: str = "aruco",
@@ -253,7 +253,7 @@ def detect_in_image(
             return found
 
 
-def _accepted(d: Detection, win: Window) -> bool:
+def _accepted(d: Detection, win: SearchWindow) -> bool:
     """A detection that finds the window's marker: its id, no refusal, inside the window."""
     return (
         d.marker_id == win.marker_id
@@ -262,7 +262,7 @@ def _accepted(d: Detection, win: Window) -> bool:
     )
 
 
-def local_prediction(windows: list[Window], found: list[Detection], k: int) -> tuple[float, float, float] | None:
+def local_prediction(windows: list[SearchWindow], found: list[Detection], k: int) -> tuple[float, float, float] | None:
     """Where the photo's markers found so far put window ``k``'s marker, and how far from there
     it may be (px): their offsets from their predictions as a similarity (shift, rotation, scale:
     the pose's position, yaw and height errors move every prediction alike). Needs two markers;
@@ -303,7 +303,7 @@ def fit_similarity(at: np.ndarray, to: np.ndarray) -> tuple[Callable[[np.ndarray
 
 def _fit_model(
     gray: np.ndarray,
-    win: Window,
+    win: SearchWindow,
     k: int,
     target: str,
     dictionary: str,
@@ -341,7 +341,7 @@ def _fit_model(
 
 def _fit(
     gray: np.ndarray,
-    win: Window,
+    win: SearchWindow,
     k: int,
     box: tuple[int, int, int, int],
     target: str,
@@ -351,7 +351,7 @@ def _fit(
 ) -> Detection | None:
     """The window's target by model fit, as a detection (refused ones carry their reason);
     ``near``: see :func:`.targets.fit_target`."""
-    from ..markers import marker_cells
+    from geoortho.gcp.markers import marker_cells
 
     coded = target in CODED
     cells = marker_cells(dictionary, win.marker_id) if coded else None
@@ -395,7 +395,7 @@ def _fit(
     )
 
 
-def _square(win: Window, radius_px: float, w: int, h: int) -> tuple[int, int, int, int]:
+def _square(win: SearchWindow, radius_px: float, w: int, h: int) -> tuple[int, int, int, int]:
     x0 = int(max(0, np.floor(win.x_px - radius_px)))
     y0 = int(max(0, np.floor(win.y_px - radius_px)))
     x1 = int(min(w, np.ceil(win.x_px + radius_px) + 1))
@@ -403,7 +403,7 @@ def _square(win: Window, radius_px: float, w: int, h: int) -> tuple[int, int, in
     return x0, y0, x1, y1
 
 
-def plausible_quad(corners: np.ndarray, win: Window) -> bool:
+def plausible_quad(corners: np.ndarray, win: SearchWindow) -> bool:
     """A decoded quadrilateral shaped like a marker: convex, opposite sides within 1.5x of each
     other (a small square seen in perspective is near a parallelogram, however foreshortened);
     where the window predicts the view, no more than 1.6x as uneven as predicted (and 2x allowed)
@@ -435,7 +435,7 @@ def plausible_quad(corners: np.ndarray, win: Window) -> bool:
 def _search(
     gray: np.ndarray,
     box: tuple[int, int, int, int],
-    win: Window,
+    win: SearchWindow,
     attempts: tuple[str, ...],
     dictionary: str,
     k: int,
@@ -482,13 +482,13 @@ def paint_channel(bgr: np.ndarray) -> np.ndarray:
     return bgr.min(axis=2) if bgr.ndim == 3 else bgr
 
 
-def detect_task(args: tuple[str, list[Window], str, str, bool]) -> tuple[str, list[Detection], str, float]:
+def detect_task(args: tuple[str, list[SearchWindow], str, str, bool]) -> tuple[str, list[Detection], str, float]:
     """Worker entry: decode one photo and search its windows (``fit``: coded markers the
     detector misses are verified by a model fit); and the photo's motion blur (px). Coded
     markers are searched in grey, as the detector reads them; other targets are fitted in
     :func:`paint_channel`."""
     path, windows, dictionary, target, fit = args
-    from ..photos import decode_photo
+    from geoortho.photos.metadata import decode_photo
 
     coded = target in CODED
     try:  # strict: a corrupt scan would be searched as grey smears, with libjpeg noise on stderr

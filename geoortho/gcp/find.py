@@ -43,17 +43,17 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
-from ..camera import in_frame, pixel_rays
-from ..crs import crs_to_text, parse_crs, transformer
-from ..errors import InputError
-from ..feedback import Feedback, as_feedback, split
-from ..footprint import PhotoCamera, photo_cameras, working_crs
-from ..markers import CODED, TARGETS, Dictionary, FindTarget, get_dictionary
-from ..parallel import map_ordered, process_pool
-from ..photos import Photo, list_images, read_photos
-from ..surface import FlatSurface, Surface, read_surface
-from .detect import Detection, Window, detect_task, fit_similarity, init_worker
-from .io import GcpSet, marker_id_of, read_gcp_file
+from geoortho.core.camera import in_frame, pixel_rays
+from geoortho.core.crs import crs_to_text, parse_crs, transformer
+from geoortho.core.parallel import map_ordered, process_pool
+from geoortho.core.surface import FlatSurface, Surface, read_surface
+from geoortho.errors import InputError
+from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.gcp.detect import Detection, SearchWindow, detect_task, fit_similarity, init_worker
+from geoortho.gcp.io import GcpSet, marker_id_of, read_gcp_file
+from geoortho.gcp.markers import CODED, TARGETS, Dictionary, FindTarget, get_dictionary
+from geoortho.photos.footprint import PhotoCamera, photo_cameras, working_crs
+from geoortho.photos.metadata import Photo, list_images, read_photos
 
 __all__ = ["GcpFindResult", "gcp_find", "Observation", "predict_windows"]
 
@@ -160,14 +160,14 @@ def predict_windows(
     attitude_uncertainty_deg: float,
     marker_size_m: float,
     residual_m: float | None = None,
-) -> dict[str, list[Window]]:
+) -> dict[str, list[SearchWindow]]:
     """Per image: the windows to search, centred on each GCP's predicted pixel, that reach the frame.
 
     With ``residual_m`` (the flight's measured prediction error, after its common
     offset is applied to ``xyz``) each window is that small, and the stated
     uncertainties size its wide fallback.
     """
-    out: dict[str, list[Window]] = {}
+    out: dict[str, list[SearchWindow]] = {}
     tan_att = math.tan(math.radians(attitude_uncertainty_deg))
     for cam in cams:
         px = cam.project(xyz)
@@ -205,7 +205,7 @@ def predict_windows(
                 continue
             jac = (east[j, 0], north[j, 0], east[j, 1], north[j, 1])
             out.setdefault(cam.photo.image, []).append(
-                Window(
+                SearchWindow(
                     name,
                     ids[name],
                     float(x),
@@ -390,7 +390,7 @@ class _Plan:
 
     cams: dict[str, PhotoCamera]  # photos with a pose, by image name
     unplaced: list[Photo]  # searched whole
-    windows: dict[str, list[Window]]
+    windows: dict[str, list[SearchWindow]]
     names: list[str]
     xyz: np.ndarray  # GCPs in the working CRS
     work: CRS | None
@@ -420,7 +420,7 @@ def _plan(
     gx, gy = t.transform(np.array([p.x for p in gcps.points]), np.array([p.y for p in gcps.points]))
     plan.xyz = np.c_[gx, gy, [p.z for p in gcps.points]]
     # The ground model: the DSM, else the GCPs themselves (flat at their median height). The
-    # take-off is then worked out as everywhere else (geoortho.heights), unless given.
+    # take-off is then worked out as everywhere else (geoortho.photos.heights), unless given.
     surface: Surface = read_surface(dsm, work) if dsm is not None else FlatSurface(float(np.median(plan.xyz[:, 2])))
     try:
         placed_cams, heights = photo_cameras(
@@ -489,7 +489,7 @@ def _search(
     fb: Feedback,
     target: str = "aruco",
     auto_kinds: tuple[str, ...] = (),
-) -> tuple[Results, dict[str, list[Window]], tuple[float, float] | None, str]:
+) -> tuple[Results, dict[str, list[SearchWindow]], tuple[float, float] | None, str]:
     """Detect in a few pilot photos with the stated uncertainty, measure the flight's common
     offset there, then search the rest in windows sized by what was measured. ``auto``: the
     pilot photos are searched for each target type and the one found most is used."""
@@ -499,7 +499,7 @@ def _search(
     rest = [im for im in searched if im not in set(pilot)]
     s_pilot, s_refit, s_rest = split(fb, [len(pilot), 0.5 * len(pilot), len(rest) + len(plan.unplaced)])
 
-    def run(jobs: list[tuple[str, list[Window]]], kind: str, f: Feedback, fit: bool = True) -> Results:
+    def run(jobs: list[tuple[str, list[SearchWindow]]], kind: str, f: Feedback, fit: bool = True) -> Results:
         items = [(plan.path_of[im], wins, dictionary, kind, fit) for im, wins in jobs]
         return map_ordered(detect_task, items, workers=1 if pool is None else workers, executor=pool, feedback=f)
 
@@ -575,7 +575,7 @@ def _search(
         windows.update(narrowed)
         rest = [im for im in rest if im in windows]
     # photos without a pose are searched whole, for coded markers only (nothing else tells a target)
-    whole = [Window("", -1, 0.0, 0.0, 0.0)]
+    whole = [SearchWindow("", -1, 0.0, 0.0, 0.0)]
     jobs = [(im, windows[im]) for im in rest] + [(p.image, whole) for p in plan.unplaced if target in CODED]
     results += run(jobs, target, s_rest)
     return results, windows, None if offset is None else (float(offset[0][0]), float(offset[0][1])), target
@@ -583,7 +583,7 @@ def _search(
 
 def _choose_target(
     pilot: list[str],
-    windows: dict[str, list[Window]],
+    windows: dict[str, list[SearchWindow]],
     run: Any,
     kinds: tuple[str, ...],
     fb: Feedback,
@@ -620,7 +620,7 @@ def _has_pose(p: Photo) -> bool:
 
 
 def _pilot_images(
-    images: list[str], windows: dict[str, list[Window]], cams: dict[str, PhotoCamera], workers: int
+    images: list[str], windows: dict[str, list[SearchWindow]], cams: dict[str, PhotoCamera], workers: int
 ) -> list[str]:
     """The photos searched first to measure the flight's offset: those with the most
     predictions well inside the frame. None when the flight is too small to gain."""
@@ -638,7 +638,7 @@ def _pilot_images(
 
 def _flight_offset(
     results: Results,
-    windows: dict[str, list[Window]],
+    windows: dict[str, list[SearchWindow]],
     cams: dict[str, PhotoCamera],
     xyz_of: dict[str, np.ndarray],
     consensus_m: float | None = None,
@@ -686,7 +686,7 @@ def _flight_offset(
     return shift_m, max(1.0, 1.5 * worst_m), len(shifts)
 
 
-def _nearest(dets: list[Detection], k: int, win: Window) -> tuple[Detection, float] | None:
+def _nearest(dets: list[Detection], k: int, win: SearchWindow) -> tuple[Detection, float] | None:
     """The detection of window ``k``'s own id nearest its prediction, and how far it is (px)."""
     mine = [
         (d, math.hypot(d.x_px - win.x_px, d.y_px - win.y_px))
@@ -696,7 +696,7 @@ def _nearest(dets: list[Detection], k: int, win: Window) -> tuple[Detection, flo
     return min(mine, key=lambda de: de[1]) if mine else None
 
 
-def _decoded_gcps(results: Results, windows: dict[str, list[Window]]) -> set[str]:
+def _decoded_gcps(results: Results, windows: dict[str, list[SearchWindow]]) -> set[str]:
     """GCPs whose marker the detector decoded in their window of some photo."""
     out = set()
     for path, dets, *_ in results:
@@ -707,7 +707,7 @@ def _decoded_gcps(results: Results, windows: dict[str, list[Window]]) -> set[str
     return out
 
 
-def _placed(dets: list[Detection], k: int, win: Window) -> tuple[Detection, float] | None:
+def _placed(dets: list[Detection], k: int, win: SearchWindow) -> tuple[Detection, float] | None:
     """A coded marker fitted where the photo's other markers put it, refused only because its code
     is too blurred to tell its id here (an id margin of :data:`PLACED_ID_MARGIN` or more): taken
     when its GCP's id was decoded in another photo. Its place is then the proof: another marker
@@ -727,7 +727,7 @@ def _placed(dets: list[Detection], k: int, win: Window) -> tuple[Detection, floa
 
 def _judge(
     results: Results,
-    windows: dict[str, list[Window]],
+    windows: dict[str, list[SearchWindow]],
     ids: dict[str, int],
     fb: Feedback,
     frames: dict[str, tuple[int, int]],
@@ -887,7 +887,7 @@ def _agree_within_photos(obs: list[Observation]) -> list[Observation]:
     return out
 
 
-def _closer_prediction(d: Detection, err_px: float, win: Window, wins: list[Window]) -> str:
+def _closer_prediction(d: Detection, err_px: float, win: SearchWindow, wins: list[SearchWindow]) -> str:
     """A target without an id belongs to the window only when no other GCP is predicted about as
     near it: another prediction within twice the own distance plus three target sides."""
     for o in wins:
@@ -912,7 +912,7 @@ def _warn_counts(observations: list[Observation], fb: Feedback) -> None:
 
 def write_gcp_list(path: Path, observations: list[Observation], gcps: GcpSet, crs: CRS) -> Path:
     """gcp_list.txt as OpenDroneMap reads it: CRS line, then ``x y z px py image name``."""
-    from ..outputs import write_text
+    from geoortho.core.outputs import write_text
 
     t = transformer(gcps.crs, crs)
     by_name = gcps.by_name()
@@ -931,7 +931,7 @@ def write_detections(path: Path, observations: list[Observation], gcps: GcpSet) 
     import geopandas as gpd
     import shapely
 
-    from ..outputs import write_text, write_vector
+    from geoortho.core.outputs import write_text, write_vector
 
     by_name = gcps.by_name()
     rows: list[dict[str, Any]] = []
@@ -961,7 +961,7 @@ def write_review(
     fits are marked (V verified on blue, F fitted on orange, a yellow centre), decoded ones plain."""
     import cv2
 
-    from ..outputs import atomic_path
+    from geoortho.core.outputs import atomic_path
 
     accepted = [o for o in observations if o.status == DETECTED]
     tiles = []

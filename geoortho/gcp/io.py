@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS
 
-from ..crs import WGS84_3D, crs_to_text, parse_crs
-from ..errors import InputError
+from geoortho.core.crs import WGS84_3D, crs_to_text, parse_crs
+from geoortho.errors import InputError
 
 __all__ = ["GroundControlPoint", "ImagePoint", "GcpSet", "read_gcp_file", "marker_id_of"]
 

@@ -5,7 +5,7 @@ gives up — motion blur, defocus, a glare spot, or a target with no code at all
 geoortho still knows which target should be where, at which size and (from the
 pose) with which perspective; only its rotation on the ground is unknown. So:
 
-1. Render the expected target (its reflectance pattern, :func:`geoortho.markers.target_reflectance`)
+1. Render the expected target (its reflectance pattern, :func:`geoortho.gcp.markers.target_reflectance`)
    through the local affine of the projection, blurred by the photo's estimated motion
    blur, at each rotation; correlate it with the window (OpenCV ``matchTemplate``, normalised,
    masked to the target's own area).
@@ -34,7 +34,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ..markers import (
+from geoortho.gcp.markers import (
     CODED,
     CROSS_BAR,
     coded_cells_at,

@@ -1,171 +1,18 @@
-"""Where each photo was and how it looked: from an ``sfm`` output or from the photo metadata."""
+"""Where each photo was and how it looked, from the photo metadata (direct georeferencing); an
+``sfm`` output is read by :mod:`geoortho.reconstruction.model`."""
 
 from __future__ import annotations
 
-import json
-import os
 from collections.abc import Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Literal, overload
+from typing import Any
 
-import numpy as np
 from pyproj import CRS
 
-from ..camera import Intrinsics, Pose, project_points
-from ..crs import parse_crs
-from ..errors import InputError
-from ..heights import GpsAltitude
+from geoortho.core.camera import PosedCamera
+from geoortho.photos.footprint import photo_cameras
+from geoortho.photos.heights import GpsAltitude
 
-__all__ = ["OrthoCamera", "cameras_from_sfm", "cameras_from_metadata"]
-
-
-@dataclass(frozen=True, eq=False)
-class OrthoCamera:
-    """One photo to rectify: its file, intrinsics (with distortion) and pose in the output CRS."""
-
-    name: str
-    path: Path
-    intrinsics: Intrinsics
-    pose: Pose
-
-    def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World points (N, 3) → pixels (N, 2) (pixel-centre convention) and depth (N,)."""
-        return project_points(xyz, self.intrinsics, self.pose)
-
-
-def _intrinsics_from_colmap(cam: Any) -> Intrinsics:
-    """COLMAP camera → our Intrinsics. COLMAP puts pixel (0, 0) at the top-left *corner*:
-    its principal point is ours + 0.5."""
-    p = [float(v) for v in cam.params]
-    model = cam.model_name
-    w, h = int(cam.width), int(cam.height)
-    dist: tuple[float, ...]
-    if model == "SIMPLE_PINHOLE":
-        f, cx, cy, dist = p[0], p[1], p[2], ()
-    elif model == "PINHOLE":
-        f, cx, cy, dist = (p[0] + p[1]) / 2, p[2], p[3], ()
-    elif model == "SIMPLE_RADIAL":
-        f, cx, cy, dist = p[0], p[1], p[2], (p[3], 0.0, 0.0, 0.0, 0.0)
-    elif model == "RADIAL":
-        f, cx, cy, dist = p[0], p[1], p[2], (p[3], p[4], 0.0, 0.0, 0.0)
-    elif model == "OPENCV":
-        # Square pixels assumed: fx and fy of a drone camera differ by far less than a pixel over the frame.
-        f, cx, cy, dist = (p[0] + p[1]) / 2, p[2], p[3], (p[4], p[5], p[6], p[7], 0.0)
-    else:
-        raise InputError(
-            f"COLMAP camera model {model} is not supported for orthorectification "
-            "(use SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV)"
-        )
-    return Intrinsics(w, h, f, cx - 0.5, cy - 0.5, distortion=dist)
-
-
-def _find_photo(images: Path, name: str, by_name: dict[str, Path]) -> Path | None:
-    p = images / name
-    if p.is_file():
-        return p
-    return by_name.get(Path(name).name)
-
-
-@overload
-def cameras_from_sfm(
-    sfm_dir: str | os.PathLike[str],
-    images: str | os.PathLike[str] | None,
-    crs: CRS | str | None = None,
-    *,
-    local_frame_ok: Literal[False] = False,
-) -> tuple[list[OrthoCamera], CRS, np.ndarray, list[tuple[str, str]]]: ...
-
-
-@overload
-def cameras_from_sfm(
-    sfm_dir: str | os.PathLike[str],
-    images: str | os.PathLike[str] | None,
-    crs: CRS | str | None = None,
-    *,
-    local_frame_ok: bool,
-) -> tuple[list[OrthoCamera], CRS | None, np.ndarray, list[tuple[str, str]]]: ...
-
-
-def cameras_from_sfm(
-    sfm_dir: str | os.PathLike[str],
-    images: str | os.PathLike[str] | None,
-    crs: CRS | str | None = None,
-    *,
-    local_frame_ok: bool = False,
-) -> tuple[list[OrthoCamera], CRS | None, np.ndarray, list[tuple[str, str]]]:
-    """Registered photos of an ``sfm`` output, posed in its CRS (or ``crs``).
-
-    Returns the cameras, the CRS, the georeferenced sparse points (N, 3) and the
-    photos that could not be used with why. A model in a local frame (no CRS) is refused,
-    unless ``local_frame_ok``: then the CRS returned is None and positions are the model's.
-    """
-    from ..reconstruction import load_pycolmap
-
-    pycolmap = load_pycolmap()
-
-    sfm_dir = Path(sfm_dir)
-    model = sfm_dir / "model" if (sfm_dir / "model").is_dir() else sfm_dir
-    geo_path = model / "georeference.json"
-    if not geo_path.is_file():
-        raise InputError("no model/georeference.json: not an sfm output folder", path=sfm_dir)
-    try:
-        geo = json.loads(geo_path.read_text())
-        rec = pycolmap.Reconstruction(str(model))
-    except (ValueError, RuntimeError) as e:
-        raise InputError(f"cannot read the SfM model: {e}", path=model) from None
-    if not geo.get("crs") and not local_frame_ok:
-        raise InputError(
-            "the SfM model is in a local frame (no CRS): an orthophoto needs a georeferenced model", path=geo_path
-        )
-    model_crs = parse_crs(geo["crs"]) if geo.get("crs") else None
-    offset = np.asarray(geo.get("offset", [0.0, 0.0, 0.0]), float)
-    out_crs = model_crs if crs is None else parse_crs(crs)
-    move = None
-    if model_crs is None and out_crs is not None:
-        raise InputError("the SfM model is in a local frame (no CRS): it cannot be moved to a CRS", path=geo_path)
-    if out_crs is not None and model_crs is not None and not out_crs.equals(model_crs):
-        from ..crs import transformer
-
-        move = transformer(model_crs, out_crs)
-    # without a photo folder (the dem's footprints need only the poses) no photo is looked for
-    by_name = {p.name: p for p in Path(images).rglob("*") if p.is_file()} if images is not None else {}
-    cams: list[OrthoCamera] = []
-    skipped: list[tuple[str, str]] = []
-    for image_id in sorted(rec.reg_image_ids()):
-        im = rec.image(image_id)
-        path = _find_photo(Path(images), im.name, by_name) if images is not None else Path(im.name)
-        if path is None:
-            skipped.append((im.name, f"not found in {images}"))
-            continue
-        try:
-            intr = _intrinsics_from_colmap(rec.camera(im.camera_id))
-        except InputError as e:
-            skipped.append((im.name, str(e)))
-            continue
-        cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-        rot = np.asarray(cfw.rotation.matrix()).T  # world-from-camera
-        centre = np.asarray(im.projection_center(), float) + offset
-        if move is not None:
-            centre, rot = _moved(move, centre, rot)
-        cams.append(OrthoCamera(Path(im.name).name, path, intr, Pose(centre, rot)))
-    pts = np.array([p.xyz for p in rec.points3D.values()], float).reshape(-1, 3) + offset
-    if move is not None and len(pts):
-        x, y, z = move.transform(pts[:, 0], pts[:, 1], pts[:, 2])
-        pts = np.c_[x, y, z]
-    return cams, out_crs, pts, skipped
-
-
-def _moved(tr: Any, centre: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A pose carried into another projected CRS: the centre transformed, the rotation turned by the
-    local grid convergence (finite differences over 10 m)."""
-    c = np.array(tr.transform(*centre))
-    ex = np.array(tr.transform(centre[0] + 10.0, centre[1], centre[2])) - c
-    ey = np.array(tr.transform(centre[0], centre[1] + 10.0, centre[2])) - c
-    ez = np.array(tr.transform(centre[0], centre[1], centre[2] + 10.0)) - c
-    m = np.c_[ex, ey, ez] / 10.0
-    u, _, vt = np.linalg.svd(m)  # nearest rotation: the scale change is not a turn
-    return c, (u @ vt) @ rot
+__all__ = ["cameras_from_metadata"]
 
 
 def cameras_from_metadata(
@@ -176,13 +23,11 @@ def cameras_from_metadata(
     *,
     flight_height_m: float | None = None,
     gps_altitude: GpsAltitude = "auto",
-) -> tuple[list[OrthoCamera], Any]:
-    """Direct georeferencing: poses from GPS, altitude and gimbal attitude (see :mod:`geoortho.footprint`).
-    Returns the cameras and the flight's :class:`~geoortho.heights.HeightModel`."""
-    from ..footprint import photo_cameras
-
+) -> tuple[list[PosedCamera], Any]:
+    """Direct georeferencing: poses from GPS, altitude and gimbal attitude (see :mod:`geoortho.photos.footprint`).
+    Returns the cameras and the flight's :class:`~geoortho.photos.heights.HeightModel`."""
     pcs, heights = photo_cameras(
         photos, crs, surface, takeoff_elevation_m, flight_height_m=flight_height_m, gps_altitude=gps_altitude
     )
-    cams = [OrthoCamera(c.photo.path.name, c.photo.path, c.intrinsics, c.pose) for c in pcs]
+    cams = [PosedCamera(c.photo.path.name, c.photo.path, c.intrinsics, c.pose) for c in pcs]
     return cams, heights

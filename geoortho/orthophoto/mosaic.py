@@ -22,17 +22,16 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
-from ..coverage import source_path
-from ..crs import crs_to_text, horizontal_unit_m
-from ..errors import InputError, ParameterError
-from ..feedback import Feedback, as_feedback, split
-from ..footprint import compute_footprints
-from ..heights import GpsAltitude
-from ..outputs import atomic_path, temp_prefix, write_json
-from ..parallel import imap_ordered, map_ordered
-from ..surface import FlatSurface, GridSurface, Surface
-from .cameras import OrthoCamera, cameras_from_metadata, cameras_from_sfm
-from .rectify import (
+from geoortho.core.camera import PosedCamera
+from geoortho.core.crs import crs_to_text, horizontal_unit_m
+from geoortho.core.outputs import atomic_path, temp_prefix, write_json
+from geoortho.core.parallel import imap_ordered, map_ordered
+from geoortho.core.surface import FlatSurface, GridSurface, Surface
+from geoortho.elevation.coverage import source_path
+from geoortho.errors import InputError, ParameterError
+from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.orthophoto.cameras import cameras_from_metadata
+from geoortho.orthophoto.rectify import (
     BlockTops,
     VisibilityGrid,
     Window,
@@ -44,7 +43,10 @@ from .rectify import (
     visibility_grid,
     window_xyz,
 )
-from .seams import BALANCE, SEAMS, Balance, SeamMethod, SeamPlan, plan_seams, read_photo_bgr
+from geoortho.orthophoto.seams import BALANCE, SEAMS, Balance, SeamMethod, SeamPlan, plan_seams, read_photo_bgr
+from geoortho.photos.footprint import compute_footprints
+from geoortho.photos.heights import GpsAltitude
+from geoortho.reconstruction.model import cameras_from_sfm
 
 DsmOffset = Literal["correct", "refuse", "ignore"]
 DSM_OFFSET: tuple[str, ...] = get_args(DsmOffset)
@@ -167,7 +169,7 @@ COVERAGE_CELLS = 4_000_000
 
 
 def measure_coverage(
-    ortho: Path, cams: Sequence[OrthoCamera], surface: Surface, dsm_source: Path | None
+    ortho: Path, cams: Sequence[PosedCamera], surface: Surface, dsm_source: Path | None
 ) -> dict[str, float]:
     """The orthophoto's opaque area against the ground its photos saw (by >= 1 and >= 2 of them),
     and how much of it lies on interpolated DSM cells, measured on a grid of at most
@@ -175,7 +177,7 @@ def measure_coverage(
     import rasterio
     from rasterio.enums import Resampling
 
-    from ..coverage import MEASURED, footprint_polygons, seen_count
+    from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_count
 
     with rasterio.open(ortho) as ds:
         crs = ds.crs
@@ -203,7 +205,7 @@ def measure_coverage(
         out["on_interpolated_m2"] = float((alpha & (src_grid != MEASURED)).sum()) * cell_m2
     elif isinstance(surface, GridSurface):
         # the ortho's DSM has its holes filled on reading: what is left off it lies past its grid
-        from ..surface import sample_grid
+        from geoortho.core.surface import sample_grid
 
         rows, cols = np.nonzero(alpha)
         x, y = t * (cols + 0.5, rows + 0.5)
@@ -219,7 +221,7 @@ def measure_coverage(
 
 @dataclass(frozen=True, eq=False)
 class _Context:
-    cams: tuple[OrthoCamera, ...]
+    cams: tuple[PosedCamera, ...]
     boxes: tuple[Window | None, ...]  # each photo's footprint on the output grid
     vis: tuple[VisibilityGrid | None, ...]
     surface: Surface
@@ -251,7 +253,7 @@ def _init_visibility(surface: GridSurface, tops: tuple[BlockTops, ...]) -> None:
     _VIS_SURFACE = (surface, tops)
 
 
-def _visibility_task(job: tuple[OrthoCamera, tuple[float, float, float, float], str]) -> VisibilityGrid | None:
+def _visibility_task(job: tuple[PosedCamera, tuple[float, float, float, float], str]) -> VisibilityGrid | None:
     """One photo's visibility grid, written to its file (a pool or cluster task)."""
     assert _VIS_SURFACE is not None
     surface, tops = _VIS_SURFACE
@@ -517,7 +519,7 @@ class MosaicOptions:
 
 
 def mosaic(
-    cams: Sequence[OrthoCamera],
+    cams: Sequence[PosedCamera],
     surface: Surface,
     crs: CRS,
     output: str | os.PathLike[str],
@@ -721,7 +723,7 @@ def _write_report(
 class _Placed:
     """The photos that see the surface, where they land and their GSD; the others and why."""
 
-    cams: tuple[OrthoCamera, ...]
+    cams: tuple[PosedCamera, ...]
     boxes: tuple[tuple[float, float, float, float], ...]  # ground bounding box of each footprint
     gsds: tuple[float, ...]  # GSD at the image centre, metres
     skipped: tuple[tuple[str, str], ...]
@@ -730,7 +732,7 @@ class _Placed:
 MIN_AXIS_BELOW_HORIZON_DEG = 20.0
 
 
-def _place(cams: Sequence[OrthoCamera], surface: Surface, fb: Feedback) -> _Placed:
+def _place(cams: Sequence[PosedCamera], surface: Surface, fb: Feedback) -> _Placed:
     """Cast each photo's border onto the surface (as the footprints stage does); leave out those that miss it."""
     if not cams:
         raise InputError("no photo sees the surface: nothing to mosaic")
@@ -739,7 +741,7 @@ def _place(cams: Sequence[OrthoCamera], surface: Surface, fb: Feedback) -> _Plac
     heights = centres[:, 2] - np.where(np.isfinite(ground), ground, surface.z_min)
     max_range = 5.0 * float(np.median(heights[heights > 0])) if (heights > 0).any() else 1000.0
     table = compute_footprints(cams, surface, max_range_m=max_range)
-    kept: list[OrthoCamera] = []
+    kept: list[PosedCamera] = []
     boxes: list[tuple[float, float, float, float]] = []
     gsds: list[float] = []
     skipped: list[tuple[str, str]] = []
@@ -990,7 +992,7 @@ def ortho(
     max_dsm_offset_m : float
         Largest vertical offset between the DSM and the SfM points taken as agreement.
     """
-    from ..footprint import _photos_with_altitude, working_crs
+    from geoortho.photos.footprint import photos_with_altitude, working_crs
 
     fb = as_feedback(feedback)
     images = Path(images)
@@ -1005,7 +1007,7 @@ def ortho(
         default_ground = float(np.median(pts[:, 2])) if len(pts) else None
     else:
         # one photo without an altitude is skipped, as in footprints, not the end of the mosaic
-        photoset = _photos_with_altitude(images, None, flight_height_m, fb, fb)
+        photoset = photos_with_altitude(images, None, flight_height_m, fb, fb)
         skipped = list(photoset.skipped)
         out_crs = working_crs(photoset.photos, crs)
         cams, default_ground, poses = None, None, "photo metadata (direct georeferencing)"
@@ -1079,7 +1081,7 @@ def _check_dsm_against_points(
     ``max_offset_m``: move the DSM onto the points (correct), refuse, or only say it (ignore)."""
     z = surface.grid
     c, r = surface.colrow(pts[:, 0], pts[:, 1])
-    from ..surface import sample_grid
+    from geoortho.core.surface import sample_grid
 
     dsm_z = sample_grid(z, c, r).astype(float)
     ok = np.isfinite(dsm_z)
@@ -1152,8 +1154,8 @@ def _feet_against_points(points_z: np.ndarray, dsm_z: np.ndarray, unit: str) -> 
 
 def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurface:
     """The DSM in the output CRS, its small nodata holes filled (reported)."""
-    from ..gapfill import fill_gaps_by_windows
-    from ..surface import read_surface
+    from geoortho.core.gapfill import fill_gaps_by_windows
+    from geoortho.core.surface import read_surface
 
     surf = read_surface(path, crs, extend=True)
     if surf.height_unit != "metre":

@@ -24,8 +24,8 @@ import cv2
 import numpy as np
 from affine import Affine
 
-from ..surface import FlatSurface, GridSurface, Surface, sample_grid
-from .cameras import OrthoCamera
+from geoortho.core.camera import PosedCamera
+from geoortho.core.surface import FlatSurface, GridSurface, Surface, sample_grid
 
 __all__ = [
     "Window",
@@ -164,7 +164,7 @@ def block_tops(surface: GridSurface) -> tuple[BlockTops, ...]:
 
 
 def visibility_grid(
-    cam: OrthoCamera,
+    cam: PosedCamera,
     surface: GridSurface,
     bounds: tuple[float, float, float, float],
     path: Path,
@@ -247,7 +247,7 @@ class Projection:
 
 
 def preference_cost(
-    cam: OrthoCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
+    cam: PosedCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
 ) -> np.ndarray:
     """How badly this photo sees each ground point: the tangent of the line of sight's angle from
     the vertical (relief displacement and smear grow with it) plus the distance from the principal
@@ -264,13 +264,13 @@ def preference_cost(
 
 
 def project_grid(
-    cam: OrthoCamera,
+    cam: PosedCamera,
     x: np.ndarray,
     y: np.ndarray,
     z: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel column, row and depth (float32, the grid's shape) of ground points: the camera model of
-    :func:`geoortho.camera.project_points` written out per component, so that a million points cost
+    :func:`geoortho.core.camera.project_points` written out per component, so that a million points cost
     a few array passes (offsets from the camera are taken in float64 first: CRS coordinates are large)."""
     c = cam.pose.center
     dx = (x - c[0]).astype(np.float32)
@@ -301,7 +301,7 @@ def project_grid(
 
 
 def project_window(
-    cam: OrthoCamera,
+    cam: PosedCamera,
     x: np.ndarray,
     y: np.ndarray,
     z: np.ndarray,

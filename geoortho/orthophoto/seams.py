@@ -22,10 +22,10 @@ import cv2
 import numpy as np
 from affine import Affine
 
-from ..feedback import Feedback, as_feedback
-from ..surface import Surface
-from .cameras import OrthoCamera
-from .rectify import (
+from geoortho.core.camera import PosedCamera
+from geoortho.core.surface import Surface
+from geoortho.feedback import Feedback, as_feedback
+from geoortho.orthophoto.rectify import (
     Projection,
     VisibilityGrid,
     Window,
@@ -76,7 +76,7 @@ def read_photo_bgr(path: str, reduction: int = 1, *, verify: bool = False) -> np
     OpenCV (and Pillow, for a bad Huffman code) only warns "Corrupt JPEG data" and returns a
     grey-smeared image; simplejpeg's strict mode turns the warning into an error."""
     if verify:
-        from ..photos import decode_photo
+        from geoortho.photos.metadata import decode_photo
 
         img = decode_photo(path, reduction)
         if img is not None:
@@ -95,8 +95,8 @@ def read_photo_bgr(path: str, reduction: int = 1, *, verify: bool = False) -> np
 
 def _exposure(path: Any) -> float:
     """ISO · t / N² from the photo's EXIF (NaN when unknown or unreadable)."""
-    from ..errors import InputError
-    from ..photos import read_photo
+    from geoortho.errors import InputError
+    from geoortho.photos.metadata import read_photo
 
     try:
         return read_photo(path).exposure_value
@@ -125,7 +125,7 @@ class _Band:
 
 
 def _coarse_projection(
-    cam: OrthoCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine, win: Window
+    cam: PosedCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine, win: Window
 ) -> Projection:
     """A photo's projection over a coarse window: computed once for the Voronoi split (its cost)
     and again when the photo is decoded (its maps), so that no window's arrays outlive their use."""
@@ -134,7 +134,7 @@ def _coarse_projection(
 
 
 def _coarse_view(
-    i: int, cam: OrthoCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine, win: Window, gsd_m: float
+    i: int, cam: PosedCamera, surface: Surface, vis: VisibilityGrid | None, transform: Affine, win: Window, gsd_m: float
 ) -> _View:
     proj = _coarse_projection(cam, surface, vis, transform, win)
     reduction = 1
@@ -154,7 +154,7 @@ def _coarse_view(
 
 
 def plan_seams(
-    cams: Sequence[OrthoCamera],
+    cams: Sequence[PosedCamera],
     boxes: Sequence[tuple[float, float, float, float] | None],
     gsd_m: Sequence[float],
     surface: Surface,
@@ -191,7 +191,7 @@ def plan_seams(
 
 
 def _plan(
-    cams: Sequence[OrthoCamera],
+    cams: Sequence[PosedCamera],
     boxes: Sequence[tuple[float, float, float, float] | None],
     gsd_m: Sequence[float],
     surface: Surface,

@@ -4,8 +4,8 @@ The CLI (:mod:`geoortho.processing.cli`) and the QGIS provider are generated
 from these specs. Nothing here imports QGIS.
 """
 
-from .registry import describe, get_algorithm, list_algorithms, run_algorithm
-from .spec import PARAM_TYPES, Algorithm, Output, Param
+from geoortho.processing.registry import describe, get_algorithm, list_algorithms, run_algorithm
+from geoortho.processing.spec import PARAM_TYPES, Algorithm, Output, Param
 
 __all__ = [
     "PARAM_TYPES",

@@ -8,7 +8,7 @@ registry (``--help``, ``describe --json``, the QGIS provider) stays quick.
 
 from __future__ import annotations
 
-from .spec import Algorithm, Output, Param
+from geoortho.processing.spec import Algorithm, Output, Param
 
 # -- shared parameters: one declaration each ---------------------------------
 IMAGES = Param("images", "folder")
@@ -39,7 +39,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="synth",
         title="Synthetic survey",
         group="Testing",
-        function_ref="geoortho.synthetic:synth",
+        function_ref="geoortho.synthetic.survey:synth",
         params=(
             Param("output", "folder", output=True),
             PRESET,
@@ -73,7 +73,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="footprints",
         title="Photo footprints and GSD",
         group="Photos",
-        function_ref="geoortho.footprint:footprints",
+        function_ref="geoortho.photos.footprint:footprints",
         params=(
             IMAGES,
             Param("output", "vector", output=True, extensions=(".gpkg", ".geojson", ".shp", ".fgb")),
@@ -142,7 +142,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="dem",
         title="DSM and DTM from a point cloud",
         group="Elevation",
-        function_ref="geoortho.elevation:dem",
+        function_ref="geoortho.elevation.gridding:dem",
         params=(
             Param("points", "pointcloud", extensions=(".las", ".laz", ".ply")),
             Param("output", "raster", output=True, extensions=(".tif",)),
@@ -187,7 +187,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="sfm",
         title="Structure from Motion (pycolmap), georeferenced",
         group="Photogrammetry",
-        function_ref="geoortho.reconstruction:sfm",
+        function_ref="geoortho.reconstruction.sparse:sfm",
         params=(
             IMAGES,
             Param("output", "folder", output=True),
@@ -226,7 +226,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="dense",
         title="Dense point cloud from the photos (CPU)",
         group="Photogrammetry",
-        function_ref="geoortho.densify:dense",
+        function_ref="geoortho.reconstruction.dense:dense",
         params=(
             Param("sfm", "folder"),
             IMAGES,
@@ -294,7 +294,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="run",
         title="Run the whole chain (resumable) with a quality report",
         group="Photogrammetry",
-        function_ref="geoortho.pipeline:run",
+        function_ref="geoortho.chain.pipeline:run",
         params=(
             IMAGES,
             Param("output", "folder", output=True),
@@ -328,7 +328,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="report",
         title="Quality report of a run project",
         group="Photogrammetry",
-        function_ref="geoortho.reporting:report",
+        function_ref="geoortho.chain.reporting:report",
         params=(
             Param("project", "folder"),
             Param("output", "file", output=True, extensions=(".html",)),
@@ -345,7 +345,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="plan",
         title="Plan a flight and its ground control",
         group="Planning",
-        function_ref="geoortho.flightplan:plan",
+        function_ref="geoortho.planning.plan:plan",
         params=(
             Param("aoi", "vector", extensions=(".gpkg", ".geojson", ".json", ".kml", ".shp")),
             Param("output", "folder", output=True),
@@ -399,7 +399,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="plan-check",
         title="Check a plan or a flight against its GCPs and the overlap needed",
         group="Planning",
-        function_ref="geoortho.flightplan:check_plan",
+        function_ref="geoortho.planning.plan:check_plan",
         params=(
             Param("gcp_file", "file", extensions=(".txt", ".csv", ".tsv", ".json")),
             Param("output", "folder", output=True),
@@ -429,7 +429,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         id="demo",
         title="Demo: the whole chain on a synthetic survey",
         group="Testing",
-        function_ref="geoortho.demonstration:demo",
+        function_ref="geoortho.chain.demonstration:demo",
         params=(
             Param("output", "folder", output=True),
             PRESET,

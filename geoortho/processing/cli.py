@@ -16,10 +16,10 @@ import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
-from ..errors import CanceledError, GeoorthoError, InputError
-from ..feedback import Feedback, JsonLinesFeedback, TerminalFeedback
-from .registry import describe_json, list_algorithms, run_algorithm
-from .spec import PARAM_TYPES, Algorithm, Param
+from geoortho.errors import CanceledError, GeoorthoError, InputError
+from geoortho.feedback import Feedback, JsonLinesFeedback, TerminalFeedback
+from geoortho.processing.registry import describe_json, list_algorithms, run_algorithm
+from geoortho.processing.spec import PARAM_TYPES, Algorithm, Param
 
 __all__ = ["ARGPARSE_OPTIONS", "build_parser", "main"]
 
@@ -132,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="geoortho: drone photos to survey products, georeference first.",
         epilog=f"Run '{PROG} <algorithm> --help' for its options.",
     )
-    from .. import __version__
+    from geoortho.version import __version__
 
     parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="<algorithm>", parser_class=_Parser)
@@ -183,7 +183,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # numpy's "invalid value encountered" and the like are not for a surveyor: what matters is
         # said through the feedback; --debug shows them
         warnings.filterwarnings("ignore", category=RuntimeWarning)
-        from ..parallel import SCHEDULER_ENV  # here: the pool's imports are no part of --help
+        from geoortho.core.parallel import SCHEDULER_ENV  # here: the pool's imports are no part of --help
 
         if args.scheduler or os.environ.get(SCHEDULER_ENV):
             _quiet_dask()

@@ -10,9 +10,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..errors import ParameterError
-from ..feedback import Feedback, as_feedback
-from .spec import PARAM_TYPES, PATH_TYPES, Algorithm, Param
+from geoortho.errors import ParameterError
+from geoortho.feedback import Feedback, as_feedback
+from geoortho.processing.spec import PARAM_TYPES, PATH_TYPES, Algorithm, Param
 
 __all__ = ["CONVERTERS", "convert_value", "get_algorithm", "list_algorithms", "run_algorithm", "describe"]
 
@@ -89,7 +89,7 @@ def _bool(p: Param, v: Any) -> bool:
 
 
 def _crs(p: Param, v: Any) -> Any:
-    from ..crs import parse_crs
+    from geoortho.core.crs import parse_crs
 
     try:
         crs = parse_crs(v)
@@ -134,7 +134,7 @@ def convert_value(p: Param, value: Any) -> Any:
 
 def list_algorithms() -> list[Algorithm]:
     """Every registered algorithm, in registry order."""
-    from .algorithms import ALGORITHMS
+    from geoortho.processing.algorithms import ALGORITHMS
 
     return list(ALGORITHMS)
 
@@ -207,11 +207,12 @@ def _refuse_overwriting_inputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
                     out_p.name,
                     f"{out_path} is also the input {in_p.name}: writing it would destroy it; give another path",
                 )
-            if in_p.type == "folder" and out_p.type != "folder":
-                refuse_writing_into(out_p.name, out_path, in_p.name, in_path)
         for other_p, other_path in outputs[:i]:
             if _same_file(out_path, other_path):
                 raise ParameterError(out_p.name, f"{out_path} is also the output {other_p.name}; give another path")
+        for in_p, in_path in inputs:  # after the inputs themselves: the message names the input file
+            if in_p.type == "folder" and out_p.type != "folder":
+                refuse_writing_into(out_p.name, out_path, in_p.name, in_path)
 
 
 #: Output files that may replace their own earlier copy inside an input folder: the report of a
@@ -233,7 +234,7 @@ def refuse_writing_into(out_name: str, out_path: Path, in_name: str, in_folder: 
     """Refuse an output file whose writing would change what an input folder holds: a file of it
     replaced (photos are read from the folder itself, not below it), or a new image that the next
     reading of a photo folder would take for a photo."""
-    from ..photos import IMAGE_EXTENSIONS
+    from geoortho.photos.metadata import IMAGE_EXTENSIONS
 
     rel = _inside(out_path, in_folder)
     if rel is None:
@@ -287,7 +288,7 @@ def run_algorithm(
 
     ``scheduler``: a Dask scheduler's address (default ``$GEOORTHO_SCHEDULER``) to run the
     per-photo and per-tile work on; its workers must see every input and output path."""
-    from ..parallel import use_scheduler
+    from geoortho.core.parallel import use_scheduler
 
     alg = algorithm_id if isinstance(algorithm_id, Algorithm) else get_algorithm(algorithm_id)
     kwargs = convert_values(alg, values)
@@ -305,7 +306,7 @@ def run_algorithm(
 def _clean_beside_outputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
     """Each output can be written (refused now, not after the computing); temporaries of killed
     runs beside (or in) it are removed before this run starts."""
-    from ..outputs import remove_stale_temporaries
+    from geoortho.core.outputs import remove_stale_temporaries
 
     for p in alg.params:
         if p.output and kwargs.get(p.name) is not None:
@@ -363,7 +364,7 @@ def _param_json(p: Param) -> dict[str, Any]:
 
 def describe() -> dict[str, Any]:
     """The whole registry as a JSON-ready dict (the contract other faces build on)."""
-    from .. import __version__
+    from geoortho.version import __version__
 
     return {
         "name": "geoortho",

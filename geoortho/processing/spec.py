@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any, Literal, get_args
 
-from .static import read_function, split_ref
+from geoortho.processing.static import read_function, split_ref
 
 __all__ = ["PARAM_TYPES", "ParamType", "REQUIRED", "Param", "Output", "Algorithm", "parse_docstring"]
 

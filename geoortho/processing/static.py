@@ -1,6 +1,6 @@
 """Read a core function's signature and docstring from its source, without importing it.
 
-The registry names each algorithm's function as ``"geoortho.elevation:dem"``. Building
+The registry names each algorithm's function as ``"geoortho.elevation.gridding:dem"``. Building
 the CLI or the QGIS description needs only the parameters' defaults, their choices
 (``Literal[...]`` annotations) and the docstring: reading them from the syntax tree
 keeps ``python -m geoortho --help`` from loading OpenCV, pycolmap, GDAL and SciPy.
@@ -264,15 +264,10 @@ def _decode(v: Any) -> Any:
     return v
 
 
-def ready_made_text(refs: list[str] | None = None) -> str:
-    """The ready-made file's text for these function references (default: the registry's), read
-    from the sources now."""
+def ready_made_text(refs: list[str]) -> str:
+    """The ready-made file's text for these function references (the registry's: this module is
+    below the registry and does not import it), read from the sources now."""
     import json
-
-    if refs is None:
-        from .algorithms import ALGORITHMS
-
-        refs = [a.function_ref for a in ALGORITHMS]
 
     functions = {}
     for ref in sorted(set(refs)):

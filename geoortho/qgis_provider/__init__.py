@@ -9,6 +9,6 @@ packs this folder as the QGIS plugin ``geoortho_qgis``.
 
 def classFactory(iface):  # noqa: N802 (QGIS's name)
     """QGIS plugin entry point."""
-    from .plugin import GeoorthoPlugin
+    from geoortho.qgis_provider.plugin import GeoorthoPlugin
 
     return GeoorthoPlugin(iface)

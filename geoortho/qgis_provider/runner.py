@@ -23,7 +23,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-from .interpreter import NEUTRAL_CWD, clean_environment
+from geoortho.qgis_provider.interpreter import NEUTRAL_CWD, clean_environment
 
 __all__ = ["RunCanceled", "RunFailed", "run_geoortho", "remove_partial_outputs"]
 
@@ -107,7 +107,7 @@ def remove_partial_outputs(destinations: Iterable[str | os.PathLike[str]]) -> li
     """Remove the temporary files geoortho writes beside each destination.
 
     geoortho writes ``<dir>/.<stem>.tmp-<random><suffix>`` and renames it when
-    complete (``geoortho.outputs.atomic_path``); a killed run leaves that
+    complete (``geoortho.core.outputs.atomic_path``); a killed run leaves that
     temporary, never a half-written destination.
     """
     removed = []

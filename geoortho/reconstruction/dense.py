@@ -22,9 +22,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .errors import InputError
-from .feedback import Feedback, as_feedback, split
-from .parallel import imap_ordered
+from geoortho.core.parallel import imap_ordered
+from geoortho.errors import InputError
+from geoortho.feedback import Feedback, as_feedback, split
 
 __all__ = ["DenseResult", "dense"]
 
@@ -139,8 +139,8 @@ def dense(
     workers : int
         Processes for the depth maps (0 = every core).
     """
-    from .orthophoto.cameras import cameras_from_sfm
-    from .pointcloud import write_las_parts
+    from geoortho.core.pointcloud import write_las_parts
+    from geoortho.reconstruction.model import cameras_from_sfm
 
     fb = as_feedback(feedback)
     seconds: dict[str, float] = {}
@@ -180,7 +180,7 @@ def dense(
     }
     seconds["plan"] = _lap(clock)
     s_maps, s_write = split(fb, [9, 1])
-    from .demtiles import work_folder
+    from geoortho.elevation.tiles import work_folder
 
     with work_folder(output) as spill:
         fusion = _Fusion(voxel, spill_dir=Path(spill))
@@ -231,8 +231,8 @@ def dense(
     s_write.progress(1.0)
     seconds["total"] = _lap(clock)
     report = output.with_name(output.stem + "_report.json")
-    from .crs import crs_to_text
-    from .outputs import write_json
+    from geoortho.core.crs import crs_to_text
+    from geoortho.core.outputs import write_json
 
     crs_text = crs_to_text(crs) if crs is not None else ""
     write_json(
@@ -648,7 +648,7 @@ class _Fusion:
                     self._spill(*part)
 
     def _spill(self, xyz: np.ndarray, rgb: np.ndarray, counts: np.ndarray) -> None:
-        from .demtiles import append_by_tile
+        from geoortho.elevation.tiles import append_by_tile
 
         assert self.spill_dir is not None
         spill_dir = self.spill_dir

@@ -4,7 +4,7 @@ Two passes over the points in chunks (memory follows the grid, not the
 cloud): the first grids the DSM and the minimum surface the ground filter
 needs; the second classifies each point against the provisional ground and
 grids the ground points into the DTM (and writes the classified cloud when
-asked). Gaps are filled harmonically (:mod:`geoortho.gapfill`) — no ringing —
+asked). Gaps are filled harmonically (:mod:`geoortho.core.gapfill`) — no ringing —
 up to ``max_gap_m`` from data on both sides; beyond that cells stay nodata.
 
 Grids stay in the cloud's CRS and units (feet stay feet, and the result says
@@ -22,157 +22,32 @@ from typing import Any, Literal, get_args
 import numpy as np
 from affine import Affine
 
-from .crs import crs_to_text, parse_crs
-from .errors import DependencyError, InputError, ParameterError
-from .feedback import Feedback, as_feedback, split
-from .gapfill import fill_harmonic, gap_mask
-from .ground import SmrfParams, ground_mask, smrf_surface
-from .outputs import atomic_paths
-from .pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
+from geoortho.core.crs import crs_to_text, parse_crs
+from geoortho.core.gapfill import fill_harmonic, gap_mask
+from geoortho.core.outputs import atomic_paths
+from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
+from geoortho.elevation.grid import (
+    GROUND,
+    METHODS,
+    NODATA,
+    Accumulator,
+    Box,
+    Grid,
+    Method,
+    finite_points,
+    grid_points,
+    with_nodata,
+)
+from geoortho.elevation.ground import SmrfParams, ground_mask, smrf_surface
+from geoortho.errors import DependencyError, InputError, ParameterError
+from geoortho.feedback import Feedback, as_feedback, split
 
 __all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
 
-Method = Literal["max", "min", "mean", "idw", "count"]
 GroundMethod = Literal["smrf", "csf", "classification"]
 Engine = Literal["native", "pdal"]
-METHODS: tuple[str, ...] = get_args(Method)
 GROUND_METHODS: tuple[str, ...] = get_args(GroundMethod)
 ENGINES: tuple[str, ...] = get_args(Engine)
-NODATA = -9999.0
-GROUND = 2
-
-
-@dataclass(frozen=True)
-class Grid:
-    """A north-up grid: top-left corner, cell size and shape, in the cloud's units.
-
-    A window of a larger grid keeps that grid's corner and says where it starts (``row0``,
-    ``col0``): its cells are then the larger grid's, computed the same way to the last bit (a
-    point on a cell's edge — a millimetre lattice at 5 cm cells — falls in the same cell)."""
-
-    x0: float
-    y0: float  # top edge
-    cell: float
-    rows: int
-    cols: int
-    row0: int = 0
-    col0: int = 0
-
-    @classmethod
-    def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float, cell: float) -> Grid:
-        x0 = math.floor(xmin / cell) * cell
-        y0 = math.ceil(ymax / cell) * cell
-        if y0 == ymax:  # a point on the top edge belongs to the row below it
-            y0 += cell
-        cols = int(math.floor((xmax - x0) / cell)) + 1
-        rows = int(math.floor((y0 - ymin) / cell)) + 1
-        return cls(x0, y0, cell, rows, cols)
-
-    def window(self, row0: int, col0: int, rows: int, cols: int) -> Grid:
-        """The cells ``row0 .. row0 + rows``, ``col0 .. col0 + cols`` of this grid, as a grid."""
-        return replace(self, rows=rows, cols=cols, row0=self.row0 + row0, col0=self.col0 + col0)
-
-    def index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cell (row, col) of each point; -1 outside."""
-        c = np.floor((x - self.x0) / self.cell).astype(np.int64) - self.col0
-        r = np.floor((self.y0 - y) / self.cell).astype(np.int64) - self.row0
-        out = (c < 0) | (c >= self.cols) | (r < 0) | (r >= self.rows)
-        c[out] = -1
-        r[out] = -1
-        return r, c
-
-    def centres(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """x, y of the centres of cells (rows, cols)."""
-        return (
-            self.x0 + (cols + self.col0 + 0.5) * self.cell,
-            self.y0 - (rows + self.row0 + 0.5) * self.cell,
-        )
-
-    @property
-    def left(self) -> float:
-        return self.x0 + self.col0 * self.cell
-
-    @property
-    def top(self) -> float:
-        return self.y0 - self.row0 * self.cell
-
-    @property
-    def transform(self) -> Any:
-        from rasterio.transform import from_origin
-
-        return from_origin(self.left, self.top, self.cell, self.cell)
-
-
-class _Accumulator:
-    """One statistic per cell, fed chunk by chunk."""
-
-    def __init__(self, grid: Grid, method: str):
-        if method not in METHODS:
-            raise ParameterError("method", f"unknown gridding method {method!r}; use one of {', '.join(METHODS)}")
-        self.grid, self.method = grid, method
-        n = grid.rows * grid.cols
-        if method == "max":
-            self.a = np.full(n, -np.inf)
-        elif method == "min":
-            self.a = np.full(n, np.inf)
-        else:
-            self.a = np.zeros(n)
-        self.w = np.zeros(n) if method in ("mean", "idw") else None
-        self.count = np.zeros(n, np.int64) if method == "count" else None
-
-    def add(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> None:
-        g = self.grid
-        r, c = g.index(x, y)
-        ok = r >= 0
-        r, c, x, y, z = r[ok], c[ok], x[ok], y[ok], z[ok]
-        idx = r * g.cols + c
-        n = g.rows * g.cols
-        if self.method == "max":
-            np.maximum.at(self.a, idx, z)
-        elif self.method == "min":
-            np.minimum.at(self.a, idx, z)
-        elif self.method == "count":
-            assert self.count is not None
-            self.count += np.bincount(idx, minlength=n)
-        elif self.method == "mean":
-            assert self.w is not None
-            self.a += np.bincount(idx, z, minlength=n)
-            self.w += np.bincount(idx, minlength=n)
-        else:  # idw: each point feeds the cells whose centre lies within cell·√2 (PDAL's default radius)
-            assert self.w is not None
-            radius = g.cell * math.sqrt(2.0)
-            for dr in (-1, 0, 1):
-                for dc in (-1, 0, 1):
-                    rr, cc = r + dr, c + dc
-                    inside = (rr >= 0) & (rr < g.rows) & (cc >= 0) & (cc < g.cols)
-                    cx, cy = g.centres(rr, cc)
-                    d = np.hypot(x - cx, y - cy)
-                    use = inside & (d <= radius)
-                    wgt = 1.0 / np.maximum(d[use], 1e-3 * g.cell) ** 2
-                    k = rr[use] * g.cols + cc[use]
-                    self.a += np.bincount(k, wgt * z[use], minlength=n)
-                    self.w += np.bincount(k, wgt, minlength=n)
-
-    def result(self) -> np.ndarray:
-        """The grid (rows, cols), NaN where no point fell."""
-        if self.method == "count":
-            assert self.count is not None
-            out = self.count.astype(np.float64)
-            out[self.count == 0] = np.nan
-        elif self.method in ("max", "min"):
-            out = np.where(np.isfinite(self.a), self.a, np.nan)
-        else:
-            assert self.w is not None
-            with np.errstate(invalid="ignore", divide="ignore"):
-                out = np.where(self.w > 0, self.a / self.w, np.nan)
-        return out.reshape(self.grid.rows, self.grid.cols)
-
-
-def grid_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: Grid, method: Method = "max") -> np.ndarray:
-    """One statistic of the points per cell (NaN where none fell)."""
-    acc = _Accumulator(grid, method)
-    acc.add(np.asarray(x, float), np.asarray(y, float), np.asarray(z, float))
-    return acc.result()
 
 
 @dataclass(frozen=True)
@@ -247,22 +122,6 @@ def _auto_resolution_m(src: PointSource) -> float:
     return min(steps, key=lambda s: abs(math.log(s / raw)))
 
 
-Box = tuple[float, float, float, float, float, float]  # xmin ymin zmin xmax ymax zmax
-
-
-def _finite(ch: Chunk, keep: Box | None = None) -> tuple[Chunk, np.ndarray]:
-    """The chunk's points with finite coordinates (inside ``keep`` when given: the far outliers
-    are out), and which of its points those are."""
-    ok = np.isfinite(ch.x) & np.isfinite(ch.y) & np.isfinite(ch.z)
-    if keep is not None:
-        ok &= (ch.x >= keep[0]) & (ch.x <= keep[3]) & (ch.y >= keep[1]) & (ch.y <= keep[4])
-        ok &= (ch.z >= keep[2]) & (ch.z <= keep[5])
-    if ok.all():
-        return ch, ok
-    cls = ch.classification[ok] if ch.classification is not None else None
-    return Chunk(ch.x[ok], ch.y[ok], ch.z[ok], cls, ch.start), ok
-
-
 #: Points sampled by the extent scan; far outliers are judged against the sample's core.
 SCAN_SAMPLE = 200_000
 #: The core holds all but this share of the sampled points on each side of each axis.
@@ -292,7 +151,7 @@ def _bounds_of(src: PointSource, keep: Box | None, fb: Feedback) -> tuple[int, B
     sample: list[np.ndarray] = []
     for ch in src.chunks():
         fb.check_canceled()
-        ch, _ = _finite(ch, keep)
+        ch, _ = finite_points(ch, keep)
         if not len(ch.x):
             continue
         n += len(ch.x)
@@ -468,7 +327,7 @@ def dem(
         )  # fmt: skip
         return tiled if sfm is None else complete_to_photos(tiled, src, scan.keep, Path(sfm), fb)
     ground = GROUND_FILTERS[ground_method](src, params) if want_ground else None
-    dtm_acc = _Accumulator(plan.grid, "idw") if dtm is not None else None
+    dtm_acc = Accumulator(plan.grid, "idw") if dtm is not None else None
     first = _first_pass(src, plan.grid, method, ground, dtm_acc, scan.keep, s_pass1, fb)
     n_ground = first.n_ground
     if ground is not None:
@@ -512,8 +371,8 @@ def _dem_tiled(
     s_write: Feedback,
     fb: Feedback,
 ) -> DemResult:
-    """:func:`dem` for a grid too large to hold whole: tile by tile (:mod:`geoortho.demtiles`)."""
-    from .demtiles import make_tiled, work_folder
+    """:func:`dem` for a grid too large to hold whole: tile by tile (:mod:`geoortho.elevation.tiles`)."""
+    from geoortho.elevation.tiles import make_tiled, work_folder
 
     grid = plan.grid
     want_ground = dtm is not None or classified is not None
@@ -568,7 +427,7 @@ def _cog_of(tif: Path, target: Path, name: str, units: str) -> None:
     import rasterio
     from rasterio.shutil import copy as rio_copy
 
-    from .outputs import cog_options
+    from geoortho.core.outputs import cog_options
 
     with rasterio.open(tif, "r+") as ds:
         ds.set_band_description(1, name)
@@ -659,7 +518,7 @@ class _GridPlan:
 
 
 def _whole_grid_max_cells() -> int:
-    from .demtiles import WHOLE_GRID_MAX_CELLS
+    from geoortho.elevation.tiles import WHOLE_GRID_MAX_CELLS
 
     return WHOLE_GRID_MAX_CELLS
 
@@ -763,7 +622,7 @@ class _SmrfGround(_GroundFilter):
         super().__init__(src, params)
         xmin, ymin, _, xmax, ymax, _ = src.bounds
         self.grid = Grid.covering(xmin, ymin, xmax, ymax, params.cell_m / src.horizontal_m)
-        self.zmin = _Accumulator(self.grid, "min")
+        self.zmin = Accumulator(self.grid, "min")
         self.surface: np.ndarray | None = None
 
     def observe(self, ch: Chunk) -> None:
@@ -826,7 +685,7 @@ assert set(GROUND_FILTERS) == set(GROUND_METHODS)
 
 @dataclass(frozen=True)
 class _FirstPass:
-    dsm: _Accumulator
+    dsm: Accumulator
     n_used: int
     n_ground: int  # counted here only when the ground is known in pass 1
 
@@ -836,22 +695,22 @@ def _first_pass(
     grid: Grid,
     method: str,
     ground: _GroundFilter | None,
-    dtm_acc: _Accumulator | None,
+    dtm_acc: Accumulator | None,
     keep: Box | None,
     progress: Feedback,
     fb: Feedback,
 ) -> _FirstPass:
     """Grid the DSM; let the ground filter see the points (or grid the ground it already knows)."""
-    dsm_acc = _Accumulator(grid, method)
+    dsm_acc = Accumulator(grid, method)
     n_bad, first_bad, n_used, n_ground = 0, -1, 0, 0
     for ch in src.chunks():
         fb.check_canceled()
-        ch, ok = _finite(ch)
+        ch, ok = finite_points(ch)
         if not ok.all():
             first_bad = first_bad if n_bad else ch.start + int(np.argmin(ok))
             n_bad += int((~ok).sum())
         if keep is not None:
-            ch, _ = _finite(ch, keep)
+            ch, _ = finite_points(ch, keep)
         n_used += len(ch.x)
         dsm_acc.add(ch.x, ch.y, ch.z)
         if ground is not None:
@@ -872,7 +731,7 @@ def _first_pass(
 def _second_pass(
     src: PointSource,
     ground: _GroundFilter | None,
-    dtm_acc: _Accumulator | None,
+    dtm_acc: Accumulator | None,
     classified: Path | None,
     keep: Box | None,
     progress: Feedback,
@@ -887,7 +746,7 @@ def _second_pass(
     try:
         for ch in src.chunks():
             fb.check_canceled()
-            fin, used = _finite(ch, keep)
+            fin, used = finite_points(ch, keep)
             g = np.zeros(len(ch.x), bool)
             if ground is not None:
                 g[used] = ground.ground(fin)
@@ -911,7 +770,7 @@ def _write_products(
     plan: _GridPlan,
     method: str,
     first: _FirstPass,
-    dtm_acc: _Accumulator | None,
+    dtm_acc: Accumulator | None,
     output: Path,
     dtm: Path | None,
     hillshade: Path | None,
@@ -921,7 +780,7 @@ def _write_products(
     n_ground: int,
 ) -> DemResult:
     """Fill, smooth and write the DSM, the DTM and the hillshade."""
-    from .outputs import write_cog
+    from geoortho.core.outputs import write_cog
 
     grid = plan.grid
     # no gap is wider than the grid: a larger max gap means "every gap" (and must not pad the grid by it)
@@ -932,7 +791,7 @@ def _write_products(
 
     def write(path: Path, z: np.ndarray, name: str, units: str) -> Path:
         return write_cog(
-            path, _nodata(z), transform=grid.transform, crs=src.crs, nodata=NODATA, band_names=(name,), units=units
+            path, with_nodata(z), transform=grid.transform, crs=src.crs, nodata=NODATA, band_names=(name,), units=units
         )
 
     dsm_path = write(output, dsm_grid, "dsm", unit_tag)
@@ -963,10 +822,12 @@ def _write_products(
 
 def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sfm: Path, fb: Feedback) -> DemResult:
     """The DSM and DTM just written, carried over the ground at least two of the SfM's registered
-    photos saw, with a source raster beside each (see :mod:`geoortho.coverage`)."""
+    photos saw, with a source raster beside each (see :mod:`geoortho.elevation.coverage`)."""
     import rasterio
 
-    from .coverage import (
+    from geoortho.core.outputs import write_cog
+    from geoortho.core.surface import GridSurface
+    from geoortho.elevation.coverage import (
         FALLBACK,
         INTERPOLATED,
         MEASURED,
@@ -977,9 +838,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         seen_count,
         source_path,
     )
-    from .orthophoto.cameras import cameras_from_sfm
-    from .outputs import write_cog
-    from .surface import GridSurface
+    from geoortho.reconstruction.model import cameras_from_sfm
 
     if src.horizontal_m != 1.0 or src.vertical_m != 1.0:
         note = "not carried to the photos' edge: the cloud is not in metres"
@@ -1018,7 +877,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     crs = src.crs
     unit = _unit_tag(src.vertical_unit)
 
-    write_cog(result.dsm, _nodata(done.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dsm",), units=unit)
+    write_cog(result.dsm, with_nodata(done.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dsm",), units=unit)
     dsm_source = write_cog(
         source_path(result.dsm), done.source, transform=new_t, crs=crs, nodata=0, band_names=(SOURCE_DESCRIPTION,)
     )
@@ -1046,7 +905,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         dtm_done = complete_grid(grid, ground_seen, target, new_t, plane)
         dtm_grid = dtm_done.z
         write_cog(
-            result.dtm, _nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit
+            result.dtm, with_nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit
         )
         dtm_source = write_cog(
             source_path(result.dtm), dtm_done.source, transform=new_t, crs=crs, nodata=0,
@@ -1098,7 +957,7 @@ def _point_cells(src: PointSource, keep: Box | None, transform: Any, shape: tupl
     (the automatic cell holds about two points, so a measured surface leaves single cells empty)."""
     out = np.zeros(shape[0] * shape[1], bool)
     for ch in src.chunks():
-        fin, _ = _finite(ch, keep)
+        fin, _ = finite_points(ch, keep)
         c = np.floor((fin.x - transform.c) / transform.a).astype(np.int64)
         r = np.floor((fin.y - transform.f) / transform.e).astype(np.int64)
         ok = (c >= 0) & (c < shape[1]) & (r >= 0) & (r < shape[0])
@@ -1127,10 +986,6 @@ def _finish(grid: np.ndarray, max_gap_cells: float, smooth_px: int, gap: np.ndar
     return out
 
 
-def _nodata(grid: np.ndarray) -> np.ndarray:
-    return np.where(np.isfinite(grid), grid, NODATA).astype(np.float32)
-
-
 def write_hillshade(
     path: str | os.PathLike[str],
     z: np.ndarray,
@@ -1142,7 +997,7 @@ def write_hillshade(
     """A greyscale hillshade PNG (sun from the north-west, 45° up); nodata transparent."""
     import cv2
 
-    from .outputs import atomic_path
+    from geoortho.core.outputs import atomic_path
 
     valid = np.isfinite(z)
     fill = np.nanmean(z) if valid.any() else 0.0
@@ -1175,7 +1030,7 @@ class _ClassifiedWriter:
 
         import laspy
 
-        from .outputs import atomic_path
+        from geoortho.core.outputs import atomic_path
 
         assert src.path is not None
         self._stack = contextlib.ExitStack()
@@ -1257,7 +1112,7 @@ def _run_pdal(
 
     import rasterio
 
-    from .outputs import write_cog
+    from geoortho.core.outputs import write_cog
 
     if src.path is None:
         raise ParameterError("engine", "engine pdal reads files only")
@@ -1307,7 +1162,7 @@ def _run_pdal(
             outs.append(
                 write_cog(
                     target,
-                    _nodata(z),
+                    with_nodata(z),
                     transform=grid.transform,
                     crs=src.crs,
                     nodata=NODATA,

@@ -17,6 +17,7 @@ Conventions (written once, here):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -24,6 +25,7 @@ import numpy as np
 __all__ = [
     "Intrinsics",
     "Pose",
+    "PosedCamera",
     "rotation_from_ypr",
     "ypr_from_rotation",
     "project_points",
@@ -223,3 +225,18 @@ def in_frame(
         & (-0.5 + margin_y_px <= y)
         & (y <= height_px - 0.5 - margin_y_px)
     )
+
+
+@dataclass(frozen=True, eq=False)
+class PosedCamera:
+    """One photo, posed: its file, intrinsics (with distortion) and pose in a CRS. What footprints,
+    the orthophoto and the dense surface share, whether the pose was measured (SfM) or recorded."""
+
+    name: str
+    path: Path
+    intrinsics: Intrinsics
+    pose: Pose
+
+    def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) → pixels (N, 2) (pixel-centre convention) and depth (N,)."""
+        return project_points(xyz, self.intrinsics, self.pose)

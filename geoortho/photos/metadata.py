@@ -25,10 +25,10 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from .camera import Intrinsics
-from .errors import InputError
-from .feedback import Feedback, as_feedback, warn_grouped
-from .parallel import map_ordered
+from geoortho.core.camera import Intrinsics
+from geoortho.core.parallel import map_ordered
+from geoortho.errors import InputError
+from geoortho.feedback import Feedback, as_feedback, warn_grouped
 
 __all__ = [
     "Photo",

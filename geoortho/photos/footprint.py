@@ -5,7 +5,7 @@ drone), so footprints follow the terrain and oblique photos come out as the
 trapezoids they are. Rays at or above the horizon, or longer than
 ``max_range_m``, are clipped at that range and the footprint is flagged.
 
-Heights come from :mod:`geoortho.heights` (one height model per flight: which
+Heights come from :mod:`geoortho.photos.heights` (one height model per flight: which
 altitude, read how, in which vertical datum, checked against the photo spacing
 and over time; refused with what to give when no height above ground can be
 trusted). Without any ground model the ground is flat at the take-off elevation.
@@ -26,13 +26,13 @@ from typing import Any, Protocol
 import numpy as np
 from pyproj import CRS
 
-from .camera import Intrinsics, Pose, project_points, rotation_from_ypr, undistort_pixels
-from .crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
-from .errors import InputError
-from .feedback import Feedback, as_feedback, split, warn_grouped
-from .heights import GpsAltitude, HeightModel, resolve_heights
-from .photos import Photo, PhotoSet, read_photos
-from .surface import FlatSurface, GridSurface, Surface, read_surface
+from geoortho.core.camera import Intrinsics, Pose, project_points, rotation_from_ypr, undistort_pixels
+from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
+from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface
+from geoortho.errors import InputError
+from geoortho.feedback import Feedback, as_feedback, split, warn_grouped
+from geoortho.photos.heights import GpsAltitude, HeightModel, resolve_heights
+from geoortho.photos.metadata import Photo, PhotoSet, read_photos
 
 __all__ = [
     "PhotoCamera",
@@ -137,7 +137,7 @@ def photo_cameras(
     gnss_takeoff: bool = False,
     ground_label: str = "",
 ) -> tuple[list[PhotoCamera], HeightModel]:
-    """Place every photo in ``crs``: position from GPS, height from :func:`geoortho.heights.resolve_heights`,
+    """Place every photo in ``crs``: position from GPS, height from :func:`geoortho.photos.heights.resolve_heights`,
     rotation from the attitude. Returns the cameras and the flight's height model (its ``surface``
     is the ground used: ``surface``, or flat ground at the take-off)."""
     to_xy = transformer(WGS84, crs)
@@ -387,7 +387,7 @@ def footprints(
         )
 
     s_read, s_cast, s_write = split(fb, [3, 2, 1])
-    photos = _photos_with_altitude(images, sensor_width_mm, flight_height_m, s_read, fb)
+    photos = photos_with_altitude(images, sensor_width_mm, flight_height_m, s_read, fb)
     work = working_crs(photos.photos, out_crs)
     surface: Surface | None = None
     if dsm is not None:
@@ -440,7 +440,7 @@ def _write_layers(
     output: Path, fp: Any, cam_layer: Any, work: CRS, out_crs: CRS | None, overlap: Path | None, cell_m: float
 ) -> Path | None:
     """The overlap raster (in the working CRS), then both layers in the output CRS; the overlap's path."""
-    from .outputs import write_vector
+    from geoortho.core.outputs import write_vector
 
     overlap_path = write_overlap(overlap, fp.geometry.values, work, cell_m) if overlap is not None else None
     if out_crs is not None and not out_crs.equals(work):
@@ -490,8 +490,8 @@ def _footprints_from_sfm(
     DSM, and the metadata's heights checked against them."""
     from dataclasses import replace
 
-    from .camera import ypr_from_rotation
-    from .orthophoto.cameras import cameras_from_sfm
+    from geoortho.core.camera import ypr_from_rotation
+    from geoortho.reconstruction.model import cameras_from_sfm
 
     s_read, s_cast, s_write = split(fb, [3, 2, 1])
     photos = read_photos(images, sensor_width_mm, feedback=s_read)
@@ -674,7 +674,7 @@ def check_given_heights(
     return HeightCheck(meta_alt, per_photo, problem, tuple(notes))
 
 
-def _photos_with_altitude(
+def photos_with_altitude(
     images: Path, sensor_width_mm: float | None, flight_height_m: float | None, progress: Feedback, fb: Feedback
 ) -> PhotoSet:
     """The readable photos with an altitude (any photo when the flight height is given); the rest skipped."""
@@ -749,7 +749,7 @@ def write_overlap(path: str | os.PathLike[str], polygons: Sequence, crs: CRS, ce
     from rasterio.features import MergeAlg, rasterize
     from rasterio.transform import from_origin
 
-    from .outputs import write_cog
+    from geoortho.core.outputs import write_cog
 
     x0, y0, x1, y1 = shapely.total_bounds(np.asarray(polygons))
     x0, y0 = math.floor(x0 / cell_m) * cell_m, math.floor(y0 / cell_m) * cell_m

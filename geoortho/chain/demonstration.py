@@ -7,10 +7,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from .feedback import Feedback, as_feedback, split
+from geoortho.feedback import Feedback, as_feedback, split
 
 if TYPE_CHECKING:
-    from .synthetic import SynthResult
+    from geoortho.synthetic.survey import SynthResult
 
 __all__ = ["DemoResult", "demo"]
 
@@ -63,9 +63,9 @@ def demo(
         The cloud the DSM and DTM are made from: dense (from the photos, as a survey without
         lidar) or lidar (the survey's own lidar-like cloud; the dense stage is skipped).
     """
-    from .gcp.io import read_gcp_file
-    from .pipeline import run
-    from .synthetic import synth
+    from geoortho.chain.pipeline import run
+    from geoortho.gcp.io import read_gcp_file
+    from geoortho.synthetic.survey import synth
 
     fb = as_feedback(feedback)
     output = Path(output)
@@ -107,7 +107,7 @@ def _plan_and_check(survey: SynthResult, folder: Path, fb: Feedback) -> dict[str
     import geopandas as gpd
     import shapely
 
-    from .flightplan import check_plan, plan
+    from geoortho.planning.plan import check_plan, plan
 
     info = json.loads((survey.truth / "survey.json").read_text())
     aoi = folder / "aoi.gpkg"

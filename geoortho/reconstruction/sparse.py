@@ -17,7 +17,7 @@ adjustment). This module does what makes the result a survey:
   a bundle adjustment in which the control points are fixed 3D points observed
   in the photos; ``checkpoints`` are held out of both and reported separately.
 
-Heights follow :mod:`geoortho.footprint`: the take-off elevation (given, or the
+Heights follow :mod:`geoortho.photos.footprint`: the take-off elevation (given, or the
 flight's absolute − relative altitude) plus each photo's relative altitude.
 GCP heights that are all equal are taken as placeholders: those GCPs then
 control the model horizontally only, and their vertical residuals are not
@@ -43,16 +43,17 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from .camera import rotation_from_ypr, ypr_from_rotation
-from .crs import WGS84, crs_to_text, parse_crs, transformer
-from .errors import InputError
-from .feedback import Feedback, as_feedback
-from .footprint import photo_cameras, working_crs
-from .gcp.io import GcpSet, heights_are_placeholders, read_gcp_file
-from .heights import absolute_altitude, check_altitudes
-from .outputs import temp_prefix, write_json, write_vector
-from .photos import Photo, list_images, read_photos
-from .pointcloud import write_las
+from geoortho.core.camera import rotation_from_ypr, ypr_from_rotation
+from geoortho.core.crs import WGS84, crs_to_text, parse_crs, transformer
+from geoortho.core.outputs import temp_prefix, write_json, write_vector
+from geoortho.core.pointcloud import write_las
+from geoortho.errors import InputError
+from geoortho.feedback import Feedback, as_feedback
+from geoortho.gcp.io import GcpSet, heights_are_placeholders, read_gcp_file
+from geoortho.photos.footprint import photo_cameras, working_crs
+from geoortho.photos.heights import absolute_altitude, check_altitudes
+from geoortho.photos.metadata import Photo, list_images, read_photos
+from geoortho.reconstruction.colmap import load_pycolmap
 
 __all__ = ["SfmResult", "sfm", "MATCHING", "MAPPERS", "CAMERA_MODELS", "ce90", "le90"]
 
@@ -193,7 +194,7 @@ class _Priors:
 def _gps_priors(
     photos: Sequence[Photo], names: dict[Path, str], crs: Any, takeoff_elevation_m: float | None
 ) -> _Priors:
-    """Camera positions from the metadata, heights per :mod:`geoortho.heights`.
+    """Camera positions from the metadata, heights per :mod:`geoortho.photos.heights`.
 
     SfM needs no height above ground, only camera elevations in one datum: a flight without
     RelativeAltitude keeps its GPS altitude as recorded (EXIF: orthometric) when no reading of it
@@ -243,20 +244,6 @@ class _Timer:
 
     def add(self, stage: str, t0: float) -> None:
         self.stages[stage] = self.stages.get(stage, 0.0) + time.perf_counter() - t0
-
-
-def load_pycolmap() -> Any:
-    """pycolmap as every geoortho caller needs it: Python's SIGTERM handler taken back from glog,
-    COLMAP's INFO logging off."""
-    import pycolmap
-
-    from .feedback import reclaim_signal_handlers
-
-    reclaim_signal_handlers()
-    # COLMAP logs every image and iteration at INFO; geoortho's feedback says what matters.
-    if os.environ.get("GEOORTHO_COLMAP_LOG") is None:
-        pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
-    return pycolmap
 
 
 def _import_and_extract(
@@ -1296,10 +1283,10 @@ def _split_reconstruct(
     timer: _Timer,
     fb: Feedback,
 ) -> tuple[_Mapped, list[dict[str, Any]]]:
-    """Split-merge (:mod:`geoortho.splitmerge`): submodels by position, each reconstructed by
+    """Split-merge (:mod:`geoortho.reconstruction.splitmerge`): submodels by position, each reconstructed by
     :func:`sfm`, merged into one model for the georeferencing that follows."""
-    from .parallel import map_ordered
-    from .splitmerge import merge, partition, run_submodel
+    from geoortho.core.parallel import map_ordered
+    from geoortho.reconstruction.splitmerge import merge, partition, run_submodel
 
     if split < 3 or overlap_m < 0:
         raise InputError(f"split {split}: submodels need at least 3 photos, and an overlap of 0 m or more")
@@ -1316,7 +1303,9 @@ def _split_reconstruct(
         + " photos"
     )
     t0 = time.perf_counter()
-    tasks = [(k, [str(path_of[n]) for n in g], work / f"submodel_{k:02d}", sub_kwargs) for k, g in enumerate(groups)]
+    tasks = [
+        (k, [str(path_of[n]) for n in g], work / f"submodel_{k:02d}", sub_kwargs, sfm) for k, g in enumerate(groups)
+    ]
     subs = map_ordered(run_submodel, tasks, workers=1, feedback=fb)
     timer.add("submodels", t0)
     for s in subs:
@@ -1487,7 +1476,7 @@ def _shift_cause(effect: dict[str, Any], inputs: _Inputs, heights_compared: bool
         )
     if not heights_compared or inputs.out_crs is None or abs(v) < 10.0:
         return ""
-    from .crs import geoid_undulation_m
+    from geoortho.core.crs import geoid_undulation_m
 
     lon, lat = transformer(inputs.out_crs, WGS84).transform(*inputs.priors.offset[:2])
     n = float(geoid_undulation_m(lon, lat))
@@ -1834,7 +1823,7 @@ def _output_crs(crs: str | None, photos: Sequence[Photo], gcps: GcpSet | None) -
     if gcps is not None:
         g = gcps.points[0]
         lon, lat = transformer(gcps.crs, WGS84).transform(g.x, g.y)
-        from .crs import utm_crs_for
+        from geoortho.core.crs import utm_crs_for
 
         return utm_crs_for(lon, lat)
     return None

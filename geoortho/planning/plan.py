@@ -30,12 +30,12 @@ from typing import Any, Literal
 import numpy as np
 from pyproj import CRS
 
-from .camera import Intrinsics, Pose, rotation_from_ypr
-from .crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
-from .errors import InputError
-from .feedback import Feedback, as_feedback, split
-from .markers import Dictionary, get_dictionary, marker_cells
-from .surface import FlatSurface, Surface, read_surface
+from geoortho.core.camera import Intrinsics, Pose, rotation_from_ypr
+from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
+from geoortho.core.surface import FlatSurface, Surface, read_surface
+from geoortho.errors import InputError
+from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.gcp.markers import Dictionary, get_dictionary, marker_cells
 
 __all__ = [
     "CAMERAS",
@@ -112,7 +112,7 @@ def resolve_camera(
     """The camera from a model name, a sample photo, or explicit values (which override either)."""
     base: CameraSpec | None = None
     if camera and Path(camera).is_file():
-        from .photos import read_photo
+        from geoortho.photos.metadata import read_photo
 
         p = read_photo(camera)
         if not (math.isfinite(p.focal_mm) and math.isfinite(p.sensor_width_mm)):
@@ -175,7 +175,7 @@ def min_module_px(dictionary: str = "DICT_4X4_50") -> float:
     Every larger size tried must decode too."""
     import cv2
 
-    from .gcp.detect import Window, detect_in_image
+    from geoortho.gcp.detect import SearchWindow, detect_in_image
 
     sizes = np.round(np.arange(1.0, 8.01, 0.25), 2)
     rng = np.random.default_rng(7)
@@ -189,7 +189,7 @@ def min_module_px(dictionary: str = "DICT_4X4_50") -> float:
             gray = _render_marker(cells, float(module), 22.5 * t / 4 + 3.0, rng)
             h, w = gray.shape
             side = cells.shape[0] * module
-            win = Window("m", mid, (w - 1) / 2, (h - 1) / 2, max(24.0, 1.5 * side), side)
+            win = SearchWindow("m", mid, (w - 1) / 2, (h - 1) / 2, max(24.0, 1.5 * side), side)
             dets = detect_in_image(gray, [win], dictionary)
             hit = [d for d in dets if d.marker_id == mid and math.hypot(d.x_px - win.x_px, d.y_px - win.y_px) < module]
             if not hit:
@@ -308,7 +308,7 @@ class PlanResult:
 
 @dataclass(frozen=True)
 class _Cam:
-    """A planned photo as :func:`geoortho.footprint.compute_footprints` takes it."""
+    """A planned photo as :func:`geoortho.photos.footprint.compute_footprints` takes it."""
 
     intrinsics: Intrinsics
     pose: Pose
@@ -501,7 +501,7 @@ def plan(
     rots = rotation_from_ypr(grid_heading, np.full(len(xy), pitch_deg), np.zeros(len(xy)))
     centres = np.c_[xy, z]
     cams = [_Cam(intr, Pose(c, r)) for c, r in zip(centres, rots)]
-    from .footprint import compute_footprints
+    from geoortho.photos.footprint import compute_footprints
 
     table = compute_footprints(cams, surface, max_range_m=max(1000.0, 20 * agl))
     s_foot.progress(0.6)
@@ -535,7 +535,7 @@ def plan(
     output.mkdir(parents=True, exist_ok=True)
     overlap_path = output / "overlap.tif"
     cell = max(0.05, across_w / 40.0)
-    from .footprint import write_overlap
+    from geoortho.photos.footprint import write_overlap
 
     write_overlap(overlap_path, polys, work_crs, cell)
     coverage = _coverage(overlap_path, area_geom, front_overlap, side_overlap, grid)
@@ -576,7 +576,7 @@ def plan(
 
     import geopandas as gpd
 
-    from .outputs import write_json, write_vector
+    from geoortho.core.outputs import write_json, write_vector
 
     n_lines = len(lines)
     photos_df = gpd.GeoDataFrame(
@@ -862,7 +862,7 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
     geom = _reproject(geom, src, work)
     if geom.area < 1.0:
         raise InputError(f"the AOI is {geom.area:.2f} m²: too small to plan", path=path)
-    from .crs import horizontal_unit_m
+    from geoortho.core.crs import horizontal_unit_m
 
     if abs(horizontal_unit_m(work) - 1.0) > 1e-9:
         raise InputError(f"plan in a CRS in metres: {crs_to_text(work)} is not (give --crs)")
@@ -917,7 +917,7 @@ def _refuse_too_many_photos(area: Any, along_m: float, across_m: float, grids: i
 def _ground_stats(surface: Surface, area: Any, dtm: Any = None) -> dict[str, float]:
     import shapely
 
-    from .surface import GridSurface, sample_grid
+    from geoortho.core.surface import GridSurface, sample_grid
 
     x0, y0, x1, y1 = area.bounds
     n = 60
@@ -950,7 +950,7 @@ def _footprint_shape(intr: Intrinsics, pitch_deg: float, agl: float) -> tuple[fl
     """A photo's footprint on level ground ``agl`` below: length along the line (through the image
     centre), width across it (at the centre's ground point) and how far ahead of the drone that
     point is."""
-    from .footprint import compute_footprints
+    from geoortho.photos.footprint import compute_footprints
 
     cam = _Cam(intr, Pose(np.array([0.0, 0.0, agl]), rotation_from_ypr(0.0, pitch_deg, 0.0)))
     t = compute_footprints([cam], FlatSurface(0.0), per_side=64, max_range_m=50 * agl)
@@ -1163,7 +1163,7 @@ def _given_gcps(
     """A GCP file's points in ``crs``: name, x, y and the height to use, with what was assumed.
     Heights that are placeholders (all equal), missing, or at or above the cameras are taken from
     the ground model instead: a GCP above the photos would be seen by none of them."""
-    from .gcp.io import heights_are_placeholders, read_gcp_file
+    from geoortho.gcp.io import heights_are_placeholders, read_gcp_file
 
     gs = read_gcp_file(path, gcp_crs)
     t = transformer(gs.crs, crs)
@@ -1198,7 +1198,7 @@ def _gcp_positions(
 
     text = gcps.strip()
     if text and not text.isdigit():
-        from .gcp.io import marker_id_of
+        from geoortho.gcp.io import marker_id_of
 
         pts, notes = _given_gcps(text, gcp_crs, crs, surface, camera_z_min)
         rows = []
@@ -1324,7 +1324,7 @@ def _write_kml(path: Path, photos: Any, lines: Any, gcps: Any, area: Any, crs: C
     above-take-off mode."""
     from xml.sax.saxutils import escape
 
-    from .outputs import write_text
+    from geoortho.core.outputs import write_text
 
     t = transformer(crs, WGS84)
 
@@ -1434,7 +1434,7 @@ def _write_litchi(
     """Litchi Mission Hub CSV: one waypoint per photo (action 1 = take photo) when they fit in
     Litchi's 99 waypoints, else the line ends with a photo every ``along`` metres
     (photo_distinterval). Altitude mode 0 = above the take-off, 1 = above the ground."""
-    from .outputs import write_text
+    from geoortho.core.outputs import write_text
 
     gimbal_mode = 2  # interpolate: the gimbal pitch column is applied
     mode = 1 if terrain == "follow" else 0
@@ -1513,7 +1513,7 @@ def _marker_pages(folder: Path, gcps: list[dict[str, Any]], dictionary: str, sid
     from matplotlib.patches import PathPatch
     from matplotlib.path import Path as MplPath
 
-    from .outputs import atomic_path
+    from geoortho.core.outputs import atomic_path
 
     out: list[Path] = []
     inch = 0.0254
@@ -1675,8 +1675,8 @@ def check_plan(
     import geopandas as gpd
     import shapely
 
-    from .footprint import compute_footprints, write_overlap
-    from .outputs import write_json, write_vector
+    from geoortho.core.outputs import write_json, write_vector
+    from geoortho.photos.footprint import compute_footprints, write_overlap
 
     fb = as_feedback(feedback)
     if (plan is None) == (images is None):
@@ -1706,9 +1706,9 @@ def check_plan(
             surface = read_surface(dsm, crs, extend=True)
         source = f"plan {Path(plan).name}"
     else:
-        from .footprint import _photos_with_altitude, photo_cameras, working_crs
+        from geoortho.photos.footprint import photo_cameras, photos_with_altitude, working_crs
 
-        ps = _photos_with_altitude(Path(images), None, None, fb, fb)  # type: ignore[arg-type]
+        ps = photos_with_altitude(Path(images), None, None, fb, fb)  # type: ignore[arg-type]
         crs = working_crs(ps.photos)
         ground = read_surface(dsm, crs, extend=True) if dsm is not None else None
         cams, heights = photo_cameras(ps.photos, crs, ground, takeoff_elevation_m)

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from affine import Affine
 
-from .gapfill import fill_gaps_by_windows, fill_harmonic
+from geoortho.core.gapfill import fill_gaps_by_windows, fill_harmonic
 
 __all__ = [
     "FALLBACK",
@@ -57,7 +57,7 @@ def footprint_polygons(cams: Sequence[Any], surface: Any, max_range_m: float | N
     surface), so an oblique photo's polygon stops short of the horizon."""
     import shapely
 
-    from .footprint import compute_footprints
+    from geoortho.photos.footprint import compute_footprints
 
     if not cams:
         return []

@@ -41,9 +41,9 @@ from typing import Any
 
 import numpy as np
 
-from .feedback import Feedback, split
-from .ground import SmrfParams, bilinear, ground_mask, smrf_surface
-from .parallel import imap_ordered
+from geoortho.core.parallel import imap_ordered
+from geoortho.elevation.ground import SmrfParams, bilinear, ground_mask, smrf_surface
+from geoortho.feedback import Feedback, split
 
 __all__ = [
     "HALO_MAX_CELLS",
@@ -137,7 +137,7 @@ def make_tiled(
     """Sort the points into tiles, grid each tile, fill each tile's gaps (see the module's doc)."""
     import rasterio
 
-    from .elevation import NODATA, Grid, _Accumulator, _finite
+    from geoortho.elevation.grid import NODATA, Accumulator, Grid, finite_points
 
     hm = src.horizontal_m
     smrf_grid, smrf_whole = None, False
@@ -164,12 +164,12 @@ def make_tiled(
     )
     s_sort, s_tiles, s_fill = split(progress, [1, 1, 1])
     files = [work / f"tile_{k}.bin" for k in range(n_tiles)]
-    zmin = _Accumulator(smrf_grid, "min") if smrf_grid is not None and smrf_whole else None
+    zmin = Accumulator(smrf_grid, "min") if smrf_grid is not None and smrf_whole else None
     n_used = 0
     n_bad = 0
     for ch in src.chunks(READ_POINTS):
         fb.check_canceled()
-        fin, ok = _finite(ch, keep)
+        fin, ok = finite_points(ch, keep)
         n_bad += int((~np.isfinite(ch.x) | ~np.isfinite(ch.y) | ~np.isfinite(ch.z)).sum())
         if not len(fin.x):
             continue
@@ -291,7 +291,7 @@ class _TileJob:
 def make_tile(job: _TileJob) -> tuple[int, list[np.ndarray], np.ndarray, np.ndarray]:
     """One tile's unfilled DSM (and DTM) cells (NaN: no point) and its own points' ground flags
     (their source indices and flags)."""
-    from .elevation import _Accumulator
+    from geoortho.elevation.grid import Accumulator
 
     tiling = job.tiling
     grid, t = tiling.grid, tiling.t
@@ -305,7 +305,7 @@ def make_tile(job: _TileJob) -> tuple[int, list[np.ndarray], np.ndarray, np.ndar
     y1, y0 = grid.y0 - r0 * grid.cell + ph, grid.y0 - r1 * grid.cell - ph
     pts = _neighbourhood(job.files, tr, tc, tiling.n_tr, tiling.n_tc, (x0, y0, x1, y1))
     inner = np.s_[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
-    acc = _Accumulator(sub, job.method)
+    acc = Accumulator(sub, job.method)
     _add(acc, pts)
     grids = [acc.result()[inner]]
     del acc
@@ -315,7 +315,7 @@ def make_tile(job: _TileJob) -> tuple[int, list[np.ndarray], np.ndarray, np.ndar
     home_r, home_c = grid.index(pts["x"], pts["y"])
     own = (home_r // t == tr) & (home_c // t == tc)
     if job.want_dtm:
-        acc = _Accumulator(sub, "idw")
+        acc = Accumulator(sub, "idw")
         _add(acc, pts[g])
         grids.append(acc.result()[inner])
     return job.k, grids, pts["i"][own], g[own]
@@ -343,7 +343,7 @@ class _CoarseSums:
 
     def filled(self, max_gap_cells: float, stem: Path) -> tuple[Path, Path]:
         """The coarse grid's harmonic gap fill and its gap-closed outline, saved."""
-        from .gapfill import fill_harmonic, gap_mask
+        from geoortho.core.gapfill import fill_harmonic, gap_mask
 
         known = self.counts > 0
         z = np.where(known, self.sums / np.maximum(self.counts, 1), np.nan)
@@ -374,8 +374,8 @@ def fill_tile(job: _FillJob) -> np.ndarray:
     """The tile's final cells (float32, nodata as NODATA)."""
     import rasterio
 
-    from .elevation import _nodata
-    from .gapfill import gap_mask
+    from geoortho.core.gapfill import gap_mask
+    from geoortho.elevation.grid import with_nodata
 
     grid = job.tiling.grid
     r0, r1, c0, c1 = job.tiling.window(job.k)
@@ -384,7 +384,7 @@ def fill_tile(job: _FillJob) -> np.ndarray:
         z = src.read(1, window=rasterio.windows.Window(hc0, hr0, hc1 - hc0, hr1 - hr0)).astype(np.float64)
     inner = np.s_[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
     if job.coarse is None or job.max_gap_cells <= 0:
-        return _nodata(job.finish(z, job.max_gap_cells, job.smooth_px)[inner])
+        return with_nodata(job.finish(z, job.max_gap_cells, job.smooth_px)[inner])
     # the halo is cut short of the widest gap: past the window's inner edges the data goes on where
     # the coarse grid's gap-closed outline says so
     f = job.f
@@ -410,7 +410,7 @@ def fill_tile(job: _FillJob) -> np.ndarray:
         values = np.asarray(np.load(values_npy, mmap_mode="r")[crop])
         er, ec = np.nonzero(edge)
         z[er, ec] = bilinear(values, (hc0 + ec + 0.5) / f - 0.5 - cc0, (hr0 + er + 0.5) / f - 0.5 - cr0)
-    return _nodata(job.finish(z, job.max_gap_cells, job.smooth_px, gap)[inner])
+    return with_nodata(job.finish(z, job.max_gap_cells, job.smooth_px, gap)[inner])
 
 
 def _neighbourhood(
@@ -434,7 +434,7 @@ def _ground(pts: np.ndarray, job: _TileJob) -> np.ndarray:
     """Which of the tile's points are ground: the file's class 2, or SMRF's test against the whole
     cloud's surface (or, where that is too large to hold, one made on the global SMRF grid's cells
     that the points cover)."""
-    from .elevation import GROUND, _Accumulator
+    from geoortho.elevation.grid import GROUND, Accumulator
 
     if job.ground_method == "classification":
         return np.asarray(pts["c"] == GROUND)
@@ -451,7 +451,7 @@ def _ground(pts: np.ndarray, job: _TileJob) -> np.ndarray:
     else:
         r0, c0 = int(r.min()), int(c.min())
         win = g.window(r0, c0, int(r.max()) + 1 - r0, int(c.max()) + 1 - c0)
-        zmin = _Accumulator(win, "min")
+        zmin = Accumulator(win, "min")
         _add(zmin, pts)
         surface = smrf_surface(zmin.result(), g.cell, job.params, job.horizontal_m, job.vertical_m)
     x0, y0 = win.left, win.top
@@ -484,6 +484,6 @@ def append_by_tile(rows: np.ndarray, tile: np.ndarray, file_of: Callable[[int], 
 def work_folder(near: Path) -> tempfile.TemporaryDirectory[str]:
     """A temporary folder for the tile files beside the output (the same disk as the products),
     named as every geoortho temporary is, so that a killed run's is removed by the next run."""
-    from .outputs import temp_prefix
+    from geoortho.core.outputs import temp_prefix
 
     return tempfile.TemporaryDirectory(prefix=temp_prefix(Path(near).name), dir=Path(near).absolute().parent)

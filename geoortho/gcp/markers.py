@@ -9,7 +9,7 @@ from typing import Literal, get_args
 import cv2
 import numpy as np
 
-from .errors import InputError
+from geoortho.errors import InputError
 
 __all__ = [
     "DICTIONARIES",

@@ -11,7 +11,7 @@
 
 Defaults are PDAL's and ODM's (cell 1 m, slope 0.15, window 18 m, threshold
 0.5 m, scalar 1.25). Morphology runs in OpenCV (elliptical kernels, float32),
-the fill in :mod:`geoortho.gapfill`. Grids are in the cloud's units; the
+the fill in :mod:`geoortho.core.gapfill`. Grids are in the cloud's units; the
 parameters are converted from metres.
 """
 
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .gapfill import fill_harmonic
+from geoortho.core.gapfill import fill_harmonic
 
 __all__ = ["SmrfParams", "smrf_surface", "ground_mask", "bilinear"]
 

@@ -15,7 +15,7 @@ DSM). It never takes a sea-level height for a height above ground silently.
 
 How a photo without RelativeAltitude is read (``gps_altitude="auto"``): each reading of its
 altitude — above take-off, the ground model's datum as is, orthometric↔ellipsoidal by the EGM96
-geoid (:func:`geoortho.crs.geoid_undulation_m`) — gives a height above the ground; it must be
+geoid (:func:`geoortho.core.crs.geoid_undulation_m`) — gives a height above the ground; it must be
 positive and fit the spacing of consecutive photos (a mapping flight's front overlap is
 50–85 %, so the spacing bounds the height to a factor of about three, give or take 15 % for
 GNSS error). The reading that fits is taken and said; none fits → refused; an altitude that
@@ -31,9 +31,9 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from .errors import DependencyError, InputError
-from .photos import Photo, photo_seconds
-from .surface import FlatSurface, GridSurface, Surface
+from geoortho.core.surface import FlatSurface, GridSurface, Surface
+from geoortho.errors import DependencyError, InputError
+from geoortho.photos.metadata import Photo, photo_seconds
 
 __all__ = [
     "GPS_ALTITUDE",
@@ -206,7 +206,7 @@ def _ground_under(surface: Surface | None, xy: np.ndarray) -> np.ndarray:
 
 
 def _undulation(lonlat: np.ndarray) -> float:
-    from .crs import geoid_undulation_m
+    from geoortho.core.crs import geoid_undulation_m
 
     return float(np.median(geoid_undulation_m(lonlat[:, 0], lonlat[:, 1])))
 

@@ -8,8 +8,8 @@ reconstruct each (on other nodes when there are some), align them and merge. Her
    the longer axis, again and again, until every group holds at most N photos (groups of equal
    size, compact); each group then takes in the photos of the others within M metres of one
    of its own — the overlap that ties neighbours together.
-2. **Reconstruct** each submodel with :func:`geoortho.reconstruction.sfm` on its photos (GPS
-   and the GCPs it sees georeference it on its own), as a task of :mod:`geoortho.parallel`:
+2. **Reconstruct** each submodel with :func:`geoortho.reconstruction.sparse.sfm` on its photos (GPS
+   and the GCPs it sees georeference it on its own), as a task of :mod:`geoortho.core.parallel`:
    on the Dask cluster when there is one, else one after the other (pycolmap uses every core).
    A submodel that fails is reported with its photos; the others are merged.
 3. **Align**: a submodel without GCP control is put on its already merged neighbours by a
@@ -24,15 +24,15 @@ reconstruct each (on other nodes when there are some), align them and merge. Her
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .errors import GeoorthoError
-from .feedback import Feedback
+from geoortho.errors import GeoorthoError
+from geoortho.feedback import Feedback
 
 __all__ = ["partition", "Submodel"]
 
@@ -81,17 +81,17 @@ class Submodel:
     seconds: float = 0.0
 
 
-def run_submodel(args: tuple[int, list[str], Path, dict[str, Any]]) -> Submodel:
-    """A task: reconstruct one submodel (on a pool or cluster worker, or here)."""
+def run_submodel(args: tuple[int, list[str], Path, dict[str, Any], Callable[..., Any]]) -> Submodel:
+    """A task: reconstruct one submodel (on a pool or cluster worker, or here) with ``sfm``, the
+    reconstruction function the task carries (passed by the caller: split-merge knows nothing of
+    how a block is reconstructed, and the two modules do not import each other)."""
     import time
 
-    from .reconstruction import sfm
-
-    k, paths, output, kwargs = args
+    k, paths, output, kwargs, sfm = args
     t = time.perf_counter()
     names = tuple(Path(p).name for p in paths)
     try:
-        r = sfm([Path(p) for p in paths], output, **kwargs)  # type: ignore[arg-type]
+        r = sfm([Path(p) for p in paths], output, **kwargs)
     except GeoorthoError as e:
         return Submodel(k, names, output, False, " ".join(str(e).split()), seconds=time.perf_counter() - t)
     return Submodel(
@@ -117,7 +117,7 @@ def merge(
     came from."""
     import json
 
-    from .reconstruction import load_pycolmap
+    from geoortho.reconstruction.colmap import load_pycolmap
 
     pycolmap = load_pycolmap()
     merged = pycolmap.Reconstruction()

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
-from .crs import horizontal_unit_m, parse_crs, transformer
-from .errors import InputError
+from geoortho.core.crs import horizontal_unit_m, parse_crs, transformer
+from geoortho.errors import InputError
 
 __all__ = ["Chunk", "PointSource", "open_points", "write_las", "UNIT_CODES"]
 
@@ -230,7 +230,7 @@ def write_las_parts(
     ``xyz``'s frame), known before the first part, for the header's offsets. Atomic."""
     import laspy
 
-    from .outputs import atomic_path
+    from geoortho.core.outputs import atomic_path
 
     base = np.zeros(3) if offset is None else np.asarray(offset, float).reshape(3)
     header = laspy.LasHeader(point_format=3, version="1.4")
@@ -300,7 +300,7 @@ _LAS_RECORD_MIN = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)
 _LAZ_MAX_RATIO = 100
 
 
-def _check_las_header(path: Path) -> None:
+def check_las_header(path: Path) -> None:
     """Refuse a LAS/LAZ header whose counts cannot be true before laspy or lazrs trusts them:
     a mutated VLR count makes laspy read for minutes, a point count of billions makes lazrs
     allocate tens of GB and abort the process (not an exception: the run dies)."""
@@ -369,7 +369,7 @@ def _check_chunk_table(path: Path, to_points: int, size: int, bad: Any) -> None:
 def _open_las(path: Path, override: CRS | None, default: CRS | None = None) -> PointSource:
     import laspy
 
-    _check_las_header(path)
+    check_las_header(path)
     try:
         with laspy.open(str(path)) as reader:
             h = reader.header

@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from .errors import CanceledError, GeoorthoError, InputError
-from .feedback import Feedback, as_feedback, split
-from .heights import GpsAltitude
+from geoortho.errors import CanceledError, GeoorthoError, InputError
+from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.photos.heights import GpsAltitude
 
 __all__ = [
     "STAGES",
@@ -102,7 +102,7 @@ def _found_checkpoints(p: Project, done: Done) -> str | None:
     gcp_list = _gcp_observations(p, done)
     if not p.checkpoints or gcp_list is None:
         return None
-    from .gcp.io import read_gcp_file
+    from geoortho.gcp.io import read_gcp_file
 
     found = set(read_gcp_file(gcp_list).by_name())
     names = [c.strip() for c in p.checkpoints.split(",") if c.strip() in found]
@@ -264,7 +264,7 @@ class Hasher:
     def photos(self, folder: Path) -> str:
         """The photos of a folder as the stages read them (its image files, not below it): notes or
         a project folder beside them change nothing."""
-        from .photos import list_images
+        from geoortho.photos.metadata import list_images
 
         h = hashlib.sha256()
         for f in list_images(folder):
@@ -354,7 +354,7 @@ class Ledger:
         self.save()
 
     def save(self) -> None:
-        from .outputs import write_json
+        from geoortho.core.outputs import write_json
 
         write_json(self.path, self.data)
 
@@ -499,7 +499,7 @@ def _stage_problems(stage: str, outputs: dict[str, Any], project: Project) -> li
     if stage == "footprints" and project.gcp_list is not None:
         observed = project.gcp_list
     if observed is not None and project.checkpoints:
-        from .gcp.io import read_gcp_file
+        from geoortho.gcp.io import read_gcp_file
 
         found = set(read_gcp_file(observed).by_name())
         missing = [c.strip() for c in project.checkpoints.split(",") if c.strip() and c.strip() not in found]
@@ -580,7 +580,7 @@ def _run_stages(
     fb: Feedback,
     force: bool,
 ) -> list[StageRun]:
-    from .processing.registry import run_algorithm
+    from geoortho.processing.registry import run_algorithm
 
     t_run = time.perf_counter()
     names = [s.name for s in stages]
@@ -766,9 +766,9 @@ def _check_given(project: Project) -> None:
     import rasterio
     from rasterio.errors import RasterioIOError
 
-    from .gcp.io import read_gcp_file
-    from .photos import list_images
-    from .surface import _refuse_image
+    from geoortho.core.surface import refuse_image
+    from geoortho.gcp.io import read_gcp_file
+    from geoortho.photos.metadata import list_images
 
     list_images(project.images)
     if project.dsm is not None:
@@ -776,15 +776,15 @@ def _check_given(project: Project) -> None:
             with rasterio.open(project.dsm) as ds:
                 if ds.crs is None:
                     raise InputError("the DSM has no CRS", path=project.dsm)
-                _refuse_image(ds, project.dsm)
+                refuse_image(ds, project.dsm)
         except RasterioIOError as e:
             raise InputError(f"not an elevation raster ({e})", path=project.dsm) from None
     if project.points is not None and project.points.suffix.lower() in (".las", ".laz"):
-        from .pointcloud import _check_las_header
+        from geoortho.core.pointcloud import check_las_header
 
         if not project.points.is_file():
             raise InputError("no such file", path=project.points)
-        _check_las_header(project.points)
+        check_las_header(project.points)
     for gcps in (project.gcp_file, project.gcp_list):
         if gcps is not None:
             read_gcp_file(gcps)
@@ -811,7 +811,7 @@ def parse_stage_options(text: str, stages: Sequence[Stage] = STAGES) -> dict[str
     """Stage options from JSON text or a JSON file: ``{"sfm": {"max_image_size": 2048}, ...}``.
     Each stage's options are its own algorithm's parameters (one declaration per parameter);
     the ones the chain sets itself (inputs, outputs) cannot be given."""
-    from .processing.registry import check_in_context, convert_value, get_algorithm
+    from geoortho.processing.registry import check_in_context, convert_value, get_algorithm
 
     if not text:
         return {}

@@ -28,8 +28,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
-from .errors import ClusterError, DependencyError, InputError, WorkerError
-from .feedback import Feedback, as_feedback
+from geoortho.errors import ClusterError, DependencyError, InputError, WorkerError
+from geoortho.feedback import Feedback, as_feedback
 
 __all__ = ["SCHEDULER_ENV", "active_client", "imap_ordered", "map_ordered", "process_pool", "use_scheduler"]
 

@@ -15,7 +15,7 @@ Conventions of the truth files (also written to ``truth/survey.json``):
 * Pixels: (0, 0) is the centre of the top-left pixel (OpenCV; what
   OpenDroneMap/OpenSfM read in gcp_list.txt).
 * Attitude: yaw clockwise from north, pitch −90 = nadir, roll right-down
-  positive (see :mod:`geoortho.camera`).
+  positive (see :mod:`geoortho.core.camera`).
 """
 
 from __future__ import annotations
@@ -34,13 +34,22 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
-from .camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_ypr, ypr_from_rotation
-from .crs import transformer, utm_crs_for
-from .errors import InputError
-from .feedback import Feedback, as_feedback, split
-from .markers import TARGETS, Dictionary, Target, get_dictionary, marker_cells, target_half_extent, target_reflectance
-from .parallel import map_ordered
-from .surface import GridSurface, sample_grid
+from geoortho.core.camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_ypr, ypr_from_rotation
+from geoortho.core.crs import transformer, utm_crs_for
+from geoortho.core.parallel import map_ordered
+from geoortho.core.surface import GridSurface, sample_grid
+from geoortho.elevation.grid import NODATA
+from geoortho.errors import InputError
+from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.gcp.markers import (
+    TARGETS,
+    Dictionary,
+    Target,
+    get_dictionary,
+    marker_cells,
+    target_half_extent,
+    target_reflectance,
+)
 
 __all__ = ["PRESETS", "PATHOLOGIES", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
 
@@ -103,7 +112,7 @@ PRESETS: dict[str, SynthPreset] = {
 # Modelled on the DJI Phantom 4 Pro camera (FC6310): 1" sensor, 8.8 mm lens.
 CAMERA_MODEL = "FC6310"
 # Whose metadata the photos carry (synth's ``maker``): the same attitude and position written
-# with each maker family's tags and conventions (geoortho.photos._FAMILIES names the documents).
+# with each maker family's tags and conventions (geoortho.photos.metadata._FAMILIES names the documents).
 Maker = Literal["dji", "autel", "parrot", "skydio", "pix4d", "sensefly", "exif"]
 MAKERS: tuple[str, ...] = get_args(Maker)
 MAKER_MAKE = {
@@ -666,7 +675,7 @@ def fly_plan(plan: Path, preset: SynthPreset, scene: Scene, rng: np.random.Gener
     height and attitude, flown with the same wander as the built-in flight. Heights: the plan's
     absolute ones when it was planned on a DTM (the scene's truth/dtm.tif), else its altitude above
     the take-off over the scene's home point."""
-    from .flightplan import read_plan_photos
+    from geoortho.planning.plan import read_plan_photos
 
     photos, summary = read_plan_photos(plan)
     cam = summary.get("camera", {})
@@ -706,7 +715,7 @@ def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random
     alt_bias = rng.normal(0, GPS_ALT_BIAS_SIGMA_M)
     t0 = dt.datetime(2026, 5, 14, 10, 0, 0)
     # The drone writes yaw from true north; the truth's yaw is from the grid's north.
-    from .crs import grid_north
+    from geoortho.core.crs import grid_north
 
     lon_t, lat_t = to_ll.transform(np.array([s.x for s in shots]), np.array([s.y for s in shots]))
     convergence, _ = grid_north(scene.crs, lon_t, lat_t)
@@ -1087,7 +1096,7 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
     import piexif
     from PIL import Image
 
-    from .outputs import atomic_path
+    from geoortho.core.outputs import atomic_path
 
     zeroth = {
         piexif.ImageIFD.Make: MAKER_MAKE[shot.maker].encode(),
@@ -1292,7 +1301,7 @@ def synth(
     shots = [replace(s, maker=maker) for s in _record(planned, scene, p, rng)]
     undulation = 0.0
     if pathologies:
-        from .crs import geoid_undulation_m
+        from geoortho.core.crs import geoid_undulation_m
 
         undulation = float(geoid_undulation_m(longitude_deg, latitude_deg))
         shots = _apply_pathologies(shots, scene, pathologies, undulation, np.random.default_rng(seed + 11))
@@ -1394,17 +1403,17 @@ def _write_truth(
 
 def _write_truth_rasters(truth: Path, scene: Scene, pathologies: Sequence[str], undulation_m: float) -> None:
     """The true DSM and DTM, and the DSMs the pathologies ask for (another datum, a partial one)."""
-    from .outputs import write_cog
+    from geoortho.core.outputs import write_cog
 
-    write_cog(truth / "dsm.tif", scene.dsm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
-    write_cog(truth / "dtm.tif", scene.dtm, transform=scene.transform, crs=scene.crs, nodata=-9999.0)
+    write_cog(truth / "dsm.tif", scene.dsm, transform=scene.transform, crs=scene.crs, nodata=NODATA)
+    write_cog(truth / "dtm.tif", scene.dtm, transform=scene.transform, crs=scene.crs, nodata=NODATA)
     if "dsm-datum" in pathologies:
         write_cog(
             truth / "dsm_other_datum.tif",
             scene.dsm - np.float32(undulation_m),
             transform=scene.transform,
             crs=scene.crs,
-            nodata=-9999.0,
+            nodata=NODATA,
         )
     if "partial-dsm" in pathologies:
         fx0, _, fx1, _ = scene.flight_box
@@ -1414,7 +1423,7 @@ def _write_truth_rasters(truth: Path, scene: Scene, pathologies: Sequence[str], 
             scene.dsm[:, c0:],
             transform=scene.transform @ Affine.translation(c0, 0),
             crs=scene.crs,
-            nodata=-9999.0,
+            nodata=NODATA,
         )
 
 
@@ -1457,7 +1466,7 @@ def _write_poses_and_footprints(
     import geopandas as gpd
     import shapely
 
-    from .outputs import write_json, write_vector
+    from geoortho.core.outputs import write_json, write_vector
 
     polys, clipped = [], []
     for s in shots:
@@ -1476,7 +1485,7 @@ def _write_poses_and_footprints(
 
 def _write_gcp_files(truth: Path, scene: Scene) -> None:
     """GCP files as a surveyor hands them over: UTM with an EPSG line, WGS84 text and CSV."""
-    from .outputs import write_text
+    from geoortho.core.outputs import write_text
 
     gcps = [m for m in scene.markers if not m.decoy]
     to_ll = transformer(scene.crs, CRS.from_epsg(4326))
@@ -1503,7 +1512,7 @@ def _write_survey_json(
     maker: str = "dji",
     dropped: dict[str, str] | None = None,
 ) -> None:
-    from .outputs import write_json
+    from geoortho.core.outputs import write_json
 
     write_json(
         truth / "survey.json",
@@ -1565,7 +1574,7 @@ def _write_survey_json(
 
 def _write_true_ortho(path: Path, scene: Scene, cell_m: float, progress: Feedback) -> None:
     """The true orthophoto over the flown area (plus a little), coloured from the scene itself."""
-    from .outputs import write_cog
+    from geoortho.core.outputs import write_cog
 
     fx0, fy0, fx1, fy1 = scene.flight_box
     pad = 15.0
@@ -1590,7 +1599,7 @@ def _write_true_ortho(path: Path, scene: Scene, cell_m: float, progress: Feedbac
 
 
 def _write_points(path: Path, scene: Scene, p: SynthPreset, rng: np.random.Generator) -> None:
-    from .pointcloud import write_las
+    from geoortho.core.pointcloud import write_las
 
     fx0, fy0, fx1, fy1 = scene.flight_box
     pad = 20.0

@@ -12,7 +12,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
-from .errors import InputError
+from geoortho.errors import InputError
 
 __all__ = ["Surface", "FlatSurface", "GridSurface", "RayHits", "read_surface", "sample_grid"]
 
@@ -425,7 +425,7 @@ def read_surface(
         with rasterio.open(path) as src:
             if src.crs is None:
                 raise InputError("the elevation raster has no CRS", path=path)
-            _refuse_image(src, path)
+            refuse_image(src, path)
             src_crs = CRS.from_user_input(src.crs)
             unit_name, to_m = height_unit(src_crs)
             if crs is not None and not src_crs.equals(crs):
@@ -459,7 +459,7 @@ def height_unit(crs: CRS) -> tuple[str, float]:
     return str(unit.unit_name), factor
 
 
-def _refuse_image(ds: Any, path: Any) -> None:
+def refuse_image(ds: Any, path: Any) -> None:
     """An orthophoto or any picture given where heights are wanted: refused, not read as heights."""
     from rasterio.enums import ColorInterp
 

@@ -231,7 +231,7 @@ def write_vector(target: str | os.PathLike[str], layers: dict[str, Any]) -> Path
     target = Path(target)
     driver = VECTOR_DRIVERS.get(target.suffix.lower())
     if driver is None:
-        from .errors import InputError
+        from geoortho.errors import InputError
 
         raise InputError(
             f"unknown vector format {target.suffix!r}; use one of {', '.join(sorted(VECTOR_DRIVERS))}",

@@ -143,7 +143,7 @@ def _geoid_transformer() -> Transformer:
     ]
     found = next((d for d in dirs for g in _GEOID_GRIDS if d and os.path.isfile(os.path.join(d, g))), None)
     if found is None:
-        from .errors import DependencyError
+        from geoortho.errors import DependencyError
 
         raise DependencyError(
             "no EGM96 geoid grid (egm96_15.gtx): install Debian's proj-data "

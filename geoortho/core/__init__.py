@@ -1,0 +1,2 @@
+"""What every stage stands on: cameras and poses, CRSs, surfaces, point clouds, hole filling,
+worker pools, atomic outputs."""

@@ -1,0 +1,23 @@
+"""pycolmap, loaded as geoortho needs it (one place: every stage that reads or makes a COLMAP
+model takes it from here)."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+__all__ = ["load_pycolmap"]
+
+
+def load_pycolmap() -> Any:
+    """pycolmap as every geoortho caller needs it: Python's SIGTERM handler taken back from glog,
+    COLMAP's INFO logging off."""
+    import pycolmap
+
+    from geoortho.feedback import reclaim_signal_handlers
+
+    reclaim_signal_handlers()
+    # COLMAP logs every image and iteration at INFO; geoortho's feedback says what matters.
+    if os.environ.get("GEOORTHO_COLMAP_LOG") is None:
+        pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
+    return pycolmap

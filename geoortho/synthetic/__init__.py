@@ -1,0 +1,1 @@
+"""Synthetic surveys with exact ground truth: the scene, the flight, the rendering."""
