@@ -349,7 +349,7 @@ def _sensor_table() -> dict[str, float]:
     keyed in lower case with single spaces."""
     import json
 
-    raw = json.loads((Path(__file__).parent / "data" / "sensor_data.json").read_text())
+    raw = json.loads((Path(__file__).parents[1] / "data" / "sensor_data.json").read_text())
     return {" ".join(k.lower().split()): float(v) for k, v in raw.items() if float(v) > 0}
 
 
