@@ -70,7 +70,8 @@ def test_gps_only_registers_and_places_cameras(gps_only, small_survey):
     rep = json.loads(r.report.read_text())
     assert rep["registered"] == r.n_registered and rep["photos"] == len(poses) + 1
     assert set(rep["unregistered"]) == {NOISE}
-    assert "no verified matches" in rep["unregistered"][NOISE]
+    # a photo of noise: a fraction of its neighbours' features, none that match (said as such)
+    assert "few features" in rep["unregistered"][NOISE]
     assert any(NOISE in w for w in fb.warnings)
     assert rep["georeferenced_by"].startswith("GPS")
     assert 3.0 < rep["gsd_cm"] < 4.5  # the preset flies at 3.75 cm at the take-off height
