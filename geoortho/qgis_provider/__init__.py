@@ -3,12 +3,13 @@
 The algorithms are built from the registry description (``python -m geoortho
 describe --json``) and run geoortho's CLI in a subprocess, so this package
 needs neither geoortho nor its dependencies inside QGIS. ``make plugin``
-packs this folder as the QGIS plugin ``geoortho_qgis``.
+packs this folder as the QGIS plugin ``geoortho_qgis``: its modules import each other
+relatively, as the only package in geoortho that does, because the zip renames it.
 """
 
 
 def classFactory(iface):  # noqa: N802 (QGIS's name)
     """QGIS plugin entry point."""
-    from geoortho.qgis_provider.plugin import GeoorthoPlugin
+    from .plugin import GeoorthoPlugin
 
     return GeoorthoPlugin(iface)

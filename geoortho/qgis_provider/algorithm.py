@@ -43,8 +43,8 @@ from qgis.core import (
     QgsProviderRegistry,
 )
 
-from geoortho.qgis_provider.interpreter import HOW_TO_SET
-from geoortho.qgis_provider.runner import RunCanceled, RunFailed, run_geoortho
+from .interpreter import HOW_TO_SET
+from .runner import RunCanceled, RunFailed, run_geoortho
 
 __all__ = ["GeoorthoAlgorithm", "PARAMETER_BUILDERS", "OUTPUT_BUILDERS", "label_of", "point_clouds_as_layers"]
 
@@ -389,7 +389,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                 f"'run in the QGIS process' is on, but geoortho cannot be imported here ({e}); "
                 "turn the setting off to run geoortho's own interpreter"
             ) from None
-        from geoortho.qgis_provider.inprocess import feedback_adapter
+        from .inprocess import feedback_adapter
 
         if "workers" in {p["name"] for p in self._spec["parameters"]} and "workers" not in values:
             # Worker processes would be spawned with sys.executable, which inside

@@ -6,7 +6,7 @@ from typing import Any
 
 from qgis.core import QgsApplication
 
-from geoortho.qgis_provider.provider import GeoorthoProvider
+from .provider import GeoorthoProvider
 
 
 class GeoorthoPlugin:

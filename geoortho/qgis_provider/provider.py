@@ -16,8 +16,8 @@ from typing import Any
 from qgis.core import Qgis, QgsApplication, QgsMessageLog, QgsProcessingProvider
 from qgis.PyQt.QtGui import QIcon
 
-from geoortho.qgis_provider.algorithm import OUTPUT_BUILDERS, PARAMETER_BUILDERS, GeoorthoAlgorithm
-from geoortho.qgis_provider.interpreter import InterpreterError, find_interpreter, load_description
+from .algorithm import OUTPUT_BUILDERS, PARAMETER_BUILDERS, GeoorthoAlgorithm
+from .interpreter import InterpreterError, find_interpreter, load_description
 
 __all__ = ["GeoorthoProvider", "SETTING_PYTHON", "SETTING_IN_PROCESS"]
 

@@ -23,7 +23,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-from geoortho.qgis_provider.interpreter import NEUTRAL_CWD, clean_environment
+from .interpreter import NEUTRAL_CWD, clean_environment
 
 __all__ = ["RunCanceled", "RunFailed", "run_geoortho", "remove_partial_outputs"]
 
