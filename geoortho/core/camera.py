@@ -148,7 +148,7 @@ def rotation_from_ypr(
     m[..., 2, 0] = -sp
     m[..., 2, 1] = cp * sr
     m[..., 2, 2] = cp * cr
-    return _ENU_FROM_NED @ m @ _BODY_FROM_CAM
+    return np.asarray(_ENU_FROM_NED @ m @ _BODY_FROM_CAM)
 
 
 def ypr_from_rotation(rotation: np.ndarray) -> tuple[float, float, float]:
@@ -199,14 +199,14 @@ def undistort_pixels(pixels: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
         und = cv2.undistortPoints(
             px.reshape(-1, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs, None, None, None, crit
         )
-    return und.reshape(-1, 2)
+    return np.asarray(und).reshape(-1, 2)
 
 
 def pixel_rays(pixels: np.ndarray, intrinsics: Intrinsics, pose: Pose) -> np.ndarray:
     """World unit direction (N, 3) of the ray through each pixel."""
     xn = undistort_pixels(pixels, intrinsics)
     d = np.c_[xn, np.ones(len(xn))] @ pose.rotation.T
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    return np.asarray(d / np.linalg.norm(d, axis=1, keepdims=True))
 
 
 def in_frame(

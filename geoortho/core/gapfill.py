@@ -49,7 +49,7 @@ def gap_mask(
     near = ndimage.distance_transform_edt(~k) <= max_gap_cells
     # (an array with no zero has no distances: scipy then measures from a corner beyond it)
     closed = ndimage.distance_transform_edt(near) > max_gap_cells if not near.all() else near
-    return closed[top : top + h, left : left + w] & ~known
+    return np.asarray(closed[top : top + h, left : left + w] & ~known)
 
 
 def fill_harmonic(z: np.ndarray, known: np.ndarray, fill: np.ndarray | None = None, *, sweeps: int = 30) -> np.ndarray:

@@ -303,7 +303,7 @@ def use_scheduler(
             "pip install 'geoortho[dask]'"
         ) from None
     try:
-        client = Client(address, timeout=timeout_s, set_as_default=False)
+        client = Client(address, timeout=timeout_s, set_as_default=False)  # type: ignore[no-untyped-call]
     except (OSError, TimeoutError, ValueError) as e:
         raise InputError(
             f"the Dask scheduler at {address} does not answer ({' '.join(str(e).split())[:160]}); "
@@ -323,7 +323,7 @@ def use_scheduler(
         finally:
             _client.reset(token)
     finally:
-        client.close()
+        client.close()  # type: ignore[no-untyped-call]
 
 
 def _nearest_existing(path: str | os.PathLike[str]) -> str:
@@ -353,7 +353,7 @@ def _check_workers_see(client: Any, address: str, paths: Sequence[str | os.PathL
 def _cluster_slots() -> int:
     client = active_client()
     info = client.scheduler_info() if client is not None else {}
-    return max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
+    return max(1, int(sum(w.get("nthreads", 1) for w in info.get("workers", {}).values())))
 
 
 _initialised: set[str] = set()

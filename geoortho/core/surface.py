@@ -132,11 +132,11 @@ class GridSurface(Surface):
 
     @property
     def z_min(self) -> float:  # type: ignore[override]
-        return self._zmin  # type: ignore[attr-defined]
+        return float(self._zmin)  # type: ignore[attr-defined]
 
     @property
     def z_max(self) -> float:  # type: ignore[override]
-        return self._zmax  # type: ignore[attr-defined]
+        return float(self._zmax)  # type: ignore[attr-defined]
 
     @property
     def cell_m(self) -> float:
@@ -173,10 +173,10 @@ class GridSurface(Surface):
         nr, nc = self.grid.shape
         ci = np.clip(np.rint(cols), 0, nc - 1).astype(np.intp) // f
         ri = np.clip(np.rint(rows), 0, nr - 1).astype(np.intp) // f
-        return base[ri, ci].astype(float)
+        return np.asarray(base[ri, ci], dtype=float)
 
     def _ground_base(self) -> tuple[np.ndarray, int]:
-        cached = getattr(self, "_base", None)
+        cached: tuple[np.ndarray, int] | None = getattr(self, "_base", None)
         if cached is not None:
             return cached
         from scipy.ndimage import distance_transform_edt, grey_opening, uniform_filter
@@ -250,11 +250,11 @@ class GridSurface(Surface):
         for _ in range(4):
             t = np.maximum((z - o[:, 2]) / d[:, 2], 0.0)
             z = self.elevation(o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1])
-        return (z - o[:, 2]) / d[:, 2]
+        return np.asarray((z - o[:, 2]) / d[:, 2])
 
     def _coarse_max(self) -> tuple[np.ndarray, int]:
         """Block maximum of the grid (8×8 cells), dilated by one block; cached."""
-        cached = getattr(self, "_coarse", None)
+        cached: tuple[np.ndarray, int] | None = getattr(self, "_coarse", None)
         if cached is not None:
             return cached
         from scipy.ndimage import maximum_filter
@@ -298,7 +298,7 @@ class GridSurface(Surface):
 
         def f(i: np.ndarray | slice, t: np.ndarray) -> np.ndarray:
             h = sample_grid(grid, oc[i] + t * dc[i], orr[i] + t * dr[i])
-            return np.where(np.isnan(h), np.float32(1.0), oz[i] + t * dzz[i] - h)  # >0 above
+            return np.asarray(np.where(np.isnan(h), np.float32(1.0), oz[i] + t * dzz[i] - h))  # >0 above
 
         lo = t0[active].astype(np.float32)
         t_stop = t1[active].astype(np.float32)

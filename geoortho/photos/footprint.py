@@ -743,7 +743,7 @@ def _footprint_layers(
     return fp, cam_layer
 
 
-def write_overlap(path: str | os.PathLike[str], polygons: Sequence, crs: CRS, cell_m: float) -> Path:
+def write_overlap(path: str | os.PathLike[str], polygons: Sequence[Any], crs: CRS, cell_m: float) -> Path:
     """Raster of how many polygons cover each cell (uint16 COG, 0 = not covered is nodata)."""
     import shapely
     from rasterio.features import MergeAlg, rasterize

@@ -416,7 +416,6 @@ def _from_gnss(
     base = (
         float(takeoff_elevation_m)  # type: ignore[arg-type]  # has_takeoff: not None
         if has_takeoff
-        # type: ignore[arg-type]
         else (_ground_level(under) if known_ground else 0.0)
     )
     what = (

@@ -811,4 +811,4 @@ def decode_photo(path: str | os.PathLike[str], reduction: int = 1, *, grey: bool
         )
     except ValueError as e:
         raise OSError(f"its pixel data is corrupt ({e}): the image cannot be trusted") from None
-    return img[:, :, 0] if grey and img.ndim == 3 else img
+    return np.asarray(img[:, :, 0] if grey and img.ndim == 3 else img)
