@@ -972,6 +972,7 @@ img.fig { max-width: 100%; height: auto; display: block; margin: 0.5em 0; }
 .state { font-weight: 600; padding: 0 0.4em; border-radius: 3px; color: #fff; }
 .state.green { background: #1a7f37; } .state.amber { background: #9a6700; } .state.red { background: #b00020; }
 .state.not-measured { background: #999; }
+table.quality td:nth-child(-n+1), table.quality td:nth-child(n+3):nth-child(-n+5) { white-space: nowrap; }
 nav ol { columns: 2; font-size: 0.95em; }
 @media print {
   body { max-width: none; margin: 0; font-size: 11pt; }
