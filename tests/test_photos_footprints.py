@@ -487,7 +487,8 @@ def test_skydio_struct_in_attribute_form_and_other_frames():
 
 def test_sensor_table_of_thousands_of_cameras():
     """Issue 26: OpenSfM's public table ships with the package; our DJI entries win where more precise."""
-    from geoortho.photos.metadata import _sensor_table, sensor_width_from_table
+    from geoortho.photos.sensors import opensfm_sensor_table as _sensor_table
+    from geoortho.photos.sensors import sensor_width_from_table
 
     assert len(_sensor_table()) > 3600
     assert sensor_width_from_table("Canon", "PowerShot S110") == 7.53  # the eBee's old camera

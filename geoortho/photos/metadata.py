@@ -29,6 +29,7 @@ from geoortho.core.camera import Intrinsics
 from geoortho.core.parallel import map_ordered
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, warn_grouped
+from geoortho.photos.sensors import SENSOR_WIDTHS_MM, sensor_width_from_table
 
 __all__ = [
     "Photo",
@@ -46,64 +47,6 @@ __all__ = [
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff")
 #: Photos read per task: a pool (or the cluster) pays off from 4 chunks (256 photos) on
 PHOTOS_PER_CHUNK = 64
-
-# Sensor width (mm) by EXIF Model, lower case: DJI and survey payloads, looked up before
-# OpenSfM's table of 3,709 cameras (geoortho/data). Published sensor sizes; the width spans
-# the full image width, also for 16:9 crops of a 4:3 sensor.
-SENSOR_WIDTHS_MM: dict[str, float] = {
-    # Phantom 3 / 4 family, Inspire 1
-    "fc300s": 6.17,
-    "fc300x": 6.17,
-    "fc300c": 6.17,
-    "fc300se": 6.17,
-    "fc330": 6.17,
-    "fc350": 6.17,
-    "fc6310": 13.2,
-    "fc6310s": 13.2,
-    "fc6310r": 13.2,
-    "fc6360": 4.87,
-    # Mavic / Air / Mini family
-    "fc220": 6.17,
-    "fc2103": 6.17,
-    "fc2204": 6.17,
-    "l1d-20c": 13.2,
-    "fc3170": 6.4,
-    "fc3411": 13.2,
-    "fc7203": 6.17,
-    "fc7303": 6.17,
-    "fc3582": 9.7,
-    "fc3682": 9.7,
-    "fc8482": 9.7,
-    "fc4170": 17.3,
-    "l2d-20c": 17.3,
-    "fc3682s": 9.7,
-    # Enterprise: Mavic 3E/3T, M30, Matrice 4E, Phantom 4 RTK
-    "m3e": 17.3,
-    "m3t": 6.4,
-    "m3m": 17.3,
-    "m30": 6.4,
-    "m30t": 6.4,
-    "m4e": 17.3,
-    "m4t": 9.7,
-    "fc6310r_rtk": 13.2,
-    # Zenmuse
-    "zenmusep1": 35.9,
-    "zenmusel1": 13.2,
-    "zenmusel2": 17.3,
-    "fc6510": 13.2,
-    "fc6520": 17.3,
-    "fc6540": 23.5,
-    "fc550": 17.3,
-    "fc550raw": 17.3,
-    "zenmuseh20": 7.6,
-    "zenmuseh20t": 7.6,
-    # Fixed-wing survey payloads missing from OpenSfM's table (EXIF Model as Sony writes it)
-    "dsc-rx1rm2": 35.9,  # WingtraOne RX1R II
-    "ilce-7rm4": 35.7,  # WingtraOne / eBee X A7R IV
-    "ilce-7rm4a": 35.7,
-    "ilce-7rm5": 35.7,
-    "rededge-m": 4.8,  # MicaSense, 1280 px × 3.75 µm
-}
 
 _XMP_ATTR = re.compile(rb"([A-Za-z][\w.-]*):([A-Za-z]\w*)\s*=\s*([\"'])(.*?)\3", re.S)
 _XMP_ELEM = re.compile(rb"<([A-Za-z][\w.-]*):([A-Za-z]\w*)>([^<]*)</\1:\2>")
@@ -341,33 +284,6 @@ def _dms_deg(value: Any, ref: Any, negative: str) -> float:
     if _text(ref).upper().startswith(negative):
         deg = -deg
     return deg
-
-
-@functools.lru_cache(maxsize=1)
-def _sensor_table() -> dict[str, float]:
-    """OpenSfM's public table (3,709 cameras, "MAKE MODEL" → width mm; geoortho/data/README.md),
-    keyed in lower case with single spaces."""
-    import json
-
-    raw = json.loads((Path(__file__).parents[1] / "data" / "sensor_data.json").read_text())
-    return {" ".join(k.lower().split()): float(v) for k, v in raw.items() if float(v) > 0}
-
-
-def sensor_width_from_table(make: str, model: str) -> float:
-    """Sensor width (mm) of a camera by its EXIF Make and Model: geoortho's DJI table (by model),
-    then OpenSfM's by "make model" (also the make's first word: "NIKON CORPORATION" → "nikon",
-    and the model alone where it already names the make); NaN when unknown."""
-    key = model.lower().replace(" ", "")
-    if key in SENSOR_WIDTHS_MM:
-        return SENSOR_WIDTHS_MM[key]
-    table = _sensor_table()
-    mk, md = " ".join(make.lower().split()), " ".join(model.lower().split())
-    if not md:
-        return math.nan
-    for k in (f"{mk} {md}", f"{mk.split()[0]} {md}" if mk else "", md):
-        if k and k in table:
-            return table[k]
-    return math.nan
 
 
 def _sensor_width(

@@ -36,6 +36,7 @@ from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.gcp.markers import Dictionary, get_dictionary, marker_cells
+from geoortho.photos.sensors import CAMERA_SPECS
 
 __all__ = [
     "CAMERAS",
@@ -49,24 +50,6 @@ __all__ = [
     "default_gcp_count",
     "line_overlaps",
 ]
-
-# Published maker specifications: sensor width x height (mm), focal length (mm), image (px).
-# The names are what surveyors call them; the second is the EXIF Model the camera writes.
-_CAMERA_TABLE: tuple[tuple[str, str, float, float, float, int, int], ...] = (
-    ("DJI Phantom 4 Pro", "FC6310", 13.2, 8.8, 8.8, 5472, 3648),
-    ("DJI Phantom 4 RTK", "FC6310R", 13.2, 8.8, 8.8, 5472, 3648),
-    ("DJI Phantom 4", "FC330", 6.17, 4.55, 3.61, 4000, 3000),
-    ("DJI Phantom 3 Professional", "FC300X", 6.17, 4.55, 3.61, 4000, 3000),
-    ("DJI Mavic Pro", "FC220", 6.17, 4.55, 4.73, 4000, 3000),
-    ("DJI Mavic 2 Pro", "L1D-20c", 13.2, 8.8, 10.26, 5472, 3648),
-    ("DJI Mavic 3 Enterprise", "M3E", 17.3, 13.0, 12.29, 5280, 3956),
-    ("DJI Air 2S", "FC3411", 13.2, 8.8, 8.38, 5472, 3648),
-    ("DJI Mini 3 Pro", "FC3582", 9.7, 7.3, 6.72, 4032, 3024),
-    ("DJI Mini 4 Pro", "FC8482", 9.7, 7.3, 6.72, 4032, 3024),
-    ("DJI Zenmuse P1 35mm", "ZenmuseP1", 35.9, 24.0, 35.0, 8192, 5460),
-    ("senseFly S.O.D.A.", "SODA", 13.2, 8.8, 10.6, 5472, 3648),
-    ("Sony RX1R II (WingtraOne)", "DSC-RX1RM2", 35.9, 24.0, 35.0, 7952, 5304),
-)
 
 DEFAULT_MAX_ALTITUDE_M = 120.0  # the open-category ceiling in the EU and the US
 # How far a flown photo is from the planned one (consumer GNSS and wind; gimbal and aircraft
@@ -97,7 +80,7 @@ class CameraSpec:
 
 
 CAMERAS: dict[str, CameraSpec] = {}
-for _name, _model, _sw, _sh, _f, _w, _h in _CAMERA_TABLE:
+for _name, _model, _sw, _sh, _f, _w, _h in CAMERA_SPECS:
     for _key in (_name, _model):
         CAMERAS[_key.lower()] = CameraSpec(_name, _sw, _f, _w, _h, f"table: {_name} ({_model})")
 
@@ -131,7 +114,7 @@ def resolve_camera(
         # is the table's key, so the make (one word or more) is tried away
         base = next((CAMERAS[k] for k in (" ".join(words[i:]) for i in range(len(words))) if k in CAMERAS), None)
         if base is None:
-            names = sorted({c.name for c in CAMERAS.values()} | {m for _, m, *_ in _CAMERA_TABLE})
+            names = sorted({c.name for c in CAMERAS.values()} | {m for _, m, *_ in CAMERA_SPECS})
             close = difflib.get_close_matches(camera, names, n=4, cutoff=0.3)
             hint = (
                 f"closest: {', '.join(close)}"
