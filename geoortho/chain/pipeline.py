@@ -242,23 +242,31 @@ class Hasher:
     def __init__(self, cache: dict[str, list[Any]] | None = None) -> None:
         self.cache: dict[str, list[Any]] = dict(cache) if isinstance(cache, dict) else {}
         self.bytes_read = 0
+        # files checked in this run, by their stat: the photos are inputs of four stages and the
+        # products are checked again when reused; a file rewritten since has another stat
+        self._checked: dict[tuple[str, int, int, int], str] = {}
 
     def file(self, path: Path) -> str:
         st = path.stat()
         key = str(path.resolve())
+        seen = (key, st.st_size, st.st_mtime_ns, st.st_ino)
+        if seen in self._checked:
+            return self._checked[seen]
         with open(path, "rb") as f:
-            head = hashlib.sha256(f.read(HEAD_BYTES)).hexdigest()
-        self.bytes_read += min(st.st_size, HEAD_BYTES)
-        hit = self.cache.get(key)
-        if isinstance(hit, list) and hit[:2] == [st.st_size, st.st_mtime_ns] and hit[3:4] == [head]:
-            return str(hit[2])
-        h = hashlib.sha256()
-        with open(path, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-        self.bytes_read += st.st_size
-        digest = h.hexdigest()
-        self.cache[key] = [st.st_size, st.st_mtime_ns, digest, head]
+            first = f.read(HEAD_BYTES)
+            head = hashlib.sha256(first).hexdigest()
+            hit = self.cache.get(key)
+            if isinstance(hit, list) and hit[:2] == [st.st_size, st.st_mtime_ns] and hit[3:4] == [head]:
+                self.bytes_read += len(first)
+                digest = str(hit[2])
+            else:
+                h = hashlib.sha256(first)
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
+                self.bytes_read += st.st_size
+                digest = h.hexdigest()
+                self.cache[key] = [st.st_size, st.st_mtime_ns, digest, head]
+        self._checked[seen] = digest
         return digest
 
     def photos(self, folder: Path) -> str:

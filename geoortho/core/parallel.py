@@ -184,7 +184,7 @@ def process_pool(
         n_procs, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(), initializer, initargs)
     )
     try:  # a Ctrl-C held while the workers start is raised as they are: the pool is shut down then too
-        with _workers_skip_main(), _children_ignore_sigint():
+        with _workers_skip_main(), _children_block_sigint():
             for _ in range(n_procs):
                 # start the workers now (they import while the caller prepares): a spawn pool starts
                 # one process per submit until it has them all
@@ -225,7 +225,7 @@ def _workers_skip_main() -> Iterator[None]:
 
 
 @contextmanager
-def _children_ignore_sigint() -> Iterator[None]:
+def _children_block_sigint() -> Iterator[None]:
     """Workers started in this block never see SIGINT: it is blocked here while they are started,
     and a blocked signal stays blocked through fork and exec. Ctrl-C reaches the whole process
     group; the caller alone must answer it (one "canceled" line, the pool shut down), not every

@@ -363,7 +363,7 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
                 exif_ifd = exif.get_ifd(0x8769)
                 if im.format == "JPEG":
                     _check_jpeg_complete(path)
-                    _check_jpeg_size(path, im, exif.get_ifd(0x8769))
+                    _check_jpeg_size(path, im, exif_ifd)
     except Image.DecompressionBombError:
         raise InputError(
             f"the header claims more than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} M pixels: not a drone photo",
