@@ -119,3 +119,26 @@ def test_workers_dead_at_start_up_raise():
 
     with pytest.raises(WorkerError, match="workers=1"):
         map_ordered(abs, [1, -2, 3, -4], workers=2, initializer=os._exit, initargs=(3,))
+
+
+def test_every_worker_starts_with_the_pool(monkeypatch):
+    """All workers start inside the pool's start-up block (where the user's main script is kept
+    from them). A slow caller (here: every submit takes a second; large initargs or a busy machine
+    did it) let the first worker finish its start-up task before the second was asked for, and
+    the second then started later, outside the block, and ran the user's unguarded script."""
+    import concurrent.futures as cf
+    import time
+
+    from geoortho.core.parallel import process_pool
+
+    submit = cf.ProcessPoolExecutor.submit
+
+    def slow_submit(self, *args, **kwargs):
+        future = submit(self, *args, **kwargs)
+        time.sleep(1.0)
+        return future
+
+    monkeypatch.setattr(cf.ProcessPoolExecutor, "submit", slow_submit)
+    with process_pool(2, 8) as pool:
+        assert pool is not None
+        assert len(pool._processes) == 2  # started, not left for a later submit

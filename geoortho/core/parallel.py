@@ -183,11 +183,17 @@ def process_pool(
     pool = cf.ProcessPoolExecutor(
         n_procs, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(), initializer, initargs)
     )
+    # Every worker must start inside the block below. A spawn pool otherwise starts one process per
+    # submit while none is idle: with large initargs (the pipe blocks until the child has read them)
+    # the first worker can finish its start-up task before the second submit, which then starts no
+    # process, and a later submit starts one outside the block (it ran the user's unguarded script
+    # and hung, one run in three). The start-all-at-first-submit path is the pool's own, for fork.
+    if hasattr(pool, "_safe_to_dynamically_spawn_children"):
+        pool._safe_to_dynamically_spawn_children = False
     try:  # a Ctrl-C held while the workers start is raised as they are: the pool is shut down then too
         with _workers_skip_main(), _children_block_sigint():
             for _ in range(n_procs):
-                # start the workers now (they import while the caller prepares): a spawn pool starts
-                # one process per submit until it has them all
+                # start the workers now (they import while the caller prepares)
                 pool.submit(os.getpid)
         yield pool
     finally:
