@@ -50,6 +50,7 @@ from geoortho.gcp.markers import (
     target_half_extent,
     target_reflectance,
 )
+from geoortho.synthetic.cover import CANOPY_STYLES, add_canopy, add_car_park, leaf_texture
 
 __all__ = ["PRESETS", "PATHOLOGIES", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
 
@@ -160,6 +161,11 @@ PATHOLOGIES: dict[str, str] = {
     "wrong-flight-height": "the user's flight height is 50 % off: survey.json gives it (user_flight_height_m) "
     "beside the true one (flight_height_m, above take-off) for a test to pass it",
     "poor-gps": "a consumer GPS at its worst: every photo's recorded position off by 20 m (sigma, per axis)",
+    "canopy": "a wood of closed canopy on open ground of the flight: overlapping crowns 7-12 m high that hide "
+    "each other, a leaf texture that repeats from crown to crown (drawn as a regular pattern for an even seed, as "
+    "noise blobs for an odd one) and deep shade between them; survey.json gives where (cover.canopy)",
+    "cars": "a car park: two rows of bays on tarmac, four in five taken by a car 1.45 m high with its shadow "
+    "cast on the tarmac; survey.json gives where (cover.cars)",
     "dropped-photo": "one photo in the middle of the flight that no SfM can register: smeared by a motion blur of "
     "a tenth of its width, or blown out (25x over-exposed), as the seed draws; survey.json names it "
     "(dropped_photo: image, how)",
@@ -213,6 +219,9 @@ class Scene:
     marker_cells: dict[int, np.ndarray] = field(default_factory=dict)
     water: tuple[float, float, float] | None = None  # x, y, radius (m): one flat colour there
     target: str = "aruco"  # what the markers look like (markers.TARGETS)
+    canopy: np.ndarray | None = None  # (rows, cols) bool on the DSM grid: a wood's crowns, leaf-textured
+    canopy_style: str = "pattern"  # how the leaves are drawn (cover.CANOPY_STYLES)
+    cover: dict[str, dict[str, Any]] = field(default_factory=dict)  # canopy/cars: where they are
 
     @property
     def surface(self) -> GridSurface:
@@ -234,6 +243,13 @@ class Scene:
         detail = np.ones(len(x), np.float32)
         for grid, cell, amp in zip(self.noise, self.noise_cells_m, (0.22, 0.18, 0.14)):
             detail += amp * _wrap_sample(grid, x / cell, y / cell)
+        if self.canopy is not None and above.any():
+            leafy = np.zeros(len(x), bool)
+            ci = np.clip(np.rint(c[above]).astype(np.int64), 0, self.canopy.shape[1] - 1)
+            ri = np.clip(np.rint(r[above]).astype(np.int64), 0, self.canopy.shape[0] - 1)
+            leafy[above] = self.canopy[ri, ci]
+            if leafy.any():
+                base[leafy] *= leaf_texture(self.canopy_style, x[leafy], y[leafy], self.noise[1])[:, None]
         out = base * detail[:, None]
         if self.water is not None:
             wx, wy, wr = self.water
@@ -778,6 +794,22 @@ def _place_water(scene: Scene) -> tuple[float, float, float]:
     return float(xs.flat[best]), float(ys.flat[best]), radius
 
 
+def _add_cover(scene: Scene, pathologies: Sequence[str], rng: np.random.Generator, canopy_style: str) -> None:
+    """The wood and the car park, each on the open ground left by what stands there already."""
+    markers_xy = [(m.x, m.y) for m in scene.markers]
+    if "canopy" in pathologies:
+        scene.dsm, scene.objects, scene.canopy, patch = add_canopy(
+            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng, canopy_style
+        )
+        scene.canopy_style = str(patch.detail["style"])
+        scene.cover["canopy"] = patch.record()
+    if "cars" in pathologies:
+        scene.dsm, scene.objects, scene.landcover, patch = add_car_park(
+            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.landcover, scene.flight_box, markers_xy, rng
+        )
+        scene.cover["cars"] = patch.record()
+
+
 def _wrap180(a: float) -> float:
     return float((a + 180.0) % 360.0 - 180.0)
 
@@ -1293,6 +1325,8 @@ def synth(
     )
     scene.target = target
     step_scene.progress(0.5)
+    if "canopy" in pathologies or "cars" in pathologies:
+        _add_cover(scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)])
     if "water" in pathologies:
         scene.water = _place_water(scene)
     planned = fly_plan(Path(plan), p, scene, rng) if plan is not None else plan_flight(p, scene, rng)
@@ -1540,6 +1574,7 @@ def _write_survey_json(
             },
             "pathologies": {k: PATHOLOGIES[k] for k in pathologies},
             **({"water": dict(zip(("x", "y", "radius_m"), scene.water))} if scene.water is not None else {}),
+            **({"cover": scene.cover} if scene.cover else {}),
             **(
                 {"mount_tilt": {"deg": MOUNT_TILT_DEG, "azimuth_deg": MOUNT_TILT_AZIMUTH_DEG}}
                 if "no-attitude" in pathologies

@@ -1,0 +1,235 @@
+"""Land cover that broke the dense surface on real photos: a wood of closed canopy and a car park.
+
+Both are drawn on the scene's DSM grid (heights, colours and, for the wood, a mask that the
+renderer gives its leaf texture) with a generator of their own, so that a survey without them
+is the one its seed always gave. Each is placed on the open ground of the flight area that is
+farthest from the buildings, trees and markers already there, as the pond is.
+
+The canopy is what matching finds hardest: crowns that overlap and hide each other, a fine leaf
+texture that repeats from crown to crown, and deep shade between them. It is rendered one of two
+ways (``CANOPY_STYLES``): leaves as a regular pattern (even seeds), or as noise blobs (odd ones).
+The cars stand in rows on tarmac with their shadows cast on it (the sun in the south-west).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from affine import Affine
+
+__all__ = ["CANOPY_STYLES", "CoverPatch", "add_canopy", "add_car_park", "leaf_texture"]
+
+CANOPY_STYLES = ("pattern", "blobs")
+SUN_AZIMUTH_DEG = 225.0  # from the south-west: shadows fall to the north-east
+SUN_ELEVATION_DEG = 45.0
+CAR_LENGTH_M, CAR_WIDTH_M = 4.4, 1.8
+CAR_BODY_M, CAR_ROOF_M = 0.85, 1.45  # body and cabin heights
+BAY_WIDTH_M = 2.5
+CAR_COLOURS = np.array(
+    [[0.92, 0.92, 0.90], [0.08, 0.08, 0.09], [0.66, 0.67, 0.70], [0.70, 0.10, 0.08], [0.12, 0.22, 0.55],
+     [0.30, 0.31, 0.33]],
+    np.float32,
+)  # fmt: skip
+TARMAC_RGB = (0.30, 0.30, 0.32)
+SHADOW_GAIN = 0.45
+
+
+@dataclass(frozen=True)
+class CoverPatch:
+    """Where a cover was put: centre and half-sizes (m), what it holds; survey.json records it."""
+
+    kind: str
+    x: float
+    y: float
+    half_w_m: float
+    half_h_m: float
+    detail: dict[str, Any]
+
+    def record(self) -> dict[str, Any]:
+        return {"x": self.x, "y": self.y, "half_w_m": self.half_w_m, "half_h_m": self.half_h_m, **self.detail}
+
+
+def _centres(transform: Affine, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    rows, cols = np.indices(shape)
+    x, y = transform * (cols + 0.5, rows + 0.5)
+    return np.asarray(x, float), np.asarray(y, float)
+
+
+def _open_spot(
+    transform: Affine,
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    flight_box: tuple[float, float, float, float],
+    markers_xy: list[tuple[float, float]],
+    want_radius_m: float,
+    inset: float,
+) -> tuple[float, float, float]:
+    """The open-ground point of the flight area (inset by a share of it) farthest from anything
+    standing and from the markers, and the clear radius there (at most ``want_radius_m``)."""
+    from scipy.ndimage import distance_transform_edt
+
+    taken = (dsm - dtm) > 0.05
+    for mx, my in markers_xy:
+        c, r = ~transform * (mx, my)
+        taken[int(r), int(c)] = True
+    clear_m = np.asarray(distance_transform_edt(~taken)) * transform.a
+    xs, ys = _centres(transform, dsm.shape)
+    fx0, fy0, fx1, fy1 = flight_box
+    inside = (xs > fx0 + inset * (fx1 - fx0)) & (xs < fx1 - inset * (fx1 - fx0))
+    inside &= (ys > fy0 + inset * (fy1 - fy0)) & (ys < fy1 - inset * (fy1 - fy0))
+    best = int(np.argmax(np.where(inside, clear_m, -1.0)))
+    return float(xs.flat[best]), float(ys.flat[best]), min(want_radius_m, float(clear_m.flat[best]) - 1.0)
+
+
+def _clear_of_markers(
+    x: np.ndarray, y: np.ndarray, markers_xy: list[tuple[float, float]], clear_m: float = 1.5
+) -> np.ndarray:
+    """Cells farther than ``clear_m`` from every marker: no cover may hide a GCP."""
+    out = np.ones(x.shape, bool)
+    for mx, my in markers_xy:
+        out &= np.hypot(x - mx, y - my) > clear_m
+    return out
+
+
+def add_canopy(
+    transform: Affine,
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    objects: np.ndarray,
+    flight_box: tuple[float, float, float, float],
+    markers_xy: list[tuple[float, float]],
+    rng: np.random.Generator,
+    style: str = CANOPY_STYLES[0],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, CoverPatch]:
+    """A wood of overlapping crowns: the new DSM and object colours, the canopy mask, and where
+    (its leaves drawn in ``style``, one of ``CANOPY_STYLES``)."""
+    fx0, fy0, fx1, fy1 = flight_box
+    want = 0.15 * min(fx1 - fx0, fy1 - fy0) + 1.5
+    cx, cy, radius = _open_spot(transform, dsm, dtm, flight_box, markers_xy, want, inset=0.3)
+    radius = max(radius, 2.0)
+    xs, ys = _centres(transform, dsm.shape)
+    near = np.hypot(xs - cx, ys - cy) < radius + 4.0
+    r0, r1 = np.nonzero(near.any(axis=1))[0][[0, -1]]
+    c0, c1 = np.nonzero(near.any(axis=0))[0][[0, -1]]
+    win = np.s_[r0 : r1 + 1, c0 : c1 + 1]
+    X, Y, ground = xs[win], ys[win], dtm[win]
+    top = np.zeros_like(ground, dtype=np.float32)
+    colour = np.zeros((*ground.shape, 3), np.float32)
+    crown_id = np.full(ground.shape, -1, np.int32)
+    n_crowns = max(6, int(math.pi * radius**2 / 5.0))  # closed canopy: a crown per 5 m2
+    greens = np.array([[0.16, 0.30, 0.11], [0.22, 0.36, 0.13], [0.28, 0.40, 0.16], [0.13, 0.25, 0.12]], np.float32)
+    for k in range(n_crowns):
+        a, d = rng.uniform(0, 2 * np.pi), radius * math.sqrt(rng.uniform(0, 1))
+        tx, ty = cx + d * math.cos(a), cy + d * math.sin(a)
+        tr, th = rng.uniform(1.6, 3.2), rng.uniform(7.0, 12.0)
+        q = 1.0 - ((X - tx) ** 2 + (Y - ty) ** 2) / tr**2
+        dome = np.where(q > 0, th - 2.5 + 2.5 * np.sqrt(np.clip(q, 0, 1)), 0.0)  # a crown 2.5 m deep
+        higher = dome > top
+        top = np.where(higher, dome, top)
+        crown_id = np.where(higher, k, crown_id)
+        colour = np.where(higher[..., None], greens[rng.integers(0, len(greens))] * rng.uniform(0.85, 1.15), colour)
+    # leaf clumps: a rough crown surface, finer than a crown and coarser than a leaf
+    rough = rng.normal(0.0, 0.12, top.shape).astype(np.float32)
+    crown = (top > 0.5) & _clear_of_markers(X, Y, markers_xy)  # a clearing round a marker
+    height = np.where(crown, top + rough, 0.0)
+    # the sun on the crowns' slopes (and deep shade where a crown dips under its neighbour)
+    gy, gx = np.gradient(height, -transform.a, transform.a)  # rows run south
+    sun_az, sun_el = math.radians(SUN_AZIMUTH_DEG), math.radians(SUN_ELEVATION_DEG)
+    sun = np.array([math.sin(sun_az) * math.cos(sun_el), math.cos(sun_az) * math.cos(sun_el), math.sin(sun_el)])
+    norm = np.sqrt(gx**2 + gy**2 + 1.0)
+    lit = np.clip((-gx * sun[0] - gy * sun[1] + sun[2]) / norm, 0.15, 1.0)
+    colour *= (0.35 + 0.75 * lit)[..., None].astype(np.float32)
+    new_dsm, new_objects = dsm.copy(), objects.copy()
+    new_dsm[win] = np.where(crown, np.maximum(dsm[win], ground + height), dsm[win])
+    new_objects[win] = np.where(crown[..., None], colour, objects[win])
+    mask = np.zeros(dsm.shape, bool)
+    mask[win] = crown
+    patch = CoverPatch("canopy", cx, cy, radius, radius, {"crowns": n_crowns, "style": style})
+    return new_dsm.astype(np.float32), new_objects, mask, patch
+
+
+def leaf_texture(style: str, x: np.ndarray, y: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """Brightness of the leaves at world points (about 0.35–1.3): the same texture in every crown.
+
+    ``pattern``: crossed waves of 0.45 and 1.3 m, which repeat exactly; ``blobs``: clumps of the
+    noise grid thresholded, dark gaps between bright clumps."""
+    if style == "pattern":
+        w = np.sin(2 * np.pi * x / 0.45) * np.sin(2 * np.pi * y / 0.45) + 0.6 * np.sin(2 * np.pi * (x + y) / 1.3)
+        return (0.85 + 0.28 * w).astype(np.float32)
+    n = noise.shape[0]
+    fx, fy = np.mod(x / 0.06, n), np.mod(y / 0.06, n)
+    v = noise[fy.astype(np.int64) % n, fx.astype(np.int64) % n]
+    return np.where(v > 0.15, 1.25, np.where(v < -0.35, 0.35, 0.85)).astype(np.float32)
+
+
+def add_car_park(
+    transform: Affine,
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    objects: np.ndarray,
+    landcover: np.ndarray,
+    flight_box: tuple[float, float, float, float],
+    markers_xy: list[tuple[float, float]],
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, CoverPatch]:
+    """Two rows of bays on tarmac, most of them taken by a car with its shadow: the new DSM,
+    object colours and ground colours, and where."""
+    fx0, fy0, fx1, fy1 = flight_box
+    want = 0.25 * min(fx1 - fx0, fy1 - fy0) + 3.0
+    cx, cy, radius = _open_spot(transform, dsm, dtm, flight_box, markers_xy, want, inset=0.1)
+    radius = max(radius, 3.0)
+    rows_of_bays = (-1, 1) if radius > 5.5 else (0,)  # two rows nose to nose, or one
+    half_depth = (CAR_LENGTH_M + 0.5) * len(rows_of_bays) / 2
+    n_bays = max(2, int(2 * math.sqrt(max(radius**2 - half_depth**2, 1.0)) // BAY_WIDTH_M))
+    half_len = n_bays * BAY_WIDTH_M / 2
+    angle = rng.uniform(0, np.pi)
+    ca, sa = math.cos(angle), math.sin(angle)
+    xs, ys = _centres(transform, dsm.shape)
+    u = (xs - cx) * ca + (ys - cy) * sa  # along the rows
+    v = -(xs - cx) * sa + (ys - cy) * ca  # across them
+    tarmac = (np.abs(u) <= half_len + 0.5) & (np.abs(v) <= half_depth + 0.5)
+    ground = landcover.copy()
+    ground[tarmac] = TARMAC_RGB
+    bay_line = tarmac & (np.abs(np.mod(u + half_len, BAY_WIDTH_M)) < transform.a) & (np.abs(v) > 0.3)
+    ground[bay_line] = (0.88, 0.88, 0.84)
+    height = np.zeros(dsm.shape, np.float32)
+    colour = np.zeros_like(objects)
+    shade = np.zeros(dsm.shape, bool)
+    reach = CAR_ROOF_M / math.tan(math.radians(SUN_ELEVATION_DEG))
+    sx, sy = -reach * math.sin(math.radians(SUN_AZIMUTH_DEG)), -reach * math.cos(math.radians(SUN_AZIMUTH_DEG))
+    n_cars = 0
+    clear = _clear_of_markers(xs, ys, markers_xy)
+    for row in rows_of_bays:
+        for b in range(n_bays):
+            if rng.random() < 0.2:  # an empty bay
+                continue
+            bu = -half_len + (b + 0.5) * BAY_WIDTH_M + rng.uniform(-0.2, 0.2)
+            bv = row * (half_depth / 2 + 0.1) + rng.uniform(-0.2, 0.2)  # (one row: on the middle)
+            cu, cv = u - bu, v - bv  # the car's frame: its length across the rows
+            body = (np.abs(cv) <= CAR_LENGTH_M / 2) & (np.abs(cu) <= CAR_WIDTH_M / 2)
+            if not clear[body].all():  # no car parked on a marker
+                continue
+            cabin = body & (np.abs(cv + 0.2 * row) <= 0.28 * CAR_LENGTH_M) & (np.abs(cu) <= 0.42 * CAR_WIDTH_M)
+            h = np.where(cabin, CAR_ROOF_M, np.where(body, CAR_BODY_M, 0.0)).astype(np.float32)
+            height = np.maximum(height, h)
+            paint = CAR_COLOURS[rng.integers(0, len(CAR_COLOURS))]
+            glass = cabin & (np.abs(cv + 0.2 * row) > 0.18 * CAR_LENGTH_M)  # windscreen and rear window
+            colour[body] = paint
+            colour[glass] = (0.10, 0.12, 0.15)
+            # the shadow: the car's outline moved away from the sun by its height's reach
+            su, sv = sx * ca + sy * sa, -sx * sa + sy * ca
+            shade |= (np.abs(cv - sv) <= CAR_LENGTH_M / 2) & (np.abs(cu - su) <= CAR_WIDTH_M / 2)
+            n_cars += 1
+    ground[shade & (height == 0)] *= SHADOW_GAIN
+    standing = height > 0
+    new_dsm = np.where(standing, np.maximum(dsm, dtm + height), dsm).astype(np.float32)
+    new_objects = np.where(standing[..., None], colour, objects).astype(np.float32)
+    half_w = abs(half_len * ca) + abs(half_depth * sa) + 0.5
+    half_h = abs(half_len * sa) + abs(half_depth * ca) + 0.5
+    patch = CoverPatch(
+        "cars", cx, cy, half_w, half_h, {"cars": n_cars, "bays": 2 * n_bays, "angle_deg": math.degrees(angle)}
+    )
+    return new_dsm, new_objects, ground.astype(np.float32), patch
