@@ -482,7 +482,7 @@ def _pair(
     z = f * baseline / disp[rr, cc]
     keep = (z > zmin * 0.8) & (z < zmax * 1.2)  # loose: a's rectified depth, the range is ref's
     rr, cc, z = rr[keep], cc[keep], z[keep]
-    
+
     rect = np.c_[(cc - P1[0, 2]) * z / f, (rr - P1[1, 2]) * z / f, z]
     world = (rect @ R1) @ a.R.T + a.C  # rectified -> camera a -> local frame
     return world.astype(np.float32), left[rr, cc], zmin

@@ -54,7 +54,8 @@ class CoverPatch:
 
 def _centres(transform: Affine, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     rows, cols = np.indices(shape)
-    x, y = transform * (cols + 0.5, rows + 0.5)
+    x = transform.c + (cols + 0.5) * transform.a + (rows + 0.5) * transform.b
+    y = transform.f + (cols + 0.5) * transform.d + (rows + 0.5) * transform.e
     return np.asarray(x, float), np.asarray(y, float)
 
 
