@@ -722,6 +722,9 @@ def _footprint_layers(
         "camera": [f"{c.photo.make} {c.photo.model}".strip() for c in cams],
         "focal_px": [c.intrinsics.focal_px for c in cams],
         "taken_at": [c.photo.taken_at for c in cams],
+        "gps_fix": [c.photo.gps_fix for c in cams],
+        "gps_sigma_h_m": [c.photo.gps_sigma_h_m for c in cams],
+        "gps_sigma_v_m": [c.photo.gps_sigma_v_m for c in cams],
     }
     fp = gpd.GeoDataFrame(records, geometry=polys, crs=work)
     centers = np.array([c.pose.center for c in cams])
@@ -736,6 +739,9 @@ def _footprint_layers(
             "pitch_deg": records["pitch_deg"],
             "roll_deg": records["roll_deg"],
             "gsd_cm": table.gsd_cm,
+            "gps_fix": records["gps_fix"],
+            "gps_sigma_h_m": records["gps_sigma_h_m"],
+            "gps_sigma_v_m": records["gps_sigma_v_m"],
         },
         geometry=shapely.points(centers[:, :2]),
         crs=work,

@@ -111,6 +111,56 @@ _RELATIVE = (
 )
 _ABSOLUTE = ("drone-dji:AbsoluteAltitude", "drone:AbsoluteAltitude", "drone-skydio:AbsoluteAltitude")
 
+# Position accuracy. DJI's RTK aircraft (Phantom 4 RTK, Matrice 300/350 RTK, Mavic 3 Enterprise
+# RTK) write the receiver's solution as drone-dji:RtkFlag, with the codes of DJI's SDK enum
+# RTKPositioningSolution (0 none, 16 single point, 34 float, 50 fixed point), and its standard
+# deviations in metres as RtkStdLon, RtkStdLat and RtkStdHgt (the SDK's LocationStandardDeviation:
+# "standard deviation of location accuracy in meters"). Pix4D's XMP camera tags (written by
+# MicaSense, Sentera, WingtraHub and others) give Camera:GPSXYAccuracy and Camera:GPSZAccuracy in
+# metres; OpenDroneMap reads both families the same way, as standard deviations.
+RTK_FLAGS: dict[int, str] = {0: "consumer", 16: "single", 34: "float", 50: "fixed"}
+#: 1-sigma horizontal and vertical accuracy (m) taken for a fix state stated without deviations:
+#: typical receiver figures (fixed 1-2 cm + 1 ppm, float decimetres, single point metres).
+DEFAULT_SIGMA_M: dict[str, tuple[float, float]] = {
+    "fixed": (0.02, 0.03),
+    "float": (0.3, 0.5),
+    "single": (1.5, 3.0),
+}
+#: A fixed solution stated worse than this (m, horizontal) contradicts itself.
+MAX_FIXED_SIGMA_M = 0.5
+
+
+def position_accuracy(tags: dict[str, str]) -> tuple[float, float, str, str]:
+    """The position's 1-sigma horizontal and vertical accuracy (m), its class, and a warning
+    (empty when none) from the XMP tags; NaN and "consumer" when nothing is stated.
+
+    The horizontal sigma is the larger of the two axes' (a per-axis figure, as the priors use
+    it). A fix state without deviations takes ``DEFAULT_SIGMA_M``; deviations beyond what the
+    state allows are kept (the deviations are measured, the state is a label) and flagged."""
+    flag = _xmp_float(tags, "drone-dji:RtkFlag", "drone:RtkFlag")
+    lon_m = _xmp_float(tags, "drone-dji:RtkStdLon", "drone:RtkStdLon")
+    lat_m = _xmp_float(tags, "drone-dji:RtkStdLat", "drone:RtkStdLat")
+    hgt_m = _xmp_float(tags, "drone-dji:RtkStdHgt", "drone:RtkStdHgt")
+    if math.isfinite(flag):
+        fix = RTK_FLAGS.get(int(flag), "single" if 0 < flag < 50 else "consumer")
+        if fix == "consumer":
+            return math.nan, math.nan, fix, ""
+        h = max((v for v in (lon_m, lat_m) if math.isfinite(v) and v > 0), default=math.nan)
+        v = hgt_m if math.isfinite(hgt_m) and hgt_m > 0 else math.nan
+        dh, dv = DEFAULT_SIGMA_M[fix]
+        warning = ""
+        if fix == "fixed" and math.isfinite(h) and h > MAX_FIXED_SIGMA_M:
+            warning = (
+                f"RtkFlag {int(flag)} (fixed) with RtkStdLon/Lat {h:g} m: a fixed solution is centimetres; "
+                "the stated deviation is used"
+            )
+        return (h if math.isfinite(h) else dh), (v if math.isfinite(v) else dv), fix, warning
+    xy = _xmp_float(tags, "Camera:GPSXYAccuracy")
+    z = _xmp_float(tags, "Camera:GPSZAccuracy")
+    if math.isfinite(xy) and xy > 0:
+        return xy, (z if math.isfinite(z) and z > 0 else 2.0 * xy), "stated", ""
+    return math.nan, math.nan, "consumer", ""
+
 
 @dataclass(frozen=True)
 class Photo:
@@ -146,6 +196,12 @@ class Photo:
     f_number: float = math.nan
     iso: float = math.nan
     has_xmp: bool = False
+    # The position's stated accuracy (1 sigma, metres; NaN: consumer GPS, none stated) and its
+    # class: fixed, float, single (an RTK receiver's solution), stated (a camera's own accuracy
+    # tags, no fix state), consumer (nothing said). See position_accuracy.
+    gps_sigma_h_m: float = math.nan
+    gps_sigma_v_m: float = math.nan
+    gps_fix: str = "consumer"
     warnings: tuple[str, ...] = field(default=(), compare=False)
 
     @property
@@ -407,6 +463,9 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         # No true focal length: the 35 mm equivalent on a 36 mm-wide virtual sensor.
         focal_mm = focal_35
         sw, sw_source = _width_from_35mm(focal_35, focal_35, (width, height))
+    sigma_h, sigma_v, fix, accuracy_warning = position_accuracy(tags)
+    if accuracy_warning:
+        warnings.append(accuracy_warning)
     taken = _text(exif_ifd.get(0x9003)) or _text(exif.get(306))
     if re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d.*", taken):
         taken = taken[:10].replace(":", "-") + "T" + taken[11:19]
@@ -437,6 +496,9 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         exposure_time_s=_float(exif_ifd.get(0x829A)),
         f_number=_float(exif_ifd.get(0x829D)),
         iso=_float(_first(exif_ifd.get(0x8827))),
+        gps_sigma_h_m=sigma_h,
+        gps_sigma_v_m=sigma_v,
+        gps_fix=fix,
         warnings=tuple(warnings),
     )
 

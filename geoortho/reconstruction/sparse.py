@@ -189,6 +189,15 @@ class _Priors:
     heights: str
     vertical_trusted: bool = True
     notes: tuple[str, ...] = ()
+    # 1-sigma horizontal and vertical accuracy (m) of each position as the bundle adjustment
+    # weighs it: the photo's stated accuracy (RTK/PPK) or the survey's gps_sigma_m
+    sigmas: dict[str, tuple[float, float]] = field(default_factory=dict)
+    fixes: dict[str, str] = field(default_factory=dict)  # photo -> Photo.gps_fix
+
+    def sigma_h_typical(self, default_m: float) -> float:
+        """The median horizontal sigma of the positions (``default_m`` with none stated)."""
+        values = [h for h, _ in self.sigmas.values() if math.isfinite(h)]
+        return float(np.median(values)) if values else default_m
 
 
 def _gps_priors(
@@ -223,9 +232,45 @@ def _gps_priors(
             notes.append(f"GPS altitude not trusted ({check.describe()})")  # type: ignore[union-attr]
         elif "sea-level" not in str(e):
             notes.append(f"heights: {e}")
+    centres, n_rtk_heights = _rtk_heights(with_gps, centres, notes)
+    trusted = trusted or n_rtk_heights >= 3
     offset = np.array([*np.round(np.median(centres[:, :2], axis=0), -2), 0.0])
     positions = {names[p.path]: c - offset for p, c in zip(with_gps, centres)}
-    return _Priors(crs, offset, positions, label, trusted, tuple(notes))
+    sigmas = {names[p.path]: (p.gps_sigma_h_m, p.gps_sigma_v_m) for p in with_gps if math.isfinite(p.gps_sigma_h_m)}
+    fixes = {names[p.path]: p.gps_fix for p in with_gps}
+    return _Priors(crs, offset, positions, label, trusted, tuple(notes), sigmas, fixes)
+
+
+#: A photo whose stated vertical accuracy is this good (m) is placed at its GNSS altitude.
+RTK_HEIGHT_SIGMA_M = 0.5
+
+
+def _rtk_heights(photos: Sequence[Photo], centres: np.ndarray, notes: list[str]) -> tuple[np.ndarray, int]:
+    """The camera heights of photos with an RTK/PPK-grade vertical accuracy from their own GNSS
+    altitude, not from the barometric RelativeAltitude plus take-off (0.1-0.5 m of noise where the
+    receiver gives centimetres). Kept in the datum of the other heights: a user's take-off
+    elevation in another datum moves them all by the median difference."""
+    rtk = np.array(
+        [
+            math.isfinite(p.gps_sigma_v_m)
+            and p.gps_sigma_v_m <= RTK_HEIGHT_SIGMA_M
+            and math.isfinite(absolute_altitude(p))
+            for p in photos
+        ]
+    )
+    if rtk.sum() < 3:
+        return centres, 0
+    z = np.array([absolute_altitude(p) for p in photos])
+    shift = float(np.median(z[rtk] - centres[rtk, 2]))
+    datum = 0.0 if abs(shift) < 1.0 else shift  # the same datum (metres of noise) or another
+    out = centres.copy()
+    out[rtk, 2] = z[rtk] - datum
+    notes.append(
+        f"heights of {int(rtk.sum())} photos from their GNSS altitude (stated vertical accuracy "
+        f"{RTK_HEIGHT_SIGMA_M:g} m or better)"
+        + (f", moved {-datum:+.2f} m onto the other heights' datum" if datum else "")
+    )
+    return out, int(rtk.sum())
 
 
 def _image_names(photos: Sequence[Photo]) -> tuple[Path, dict[Path, str]]:
@@ -274,14 +319,19 @@ def _import_and_extract(
 
 
 def _write_priors(db: Path, priors: _Priors, sigma_h_m: float, sigma_v_m: float) -> int:
+    """Each photo's position prior, with its own covariance where it states its accuracy
+    (RTK/PPK), else ``sigma_h_m`` and ``sigma_v_m``; the number written."""
     pc = load_pycolmap()
-    cov = np.diag([sigma_h_m**2, sigma_h_m**2, sigma_v_m**2])
     n = 0
     with pc.Database.open(db) as d:
         d.clear_pose_priors()  # COLMAP's own priors: raw EXIF latitude/longitude/altitude
         for im in d.read_all_images():
             pos = priors.positions.get(im.name)
             if pos is not None:
+                h, v = priors.sigmas.get(im.name, (sigma_h_m, sigma_v_m))
+                # a stated vertical accuracy counts only where the height is the receiver's own
+                v = v if priors.vertical_trusted else max(v, sigma_v_m)
+                cov = np.diag([h**2, h**2, v**2])
                 d.write_pose_prior(
                     pc.PosePrior(
                         corr_data_id=im.data_id,
@@ -836,11 +886,15 @@ def _write_cameras(
     for p in photos:
         name = names[p.path]
         gps = priors.positions.get(name)
+        sigma_h, sigma_v = priors.sigmas.get(name, (math.nan, math.nan))
         row: dict[str, Any] = {
             "image": name,
             "registered": name in reg,
             "reason": reasons.get(name, ""),
             "camera": f"{p.make} {p.model}".strip(),
+            "gps_fix": p.gps_fix,
+            "gps_sigma_h_m": sigma_h,  # as the SfM weighed it (stated, or its default)
+            "gps_sigma_v_m": sigma_v,
         }
         if submodel:  # split-merge: which submodel placed the photo (-1: none)
             row["submodel"] = submodel.get(name, -1)
@@ -1044,7 +1098,9 @@ def sfm(
         n_points = _write_model(output, work, db, mapped, inputs, notes)
         timer.add("outputs", t0)
         figures = _figures(mapped.rec, inputs, geo)
+        accuracy = gps_accuracy(mapped.rec, inputs.priors, notes)
         report = _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes)
+        report["gps_accuracy"] = accuracy
         write_json(output / "report.json", report | ({"submodels": sub_stats} if sub_stats else {}))
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -1349,6 +1405,8 @@ def _georeference_by_gps(rec: Any, inputs: _Inputs, gps_sigma_m: float) -> _Geor
     by_name = {inputs.names[p.path]: p for p in inputs.photos}
     notes: list[str] = []
     georef, gps_sim, tilt = "none (local frame)", None, math.nan
+    if len(priors.sigmas) >= 0.5 * len(priors.positions):  # most photos state their accuracy (RTK/PPK)
+        gps_sigma_m = priors.sigma_h_typical(gps_sigma_m)
     if priors.vertical_trusted:
         gps_sim, n_gps = _align_to_gps(rec, priors, gps_sigma_m)
         tilt = _tilt_deg(rec, by_name) if gps_sim is not None else math.nan
@@ -1740,6 +1798,77 @@ def _camera_record(cam: Any) -> dict[str, Any]:
         "params": [float(v) for v in cam.params],
         "params_info": cam.params_info,
     }
+
+
+#: A photo whose position is off the model by more than this many of its stated sigmas (per axis;
+#: horizontally the distance against sqrt(2) sigma) is named; and by at least this much (m): the
+#: model itself is no better than a centimetre or two.
+ACCURACY_OUTLIER_SIGMAS = 3.0
+ACCURACY_FLOOR_M = 0.05
+
+
+def gps_accuracy(rec: Any, priors: _Priors, notes: list[str]) -> dict[str, Any] | None:
+    """Each stated position accuracy against the bundle-adjusted camera: per class (fixed, float,
+    single, stated) the photos, their median stated sigma and the residuals measured; the photos
+    off their stated accuracy (a fix lost at a turn), named in ``notes`` too. None when no photo
+    states its accuracy (consumer GPS)."""
+    if not priors.sigmas:
+        return None
+    centres = _centres(rec)
+    classes: dict[str, dict[str, Any]] = {}
+    off: list[dict[str, Any]] = []
+    for name, (sh, sv) in sorted(priors.sigmas.items()):
+        fix = priors.fixes.get(name, "stated")
+        entry = classes.setdefault(fix, {"photos": [], "sigma_h_m": [], "sigma_v_m": [], "dh_m": [], "dv_m": []})
+        entry["photos"].append(name)
+        entry["sigma_h_m"].append(sh)
+        entry["sigma_v_m"].append(sv)
+        if name not in centres or name not in priors.positions:
+            continue
+        d = centres[name] - priors.positions[name]
+        dh, dv = float(np.hypot(d[0], d[1])), float(abs(d[2]))
+        entry["dh_m"].append(dh)
+        entry["dv_m"].append(dv)
+        vertical_off = priors.vertical_trusted and dv > max(ACCURACY_OUTLIER_SIGMAS * sv, ACCURACY_FLOOR_M)
+        if dh > max(ACCURACY_OUTLIER_SIGMAS * math.sqrt(2.0) * sh, ACCURACY_FLOOR_M) or vertical_off:
+            off.append({"image": name, "fix": fix, "sigma_h_m": sh, "sigma_v_m": sv, "dh_m": dh, "dv_m": dv})
+    table: dict[str, dict[str, Any]] = {}
+    for fix, e in classes.items():
+        dhs, dvs = np.array(e["dh_m"]), np.array(e["dv_m"])
+        table[fix] = {
+            "photos": len(e["photos"]),
+            "sigma_h_m": float(np.median(e["sigma_h_m"])),
+            "sigma_v_m": float(np.median(e["sigma_v_m"])),
+            # per axis, as the sigma is stated: the horizontal distance's RMS over sqrt(2)
+            "rmse_h_m": float(np.sqrt(np.mean(dhs**2) / 2.0)) if len(dhs) else None,
+            "rmse_v_m": float(np.sqrt(np.mean(dvs**2))) if len(dvs) else None,
+            "images": e["photos"] if fix != "fixed" else [],
+        }
+    n_consumer = len(priors.positions) - len(priors.sigmas)
+    counts = ", ".join(f"{t['photos']} {fix}" for fix, t in sorted(table.items(), key=lambda kv: -kv[1]["photos"]))
+    notes.append(
+        f"positions weighted by their stated accuracy: {counts}"
+        + (f"; {n_consumer} consumer GPS at the survey's gps_sigma_m" if n_consumer > 0 else "")
+    )
+    for fix in ("float", "single"):
+        if fix in table:
+            names = table[fix]["images"]
+            notes.append(
+                f"{len(names)} photo(s) without a fixed RTK solution ({fix}, stated "
+                f"{table[fix]['sigma_h_m']:.2f} m): weighted by it: "
+                + ", ".join(names[:8])
+                + ("…" if len(names) > 8 else "")
+            )
+    if off:
+        notes.append(
+            f"{len(off)} photo(s) off their stated position accuracy (a fix lost or stale), held loosely by the "
+            "robust prior: "
+            + ", ".join(
+                f"{o['image']} ({o['fix']}, stated {o['sigma_h_m']:.2f} m, off {o['dh_m']:.2f} m)" for o in off[:5]
+            )
+            + ("…" if len(off) > 5 else "")
+        )
+    return {"classes": table, "off_stated_accuracy": off, "consumer": n_consumer}
 
 
 def _gps_residuals(rec: Any, priors: _Priors) -> dict[str, Any] | None:

@@ -166,6 +166,10 @@ PATHOLOGIES: dict[str, str] = {
     "noise blobs for an odd one) and deep shade between them; survey.json gives where (cover.canopy)",
     "cars": "a car park: two rows of bays on tarmac, four in five taken by a car 1.45 m high with its shadow "
     "cast on the tarmac; survey.json gives where (cover.cars)",
+    "rtk": "an RTK aircraft: positions and GNSS heights to 2 cm (horizontal) and 3 cm (vertical), fixed "
+    "(RtkFlag 50) with their standard deviations in the XMP (Pix4D's Camera:GPSXYAccuracy/GPSZAccuracy for "
+    "non-DJI makers); three photos mid-flight in a float solution (0.3 m) and one at a turn with the fix "
+    "lost (single point, 1.5 m); survey.json names them (rtk)",
     "dropped-photo": "one photo in the middle of the flight that no SfM can register: smeared by a motion blur of "
     "a tenth of its width, or blown out (25x over-exposed), as the seed draws; survey.json names it "
     "(dropped_photo: image, how)",
@@ -636,6 +640,9 @@ class Shot:
     exif_focal_mm: float = FOCAL_MM  # what EXIF says (the wrong-focal pathology lies)
     maker: str = "dji"  # whose tags carry the metadata (MAKERS)
     dropped: str = ""  # the dropped-photo pathology: how this photo was spoiled
+    rtk_flag: int = -1  # the rtk pathology: DJI's RtkFlag (50 fixed, 34 float, 16 single); -1 none
+    rtk_sigma_h_m: float = float("nan")  # the stated 1-sigma accuracy (RtkStdLon/Lat, GPSXYAccuracy)
+    rtk_sigma_v_m: float = float("nan")
 
 
 def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
@@ -794,6 +801,55 @@ def _place_water(scene: Scene) -> tuple[float, float, float]:
     return float(xs.flat[best]), float(ys.flat[best]), radius
 
 
+RTK_SIGMA_M = {50: (0.02, 0.03), 34: (0.3, 0.45), 16: (1.5, 3.0)}  # RtkFlag -> true 1-sigma H, V
+
+
+def _rtk_indices(shots: list[Shot]) -> tuple[list[int], int]:
+    """The photos of the rtk pathology without a fixed solution: three in a row mid-flight
+    (float), and the one where the flight turns most (the fix lost there)."""
+    n = len(shots)
+    mid = max(0, int(0.4 * n) - 1)
+    floats = [i for i in range(mid, min(n, mid + 3))]
+    xy = np.array([[s.x, s.y] for s in shots])
+    turn = np.zeros(n)
+    for i in range(1, n - 1):
+        a, b = xy[i] - xy[i - 1], xy[i + 1] - xy[i]
+        na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
+        if na > 0 and nb > 0:
+            turn[i] = math.degrees(math.acos(float(np.clip(a @ b / (na * nb), -1.0, 1.0))))
+    turn[floats] = -1.0
+    lost = int(np.argmax(turn)) if turn.max() > 0 else (3 * n) // 4
+    return floats, lost
+
+
+def _rtk_positions(shots: list[Shot], scene: Scene, rng: np.random.Generator) -> list[Shot]:
+    """Record each photo's position as an RTK receiver gives it: the true camera centre with the
+    receiver's own error (its class's sigma), the sigma stated beside it, no common bias."""
+    to_ll = transformer(scene.crs, CRS.from_epsg(4326))
+    floats, lost = _rtk_indices(shots)
+    out = []
+    for i, s in enumerate(shots):
+        flag = 34 if i in floats else 16 if i == lost else 50
+        sh, sv = RTK_SIGMA_M[flag]
+        e, n, u = rng.normal(0.0, sh), rng.normal(0.0, sh), rng.normal(0.0, sv)
+        lon, lat = to_ll.transform(s.x + e, s.y + n)
+        # a receiver states its deviation roughly: within -30 %..+10 % of the true one
+        stated_h, stated_v = sh * float(rng.uniform(0.7, 1.1)), sv * float(rng.uniform(0.7, 1.1))
+        out.append(
+            replace(
+                s,
+                rec_lat=float(lat),
+                rec_lon=float(lon),
+                rec_abs_alt_m=s.z + u,
+                rec_gps_alt_m=s.z + u,
+                rtk_flag=flag,
+                rtk_sigma_h_m=stated_h,
+                rtk_sigma_v_m=stated_v,
+            )
+        )
+    return out
+
+
 def _add_cover(scene: Scene, pathologies: Sequence[str], rng: np.random.Generator, canopy_style: str) -> None:
     """The wood and the car park, each on the open ground left by what stands there already."""
     markers_xy = [(m.x, m.y) for m in scene.markers]
@@ -869,6 +925,8 @@ def _apply_pathologies(
                 s, exposure_gain=s.exposure_gain * EXPOSURE_STEP, exposure_time_s=s.exposure_time_s * EXPOSURE_STEP
             )
         out[i] = s
+    if "rtk" in pathologies:
+        out = _rtk_positions(out, scene, rng)
     if "dropped-photo" in pathologies:
         nadir = [i for i, s in enumerate(out) if not s.oblique]
         k = nadir[len(nadir) // 2]
@@ -1059,10 +1117,29 @@ def _xmp(shot: Shot) -> bytes:
         "sensefly": 'xmlns:Camera="http://ns.sensefly.com/Camera/1.0/"',
     }[shot.maker]
     attrs, body = "", ""
+    if shot.rtk_flag >= 0:  # (metres to the millimetre: a receiver's centimetres need it)
+        if shot.maker in ("dji", "autel"):
+            p = "drone-dji" if shot.maker == "dji" else "drone"
+            attrs += (
+                f'    {p}:RtkFlag="{shot.rtk_flag}"\n'
+                f'    {p}:RtkStdLon="{shot.rtk_sigma_h_m:.4f}"\n'
+                f'    {p}:RtkStdLat="{shot.rtk_sigma_h_m * 0.9:.4f}"\n'
+                f'    {p}:RtkStdHgt="{shot.rtk_sigma_v_m:.4f}"\n'
+            )
+        elif shot.maker in ("pix4d", "sensefly", "parrot"):
+            attrs += (
+                f'    Camera:GPSXYAccuracy="{shot.rtk_sigma_h_m:.4f}"\n'
+                f'    Camera:GPSZAccuracy="{shot.rtk_sigma_v_m:.4f}"\n'
+            )
     if shot.maker in ("dji", "autel"):
         p = "drone-dji" if shot.maker == "dji" else "drone"
-        attrs = (
-            opt(f"{p}:AbsoluteAltitude", shot.rec_abs_alt_m)
+        absolute = (
+            f'    {p}:AbsoluteAltitude="{shot.rec_abs_alt_m:+.3f}"\n'
+            if shot.rtk_flag >= 0 and math.isfinite(shot.rec_abs_alt_m)
+            else opt(f"{p}:AbsoluteAltitude", shot.rec_abs_alt_m)
+        )
+        attrs += (
+            absolute
             + opt(f"{p}:RelativeAltitude", shot.rec_rel_alt_m)
             + opt(f"{p}:GimbalRollDegree", shot.rec_roll_deg)
             + opt(f"{p}:GimbalYawDegree", shot.rec_yaw_deg)
@@ -1105,7 +1182,7 @@ def _xmp(shot: Shot) -> bytes:
         )
     elif shot.maker in ("pix4d", "sensefly"):
         roll = -shot.rec_roll_deg if shot.maker == "sensefly" else shot.rec_roll_deg
-        attrs = (
+        attrs += (
             opt("Camera:Yaw", shot.rec_yaw_deg)
             + opt("Camera:Pitch", shot.rec_pitch_deg + 90.0)
             + opt("Camera:Roll", roll)
@@ -1426,8 +1503,17 @@ def _write_truth(
     steps[1].progress(1.0)
     _write_gcp_files(truth, scene)
     dropped = {"image": s.name, "how": s.dropped} if (s := next((s for s in shots if s.dropped), None)) else None
+    rtk = (
+        {
+            "float": [s.name for s in shots if s.rtk_flag == 34],
+            "lost_fix": [s.name for s in shots if s.rtk_flag == 16],
+            "true_sigma_m": {"fixed": RTK_SIGMA_M[50], "float": RTK_SIGMA_M[34], "single": RTK_SIGMA_M[16]},
+        }
+        if any(s.rtk_flag >= 0 for s in shots)
+        else None
+    )
     _write_survey_json(
-        truth, scene, intr, p, seed, pathologies, undulation_m, shots[0].maker if shots else "dji", dropped
+        truth, scene, intr, p, seed, pathologies, undulation_m, shots[0].maker if shots else "dji", dropped, rtk
     )
     steps[2].progress(1.0)
     _write_true_ortho(truth / "ortho.tif", scene, p.ortho_cell_m, steps[3])
@@ -1545,6 +1631,7 @@ def _write_survey_json(
     undulation_m: float,
     maker: str = "dji",
     dropped: dict[str, str] | None = None,
+    rtk: dict[str, Any] | None = None,
 ) -> None:
     from geoortho.core.outputs import write_json
 
@@ -1582,6 +1669,7 @@ def _write_survey_json(
             ),
             **({"slope": {"deg": SLOPE_DEG, "azimuth_deg": SLOPE_AZIMUTH_DEG}} if "slope" in pathologies else {}),
             **({"dropped_photo": dropped} if dropped else {}),
+            **({"rtk": rtk} if rtk else {}),
             **(
                 {"user_flight_height_m": round(p.altitude_m * WRONG_FLIGHT_HEIGHT_FACTOR, 1)}
                 if "wrong-flight-height" in pathologies

@@ -1,0 +1,119 @@
+"""RTK/PPK photos: each photo's stated position accuracy read, weighed in the bundle adjustment,
+and checked against the block; centimetre georeference without GCPs."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import geopandas as gpd
+import numpy as np
+import pytest
+from conftest import SFM_FAST
+
+import geoortho
+from geoortho.photos.metadata import DEFAULT_SIGMA_M, position_accuracy, read_photo
+
+# --- the tags on their own ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("tags", "expected"),
+    [
+        # DJI: the larger axis's deviation, the height's, the fix state by its SDK code
+        (
+            {"drone-dji:RtkFlag": "50", "drone-dji:RtkStdLon": "0.012", "drone-dji:RtkStdLat": "0.017",
+             "drone-dji:RtkStdHgt": "0.025"},
+            (0.017, 0.025, "fixed"),
+        ),
+        ({"drone-dji:RtkFlag": "34"}, (*DEFAULT_SIGMA_M["float"], "float")),  # a state, no deviation
+        ({"drone-dji:RtkFlag": "16", "drone-dji:RtkStdLon": "1.2"}, (1.2, DEFAULT_SIGMA_M["single"][1], "single")),
+        ({"drone-dji:RtkFlag": "0", "drone-dji:RtkStdLon": "9"}, (math.nan, math.nan, "consumer")),  # no RTK
+        ({"Camera:GPSXYAccuracy": "0.05", "Camera:GPSZAccuracy": "0.08"}, (0.05, 0.08, "stated")),
+        ({"Camera:GPSXYAccuracy": "0.05"}, (0.05, 0.10, "stated")),
+        ({"drone-dji:GimbalYawDegree": "12"}, (math.nan, math.nan, "consumer")),
+    ],
+)  # fmt: skip
+def test_position_accuracy_from_the_tags(tags, expected):
+    h, v, fix, warning = position_accuracy(tags)
+    np.testing.assert_allclose([h, v], expected[:2], equal_nan=True)
+    assert fix == expected[2] and warning == ""
+
+
+def test_a_fixed_solution_stated_at_metres_is_flagged():
+    h, v, fix, warning = position_accuracy(
+        {"drone-dji:RtkFlag": "50", "drone-dji:RtkStdLon": "5.0", "drone-dji:RtkStdLat": "4.0"}
+    )
+    assert (h, fix) == (5.0, "fixed")  # the deviation is measured; the state is a label
+    assert "RtkFlag 50" in warning and "5 m" in warning
+
+
+# --- a synthetic RTK survey ---------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def rtk_small(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rtk")
+    s = geoortho.synth(d / "survey", preset="small", seed=1, pathology="rtk")
+    found = geoortho.gcp_find(s.images, s.gcp_file, d / "gcp_list.txt")
+    names = sorted({line.split()[-1] for line in found.output.read_text().splitlines()[1:] if line.strip()})
+    # every GCP a checkpoint: the block stands on the photos' positions alone
+    r = geoortho.sfm(s.images, d / "sfm", gcp_list=found.output, checkpoints=",".join(names), **SFM_FAST)
+    return s, r
+
+
+def _camera_errors(s, cameras_path):
+    truth = {p["image"]: p for p in json.loads((s.truth / "poses.json").read_text())}
+    cams = gpd.read_file(cameras_path)
+    cams = cams[cams.registered]
+    return cams, np.array([[c.x - truth[c.image]["x"], c.y - truth[c.image]["y"], c.z - truth[c.image]["z"]]
+                           for c in cams.itertuples()])  # fmt: skip
+
+
+def test_an_rtk_block_without_gcps_is_georeferenced_to_centimetres(rtk_small):
+    s, r = rtk_small
+    survey = json.loads((s.truth / "survey.json").read_text())
+    cams, d = _camera_errors(s, r.cameras)
+    assert len(d) == 35
+    # measured: 0.6 cm horizontally (per axis) and 1.1 cm vertically; read as consumer GPS
+    # (every photo at 2 m, heights from the barometer), 8.9 and 1.6 cm
+    assert np.sqrt((d[:, :2] ** 2).mean()) <= 0.03 and np.sqrt((d[:, 2] ** 2).mean()) <= 0.05
+    report = json.loads(r.report.read_text())
+    check = report["checkpoint_accuracy"]
+    gsd_m = survey["gsd_cm_at_home_height"] / 100
+    # measured: 2.7 cm (0.7 GSD) horizontally and 0.9 cm vertically; as consumer GPS 10.9 and 1.0 cm
+    assert check["n"] >= 6 and report["gcp_accuracy"] is None  # no GCP controls the block
+    assert check["rmse_horizontal_m"] <= 2 * gsd_m and check["rmse_z_m"] <= 3 * gsd_m
+    # each photo's accuracy class and stated sigma, in the cameras layer and the report
+    by_image = {c.image: c for c in cams.itertuples()}
+    rtk = survey["rtk"]
+    assert {n for n, c in by_image.items() if c.gps_fix == "float"} == set(rtk["float"])
+    assert {n for n, c in by_image.items() if c.gps_fix == "single"} == set(rtk["lost_fix"])
+    assert all(c.gps_sigma_h_m < 0.05 for c in by_image.values() if c.gps_fix == "fixed")
+    classes = report["gps_accuracy"]["classes"]
+    assert classes["fixed"]["photos"] == 35 - len(rtk["float"]) - len(rtk["lost_fix"])
+    assert classes["fixed"]["rmse_h_m"] < 3 * classes["fixed"]["sigma_h_m"]  # the block agrees with them
+    # the float and lost-fix photos are named
+    notes = " ".join(report["notes"])
+    assert all(n in notes for n in rtk["float"] + rtk["lost_fix"])
+
+
+def test_a_block_of_rtk_and_consumer_photos_weighs_each_by_its_own(tmp_path):
+    """The same flight written twice (same seed: the same pixels and poses), once by an RTK
+    receiver and once by a consumer GPS; every other photo taken from each."""
+    rtk = geoortho.synth(tmp_path / "rtk", preset="tiny", seed=2, pathology="rtk")
+    consumer = geoortho.synth(tmp_path / "consumer", preset="tiny", seed=2)
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    names = sorted(p.name for p in rtk.images.iterdir())
+    for i, n in enumerate(names):
+        shutil.copy((rtk.images if i % 2 == 0 else consumer.images) / n, mixed / n)
+    assert read_photo(mixed / names[0]).gps_fix != "consumer" and read_photo(mixed / names[1]).gps_fix == "consumer"
+    r = geoortho.sfm(mixed, tmp_path / "sfm", **SFM_FAST)
+    report = json.loads(r.report.read_text())
+    assert report["gps_accuracy"]["consumer"] == len(names) // 2
+    assert any("consumer GPS at the survey's gps_sigma_m" in n for n in report["notes"])
+    cams = gpd.read_file(r.cameras).set_index("image")
+    assert cams.loc[names[1], "gps_fix"] == "consumer" and math.isnan(cams.loc[names[1], "gps_sigma_h_m"])
+    assert cams.loc[names[0], "gps_sigma_h_m"] < 2.0
