@@ -67,6 +67,7 @@ class Project:
     gps_altitude: GpsAltitude = "auto"
     workers: int = 0
     options: dict[str, dict[str, Any]] = field(default_factory=dict)  # stage -> its own options
+    positions: Path | None = None  # PPK/surveyed camera positions for the SfM
 
     def folder(self, stage: str) -> Path:
         return self.output / stage
@@ -104,6 +105,8 @@ def _found_checkpoints(p: Project, done: Done) -> str | None:
         return None
     from geoortho.gcp.io import read_gcp_file
 
+    if p.checkpoints.strip().lower() in ("all", "none"):
+        return p.checkpoints.strip().lower()
     found = set(read_gcp_file(gcp_list).by_name())
     names = [c.strip() for c in p.checkpoints.split(",") if c.strip() in found]
     return ",".join(names) or None
@@ -143,8 +146,9 @@ STAGES: tuple[Stage, ...] = (
             "crs": p.crs,
             "takeoff_elevation_m": p.takeoff_elevation_m,
             "workers": p.workers,
+            **({"positions": p.positions} if p.positions is not None else {}),
         },
-        ("images", "gcp_list"),
+        ("images", "gcp_list", "positions"),
         weight=6,
     ),
     Stage(
@@ -796,6 +800,8 @@ def _check_given(project: Project) -> None:
     for gcps in (project.gcp_file, project.gcp_list):
         if gcps is not None:
             read_gcp_file(gcps)
+    if project.positions is not None and not project.positions.is_file():
+        raise InputError("no such positions file", path=project.positions)
 
 
 def check_project_folder(output: Path, force: bool = False) -> None:
@@ -908,6 +914,7 @@ def run(
     rerun_from: StageName | None = None,
     force: bool = False,
     workers: int = 0,
+    positions: Path | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> RunResult:
@@ -964,6 +971,10 @@ def run(
         Use an output folder that holds other files (not an earlier run's project).
     workers : int
         Worker processes for the per-photo stages (0 = every core).
+    positions : Path
+        Post-processed (PPK) or surveyed camera positions for the SfM (see sfm): an RTKLIB .pos,
+        a DJI Timestamp.MRK or a CSV. With RTK/PPK-grade positions the GCPs are checkpoints
+        unless checkpoints says otherwise ('none': they control the block).
     """
     fb = as_feedback(feedback)
     t0 = time.perf_counter()
@@ -991,6 +1002,7 @@ def run(
         gps_altitude=gps_altitude,
         workers=workers,
         options=options,
+        positions=given(positions),
     )
     if project.gcp_file is not None and project.gcp_list is not None:
         raise InputError("give --gcp-file (markers to find) or --gcp-list (observations made), not both")

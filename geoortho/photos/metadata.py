@@ -469,6 +469,10 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     taken = _text(exif_ifd.get(0x9003)) or _text(exif.get(306))
     if re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d.*", taken):
         taken = taken[:10].replace(":", "-") + "T" + taken[11:19]
+        # SubSecTimeOriginal: the fraction of a second (a PPK position is matched to the exposure by it)
+        subsec = re.sub(r"\D", "", _text(exif_ifd.get(0x9291)))[:6]
+        if subsec:
+            taken += "." + subsec
     return Photo(
         path=path,
         width_px=int(width),
@@ -754,9 +758,11 @@ def photo_seconds(p: Photo) -> float:
     import datetime as dt
 
     try:
-        return dt.datetime.fromisoformat(p.taken_at).timestamp()
+        t = dt.datetime.fromisoformat(p.taken_at)
     except ValueError:
         return math.nan
+    # a camera clock has no time zone: read as UTC, so no daylight-saving change falls inside a flight
+    return (t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)).timestamp()
 
 
 def with_sensor_width(photo: Photo, sensor_width_mm: float) -> Photo:

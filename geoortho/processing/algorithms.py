@@ -20,6 +20,8 @@ FLIGHT_HEIGHT = Param("flight_height_m", "number", unit="m", minimum=1.0)
 GPS_ALTITUDE = Param("gps_altitude", "enum", advanced=True)
 WORKERS = Param("workers", "integer", minimum=0, advanced=True)
 SEED = Param("seed", "integer", minimum=0)
+POSITIONS = Param("positions", "file", extensions=(".pos", ".mrk", ".csv", ".txt"))
+POSITIONS_TIME_OFFSET = Param("positions_time_offset_s", "number", unit="s", advanced=True)
 PRESET = Param("preset", "enum")
 DICTIONARY = Param("dictionary", "enum")
 MARKER_SIZE = Param("marker_size_m", "number", unit="m", minimum=0.05, maximum=10.0)
@@ -206,6 +208,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("mapper", "enum", advanced=True),
             Param("split", "integer", minimum=0, advanced=True),
             Param("split_overlap_m", "number", unit="m", minimum=0.0, advanced=True, aliases=("split_overlap",)),
+            POSITIONS,
+            POSITIONS_TIME_OFFSET,
         ),
         outputs=(
             Output("output", "folder"),
@@ -312,6 +316,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("rerun_from", "enum"),
             Param("force", "bool", advanced=True),
             WORKERS,
+            POSITIONS,
         ),
         outputs=(
             Output("output", "folder"),

@@ -37,7 +37,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, get_args
 
@@ -53,6 +53,7 @@ from geoortho.gcp.io import GcpSet, heights_are_placeholders, read_gcp_file
 from geoortho.photos.footprint import photo_cameras, working_crs
 from geoortho.photos.heights import absolute_altitude, check_altitudes
 from geoortho.photos.metadata import Photo, list_images, read_photos
+from geoortho.photos.positions import PositionFile, apply_positions, read_positions
 from geoortho.reconstruction.colmap import load_pycolmap
 
 __all__ = ["SfmResult", "sfm", "MATCHING", "MAPPERS", "CAMERA_MODELS", "ce90", "le90"]
@@ -993,6 +994,8 @@ def sfm(
     mapper: Mapper = "incremental",
     split: int = 0,
     split_overlap_m: float = 30.0,
+    positions: Path | None = None,
+    positions_time_offset_s: float | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> SfmResult:
@@ -1042,6 +1045,15 @@ def sfm(
     split_overlap_m : float
         Each submodel also takes the photos of its neighbours within this distance (m): the
         shared photos that tie the submodels together.
+    positions : Path
+        Post-processed (PPK) or surveyed camera positions that replace the photos' own: an
+        RTKLIB .pos solution, a DJI Timestamp.MRK, or a CSV (image, x/lon, y/lat, z, sigma_h,
+        sigma_v; a '# EPSG:…' line names its CRS). Each is weighed by its stated accuracy; a
+        trajectory is matched to the photos by time, and a camera-to-GPS time lag that the
+        block shows is found and the positions read again at it.
+    positions_time_offset_s : float
+        The .pos file's time minus the camera clock (s), e.g. 18 for GPS time against a camera
+        on UTC. Default: found by laying the photos' own GPS positions on the trajectory.
     """
     fb = as_feedback(feedback)
     t_start = time.perf_counter()
@@ -1050,7 +1062,10 @@ def sfm(
     _check_choice("camera model", camera_model, CAMERA_MODELS)
     _check_choice("mapper", mapper, MAPPERS)
     _check_choice("matching", matching, MATCHING)
-    inputs = _read_inputs(images, gcp_list, checkpoints, crs, takeoff_elevation_m, local_frame, timer, fb)
+    inputs = _read_inputs(
+        images, gcp_list, checkpoints, crs, takeoff_elevation_m, local_frame, timer, fb,
+        positions=positions, positions_time_offset_s=positions_time_offset_s,
+    )  # fmt: skip
     notes = list(inputs.notes)
     output.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=temp_prefix("sfm-work"), dir=output))
@@ -1062,7 +1077,8 @@ def sfm(
                 gcp_list=gcp_list, checkpoints=checkpoints, crs=inputs.crs_text or crs, matching=matching,
                 max_image_size=max_image_size, max_features=max_features, camera_model=camera_model,
                 takeoff_elevation_m=takeoff_elevation_m, gps_sigma_m=gps_sigma_m, seed=seed, workers=workers,
-                mapper=mapper,
+                mapper=mapper, positions=positions,
+                positions_time_offset_s=None if inputs.positions is None else inputs.positions.time_offset_s,
             )  # fmt: skip
             mapped, sub_stats = _split_reconstruct(inputs, work, split, split_overlap_m, sub_kwargs, timer, fb)
         else:
@@ -1083,6 +1099,7 @@ def sfm(
             )
         notes += mapped.notes
         t0 = time.perf_counter()
+        inputs, lag = _refine_time_lag(mapped, inputs, notes)
         geo = _georeference_by_gps(mapped.rec, inputs, gps_sigma_m)
         geo = _georeference_by_gcps(mapped.rec, inputs, mapped.registered, geo, fb)
         notes += geo.notes
@@ -1101,6 +1118,17 @@ def sfm(
         accuracy = gps_accuracy(mapped.rec, inputs.priors, notes)
         report = _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes)
         report["gps_accuracy"] = accuracy
+        if inputs.positions is not None:
+            report["positions"] = {
+                "file": str(inputs.positions.path),
+                "format": inputs.positions.source,
+                "photos": len(inputs.positions.by_image),
+                "photos_without": list(inputs.positions.photos_without),
+                "lines_without": list(inputs.positions.lines_without),
+                "time_offset_s": inputs.positions.time_offset_s,
+                "time_offset_found": inputs.positions.offset_found,
+                "time_lag": lag,
+            }
         write_json(output / "report.json", report | ({"submodels": sub_stats} if sub_stats else {}))
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -1145,6 +1173,9 @@ class _Inputs:
     priors: _Priors
     bodies: tuple[_Body, ...]
     notes: tuple[str, ...]
+    positions: PositionFile | None = None  # a positions file's, applied to the photos
+    photos_as_read: tuple[Photo, ...] = ()  # before the positions file (a time lag reads it again)
+    takeoff_elevation_m: float | None = None
 
     @property
     def crs_text(self) -> str:
@@ -1160,12 +1191,20 @@ def _read_inputs(
     local_frame: bool,
     timer: _Timer,
     fb: Feedback,
+    *,
+    positions: Path | None = None,
+    positions_time_offset_s: float | None = None,
 ) -> _Inputs:
     t0 = time.perf_counter()
     paths = list_images(images) if isinstance(images, (str, os.PathLike)) else [Path(p) for p in images]
     # No feedback: SfM does not use the attitude, so its per-photo warnings would be noise here.
     photoset = read_photos(paths, require_gps=False, require_camera=False)
     photos = photoset.photos
+    as_read = tuple(photos)
+    position_file = None
+    if positions is not None:
+        position_file = read_positions(positions, photos, time_offset_s=positions_time_offset_s)
+        photos = apply_positions(photos, position_file)
     for name, reason in photoset.skipped:
         fb.warning(f"skipped {name}: {reason}")
     timer.add("metadata", t0)
@@ -1179,9 +1218,8 @@ def _read_inputs(
             "(x y z px py image name rows), e.g. from gcp-find",
             path=gcp_list,
         )
-    held_out = {c.strip() for c in checkpoints.split(",") if c.strip()}
-    if held_out and gcps is None:
-        raise InputError("checkpoints are named but no gcp_list is given")
+    early: list[str] = []
+    held_out = _checkpoint_names(checkpoints, gcps, photos, early)
     if gcps is not None and held_out - set(gcps.by_name()):
         raise InputError(
             f"checkpoint(s) not in the GCP file: {', '.join(sorted(held_out - set(gcps.by_name())))}", path=gcp_list
@@ -1223,8 +1261,157 @@ def _read_inputs(
         out_crs,
         priors,
         tuple(bodies),
-        tuple(notes),
+        tuple([*(position_file.notes() if position_file is not None else []), *early, *notes]),
+        position_file,
+        as_read,
+        takeoff_elevation_m,
     )
+
+
+#: Most photos stating a horizontal accuracy this good (m) make an RTK/PPK block: its GCPs check it.
+RTK_BLOCK_SIGMA_M = 0.1
+
+
+def _checkpoint_names(checkpoints: str, gcps: GcpSet | None, photos: Sequence[Photo], notes: list[str]) -> set[str]:
+    """The GCPs held out as checkpoints: those named, ``all``, or ``none``; by default none, except
+    in an RTK/PPK block (most photos to a decimetre or better), where every GCP checks the
+    block the positions georeference."""
+    text = checkpoints.strip()
+    if text.lower() == "none":
+        return set()
+    if text.lower() == "all" or (not text and gcps is not None and _rtk_block(photos)):
+        if gcps is None:
+            raise InputError("checkpoints 'all' but no gcp_list is given")
+        if not text:
+            notes.append(
+                "an RTK/PPK block: its GCPs are checkpoints, checking the georeference the photos' positions "
+                "give (checkpoints 'none' to control the block with them)"
+            )
+        return set(gcps.by_name())
+    held_out = {c.strip() for c in text.split(",") if c.strip()}
+    if held_out and gcps is None:
+        raise InputError("checkpoints are named but no gcp_list is given")
+    return held_out
+
+
+def _rtk_block(photos: Sequence[Photo]) -> bool:
+    good = sum(math.isfinite(p.gps_sigma_h_m) and p.gps_sigma_h_m <= RTK_BLOCK_SIGMA_M for p in photos)
+    return good >= 0.5 * max(len(photos), 1)
+
+
+#: A time lag is taken when it exceeds this many of its standard errors, and this (s).
+LAG_SIGMAS = 3.0
+LAG_MIN_S = 0.002
+LAG_MAX_S = 3.0
+
+
+def _refine_time_lag(mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> tuple[_Inputs, dict[str, Any] | None]:
+    """A constant camera-to-GPS time lag, from the cameras' residuals along the trajectory's
+    velocity: positions read ``lag`` too early put each camera ``velocity × lag`` behind its place
+    on its path. The lag is measured on a copy of the block adjusted without the positions (a
+    block held to wrong centimetre priors bends to them and hides most of it), fitted to the
+    positions by a similarity, and the trajectory read again until the lag no longer moves; then
+    the block is bundle-adjusted on the new positions. None when there is no trajectory."""
+    pf = inputs.positions
+    if pf is None or pf.trajectory is None or pf.trajectory.is_events or inputs.out_crs is None:
+        return inputs, None
+    pc = load_pycolmap()
+    free = pc.Reconstruction(mapped.rec)
+    cfg = pc.BundleAdjustmentConfig()
+    for iid in free.reg_image_ids():
+        cfg.add_image(iid)
+    cfg.fix_gauge(pc.BundleAdjustmentGauge.THREE_POINTS)
+    opts = pc.BundleAdjustmentOptions()
+    opts.print_summary = False
+    opts.refine_focal_length = False
+    pc.create_default_bundle_adjuster(opts, cfg, free).solve()
+    to_crs = transformer(WGS84, inputs.out_crs)
+    total, sigma, steps, priors, photos = 0.0, math.nan, 0, inputs.priors, inputs.photos
+    while steps < 8:
+        steps += 1
+        if _align_to_gps(free, priors, 1.0)[0] is None:
+            return inputs, None
+        got = _lag_step(free, inputs, priors, pf, total, to_crs)
+        if got is None:
+            return inputs, None
+        delta, sigma = got
+        if abs(delta) <= max(LAG_SIGMAS * sigma, LAG_MIN_S) or abs(total + delta) > LAG_MAX_S:
+            break
+        total += delta
+        photos = tuple(apply_positions(inputs.photos_as_read, pf.with_lag(inputs.photos_as_read, total)))
+        fresh = _gps_priors(photos, inputs.names, inputs.out_crs, inputs.takeoff_elevation_m)
+        shift = fresh.offset - inputs.priors.offset
+        moved = {k: c + shift for k, c in fresh.positions.items()}
+        priors = replace(fresh, offset=inputs.priors.offset, positions=moved)
+    report = {"lag_s": round(total, 4), "sigma_s": round(sigma, 4), "iterations": steps, "applied": total != 0.0}
+    if not total:
+        notes.append(f"no camera-to-GPS time lag beyond ±{max(LAG_SIGMAS * sigma, LAG_MIN_S):.3f} s in {pf.path.name}")
+        return inputs, report
+    notes.append(
+        f"camera-to-GPS time lag {total:+.3f} s (±{sigma:.3f}): the cameras lay along their paths from "
+        f"{pf.path.name}'s positions; read again at it and bundle-adjusted on them"
+    )
+    inputs = replace(inputs, photos=photos, priors=priors)
+    _align_to_gps(mapped.rec, priors, 1.0)
+    _prior_bundle_adjustment(mapped.rec, priors, refine_focal=not mapped.focal_held)
+    return inputs, report
+
+
+def _lag_step(
+    rec: Any, inputs: _Inputs, priors: _Priors, pf: PositionFile, lag_s: float, to_crs: Any
+) -> tuple[float, float] | None:
+    """The further lag (s) the residuals show along the velocities, and its standard error."""
+    assert pf.trajectory is not None
+    traj = pf.trajectory
+    centres = _centres(rec)
+    r, v = [], []
+    for p in inputs.photos_as_read:
+        name = inputs.names[p.path]
+        t = pf.photo_times_s.get(p.image)
+        if t is None or name not in centres or name not in priors.positions:
+            continue
+        a, b = traj.at(t + lag_s - 0.1), traj.at(t + lag_s + 0.1)
+        if a is None or b is None:
+            continue
+        xa, ya = to_crs.transform(a.longitude_deg, a.latitude_deg)
+        xb, yb = to_crs.transform(b.longitude_deg, b.latitude_deg)
+        v.append([(xb - xa) / 0.2, (yb - ya) / 0.2])
+        r.append((centres[name] - priors.positions[name])[:2])
+    if len(r) < 5:
+        return None
+    rr, vv = np.array(r), np.array(v)
+    vv2 = float((vv**2).sum())
+    if vv2 <= 0:
+        return None
+    delta = float((rr * vv).sum() / vv2)
+    resid = rr - delta * vv
+    return delta, math.sqrt(float((resid**2).sum()) / max(2 * len(rr) - 1, 1) / vv2)
+
+
+def _prior_bundle_adjustment(rec: Any, priors: _Priors, refine_focal: bool) -> None:
+    """A bundle adjustment of every registered photo with its position prior (its own covariance)."""
+    pc = load_pycolmap()
+    cfg = pc.BundleAdjustmentConfig()
+    pose_priors = []
+    for iid in rec.reg_image_ids():
+        im = rec.image(iid)
+        cfg.add_image(iid)
+        pos = priors.positions.get(im.name)
+        if pos is None:
+            continue
+        h, v = priors.sigmas.get(im.name, (2.0, 4.0))
+        pose_priors.append(
+            pc.PosePrior(
+                corr_data_id=im.data_id,
+                position=np.asarray(pos, float),
+                position_covariance=np.diag([h**2, h**2, v**2]),
+                coordinate_system=pc.PosePriorCoordinateSystem.CARTESIAN,
+            )
+        )
+    opts = pc.BundleAdjustmentOptions()
+    opts.print_summary = False
+    opts.refine_focal_length = refine_focal
+    pc.create_pose_prior_bundle_adjuster(opts, pc.PosePriorBundleAdjustmentOptions(), cfg, pose_priors, rec).solve()
 
 
 #: GCPs farther than this from every photo's GPS (and than the flight's size) are not of this flight.

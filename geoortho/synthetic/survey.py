@@ -141,6 +141,11 @@ TRUE_ATTITUDE_JITTER_DEG = 1.5  # how far the real camera wanders from the plan
 DEFAULT_LAT = 38.7476  # Lisbon, Monsanto park
 DEFAULT_LON = -9.1887
 
+PPK_LAG_S = 0.3  # the camera's time stamp this much before the exposure
+GPS_MINUS_UTC_S = 18.0  # leap seconds since 2017: GPS time runs ahead of UTC (the camera's clock)
+PPK_EPOCH_S = 0.2
+PPK_SIGMA_M = (0.01, 0.02)
+
 # What real consumer drones get wrong, each one a survey can be made with (comma-separated).
 PATHOLOGIES: dict[str, str] = {
     "no-relative-altitude": "no RelativeAltitude/AbsoluteAltitude; EXIF GPSAltitude orthometric (EGM96), as "
@@ -170,6 +175,9 @@ PATHOLOGIES: dict[str, str] = {
     "(RtkFlag 50) with their standard deviations in the XMP (Pix4D's Camera:GPSXYAccuracy/GPSZAccuracy for "
     "non-DJI makers); three photos mid-flight in a float solution (0.3 m) and one at a turn with the fix "
     "lost (single point, 1.5 m); survey.json names them (rtk)",
+    "ppk": "a PPK flight: truth/trajectory.pos, an RTKLIB solution at 5 Hz (GPS time, fixed, 1 cm H, 2 cm V) "
+    f"of the camera's path; the photos' own GPS is a consumer's, and their time stamps (to the millisecond) "
+    f"run {PPK_LAG_S:g} s behind the exposures (survey.json: ppk)",
     "dropped-photo": "one photo in the middle of the flight that no SfM can register: smeared by a motion blur of "
     "a tenth of its width, or blown out (25x over-exposed), as the seed draws; survey.json names it "
     "(dropped_photo: image, how)",
@@ -643,6 +651,7 @@ class Shot:
     rtk_flag: int = -1  # the rtk pathology: DJI's RtkFlag (50 fixed, 34 float, 16 single); -1 none
     rtk_sigma_h_m: float = float("nan")  # the stated 1-sigma accuracy (RtkStdLon/Lat, GPSXYAccuracy)
     rtk_sigma_v_m: float = float("nan")
+    subsec: str = ""  # EXIF SubSecTimeOriginal (the ppk pathology's stamps fall between seconds)
 
 
 def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
@@ -804,6 +813,45 @@ def _place_water(scene: Scene) -> tuple[float, float, float]:
 RTK_SIGMA_M = {50: (0.02, 0.03), 34: (0.3, 0.45), 16: (1.5, 3.0)}  # RtkFlag -> true 1-sigma H, V
 
 
+def _stamped_early(s: Shot, lag_s: float) -> Shot:
+    """The photo's time stamp ``lag_s`` before its exposure, to the millisecond."""
+    stamp = dt.datetime.strptime(s.time, "%Y:%m:%d %H:%M:%S") - dt.timedelta(seconds=lag_s)
+    return replace(s, time=stamp.strftime("%Y:%m:%d %H:%M:%S"), subsec=f"{stamp.microsecond // 1000:03d}")
+
+
+def _write_ppk_trajectory(path: Path, scene: Scene, shots: list[Shot], rng: np.random.Generator) -> None:
+    """The camera's path as RTKPOST writes it: an epoch every PPK_EPOCH_S in GPS time, the true
+    centres (each exposure's, the path straight between them) with a fixed solution's noise."""
+    exposures = []
+    for s in shots:
+        stamp = dt.datetime.strptime(s.time, "%Y:%m:%d %H:%M:%S") + dt.timedelta(milliseconds=int(s.subsec or 0))
+        exposures.append((stamp + dt.timedelta(seconds=PPK_LAG_S + GPS_MINUS_UTC_S)).replace(tzinfo=dt.timezone.utc))
+    t = np.array([e.timestamp() for e in exposures])
+    centres = np.array([[s.x, s.y, s.z] for s in shots])
+    order = np.argsort(t)
+    t, centres = t[order], centres[order]
+    epochs = np.arange(math.floor(t[0]) - 4.0, t[-1] + 4.0, PPK_EPOCH_S)
+    xyz = np.c_[[np.interp(epochs, t, centres[:, k]) for k in range(3)]].T
+    sh, sv = PPK_SIGMA_M
+    xyz += np.c_[rng.normal(0, sh, (len(epochs), 2)), rng.normal(0, sv, len(epochs))]
+    lon, lat = transformer(scene.crs, CRS.from_epsg(4326)).transform(xyz[:, 0], xyz[:, 1])
+    lines = [
+        "% program   : geoortho synth (an RTKPOST solution's layout)",
+        "% pos mode  : kinematic",
+        "% (lat/lon/height=WGS84/ellipsoidal,Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,ns=# of satellites)",
+        "%  GPST                  latitude(deg) longitude(deg)  height(m)   Q  ns   sdn(m)   sde(m)   sdu(m)  "
+        "sdne(m)  sdeu(m)  sdun(m) age(s)  ratio",
+    ]
+    for k, e in enumerate(epochs):
+        when = dt.datetime.fromtimestamp(float(e), dt.timezone.utc)
+        lines.append(
+            f"{when:%Y/%m/%d %H:%M:%S}.{when.microsecond // 1000:03d}   {lat[k]:.9f}   {lon[k]:.9f}  "
+            f"{xyz[k, 2]:9.4f}   1  14   {sh:.4f}   {sh:.4f}   {sv:.4f}   0.0000   0.0000   0.0000   0.00  "
+            f"{999.9:6.1f}"
+        )
+    path.write_text("\n".join(lines) + "\n")
+
+
 def _rtk_indices(shots: list[Shot]) -> tuple[list[int], int]:
     """The photos of the rtk pathology without a fixed solution: three in a row mid-flight
     (float), and the one where the flight turns most (the fix lost there)."""
@@ -927,6 +975,8 @@ def _apply_pathologies(
         out[i] = s
     if "rtk" in pathologies:
         out = _rtk_positions(out, scene, rng)
+    if "ppk" in pathologies:
+        out = [_stamped_early(s, PPK_LAG_S) for s in out]
     if "dropped-photo" in pathologies:
         nadir = [i for i, s in enumerate(out) if not s.oblique]
         k = nadir[len(nadir) // 2]
@@ -1216,6 +1266,7 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
     }
     exif = {
         piexif.ExifIFD.DateTimeOriginal: shot.time.encode(),
+        **({piexif.ExifIFD.SubSecTimeOriginal: shot.subsec.encode()} if shot.subsec else {}),
         piexif.ExifIFD.FocalLength: (int(round(shot.exif_focal_mm * 100)), 100),
         piexif.ExifIFD.FocalLengthIn35mmFilm: int(round(FOCAL_35MM * shot.exif_focal_mm / FOCAL_MM)),
         piexif.ExifIFD.PixelXDimension: intr.width_px,
@@ -1502,6 +1553,8 @@ def _write_truth(
     _write_poses_and_footprints(truth, scene, shots, intr, results)
     steps[1].progress(1.0)
     _write_gcp_files(truth, scene)
+    if "ppk" in pathologies:
+        _write_ppk_trajectory(truth / "trajectory.pos", scene, shots, np.random.default_rng([seed, 23]))
     dropped = {"image": s.name, "how": s.dropped} if (s := next((s for s in shots if s.dropped), None)) else None
     rtk = (
         {
@@ -1670,6 +1723,11 @@ def _write_survey_json(
             **({"slope": {"deg": SLOPE_DEG, "azimuth_deg": SLOPE_AZIMUTH_DEG}} if "slope" in pathologies else {}),
             **({"dropped_photo": dropped} if dropped else {}),
             **({"rtk": rtk} if rtk else {}),
+            **(
+                {"ppk": {"pos": "trajectory.pos", "lag_s": PPK_LAG_S, "gps_minus_camera_clock_s": GPS_MINUS_UTC_S}}
+                if "ppk" in pathologies
+                else {}
+            ),
             **(
                 {"user_flight_height_m": round(p.altitude_m * WRONG_FLIGHT_HEIGHT_FACTOR, 1)}
                 if "wrong-flight-height" in pathologies

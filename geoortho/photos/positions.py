@@ -1,0 +1,471 @@
+"""Camera positions from a file: post-processed (PPK) or surveyed positions that replace the ones
+the photos carry, each with its accuracy.
+
+Three formats, told apart by their content:
+
+* **RTKLIB ``.pos``** (RTKPOST's solution): a trajectory (an epoch every 0.1-1 s) or one line per
+  camera event. Header lines begin with ``%``; the columns are the time (``yyyy/mm/dd
+  hh:mm:ss.sss`` or GPS week and seconds), latitude, longitude and height (degrees and metres,
+  ellipsoidal unless RTKPOST was told otherwise), Q (1 fix, 2 float, 3 SBAS, 4 DGPS, 5 single,
+  6 PPP), the satellites, then sdn, sde and sdu, the standard deviations (m). The photos are
+  matched by time: the camera's clock (EXIF DateTimeOriginal and SubSecTimeOriginal) plus an
+  offset, given or found by laying the photos' own GPS positions on the trajectory.
+* **DJI ``Timestamp.MRK``** (the PPK event file of the Phantom 4 RTK, Matrice 300/350 RTK and
+  Mavic 3 Enterprise): a line per photo in shooting order, with the GPS time of week, the
+  antenna-to-camera offsets (mm), latitude, longitude, ellipsoidal height, the standard deviations
+  (m) and the RTK flag (50 fixed, 34 float, 16 single). Matched to the photos by their order.
+* **CSV**: a header row naming the columns: the image, x/easting/longitude, y/northing/latitude,
+  z/height, and optionally sigma_h and sigma_v (1 sigma, m) and crs. A ``# EPSG:25829`` comment
+  line (or a crs column) names the CRS; latitude/longitude columns are read as WGS 84 with
+  ellipsoidal heights.
+
+A photo with no position in the file keeps its own, and is named; so are lines that match no photo.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import io
+import math
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from geoortho.errors import InputError
+from geoortho.photos.metadata import DEFAULT_SIGMA_M, RTK_FLAGS, Photo, photo_seconds
+
+__all__ = ["Position", "PositionFile", "Trajectory", "apply_positions", "read_positions"]
+
+#: RTKLIB's solution quality Q -> our fix classes (SBAS, DGPS and single point are metres; PPP
+#: converges to decimetres).
+RTKLIB_Q = {1: "fixed", 2: "float", 3: "single", 4: "single", 5: "single", 6: "float"}
+#: Epochs closer than this (s) make a trajectory to interpolate in; farther apart, camera events.
+TRAJECTORY_MAX_STEP_S = 1.0
+#: A camera event matches an epoch within this (s), once the clock offset is applied.
+EVENT_MATCH_S = 0.5
+#: A camera clock runs on local time: within this of GPS time (s). Farther is another day's file.
+MAX_CLOCK_OFFSET_S = 15 * 3600.0
+#: A photo's own GPS lies within this (m) of its post-processed position (consumer GNSS at worst).
+MAX_GPS_DISTANCE_M = 30.0
+GPS_WEEK_EPOCH = dt.datetime(1980, 1, 6, tzinfo=dt.timezone.utc)
+
+
+@dataclass(frozen=True)
+class Position:
+    latitude_deg: float
+    longitude_deg: float
+    height_m: float
+    sigma_h_m: float
+    sigma_v_m: float
+    fix: str
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """An RTKLIB trajectory: epochs (s, the file's time scale), positions and their accuracy."""
+
+    t_s: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    h: np.ndarray
+    sigma_h: np.ndarray
+    sigma_v: np.ndarray
+    fix: tuple[str, ...]
+
+    def at(self, t: float) -> Position | None:
+        """The position interpolated at ``t`` (None outside the epochs or in a gap)."""
+        k = int(np.searchsorted(self.t_s, t))
+        if k == 0 or k >= len(self.t_s):
+            if k < len(self.t_s) and abs(self.t_s[k] - t) < 1e-6:
+                return self._epoch(k)
+            return None
+        t0, t1 = self.t_s[k - 1], self.t_s[k]
+        if t1 - t0 > 2.0 * self.step_s:
+            return None
+        u = (t - t0) / (t1 - t0)
+        worse = k - 1 if self.sigma_h[k - 1] >= self.sigma_h[k] else k
+        return Position(
+            float(self.lat[k - 1] + u * (self.lat[k] - self.lat[k - 1])),
+            float(self.lon[k - 1] + u * (self.lon[k] - self.lon[k - 1])),
+            float(self.h[k - 1] + u * (self.h[k] - self.h[k - 1])),
+            float(self.sigma_h[worse]),
+            float(self.sigma_v[worse]),
+            self.fix[worse],
+        )
+
+    def _epoch(self, k: int) -> Position:
+        return Position(
+            float(self.lat[k]), float(self.lon[k]), float(self.h[k]),
+            float(self.sigma_h[k]), float(self.sigma_v[k]), self.fix[k],
+        )  # fmt: skip
+
+    @property
+    def step_s(self) -> float:
+        return float(np.median(np.diff(self.t_s))) if len(self.t_s) > 1 else math.inf
+
+    @property
+    def is_events(self) -> bool:
+        return self.step_s > TRAJECTORY_MAX_STEP_S
+
+    def nearest_epoch(self, t: float) -> int | None:
+        k = int(np.argmin(np.abs(self.t_s - t)))
+        return k if abs(self.t_s[k] - t) <= EVENT_MATCH_S else None
+
+
+@dataclass(frozen=True)
+class PositionFile:
+    """Positions read from a file and matched to photos (by image file name)."""
+
+    path: Path
+    source: str  # "RTKLIB .pos", "DJI MRK" or "CSV"
+    by_image: dict[str, Position]
+    photos_without: tuple[str, ...] = ()  # photos the file has no position for
+    lines_without: tuple[str, ...] = ()  # the file's lines (or events) no photo matched
+    time_offset_s: float | None = None  # the file's time minus the camera clock, as used
+    offset_found: bool = False  # found from the photos' own GPS, not given
+    trajectory: Trajectory | None = field(default=None, compare=False)
+    photo_times_s: dict[str, float] = field(default_factory=dict, compare=False)
+
+    def notes(self) -> list[str]:
+        out = [f"positions of {len(self.by_image)} photos from {self.path.name} ({self.source})"]
+        if self.time_offset_s is not None:
+            how = "found from the photos' own GPS" if self.offset_found else "as given"
+            out.append(f"{self.path.name}: time offset {self.time_offset_s:+.3f} s (file time − camera clock; {how})")
+        if self.photos_without:
+            out.append(
+                f"{len(self.photos_without)} photo(s) have no position in {self.path.name} and keep their own: "
+                + ", ".join(self.photos_without[:8])
+                + ("…" if len(self.photos_without) > 8 else "")
+            )
+        if self.lines_without:
+            out.append(
+                f"{len(self.lines_without)} position(s) in {self.path.name} match no photo: "
+                + ", ".join(self.lines_without[:8])
+                + ("…" if len(self.lines_without) > 8 else "")
+            )
+        return out
+
+    def with_lag(self, photos: Sequence[Photo], lag_s: float) -> PositionFile:
+        """The trajectory read again at each photo's time moved by ``lag_s``."""
+        if self.trajectory is None or self.time_offset_s is None:
+            return self
+        return _match_trajectory(self.path, self.trajectory, photos, self.time_offset_s + lag_s, self.offset_found)
+
+
+def read_positions(
+    path: str | os.PathLike[str], photos: Sequence[Photo], *, time_offset_s: float | None = None
+) -> PositionFile:
+    """Read a positions file and match it to ``photos`` (see the module's text for the formats)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
+    except OSError as e:
+        raise InputError(f"cannot be read ({e.strerror or e})", path=path) from None
+    lines = text.splitlines()
+    if not any(line.strip() for line in lines):
+        raise InputError("is empty", path=path)
+    if any(line.startswith("%") for line in lines[:40]) or path.suffix.lower() == ".pos":
+        traj = _read_rtklib(path, lines)
+        if traj.is_events and time_offset_s is None and not any(p.has_gps for p in photos):
+            raise InputError("camera events and photos without GPS: give the time offset", path=path)
+        offset, found = (
+            (time_offset_s, False) if time_offset_s is not None else (_find_offset(path, traj, photos), True)
+        )
+        return _match_trajectory(path, traj, photos, offset, found)
+    if path.suffix.lower() == ".mrk" or re.match(r"\s*\d+\s+\d+\.\d+\s+\[\d+\]", lines[0]):
+        return _read_mrk(path, lines, photos)
+    return _read_csv(path, text, photos)
+
+
+def apply_positions(photos: Sequence[Photo], positions: PositionFile) -> list[Photo]:
+    """The photos with the file's positions, heights and accuracy where it has them."""
+    out = []
+    for p in photos:
+        q = positions.by_image.get(p.image)
+        if q is None:
+            out.append(p)
+            continue
+        out.append(
+            replace(
+                p,
+                latitude_deg=q.latitude_deg,
+                longitude_deg=q.longitude_deg,
+                absolute_altitude_m=q.height_m,
+                gps_altitude_m=q.height_m,
+                gps_sigma_h_m=q.sigma_h_m,
+                gps_sigma_v_m=q.sigma_v_m,
+                gps_fix=q.fix,
+            )
+        )
+    return out
+
+
+# -- RTKLIB ---------------------------------------------------------------------------------------
+
+
+def _read_rtklib(path: Path, lines: list[str]) -> Trajectory:
+    rows: list[tuple[float, float, float, float, int, float, float]] = []
+    for n, line in enumerate(lines, 1):
+        s = line.strip()
+        if not s or s.startswith("%"):
+            if "x-ecef" in s.lower():
+                raise InputError(f"line {n}: ECEF solutions are not read; output latitude/longitude/height", path=path)
+            continue
+        parts = s.split()
+        try:
+            if "/" in parts[0]:  # yyyy/mm/dd hh:mm:ss.sss
+                when = dt.datetime.strptime(f"{parts[0]} {parts[1]}", "%Y/%m/%d %H:%M:%S.%f")
+                t = when.replace(tzinfo=dt.timezone.utc).timestamp()
+            else:  # GPS week, seconds of week
+                t = (GPS_WEEK_EPOCH + dt.timedelta(weeks=int(parts[0]), seconds=float(parts[1]))).timestamp()
+            lat, lon, h = float(parts[2]), float(parts[3]), float(parts[4])
+            q = int(parts[5])
+            sdn, sde, sdu = float(parts[7]), float(parts[8]), float(parts[9])
+        except (IndexError, ValueError):
+            raise InputError(f"line {n}: not an RTKLIB solution line ({s[:60]!r})", path=path) from None
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            raise InputError(f"line {n}: latitude {lat:g}, longitude {lon:g} out of range", path=path)
+        rows.append((t, lat, lon, h, q, max(sdn, sde), sdu))
+    if not rows:
+        raise InputError("holds no solution line", path=path)
+    a = np.array(sorted(rows), dtype=float)
+    return Trajectory(
+        a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 5], a[:, 6], tuple(RTKLIB_Q.get(int(q), "single") for q in a[:, 4])
+    )
+
+
+def _local_xy(lat: np.ndarray, lon: np.ndarray, lat0: float, lon0: float) -> np.ndarray:
+    """Metres east and north of (lat0, lon0): enough to match photos to a trajectory."""
+    xy: np.ndarray = np.c_[(lon - lon0) * 111_320.0 * math.cos(math.radians(lat0)), (lat - lat0) * 110_574.0]
+    return xy
+
+
+def _find_offset(path: Path, traj: Trajectory, photos: Sequence[Photo]) -> float:
+    """The file's time minus the camera clock: each photo's own GPS position laid on the trajectory
+    (its nearest point, between epochs) gives one; their median is taken."""
+    with_gps = [p for p in photos if p.has_gps and math.isfinite(photo_seconds(p))]
+    if len(with_gps) < 3:
+        raise InputError(
+            "fewer than 3 photos with GPS and a time to match to the positions: give the time offset", path=path
+        )
+    lat0, lon0 = float(np.median(traj.lat)), float(np.median(traj.lon))
+    txy = _local_xy(traj.lat, traj.lon, lat0, lon0)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(txy)
+    candidates = []
+    for p in with_gps:
+        pxy = _local_xy(np.array([p.latitude_deg]), np.array([p.longitude_deg]), lat0, lon0)[0]
+        dist, k = tree.query(pxy)
+        if dist > MAX_GPS_DISTANCE_M:
+            continue
+        t = float(traj.t_s[k])
+        if not traj.is_events:  # between epochs: the nearest point of the segments either side
+            best = dist
+            for a, b in ((k - 1, k), (k, k + 1)):
+                if a < 0 or b >= len(traj.t_s):
+                    continue
+                seg = txy[b] - txy[a]
+                u = float(np.clip((pxy - txy[a]) @ seg / max(float(seg @ seg), 1e-12), 0.0, 1.0))
+                d = float(np.linalg.norm(txy[a] + u * seg - pxy))
+                if d < best:
+                    best, t = d, float(traj.t_s[a] + u * (traj.t_s[b] - traj.t_s[a]))
+        candidates.append(t - photo_seconds(p))
+    if len(candidates) < 3:
+        raise InputError(
+            f"its positions do not pass over the photos (no epoch within {MAX_GPS_DISTANCE_M:g} m of 3 photos' "
+            "own GPS): another flight's file?",
+            path=path,
+        )
+    offset = float(np.median(candidates))
+    if abs(offset) > MAX_CLOCK_OFFSET_S:
+        raise InputError(
+            f"its times lie {offset / 86400.0:+.2f} days from the photos' clock: a file from another day? "
+            "(give the time offset if the camera clock was wrong)",
+            path=path,
+        )
+    spread = float(np.median(np.abs(np.array(candidates) - offset)))
+    if spread > 2.0:
+        raise InputError(
+            f"the photos match its times inconsistently (the offsets spread {spread:.1f} s): another flight's file?",
+            path=path,
+        )
+    return offset
+
+
+def _match_trajectory(
+    path: Path, traj: Trajectory, photos: Sequence[Photo], offset: float, found: bool
+) -> PositionFile:
+    by_image: dict[str, Position] = {}
+    without: list[str] = []
+    times: dict[str, float] = {}
+    used: set[int] = set()
+    for p in photos:
+        tp = photo_seconds(p)
+        if not math.isfinite(tp):
+            without.append(p.image)
+            continue
+        t = tp + offset
+        times[p.image] = t
+        if traj.is_events:
+            k = traj.nearest_epoch(t)
+            q = None if k is None else traj._epoch(k)
+            if k is not None:
+                used.add(k)
+        else:
+            q = traj.at(t)
+        if q is None:
+            without.append(p.image)
+        else:
+            by_image[p.image] = q
+    if not by_image:
+        raise InputError(
+            f"no photo's time falls within its times (offset {offset:+.1f} s): a file from another flight?", path=path
+        )
+    unused = [f"event {k + 1}" for k in range(len(traj.t_s)) if k not in used] if traj.is_events else []
+    return PositionFile(path, "RTKLIB .pos", by_image, tuple(without), tuple(unused), offset, found, traj, times)
+
+
+# -- DJI Timestamp.MRK ------------------------------------------------------------------------------
+
+
+def _read_mrk(path: Path, lines: list[str], photos: Sequence[Photo]) -> PositionFile:
+    """A line per photo: index, GPS seconds of week, [week], N/E/V offsets (mm), then ``lat,Lat``,
+    ``lon,Lon``, ``h,Ellh``, the three standard deviations (m, comma separated) and ``flag,Q``;
+    matched to the photos in shooting order."""
+    events: list[tuple[int, Position]] = []
+    for n, line in enumerate(lines, 1):
+        s = line.strip()
+        if not s:
+            continue
+        tagged = {tag: value for value, tag in re.findall(r"(-?\d+(?:\.\d+)?),\s*([A-Za-z]+)\b", s)}
+        stds = re.search(r"(\d+\.\d+),\s+(\d+\.\d+),\s+(\d+\.\d+)", s)
+        try:
+            index = int(s.split()[0])
+            lat, lon, h = float(tagged["Lat"]), float(tagged["Lon"]), float(tagged["Ellh"])
+            flag = int(float(tagged.get("Q", "0")))
+        except (KeyError, ValueError, IndexError):
+            raise InputError(f"line {n}: not a DJI MRK event line ({s[:60]!r})", path=path) from None
+        fix = RTK_FLAGS.get(flag, "single")
+        dh, dv = DEFAULT_SIGMA_M.get(fix, DEFAULT_SIGMA_M["single"])
+        if stds is not None:
+            sn, se, su = (float(v) for v in stds.groups())
+            dh, dv = max(sn, se), su
+        events.append((index, Position(lat, lon, h, dh, dv, fix)))
+    if not events:
+        raise InputError("holds no event line", path=path)
+    ordered = sorted(photos, key=lambda p: (photo_seconds(p) if math.isfinite(photo_seconds(p)) else 0.0, p.image))
+    events.sort(key=lambda e: e[0])
+    by_image = {p.image: q for p, (_, q) in zip(ordered, events)}
+    without = tuple(p.image for p in ordered[len(events) :])
+    extra = tuple(f"event {i}" for i, _ in events[len(ordered) :])
+    return PositionFile(path, "DJI MRK", by_image, without, extra)
+
+
+# -- CSV ---------------------------------------------------------------------------------------------
+
+_COLUMNS = {
+    "image": ("image", "name", "file", "filename", "photo", "label", "image_name"),
+    "x": ("x", "easting", "east", "e", "lon", "long", "longitude"),
+    "y": ("y", "northing", "north", "n", "lat", "latitude"),
+    "z": ("z", "height", "h", "alt", "altitude", "ellh", "elevation", "height_m", "z_m", "altitude_m"),
+    "sigma_h": ("sigma_h", "sigma_h_m", "sh", "std_h", "stdh", "accuracy_h", "xy_accuracy", "horizontal_accuracy"),
+    "sigma_v": ("sigma_v", "sigma_v_m", "sv", "std_v", "stdv", "accuracy_v", "z_accuracy", "vertical_accuracy"),
+    "crs": ("crs", "epsg", "srs"),
+}
+
+
+def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    from geoortho.core.crs import WGS84, transformer
+
+    crs_text = ""
+    body: list[tuple[int, str]] = []
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.lstrip().startswith("#"):
+            m = re.search(r"(EPSG:\d+|crs\s*[:=]\s*\S+)", line, re.IGNORECASE)
+            if m and not crs_text:
+                crs_text = re.sub(r"^crs\s*[:=]\s*", "", m.group(1), flags=re.IGNORECASE)
+            continue
+        if line.strip():
+            body.append((n, line))
+    if not body:
+        raise InputError("has no header row", path=path)
+    try:
+        dialect = csv.Sniffer().sniff(body[0][1], delimiters=",;\t")
+    except csv.Error:
+        dialect = csv.excel
+    rows = list(csv.reader(io.StringIO("\n".join(line for _, line in body)), dialect))
+    header = [h.strip().lower() for h in rows[0]]
+    col: dict[str, int] = {}
+    for key, names in _COLUMNS.items():
+        for i, h in enumerate(header):
+            if h in names and key not in col:
+                col[key] = i
+    missing = [k for k in ("image", "x", "y", "z") if k not in col]
+    if missing:
+        raise InputError(
+            f"line {body[0][0]}: the header names no {', '.join(missing)} column "
+            "(image, x/easting/longitude, y/northing/latitude, z/height; sigma_h, sigma_v optional)",
+            path=path,
+        )
+    lonlat = header[col["x"]] in ("lon", "long", "longitude") or header[col["y"]] in ("lat", "latitude")
+    by_name = {p.image.lower(): p for p in photos} | {Path(p.image).stem.lower(): p for p in photos}
+    by_image: dict[str, Position] = {}
+    lines_without: list[str] = []
+    to_ll_cache: dict[str, object] = {}
+    for (n, _), row in zip(body[1:], rows[1:]):
+        if not any(c.strip() for c in row):
+            continue
+        if len(row) <= max(col.values()):
+            raise InputError(f"line {n}: {len(row)} columns, the header has {len(header)}", path=path)
+
+        def number(key: str, n: int = n, row: list[str] = row) -> float:
+            text_v = row[col[key]].strip()
+            try:
+                return float(text_v)
+            except ValueError:
+                raise InputError(
+                    f"line {n}: {text_v!r} is not a number in column {header[col[key]]}", path=path
+                ) from None
+
+        x, y, z = number("x"), number("y"), number("z")
+        sh = number("sigma_h") if "sigma_h" in col and row[col["sigma_h"]].strip() else math.nan
+        sv = number("sigma_v") if "sigma_v" in col and row[col["sigma_v"]].strip() else math.nan
+        row_crs = row[col["crs"]].strip() if "crs" in col else ""
+        crs_of_row = row_crs or crs_text or ("EPSG:4326" if lonlat else "")
+        if not crs_of_row:
+            raise InputError(
+                f"line {n}: x/y without a CRS: add a '# EPSG:…' line or a crs column (or name the columns lat/lon)",
+                path=path,
+            )
+        if crs_of_row not in to_ll_cache:
+            try:
+                to_ll_cache[crs_of_row] = transformer(CRS.from_user_input(crs_of_row), WGS84)
+            except CRSError:
+                raise InputError(f"line {n}: unknown CRS {crs_of_row!r}", path=path) from None
+        lon, lat = to_ll_cache[crs_of_row].transform(x, y)  # type: ignore[attr-defined]
+        if not (math.isfinite(lat) and math.isfinite(lon) and abs(lat) <= 90 and abs(lon) <= 180):
+            raise InputError(f"line {n}: ({x:g}, {y:g}) is no position in {crs_of_row}", path=path)
+        name = row[col["image"]].strip()
+        p = by_name.get(name.lower()) or by_name.get(Path(name).stem.lower())
+        if p is None:
+            lines_without.append(f"{name} (line {n})")
+            continue
+        stated = math.isfinite(sh) and sh > 0
+        by_image[p.image] = Position(
+            float(lat), float(lon), z, sh if stated else math.nan,
+            (sv if math.isfinite(sv) and sv > 0 else 2.0 * sh) if stated else math.nan,
+            "stated" if stated else "consumer",
+        )  # fmt: skip
+    if not by_image:
+        raise InputError("no line matches a photo by its image name", path=path)
+    without = tuple(p.image for p in photos if p.image not in by_image)
+    return PositionFile(path, "CSV", by_image, without, tuple(lines_without))

@@ -1,0 +1,143 @@
+"""Camera positions from a file (PPK trajectories, DJI event files, CSV), matched to the photos,
+and the camera-to-GPS time lag a block shows."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import geopandas as gpd
+import numpy as np
+import pytest
+from conftest import SFM_FAST
+
+import geoortho
+from geoortho.errors import InputError
+from geoortho.photos.metadata import read_photos
+from geoortho.photos.positions import read_positions
+
+
+@pytest.fixture(scope="module")
+def ppk(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ppk")
+    s = geoortho.synth(d / "survey", preset="tiny", seed=2, pathology="ppk")
+    return s, read_photos(s.images).photos
+
+
+def _truth(s):
+    return {p["image"]: p for p in json.loads((s.truth / "poses.json").read_text())}
+
+
+def test_a_trajectory_is_matched_by_time_with_the_offset_found_from_the_photos_gps(ppk):
+    s, photos = ppk
+    pf = read_positions(s.truth / "trajectory.pos", photos)
+    assert pf.source == "RTKLIB .pos" and len(pf.by_image) == len(photos) and pf.offset_found
+    # GPS time runs 18 s ahead of the camera's UTC clock, and the stamps 0.3 s behind the exposures:
+    # the photos' own GPS (a consumer's, 0.5 m off) lays them on the path to a few hundredths
+    assert pf.time_offset_s == pytest.approx(18.3, abs=0.05)
+    assert all(q.fix == "fixed" and q.sigma_h_m == pytest.approx(0.01) for q in pf.by_image.values())
+
+
+def test_a_trajectory_of_another_day_is_refused_in_one_line(ppk, tmp_path):
+    s, photos = ppk
+    text = (s.truth / "trajectory.pos").read_text().replace("2026/05/14", "2026/05/15")
+    other = tmp_path / "other_day.pos"
+    other.write_text(text)
+    with pytest.raises(InputError, match=r"\+1\.00 days .* another day"):
+        read_positions(other, photos)
+    # the CLI: exit 2, one line naming the file
+    done = subprocess.run(
+        [sys.executable, "-m", "geoortho", "sfm", "--images", str(s.images), "--output", str(tmp_path / "sfm"),
+         "--positions", str(other)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "other_day.pos" in lines[0] and "another day" in lines[0]
+
+
+def test_a_lag_the_block_shows_is_found_and_the_positions_read_again(ppk, tmp_path):
+    """The offset given as GPS time against UTC (18 s): the stamps' 0.3 s lag is left, 1.5 m along
+    each flight line, for the block to find."""
+    s, _ = ppk
+    r = geoortho.sfm(
+        s.images, tmp_path / "sfm", positions=s.truth / "trajectory.pos", positions_time_offset_s=18.0, **SFM_FAST
+    )
+    report = json.loads(r.report.read_text())
+    lag = report["positions"]["time_lag"]
+    # measured: +0.296 s (small survey: +0.299 s)
+    assert lag["applied"] and lag["lag_s"] == pytest.approx(0.3, abs=0.05)
+    truth = _truth(s)
+    cams = gpd.read_file(r.cameras)
+    d = np.array([[c.x - truth[c.image]["x"], c.y - truth[c.image]["y"], c.z - truth[c.image]["z"]]
+                  for c in cams.itertuples() if c.registered])  # fmt: skip
+    # measured: 1.8 cm H and 1.2 cm V (0.4 and 1.0 cm on the small survey); before the lag, 1.5 m
+    assert np.sqrt((d[:, :2] ** 2).mean()) <= 0.03 and np.sqrt((d[:, 2] ** 2).mean()) <= 0.05
+    assert any("time lag +0.3" in n or "time lag +0.2" in n for n in report["notes"])
+
+
+def test_csv_positions_in_latitude_longitude_and_in_a_projected_crs(ppk, tmp_path):
+    s, photos = ppk
+    truth = _truth(s)
+    names = sorted(truth)
+    from pyproj import Transformer
+
+    to_ll = Transformer.from_crs(json.loads((s.truth / "survey.json").read_text())["crs"], "EPSG:4326", always_xy=True)
+    rows = ["image,lat,lon,height,sigma_h,sigma_v"]
+    for n in names[:-1]:
+        lon, lat = to_ll.transform(truth[n]["x"], truth[n]["y"])
+        rows.append(f"{n},{lat:.9f},{lon:.9f},{truth[n]['z']:.3f},0.02,0.04")
+    rows.append("IMG_9999.JPG,38.7,-9.1,100,0.02,0.04")  # no such photo
+    (tmp_path / "ll.csv").write_text("\n".join(rows) + "\n")
+    pf = read_positions(tmp_path / "ll.csv", photos)
+    assert pf.source == "CSV" and len(pf.by_image) == len(names) - 1
+    assert pf.photos_without == (names[-1],) and pf.lines_without == ("IMG_9999.JPG (line 10)",)
+    q = pf.by_image[names[0]]
+    assert (q.sigma_h_m, q.sigma_v_m, q.fix) == (0.02, 0.04, "stated")
+    assert q.height_m == pytest.approx(truth[names[0]]["z"], abs=1e-3)
+    # the same in the survey's UTM zone, semicolons, no sigma: weighed as consumer GPS
+    crs = json.loads((s.truth / "survey.json").read_text())["crs"]
+    rows = [f"# {crs}", "name;easting;northing;z"] + [
+        f"{n};{truth[n]['x']:.4f};{truth[n]['y']:.4f};{truth[n]['z']:.3f}" for n in names
+    ]
+    (tmp_path / "utm.csv").write_text("\n".join(rows) + "\n")
+    pf2 = read_positions(tmp_path / "utm.csv", photos)
+    assert pf2.by_image[names[0]].latitude_deg == pytest.approx(q.latitude_deg, abs=1e-8)
+    assert pf2.by_image[names[0]].fix == "consumer" and math.isnan(pf2.by_image[names[0]].sigma_h_m)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("image,x,y,z\nDJI_0001.JPG,483600,4288780,150\n", r"line 2: x/y without a CRS"),
+        ("image,lat,lon,z\nDJI_0001.JPG,38.7,abc,150\n", r"line 2: 'abc' is not a number in column lon"),
+        ("image,lat,lon\nDJI_0001.JPG,38.7,-9.1\n", r"line 1: the header names no z column"),
+        ("# EPSG:4326\nimage,x,y,z\nDJI_0001.JPG,-9.1,138.7,150\n", r"line 3: .* no position"),
+    ],
+)
+def test_a_bad_csv_names_its_line(ppk, tmp_path, text, message):
+    _, photos = ppk
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message):
+        read_positions(path, photos)
+
+
+def test_dji_event_file_in_shooting_order(ppk, tmp_path):
+    _, photos = ppk
+    mrk = tmp_path / "Timestamp.MRK"
+    mrk.write_text(
+        "1\t295413.651488\t[2058]\t    22,N\t    -4,E\t   188,V\t38.74729100,Lat\t-9.18920600,Lon\t150.123,Ellh"
+        "\t0.012725, 0.011567, 0.028096\t50,Q\n"
+        "2\t295415.651488\t[2058]\t    21,N\t    -3,E\t   187,V\t38.74738100,Lat\t-9.18920700,Lon\t150.211,Ellh"
+        "\t0.310000, 0.290000, 0.450000\t34,Q\n"
+    )
+    pf = read_positions(mrk, photos)
+    first, second = sorted(photos, key=lambda p: p.taken_at)[:2]
+    assert pf.source == "DJI MRK" and len(pf.by_image) == 2
+    a, b = pf.by_image[first.image], pf.by_image[second.image]
+    assert (a.fix, a.sigma_h_m, a.sigma_v_m, a.height_m) == ("fixed", 0.012725, 0.028096, 150.123)
+    assert (b.fix, b.sigma_h_m) == ("float", 0.31)
+    assert len(pf.photos_without) == len(photos) - 2
