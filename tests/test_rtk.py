@@ -117,3 +117,51 @@ def test_a_block_of_rtk_and_consumer_photos_weighs_each_by_its_own(tmp_path):
     cams = gpd.read_file(r.cameras).set_index("image")
     assert cams.loc[names[1], "gps_fix"] == "consumer" and math.isnan(cams.loc[names[1], "gps_sigma_h_m"])
     assert cams.loc[names[0], "gps_sigma_h_m"] < 2.0
+
+
+# --- factory calibration ------------------------------------------------------------------------
+
+
+def test_dji_factory_calibration_tags_are_read():
+    from geoortho.photos.metadata import factory_calibration
+
+    tags = {
+        "drone-dji:CalibratedFocalLength": "3666.666504",
+        "drone-dji:CalibratedOpticalCenterX": "2736.000000",
+        "drone-dji:CalibratedOpticalCenterY": "1824.000000",
+        "drone-dji:DewarpData": "2022-06-08;3713.29,3713.29,7.02,-8.72,-0.11257524,0.01487443,-0.00008572,0.00000076,"
+        "-0.02706411",
+        "drone-dji:DewarpFlag": "0",
+    }
+    f, cx, cy, dist, dewarped, warning = factory_calibration(tags, 5472, 3648)
+    assert (f, cx, cy, dewarped, warning) == (3666.666504, 2736.0, 1824.0, False, "")
+    assert dist == pytest.approx((-0.11257524, 0.01487443, -0.00008572, 0.00000076, -0.02706411))
+    # already undistorted in the camera: no distortion to start from
+    assert factory_calibration({**tags, "drone-dji:DewarpFlag": "1"}, 5472, 3648)[3:5] == ((), True)
+    # a calibration of another image size is not this photo's
+    f, *_, warning = factory_calibration(tags, 960, 640)
+    assert math.isnan(f) and "cannot be this 960x640 photo's" in warning
+
+
+@pytest.mark.parametrize(
+    ("pathology", "within_pct", "caught"),
+    [
+        # EXIF's focal length 12 % long, the factory calibration right: the calibration is used
+        # (measured: 0.00 %, a free self-calibration would move it -0.14 %); EXIF alone: +12.0 %
+        ("wrong-focal,factory-calibration", 0.5, False),
+        # a calibration 10 % long (another unit's): held in this nadir block, and said (-9.2 %)
+        ("wrong-calibration", 11.0, True),
+    ],
+)
+def test_the_factory_calibration_starts_the_intrinsics_and_a_wrong_one_is_caught(
+    tmp_path, pathology, within_pct, caught
+):
+    s = geoortho.synth(tmp_path / "survey", preset="tiny", seed=2, pathology=pathology)
+    truth_px = json.loads((s.truth / "survey.json").read_text())["camera"]["focal_px"]
+    r = geoortho.sfm(s.images, tmp_path / "sfm", **SFM_FAST)
+    report = json.loads(r.report.read_text())
+    (cam,) = report["intrinsics"]
+    assert abs(cam["focal_px"] / truth_px - 1.0) * 100.0 <= within_pct
+    assert any("factory calibration as the starting intrinsics" in n for n in report["notes"])
+    said = [n for n in report["notes"] if "self-calibration would move the focal length" in n]
+    assert bool(said) == caught, said

@@ -130,6 +130,43 @@ DEFAULT_SIGMA_M: dict[str, tuple[float, float]] = {
 MAX_FIXED_SIGMA_M = 0.5
 
 
+def factory_calibration(
+    tags: dict[str, str], width_px: int, height_px: int
+) -> tuple[float, float, float, tuple[float, ...], bool, str]:
+    """DJI's factory calibration from the XMP: focal length and optical centre (px, corner origin,
+    for the photo's own size), the distortion (k1, k2, p1, p2, k3) from DewarpData
+    (``date;fx,fy,cx,cy,k1,k2,p1,p2,k3``), whether the JPEG is already undistorted (DewarpFlag 1),
+    and a warning. Values that cannot belong to this photo (a focal length under a third or over
+    five times its size, a centre off it) are dropped with the warning."""
+    f = _xmp_float(tags, "drone-dji:CalibratedFocalLength")
+    cx = _xmp_float(tags, "drone-dji:CalibratedOpticalCenterX")
+    cy = _xmp_float(tags, "drone-dji:CalibratedOpticalCenterY")
+    dewarped = _xmp_float(tags, "drone-dji:DewarpFlag") == 1.0
+    distortion: tuple[float, ...] = ()
+    raw = tags.get("drone-dji:DewarpData", "")
+    if raw:
+        try:
+            values = [float(v) for v in raw.split(";")[-1].split(",")]
+            if len(values) >= 9:
+                distortion = tuple(values[4:9])
+        except ValueError:
+            distortion = ()
+    if not math.isfinite(f):
+        return math.nan, math.nan, math.nan, (), dewarped, ""
+    size = max(width_px, height_px)
+    centre_given = math.isfinite(cx) and math.isfinite(cy)
+    off_photo = centre_given and not (0 < cx < width_px and 0 < cy < height_px)
+    if not size / 3.0 <= f <= 5.0 * size or off_photo:  # (a calibration of the full size, on a resized copy)
+        warning = (
+            f"CalibratedFocalLength {f:g} px (optical centre {cx:g}, {cy:g}) cannot be this "
+            f"{width_px}x{height_px} photo's: ignored"
+        )
+        return math.nan, math.nan, math.nan, (), dewarped, warning
+    if not centre_given:
+        cx, cy = width_px / 2.0, height_px / 2.0
+    return f, cx, cy, (() if dewarped else distortion), dewarped, ""
+
+
 def position_accuracy(tags: dict[str, str]) -> tuple[float, float, str, str]:
     """The position's 1-sigma horizontal and vertical accuracy (m), its class, and a warning
     (empty when none) from the XMP tags; NaN and "consumer" when nothing is stated.
@@ -202,6 +239,14 @@ class Photo:
     gps_sigma_h_m: float = math.nan
     gps_sigma_v_m: float = math.nan
     gps_fix: str = "consumer"
+    # The maker's factory calibration (DJI: CalibratedFocalLength, CalibratedOpticalCenterX/Y in
+    # pixels, corner origin; DewarpData's k1 k2 p1 p2 k3), NaN/() when not written; ``dewarped``:
+    # the JPEG was already undistorted in the camera (DewarpFlag 1), its distortion is none.
+    factory_focal_px: float = math.nan
+    factory_cx_px: float = math.nan
+    factory_cy_px: float = math.nan
+    factory_distortion: tuple[float, ...] = ()
+    dewarped: bool = False
     warnings: tuple[str, ...] = field(default=(), compare=False)
 
     @property
@@ -231,6 +276,13 @@ class Photo:
 
     @property
     def focal_px(self) -> float:
+        """The factory calibration's focal length where the photo carries one, else EXIF's."""
+        if math.isfinite(self.factory_focal_px):
+            return self.factory_focal_px
+        return self.exif_focal_px
+
+    @property
+    def exif_focal_px(self) -> float:
         return self.focal_mm / self.sensor_width_mm * max(self.width_px, self.height_px)
 
     def intrinsics(self) -> Intrinsics:
@@ -244,6 +296,7 @@ class Photo:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__}
         d["path"] = str(self.path)
         d["warnings"] = "; ".join(self.warnings)
+        d["factory_distortion"] = " ".join(f"{v:g}" for v in self.factory_distortion)
         d["image"] = self.image
         d["focal_px"] = self.focal_px
         return d
@@ -466,6 +519,9 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     sigma_h, sigma_v, fix, accuracy_warning = position_accuracy(tags)
     if accuracy_warning:
         warnings.append(accuracy_warning)
+    cal_f, cal_cx, cal_cy, cal_dist, dewarped, cal_warning = factory_calibration(tags, int(width), int(height))
+    if cal_warning:
+        warnings.append(cal_warning)
     taken = _text(exif_ifd.get(0x9003)) or _text(exif.get(306))
     if re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d.*", taken):
         taken = taken[:10].replace(":", "-") + "T" + taken[11:19]
@@ -503,6 +559,11 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         gps_sigma_h_m=sigma_h,
         gps_sigma_v_m=sigma_v,
         gps_fix=fix,
+        factory_focal_px=cal_f,
+        factory_cx_px=cal_cx,
+        factory_cy_px=cal_cy,
+        factory_distortion=cal_dist,
+        dewarped=dewarped,
         warnings=tuple(warnings),
     )
 

@@ -164,18 +164,23 @@ def _bodies(photos: Sequence[Photo]) -> list[_Body]:
 
 
 def _camera_params(body: _Body, model: str) -> str:
-    """Initial intrinsics for COLMAP: focal (px) and principal point from the metadata, no distortion."""
+    """Initial intrinsics for COLMAP: the maker's factory calibration where the photos carry one
+    (focal length, optical centre, distortion), else the focal length from EXIF, the principal
+    point at the centre and no distortion."""
     p = body.photos[0]
-    f = p.focal_px
+    factory = math.isfinite(p.factory_focal_px)
+    f = p.factory_focal_px if factory else p.focal_px
     if not math.isfinite(f):
         return ""  # COLMAP then guesses 1.2 × the larger side and refines it
-    cx, cy = p.width_px / 2.0, p.height_px / 2.0  # COLMAP: pixel (0, 0) is the top-left corner
+    # COLMAP: pixel (0, 0) is the top-left corner, as DJI's optical centre
+    cx, cy = (p.factory_cx_px, p.factory_cy_px) if factory else (p.width_px / 2.0, p.height_px / 2.0)
+    k1, k2, p1, p2, _k3 = (*p.factory_distortion, 0.0, 0.0, 0.0, 0.0, 0.0)[:5] if factory else (0.0,) * 5
     base = {
         "SIMPLE_PINHOLE": [f, cx, cy],
         "PINHOLE": [f, f, cx, cy],
-        "SIMPLE_RADIAL": [f, cx, cy, 0.0],
-        "RADIAL": [f, cx, cy, 0.0, 0.0],
-        "OPENCV": [f, f, cx, cy, 0.0, 0.0, 0.0, 0.0],
+        "SIMPLE_RADIAL": [f, cx, cy, k1],
+        "RADIAL": [f, cx, cy, k1, k2],
+        "OPENCV": [f, f, cx, cy, k1, k2, p1, p2],
     }[model]
     return ",".join(f"{v:.6f}" for v in base)
 
@@ -1245,6 +1250,7 @@ def _read_inputs(
         xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
         priors = _Priors(out_crs, np.array([*np.round(np.median(xy, axis=0), -2), 0.0]), {}, "no GPS")
     bodies = _bodies(photos)
+    notes += _factory_calibration_notes(bodies)
     fb.info(
         f"{len(photos)} photos, {len(bodies)} camera bod{'y' if len(bodies) == 1 else 'ies'}: "
         + "; ".join(f"{b.label} ({len(b.photos)})" for b in bodies)
@@ -1266,6 +1272,30 @@ def _read_inputs(
         as_read,
         takeoff_elevation_m,
     )
+
+
+#: The factory calibration's focal length and EXIF's may differ by this (%) before it is said.
+FACTORY_VS_EXIF_PCT = 3.0
+
+
+def _factory_calibration_notes(bodies: Sequence[_Body]) -> list[str]:
+    """What each camera body starts from when its photos carry the maker's factory calibration."""
+    out = []
+    for b in bodies:
+        p = b.photos[0]
+        if not math.isfinite(p.factory_focal_px):
+            continue
+        line = (
+            f"{b.label}: factory calibration as the starting intrinsics (focal length {p.factory_focal_px:.1f} px, "
+            f"optical centre {p.factory_cx_px:.1f}, {p.factory_cy_px:.1f} px"
+            + (", JPEG already undistorted" if p.dewarped else f", distortion {len(p.factory_distortion)} terms")
+            + ")"
+        )
+        exif = p.exif_focal_px
+        if math.isfinite(exif) and abs(p.factory_focal_px / exif - 1.0) * 100.0 > FACTORY_VS_EXIF_PCT:
+            line += f"; EXIF's focal length gives {exif:.1f} px ({100.0 * (exif / p.factory_focal_px - 1.0):+.1f} %)"
+        out.append(line)
+    return out
 
 
 #: Most photos stating a horizontal accuracy this good (m) make an RTK/PPK block: its GCPs check it.
@@ -1952,8 +1982,8 @@ def _intrinsics_report(
             if abs(row["free_focal_drift_pct"]) > FOCAL_DRIFT_WARN_PCT:
                 notes.append(
                     f"camera {cid}: self-calibration would move the focal length "
-                    f"{row['free_focal_drift_pct']:+.1f} % off EXIF (not applied: ill-conditioned block; "
-                    "GCPs with heights would settle it)"
+                    f"{row['free_focal_drift_pct']:+.1f} % off its starting value (EXIF's, or the factory "
+                    "calibration's; not applied: ill-conditioned block; GCPs with heights would settle it)"
                 )
         d = drift.get(cid)
         if d is not None and abs(d) > FOCAL_DRIFT_WARN_PCT:

@@ -141,6 +141,7 @@ TRUE_ATTITUDE_JITTER_DEG = 1.5  # how far the real camera wanders from the plan
 DEFAULT_LAT = 38.7476  # Lisbon, Monsanto park
 DEFAULT_LON = -9.1887
 
+WRONG_CALIBRATION_FACTOR = 1.1
 PPK_LAG_S = 0.3  # the camera's time stamp this much before the exposure
 GPS_MINUS_UTC_S = 18.0  # leap seconds since 2017: GPS time runs ahead of UTC (the camera's clock)
 PPK_EPOCH_S = 0.2
@@ -178,6 +179,10 @@ PATHOLOGIES: dict[str, str] = {
     "ppk": "a PPK flight: truth/trajectory.pos, an RTKLIB solution at 5 Hz (GPS time, fixed, 1 cm H, 2 cm V) "
     f"of the camera's path; the photos' own GPS is a consumer's, and their time stamps (to the millisecond) "
     f"run {PPK_LAG_S:g} s behind the exposures (survey.json: ppk)",
+    "factory-calibration": "DJI's factory calibration in the XMP (CalibratedFocalLength, CalibratedOpticalCenterX/Y, "
+    "DewarpData, DewarpFlag 0): the camera's true intrinsics",
+    "wrong-calibration": f"DJI's factory calibration tags with a focal length {WRONG_CALIBRATION_FACTOR:g} times "
+    "the lens's (a calibration of another unit)",
     "dropped-photo": "one photo in the middle of the flight that no SfM can register: smeared by a motion blur of "
     "a tenth of its width, or blown out (25x over-exposed), as the seed draws; survey.json names it "
     "(dropped_photo: image, how)",
@@ -652,6 +657,12 @@ class Shot:
     rtk_sigma_h_m: float = float("nan")  # the stated 1-sigma accuracy (RtkStdLon/Lat, GPSXYAccuracy)
     rtk_sigma_v_m: float = float("nan")
     subsec: str = ""  # EXIF SubSecTimeOriginal (the ppk pathology's stamps fall between seconds)
+    # DJI's factory calibration tags (the factory-calibration pathologies): focal length and optical
+    # centre (px, corner origin) and DewarpData's distortion; NaN: none written
+    cal_focal_px: float = float("nan")
+    cal_cx_px: float = float("nan")
+    cal_cy_px: float = float("nan")
+    cal_distortion: tuple[float, ...] = ()
 
 
 def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
@@ -1181,6 +1192,16 @@ def _xmp(shot: Shot) -> bytes:
                 f'    Camera:GPSXYAccuracy="{shot.rtk_sigma_h_m:.4f}"\n'
                 f'    Camera:GPSZAccuracy="{shot.rtk_sigma_v_m:.4f}"\n'
             )
+    if shot.maker == "dji" and math.isfinite(shot.cal_focal_px):
+        k = shot.cal_distortion
+        attrs += (
+            f'    drone-dji:CalibratedFocalLength="{shot.cal_focal_px:.6f}"\n'
+            f'    drone-dji:CalibratedOpticalCenterX="{shot.cal_cx_px:.6f}"\n'
+            f'    drone-dji:CalibratedOpticalCenterY="{shot.cal_cy_px:.6f}"\n'
+            f'    drone-dji:DewarpData="2026-05-01;{shot.cal_focal_px:.6f},{shot.cal_focal_px:.6f},0.000000,0.000000,'
+            + ",".join(f"{v:.9f}" for v in k)
+            + '"\n    drone-dji:DewarpFlag="0"\n'
+        )
     if shot.maker in ("dji", "autel"):
         p = "drone-dji" if shot.maker == "dji" else "drone"
         absolute = (
@@ -1475,6 +1496,18 @@ def synth(
         ]
     w, h = p.image_px
     intr = Intrinsics.from_sensor(w, h, FOCAL_MM, SENSOR_WIDTH_MM, distortion=p.distortion)
+    if "factory-calibration" in pathologies or "wrong-calibration" in pathologies:
+        factor = WRONG_CALIBRATION_FACTOR if "wrong-calibration" in pathologies else 1.0
+        shots = [
+            replace(
+                s,
+                cal_focal_px=intr.focal_px * factor,
+                cal_cx_px=intr.cx_px + 0.5,  # corner origin, as DJI writes it
+                cal_cy_px=intr.cy_px + 0.5,
+                cal_distortion=tuple((*p.distortion, 0.0, 0.0, 0.0, 0.0, 0.0)[:5]),
+            )
+            for s in shots
+        ]
     fb.info(
         f"synth {preset}: {len(shots)} photos of {w}x{h} px over {p.area_m[0]:.0f}x{p.area_m[1]:.0f} m "
         f"in {scene.crs.name}"
