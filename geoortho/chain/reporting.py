@@ -451,6 +451,92 @@ def _map(ctx: _Context) -> str:
     return _png(fig, "footprints and camera positions over the orthophoto") + note
 
 
+#: How each position accuracy class is drawn on the map.
+_FIX_STYLE = {
+    "fixed": ("#1a7f37", "RTK fixed"),
+    "float": ("#e6a100", "RTK float"),
+    "single": ("#b00020", "single point (fix lost)"),
+    "stated": ("#1f77b4", "accuracy stated"),
+    "consumer": ("#999999", "consumer GPS"),
+}
+
+
+def _position_accuracy(ctx: _Context) -> str:
+    """Each photo's position accuracy class on a map, and per class the accuracy stated against
+    what the bundle adjustment measured; a positions file and the time lag found in it."""
+    sfm = ctx.sfm_report()
+    acc = (sfm or {}).get("gps_accuracy")
+    if not acc:
+        return _missing(
+            "No photo states its position accuracy (consumer GPS): every position is weighed at the "
+            "SfM's gps_sigma_m, and the GCPs (if any) carry the georeference."
+        )
+    parts: list[str] = []
+    cams = _sfm_cameras(ctx)
+    if cams is not None and "gps_fix" in cams:
+        fig = _map_figure(tuple(cams.total_bounds[[0, 2, 1, 3]]), width_in=6.5)
+        ax = fig.add_subplot()
+        _ortho_background(ax, ctx)
+        for fix, (colour, label) in _FIX_STYLE.items():
+            sel = cams["gps_fix"] == fix
+            if sel.any():
+                ax.scatter(
+                    cams.geometry.x[sel], cams.geometry.y[sel], s=22, c=colour, edgecolor="k", lw=0.3,
+                    label=f"{label} ({int(sel.sum())})", zorder=4,
+                )  # fmt: skip
+        ax.set_aspect("equal")
+        ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
+        ax.ticklabel_format(useOffset=False, style="plain")
+        ax.tick_params(labelsize=7)
+        parts.append(_png(fig, "camera positions by accuracy class"))
+    rows = []
+    for fix, c in sorted(acc["classes"].items(), key=lambda kv: -kv[1]["photos"]):
+        agrees = c.get("rmse_h_m") is not None and c["rmse_h_m"] <= 2.0 * c["sigma_h_m"]
+        rows.append(
+            [
+                _FIX_STYLE.get(fix, ("", fix))[1],
+                c["photos"],
+                _cm(c["sigma_h_m"]),
+                _cm(c["sigma_v_m"]),
+                _cm(c.get("rmse_h_m")),
+                _cm(c.get("rmse_v_m")),
+                '<span class="ok">agrees</span>' if agrees else '<span class="warn">off its stated accuracy</span>',
+            ]
+        )
+    if acc.get("consumer"):
+        rows.append([_FIX_STYLE["consumer"][1], acc["consumer"], "–", "–", "–", "–", "weighed at gps_sigma_m"])
+    parts.append(
+        _table(
+            ["class", "photos", "stated σ H", "stated σ V", "measured RMSE H (per axis)", "measured RMSE V", ""],
+            rows,
+        )
+    )
+    off = acc.get("off_stated_accuracy") or []
+    if off:
+        parts.append(
+            '<p class="warn">Off their stated accuracy: '
+            + html.escape(", ".join(f"{o['image']} ({o['fix']}, {o['dh_m']:.2f} m)" for o in off[:12]))
+            + ("…" if len(off) > 12 else "")
+            + "</p>"
+        )
+    pos = (sfm or {}).get("positions")
+    if pos:
+        lag = pos.get("time_lag") or {}
+        pairs = [
+            ("Positions file", f"{html.escape(Path(pos['file']).name)} ({html.escape(pos['format'])}), "
+             f"{pos['photos']} photos"),
+        ]  # fmt: skip
+        if pos.get("time_offset_s") is not None:
+            how = "found from the photos' own GPS" if pos.get("time_offset_found") else "as given"
+            pairs.append(("Time offset (file − camera clock)", f"{pos['time_offset_s']:+.3f} s ({how})"))
+        if lag:
+            pairs.append(("Camera-to-GPS time lag", f"{lag['lag_s']:+.3f} s (± {lag['sigma_s']:.3f} s)"))
+        if pos.get("photos_without"):
+            pairs.append(("Photos without a position in it", ", ".join(pos["photos_without"][:10])))
+        parts.append(_kv(pairs))
+    return "".join(parts)
+
+
 def _sfm_cameras(ctx: _Context) -> Any:
     path = ctx.path("sfm", "cameras")
     if path is None:
@@ -938,6 +1024,7 @@ _SECTIONS: list[tuple[str, Callable[[_Context], str | None]]] = [
     ("Quality check", _quality),
     ("Dataset summary", _summary),
     ("Footprints and camera positions", _map),
+    ("Camera position accuracy", _position_accuracy),
     ("Overlap", _overlap),
     ("Ground control and checkpoints", _gcps),
     ("Reprojection error", _reprojection),
