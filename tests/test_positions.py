@@ -141,3 +141,25 @@ def test_dji_event_file_in_shooting_order(ppk, tmp_path):
     assert (a.fix, a.sigma_h_m, a.sigma_v_m, a.height_m) == ("fixed", 0.012725, 0.028096, 150.123)
     assert (b.fix, b.sigma_h_m) == ("float", 0.31)
     assert len(pf.photos_without) == len(photos) - 2
+
+
+def test_an_rtklib_event_file_matches_each_photo_to_its_event(ppk, tmp_path):
+    """RTKPOST's solution at the camera events only: one epoch a photo, 2 s apart."""
+    import datetime as dt
+
+    s, photos = ppk
+    pf = read_positions(s.truth / "trajectory.pos", photos)
+    lines = ["%  GPST                  latitude(deg) longitude(deg)  height(m)   Q  ns   sdn(m)   sde(m)   sdu(m)"]
+    for p in sorted(photos, key=lambda p: p.taken_at)[:-1]:  # the last photo's event is missing
+        q = pf.by_image[p.image]
+        t = dt.datetime.fromtimestamp(pf.photo_times_s[p.image], dt.timezone.utc)
+        lines.append(
+            f"{t:%Y/%m/%d %H:%M:%S}.{t.microsecond // 1000:03d} {q.latitude_deg:.9f} {q.longitude_deg:.9f} "
+            f"{q.height_m:.4f} 2 12 0.2000 0.2500 0.4000"
+        )
+    (tmp_path / "events.pos").write_text("\n".join(lines) + "\n")
+    events = read_positions(tmp_path / "events.pos", photos)
+    assert events.trajectory is not None and events.trajectory.is_events
+    assert len(events.by_image) == len(photos) - 1 and len(events.photos_without) == 1
+    q = next(iter(events.by_image.values()))
+    assert (q.fix, q.sigma_h_m, q.sigma_v_m) == ("float", 0.25, 0.4)

@@ -1206,6 +1206,7 @@ def _read_inputs(
     photoset = read_photos(paths, require_gps=False, require_camera=False)
     photos = photoset.photos
     as_read = tuple(photos)
+    contradicted = [p.image for p in photos if any(w.startswith("RtkFlag") for w in p.warnings)]
     position_file = None
     if positions is not None:
         position_file = read_positions(positions, photos, time_offset_s=positions_time_offset_s)
@@ -1224,6 +1225,11 @@ def _read_inputs(
             path=gcp_list,
         )
     early: list[str] = []
+    if contradicted:
+        early.append(
+            f"{len(contradicted)} photo(s) state a fixed RTK solution with deviations of metres (weighed by the "
+            "deviations): " + ", ".join(contradicted[:8]) + ("…" if len(contradicted) > 8 else "")
+        )
     held_out = _checkpoint_names(checkpoints, gcps, photos, early)
     if gcps is not None and held_out - set(gcps.by_name()):
         raise InputError(
