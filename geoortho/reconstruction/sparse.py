@@ -1123,6 +1123,8 @@ def sfm(
         accuracy = gps_accuracy(mapped.rec, inputs.priors, notes)
         report = _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes)
         report["gps_accuracy"] = accuracy
+        if lag is not None and inputs.positions is None:
+            report["gps_time_lag"] = lag
         if inputs.positions is not None:
             report["positions"] = {
                 "file": str(inputs.positions.path),
@@ -1349,18 +1351,13 @@ def _refine_time_lag(mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> tupl
     positions by a similarity, and the trajectory read again until the lag no longer moves; then
     the block is bundle-adjusted on the new positions. None when there is no trajectory."""
     pf = inputs.positions
-    if pf is None or pf.trajectory is None or pf.trajectory.is_events or inputs.out_crs is None:
+    if inputs.out_crs is None or len(inputs.priors.positions) < 5:
         return inputs, None
-    pc = load_pycolmap()
-    free = pc.Reconstruction(mapped.rec)
-    cfg = pc.BundleAdjustmentConfig()
-    for iid in free.reg_image_ids():
-        cfg.add_image(iid)
-    cfg.fix_gauge(pc.BundleAdjustmentGauge.THREE_POINTS)
-    opts = pc.BundleAdjustmentOptions()
-    opts.print_summary = False
-    opts.refine_focal_length = False
-    pc.create_default_bundle_adjuster(opts, cfg, free).solve()
+    if pf is None:
+        return _lag_of_own_gps(mapped, inputs, notes)
+    if pf.trajectory is None or pf.trajectory.is_events:
+        return inputs, None  # positions at the exposures already (events, a CSV)
+    free = _free_network(mapped.rec)
     to_crs = transformer(WGS84, inputs.out_crs)
     total, sigma, steps, priors, photos = 0.0, math.nan, 0, inputs.priors, inputs.photos
     while steps < 8:
@@ -1391,6 +1388,93 @@ def _refine_time_lag(mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> tupl
     _align_to_gps(mapped.rec, priors, 1.0)
     _prior_bundle_adjustment(mapped.rec, priors, refine_focal=not mapped.focal_held)
     return inputs, report
+
+
+def _free_network(rec: Any) -> Any:
+    """A copy of the block bundle-adjusted on its photos alone (no position priors)."""
+    pc = load_pycolmap()
+    free = pc.Reconstruction(rec)
+    cfg = pc.BundleAdjustmentConfig()
+    for iid in free.reg_image_ids():
+        cfg.add_image(iid)
+    cfg.fix_gauge(pc.BundleAdjustmentGauge.THREE_POINTS)
+    opts = pc.BundleAdjustmentOptions()
+    opts.print_summary = False
+    opts.refine_focal_length = False
+    pc.create_default_bundle_adjuster(opts, cfg, free).solve()
+    return free
+
+
+#: A consumer GPS's lag is taken when it moves the positions by this much (m) at the median speed,
+#: and exceeds this (s): less is within its own noise.
+OWN_GPS_LAG_MIN_M = 1.0
+OWN_GPS_LAG_MIN_S = 0.1
+#: A photo whose path turns more than this (deg) between its neighbours has no one velocity.
+TURN_MAX_DEG = 30.0
+
+
+def _own_gps_velocities(inputs: _Inputs) -> dict[str, np.ndarray]:
+    """Each photo's velocity (m/s, local frame) from its neighbours' GPS positions and times, where
+    the path runs straight through it (not at a turn) and the neighbours are within 10 s."""
+    from geoortho.photos.metadata import photo_seconds
+
+    timed = sorted(
+        (photo_seconds(p), inputs.names[p.path])
+        for p in inputs.photos
+        if inputs.names[p.path] in inputs.priors.positions and math.isfinite(photo_seconds(p))
+    )
+    out: dict[str, np.ndarray] = {}
+    for (t0, a), (t1, b), (t2, c) in zip(timed, timed[1:], timed[2:]):
+        if not (0 < t1 - t0 <= 10.0 and 0 < t2 - t1 <= 10.0):
+            continue
+        pa, pb, pc_ = (inputs.priors.positions[n][:2] for n in (a, b, c))
+        d1, d2 = pb - pa, pc_ - pb
+        n1, n2 = float(np.linalg.norm(d1)), float(np.linalg.norm(d2))
+        if n1 <= 0 or n2 <= 0 or math.degrees(math.acos(float(np.clip(d1 @ d2 / (n1 * n2), -1, 1)))) > TURN_MAX_DEG:
+            continue
+        out[b] = (pc_ - pa) / (t2 - t0)
+    return out
+
+
+def _lag_of_own_gps(mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> tuple[_Inputs, dict[str, Any] | None]:
+    """A lag between the photos' own GPS fixes and their exposures (a stale fix: the position of a
+    moment before): the cameras of the block adjusted without the positions lie ``velocity × lag``
+    ahead of them along the lines. When it is more than the GPS's noise, each position is moved
+    by it before the georeference, and it is said."""
+    velocity = _own_gps_velocities(inputs)
+    if len(velocity) < 5:
+        return inputs, None
+    free = _free_network(mapped.rec)
+    base = inputs.priors
+    total, sigma, steps, priors = 0.0, math.nan, 0, base
+    while steps < 6:
+        steps += 1
+        if _align_to_gps(free, priors, 2.0)[0] is None:
+            return inputs, None
+        centres = _centres(free)
+        names = [n for n in velocity if n in centres]
+        if len(names) < 5:
+            return inputs, None
+        rr = np.array([(centres[n] - priors.positions[n])[:2] for n in names])
+        vv = np.array([velocity[n] for n in names])
+        vv2 = float((vv**2).sum())
+        delta = float((rr * vv).sum() / vv2)
+        sigma = math.sqrt(float(((rr - delta * vv) ** 2).sum()) / max(2 * len(rr) - 1, 1) / vv2)
+        if abs(delta) <= max(LAG_SIGMAS * sigma, OWN_GPS_LAG_MIN_S) or abs(total + delta) > 10.0:
+            break
+        total += delta
+        moved = {k: (c + np.r_[velocity[k] * total, 0.0]) if k in velocity else c for k, c in base.positions.items()}
+        priors = replace(base, positions=moved)
+    speed = float(np.median([np.linalg.norm(v) for v in velocity.values()]))
+    report = {"lag_s": round(total, 3), "sigma_s": round(sigma, 3), "iterations": steps, "applied": False}
+    if total == 0.0 or abs(total) * speed < OWN_GPS_LAG_MIN_M:
+        return inputs, report
+    report["applied"] = True
+    notes.append(
+        f"the photos' GPS fixes lag their exposures by {total:+.2f} s (±{sigma:.2f}; {abs(total) * speed:.1f} m "
+        "along the lines at the median speed): each position moved along its line by it before the georeference"
+    )
+    return replace(inputs, priors=priors), report
 
 
 def _lag_step(

@@ -142,6 +142,7 @@ DEFAULT_LAT = 38.7476  # Lisbon, Monsanto park
 DEFAULT_LON = -9.1887
 
 WRONG_CALIBRATION_FACTOR = 1.1
+GPS_LAG_S = 1.0
 PPK_LAG_S = 0.3  # the camera's time stamp this much before the exposure
 GPS_MINUS_UTC_S = 18.0  # leap seconds since 2017: GPS time runs ahead of UTC (the camera's clock)
 PPK_EPOCH_S = 0.2
@@ -183,6 +184,8 @@ PATHOLOGIES: dict[str, str] = {
     "DewarpData, DewarpFlag 0): the camera's true intrinsics",
     "wrong-calibration": f"DJI's factory calibration tags with a focal length {WRONG_CALIBRATION_FACTOR:g} times "
     "the lens's (a calibration of another unit)",
+    "gps-lag": f"the photos' GPS fixes {GPS_LAG_S:g} s stale: each photo records where the camera was {GPS_LAG_S:g} s "
+    "before its exposure (a consumer camera's lag; survey.json: gps_lag_s)",
     "dropped-photo": "one photo in the middle of the flight that no SfM can register: smeared by a motion blur of "
     "a tenth of its width, or blown out (25x over-exposed), as the seed draws; survey.json names it "
     "(dropped_photo: image, how)",
@@ -824,6 +827,26 @@ def _place_water(scene: Scene) -> tuple[float, float, float]:
 RTK_SIGMA_M = {50: (0.02, 0.03), 34: (0.3, 0.45), 16: (1.5, 3.0)}  # RtkFlag -> true 1-sigma H, V
 
 
+def _stale_fixes(shots: list[Shot], lag_s: float, interval_s: float = 2.0) -> list[Shot]:
+    """Each recorded position moved to where the camera was ``lag_s`` before its exposure: back
+    along the straight path from the previous photo (the first: from the next), photos
+    ``interval_s`` apart."""
+    out = []
+    for i, s in enumerate(shots):
+        j = i - 1 if i > 0 else 1
+        dx, dy = shots[j].x - s.x, shots[j].y - s.y
+        share = (lag_s / interval_s) * (1.0 if i > 0 else -1.0)
+        east, north = dx * share, dy * share
+        out.append(
+            replace(
+                s,
+                rec_lat=s.rec_lat + north / 111_320.0,
+                rec_lon=s.rec_lon + east / (111_320.0 * math.cos(math.radians(s.rec_lat))),
+            )
+        )
+    return out
+
+
 def _stamped_early(s: Shot, lag_s: float) -> Shot:
     """The photo's time stamp ``lag_s`` before its exposure, to the millisecond."""
     stamp = dt.datetime.strptime(s.time, "%Y:%m:%d %H:%M:%S") - dt.timedelta(seconds=lag_s)
@@ -984,6 +1007,8 @@ def _apply_pathologies(
                 s, exposure_gain=s.exposure_gain * EXPOSURE_STEP, exposure_time_s=s.exposure_time_s * EXPOSURE_STEP
             )
         out[i] = s
+    if "gps-lag" in pathologies:
+        out = _stale_fixes(out, GPS_LAG_S)
     if "rtk" in pathologies:
         out = _rtk_positions(out, scene, rng)
     if "ppk" in pathologies:
@@ -1756,6 +1781,7 @@ def _write_survey_json(
             **({"slope": {"deg": SLOPE_DEG, "azimuth_deg": SLOPE_AZIMUTH_DEG}} if "slope" in pathologies else {}),
             **({"dropped_photo": dropped} if dropped else {}),
             **({"rtk": rtk} if rtk else {}),
+            **({"gps_lag_s": GPS_LAG_S} if "gps-lag" in pathologies else {}),
             **(
                 {"ppk": {"pos": "trajectory.pos", "lag_s": PPK_LAG_S, "gps_minus_camera_clock_s": GPS_MINUS_UTC_S}}
                 if "ppk" in pathologies
