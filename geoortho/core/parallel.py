@@ -196,8 +196,22 @@ def process_pool(
                 # start the workers now (they import while the caller prepares)
                 pool.submit(os.getpid)
         yield pool
+    except BaseException:
+        # Canceled (Ctrl-C, SIGTERM, QGIS's Cancel) or failed: what the workers are doing is thrown
+        # away, and waiting for it is not an answer (an orthophoto tile at 1 cm ran past 120 s).
+        _kill_workers(pool)
+        raise
     finally:
         pool.shutdown(cancel_futures=True)
+
+
+def _kill_workers(pool: cf.ProcessPoolExecutor) -> None:
+    """SIGKILL every worker of ``pool`` (the executor then shuts down without waiting for them)."""
+    for proc in list(getattr(pool, "_processes", {}).values()):
+        try:
+            proc.kill()
+        except (OSError, ValueError, AttributeError):
+            pass
 
 
 _spawn_lock = threading.Lock()
