@@ -195,8 +195,8 @@ class _Priors:
     heights: str
     vertical_trusted: bool = True
     notes: tuple[str, ...] = ()
-    # 1-sigma horizontal and vertical accuracy (m) of each position as the bundle adjustment
-    # weighs it: the photo's stated accuracy (RTK/PPK) or the survey's gps_sigma_m
+    # the 1-sigma horizontal and vertical accuracy (m) each photo states (RTK/PPK); the photos
+    # not here are weighed at the survey's gps_sigma_m
     sigmas: dict[str, tuple[float, float]] = field(default_factory=dict)
     fixes: dict[str, str] = field(default_factory=dict)  # photo -> Photo.gps_fix
 
@@ -256,17 +256,12 @@ def _rtk_heights(photos: Sequence[Photo], centres: np.ndarray, notes: list[str])
     altitude, not from the barometric RelativeAltitude plus take-off (0.1-0.5 m of noise where the
     receiver gives centimetres). Kept in the datum of the other heights: a user's take-off
     elevation in another datum moves them all by the median difference."""
-    rtk = np.array(
-        [
-            math.isfinite(p.gps_sigma_v_m)
-            and p.gps_sigma_v_m <= RTK_HEIGHT_SIGMA_M
-            and math.isfinite(absolute_altitude(p))
-            for p in photos
-        ]
-    )
+    z = np.array([absolute_altitude(p) for p in photos])
+    sigma_v = np.array([p.gps_sigma_v_m for p in photos])
+    with np.errstate(invalid="ignore"):
+        rtk = np.isfinite(z) & (sigma_v <= RTK_HEIGHT_SIGMA_M)
     if rtk.sum() < 3:
         return centres, 0
-    z = np.array([absolute_altitude(p) for p in photos])
     shift = float(np.median(z[rtk] - centres[rtk, 2]))
     datum = 0.0 if abs(shift) < 1.0 else shift  # the same datum (metres of noise) or another
     out = centres.copy()
@@ -899,7 +894,7 @@ def _write_cameras(
             "reason": reasons.get(name, ""),
             "camera": f"{p.make} {p.model}".strip(),
             "gps_fix": p.gps_fix,
-            "gps_sigma_h_m": sigma_h,  # as the SfM weighed it (stated, or its default)
+            "gps_sigma_h_m": sigma_h,  # as the photo states it (NaN: weighed at gps_sigma_m)
             "gps_sigma_v_m": sigma_v,
         }
         if submodel:  # split-merge: which submodel placed the photo (-1: none)
@@ -1457,9 +1452,10 @@ def _lag_of_own_gps(mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> tuple
             return inputs, None
         rr = np.array([(centres[n] - priors.positions[n])[:2] for n in names])
         vv = np.array([velocity[n] for n in names])
-        vv2 = float((vv**2).sum())
-        delta = float((rr * vv).sum() / vv2)
-        sigma = math.sqrt(float(((rr - delta * vv) ** 2).sum()) / max(2 * len(rr) - 1, 1) / vv2)
+        fitted = _lag_fit(rr, vv)
+        if fitted is None:
+            return inputs, None
+        delta, sigma = fitted
         if abs(delta) <= max(LAG_SIGMAS * sigma, OWN_GPS_LAG_MIN_S) or abs(total + delta) > 10.0:
             break
         total += delta
@@ -1499,13 +1495,18 @@ def _lag_step(
         r.append((centres[name] - priors.positions[name])[:2])
     if len(r) < 5:
         return None
-    rr, vv = np.array(r), np.array(v)
-    vv2 = float((vv**2).sum())
+    return _lag_fit(np.array(r), np.array(v))
+
+
+def _lag_fit(residuals: np.ndarray, velocity: np.ndarray) -> tuple[float, float] | None:
+    """The lag (s) that best explains the residuals (n, 2; m) as ``velocity × lag`` (m/s), by least
+    squares, and its standard error; None when nothing moves."""
+    vv2 = float((velocity**2).sum())
     if vv2 <= 0:
         return None
-    delta = float((rr * vv).sum() / vv2)
-    resid = rr - delta * vv
-    return delta, math.sqrt(float((resid**2).sum()) / max(2 * len(rr) - 1, 1) / vv2)
+    delta = float((residuals * velocity).sum() / vv2)
+    spread = float(((residuals - delta * velocity) ** 2).sum()) / max(2 * len(residuals) - 1, 1)
+    return delta, math.sqrt(spread / vv2)
 
 
 def _prior_bundle_adjustment(rec: Any, priors: _Priors, refine_focal: bool) -> None:
