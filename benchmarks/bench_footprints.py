@@ -56,8 +56,7 @@ def bench_metadata(n: int, work: Path) -> None:
 
 
 def synthetic_cameras(n: int, rng: np.random.Generator):
-    from geoortho.core.camera import Intrinsics, Pose
-    from geoortho.photos.footprint import PhotoCamera
+    from geoortho.core.camera import Intrinsics, Pose, PosedCamera
 
     intr = Intrinsics(5472, 3648, 3666.7)
     side = int(np.ceil(np.sqrt(n)))
@@ -67,7 +66,7 @@ def synthetic_cameras(n: int, rng: np.random.Generator):
         pose = Pose.from_ypr(
             (x, y, 150.0 + rng.normal(0, 1)), rng.uniform(-180, 180), -90 + rng.normal(0, 3), rng.normal(0, 1)
         )
-        cams.append(PhotoCamera(None, intr, pose, ""))  # type: ignore[arg-type]
+        cams.append(PosedCamera(intr, pose))
     return cams, side
 
 

@@ -37,8 +37,8 @@ from geoortho.core.surface import read_surface
 def true_cameras(survey):
     c = json.loads((survey / "truth/survey.json").read_text())["camera"]
     intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"], tuple(c["distortion"]))
-    return [PosedCamera(p["image"], survey / "images" / p["image"], intr,
-                        Pose(np.array([p["x"], p["y"], p["z"]]), np.array(p["rotation_world_from_camera"])))
+    return [PosedCamera(intr, Pose(np.array([p["x"], p["y"], p["z"]]), np.array(p["rotation_world_from_camera"])),
+                        p["image"], survey / "images" / p["image"])
             for p in json.loads((survey / "truth/poses.json").read_text()) if not p["corrupt"]]
 
 def peak():

@@ -43,16 +43,17 @@ def _again_footprints(plan: Path, dtm: Path | None) -> None:
     """compute_footprints on the plan's own cameras (what plan timed inside itself)."""
     import json
 
-    from geoortho.core.camera import Intrinsics, Pose, rotation_from_ypr
+    from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr
     from geoortho.core.surface import FlatSurface, read_surface
     from geoortho.photos.footprint import compute_footprints
-    from geoortho.planning.plan import _Cam
 
     photos = gpd.read_file(plan, layer="photos")
     c = json.loads(plan.with_name("summary.json").read_text())["camera"]
     intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"])
     rots = rotation_from_ypr(photos["grid_heading_deg"].to_numpy(), photos["pitch_deg"].to_numpy(), 0.0)
-    cams = [_Cam(intr, Pose(np.array([p.x, p.y, z]), r)) for p, z, r in zip(photos.geometry, photos["z_m"], rots)]
+    cams = [
+        PosedCamera(intr, Pose(np.array([p.x, p.y, z]), r)) for p, z, r in zip(photos.geometry, photos["z_m"], rots)
+    ]
     surface = read_surface(dtm, photos.crs, extend=True) if dtm else FlatSurface(0.0)
     compute_footprints(cams, surface)
 

@@ -26,10 +26,10 @@ def _true_cameras(survey):
     intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"], tuple(c["distortion"]))
     return [
         PosedCamera(
-            p["image"],
-            survey.images / p["image"],
             intr,
             Pose(np.array([p["x"], p["y"], p["z"]]), np.array(p["rotation_world_from_camera"])),
+            p["image"],
+            survey.images / p["image"],
         )
         for p in json.loads((survey.truth / "poses.json").read_text())
         if not p["corrupt"]
@@ -41,7 +41,7 @@ def test_project_grid_is_the_camera_model():
     from geoortho.orthophoto.rectify import project_grid
 
     intr = Intrinsics(1600, 1067, 1066.7, 800.3, 533.1, (-0.02, 0.01, 0.001, -0.002, 0.003))
-    cam = PosedCamera("a", None, intr, Pose.from_ypr((500000.0, 4300000.0, 140.0), 30, -80, 2))
+    cam = PosedCamera(intr, Pose.from_ypr((500000.0, 4300000.0, 140.0), 30, -80, 2), "a")
     rng = np.random.default_rng(0)
     x = 500000 + rng.uniform(-20, 20, (50, 40))
     y = 4300000 + rng.uniform(-20, 20, (50, 40))
@@ -165,8 +165,8 @@ def test_bad_photos_are_reported_and_skipped(small_survey, tmp_path):
     broken.write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
     far = cams[1].pose.center + np.array([5000.0, 0.0, 0.0])
     cams = cams + [
-        PosedCamera("broken.JPG", broken, cams[0].intrinsics, cams[0].pose),
-        PosedCamera("far.JPG", cams[1].path, cams[1].intrinsics, Pose(far, cams[1].pose.rotation)),
+        PosedCamera(cams[0].intrinsics, cams[0].pose, "broken.JPG", broken),
+        PosedCamera(cams[1].intrinsics, Pose(far, cams[1].pose.rotation), "far.JPG", cams[1].path),
     ]
     surf = read_surface(small_survey.dsm)
     fb = RecordingFeedback()
@@ -296,7 +296,8 @@ def test_seam_pass_streams_photos_and_loses_no_overlap(small_survey):
     # held at once: the most windows that cross one sweep line, along the grid's longer axis
     rows_first = plan.labels.shape[0] >= plan.labels.shape[1]
     spans = [
-        (v.win.row0, v.win.row0 + v.win.height) if rows_first else (v.win.col0, v.win.col0 + v.win.width) for v in views
+        (v.win.row_off, v.win.row_off + v.win.height) if rows_first else (v.win.col_off, v.win.col_off + v.win.width)
+        for v in views
     ]
     crossing = max(sum(a <= s0 < b for a, b in spans) for s0, _ in spans)
     assert plan.views_held_max == crossing < n  # not the survey: photos stream through

@@ -150,20 +150,14 @@ def test_real_phone_photo_with_trailer_is_not_truncated():
 
 def test_footprints_with_true_poses_reproduce_the_truth(tiny_survey):
     """With the exact poses and the DSM, our footprints are the true ones (geometry check)."""
-    from geoortho.core.camera import Intrinsics, Pose
+    from geoortho.core.camera import Intrinsics, Pose, PosedCamera
     from geoortho.core.surface import read_surface
-    from geoortho.photos.footprint import PhotoCamera
 
     poses, info = _truth(tiny_survey)
     c = info["camera"]
     intr = Intrinsics(c["width_px"], c["height_px"], c["focal_px"], c["cx_px"], c["cy_px"])
     cams = [
-        PhotoCamera(
-            read_photo(tiny_survey.images / n),
-            intr,
-            Pose(np.array([t["x"], t["y"], t["z"]]), np.array(t["rotation_world_from_camera"])),
-            "",
-        )
+        PosedCamera(intr, Pose(np.array([t["x"], t["y"], t["z"]]), np.array(t["rotation_world_from_camera"])), n)
         for n, t in poses.items()
     ]
     surface = read_surface(tiny_survey.dsm)
@@ -238,16 +232,14 @@ def test_oblique_footprints_iou(oblique_survey, tmp_path):
 
 
 def test_rays_above_horizon_are_clipped():
-    from geoortho.core.camera import Intrinsics, Pose
+    from geoortho.core.camera import Intrinsics, Pose, PosedCamera
     from geoortho.core.surface import FlatSurface
-    from geoortho.photos.footprint import PhotoCamera
 
-    photo = None
     intr = Intrinsics(400, 300, 300.0)
     cams = [
-        PhotoCamera(photo, intr, Pose.from_ypr((0, 0, 50), 0, -10, 0), ""),  # type: ignore[arg-type]
-        PhotoCamera(photo, intr, Pose.from_ypr((0, 0, 50), 0, -90, 0), ""),
-    ]  # type: ignore[arg-type]
+        PosedCamera(intr, Pose.from_ypr((0, 0, 50), 0, -10, 0)),
+        PosedCamera(intr, Pose.from_ypr((0, 0, 50), 0, -90, 0)),
+    ]
     t = compute_footprints(cams, FlatSurface(0.0), max_range_m=300.0)
     assert t.clipped.tolist() == [True, False]
     assert np.hypot(*t.rings[0].T).max() == pytest.approx(300.0, rel=0.01)
@@ -265,7 +257,7 @@ def test_real_toledo_footprints_predict_annotated_gcp_pixels(tmp_path):
         if len(f) < 6 or line.startswith("#"):
             continue
         x, y, _, px, py = map(float, f[:5])
-        pred = by[f[5]].project(np.array([[x, y, 0.0]]))[0]  # ground at the take-off height
+        pred = by[f[5]].project(np.array([[x, y, 0.0]]))[0][0]  # ground at the take-off height
         if f[5] != "DJI_0068.JPG":
             errors.append(math.hypot(pred[0] - px, pred[1] - py))
     # GPS and the take-off height assumption bound this: metres, i.e. tens of pixels at 8 cm GSD.

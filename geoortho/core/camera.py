@@ -229,14 +229,23 @@ def in_frame(
 
 @dataclass(frozen=True, eq=False)
 class PosedCamera:
-    """One photo, posed: its file, intrinsics (with distortion) and pose in a CRS. What footprints,
-    the orthophoto and the dense surface share, whether the pose was measured (SfM) or recorded."""
+    """One camera posed in a CRS: intrinsics (with distortion) and pose, and the photo file it
+    took, if any. The one posed-camera type: footprints, gcp-find, the orthophoto, the dense
+    surface and the flight plan share it, whether the pose was measured (SfM), recorded (EXIF)
+    or planned (no file: ``path`` None)."""
 
-    name: str
-    path: Path
     intrinsics: Intrinsics
     pose: Pose
+    name: str = ""
+    path: Path | None = None
 
     def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points (N, 3) → pixels (N, 2) (pixel-centre convention) and depth (N,)."""
         return project_points(xyz, self.intrinsics, self.pose)
+
+    @property
+    def file(self) -> Path:
+        """The photo's file; a planned camera has none."""
+        if self.path is None:
+            raise ValueError(f"camera {self.name!r} has no photo file")
+        return self.path

@@ -170,7 +170,7 @@ def predict_windows(
     out: dict[str, list[SearchWindow]] = {}
     tan_att = math.tan(math.radians(attitude_uncertainty_deg))
     for cam in cams:
-        px = cam.project(xyz)
+        px, _ = cam.project(xyz)
         w, h = cam.intrinsics.width_px, cam.intrinsics.height_px
         mx, my = w * margin_pct / 100.0, h * margin_pct / 100.0
         d = xyz - cam.pose.center
@@ -187,8 +187,8 @@ def predict_windows(
         marker_px = marker_size_m / gsd_m
         radius = err_m / gsd_m + 1.5 * marker_px
         # pixels per marker side along east and north: the target's shape before its rotation
-        east = cam.project(xyz + [marker_size_m, 0.0, 0.0]) - px
-        north = cam.project(xyz + [0.0, marker_size_m, 0.0]) - px
+        east = cam.project(xyz + [marker_size_m, 0.0, 0.0])[0] - px
+        north = cam.project(xyz + [0.0, marker_size_m, 0.0])[0] - px
         for j, name in enumerate(names):
             x, y = px[j]
             if not (np.isfinite(x) and np.isfinite(y)) or name not in ids:

@@ -29,5 +29,4 @@ def cameras_from_metadata(
     pcs, heights = photo_cameras(
         photos, crs, surface, takeoff_elevation_m, flight_height_m=flight_height_m, gps_altitude=gps_altitude
     )
-    cams = [PosedCamera(c.photo.path.name, c.photo.path, c.intrinsics, c.pose) for c in pcs]
-    return cams, heights
+    return list(pcs), heights

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from affine import Affine
 from pyproj import CRS
+from rasterio.windows import Window
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.crs import crs_to_text, horizontal_unit_m
@@ -34,12 +35,13 @@ from geoortho.orthophoto.cameras import cameras_from_metadata
 from geoortho.orthophoto.rectify import (
     BlockTops,
     VisibilityGrid,
-    Window,
     block_tops,
     bounds_window,
+    intersect,
     keep_best,
     project_window,
     remap_bgr,
+    slices_in,
     visibility_grid,
     window_xyz,
 )
@@ -385,9 +387,9 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     assert ctx is not None
     pad = ctx.pad_px
     rows, cols = ctx.shape
-    r0, c0 = max(0, win.row0 - pad), max(0, win.col0 - pad)
-    pw = Window(r0, c0, min(rows, win.row0 + win.height + pad) - r0, min(cols, win.col0 + win.width + pad) - c0)
-    core = win.slices(pw)
+    r0, c0 = max(0, win.row_off - pad), max(0, win.col_off - pad)
+    pw = Window(c0, r0, min(cols, win.col_off + win.width + pad) - c0, min(rows, win.row_off + win.height + pad) - r0)
+    core = slices_in(win, pw)
     x, y, z = window_xyz(ctx.transform, pw, ctx.surface)
     shape = (pw.height, pw.width)
     planned = ctx.plan.labels_for(ctx.transform, pw)
@@ -397,10 +399,10 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     coverage = np.zeros(shape, bool)
     projs: dict[int, tuple[tuple[slice, slice], Any]] = {}
     for i, box in enumerate(ctx.boxes):
-        sub = box.intersect(pw) if box is not None else None
+        sub = intersect(box, pw) if box is not None else None
         if sub is None:
             continue
-        sl = sub.slices(pw)
+        sl = slices_in(sub, pw)
         p = project_window(ctx.cams[i], x[sl], y[sl], z[sl], ctx.vis[i])
         if not p.in_frame.any():
             continue
@@ -422,7 +424,7 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
         need = (cv2.dilate(own, kernel) if kernel is not None else own).astype(bool) & p.valid
         rr, cc = np.nonzero(need)
         r0, r1, c0, c1 = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
-        img = _photo(ctx.cams[int(i)].path)
+        img = _photo(ctx.cams[int(i)].file)
         bgr = remap_bgr(img, p.map_x[r0:r1, c0:c1], p.map_y[r0:r1, c0:c1], ctx.interpolation).astype(np.float32)
         psl = (slice(sl[0].start + r0, sl[0].start + r1), slice(sl[1].start + c0, sl[1].start + c1))
         patches[int(i)] = _Patch(psl, bgr, need[r0:r1, c0:c1])
@@ -814,11 +816,10 @@ def _render(
     Returns the tiles' summed statistics and the photos used."""
     import rasterio
     from rasterio.enums import ColorInterp
-    from rasterio.windows import Window as RioWindow
 
     shape, tile_px = ctx.shape, options.tile_px
     tiles = [
-        Window(r, c, min(tile_px, shape[0] - r), min(tile_px, shape[1] - c))
+        Window(c, r, min(tile_px, shape[1] - c), min(tile_px, shape[0] - r))
         for r in range(0, shape[0], tile_px)
         for c in range(0, shape[1], tile_px)
     ]
@@ -842,7 +843,7 @@ def _render(
         for win, rgba, stats in imap_ordered(
             _render_tile, tiles, workers=options.workers, initializer=_init_worker, initargs=(ctx,), feedback=progress
         ):
-            dst.write(rgba, window=RioWindow(win.col0, win.row0, win.width, win.height))
+            dst.write(rgba, window=win)
             used |= stats.pop("used")  # type: ignore[arg-type]
             for k, v in stats.items():
                 totals[k] = totals.get(k, 0.0) + v

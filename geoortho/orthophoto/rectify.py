@@ -23,12 +23,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 from affine import Affine
+from rasterio.windows import Window
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, sample_grid
 
 __all__ = [
-    "Window",
+    "intersect",
+    "slices_in",
     "BlockTops",
     "VisibilityGrid",
     "block_tops",
@@ -42,27 +44,20 @@ __all__ = [
 _REMAP_MAX = 32000  # cv2.remap wants map sides below SHRT_MAX
 
 
-@dataclass(frozen=True)
-class Window:
-    """Rows/cols of the output grid: [row0, row0+height) × [col0, col0+width)."""
+def intersect(a: Window, b: Window) -> Window | None:
+    """The cells two grid windows share; None when they share none."""
+    r0, c0 = max(a.row_off, b.row_off), max(a.col_off, b.col_off)
+    r1 = min(a.row_off + a.height, b.row_off + b.height)
+    c1 = min(a.col_off + a.width, b.col_off + b.width)
+    if r1 <= r0 or c1 <= c0:
+        return None
+    return Window(c0, r0, c1 - c0, r1 - r0)
 
-    row0: int
-    col0: int
-    height: int
-    width: int
 
-    def intersect(self, other: Window) -> Window | None:
-        r0, c0 = max(self.row0, other.row0), max(self.col0, other.col0)
-        r1 = min(self.row0 + self.height, other.row0 + other.height)
-        c1 = min(self.col0 + self.width, other.col0 + other.width)
-        if r1 <= r0 or c1 <= c0:
-            return None
-        return Window(r0, c0, r1 - r0, c1 - c0)
-
-    def slices(self, origin: Window) -> tuple[slice, slice]:
-        """This window's place inside ``origin`` (which contains it)."""
-        r, c = self.row0 - origin.row0, self.col0 - origin.col0
-        return slice(r, r + self.height), slice(c, c + self.width)
+def slices_in(win: Window, origin: Window) -> tuple[slice, slice]:
+    """``win``'s place inside ``origin`` (which contains it), as array slices."""
+    r, c = win.row_off - origin.row_off, win.col_off - origin.col_off
+    return slice(r, r + win.height), slice(c, c + win.width)
 
 
 def bounds_window(
@@ -77,7 +72,7 @@ def bounds_window(
     r1 = min(shape[0], int(math.ceil((transform.f - ymin) / res)))
     if c1 <= c0 or r1 <= r0:
         return None
-    return Window(r0, c0, r1 - r0, c1 - c0)
+    return Window(c0, r0, c1 - c0, r1 - r0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,9 +172,9 @@ def visibility_grid(
     if win is None:
         return None
     # One cell of margin so that bilinear reads at the window edge see real values.
-    r0, c0 = max(0, win.row0 - 1), max(0, win.col0 - 1)
-    r1 = min(surface.grid.shape[0], win.row0 + win.height + 1)
-    c1 = min(surface.grid.shape[1], win.col0 + win.width + 1)
+    r0, c0 = max(0, win.row_off - 1), max(0, win.col_off - 1)
+    r1 = min(surface.grid.shape[0], win.row_off + win.height + 1)
+    c1 = min(surface.grid.shape[1], win.col_off + win.width + 1)
     tr = surface.transform
     z = surface.grid[r0:r1, c0:c1].astype(np.float64)
     cc, rr = np.meshgrid(np.arange(c0, c1) + 0.5, np.arange(r0, r1) + 0.5)
@@ -225,8 +220,8 @@ def visibility_grid(
 def window_xyz(transform: Affine, win: Window, surface: Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ground points at the centres of the window's pixels: x, y, z (rows, cols) float64; z NaN off the DSM."""
     res = transform.a
-    xs = transform.c + (np.arange(win.col0, win.col0 + win.width) + 0.5) * res
-    ys = transform.f - (np.arange(win.row0, win.row0 + win.height) + 0.5) * res
+    xs = transform.c + (np.arange(win.col_off, win.col_off + win.width) + 0.5) * res
+    ys = transform.f - (np.arange(win.row_off, win.row_off + win.height) + 0.5) * res
     x, y = np.meshgrid(xs, ys)
     if isinstance(surface, FlatSurface):
         z = np.full(x.shape, surface.elevation_m)

@@ -21,6 +21,7 @@ from typing import Any, Literal, get_args
 import cv2
 import numpy as np
 from affine import Affine
+from rasterio.windows import Window
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.surface import Surface
@@ -28,11 +29,12 @@ from geoortho.feedback import Feedback, as_feedback
 from geoortho.orthophoto.rectify import (
     Projection,
     VisibilityGrid,
-    Window,
     bounds_window,
+    intersect,
     keep_best,
     project_window,
     remap_bgr,
+    slices_in,
     window_xyz,
 )
 
@@ -59,10 +61,11 @@ class SeamPlan:
         """The coarse labels read (nearest) at the centres of an output window's pixels."""
         res, cres = out_transform.a, self.transform.a
         cols = np.floor(
-            ((np.arange(win.col0, win.col0 + win.width) + 0.5) * res + out_transform.c - self.transform.c) / cres
+            ((np.arange(win.col_off, win.col_off + win.width) + 0.5) * res + out_transform.c - self.transform.c) / cres
         ).astype(np.int64)
         rows = np.floor(
-            (self.transform.f - (out_transform.f - (np.arange(win.row0, win.row0 + win.height) + 0.5) * res)) / cres
+            (self.transform.f - (out_transform.f - (np.arange(win.row_off, win.row_off + win.height) + 0.5) * res))
+            / cres
         ).astype(np.int64)
         rows = np.clip(rows, 0, self.labels.shape[0] - 1)
         cols = np.clip(cols, 0, self.labels.shape[1] - 1)
@@ -141,7 +144,7 @@ def _coarse_view(
     for r in (2, 4, 8):  # decode no finer than the coarse cell needs
         if math.isfinite(gsd_m) and r * gsd_m <= transform.a:
             reduction = r
-    img = read_photo_bgr(str(cam.path), reduction, verify=True)
+    img = read_photo_bgr(str(cam.file), reduction, verify=True)
     want = (math.ceil(cam.intrinsics.height_px / reduction), math.ceil(cam.intrinsics.width_px / reduction))
     if abs(img.shape[0] - want[0]) > 1 or abs(img.shape[1] - want[1]) > 1:
         raise OSError(
@@ -205,7 +208,7 @@ def _plan(
     fb: Feedback,
 ) -> SeamPlan | dict[int, str]:
     """One streamed plan, or the photos that newly failed to decode (the caller plans again without them)."""
-    full = Window(0, 0, *cshape)
+    full = Window(0, 0, cshape[1], cshape[0])
     skipped: list[tuple[str, str]] = []
     wins: dict[int, Window] = {}
     # Voronoi-like first split: each cell to the photo that sees it best.
@@ -221,7 +224,7 @@ def _plan(
             skipped.append((cam.name, "its footprint lies outside the mosaic"))
             continue
         wins[i] = win
-        keep_best(best, labels, win.slices(full), _coarse_projection(cam, surface, vis[i], ctr, win).cost, i)
+        keep_best(best, labels, slices_in(win, full), _coarse_projection(cam, surface, vis[i], ctr, win).cost, i)
         fb.progress(0.2 * (i + 1) / len(cams))
 
     band_px = max(1, int(round(band_m / ctr.a)))
@@ -229,7 +232,7 @@ def _plan(
     along_rows = cshape[0] >= cshape[1]  # sweep along the longer axis: fewer photos cross a sweep line
 
     def span(w: Window) -> tuple[int, int]:
-        return (w.row0, w.row0 + w.height) if along_rows else (w.col0, w.col0 + w.width)
+        return (w.row_off, w.row_off + w.height) if along_rows else (w.col_off, w.col_off + w.width)
 
     pairs: list[tuple[int, int, float, np.ndarray]] = []
     bands: list[_Band] = []
@@ -264,7 +267,7 @@ def _plan(
     if balance != "none":
         pairs.sort(key=lambda p: (p[0], p[1]))  # the solution does not depend on the decoding order
         sol = solve_gains(
-            pairs, len(cams), per_channel=balance == "channels", exposure=[_exposure(c.path) for c in cams]
+            pairs, len(cams), per_channel=balance == "channels", exposure=[_exposure(c.file) for c in cams]
         )
         gains, notes = sol.gains, sol.notes
         if sol.exposure_seeded:
@@ -284,10 +287,10 @@ def _plan(
 
 def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int, float, np.ndarray] | None:
     """(a, b, weight, log mean colour of a − of b) over the cells both photos see unclipped."""
-    inter = va.win.intersect(vb.win)
+    inter = intersect(va.win, vb.win)
     if inter is None:
         return None
-    sa, sb = inter.slices(va.win), inter.slices(vb.win)
+    sa, sb = slices_in(inter, va.win), slices_in(inter, vb.win)
     ia, ib = va.image[sa], vb.image[sb]
     # both see it, neither is clipped (a saturated pixel says nothing about exposure)
     both = (
@@ -308,7 +311,7 @@ def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int
 
 def _band(view: _View, labels: np.ndarray, full: Window, kernel: np.ndarray) -> _Band | None:
     """The view cropped to the band (``kernel`` wide) around the cells it owns after the Voronoi split."""
-    own = (labels[view.win.slices(full)] == view.index).astype(np.uint8)
+    own = (labels[slices_in(view.win, full)] == view.index).astype(np.uint8)
     if not own.any():
         return None
     band = cv2.dilate(own, kernel) & view.valid.astype(np.uint8)
@@ -316,7 +319,7 @@ def _band(view: _View, labels: np.ndarray, full: Window, kernel: np.ndarray) -> 
     x, y, w, h = cv2.boundingRect(band)
     return _Band(
         view.index,
-        (view.win.col0 + x, view.win.row0 + y),
+        (view.win.col_off + x, view.win.row_off + y),
         np.ascontiguousarray(band[y : y + h, x : x + w] * 255),
         view.image[y : y + h, x : x + w].copy(),
         view.cost[y : y + h, x : x + w].copy(),
@@ -417,7 +420,7 @@ def _graph_cut(bands: list[_Band], labels: np.ndarray, cshape: tuple[int, int], 
     """Move each Voronoi seam, within its band, onto a low-difference path."""
     if len(bands) < 2:
         return labels
-    full = Window(0, 0, *cshape)
+    full = Window(0, 0, cshape[1], cshape[0])
     masks = [cv2.UMat(b.mask) for b in bands]  # type: ignore[call-overload]
     # Balanced colours: the cut should follow content, not exposure differences.
     images = [b.image.astype(np.float32) * gains[b.index] for b in bands]
@@ -433,7 +436,7 @@ def _graph_cut(bands: list[_Band], labels: np.ndarray, cshape: tuple[int, int], 
     for b, m in zip(bands, cut):
         seam_mask = (m.get() if isinstance(m, cv2.UMat) else np.asarray(m)) > 0
         h, w = b.mask.shape
-        sl = Window(b.corner[1], b.corner[0], h, w).slices(full)
+        sl = slices_in(Window(b.corner[0], b.corner[1], w, h), full)
         keep_best(out_best, out, sl, np.where(seam_mask, b.cost, np.inf), b.index)
     unclaimed = (out < 0) & (labels >= 0)
     out[unclaimed] = labels[unclaimed]

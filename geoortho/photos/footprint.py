@@ -21,12 +21,12 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from pyproj import CRS
 
-from geoortho.core.camera import Intrinsics, Pose, project_points, rotation_from_ypr, undistort_pixels
+from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr, undistort_pixels
 from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface
 from geoortho.errors import InputError
@@ -44,26 +44,32 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True, eq=False)
-class PhotoCamera:
-    """A photo placed in the world: intrinsics, pose (world CRS) and how its height was found."""
+@dataclass(frozen=True, eq=False, kw_only=True)
+class PhotoCamera(PosedCamera):
+    """A photo placed in the world from its metadata (or the SfM): the posed camera, the photo it
+    took and how its height was found."""
 
     photo: Photo
-    intrinsics: Intrinsics
-    pose: Pose
     height_source: str
     # Meridian convergence applied to the yaw (grid azimuth of true north, degrees) and the CRS's
     # point scale (grid metres per ground metre) at the photo: crs.grid_north.
     grid_convergence_deg: float = 0.0
     grid_scale: float = 1.0
 
-    def project(self, points_xyz: np.ndarray) -> np.ndarray:
-        """World points (N, 3) → pixel coordinates (N, 2), NaN behind the camera.
-
-        Pixel (0, 0) is the centre of the top-left pixel (OpenDroneMap's gcp_list.txt).
-        """
-        px, _ = project_points(points_xyz, self.intrinsics, self.pose)
-        return px
+    @classmethod
+    def of(
+        cls, photo: Photo, pose: Pose, height_source: str, convergence_deg: float = 0.0, scale: float = 1.0
+    ) -> PhotoCamera:
+        return cls(
+            photo.intrinsics(),
+            pose,
+            photo.image,
+            photo.path,
+            photo=photo,
+            height_source=height_source,
+            grid_convergence_deg=convergence_deg,
+            grid_scale=scale,
+        )
 
 
 #: Cells of the DSM read under a flight (64 MB of float32): footprints need the ground's shape,
@@ -163,9 +169,8 @@ def photo_cameras(
     for i, p in enumerate(photos):
         rot = rotation_from_ypr(p.yaw_deg + convergence[i], p.pitch_deg, p.roll_deg)
         cams.append(
-            PhotoCamera(
+            PhotoCamera.of(
                 p,
-                p.intrinsics(),
                 Pose(np.array([x[i], y[i], heights.z_m[i]]), rot),
                 heights.sources[i],
                 float(convergence[i]),
@@ -188,22 +193,12 @@ class FootprintTable:
     outside: np.ndarray  # (N,) some ray landed beyond the DSM, on the plane that continues it
 
 
-class Posed(Protocol):
-    """What a footprint needs of a camera: a :class:`PhotoCamera`, or the ortho stage's SfM cameras."""
-
-    @property
-    def intrinsics(self) -> Intrinsics: ...
-
-    @property
-    def pose(self) -> Pose: ...
-
-
 def _border_and_centre(intr: Intrinsics, per_side: int) -> np.ndarray:
     return np.vstack([intr.border_pixels(per_side), [[intr.cx_px, intr.cy_px]]])
 
 
 def compute_footprints(
-    cams: Sequence[Posed], surface: Surface, *, per_side: int = 16, max_range_m: float = 500.0
+    cams: Sequence[PosedCamera], surface: Surface, *, per_side: int = 16, max_range_m: float = 500.0
 ) -> FootprintTable:
     """Cast each camera's border (``per_side`` points per edge) and centre onto ``surface``.
 
@@ -544,7 +539,17 @@ def _footprints_from_sfm(
         photo = replace(
             by_name[c.name], yaw_deg=yaw - float(conv), pitch_deg=pitch, roll_deg=roll, attitude_source="SfM"
         )
-        cams.append(PhotoCamera(photo, c.intrinsics, c.pose, "SfM pose", float(conv), 1.0))
+        cams.append(
+            PhotoCamera(
+                c.intrinsics,
+                c.pose,
+                c.name,
+                c.path,
+                photo=photo,
+                height_source="SfM pose",
+                grid_convergence_deg=float(conv),
+            )
+        )
     s_read.progress(1.0)
     table = compute_footprints(cams, surface, max_range_m=max_range_m)
     s_cast.progress(1.0)

@@ -30,7 +30,7 @@ from typing import Any, Literal
 import numpy as np
 from pyproj import CRS
 
-from geoortho.core.camera import Intrinsics, Pose, rotation_from_ypr
+from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr
 from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
@@ -289,14 +289,6 @@ class PlanResult:
     warnings: tuple[str, ...] = field(default=())
 
 
-@dataclass(frozen=True)
-class _Cam:
-    """A planned photo as :func:`geoortho.photos.footprint.compute_footprints` takes it."""
-
-    intrinsics: Intrinsics
-    pose: Pose
-
-
 def plan(
     aoi: Path,
     output: Path,
@@ -483,7 +475,7 @@ def plan(
         z = np.full(len(shots), z_takeoff + agl)
     rots = rotation_from_ypr(grid_heading, np.full(len(xy), pitch_deg), np.zeros(len(xy)))
     centres = np.c_[xy, z]
-    cams = [_Cam(intr, Pose(c, r)) for c, r in zip(centres, rots)]
+    cams = [PosedCamera(intr, Pose(c, r)) for c, r in zip(centres, rots)]
     from geoortho.photos.footprint import compute_footprints
 
     table = compute_footprints(cams, surface, max_range_m=max(1000.0, 20 * agl))
@@ -935,7 +927,7 @@ def _footprint_shape(intr: Intrinsics, pitch_deg: float, agl: float) -> tuple[fl
     point is."""
     from geoortho.photos.footprint import compute_footprints
 
-    cam = _Cam(intr, Pose(np.array([0.0, 0.0, agl]), rotation_from_ypr(0.0, pitch_deg, 0.0)))
+    cam = PosedCamera(intr, Pose(np.array([0.0, 0.0, agl]), rotation_from_ypr(0.0, pitch_deg, 0.0)))
     t = compute_footprints([cam], FlatSurface(0.0), per_side=64, max_range_m=50 * agl)
     if t.clipped[0]:
         raise InputError(f"at pitch {pitch_deg:g}° the photo sees the horizon: plan a steeper pitch")

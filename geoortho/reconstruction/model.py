@@ -131,7 +131,7 @@ def cameras_from_sfm(
         centre = np.asarray(im.projection_center(), float) + offset
         if move is not None:
             centre, rot = _moved(move, centre, rot)
-        cams.append(PosedCamera(Path(im.name).name, path, intr, Pose(centre, rot)))
+        cams.append(PosedCamera(intr, Pose(centre, rot), Path(im.name).name, path))
     pts = np.array([p.xyz for p in rec.points3D.values()], float).reshape(-1, 3) + offset
     if move is not None and len(pts):
         x, y, z = move.transform(pts[:, 0], pts[:, 1], pts[:, 2])
