@@ -7,7 +7,8 @@ process whose peak memory is its own (VmHWM; its pool workers, one per core, are
 their own and not counted: this is the coordinating process's growth). Printed: a table of seconds and MB per stage and
 size, then per stage the exponent b of time ∝ photos^b fitted over the sizes (target: b ≲ 1.1,
 every stage about linear) and the memory growth from the smallest size to the largest (target:
-flat for the per-photo and per-tile stages).
+flat for the per-photo and per-tile stages). For sfm, the same per step (features, matching,
+mapping, georeferencing) from its report.
 
     python benchmarks/bench_scale.py [--photos 35,100,400] [--image-px 800] [--split 150]
         [--stages footprints,gcp-find,sfm,dense,dem,ortho] [--scheduler ADDRESS]
@@ -16,6 +17,7 @@ flat for the per-photo and per-tile stages).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import tempfile
@@ -26,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from bench_sfm import OURS, _child
 
+SFM_STEPS = ("features", "matching", "mapping", "georeferencing")
 STAGES = ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho")
 #: 4x4 markers as the presets' DICT_4X4_50, with ids enough for the GCPs and decoys of a wide survey
 DICTIONARY = "DICT_4X4_250"
@@ -70,6 +73,7 @@ def main() -> int:
     args = ap.parse_args()
     stages = [s for s in args.stages.split(",") if s]
     table: dict[str, dict[int, tuple[float, float]]] = {s: {} for s in stages}
+    sfm_steps: dict[str, dict[int, float]] = {}
     sizes = []
     with tempfile.TemporaryDirectory() as d:
         for want in (int(x) for x in args.photos.split(",")):
@@ -104,6 +108,12 @@ def main() -> int:
                 dt, mb = run([str(a) for a in argv[st]] + ["--quiet"], args.scheduler)
                 table[st][n] = (dt, mb)
                 print(f"  {st:10s} {n:5d} photos: {dt:7.1f} s  {mb:7.0f} MB  ({n / dt:.2f} photos/s)", flush=True)
+                if st == "sfm":
+                    report = json.loads((out / "sfm" / "report.json").read_text())
+                    for step, sec in report["seconds"].items():
+                        if step in SFM_STEPS:
+                            sfm_steps.setdefault(step, {})[n] = float(sec)
+                    print("    " + ", ".join(f"{k} {v:.1f} s" for k, v in report["seconds"].items()), flush=True)
     print("\nstage       " + "".join(f"{n:>16d}" for n in sizes) + "   time exponent   memory x (last/first)")
     for st in stages:
         row = table[st]
@@ -113,6 +123,11 @@ def main() -> int:
         b = float(np.polyfit(np.log(ns), np.log(ts), 1)[0]) if len(ns) >= 2 else math.nan
         cells = "".join(f"{row[n][0]:8.1f}s{row[n][1]:6.0f}MB" for n in ns)
         print(f"{st:10s}  {cells}   {b:8.2f}        x{ms[-1] / ms[0]:.2f}")
+    for step, row in sfm_steps.items():
+        ns = np.array(sorted(row))
+        ts = np.array([max(row[n], 1e-3) for n in ns])
+        b = float(np.polyfit(np.log(ns), np.log(ts), 1)[0]) if len(ns) >= 2 else math.nan
+        print(f"  sfm {step:14s}" + "".join(f"{row[n]:15.1f}s " for n in ns) + f"  {b:8.2f}")
     print("(target: time exponent <= ~1.1 for every stage; memory flat for per-photo and per-tile stages)")
     return 0
 

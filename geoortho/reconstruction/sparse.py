@@ -345,8 +345,17 @@ def _write_priors(db: Path, priors: _Priors, sigma_h_m: float, sigma_v_m: float)
     return n
 
 
+#: The spatial matcher's radius, in footprint widths (the footprint's long side), and the most
+#: neighbours each photo is matched with, nearest first. 16, not 30: toledo (57 photos at 2048 px,
+#: 2 cores) matched 507 pairs in 54 s instead of 965 in 84 s, mapped in 70 s instead of 78, with
+#: all 57 registered, 0.755 px against 0.765 and the GCPs' horizontal RMSE 0.709 m both ways
+#: (at 12 neighbours, 415 pairs, 44 s, still 57 registered: 16 keeps a margin for crossing lines).
+SPATIAL_RADIUS_FOOTPRINTS = 1.5
+SPATIAL_MAX_NEIGHBOURS = 16
+
+
 def _spatial_distance_m(photos: Sequence[Photo], priors: _Priors) -> float:
-    """Centres closer than 1.5 footprints may overlap: the spatial matcher's radius."""
+    """Centres closer than SPATIAL_RADIUS_FOOTPRINTS footprints may overlap: the spatial matcher's radius."""
     heights = [p.relative_altitude_m for p in photos if math.isfinite(p.relative_altitude_m)]
     widths = [
         p.sensor_width_mm / p.focal_mm
@@ -354,7 +363,7 @@ def _spatial_distance_m(photos: Sequence[Photo], priors: _Priors) -> float:
         if math.isfinite(p.sensor_width_mm) and math.isfinite(p.focal_mm) and p.focal_mm > 0
     ]
     if heights and widths:
-        return 1.5 * float(np.median(heights)) * float(np.median(widths))
+        return SPATIAL_RADIUS_FOOTPRINTS * float(np.median(heights)) * float(np.median(widths))
     pos = np.array(list(priors.positions.values()))
     # Without heights: 8 × the median spacing between neighbouring photos.
     d = np.linalg.norm(pos[:, None, :2] - pos[None, :, :2], axis=2)
@@ -375,7 +384,7 @@ def _match(db: Path, how: str, photos: Sequence[Photo], priors: _Priors, workers
         po = pc.SpatialPairingOptions()
         po.ignore_z = True
         po.max_distance = _spatial_distance_m(photos, priors)
-        po.max_num_neighbors = 30
+        po.max_num_neighbors = SPATIAL_MAX_NEIGHBOURS
         pc.match_spatial(db, matching_options=mo, pairing_options=po)
         return f"spatial (neighbours within {po.max_distance:.0f} m, at most {po.max_num_neighbors})"
     if how == "sequential":
