@@ -21,6 +21,7 @@ import difflib
 import json
 import math
 import os
+import time
 import warnings
 from dataclasses import dataclass, field
 from functools import cache
@@ -28,10 +29,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+import shapely
 from pyproj import CRS
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr
 from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
+from geoortho.core.outputs import write_json, write_vector
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
@@ -386,80 +389,205 @@ def plan(
     image_height_px : int
         Image height (overrides the camera's).
     """
-    import time
-
+    o = PlanOptions(
+        camera, gsd_cm, altitude_m, front_overlap, side_overlap, direction_deg, dtm, terrain, takeoff_ground_m,
+        pitch_deg, grid, speed_m_s, min_interval_s, max_altitude_m, gcps, gcp_crs, marker_dictionary, marker_size_m,
+        margin, crs, sensor_width_mm, focal_mm, image_width_px, image_height_px,
+    )  # fmt: skip
     fb = as_feedback(feedback)
     t0 = time.perf_counter()
     s_setup, s_grid, s_foot, s_gcp, s_write = split(fb, [1, 1, 3, 2, 2])
-    _check_options(
-        gsd_cm,
-        altitude_m,
-        front_overlap,
-        side_overlap,
-        terrain,
-        dtm,
-        pitch_deg,
-        speed_m_s,
-        min_interval_s,
-        max_altitude_m,
-    )
     warnings_: list[str] = []
-    cam = resolve_camera(camera, sensor_width_mm, focal_mm, image_width_px, image_height_px)
-    area_geom, work_crs, aoi_notes = _read_aoi(Path(aoi), crs)
+    site = _layout(Path(aoi), o, warnings_)
+    s_setup.progress(1.0)
+    flight = _fly(Path(aoi), site, o, warnings_, s_grid, s_foot)
+    control = _gcp_sightings(site, flight, o, warnings_)
+    s_gcp.progress(1.0)
+    files = _write(Path(output), site, flight, control, o, warnings_, s_write)
+    summary = _summary(site, flight, control, files, o, warnings_, time.perf_counter() - t0)
+    summary_path = write_json(Path(output) / "summary.json", summary)
+    s_write.progress(1.0)
+    for w in warnings_:
+        fb.warning(w)
+    fb.info(
+        f"plan: {len(flight.shots)} photos on {len(flight.lines)} lines, {flight.length_m / 1000:.2f} km, "
+        f"{summary['flight_time_min']:.1f} min at {flight.speed:.1f} m/s; {site.agl:.1f} m "
+        f"{summary['altitude_meaning']}, GSD {summary['gsd_cm']['median']:.2f} cm; "
+        f"{len(control.rows)} GCPs, markers {control.marker_m * 100:.0f} cm"
+    )
+    gpkg = str(files.plan)
+    return PlanResult(
+        output=Path(output),
+        plan=files.plan,
+        photos=f"{gpkg}|layername=photos",
+        lines=f"{gpkg}|layername=lines",
+        footprints=f"{gpkg}|layername=footprints",
+        gcps=f"{gpkg}|layername=gcps",
+        overlap=files.overlap,
+        kml=files.kml,
+        litchi=files.litchi,
+        summary=summary_path,
+        n_photos=len(flight.shots),
+        n_lines=len(flight.lines),
+        flight_length_m=flight.length_m,
+        flight_time_min=summary["flight_time_min"],
+        altitude_m=site.agl,
+        median_gsd_cm=summary["gsd_cm"]["median"],
+        marker_size_m=control.marker_m,
+        crs=crs_to_text(site.work_crs),
+        warnings=tuple(warnings_),
+    )
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """:func:`plan`'s options (all but the AOI and the output folder), as one value."""
+
+    camera: str = ""
+    gsd_cm: float | None = None
+    altitude_m: float | None = None
+    front_overlap: float = 75.0
+    side_overlap: float = 65.0
+    direction_deg: float | None = None
+    dtm: Path | None = None
+    terrain: Literal["constant", "follow"] = "constant"
+    takeoff_ground_m: float | None = None
+    pitch_deg: float = -90.0
+    grid: Literal["single", "double"] = "single"
+    speed_m_s: float = 8.0
+    min_interval_s: float = 2.0
+    max_altitude_m: float = DEFAULT_MAX_ALTITUDE_M
+    gcps: str = ""
+    gcp_crs: str | None = None
+    marker_dictionary: Dictionary = "DICT_4X4_50"
+    marker_size_m: float | None = None
+    margin: float = 0.0
+    crs: str | None = None
+    sensor_width_mm: float | None = None
+    focal_mm: float | None = None
+    image_width_px: int | None = None
+    image_height_px: int | None = None
+
+
+@dataclass(frozen=True)
+class _Site:
+    """What the flight is laid out on: the camera, the area, the ground and the spacing."""
+
+    cam: CameraSpec
+    intr: Intrinsics
+    area: Any  # shapely geometry in work_crs
+    work_crs: CRS
+    surface: Surface
+    ground: dict[str, float]
+    ground_label: str
+    z_takeoff: float
+    agl: float  # the flight height asked (above the take-off, or the ground when following it)
+    spacing_agl: float  # the height the spacing was worked out at
+    along_len: float  # footprint along the line, m
+    across_w: float  # footprint across, m
+    ahead: float
+    along: float  # photo spacing, m
+    across: float  # line spacing, m
+
+
+def _layout(aoi: Path, o: PlanOptions, warnings_: list[str]) -> _Site:
+    """The camera, the AOI in its working CRS, the ground under it, the flight height and the
+    spacings that give the overlaps asked; refuses a plan that cannot be flown."""
+    _check_options(
+        o.gsd_cm, o.altitude_m, o.front_overlap, o.side_overlap, o.terrain, o.dtm, o.pitch_deg, o.speed_m_s,
+        o.min_interval_s, o.max_altitude_m,
+    )  # fmt: skip
+    cam = resolve_camera(o.camera, o.sensor_width_mm, o.focal_mm, o.image_width_px, o.image_height_px)
+    area_geom, work_crs, aoi_notes = _read_aoi(aoi, o.crs)
     warnings_ += aoi_notes
     surface: Surface
-    if dtm is not None:
-        surface = read_surface(dtm, work_crs, extend=True)
-        ground = _ground_stats(surface, area_geom, dtm)
+    if o.dtm is not None:
+        surface = read_surface(o.dtm, work_crs, extend=True)
+        ground = _ground_stats(surface, area_geom, o.dtm)
         if ground.get("covered", 1.0) < 1.0:
             warnings_.append(
                 f"the DTM covers {100 * ground['covered']:.0f} % of the AOI: the rest is its edge carried on"
             )
-        ground_label = f"DTM {Path(dtm).name}"
+        ground_label = f"DTM {Path(o.dtm).name}"
     else:
-        surface = FlatSurface(float(takeoff_ground_m or 0.0))
+        surface = FlatSurface(float(o.takeoff_ground_m or 0.0))
         ground = {"min": surface.elevation_m, "median": surface.elevation_m, "max": surface.elevation_m}
         ground_label = "flat ground at the take-off"
-    z_takeoff = float(takeoff_ground_m) if takeoff_ground_m is not None else float(ground["median"])
-    if dtm is not None and takeoff_ground_m is None:
+    z_takeoff = float(o.takeoff_ground_m) if o.takeoff_ground_m is not None else float(ground["median"])
+    if o.dtm is not None and o.takeoff_ground_m is None:
         warnings_.append(
             f"take-off assumed at the AOI's median ground, {z_takeoff:.1f} m on the DTM: "
             "give --takeoff-ground-m for the real one"
         )
     intr = cam.intrinsics()
-    tilt = math.radians(90.0 + pitch_deg)  # off nadir
+    tilt = math.radians(90.0 + o.pitch_deg)  # off nadir
     # Height above the ground for the target GSD at the image centre (slant range r = gsd·f·sqrt(cos i)).
-    if gsd_cm is not None:
-        agl = gsd_cm / 100.0 * intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)
+    if o.gsd_cm is not None:
+        agl = o.gsd_cm / 100.0 * intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)
     else:
-        agl = float(altitude_m)  # type: ignore[arg-type]
-    if agl > max_altitude_m:
-        best = max_altitude_m / (intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)) * 100
+        agl = float(o.altitude_m)  # type: ignore[arg-type]
+    if agl > o.max_altitude_m:
+        best = o.max_altitude_m / (intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)) * 100
         raise InputError(
-            f"a GSD of {gsd_cm:g} cm needs {agl:.0f} m above the ground with {cam.name}, over the "
-            f"{max_altitude_m:g} m limit (--max-altitude-m); the best possible is {best:.2f} cm"
+            f"a GSD of {o.gsd_cm:g} cm needs {agl:.0f} m above the ground with {cam.name}, over the "
+            f"{o.max_altitude_m:g} m limit (--max-altitude-m); the best possible is {best:.2f} cm"
         )
     # Spacing from the footprint on level ground: at the highest ground of the AOI for a constant
     # altitude, so that the overlaps asked are met everywhere (they grow over lower ground).
-    spacing_agl = agl if terrain == "follow" else agl - (ground["max"] - z_takeoff if dtm is not None else 0.0)
-    if terrain == "constant" and dtm is not None and spacing_agl < 0.3 * agl:
+    rise = ground["max"] - z_takeoff if o.dtm is not None else 0.0
+    spacing_agl = agl if o.terrain == "follow" else agl - rise
+    if o.terrain == "constant" and o.dtm is not None and spacing_agl < 0.3 * agl:
         raise InputError(
             f"the ground rises {ground['max'] - z_takeoff:.0f} m above the take-off: a constant "
             f"{agl:.0f} m would pass within {max(spacing_agl, 0):.0f} m of it; use --terrain follow"
         )
-    along_len, across_w, ahead = _footprint_shape(intr, pitch_deg, spacing_agl)
-    along = along_len * (1 - front_overlap / 100.0)
-    across = across_w * (1 - side_overlap / 100.0)
-    _refuse_too_many_photos(area_geom, along, across, 2 if grid == "double" else 1, cam.name)
-    s_setup.progress(1.0)
+    along_len, across_w, ahead = _footprint_shape(intr, o.pitch_deg, spacing_agl)
+    along = along_len * (1 - o.front_overlap / 100.0)
+    across = across_w * (1 - o.side_overlap / 100.0)
+    _refuse_too_many_photos(area_geom, along, across, 2 if o.grid == "double" else 1, cam.name)
+    return _Site(
+        cam, intr, area_geom, work_crs, surface, ground, ground_label, z_takeoff, agl, spacing_agl, along_len,
+        across_w, ahead, along, across,
+    )  # fmt: skip
 
-    directions = [_best_direction(area_geom, across) if direction_deg is None else float(direction_deg) % 180.0]
-    if grid == "double":
+
+@dataclass(frozen=True)
+class _Flight:
+    """The lines and photos of the flight, their footprints on the ground, and how it is flown."""
+
+    directions: list[float]
+    shots: list[dict[str, Any]]
+    lines: list[dict[str, Any]]
+    xy: np.ndarray
+    grid_heading: np.ndarray
+    z: np.ndarray
+    rots: np.ndarray
+    centres: np.ndarray
+    table: Any  # photos.footprint.FootprintTable
+    polys: list[Any]
+    agl_photo: np.ndarray
+    heading_true: np.ndarray
+    lonlat: np.ndarray
+    speed: float
+    length_m: float
+
+
+def _fly(aoi: Path, site: _Site, o: PlanOptions, warnings_: list[str], s_grid: Feedback, s_foot: Feedback) -> _Flight:
+    """The lines across the AOI, a photo every spacing along them, each photo's pose and its
+    footprint on the ground; the speed the camera can keep up."""
+    from geoortho.photos.footprint import compute_footprints
+
+    directions = [
+        _best_direction(site.area, site.across) if o.direction_deg is None else float(o.direction_deg) % 180.0
+    ]
+    if o.grid == "double":
         directions.append((directions[0] + 90.0) % 180.0)
     shots: list[dict[str, Any]] = []
     lines: list[dict[str, Any]] = []
     for d in directions:
-        s, ln = _lines_and_shots(area_geom, d, along, across, along_len, across_w, ahead, len(lines))
+        s, ln = _lines_and_shots(
+            site.area, d, site.along, site.across, site.along_len, site.across_w, site.ahead, len(lines)
+        )
         shots += s
         lines += ln
     if not shots:
@@ -468,122 +596,159 @@ def plan(
 
     xy = np.array([(s["x"], s["y"]) for s in shots])
     grid_heading = np.array([s["grid_heading_deg"] for s in shots])
-    if terrain == "follow":
-        ground_z = _ground_under(surface, xy, grid_heading, along_len, across_w, ahead)
-        z = ground_z + agl
+    if o.terrain == "follow":
+        ground_z = _ground_under(site.surface, xy, grid_heading, site.along_len, site.across_w, site.ahead)
+        z = ground_z + site.agl
     else:
-        z = np.full(len(shots), z_takeoff + agl)
-    rots = rotation_from_ypr(grid_heading, np.full(len(xy), pitch_deg), np.zeros(len(xy)))
+        z = np.full(len(shots), site.z_takeoff + site.agl)
+    rots = rotation_from_ypr(grid_heading, np.full(len(xy), o.pitch_deg), np.zeros(len(xy)))
     centres = np.c_[xy, z]
-    cams = [PosedCamera(intr, Pose(c, r)) for c, r in zip(centres, rots)]
-    from geoortho.photos.footprint import compute_footprints
-
-    table = compute_footprints(cams, surface, max_range_m=max(1000.0, 20 * agl))
+    cams = [PosedCamera(site.intr, Pose(c, r)) for c, r in zip(centres, rots)]
+    table = compute_footprints(cams, site.surface, max_range_m=max(1000.0, 20 * site.agl))
     s_foot.progress(0.6)
-    import shapely
-
     polys = list(shapely.make_valid(shapely.polygons(table.rings)))
     agl_photo = np.asarray(table.altitude_m, float)
-    if (agl_photo > max_altitude_m * 1.001).any():
+    if (agl_photo > o.max_altitude_m * 1.001).any():
         warnings_.append(
-            f"{int((agl_photo > max_altitude_m).sum())} photos fly higher than {max_altitude_m:g} m "
+            f"{int((agl_photo > o.max_altitude_m).sum())} photos fly higher than {o.max_altitude_m:g} m "
             f"above the ground below them (up to {agl_photo.max():.0f} m): the terrain falls away"
         )
-    if (agl_photo < 0.5 * agl).any():
+    if (agl_photo < 0.5 * site.agl).any():
         warnings_.append(
-            f"{int((agl_photo < 0.5 * agl).sum())} photos pass within {agl_photo.min():.0f} m of the "
+            f"{int((agl_photo < 0.5 * site.agl).sum())} photos pass within {agl_photo.min():.0f} m of the "
             "ground: the terrain rises; consider --terrain follow"
         )
-    heading_true = _true_headings(xy, grid_heading, work_crs)
-    lonlat = np.array(transformer(work_crs, WGS84).transform(xy[:, 0], xy[:, 1])).T
-    interval_m = along
-    speed = min(speed_m_s, interval_m / min_interval_s)
-    if speed < speed_m_s:
+    heading_true = _true_headings(xy, grid_heading, site.work_crs)
+    lonlat = np.array(transformer(site.work_crs, WGS84).transform(xy[:, 0], xy[:, 1])).T
+    interval_m = site.along
+    speed = min(o.speed_m_s, interval_m / o.min_interval_s)
+    if speed < o.speed_m_s:
         warnings_.append(
             f"speed lowered to {speed:.1f} m/s: one photo every {interval_m:.1f} m needs "
-            f"{min_interval_s:g} s between photos"
+            f"{o.min_interval_s:g} s between photos"
         )
     length_m = _flight_length(shots)
     s_foot.progress(1.0)
+    return _Flight(
+        directions, shots, lines, xy, grid_heading, z, rots, centres, table, polys, agl_photo, heading_true, lonlat,
+        speed, length_m,
+    )  # fmt: skip
 
-    output = Path(output)
-    output.mkdir(parents=True, exist_ok=True)
-    overlap_path = output / "overlap.tif"
-    cell = max(0.05, across_w / 40.0)
-    from geoortho.photos.footprint import write_overlap
 
-    write_overlap(overlap_path, polys, work_crs, cell)
-    coverage = _coverage(overlap_path, area_geom, front_overlap, side_overlap, grid)
-    front_m, side_m = line_overlaps(polys, [s["line"] for s in shots])
+@dataclass(frozen=True)
+class _Control:
+    """The GCPs, the markers' print size and how many photos see each."""
 
-    # GCPs
-    gcp_rows, gcp_notes = _gcp_positions(
-        gcps, gcp_crs, area_geom, work_crs, surface, across_w, marker_dictionary, float(z.min())
-    )
-    warnings_ += gcp_notes
-    module_px = min_module_px(marker_dictionary)
-    n_cells = get_dictionary(marker_dictionary).markerSize + 2
+    rows: list[dict[str, Any]]
+    marker_m: float  # the print size needed
+    laid_m: float  # the size the sightings were counted with
+    n_cells: int
+    module_px: float
+    worst_gsd_m: float
+
+
+def _gcp_sightings(site: _Site, flight: _Flight, o: PlanOptions, warnings_: list[str]) -> _Control:
+    """Where the GCPs go (or where given ones are), the marker size the largest GSD at any GCP
+    needs, and the photos that see each marker whole (expected, sure, at most)."""
+    rows, notes = _gcp_positions(
+        o.gcps, o.gcp_crs, site.area, site.work_crs, site.surface, site.across_w, o.marker_dictionary,
+        float(flight.z.min()),
+    )  # fmt: skip
+    warnings_ += notes
+    module_px = min_module_px(o.marker_dictionary)
+    n_cells = get_dictionary(o.marker_dictionary).markerSize + 2
     # The print size from the largest GSD at any GCP among the photos that see it; then the counts
     # with markers of that size (whole in the frame, its white border included).
     at_gcps = [
-        _seen_by(centres, rots, intr, np.array([g["x"], g["y"], g["z"]]), margin, 0.0)["gsd_max_cm"] for g in gcp_rows
+        _seen_by(flight.centres, flight.rots, site.intr, np.array([g["x"], g["y"], g["z"]]), o.margin, 0.0)[
+            "gsd_max_cm"
+        ]
+        for g in rows
     ]
     seen = [v for v in at_gcps if math.isfinite(v)]
-    worst_gsd_m = (max(seen) if seen else float(np.nanmax(table.gsd_max_cm))) / 100.0
+    worst_gsd_m = (max(seen) if seen else float(np.nanmax(flight.table.gsd_max_cm))) / 100.0
     marker_m = _round_up(n_cells * module_px * DETECTION_SAFETY * worst_gsd_m, MIN_MARKER_STEP_M)
-    laid_m = marker_m if marker_size_m is None else float(marker_size_m)
+    laid_m = marker_m if o.marker_size_m is None else float(o.marker_size_m)
     if laid_m < marker_m:
         warnings_.append(
             f"markers of {laid_m * 100:.0f} cm are too small for this plan: {marker_m * 100:.0f} cm "
-            f"are needed ({marker_dictionary} at up to {worst_gsd_m * 100:.2f} cm GSD)"
+            f"are needed ({o.marker_dictionary} at up to {worst_gsd_m * 100:.2f} cm GSD)"
         )
-    for g in gcp_rows:
-        g.update(
-            _seen_by(centres, rots, intr, np.array([g["x"], g["y"], g["z"]]), margin, laid_m * (n_cells + 2) / n_cells)
-        )
-    for g in gcp_rows:
+    quiet = laid_m * (n_cells + 2) / n_cells
+    for g in rows:
+        g.update(_seen_by(flight.centres, flight.rots, site.intr, np.array([g["x"], g["y"], g["z"]]), o.margin, quiet))
+    for g in rows:
         g["marker_side_px"] = marker_m / (g["gsd_max_cm"] / 100.0) if g["n_photos"] else float("nan")
         g["marker_size_m"] = marker_m
-    few = [g["name"] for g in gcp_rows if g["n_photos_sure"] < 3]
+    few = [g["name"] for g in rows if g["n_photos_sure"] < 3]
     if few:
         warnings_.append(f"GCPs not surely seen in 3 planned photos: {', '.join(few)}")
-    s_gcp.progress(1.0)
+    return _Control(rows, marker_m, laid_m, n_cells, module_px, worst_gsd_m)
 
+
+@dataclass(frozen=True)
+class _Files:
+    plan: Path
+    overlap: Path
+    kml: Path
+    litchi: Path
+    sheets: list[Path]
+    coverage: dict[str, Any]
+    front_m: float
+    side_m: float
+
+
+def _write(
+    output: Path,
+    site: _Site,
+    flight: _Flight,
+    control: _Control,
+    o: PlanOptions,
+    warnings_: list[str],
+    s_write: Feedback,
+) -> _Files:
+    """The overlap raster, plan.gpkg (aoi, photos, lines, footprints, gcps), plan.kml, litchi.csv
+    and the markers' print sheets; the coverage and overlaps measured on the footprints."""
     import geopandas as gpd
 
-    from geoortho.core.outputs import write_json, write_vector
+    output.mkdir(parents=True, exist_ok=True)
+    overlap_path = output / "overlap.tif"
+    from geoortho.photos.footprint import write_overlap
 
-    n_lines = len(lines)
+    write_overlap(overlap_path, flight.polys, site.work_crs, max(0.05, site.across_w / 40.0))
+    coverage = _coverage(overlap_path, site.area, o.front_overlap, o.side_overlap, o.grid)
+    front_m, side_m = line_overlaps(flight.polys, [s["line"] for s in flight.shots])
+    crs, shots, lines, rows = site.work_crs, flight.shots, flight.lines, control.rows
     photos_df = gpd.GeoDataFrame(
         {
             "name": [f"P{i + 1:04d}" for i in range(len(shots))],
             "index": np.arange(len(shots)),
             "line": [s["line"] for s in shots],
-            "altitude_m": z - z_takeoff,
-            "agl_m": agl_photo,
-            "z_m": z,
-            "heading_deg": heading_true,
-            "grid_heading_deg": grid_heading,
-            "pitch_deg": np.full(len(shots), pitch_deg),
-            "gsd_cm": table.gsd_cm,
-            "longitude_deg": lonlat[:, 0],
-            "latitude_deg": lonlat[:, 1],
+            "altitude_m": flight.z - site.z_takeoff,
+            "agl_m": flight.agl_photo,
+            "z_m": flight.z,
+            "heading_deg": flight.heading_true,
+            "grid_heading_deg": flight.grid_heading,
+            "pitch_deg": np.full(len(shots), o.pitch_deg),
+            "gsd_cm": flight.table.gsd_cm,
+            "longitude_deg": flight.lonlat[:, 0],
+            "latitude_deg": flight.lonlat[:, 1],
         },
-        geometry=shapely.points(xy),
-        crs=work_crs,
+        geometry=shapely.points(flight.xy),
+        crs=crs,
     )
     foot_df = gpd.GeoDataFrame(
         {
             "name": photos_df["name"],
             "line": photos_df["line"],
-            "gsd_cm": table.gsd_cm,
-            "gsd_min_cm": table.gsd_min_cm,
-            "gsd_max_cm": table.gsd_max_cm,
-            "area_m2": shapely.area(np.asarray(polys)),
-            "clipped": table.clipped,
+            "gsd_cm": flight.table.gsd_cm,
+            "gsd_min_cm": flight.table.gsd_min_cm,
+            "gsd_max_cm": flight.table.gsd_max_cm,
+            "area_m2": shapely.area(np.asarray(flight.polys)),
+            "clipped": flight.table.clipped,
         },
-        geometry=polys,
-        crs=work_crs,
+        geometry=flight.polys,
+        crs=crs,
     )
     lines_df = gpd.GeoDataFrame(
         {
@@ -593,41 +758,69 @@ def plan(
             "n_photos": [ln["n_photos"] for ln in lines],
         },
         geometry=[shapely.LineString(ln["ends"]) for ln in lines],
-        crs=work_crs,
+        crs=crs,
     )
     gcp_df = gpd.GeoDataFrame(
-        {
-            k: [g[k] for g in gcp_rows]
-            for k in (
-                "name",
-                "marker_id",
-                "role",
-                "z_m",
-                "n_photos",
-                "n_photos_sure",
-                "n_photos_max",
-                "gsd_max_cm",
-                "marker_side_px",
-                "marker_size_m",
-            )
-        },
-        geometry=shapely.points([(g["x"], g["y"]) for g in gcp_rows]) if gcp_rows else [],
-        crs=work_crs,
+        {k: [g[k] for g in rows] for k in _GCP_LAYER_FIELDS},
+        geometry=shapely.points([(g["x"], g["y"]) for g in rows]) if rows else [],
+        crs=crs,
     )
-    aoi_df = gpd.GeoDataFrame({"area_ha": [area_geom.area / 1e4]}, geometry=[area_geom], crs=work_crs)
+    aoi_df = gpd.GeoDataFrame({"area_ha": [site.area.area / 1e4]}, geometry=[site.area], crs=crs)
     plan_path = write_vector(
         output / "plan.gpkg",
         {"photos": photos_df, "lines": lines_df, "footprints": foot_df, "gcps": gcp_df, "aoi": aoi_df},
     )
-    kml = _write_kml(output / "plan.kml", photos_df, lines_df, gcp_df, area_geom, work_crs, terrain)
-    litchi, litchi_note = _write_litchi(output / "litchi.csv", photos_df, lines_df, work_crs, speed, along, terrain)
+    kml = _write_kml(output / "plan.kml", photos_df, lines_df, gcp_df, site.area, crs, o.terrain)
+    litchi, litchi_note = _write_litchi(
+        output / "litchi.csv", photos_df, lines_df, crs, flight.speed, site.along, o.terrain
+    )
     if litchi_note:
         warnings_.append(litchi_note)
-    sheets = _write_marker_sheets(output / "markers", gcp_rows, marker_dictionary, marker_m)
+    sheets = _write_marker_sheets(output / "markers", rows, o.marker_dictionary, control.marker_m)
     s_write.progress(0.7)
+    return _Files(plan_path, overlap_path, kml, litchi, sheets, coverage, front_m, side_m)
 
-    gsd = np.asarray(table.gsd_cm, float)
-    summary = {
+
+_GCP_LAYER_FIELDS = (
+    "name",
+    "marker_id",
+    "role",
+    "z_m",
+    "n_photos",
+    "n_photos_sure",
+    "n_photos_max",
+    "gsd_max_cm",
+    "marker_side_px",
+    "marker_size_m",
+)
+_GCP_SUMMARY_FIELDS = (
+    "name",
+    "marker_id",
+    "role",
+    "x",
+    "y",
+    "z_m",
+    "n_photos",
+    "n_photos_sure",
+    "n_photos_max",
+    "gsd_max_cm",
+    "marker_side_px",
+)
+
+
+def _summary(
+    site: _Site,
+    flight: _Flight,
+    control: _Control,
+    files: _Files,
+    o: PlanOptions,
+    warnings_: list[str],
+    seconds: float,
+) -> dict[str, Any]:
+    """summary.json: the camera, the ground, the flight, the overlaps measured, the GCPs and markers."""
+    cam = site.cam
+    gsd = np.asarray(flight.table.gsd_cm, float)
+    return {
         "camera": {
             "name": cam.name,
             "sensor_width_mm": cam.sensor_width_mm,
@@ -637,117 +830,67 @@ def plan(
             "focal_px": cam.focal_px,
             "source": cam.source,
         },
-        "crs": crs_to_text(work_crs),
-        "aoi_area_ha": area_geom.area / 1e4,
+        "crs": crs_to_text(site.work_crs),
+        "aoi_area_ha": site.area.area / 1e4,
         "ground": {
-            "model": ground_label,
-            "takeoff_ground_m": z_takeoff,
-            "min_m": ground["min"],
-            "median_m": ground["median"],
-            "max_m": ground["max"],
+            "model": site.ground_label,
+            "takeoff_ground_m": site.z_takeoff,
+            "min_m": site.ground["min"],
+            "median_m": site.ground["median"],
+            "max_m": site.ground["max"],
         },
-        "terrain": terrain,
-        "altitude_m": agl,
-        "altitude_meaning": "above the take-off" if terrain == "constant" else "above the ground under each photo",
-        "target_gsd_cm": gsd_cm,
+        "terrain": o.terrain,
+        "altitude_m": site.agl,
+        "altitude_meaning": "above the take-off" if o.terrain == "constant" else "above the ground under each photo",
+        "target_gsd_cm": o.gsd_cm,
         "gsd_cm": {"min": float(np.nanmin(gsd)), "median": float(np.nanmedian(gsd)), "max": float(np.nanmax(gsd))},
-        "pitch_deg": pitch_deg,
-        "grid": grid,
-        "directions_grid_deg": directions,
-        "front_overlap_pct": front_overlap,
-        "side_overlap_pct": side_overlap,
+        "pitch_deg": o.pitch_deg,
+        "grid": o.grid,
+        "directions_grid_deg": flight.directions,
+        "front_overlap_pct": o.front_overlap,
+        "side_overlap_pct": o.side_overlap,
         "spacing": {
-            "along_m": along,
-            "across_m": across,
-            "footprint_along_m": along_len,
-            "footprint_across_m": across_w,
-            "planned_at_agl_m": spacing_agl,
+            "along_m": site.along,
+            "across_m": site.across,
+            "footprint_along_m": site.along_len,
+            "footprint_across_m": site.across_w,
+            "planned_at_agl_m": site.spacing_agl,
         },
-        "overlap_on_footprints_pct": {"front": front_m, "side": side_m},
-        "photos": len(shots),
-        "lines": n_lines,
-        "flight_length_m": length_m,
-        "speed_m_s": speed,
-        "flight_time_min": length_m / speed / 60.0,
-        "photo_interval_s": along / speed,
-        "coverage": coverage,
-        "gcps": [
-            {
-                k: g[k]
-                for k in (
-                    "name",
-                    "marker_id",
-                    "role",
-                    "x",
-                    "y",
-                    "z_m",
-                    "n_photos",
-                    "n_photos_sure",
-                    "n_photos_max",
-                    "gsd_max_cm",
-                    "marker_side_px",
-                )
-            }
-            for g in gcp_rows
-        ],
+        "overlap_on_footprints_pct": {"front": files.front_m, "side": files.side_m},
+        "photos": len(flight.shots),
+        "lines": len(flight.lines),
+        "flight_length_m": flight.length_m,
+        "speed_m_s": flight.speed,
+        "flight_time_min": flight.length_m / flight.speed / 60.0,
+        "photo_interval_s": site.along / flight.speed,
+        "coverage": files.coverage,
+        "gcps": [{k: g[k] for k in _GCP_SUMMARY_FIELDS} for g in control.rows],
         "gcp_sightings": f"expected count with the flown pose off the plan by {FLIGHT_POSITION_SIGMA_M} m and "
         f"{FLIGHT_ATTITUDE_SIGMA_DEG} deg (1 sigma); sure: probability >= 0.9; max: >= 0.1",
         "gcp_rule": "given positions"
-        if gcps and not gcps.strip().isdigit()
+        if o.gcps and not o.gcps.strip().isdigit()
         else "5 up to 5 ha (corners and centre), one more per further 10 ha, at most 40; "
         "about 60 % on the perimeter, the rest spread inside",
         "marker": {
-            "dictionary": marker_dictionary,
-            "size_m": marker_m,
-            "laid_size_m": laid_m,
-            "cells": n_cells,
-            "min_module_px": module_px,
+            "dictionary": o.marker_dictionary,
+            "size_m": control.marker_m,
+            "laid_size_m": control.laid_m,
+            "cells": control.n_cells,
+            "min_module_px": control.module_px,
             "safety": DETECTION_SAFETY,
             "rule": "black square = cells x min_module_px x safety x the largest GSD at a GCP, "
             "rounded up to 5 cm; a one-module white border around it",
         },
         "files": {
-            "plan": plan_path.name,
-            "overlap": overlap_path.name,
-            "kml": kml.name,
-            "litchi": litchi.name,
-            "markers": [p.name for p in sheets],
+            "plan": files.plan.name,
+            "overlap": files.overlap.name,
+            "kml": files.kml.name,
+            "litchi": files.litchi.name,
+            "markers": [p.name for p in files.sheets],
         },
         "warnings": warnings_,
-        "seconds": time.perf_counter() - t0,
+        "seconds": seconds,
     }
-    summary_path = write_json(output / "summary.json", summary)
-    s_write.progress(1.0)
-    for w in warnings_:
-        fb.warning(w)
-    fb.info(
-        f"plan: {len(shots)} photos on {n_lines} lines, {length_m / 1000:.2f} km, "
-        f"{summary['flight_time_min']:.1f} min at {speed:.1f} m/s; {agl:.1f} m "
-        f"{summary['altitude_meaning']}, GSD {summary['gsd_cm']['median']:.2f} cm; "
-        f"{len(gcp_rows)} GCPs, markers {marker_m * 100:.0f} cm"
-    )
-    gpkg = str(plan_path)
-    return PlanResult(
-        output=output,
-        plan=plan_path,
-        photos=f"{gpkg}|layername=photos",
-        lines=f"{gpkg}|layername=lines",
-        footprints=f"{gpkg}|layername=footprints",
-        gcps=f"{gpkg}|layername=gcps",
-        overlap=overlap_path,
-        kml=kml,
-        litchi=litchi,
-        summary=summary_path,
-        n_photos=len(shots),
-        n_lines=n_lines,
-        flight_length_m=length_m,
-        flight_time_min=summary["flight_time_min"],
-        altitude_m=agl,
-        median_gsd_cm=summary["gsd_cm"]["median"],
-        marker_size_m=marker_m,
-        crs=crs_to_text(work_crs),
-        warnings=tuple(warnings_),
-    )
 
 
 def _check_options(
