@@ -370,3 +370,65 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
     assert status(replace(unread, refused_on="score", reason="best aruco match scores 0.70"), read) != DETECTED
     verified_only = ("b/DJI_0002.JPG", [replace(read[1][0], attempt="verified")], "", 0.0)
     assert status(unread, verified_only) != DETECTED  # proven by decoding, not by another fit
+
+
+def test_coded_render_by_table_equals_the_reflectance():
+    """A coded marker's model read from its cell table (the fits' fast path) is the same, sample
+    for sample, as target_reflectance's: any place, turn, scale, blur and defocus."""
+    import numpy as np
+
+    from geoortho.gcp import targets
+    from geoortho.gcp.markers import marker_cells
+
+    cells = marker_cells("DICT_4X4_50", 23)
+    ys, xs = np.mgrid[0:30, 0:30]
+    rend = targets._Renderer("aruco", cells, xs, ys)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        A = targets._affine(np.eye(2) * rng.uniform(8, 20), rng.uniform(0, 360), 1.0, *rng.uniform(-0.1, 0.1, 2))
+        args = (15 + rng.uniform(-3, 3), 15 + rng.uniform(-3, 3), A, rng.uniform(0, 10), rng.uniform(0, 180), 0.7)
+        value, cover = rend.render(*args)
+        u, v = rend.uv(*args)
+        r = targets._fit_reflectance("aruco", u, v, cells, targets.CROSS_BAR)
+        ok = np.isfinite(r)
+        assert np.allclose(cover, ok.mean(axis=1))
+        assert np.allclose(value, np.where(ok, r, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1))
+
+
+@pytest.mark.parametrize("style", ["line", "shake"])
+def test_motion_blur_drawn_another_way_keeps_its_length_and_direction(style):
+    """synth's other blur kernels: normalised, as long as asked (to a pixel) and along the angle."""
+    import math
+
+    import numpy as np
+
+    from geoortho.synthetic.survey import _other_motion_kernel
+
+    for length, angle in ((4.0, 0.0), (7.3, 30.0), (10.0, 115.0)):
+        k = _other_motion_kernel(length, angle, style, np.random.default_rng(1))
+        assert abs(k.sum() - 1.0) < 1e-5
+        r = k.shape[0] // 2
+        rows, cols = np.nonzero(k > 0)
+        a = math.radians(angle)
+        along = (cols - r) * math.cos(a) - (rows - r) * math.sin(a)
+        assert abs(np.ptp(along) - length) <= 2.0, (style, length, np.ptp(along))
+
+
+def test_glare_styles_differ_as_said():
+    """spot: small and saturating; bloom: 1.5-3 sides across (0.9-1.8 at half its height), its
+    core saturating; sheen: wide, elongated, never clipping on its own."""
+    import numpy as np
+
+    from geoortho.synthetic.survey import _glare
+
+    uu, vv = np.meshgrid(np.arange(200.0), np.arange(200.0))
+    side = 15.0
+    for style, (lo_w, hi_w), peak_lo, peak_hi in (
+        ("spot", (0.2, 1.0), 0.5, 1.0), ("bloom", (0.85, 1.85), 0.8, 1.6), ("sheen", (2.0, 10.0), 0.25, 0.45)
+    ):  # fmt: skip
+        for seed in range(5):
+            g = _glare(np.random.default_rng(seed), style, 100.0, 100.0, side, uu, vv)
+            assert peak_lo * 0.95 <= g.max() <= peak_hi
+            half = (g >= 0.5 * g.max()).sum()
+            width = 2 * np.sqrt(half / np.pi) / side  # full width at half maximum, in sides (a disc's)
+            assert lo_w <= width <= hi_w, (style, seed, width)

@@ -57,6 +57,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("blur_px", "number", unit="px", minimum=0.0, maximum=200.0, advanced=True),
             Param("glare", "number", minimum=0.0, maximum=1.0, advanced=True),
             Param("maker", "enum", advanced=True),
+            Param("glare_style", "enum", advanced=True),
+            Param("blur_style", "enum", advanced=True),
         ),
         outputs=(
             Output("output", "folder"),

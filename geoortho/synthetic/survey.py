@@ -115,6 +115,14 @@ CAMERA_MODEL = "FC6310"
 # Whose metadata the photos carry (synth's ``maker``): the same attitude and position written
 # with each maker family's tags and conventions (geoortho.photos.metadata._FAMILIES names the documents).
 Maker = Literal["dji", "autel", "parrot", "skydio", "pix4d", "sensefly", "exif"]
+#: How glare is drawn on a target (``glare``): a small specular spot saturating part of it (spot), a
+#: bloom 1.5-3 marker sides across whose core saturates (bloom), or a soft elongated sheen of a few
+#: sides that lifts the blacks without clipping (sheen). One renderer's glare is not another's:
+#: the detector must hold on the family.
+GlareStyle = Literal["spot", "bloom", "sheen"]
+#: How motion blur is drawn (``blur_px``): the exact path spread bilinearly (exact), a line drawn by
+#: OpenCV's rasteriser at a whole length (line), or a shaken, curved path (shake).
+BlurStyle = Literal["exact", "line", "shake"]
 MAKERS: tuple[str, ...] = get_args(Maker)
 MAKER_MAKE = {
     "dji": "DJI",
@@ -1035,14 +1043,26 @@ def _init_worker(scene: Scene) -> None:
     cv2.setNumThreads(1)
 
 
-def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float]) -> dict[str, Any]:
-    shot, intr, hard, seed, path, glare = args
+def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float, str, str]) -> dict[str, Any]:
+    shot, intr, hard, seed, path, glare, glare_style, blur_style = args
     assert _SCENE is not None
-    return render_photo(_SCENE, shot, intr, hard=hard, seed=seed, path=Path(path), glare=glare)
+    return render_photo(
+        _SCENE, shot, intr, hard=hard, seed=seed, path=Path(path), glare=glare, glare_style=glare_style,
+        blur_style=blur_style,
+    )  # fmt: skip
 
 
 def render_photo(
-    scene: Scene, shot: Shot, intr: Intrinsics, *, hard: bool, seed: int, path: Path | None, glare: float = 0.0
+    scene: Scene,
+    shot: Shot,
+    intr: Intrinsics,
+    *,
+    hard: bool,
+    seed: int,
+    path: Path | None,
+    glare: float = 0.0,
+    glare_style: str = "spot",
+    blur_style: str = "exact",
 ) -> dict[str, Any]:
     """Render one photo (and write it when ``path`` is given); return its marker truth."""
     rng = np.random.default_rng(seed)
@@ -1070,9 +1090,10 @@ def render_photo(
         if hard and rng.random() < 0.3:  # sun glare on the marker
             gx, gy = m["x_px"] + rng.normal(0, 4), m["y_px"] + rng.normal(0, 4)
             amp, sigma = 0.45, m["size_px"] * 0.35
-        elif not hard and glare > 0 and opt.random() < glare:  # a specular spot, saturating part of it
-            gx, gy = m["x_px"] + opt.normal(0, 0.25) * m["size_px"], m["y_px"] + opt.normal(0, 0.25) * m["size_px"]
-            amp, sigma = float(opt.uniform(0.5, 1.0)), m["size_px"] * float(opt.uniform(0.15, 0.3))
+        elif not hard and glare > 0 and opt.random() < glare:
+            img = img + _glare(opt, glare_style, m["x_px"], m["y_px"], m["size_px"], uu, vv)[..., None]
+            m["glare"] = True
+            continue
         else:
             continue
         g = np.exp(-((uu - gx) ** 2 + (vv - gy) ** 2) / (2 * sigma**2))
@@ -1081,12 +1102,76 @@ def render_photo(
     blur_deg = 0.0
     if shot.blur_px > 0:
         blur_deg = float(rng.uniform(0, 180) if hard else opt.uniform(0, 180))
-        img = np.asarray(cv2.filter2D(img, -1, motion_kernel(shot.blur_px, blur_deg)), np.float32)
+        kernel = (
+            motion_kernel(shot.blur_px, blur_deg)
+            if hard or blur_style == "exact"
+            else _other_motion_kernel(shot.blur_px, blur_deg, blur_style, opt)
+        )
+        img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
     img = img + rng.normal(0, 0.008, img.shape).astype(np.float32)
     out = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if path is not None:
         _write_jpeg(path, out, shot, intr)
     return {"image": shot.name, "markers": markers, "blur_px": shot.blur_px, "blur_deg": blur_deg}
+
+
+def _glare(
+    rng: np.random.Generator, style: str, x_px: float, y_px: float, side_px: float, uu: np.ndarray, vv: np.ndarray
+) -> np.ndarray:
+    """One glare of ``style`` (:data:`GlareStyle`) near a target of ``side_px`` at (x, y): the light
+    it adds to each pixel (1.0 = white)."""
+    if style == "bloom":
+        # a bloom 1.5-3 sides across, its core saturating, near the target
+        gx, gy = x_px + rng.normal(0, 0.4) * side_px, y_px + rng.normal(0, 0.4) * side_px
+        amp, sx = float(rng.uniform(0.8, 1.6)), side_px * float(rng.uniform(0.75, 1.5)) / 2.0
+        sy, turn = sx, 0.0
+    elif style == "sheen":
+        # a soft veil, elongated and turned, that lifts the blacks without clipping
+        gx, gy = x_px + rng.normal(0, 0.5) * side_px, y_px + rng.normal(0, 0.5) * side_px
+        amp, sx = float(rng.uniform(0.25, 0.45)), side_px * float(rng.uniform(1.5, 2.5))
+        sy, turn = sx / float(rng.uniform(2.0, 3.0)), float(rng.uniform(0, math.pi))
+    else:
+        # a specular spot, saturating part of the target
+        gx, gy = x_px + rng.normal(0, 0.25) * side_px, y_px + rng.normal(0, 0.25) * side_px
+        amp, sx = float(rng.uniform(0.5, 1.0)), side_px * float(rng.uniform(0.15, 0.3))
+        sy, turn = sx, 0.0
+    # only the pixels within 4 sigma: the photo is large, the glare is not
+    reach = 4.0 * max(sx, sy)
+    rows = slice(max(0, int(gy - reach)), max(0, int(gy + reach) + 1))
+    cols = slice(max(0, int(gx - reach)), max(0, int(gx + reach) + 1))
+    out = np.zeros(uu.shape, np.float32)
+    du, dv = uu[rows, cols] - gx, vv[rows, cols] - gy
+    a = du * math.cos(turn) + dv * math.sin(turn)
+    b = -du * math.sin(turn) + dv * math.cos(turn)
+    out[rows, cols] = amp * np.exp(-0.5 * ((a / sx) ** 2 + (b / sy) ** 2))
+    return out
+
+
+def _other_motion_kernel(length_px: float, angle_deg: float, style: str, rng: np.random.Generator) -> np.ndarray:
+    """Motion blur drawn another way than :func:`motion_kernel`: ``line``, OpenCV's line rasteriser
+    between whole-pixel ends (the length rounded); ``shake``, a curved path (a bow of up to a fifth
+    of the length to one side) with a shutter that opens and closes gradually."""
+    r = int(math.ceil(length_px / 2)) + 2
+    a = math.radians(angle_deg)
+    if style == "line":
+        img = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
+        half = max(1, round(length_px)) / 2
+        ends = [(round(r + s * half * math.cos(a)), round(r - s * half * math.sin(a))) for s in (-1, 1)]
+        cv2.line(img, ends[0], ends[1], 1.0, 1, cv2.LINE_8)
+        return img / img.sum()
+    n = max(8, int(math.ceil(16 * length_px)))
+    t = (np.arange(n) + 0.5) / n - 0.5
+    bow = float(rng.uniform(-0.2, 0.2)) * length_px
+    along, across = t * length_px, bow * (1 - 4 * t * t)
+    x = r + along * math.cos(a) - across * math.sin(a)
+    y = r - along * math.sin(a) - across * math.cos(a)
+    weight = np.sin(np.pi * (t + 0.5)) ** 0.5  # the shutter's ramp
+    img = np.zeros((2 * r + 1, 2 * r + 1), np.float64)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        np.add.at(img, (y0 + dy, x0 + dx), wgt * weight)
+    return (img / img.sum()).astype(np.float32)
 
 
 def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
@@ -1407,6 +1492,8 @@ def synth(
     blur_px: float = 0.0,
     glare: float = 0.0,
     maker: Maker = "dji",
+    glare_style: GlareStyle = "spot",
+    blur_style: BlurStyle = "exact",
     *,
     feedback: Feedback | None = None,
 ) -> SynthResult:
@@ -1456,6 +1543,12 @@ def synth(
     glare : float
         Share (0–1) of the targets in each photo under a specular glare spot that saturates
         part of them (markers.json marks each).
+    glare_style : str
+        How the glare is drawn: spot (a small specular spot), bloom (1.5–3 marker sides across,
+        its core saturating) or sheen (a soft elongated veil of a few sides, not clipping).
+    blur_style : str
+        How the motion blur is drawn: exact (the path spread over the pixels it crosses), line
+        (OpenCV's line rasteriser at a whole length) or shake (a curved path, the shutter ramping).
     maker : str
         Whose metadata tags the photos carry: dji (drone-dji:), autel (drone:), parrot
         (drone-parrot: and Camera:), skydio (drone-skydio: structs), pix4d (Camera:, as MicaSense
@@ -1539,11 +1632,27 @@ def synth(
     )
     step_scene.progress(1.0)
 
-    tasks = [(s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name), glare) for i, s in enumerate(shots)]
+    tasks = [
+        (s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name), glare, glare_style, blur_style)
+        for i, s in enumerate(shots)
+    ]
     results: list[dict[str, Any]] = map_ordered(
         _render_task, tasks, workers=workers, initializer=_init_worker, initargs=(scene,), feedback=step_render
     )
     _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth, pathologies, undulation)
+    if glare or blur_px:
+        from geoortho.core.outputs import write_json
+
+        # how the degradations were drawn, beside the survey's truth
+        info_path = truth_dir / "survey.json"
+        info = json.loads(info_path.read_text())
+        info["degradations"] = {
+            "glare": glare,
+            "glare_style": glare_style,
+            "blur_px": blur_px,
+            "blur_style": blur_style,
+        }
+        write_json(info_path, info)
     return SynthResult(
         output=output,
         images=images_dir,
