@@ -105,6 +105,17 @@ def _on_grid(path, transform, crs, shape):
     return out
 
 
+def _with_source(path, source_path):
+    """A DSM or DTM (NaN where none) and its source raster, on the same grid (checked)."""
+    with rasterio.open(path) as ds:
+        z = ds.read(1, masked=True).filled(np.nan)
+        t, crs = ds.transform, ds.crs
+    with rasterio.open(source_path) as ds:
+        source = ds.read(1)
+        assert ds.transform == t and ds.nodata == 0
+    return z, source, t, crs
+
+
 PRESET = "tiny"
 
 
@@ -137,12 +148,7 @@ def test_free_headings_give_a_depth_map_for_every_photo(free_heading):
 
 def test_the_dsm_covers_the_ground_two_photos_saw_and_says_how(free_heading):
     s, _, _, r_dem, _ = free_heading
-    with rasterio.open(r_dem.dsm) as ds:
-        z = ds.read(1, masked=True).filled(np.nan)
-        t, crs = ds.transform, ds.crs
-    with rasterio.open(r_dem.dsm_source) as ds:
-        source = ds.read(1)
-        assert ds.transform == t and ds.nodata == 0
+    z, source, t, crs = _with_source(r_dem.dsm, r_dem.dsm_source)
     seen = _counts_on(s.truth / "footprints.gpkg", t, z.shape)
     # grid's own extent: the truth's ground seen by >= 2 beyond it counts as missed
     assert np.isfinite(z[seen >= 2]).mean() >= 0.98
@@ -177,11 +183,7 @@ def test_the_dtm_is_the_bare_earth_to_the_edge(free_heading):
     survey's edge was measured (one pair there: no second one can agree) it was interpolated out
     to the rim: RMSE 0.29 m (seed 3) and 0.48 m (seed 6); now 0.14 and 0.16 m."""
     s, _, _, r_dem, _ = free_heading
-    with rasterio.open(r_dem.dtm) as ds:
-        z = ds.read(1, masked=True).filled(np.nan)
-        t, crs = ds.transform, ds.crs
-    with rasterio.open(r_dem.dtm_source) as ds:
-        source = ds.read(1)
+    z, source, t, crs = _with_source(r_dem.dtm, r_dem.dtm_source)
     seen = _counts_on(s.truth / "footprints.gpkg", t, z.shape)
     truth = _on_grid(s.dtm, t, crs, z.shape)
     both = (seen >= 2) & np.isfinite(truth)
@@ -218,11 +220,7 @@ def test_a_wood_drawn_the_other_way(tmp_path):
     r_sfm = geoortho.sfm(s.images, tmp_path / "sfm", gcp_list=found.output, **SFM_FAST)
     r_dense = geoortho.dense(r_sfm.output, s.images, tmp_path / "dense.laz", max_image_size=640)
     r_dem = geoortho.dem(r_dense.output, tmp_path / "dsm.tif", sfm=r_sfm.output, method="idw")
-    with rasterio.open(r_dem.dsm) as ds:
-        z = ds.read(1, masked=True).filled(np.nan)
-        t, crs = ds.transform, ds.crs
-    with rasterio.open(r_dem.dsm_source) as ds:
-        source = ds.read(1)
+    z, source, t, crs = _with_source(r_dem.dsm, r_dem.dsm_source)
     seen = _counts_on(s.truth / "footprints.gpkg", t, z.shape)
     truth, flat_truth = _on_grid(s.dsm, t, crs, z.shape), _on_grid(s.dtm, t, crs, z.shape)
     _assert_the_wood_and_the_cars_are_measured(s, z, source, truth, flat_truth, seen, t)

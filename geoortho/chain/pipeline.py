@@ -583,6 +583,20 @@ def _project_lock(root: Path) -> Iterator[None]:
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
+@dataclass
+class _RunState:
+    """What one run of the stages carries from stage to stage."""
+
+    ledger: Ledger
+    hasher: Hasher
+    versions: dict[str, str]
+    t_run: float
+    results: list[StageRun] = field(default_factory=list)
+    done: Done = field(default_factory=dict)
+    problems: list[dict[str, str]] = field(default_factory=list)
+    failure: BaseException | None = None
+
+
 def _run_stages(
     project: Project,
     root: Path,
@@ -592,19 +606,15 @@ def _run_stages(
     fb: Feedback,
     force: bool,
 ) -> list[StageRun]:
+    """Each stage in turn: skipped when it does not apply, reused when its fingerprint and products
+    are unchanged, else run and recorded in the ledger; then the run itself is recorded."""
     from geoortho.processing.registry import run_algorithm
 
-    t_run = time.perf_counter()
-    names = [s.name for s in stages]
     ledger = Ledger(root / LEDGER_NAME, force=force)
-    hasher = Hasher(ledger.data.get("hash_cache"))
-    versions = _versions()
+    state = _RunState(ledger, Hasher(ledger.data.get("hash_cache")), _versions(), time.perf_counter())
     run_one = runner or (lambda name, values, f: run_algorithm(name, values, feedback=f))
+    names = [s.name for s in stages]
     forced = False
-    results: list[StageRun] = []
-    done: Done = {}
-    problems: list[dict[str, str]] = []
-    failure: BaseException | None = None
     weights = [s.weight if s.applies(project) else 0.01 for s in stages]
     steps = split(fb, weights)
     total = sum(weights)
@@ -613,127 +623,177 @@ def _run_stages(
         fb.stage(stage.name, index, len(stages), start / total, weight / total)
         start += weight
         forced = forced or stage.name == rerun_from
-        if failure is not None and stage.name != "report":
-            results.append(StageRun(stage.name, "not run", 0.0, {}))
+        if state.failure is not None and stage.name != "report":
+            state.results.append(StageRun(stage.name, "not run", 0.0, {}))
             continue
         if not stage.applies(project):
             ledger.data["stages"].pop(stage.name, None)
-            results.append(StageRun(stage.name, "skipped", 0.0, {}))
+            state.results.append(StageRun(stage.name, "skipped", 0.0, {}))
             step.progress(1.0)
             continue
-        values = {k: v for k, v in stage.values(project, done).items() if v is not None}
-        values.update(project.options.get(stage.name, {}))
-        hashes = {
-            k: hasher.photos(Path(values[k])) if k == "images" else hasher.path(Path(values[k]))
-            for k in stage.inputs
-            if k in values
-        }
-        if stage.name == "report":
-            hashes.update(_report_inputs(ledger, [n for n in names if n != "report"], problems))
-            # what the report shows of this run (not part of its fingerprint: a run that changed
-            # nothing keeps the report the last change made)
-            ledger.data["problems"] = problems
-            elapsed = time.perf_counter() - t_run
-            ledger.data["current_run"] = {
-                "started": time.time() - elapsed,
-                "seconds_before_report": round(elapsed, 3),
-                "overhead_seconds": round(max(0.0, elapsed - sum(r.seconds for r in results)), 3),
-                "stages": {r.name: r.status for r in results},
-            }
-            ledger.save()
-        fp = _fingerprint(stage, values, hashes, versions, root)
-        before = ledger.stage(stage.name)
-        if (
-            not forced
-            and before.get("status") == "done"
-            and before.get("fingerprint") == fp
-            and _outputs_there(from_ledger(before.get("outputs", {}), root))
-            and _products_intact(before, root, hasher)
-        ):
-            outputs = from_ledger(before.get("outputs", {}), root)
-            done[stage.name] = outputs
-            problems.extend(_stage_problems(stage.name, outputs, project))
-            results.append(StageRun(stage.name, "reused", 0.0, outputs))
+        values, hashes = _stage_inputs(stage, project, state, names)
+        fp = _fingerprint(stage, values, hashes, state.versions, root)
+        if not forced and _reuse(stage, fp, project, state, root):
             fb.info(f"run: {stage.name}: unchanged, reused")
             step.progress(1.0)
             continue
-        if stage.name != "report":
-            project.folder(stage.name).mkdir(parents=True, exist_ok=True)
-            _remove_leftovers(project.folder(stage.name))
-        started = time.time()
-        ledger.set_stage(stage.name, {"status": "running", "started": started, "fingerprint": fp})
-        recorder = _Recorder(step)
-        t0 = time.perf_counter()
-        try:
-            with _PeakMemory() as memory:
-                outputs = run_one(stage.name, dict(values), recorder)
-        except BaseException as e:
-            seconds = time.perf_counter() - t0
-            status = "canceled" if isinstance(e, (CanceledError, KeyboardInterrupt)) else "failed"
-            ledger.set_stage(
-                stage.name,
-                {
-                    "status": status,
-                    "fingerprint": fp,
-                    "started": started,
-                    "seconds": seconds,
-                    "error": " ".join(str(e).split()) or type(e).__name__,
-                    "error_type": type(e).__name__,
-                    "values": to_ledger(values, root),
-                    "warnings": recorder.warnings,
-                },
-            )
-            results.append(StageRun(stage.name, status, seconds, {}))
-            if status == "canceled" or stage.name == "report":
-                raise
-            failure = e
-            problems.append({"stage": stage.name, "level": "error", "message": f"stage failed: {e}"})
-            continue
+        seconds = _execute(stage, values, hashes, fp, project, state, root, run_one, step)
+        if seconds is not None:
+            fb.info(f"run: {stage.name}: done in {seconds:.1f} s")
+    _record_run(state)
+    if state.failure is not None:
+        _raise_failure(state, root)
+    return state.results
+
+
+def _stage_inputs(
+    stage: Stage, project: Project, state: _RunState, names: list[str]
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The stage's values (from the stages before it and the project's options) and the digests of
+    its inputs; the report's also say what this run did (its hook into the ledger)."""
+    values = {k: v for k, v in stage.values(project, state.done).items() if v is not None}
+    values.update(project.options.get(stage.name, {}))
+    hasher = state.hasher
+    hashes = {
+        k: hasher.photos(Path(values[k])) if k == "images" else hasher.path(Path(values[k]))
+        for k in stage.inputs
+        if k in values
+    }
+    if stage.name == "report":
+        ledger = state.ledger
+        hashes.update(_report_inputs(ledger, [n for n in names if n != "report"], state.problems))
+        # what the report shows of this run (not part of its fingerprint: a run that changed
+        # nothing keeps the report the last change made)
+        ledger.data["problems"] = state.problems
+        elapsed = time.perf_counter() - state.t_run
+        ledger.data["current_run"] = {
+            "started": time.time() - elapsed,
+            "seconds_before_report": round(elapsed, 3),
+            "overhead_seconds": round(max(0.0, elapsed - sum(r.seconds for r in state.results)), 3),
+            "stages": {r.name: r.status for r in state.results},
+        }
+        ledger.save()
+    return values, hashes
+
+
+def _reuse(stage: Stage, fp: str, project: Project, state: _RunState, root: Path) -> bool:
+    """The stage's last run, taken as it is when its fingerprint is the same and its products are
+    there and untouched."""
+    before = state.ledger.stage(stage.name)
+    if not (
+        before.get("status") == "done"
+        and before.get("fingerprint") == fp
+        and _outputs_there(from_ledger(before.get("outputs", {}), root))
+        and _products_intact(before, root, state.hasher)
+    ):
+        return False
+    outputs = from_ledger(before.get("outputs", {}), root)
+    state.done[stage.name] = outputs
+    state.problems.extend(_stage_problems(stage.name, outputs, project))
+    state.results.append(StageRun(stage.name, "reused", 0.0, outputs))
+    return True
+
+
+def _execute(
+    stage: Stage,
+    values: dict[str, Any],
+    hashes: dict[str, Any],
+    fp: str,
+    project: Project,
+    state: _RunState,
+    root: Path,
+    run_one: Callable[[str, dict[str, Any], Feedback], dict[str, Any]],
+    step: Feedback,
+) -> float | None:
+    """Run the stage and record it in the ledger, done or failed; its seconds (None: it failed,
+    and the run goes on to the report; a cancel, or a failed report, is raised)."""
+    ledger = state.ledger
+    if stage.name != "report":
+        project.folder(stage.name).mkdir(parents=True, exist_ok=True)
+        _remove_leftovers(project.folder(stage.name))
+    started = time.time()
+    ledger.set_stage(stage.name, {"status": "running", "started": started, "fingerprint": fp})
+    recorder = _Recorder(step)
+    t0 = time.perf_counter()
+    try:
+        with _PeakMemory() as memory:
+            outputs = run_one(stage.name, dict(values), recorder)
+    except BaseException as e:
         seconds = time.perf_counter() - t0
-        ledger.data["hash_cache"] = hasher.cache
+        status = "canceled" if isinstance(e, (CanceledError, KeyboardInterrupt)) else "failed"
         ledger.set_stage(
             stage.name,
             {
-                "status": "done",
+                "status": status,
                 "fingerprint": fp,
-                "values": to_ledger(values, root),
-                "inputs": hashes,
-                "versions": versions,
                 "started": started,
                 "seconds": seconds,
-                "peak_memory_mb": {"main": round(memory.main_mb, 1), "with_workers": round(memory.total_mb, 1)},
+                "error": " ".join(str(e).split()) or type(e).__name__,
+                "error_type": type(e).__name__,
+                "values": to_ledger(values, root),
                 "warnings": recorder.warnings,
-                "outputs": to_ledger(outputs, root),
-                "products": _product_digests(outputs, hasher),
             },
         )
-        done[stage.name] = outputs
-        problems.extend(_stage_problems(stage.name, outputs, project))
-        results.append(StageRun(stage.name, "ran", seconds, outputs))
-        fb.info(f"run: {stage.name}: done in {seconds:.1f} s")
-    total_seconds = time.perf_counter() - t_run
-    ledger.data["hash_cache"] = hasher.cache
-    ledger.data["problems"] = problems
+        state.results.append(StageRun(stage.name, status, seconds, {}))
+        if status == "canceled" or stage.name == "report":
+            raise
+        state.failure = e
+        state.problems.append({"stage": stage.name, "level": "error", "message": f"stage failed: {e}"})
+        return None
+    seconds = time.perf_counter() - t0
+    ledger.data["hash_cache"] = state.hasher.cache
+    ledger.set_stage(
+        stage.name,
+        {
+            "status": "done",
+            "fingerprint": fp,
+            "values": to_ledger(values, root),
+            "inputs": hashes,
+            "versions": state.versions,
+            "started": started,
+            "seconds": seconds,
+            "peak_memory_mb": {"main": round(memory.main_mb, 1), "with_workers": round(memory.total_mb, 1)},
+            "warnings": recorder.warnings,
+            "outputs": to_ledger(outputs, root),
+            "products": _product_digests(outputs, state.hasher),
+        },
+    )
+    state.done[stage.name] = outputs
+    state.problems.extend(_stage_problems(stage.name, outputs, project))
+    state.results.append(StageRun(stage.name, "ran", seconds, outputs))
+    return seconds
+
+
+def _record_run(state: _RunState) -> None:
+    """The run in the ledger: its time, its overhead and what each stage did (the last 20 runs)."""
+    ledger = state.ledger
+    total_seconds = time.perf_counter() - state.t_run
+    ledger.data["hash_cache"] = state.hasher.cache
+    ledger.data["problems"] = state.problems
     ledger.data["runs"] = [
         *ledger.data.get("runs", [])[-19:],
         {
             "finished": time.time(),
             "seconds": round(total_seconds, 3),
             # everything but the stages themselves: hashing, fingerprints, the ledger
-            "overhead_seconds": round(max(0.0, total_seconds - sum(r.seconds for r in results)), 3),
-            "stages": {r.name: r.status for r in results},
+            "overhead_seconds": round(max(0.0, total_seconds - sum(r.seconds for r in state.results)), 3),
+            "stages": {r.name: r.status for r in state.results},
         },
     ]
     ledger.save()
-    if failure is not None:
-        name = next(r.name for r in results if r.status == "failed")
-        tail = f"earlier products kept; see {root / REPORT_NAME}"
-        if isinstance(failure, InputError):
-            raise InputError(f"stage {name}: {' '.join(str(failure).split())} ({tail})") from failure
-        raise GeoorthoError(
-            f"stage {name} failed: {type(failure).__name__}: {' '.join(str(failure).split())} ({tail})"
-        ) from failure
-    return results
+
+
+def _raise_failure(state: _RunState, root: Path) -> None:
+    """The failed stage's error, raised again naming the stage (earlier products kept)."""
+    failure = state.failure
+    assert failure is not None
+    name = next(r.name for r in state.results if r.status == "failed")
+    tail = f"earlier products kept; see {root / REPORT_NAME}"
+    if isinstance(failure, InputError):
+        raise InputError(f"stage {name}: {' '.join(str(failure).split())} ({tail})") from failure
+    raise GeoorthoError(
+        f"stage {name} failed: {type(failure).__name__}: {' '.join(str(failure).split())} ({tail})"
+    ) from failure
 
 
 def _remove_leftovers(folder: Path) -> None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import difflib
 import json
+import logging
 import math
 import os
 import time
@@ -27,18 +28,35 @@ from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from typing import Any, Literal
+from xml.sax.saxutils import escape
 
+import cv2
+import geopandas as gpd
 import numpy as np
+import pyogrio
+import rasterio
 import shapely
-from pyproj import CRS
+from pyproj import CRS, Proj
+from rasterio.features import geometry_mask, shapes
+from scipy.special import ndtr
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr
-from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
-from geoortho.core.outputs import write_json, write_vector
-from geoortho.core.surface import FlatSurface, Surface, read_surface
+from geoortho.core.crs import WGS84, crs_to_text, grid_north, horizontal_unit_m, parse_crs, transformer, utm_crs_for
+from geoortho.core.outputs import atomic_path, write_json, write_text, write_vector
+from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface, sample_grid
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.gcp.detect import SearchWindow, detect_in_image
+from geoortho.gcp.io import heights_are_placeholders, marker_id_of, read_gcp_file
 from geoortho.gcp.markers import Dictionary, get_dictionary, marker_cells
+from geoortho.photos.footprint import (
+    compute_footprints,
+    photo_cameras,
+    photos_with_altitude,
+    working_crs,
+    write_overlap,
+)
+from geoortho.photos.metadata import read_photo
 from geoortho.photos.sensors import CAMERA_SPECS
 
 __all__ = [
@@ -98,8 +116,6 @@ def resolve_camera(
     """The camera from a model name, a sample photo, or explicit values (which override either)."""
     base: CameraSpec | None = None
     if camera and Path(camera).is_file():
-        from geoortho.photos.metadata import read_photo
-
         p = read_photo(camera)
         if not (math.isfinite(p.focal_mm) and math.isfinite(p.sensor_width_mm)):
             raise InputError("the photo gives no focal length or sensor width: give --sensor-width-mm", path=camera)
@@ -159,9 +175,6 @@ def min_module_px(dictionary: str = "DICT_4X4_50") -> float:
     trial: markers rendered area-averaged at 8 rotations and sub-pixel offsets, lens blur
     (sigma 0.6 px) and noise (sigma 3 DN), searched in a predicted window as ``gcp-find`` does.
     Every larger size tried must decode too."""
-    import cv2
-
-    from geoortho.gcp.detect import SearchWindow, detect_in_image
 
     sizes = np.round(np.arange(1.0, 8.01, 0.25), 2)
     rng = np.random.default_rng(7)
@@ -192,7 +205,6 @@ def min_module_px(dictionary: str = "DICT_4X4_50") -> float:
 
 def _render_marker(cells: np.ndarray, module_px: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
     """A marker (with a one-module white quiet zone) on mid-grey ground, rotated, area-averaged."""
-    import cv2
 
     quiet = np.pad(cells, 1, constant_values=True)
     up = 16
@@ -575,7 +587,6 @@ class _Flight:
 def _fly(aoi: Path, site: _Site, o: PlanOptions, warnings_: list[str], s_grid: Feedback, s_foot: Feedback) -> _Flight:
     """The lines across the AOI, a photo every spacing along them, each photo's pose and its
     footprint on the ground; the speed the camera can keep up."""
-    from geoortho.photos.footprint import compute_footprints
 
     directions = [
         _best_direction(site.area, site.across) if o.direction_deg is None else float(o.direction_deg) % 180.0
@@ -709,11 +720,9 @@ def _write(
 ) -> _Files:
     """The overlap raster, plan.gpkg (aoi, photos, lines, footprints, gcps), plan.kml, litchi.csv
     and the markers' print sheets; the coverage and overlaps measured on the footprints."""
-    import geopandas as gpd
 
     output.mkdir(parents=True, exist_ok=True)
     overlap_path = output / "overlap.tif"
-    from geoortho.photos.footprint import write_overlap
 
     write_overlap(overlap_path, flight.polys, site.work_crs, max(0.05, site.across_w / 40.0))
     coverage = _coverage(overlap_path, site.area, o.front_overlap, o.side_overlap, o.grid)
@@ -781,31 +790,10 @@ def _write(
     return _Files(plan_path, overlap_path, kml, litchi, sheets, coverage, front_m, side_m)
 
 
-_GCP_LAYER_FIELDS = (
-    "name",
-    "marker_id",
-    "role",
-    "z_m",
-    "n_photos",
-    "n_photos_sure",
-    "n_photos_max",
-    "gsd_max_cm",
-    "marker_side_px",
-    "marker_size_m",
-)
-_GCP_SUMMARY_FIELDS = (
-    "name",
-    "marker_id",
-    "role",
-    "x",
-    "y",
-    "z_m",
-    "n_photos",
-    "n_photos_sure",
-    "n_photos_max",
-    "gsd_max_cm",
-    "marker_side_px",
-)
+#: What plan says of each GCP: in the gcps layer (with the print size) and in summary.json (with x, y).
+_GCP_FIGURES = ("z_m", "n_photos", "n_photos_sure", "n_photos_max", "gsd_max_cm", "marker_side_px")
+_GCP_LAYER_FIELDS = ("name", "marker_id", "role", *_GCP_FIGURES, "marker_size_m")
+_GCP_SUMMARY_FIELDS = ("name", "marker_id", "role", "x", "y", *_GCP_FIGURES)
 
 
 def _summary(
@@ -924,9 +912,6 @@ def _check_options(
 
 def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
     """The AOI as one valid (multi)polygon in the working CRS, with what was repaired."""
-    import geopandas as gpd
-    import pyogrio
-    import shapely
 
     if not path.exists():
         raise InputError("no such file", path=path)
@@ -980,7 +965,6 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
     geom = _reproject(geom, src, work)
     if geom.area < 1.0:
         raise InputError(f"the AOI is {geom.area:.2f} m²: too small to plan", path=path)
-    from geoortho.core.crs import horizontal_unit_m
 
     if abs(horizontal_unit_m(work) - 1.0) > 1e-9:
         raise InputError(f"plan in a CRS in metres: {crs_to_text(work)} is not (give --crs)")
@@ -993,7 +977,6 @@ MAX_SCALE_ERROR = 0.01
 
 
 def _refuse_untrue_scale(crs: CRS, centre_lonlat: Any) -> None:
-    from pyproj import Proj
 
     f = Proj(crs).get_factors(float(centre_lonlat.x), float(centre_lonlat.y))
     k = max(abs(f.meridional_scale - 1.0), abs(f.parallel_scale - 1.0))
@@ -1006,7 +989,6 @@ def _refuse_untrue_scale(crs: CRS, centre_lonlat: Any) -> None:
 
 
 def _reproject(geom: Any, src: CRS, dst: CRS) -> Any:
-    import shapely
 
     if src.equals(dst):
         return geom
@@ -1033,9 +1015,6 @@ def _refuse_too_many_photos(area: Any, along_m: float, across_m: float, grids: i
 
 
 def _ground_stats(surface: Surface, area: Any, dtm: Any = None) -> dict[str, float]:
-    import shapely
-
-    from geoortho.core.surface import GridSurface, sample_grid
 
     x0, y0, x1, y1 = area.bounds
     n = 60
@@ -1068,7 +1047,6 @@ def _footprint_shape(intr: Intrinsics, pitch_deg: float, agl: float) -> tuple[fl
     """A photo's footprint on level ground ``agl`` below: length along the line (through the image
     centre), width across it (at the centre's ground point) and how far ahead of the drone that
     point is."""
-    from geoortho.photos.footprint import compute_footprints
 
     cam = PosedCamera(intr, Pose(np.array([0.0, 0.0, agl]), rotation_from_ypr(0.0, pitch_deg, 0.0)))
     t = compute_footprints([cam], FlatSurface(0.0), per_side=64, max_range_m=50 * agl)
@@ -1076,7 +1054,6 @@ def _footprint_shape(intr: Intrinsics, pitch_deg: float, agl: float) -> tuple[fl
         raise InputError(f"at pitch {pitch_deg:g}° the photo sees the horizon: plan a steeper pitch")
     ring = t.rings[0]
     ahead = agl * math.tan(math.radians(90.0 + pitch_deg))
-    import shapely
 
     poly = shapely.Polygon(ring)
     big = 100 * agl
@@ -1093,7 +1070,6 @@ def _axes(direction_deg: float) -> tuple[np.ndarray, np.ndarray]:
 
 def _best_direction(area: Any, across: float) -> float:
     """The line direction with the fewest lines; ties go to the shorter total line length."""
-    import shapely
 
     pts = np.array(shapely.get_coordinates(shapely.convex_hull(area)))
     best = (math.inf, math.inf, 0.0)
@@ -1118,7 +1094,6 @@ def _lines_and_shots(
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Boustrophedon lines across the AOI: outermost lines on its edges, each line's photos over the
     AOI within its swath, extended by half a footprint at both ends (full front overlap there)."""
-    import shapely
 
     u, v = _axes(direction)
     pts = np.array(shapely.get_coordinates(area))
@@ -1213,8 +1188,6 @@ def _flight_length(shots: list[dict[str, Any]]) -> float:
 
 def _coverage(path: Path, area: Any, front: float, side: float, grid: str) -> dict[str, Any]:
     """Share of the AOI seen by at least N photos, N = what the overlaps give inside the block."""
-    import rasterio
-    from rasterio.features import geometry_mask
 
     with rasterio.open(path) as src:
         count = src.read(1)
@@ -1238,7 +1211,6 @@ def _coverage(path: Path, area: Any, front: float, side: float, grid: str) -> di
 def line_overlaps(polys: list[Any], line: list[int], max_pairs: int = 1500) -> tuple[float, float]:
     """Mean front overlap (consecutive photos of a line) and side overlap (each photo and the nearest
     photo of the next line), percent of a footprint's area, as footprints give them."""
-    import shapely
 
     polys_a = np.asarray(polys, dtype=object)
     line_a = np.asarray(line)
@@ -1281,7 +1253,6 @@ def _given_gcps(
     """A GCP file's points in ``crs``: name, x, y and the height to use, with what was assumed.
     Heights that are placeholders (all equal), missing, or at or above the cameras are taken from
     the ground model instead: a GCP above the photos would be seen by none of them."""
-    from geoortho.gcp.io import heights_are_placeholders, read_gcp_file
 
     gs = read_gcp_file(path, gcp_crs)
     t = transformer(gs.crs, crs)
@@ -1312,12 +1283,9 @@ def _gcp_positions(
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Given positions (a file) or N proposed ones: about 60 % on the AOI's perimeter, inset so that
     each lies inside the flown block, the rest inside, spread by farthest-point sampling."""
-    import shapely
 
     text = gcps.strip()
     if text and not text.isdigit():
-        from geoortho.gcp.io import marker_id_of
-
         pts, notes = _given_gcps(text, gcp_crs, crs, surface, camera_z_min)
         rows = []
         for name, x, y, z in pts:
@@ -1414,7 +1382,6 @@ def _seen_by(
     inside_px = np.minimum.reduce([x - (mx - 0.5), (w - 0.5 - mx) - x, y - (my - 0.5), (h - 0.5 - my) - y])
     with np.errstate(divide="ignore"):  # photos behind the point (depth <= 0): masked by `front` below
         sigma_px = FLIGHT_POSITION_SIGMA_M / gsd + f * math.tan(math.radians(FLIGHT_ATTITUDE_SIGMA_DEG))
-    from scipy.special import ndtr
 
     p = np.where(front & np.isfinite(inside_px), ndtr(np.nan_to_num(inside_px) / sigma_px), 0.0)
     ok = front & (inside_px >= 0)
@@ -1440,9 +1407,6 @@ def _write_kml(path: Path, photos: Any, lines: Any, gcps: Any, area: Any, crs: C
     """KML 2.2 (OGC 07-147r2): Document > Folders of Placemarks; coordinates lon,lat,alt. Heights are
     relativeToGround (the height above the ground under each photo): KML has no
     above-take-off mode."""
-    from xml.sax.saxutils import escape
-
-    from geoortho.core.outputs import write_text
 
     t = transformer(crs, WGS84)
 
@@ -1457,8 +1421,6 @@ def _write_kml(path: Path, photos: Any, lines: Any, gcps: Any, area: Any, crs: C
             + "".join(f'<Data name="{escape(k)}"><value>{escape(str(v))}</value></Data>' for k, v in items.items())
             + "</ExtendedData>"
         )
-
-    import shapely
 
     flies = "a constant altitude above the take-off" if terrain == "constant" else "a constant height over the terrain"
     parts = [
@@ -1552,7 +1514,6 @@ def _write_litchi(
     """Litchi Mission Hub CSV: one waypoint per photo (action 1 = take photo) when they fit in
     Litchi's 99 waypoints, else the line ends with a photo every ``along`` metres
     (photo_distinterval). Altitude mode 0 = above the take-off, 1 = above the ground."""
-    from geoortho.core.outputs import write_text
 
     gimbal_mode = 2  # interpolate: the gimbal pitch column is applied
     mode = 1 if terrain == "follow" else 0
@@ -1607,11 +1568,10 @@ def _write_litchi(
 def _write_marker_sheets(folder: Path, gcps: list[dict[str, Any]], dictionary: str, side_m: float) -> list[Path]:
     """One PDF per GCP at the real size: the marker (black square ``side_m``) with its one-module
     white border, a cross-hair mark at the centre outside the marker, and its name, id and size."""
+    # matplotlib only here, for the print sheets: 0.35 s to import (matplotlib and its figure module)
     import matplotlib
 
     matplotlib.use("Agg")
-    import logging
-
     from matplotlib import rc_context
 
     # the PDF core fonts (Helvetica): nothing to embed, a sheet in milliseconds (matplotlib's font
@@ -1630,8 +1590,6 @@ def _marker_pages(folder: Path, gcps: list[dict[str, Any]], dictionary: str, sid
     from matplotlib.figure import Figure
     from matplotlib.patches import PathPatch
     from matplotlib.path import Path as MplPath
-
-    from geoortho.core.outputs import atomic_path
 
     out: list[Path] = []
     inch = 0.0254
@@ -1690,7 +1648,6 @@ def _marker_pages(folder: Path, gcps: list[dict[str, Any]], dictionary: str, sid
 
 def read_plan_photos(path: str | os.PathLike[str]) -> tuple[Any, dict[str, Any]]:
     """The photos layer of a plan.gpkg and its summary.json (beside it): what ``synth`` flies."""
-    import geopandas as gpd
 
     path = Path(path)
     gpkg = path / "plan.gpkg" if path.is_dir() else path
@@ -1790,70 +1747,132 @@ def check_plan(
     margin : float
         A GCP counts as seen only this far inside the frame, percent of the image side.
     """
-    import geopandas as gpd
-    import shapely
-
-    from geoortho.core.outputs import write_json, write_vector
-    from geoortho.photos.footprint import compute_footprints, write_overlap
-
     fb = as_feedback(feedback)
     if (plan is None) == (images is None):
         raise InputError("give one of --plan or --images")
     if min_photos < 1:
         raise InputError("--min-photos must be at least 1")
-    groups: list[tuple[Intrinsics, np.ndarray, np.ndarray]] = []  # intrinsics, centres, rotations
-    if plan is not None:
-        photos, summary = read_plan_photos(plan)
-        if not summary:
-            raise InputError("no summary.json beside the plan: check a folder made by plan", path=plan)
-        crs = CRS.from_user_input(photos.crs)
-        c = summary["camera"]
-        intr = Intrinsics(int(c["width_px"]), int(c["height_px"]), float(c["focal_px"]))
-        centres = np.c_[photos.geometry.x, photos.geometry.y, photos["z_m"]]
-        rots = rotation_from_ypr(
-            photos["grid_heading_deg"].to_numpy(), photos["pitch_deg"].to_numpy(), np.zeros(len(photos))
-        )
-        groups.append((intr, centres, rots))
-        polys = list(
-            gpd.read_file(Path(plan) / "plan.gpkg" if Path(plan).is_dir() else plan, layer="footprints").geometry
-        )
-        need = int(required_photos or summary.get("coverage", {}).get("required_photos", 5))
-        laid = float(marker_size_m or summary.get("marker", {}).get("laid_size_m", 1.0))
-        surface: Surface = FlatSurface(float(summary.get("ground", {}).get("takeoff_elevation_m", 0.0)))
-        if dsm is not None:
-            surface = read_surface(dsm, crs, extend=True)
-        source = f"plan {Path(plan).name}"
-    else:
-        from geoortho.photos.footprint import photo_cameras, photos_with_altitude, working_crs
-
-        ps = photos_with_altitude(Path(images), None, None, fb, fb)  # type: ignore[arg-type]
-        crs = working_crs(ps.photos)
-        ground = read_surface(dsm, crs, extend=True) if dsm is not None else None
-        cams, heights = photo_cameras(ps.photos, crs, ground, takeoff_elevation_m)
-        for note in heights.notes:
-            fb.warning(note)
-        surface = heights.surface
-        by: dict[Intrinsics, list[Any]] = {}
-        for cam in cams:
-            by.setdefault(cam.intrinsics, []).append(cam)
-        for intr, cs in by.items():
-            groups.append((intr, np.array([c.pose.center for c in cs]), np.array([c.pose.rotation for c in cs])))
-        table = compute_footprints(cams, surface)
-        polys = list(shapely.make_valid(shapely.polygons(table.rings)))
-        need = int(required_photos or 5)
-        laid = float(marker_size_m or 1.0)
-        source = f"{len(cams)} photos in {Path(images).name}"  # type: ignore[arg-type]
-    if need < 1:
+    flown = (
+        _planned_cameras(Path(plan), dsm, required_photos, marker_size_m)
+        if plan is not None
+        else _photo_cameras(Path(images), dsm, takeoff_elevation_m, required_photos, marker_size_m, fb)  # type: ignore[arg-type]
+    )
+    if flown.need < 1:
         raise InputError("--required-photos must be at least 1")
-    pts, notes = _given_gcps(str(gcp_file), gcp_crs, crs, surface, min(float(c[:, 2].min()) for _, c, _ in groups))
+    lowest = min(float(c[:, 2].min()) for _, c, _ in flown.groups)
+    pts, notes = _given_gcps(str(gcp_file), gcp_crs, flown.crs, flown.surface, lowest)
     for note in notes:
         fb.warning(note)
+    rows = _gcp_counts(pts, flown, margin, min_photos)
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    gpkg, overlap, report, under_m2, covered_m2 = _write_check(output, flown, rows, plan, min_photos)
+    short = [r["name"] for r in rows if r["short"]]
+    if short:
+        fb.warning(f"GCPs seen in fewer than {min_photos} photos: {', '.join(short)}")
+    fb.info(
+        f"check of {flown.source}: {len(rows) - len(short)} of {len(rows)} GCPs in >= {min_photos} photos; "
+        f"{under_m2:,.0f} m² ({100 * under_m2 / max(covered_m2, 1e-9):.1f} % of the "
+        f"{'AOI' if plan is not None else 'covered ground'}) seen by "
+        f"fewer than {flown.need} photos"
+    )
+    return PlanCheckResult(
+        output,
+        gpkg,
+        f"{gpkg}|layername=gcps",
+        f"{gpkg}|layername=under_overlap",
+        overlap,
+        report,
+        ",".join(short),
+        len(short),
+        under_m2,
+    )
+
+
+@dataclass(frozen=True)
+class _Flown:
+    """The cameras a check counts with (a plan's, or photos'), grouped by intrinsics, their
+    footprints and what the check asks of them."""
+
+    groups: list[tuple[Intrinsics, np.ndarray, np.ndarray]]  # intrinsics, centres, rotations
+    polys: list[Any]
+    crs: CRS
+    surface: Surface
+    need: int  # photos each ground cell needs
+    laid: float  # the markers' size, m
+    source: str
+
+
+def _planned_cameras(plan: Path, dsm: Path | None, required_photos: int | None, marker_size_m: float | None) -> _Flown:
+
+    photos, summary = read_plan_photos(plan)
+    if not summary:
+        raise InputError("no summary.json beside the plan: check a folder made by plan", path=plan)
+    crs = CRS.from_user_input(photos.crs)
+    c = summary["camera"]
+    intr = Intrinsics(int(c["width_px"]), int(c["height_px"]), float(c["focal_px"]))
+    centres = np.c_[photos.geometry.x, photos.geometry.y, photos["z_m"]]
+    rots = rotation_from_ypr(
+        photos["grid_heading_deg"].to_numpy(), photos["pitch_deg"].to_numpy(), np.zeros(len(photos))
+    )
+    polys = list(gpd.read_file(plan / "plan.gpkg" if plan.is_dir() else plan, layer="footprints").geometry)
+    surface: Surface = FlatSurface(float(summary.get("ground", {}).get("takeoff_elevation_m", 0.0)))
+    if dsm is not None:
+        surface = read_surface(dsm, crs, extend=True)
+    return _Flown(
+        [(intr, centres, rots)],
+        polys,
+        crs,
+        surface,
+        int(required_photos or summary.get("coverage", {}).get("required_photos", 5)),
+        float(marker_size_m or summary.get("marker", {}).get("laid_size_m", 1.0)),
+        f"plan {plan.name}",
+    )
+
+
+def _photo_cameras(
+    images: Path,
+    dsm: Path | None,
+    takeoff_elevation_m: float | None,
+    required_photos: int | None,
+    marker_size_m: float | None,
+    fb: Feedback,
+) -> _Flown:
+
+    ps = photos_with_altitude(images, None, None, fb, fb)  # type: ignore[arg-type]
+    crs = working_crs(ps.photos)
+    ground = read_surface(dsm, crs, extend=True) if dsm is not None else None
+    cams, heights = photo_cameras(ps.photos, crs, ground, takeoff_elevation_m)
+    for note in heights.notes:
+        fb.warning(note)
+    by: dict[Intrinsics, list[Any]] = {}
+    for cam in cams:
+        by.setdefault(cam.intrinsics, []).append(cam)
+    groups = [
+        (intr, np.array([c.pose.center for c in cs]), np.array([c.pose.rotation for c in cs]))
+        for intr, cs in by.items()
+    ]
+    table = compute_footprints(cams, heights.surface)
+    polys = list(shapely.make_valid(shapely.polygons(table.rings)))
+    return _Flown(
+        groups,
+        polys,
+        crs,
+        heights.surface,
+        int(required_photos or 5),
+        float(marker_size_m or 1.0),
+        f"{len(cams)} photos in {images.name}",
+    )
+
+
+def _gcp_counts(pts: list[Any], flown: _Flown, margin: float, min_photos: int) -> list[dict[str, Any]]:
+    """Per GCP, the photos that frame it and those expected, sure and at most to see its marker."""
     rows: list[dict[str, Any]] = []
     for name, x, y, z in pts:
         n_frame = n_exp = n_sure = n_max = 0
-        for intr, centres, rots in groups:
+        for intr, centres, rots in flown.groups:
             # the marker with its one-module white border (a 4x4 marker: 8 / 6 of the black square)
-            got = _seen_by(centres, rots, intr, np.array([x, y, z]), margin, laid * 8 / 6)
+            got = _seen_by(centres, rots, intr, np.array([x, y, z]), margin, flown.laid * 8 / 6)
             n_frame += got["n_in_frame"]
             n_exp += got["n_photos"]
             n_sure += got["n_photos_sure"]
@@ -1871,8 +1890,16 @@ def check_plan(
                 "short": n_frame < min_photos,
             }
         )
-    output = Path(output)
-    output.mkdir(parents=True, exist_ok=True)
+    return rows
+
+
+def _write_check(
+    output: Path, flown: _Flown, rows: list[dict[str, Any]], plan: Path | None, min_photos: int
+) -> tuple[Path, Path, Path, float, float]:
+    """overlap.tif, check.gpkg (gcps, under_overlap) and check.json; the area under the overlap
+    asked and the area checked (m²)."""
+
+    polys, crs, need = flown.polys, flown.crs, flown.need
     overlap = write_overlap(output / "overlap.tif", polys, crs, max(0.05, math.sqrt(shapely.area(polys[0])) / 60))
     under = _under_overlap(overlap, need)
     covered_m2 = float(shapely.union_all(polys).area)
@@ -1888,51 +1915,29 @@ def check_plan(
     )
     under_df = gpd.GeoDataFrame({"photos_needed": [need] * len(under)}, geometry=under, crs=crs)
     gpkg = write_vector(output / "check.gpkg", {"gcps": gcp_df, "under_overlap": under_df})
-    short = [r["name"] for r in rows if r["short"]]
     under_m2 = float(sum(g.area for g in under))
     report = write_json(
         output / "check.json",
         {
-            "source": source,
+            "source": flown.source,
             "crs": crs_to_text(crs),
             "min_photos": min_photos,
             "required_photos": need,
-            "marker_size_m": laid,
+            "marker_size_m": flown.laid,
             "gcps": rows,
-            "short_gcps": short,
+            "short_gcps": [r["name"] for r in rows if r["short"]],
             "under_overlap_m2": under_m2,
             "checked_area_m2": covered_m2,
             "checked_area": "the plan's AOI" if plan is not None else "the ground the photos cover",
             "under_overlap_pct": 100 * under_m2 / max(covered_m2, 1e-9),
         },
     )
-    if short:
-        fb.warning(f"GCPs seen in fewer than {min_photos} photos: {', '.join(short)}")
-    fb.info(
-        f"check of {source}: {len(rows) - len(short)} of {len(rows)} GCPs in >= {min_photos} photos; "
-        f"{under_m2:,.0f} m² ({100 * under_m2 / max(covered_m2, 1e-9):.1f} % of the "
-        f"{'AOI' if plan is not None else 'covered ground'}) seen by "
-        f"fewer than {need} photos"
-    )
-    return PlanCheckResult(
-        output,
-        gpkg,
-        f"{gpkg}|layername=gcps",
-        f"{gpkg}|layername=under_overlap",
-        overlap,
-        report,
-        ",".join(short),
-        len(short),
-        under_m2,
-    )
+    return gpkg, overlap, report, under_m2, covered_m2
 
 
 def _under_overlap(overlap: Path, need: int) -> list[Any]:
     """Polygons of the covered cells seen by fewer than ``need`` photos (the block's ragged outer
     edge included: it is where a flight is short of photos)."""
-    import rasterio
-    import shapely
-    from rasterio.features import shapes
 
     with rasterio.open(overlap) as src:
         count = src.read(1)
