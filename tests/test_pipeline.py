@@ -546,7 +546,16 @@ def test_ctrl_c_or_sigterm_to_the_group_is_one_line_and_exit_130(
             "--output", str(out), "--workers", "2", "--quiet"]  # fmt: skip
     if command == "ortho":
         argv += ["--resolution-m", "0.01"]  # long enough to be inside the work
-    proc = subprocess.Popen(argv, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        argv,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        # a suite started in the background by a shell without job control inherits SIGINT
+        # ignored, and Python keeps it so: the command's Ctrl-C is a terminal's, give it one
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     time.sleep(after_s)
     os.killpg(proc.pid, getattr(signal, sig))
     err = proc.communicate(timeout=120)[1].strip().splitlines()
