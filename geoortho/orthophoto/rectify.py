@@ -23,7 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 from affine import Affine
-from rasterio.windows import Window
+from rasterio.errors import WindowError
+from rasterio.windows import Window, intersection
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, sample_grid
@@ -45,13 +46,11 @@ _REMAP_MAX = 32000  # cv2.remap wants map sides below SHRT_MAX
 
 
 def intersect(a: Window, b: Window) -> Window | None:
-    """The cells two grid windows share; None when they share none."""
-    r0, c0 = max(a.row_off, b.row_off), max(a.col_off, b.col_off)
-    r1 = min(a.row_off + a.height, b.row_off + b.height)
-    c1 = min(a.col_off + a.width, b.col_off + b.width)
-    if r1 <= r0 or c1 <= c0:
+    """The cells two grid windows share (rasterio's intersection); None when they share none."""
+    try:
+        return intersection(a, b)
+    except WindowError:
         return None
-    return Window(c0, r0, c1 - c0, r1 - r0)
 
 
 def slices_in(win: Window, origin: Window) -> tuple[slice, slice]:

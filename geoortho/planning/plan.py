@@ -175,7 +175,6 @@ def min_module_px(dictionary: str = "DICT_4X4_50") -> float:
     trial: markers rendered area-averaged at 8 rotations and sub-pixel offsets, lens blur
     (sigma 0.6 px) and noise (sigma 3 DN), searched in a predicted window as ``gcp-find`` does.
     Every larger size tried must decode too."""
-
     sizes = np.round(np.arange(1.0, 8.01, 0.25), 2)
     rng = np.random.default_rng(7)
     ok_at = []
@@ -205,7 +204,6 @@ def min_module_px(dictionary: str = "DICT_4X4_50") -> float:
 
 def _render_marker(cells: np.ndarray, module_px: float, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
     """A marker (with a one-module white quiet zone) on mid-grey ground, rotated, area-averaged."""
-
     quiet = np.pad(cells, 1, constant_values=True)
     up = 16
     big = np.asarray(np.kron(np.where(quiet, 230.0, 25.0), np.ones((up, up))), np.float32)
@@ -587,7 +585,6 @@ class _Flight:
 def _fly(aoi: Path, site: _Site, o: PlanOptions, warnings_: list[str], s_grid: Feedback, s_foot: Feedback) -> _Flight:
     """The lines across the AOI, a photo every spacing along them, each photo's pose and its
     footprint on the ground; the speed the camera can keep up."""
-
     directions = [
         _best_direction(site.area, site.across) if o.direction_deg is None else float(o.direction_deg) % 180.0
     ]
@@ -720,7 +717,6 @@ def _write(
 ) -> _Files:
     """The overlap raster, plan.gpkg (aoi, photos, lines, footprints, gcps), plan.kml, litchi.csv
     and the markers' print sheets; the coverage and overlaps measured on the footprints."""
-
     output.mkdir(parents=True, exist_ok=True)
     overlap_path = output / "overlap.tif"
 
@@ -912,7 +908,6 @@ def _check_options(
 
 def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
     """The AOI as one valid (multi)polygon in the working CRS, with what was repaired."""
-
     if not path.exists():
         raise InputError("no such file", path=path)
     try:
@@ -1047,7 +1042,6 @@ def _footprint_shape(intr: Intrinsics, pitch_deg: float, agl: float) -> tuple[fl
     """A photo's footprint on level ground ``agl`` below: length along the line (through the image
     centre), width across it (at the centre's ground point) and how far ahead of the drone that
     point is."""
-
     cam = PosedCamera(intr, Pose(np.array([0.0, 0.0, agl]), rotation_from_ypr(0.0, pitch_deg, 0.0)))
     t = compute_footprints([cam], FlatSurface(0.0), per_side=64, max_range_m=50 * agl)
     if t.clipped[0]:
@@ -1070,7 +1064,6 @@ def _axes(direction_deg: float) -> tuple[np.ndarray, np.ndarray]:
 
 def _best_direction(area: Any, across: float) -> float:
     """The line direction with the fewest lines; ties go to the shorter total line length."""
-
     pts = np.array(shapely.get_coordinates(shapely.convex_hull(area)))
     best = (math.inf, math.inf, 0.0)
     for d in np.arange(0.0, 180.0, 1.0):
@@ -1094,7 +1087,6 @@ def _lines_and_shots(
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Boustrophedon lines across the AOI: outermost lines on its edges, each line's photos over the
     AOI within its swath, extended by half a footprint at both ends (full front overlap there)."""
-
     u, v = _axes(direction)
     pts = np.array(shapely.get_coordinates(area))
     pv = pts @ v
@@ -1188,7 +1180,6 @@ def _flight_length(shots: list[dict[str, Any]]) -> float:
 
 def _coverage(path: Path, area: Any, front: float, side: float, grid: str) -> dict[str, Any]:
     """Share of the AOI seen by at least N photos, N = what the overlaps give inside the block."""
-
     with rasterio.open(path) as src:
         count = src.read(1)
         inside = geometry_mask([area], out_shape=count.shape, transform=src.transform, invert=True, all_touched=False)
@@ -1211,7 +1202,6 @@ def _coverage(path: Path, area: Any, front: float, side: float, grid: str) -> di
 def line_overlaps(polys: list[Any], line: list[int], max_pairs: int = 1500) -> tuple[float, float]:
     """Mean front overlap (consecutive photos of a line) and side overlap (each photo and the nearest
     photo of the next line), percent of a footprint's area, as footprints give them."""
-
     polys_a = np.asarray(polys, dtype=object)
     line_a = np.asarray(line)
     areas = shapely.area(polys_a)
@@ -1253,7 +1243,6 @@ def _given_gcps(
     """A GCP file's points in ``crs``: name, x, y and the height to use, with what was assumed.
     Heights that are placeholders (all equal), missing, or at or above the cameras are taken from
     the ground model instead: a GCP above the photos would be seen by none of them."""
-
     gs = read_gcp_file(path, gcp_crs)
     t = transformer(gs.crs, crs)
     x, y = (np.asarray(v, float) for v in t.transform([p.x for p in gs.points], [p.y for p in gs.points]))
@@ -1283,7 +1272,6 @@ def _gcp_positions(
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Given positions (a file) or N proposed ones: about 60 % on the AOI's perimeter, inset so that
     each lies inside the flown block, the rest inside, spread by farthest-point sampling."""
-
     text = gcps.strip()
     if text and not text.isdigit():
         pts, notes = _given_gcps(text, gcp_crs, crs, surface, camera_z_min)
@@ -1407,7 +1395,6 @@ def _write_kml(path: Path, photos: Any, lines: Any, gcps: Any, area: Any, crs: C
     """KML 2.2 (OGC 07-147r2): Document > Folders of Placemarks; coordinates lon,lat,alt. Heights are
     relativeToGround (the height above the ground under each photo): KML has no
     above-take-off mode."""
-
     t = transformer(crs, WGS84)
 
     def coords(xy: np.ndarray, alt: np.ndarray | None = None) -> str:
@@ -1514,7 +1501,6 @@ def _write_litchi(
     """Litchi Mission Hub CSV: one waypoint per photo (action 1 = take photo) when they fit in
     Litchi's 99 waypoints, else the line ends with a photo every ``along`` metres
     (photo_distinterval). Altitude mode 0 = above the take-off, 1 = above the ground."""
-
     gimbal_mode = 2  # interpolate: the gimbal pitch column is applied
     mode = 1 if terrain == "follow" else 0
     rows = []
@@ -1648,7 +1634,6 @@ def _marker_pages(folder: Path, gcps: list[dict[str, Any]], dictionary: str, sid
 
 def read_plan_photos(path: str | os.PathLike[str]) -> tuple[Any, dict[str, Any]]:
     """The photos layer of a plan.gpkg and its summary.json (beside it): what ``synth`` flies."""
-
     path = Path(path)
     gpkg = path / "plan.gpkg" if path.is_dir() else path
     try:
@@ -1898,7 +1883,6 @@ def _write_check(
 ) -> tuple[Path, Path, Path, float, float]:
     """overlap.tif, check.gpkg (gcps, under_overlap) and check.json; the area under the overlap
     asked and the area checked (m²)."""
-
     polys, crs, need = flown.polys, flown.crs, flown.need
     overlap = write_overlap(output / "overlap.tif", polys, crs, max(0.05, math.sqrt(shapely.area(polys[0])) / 60))
     under = _under_overlap(overlap, need)
@@ -1938,7 +1922,6 @@ def _write_check(
 def _under_overlap(overlap: Path, need: int) -> list[Any]:
     """Polygons of the covered cells seen by fewer than ``need`` photos (the block's ragged outer
     edge included: it is where a flight is short of photos)."""
-
     with rasterio.open(overlap) as src:
         count = src.read(1)
         mask = (count > 0) & (count < need)

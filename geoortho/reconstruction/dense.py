@@ -679,16 +679,12 @@ def _partners_seeing(ref: _View, partners: Sequence[_View], depth: np.ndarray, s
         pix, _ = cv2.projectPoints(local.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), p.K, p.dist)
         x, y = pix.reshape(-1, 2).T
         count += front & (x >= -0.5) & (x < p.size[0] - 0.5) & (y >= -0.5) & (y < p.size[1] - 0.5)
-    coarse = count.reshape(rows.shape)
-    full = np.repeat(np.repeat(coarse, step_px, axis=0), step_px, axis=1)
-    out = np.zeros((h, w), np.int64)
-    ch, cw = min(h, full.shape[0]), min(w, full.shape[1])
-    out[:ch, :cw] = full[:ch, :cw]
-    if ch < h:
-        out[ch:] = out[ch - 1]
-    if cw < w:
-        out[:, cw:] = out[:, cw - 1 : cw]
-    return out.ravel()
+    n_rows, n_cols = len(rows), len(cols[0])
+    coarse = count.reshape(n_rows, n_cols)
+    # each pixel takes its grid cell's count (the last row and column reach the photo's edge)
+    r = np.minimum(np.arange(h) // step_px, n_rows - 1)
+    c = np.minimum(np.arange(w) // step_px, n_cols - 1)
+    return coarse[r][:, c].ravel()
 
 
 def _voxel_means(

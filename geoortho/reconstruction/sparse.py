@@ -1353,7 +1353,8 @@ def _refine_time_lag(mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> tupl
     on its path. The lag is measured on a copy of the block adjusted without the positions (a
     block held to wrong centimetre priors bends to them and hides most of it), fitted to the
     positions by a similarity, and the trajectory read again until the lag no longer moves; then
-    the block is bundle-adjusted on the new positions. None when there is no trajectory."""
+    the block is bundle-adjusted on the new positions. Without a positions file, the photos' own
+    GPS (:func:`_lag_of_own_gps`); None with positions already at the exposures (events, a CSV)."""
     pf = inputs.positions
     if inputs.out_crs is None or len(inputs.priors.positions) < 5:
         return inputs, None
@@ -1431,9 +1432,9 @@ def _own_gps_velocities(inputs: _Inputs) -> dict[str, np.ndarray]:
     from geoortho.photos.metadata import photo_seconds
 
     timed = sorted(
-        (photo_seconds(p), inputs.names[p.path])
+        (t, inputs.names[p.path])
         for p in inputs.photos
-        if inputs.names[p.path] in inputs.priors.positions and math.isfinite(photo_seconds(p))
+        if inputs.names[p.path] in inputs.priors.positions and math.isfinite(t := photo_seconds(p))
     )
     out: dict[str, np.ndarray] = {}
     for (t0, a), (t1, b), (t2, c) in zip(timed, timed[1:], timed[2:]):

@@ -1166,12 +1166,7 @@ def _other_motion_kernel(length_px: float, angle_deg: float, style: str, rng: np
     x = r + along * math.cos(a) - across * math.sin(a)
     y = r - along * math.sin(a) - across * math.cos(a)
     weight = np.sin(np.pi * (t + 0.5)) ** 0.5  # the shutter's ramp
-    img = np.zeros((2 * r + 1, 2 * r + 1), np.float64)
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = x - x0, y - y0
-    for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        np.add.at(img, (y0 + dy, x0 + dx), wgt * weight)
-    return (img / img.sum()).astype(np.float32)
+    return _spread_path(x, y, weight, 2 * r + 1)
 
 
 def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
@@ -1184,11 +1179,17 @@ def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
     a = math.radians(angle_deg)
     r = int(math.ceil(length_px / 2)) + 1
     x, y = r + t * math.cos(a), r - t * math.sin(a)
+    return _spread_path(x, y, np.ones_like(t), 2 * r + 1)
+
+
+def _spread_path(x: np.ndarray, y: np.ndarray, weight: np.ndarray, size: int) -> np.ndarray:
+    """A kernel ``size`` square from the samples of a path (pixel x, y, and each sample's weight),
+    each spread over the four pixels around it (bilinear); normalised to sum 1."""
     x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
     fx, fy = x - x0, y - y0
-    kernel = np.zeros((2 * r + 1, 2 * r + 1), np.float64)
+    kernel = np.zeros((size, size), np.float64)
     for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        np.add.at(kernel, (y0 + dy, x0 + dx), wgt)
+        np.add.at(kernel, (y0 + dy, x0 + dx), wgt * weight)
     return (kernel / kernel.sum()).astype(np.float32)
 
 
@@ -1639,20 +1640,13 @@ def synth(
     results: list[dict[str, Any]] = map_ordered(
         _render_task, tasks, workers=workers, initializer=_init_worker, initargs=(scene,), feedback=step_render
     )
-    _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth, pathologies, undulation)
-    if glare or blur_px:
-        from geoortho.core.outputs import write_json
-
-        # how the degradations were drawn, beside the survey's truth
-        info_path = truth_dir / "survey.json"
-        info = json.loads(info_path.read_text())
-        info["degradations"] = {
-            "glare": glare,
-            "glare_style": glare_style,
-            "blur_px": blur_px,
-            "blur_style": blur_style,
-        }
-        write_json(info_path, info)
+    # how the degradations were drawn, beside the survey's truth
+    degradations = (
+        {"glare": glare, "glare_style": glare_style, "blur_px": blur_px, "blur_style": blur_style}
+        if glare or blur_px
+        else None
+    )
+    _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth, pathologies, undulation, degradations)
     return SynthResult(
         output=output,
         images=images_dir,
@@ -1712,6 +1706,7 @@ def _write_truth(
     fb: Feedback,
     pathologies: Sequence[str] = (),
     undulation_m: float = 0.0,
+    degradations: dict[str, Any] | None = None,
 ) -> None:
     """Every truth product: rasters, poses and footprints, GCP files, survey.json, ortho, point cloud."""
     steps = split(fb, [1, 1, 3, 2, 1])
@@ -1733,8 +1728,9 @@ def _write_truth(
         else None
     )
     _write_survey_json(
-        truth, scene, intr, p, seed, pathologies, undulation_m, shots[0].maker if shots else "dji", dropped, rtk
-    )
+        truth, scene, intr, p, seed, pathologies, undulation_m, shots[0].maker if shots else "dji", dropped, rtk,
+        degradations,
+    )  # fmt: skip
     steps[2].progress(1.0)
     _write_true_ortho(truth / "ortho.tif", scene, p.ortho_cell_m, steps[3])
     _write_points(truth / "points.laz", scene, p, np.random.default_rng(seed + 7))
@@ -1852,6 +1848,7 @@ def _write_survey_json(
     maker: str = "dji",
     dropped: dict[str, str] | None = None,
     rtk: dict[str, Any] | None = None,
+    degradations: dict[str, Any] | None = None,
 ) -> None:
     from geoortho.core.outputs import write_json
 
@@ -1890,6 +1887,7 @@ def _write_survey_json(
             **({"slope": {"deg": SLOPE_DEG, "azimuth_deg": SLOPE_AZIMUTH_DEG}} if "slope" in pathologies else {}),
             **({"dropped_photo": dropped} if dropped else {}),
             **({"rtk": rtk} if rtk else {}),
+            **({"degradations": degradations} if degradations else {}),
             **({"gps_lag_s": GPS_LAG_S} if "gps-lag" in pathologies else {}),
             **(
                 {"ppk": {"pos": "trajectory.pos", "lag_s": PPK_LAG_S, "gps_minus_camera_clock_s": GPS_MINUS_UTC_S}}
