@@ -168,9 +168,11 @@ def test_the_dsm_covers_the_ground_two_photos_saw_and_says_how(free_heading):
     gsd = json.loads((s.truth / "survey.json").read_text())["gsd_cm_at_home_height"] / 100
     dz = (z - truth)[open_ground & np.isfinite(truth)]
     assert np.median(np.abs(dz)) <= 1.5 * gsd
-    # depth maps at 640 of 960 px: bias +4.1 cm (0.88 GSD; the SfM's own tie points lie +1.6 cm
-    # high on this survey) and RMSE 2.6 GSD measured, its outliers within 0.5 m of the cars and crowns
-    assert abs(np.median(dz)) <= 1.0 * gsd and np.sqrt(np.mean(dz**2)) <= 3 * gsd
+    # depth maps at 640 of 960 px: bias +2.7 cm (0.58 GSD; +4.1 cm while the downscaled rows' scale
+    # was the columns'; on the true poses the pairs are unbiased, -0.02 GSD, and the SfM's own tie
+    # points lie +1.6 cm high: its focal length came out 0.2 % short) and RMSE 2.5 GSD measured, its
+    # outliers within 0.5 m of the cars and crowns
+    assert abs(np.median(dz)) <= 0.75 * gsd and np.sqrt(np.mean(dz**2)) <= 3 * gsd
     _assert_the_wood_and_the_cars_are_measured(s, z, source, truth, flat_truth, seen, t)
     # the pond, carried across from its shore: a harmonic fill has no curvature, and this pond lies
     # on a crest (the truth rises 0.4 m over its 12 m): measured 0.20 m median, 0.24 m at its centre
@@ -181,7 +183,8 @@ def test_the_dtm_is_the_bare_earth_to_the_edge(free_heading):
     """The DTM from the photos alone against the true ground, over all the ground two photos saw:
     measured where the ground shows, carried under the wood, the cars and the pond. Before the
     survey's edge was measured (one pair there: no second one can agree) it was interpolated out
-    to the rim: RMSE 0.29 m (seed 3) and 0.48 m (seed 6); now 0.14 and 0.16 m."""
+    to the rim: RMSE 0.29 m (seed 3) and 0.48 m (seed 6); 0.13 and 0.15 m measured to the edge, and
+    0.11 and 0.14 m with each axis of a downscaled photo at its own scale."""
     s, _, _, r_dem, _ = free_heading
     z, source, t, crs = _with_source(r_dem.dtm, r_dem.dtm_source)
     seen = _counts_on(s.truth / "footprints.gpkg", t, z.shape)
@@ -189,7 +192,7 @@ def test_the_dtm_is_the_bare_earth_to_the_edge(free_heading):
     both = (seen >= 2) & np.isfinite(truth)
     assert np.isfinite(z[both]).mean() >= 0.98
     dz = (z - truth)[both & np.isfinite(z)]
-    assert np.sqrt(np.mean(dz**2)) <= 0.2
+    assert np.sqrt(np.mean(dz**2)) <= 0.16
     assert (source[both] == MEASURED).mean() >= 0.6
 
 
