@@ -233,34 +233,6 @@ def test_partition_is_balanced_compact_and_overlapping():
             assert np.hypot(*(mine - xy[names.index(n)]).T).min() <= 40.0
 
 
-def test_split_merge_is_one_model_as_accurate_as_the_block(sfm_with_gcps, small_survey, tmp_path):
-    whole, checkpoints = sfm_with_gcps
-    gcp_list = whole.output.parent / "gcp_list.txt"
-    poses, _ = _truth(small_survey)
-    r = sfm(
-        small_survey.images, tmp_path / "split", gcp_list=gcp_list, checkpoints=",".join(checkpoints), split=20, **FAST
-    )
-    rep = json.loads(r.report.read_text())
-    subs = rep["submodels"]
-    assert len(subs) == 2 and all(s["registered"] >= 20 for s in subs)
-    assert subs[1]["shared_photos"] >= 3 and subs[1]["shared_centre_rms_m"] < 0.05
-    assert r.n_registered >= 0.95 * r.n_photos and "split-merge" in rep["matching"]
-    # one model: every photo once, one georeference, GCP-controlled
-    cams = gpd.read_file(r.cameras)
-    assert cams.image.is_unique and len(cams) == r.n_photos
-    # each registered photo says which submodel placed it; both submodels placed some
-    reg = cams[cams.registered]
-    assert set(reg.submodel) == {0, 1} and (cams[~cams.registered].submodel == -1).all()
-    assert "GCP" in r.georeferenced_by and rep["models"] == 2
-    e_split = np.sqrt((_centre_errors(r, poses) ** 2).sum(axis=1).mean())
-    e_whole = np.sqrt((_centre_errors(whole, poses) ** 2).sum(axis=1).mean())
-    assert e_split <= max(2 * e_whole, 0.01), (e_split, e_whole)
-    assert r.checkpoint_rmse_m <= max(2 * whole.checkpoint_rmse_m, 0.01)
-    assert 0 < r.mean_reprojection_error_px < 1.0
-    with laspy.open(r.points) as f:
-        assert f.header.point_count > 1000
-
-
 def test_a_failed_submodel_is_reported_and_the_rest_merged(sfm_with_gcps, small_survey, tmp_path, monkeypatch):
     import geoortho.reconstruction.sparse as rc
 
