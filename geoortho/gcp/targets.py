@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, partial
 from typing import NamedTuple
 
 import cv2
@@ -397,11 +397,20 @@ def fit_target(
     coarse = _coarse(crop, kind, base, cells, blur, max_peaks=4 if by_place else 6, absolute=by_place, near=within)
     if not coarse:
         return None
-    fits = sorted(
-        (_score(crop, kind, base * f, cells, (cx, cy, a), blur) for cx, cy, a, f, _ in coarse), key=lambda f: -f.score
-    )
+    verdict = partial(_verdict, crop, box, kind, base, cells, dictionary, marker_id, by_place)
+    coded_id = kind in CODED and bool(dictionary) and cells is not None
     side = float(np.sqrt(abs(np.linalg.det(base))))
-    t = THRESHOLDS
+    scored: list[_Candidate] = []
+    for cx, cy, a, size_f, _ in coarse:
+        cand = _score(crop, kind, base * size_f, cells, (cx, cy, a), blur)
+        if coded_id and cand.score >= min_score(kind) and cand.contrast >= THRESHOLDS["contrast_dn"]:
+            # a coded marker is proven by its id at its place: the first candidate (best coarse
+            # match first) that passes is the marker, and the rest are not refined
+            fit = verdict(cand, math.nan, math.nan, "")
+            if not fit.refused_on:
+                return fit
+        scored.append(cand)
+    fits = sorted(scored, key=lambda f: -f.score)
     margins = [_shape_margin(kind, f) for f in fits]
     ambiguous = ""
     if by_place:
@@ -428,11 +437,33 @@ def fit_target(
         if pos_margin < 0:
             ambiguous = f"two {kind} targets about as near the prediction ({own:.0f} and {min(dists):.0f} px)"
         fits, margins = [fits[i] for i in kept], [margins[i] for i in kept]
-    score, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, contrast, worst_part = fits[0]
-    shape_margin = margins[0]
+    best = fits[0]
     if not by_place:
-        others = (f.score for f in fits[1:] if math.hypot(f.cx - cx, f.cy - cy) > 0.75 * side)
-        pos_margin = score - max(others, default=-1.0)
+        others = (f.score for f in fits[1:] if math.hypot(f.cx - best.cx, f.cy - best.cy) > 0.75 * side)
+        pos_margin = best.score - max(others, default=-1.0)
+    return verdict(best, margins[0], pos_margin, ambiguous)
+
+
+def _verdict(
+    crop: np.ndarray,
+    box: tuple[int, int, int, int],
+    kind: str,
+    base: np.ndarray,
+    cells: np.ndarray | None,
+    dictionary: str,
+    marker_id: int,
+    by_place: bool,
+    cand: _Candidate,
+    shape_margin: float,
+    pos_margin: float,
+    ambiguous: str,
+) -> Fit:
+    """The fit of one refined candidate: its id checked (coded), and the first threshold it fails
+    (``by_place``: a target without an id told by the prediction; ``pos_margin`` is then the margin
+    of its distance over a rival's)."""
+    x0, y0 = box[0], box[1]
+    score, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, contrast, worst_part = cand
+    t = THRESHOLDS
     id_margin = id_score = math.nan
     if kind in CODED and dictionary and cells is not None:
         # ids differ only inside the border: score the code cells alone, the expected id
