@@ -621,7 +621,13 @@ def _probe_free_focal(rec: Any) -> dict[int, float]:
     opts.print_summary = False
     opts.refine_focal_length = True
     opts.ceres.loss_function_type = pc.LossFunctionType.SOFT_L1
-    pc.bundle_adjustment(probe, opts)
+    # the adjuster itself, not pycolmap.bundle_adjustment: that one logs two INFO lines and leaves
+    # COLMAP's log level at INFO, so the mapping after it printed its iterations to stderr
+    cfg = pc.BundleAdjustmentConfig()
+    for iid in probe.reg_image_ids():
+        cfg.add_image(iid)
+    cfg.fix_gauge(pc.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    pc.create_default_bundle_adjuster(opts, cfg, probe).solve()
     return {cid: _focal_px(cam) for cid, cam in probe.cameras.items()}
 
 
