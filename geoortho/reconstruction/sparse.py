@@ -616,19 +616,26 @@ def _focal_drift(rec: Any, priors_px: dict[int, float]) -> dict[int, float]:
 def _probe_free_focal(rec: Any) -> dict[int, float]:
     """Focal lengths a bundle adjustment reaches when it may refine them (on a copy)."""
     pc = load_pycolmap()
-    probe = pc.Reconstruction(rec)
     opts = pc.BundleAdjustmentOptions()
     opts.print_summary = False
     opts.refine_focal_length = True
     opts.ceres.loss_function_type = pc.LossFunctionType.SOFT_L1
-    # the adjuster itself, not pycolmap.bundle_adjustment: that one logs two INFO lines and leaves
-    # COLMAP's log level at INFO, so the mapping after it printed its iterations to stderr
-    cfg = pc.BundleAdjustmentConfig()
-    for iid in probe.reg_image_ids():
-        cfg.add_image(iid)
-    cfg.fix_gauge(pc.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    pc.create_default_bundle_adjuster(opts, cfg, probe).solve()
+    probe = _adjusted_copy(rec, opts, pc.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     return {cid: _focal_px(cam) for cid, cam in probe.cameras.items()}
+
+
+def _adjusted_copy(rec: Any, opts: Any, gauge: Any) -> Any:
+    """A copy of the block bundle-adjusted over all its registered photos with ``opts``, its gauge
+    held by ``gauge``. COLMAP's adjuster itself, not pycolmap.bundle_adjustment: that one logs two
+    INFO lines and leaves COLMAP's log level at INFO, so the mapping after it printed to stderr."""
+    pc = load_pycolmap()
+    copy = pc.Reconstruction(rec)
+    cfg = pc.BundleAdjustmentConfig()
+    for iid in copy.reg_image_ids():
+        cfg.add_image(iid)
+    cfg.fix_gauge(gauge)
+    pc.create_default_bundle_adjuster(opts, cfg, copy).solve()
+    return copy
 
 
 def _gps_outliers(rec: Any, priors: _Priors) -> list[str]:
@@ -1404,17 +1411,11 @@ def _refine_time_lag(mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> tupl
 def _free_network(rec: Any) -> Any:
     """A copy of the block bundle-adjusted on its photos alone (no position priors)."""
     pc = load_pycolmap()
-    free = pc.Reconstruction(rec)
-    cfg = pc.BundleAdjustmentConfig()
-    for iid in free.reg_image_ids():
-        cfg.add_image(iid)
-    cfg.fix_gauge(pc.BundleAdjustmentGauge.THREE_POINTS)
     opts = pc.BundleAdjustmentOptions()
     opts.print_summary = False
     opts.refine_focal_length = False
     opts.ceres.solver_options.max_num_iterations = FREE_NETWORK_ITERATIONS
-    pc.create_default_bundle_adjuster(opts, cfg, free).solve()
-    return free
+    return _adjusted_copy(rec, opts, pc.BundleAdjustmentGauge.THREE_POINTS)
 
 
 #: The free network starts from the block the mapper adjusted: Ceres' 100 iterations spent most of
