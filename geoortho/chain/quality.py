@@ -235,34 +235,51 @@ def assess(
 ) -> list[Check]:
     """Grade what the stages measured (their reports and outputs; None for a stage not run)."""
     sfm, dense, dem, ortho, fp = sfm or {}, dense or {}, dem or {}, ortho or {}, footprints or {}
-    gsd_m = _num(sfm.get("gsd_cm")) / 100.0
-    checks = [
+    return [
+        *_coverage_checks(dem, ortho),
+        *_photo_checks(sfm, dense, ortho),
+        *_control_checks(sfm),
+        *_gps_checks(sfm),
+        *_surface_checks(sfm, ortho, fp),
+    ]
+
+
+def _coverage_checks(dem: dict[str, Any], ortho: dict[str, Any]) -> list[Check]:
+    return [
         _check("ortho_coverage", 100.0 * _num(ortho.get("share_of_seen_2", math.nan))),
         _check("dsm_measured", 100.0 * _num(dem.get("measured_share", math.nan)) if dem.get("seen_m2") else math.nan),
     ]
+
+
+def _photo_checks(sfm: dict[str, Any], dense: dict[str, Any], ortho: dict[str, Any]) -> list[Check]:
+    """Photos registered, in the orthophoto, with a depth map; the ones left out named."""
     dropped = sfm.get("unregistered") or []
     if isinstance(dropped, dict):  # image -> why, as sfm's report gives it
         unregistered = [f"{k} ({v})" if len(dropped) <= 3 else str(k) for k, v in dropped.items()]
     else:
         unregistered = [str(u.get("image", u)) if isinstance(u, dict) else str(u) for u in dropped]
-    checks.append(
+    no_map = dense.get("no_depth_map") or {}
+    return [
         _check(
             "photos_registered",
             _share(sfm.get("registered"), sfm.get("photos")),
             ("not registered: " + ", ".join(unregistered[:8]) + (" …" if len(unregistered) > 8 else ""))
             if unregistered
             else "",
-        )
-    )
-    checks.append(_check("photos_in_ortho", _share(ortho.get("n_used"), ortho.get("n_photos"))))
-    no_map = dense.get("no_depth_map") or {}
-    checks.append(
+        ),
+        _check("photos_in_ortho", _share(ortho.get("n_used"), ortho.get("n_photos"))),
         _check(
             "depth_maps",
             _share(dense.get("depth_maps"), dense.get("photos")),
             ("none for: " + ", ".join(list(no_map)[:8])) if no_map else "",
-        )
-    )
+        ),
+    ]
+
+
+def _control_checks(sfm: dict[str, Any]) -> list[Check]:
+    """The GCPs' and checkpoints' RMSE (in GSDs), and how far the GCPs moved the GPS georeference."""
+    gsd_m = _num(sfm.get("gsd_cm")) / 100.0
+    checks = []
     for item, key in (("gcp_rmse", "gcp_accuracy"), ("checkpoint_rmse", "checkpoint_accuracy")):
         acc = sfm.get(key) or {}
         if not acc:
@@ -275,9 +292,8 @@ def assess(
         checks.append(_check(item, rmse / gsd_m, f"{100 * rmse:.1f} cm {what} over {acc.get('n')}"))
     effect = sfm.get("gcp_vs_gps") or {}
     cause = str(effect.get("likely_cause") or "")
-    k = next(i for i, c in enumerate(checks) if c.item == "gcp_rmse")
-    if cause and checks[k].state != "not measured":  # the control residuals: what most likely made them
-        checks[k] = Check(**{**asdict(checks[k]), "detail": f"{checks[k].detail}; likely cause: {cause}"})
+    if cause and checks[0].state != "not measured":  # the control residuals: what most likely made them
+        checks[0] = Check(**{**asdict(checks[0]), "detail": f"{checks[0].detail}; likely cause: {cause}"})
     edge = f"moves the site's edge {_num(effect.get('edge_shift_m')):.2f} m" if "edge_shift_m" in effect else ""
     checks.append(_check("gcp_scale", abs(_num(effect.get("scale_change_pct", math.nan))), edge))
     checks.append(_check("gcp_rotation", _num(effect.get("rotation_deg", math.nan)), edge))
@@ -290,6 +306,11 @@ def assess(
             else "",
         )
     )
+    return checks
+
+
+def _gps_checks(sfm: dict[str, Any]) -> list[Check]:
+    """A block georeferenced by its GPS: how well the GPS fits it, and whether the two fits agree."""
     by_gps = str(sfm.get("georeferenced_by", "")).startswith("GPS")
     gps = sfm.get("gps") or {}
     spread = (
@@ -298,15 +319,13 @@ def assess(
         if "inlier_share" in gps
         else ""
     )
-    checks.append(
+    ce90_m = _num(gps.get("ce90_m"))
+    return [
         _check(
             "gps_fit",
-            _num(gps.get("ce90_m")) if by_gps else math.nan,
+            ce90_m if by_gps else math.nan,
             "the products' absolute accuracy is the GPS's" + spread if by_gps else "",
-        )
-    )
-    ce90_m = _num(gps.get("ce90_m"))
-    checks.append(
+        ),
         _check(
             "gps_fits_agree",
             _num(gps.get("robust_vs_lsq_m")) / ce90_m if by_gps and ce90_m > 0 else math.nan,
@@ -314,20 +333,26 @@ def assess(
             f"{_num(gps.get('lsq_rotation_deg')):+.2f}°"
             if by_gps
             else "",
-        )
-    )
+        ),
+    ]
+
+
+def _surface_checks(sfm: dict[str, Any], ortho: dict[str, Any], fp: dict[str, Any]) -> list[Check]:
+    """The camera's focal drift, the DSM against the SfM, the heights given against those measured,
+    and the colour step across the seams."""
     drifts = [abs(_num(i.get("focal_drift_pct"))) for i in sfm.get("intrinsics") or []]
     drifts = [d for d in drifts if math.isfinite(d)]
-    checks.append(_check("focal_drift", max(drifts) if drifts else math.nan))
-    checks.append(_check("dsm_vs_sfm", abs(_num(ortho.get("dsm_offset_m", math.nan)))))
     measured, meta = _num(fp.get("altitude_m")), _num(fp.get("altitude_metadata_m"))
     off = 100.0 * abs(meta - measured) / measured if measured > 0 else math.nan
     heights = _check("heights_given", off, str(fp.get("height_check") or ""))
     if fp.get("height_check") and heights.state != "red":  # an elevation 2 m off is red at any share
         heights = Check(**{**asdict(heights), "state": "red"})
-    checks.append(heights)
-    checks.append(_check("seam_mismatch", _num(ortho.get("seam_mismatch_balanced", math.nan))))
-    return checks
+    return [
+        _check("focal_drift", max(drifts) if drifts else math.nan),
+        _check("dsm_vs_sfm", abs(_num(ortho.get("dsm_offset_m", math.nan)))),
+        heights,
+        _check("seam_mismatch", _num(ortho.get("seam_mismatch_balanced", math.nan))),
+    ]
 
 
 def verdict(checks: list[Check], failed: bool = False) -> State:

@@ -449,8 +449,6 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     InputError
         The file cannot be opened as an image, or is truncated before its pixels.
     """
-    from PIL import Image, UnidentifiedImageError
-
     path = Path(path)
     warnings: list[str] = []
     try:
@@ -458,77 +456,24 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
     except UnicodeEncodeError:
         # the name could not be written in any product (GeoPackage, JSON, the report)
         raise InputError(f"the file name {shown_name(path.name)} is not UTF-8: rename the photo") from None
-    try:
-        with catch_warnings():
-            # a header claiming 90-180 M pixels is checked against its data below, not warned of
-            simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(path) as im:
-                width, height = im.size
-                exif = im.getexif()
-                xmp_raw = im.info.get("xmp")
-                if xmp_raw is None and hasattr(im, "tag_v2"):
-                    xmp_raw = im.tag_v2.get(700)  # TIFF XMP tag
-                gps = exif.get_ifd(0x8825)
-                exif_ifd = exif.get_ifd(0x8769)
-                if im.format == "JPEG":
-                    _check_jpeg_complete(path)
-                    _check_jpeg_size(path, im, exif_ifd)
-    except Image.DecompressionBombError:
-        raise InputError(
-            f"the header claims more than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} M pixels: not a drone photo",
-            path=path,
-        ) from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
-        raise InputError(f"not a readable image ({e})", path=path) from None
+    width, height, exif, gps, exif_ifd, xmp_raw = _headers(path)
     tags = parse_xmp(xmp_raw)
     make = _text(exif.get(271)) or tags.get("tiff:Make", "")
     model = _text(exif.get(272)) or tags.get("tiff:Model", "")
-
-    lat = _dms_deg(gps.get(2), gps.get(1), "S") if gps else math.nan
-    lon = _dms_deg(gps.get(4), gps.get(3), "W") if gps else math.nan
-    if not (math.isfinite(lat) and math.isfinite(lon)):
-        lat, lon = _xmp_float(tags, *_LATITUDE), _xmp_float(tags, *_LONGITUDE)
-    if math.isfinite(lat) and math.isfinite(lon) and lat == 0.0 and lon == 0.0:
-        lat = lon = math.nan  # a GPS without a fix writes 0, 0
-    if (math.isfinite(lat) and abs(lat) > 90) or (math.isfinite(lon) and abs(lon) > 180):
-        raise InputError(f"GPS position out of range (latitude {lat:g}, longitude {lon:g})", path=path)
-    gps_alt = _float(gps.get(6)) if gps else math.nan
-    if gps and math.isfinite(gps_alt) and gps.get(5) in (1, b"\x01"):
-        gps_alt = -gps_alt
-
+    lat, lon, gps_alt = _gps_position(gps, tags, path)
     rel = _xmp_float(tags, *_RELATIVE)
     absolute = _xmp_float(tags, *_ABSOLUTE)
     direction = _float(gps.get(17)) if gps else math.nan  # GPSImgDirection
     if math.isfinite(direction) and _text(gps.get(16)).upper().startswith("M"):
         warnings.append("GPSImgDirection is magnetic: read as true north (declination not applied)")
     yaw, pitch, roll, source, body = _attitude(tags, make, direction, warnings)
-    focal_mm = _float(exif_ifd.get(0x920A))
-    focal_35 = _float(exif_ifd.get(0xA405))
-    # No camera has a lens under 1.5 mm (35 mm equivalent under 8 mm): 0 and 1 are placeholders.
-    if math.isfinite(focal_mm) and focal_mm < 1.5:
-        warnings.append(f"FocalLength {focal_mm:g} mm is not a lens: ignored")
-        focal_mm = math.nan
-    if math.isfinite(focal_35) and focal_35 < 8:
-        warnings.append(f"FocalLengthIn35mmFilm {focal_35:g} mm is not a lens: ignored")
-        focal_35 = math.nan
-    sw, sw_source = _sensor_width(make, model, focal_mm, focal_35, exif_ifd, (width, height), sensor_width_mm)
-    if not math.isfinite(focal_mm) and math.isfinite(focal_35):
-        # No true focal length: the 35 mm equivalent on a 36 mm-wide virtual sensor.
-        focal_mm = focal_35
-        sw, sw_source = _width_from_35mm(focal_35, focal_35, (width, height))
+    focal_mm, focal_35, sw, sw_source = _lens(make, model, exif_ifd, (width, height), sensor_width_mm, warnings)
     sigma_h, sigma_v, fix, accuracy_warning = position_accuracy(tags)
     if accuracy_warning:
         warnings.append(accuracy_warning)
     cal_f, cal_cx, cal_cy, cal_dist, dewarped, cal_warning = factory_calibration(tags, int(width), int(height))
     if cal_warning:
         warnings.append(cal_warning)
-    taken = _text(exif_ifd.get(0x9003)) or _text(exif.get(306))
-    if re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d.*", taken):
-        taken = taken[:10].replace(":", "-") + "T" + taken[11:19]
-        # SubSecTimeOriginal: the fraction of a second (a PPK position is matched to the exposure by it)
-        subsec = re.sub(r"\D", "", _text(exif_ifd.get(0x9291)))[:6]
-        if subsec:
-            taken += "." + subsec
     return Photo(
         path=path,
         width_px=int(width),
@@ -551,7 +496,7 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         focal_35mm=focal_35,
         sensor_width_mm=sw,
         sensor_source=sw_source,
-        taken_at=taken,
+        taken_at=_taken_at(exif, exif_ifd),
         has_xmp=bool(tags),
         exposure_time_s=_float(exif_ifd.get(0x829A)),
         f_number=_float(exif_ifd.get(0x829D)),
@@ -566,6 +511,90 @@ def read_photo(path: str | os.PathLike[str], sensor_width_mm: float | None = Non
         dewarped=dewarped,
         warnings=tuple(warnings),
     )
+
+
+def _headers(path: Path) -> tuple[int, int, Any, Any, Any, Any]:
+    """The image's size, EXIF, its GPS and Exif IFDs and the raw XMP (headers only); a JPEG checked
+    whole, and its size against its data."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with catch_warnings():
+            # a header claiming 90-180 M pixels is checked against its data below, not warned of
+            simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                width, height = im.size
+                exif = im.getexif()
+                xmp_raw = im.info.get("xmp")
+                if xmp_raw is None and hasattr(im, "tag_v2"):
+                    xmp_raw = im.tag_v2.get(700)  # TIFF XMP tag
+                gps = exif.get_ifd(0x8825)
+                exif_ifd = exif.get_ifd(0x8769)
+                if im.format == "JPEG":
+                    _check_jpeg_complete(path)
+                    _check_jpeg_size(path, im, exif_ifd)
+    except Image.DecompressionBombError:
+        raise InputError(
+            f"the header claims more than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} M pixels: not a drone photo",
+            path=path,
+        ) from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+        raise InputError(f"not a readable image ({e})", path=path) from None
+    return int(width), int(height), exif, gps, exif_ifd, xmp_raw
+
+
+def _gps_position(gps: Any, tags: dict[str, str], path: Path) -> tuple[float, float, float]:
+    """Latitude, longitude (EXIF GPS, else XMP; NaN without a fix) and the GPS altitude (m)."""
+    lat = _dms_deg(gps.get(2), gps.get(1), "S") if gps else math.nan
+    lon = _dms_deg(gps.get(4), gps.get(3), "W") if gps else math.nan
+    if not (math.isfinite(lat) and math.isfinite(lon)):
+        lat, lon = _xmp_float(tags, *_LATITUDE), _xmp_float(tags, *_LONGITUDE)
+    if math.isfinite(lat) and math.isfinite(lon) and lat == 0.0 and lon == 0.0:
+        lat = lon = math.nan  # a GPS without a fix writes 0, 0
+    if (math.isfinite(lat) and abs(lat) > 90) or (math.isfinite(lon) and abs(lon) > 180):
+        raise InputError(f"GPS position out of range (latitude {lat:g}, longitude {lon:g})", path=path)
+    gps_alt = _float(gps.get(6)) if gps else math.nan
+    if gps and math.isfinite(gps_alt) and gps.get(5) in (1, b"\x01"):
+        gps_alt = -gps_alt
+    return lat, lon, gps_alt
+
+
+def _lens(
+    make: str,
+    model: str,
+    exif_ifd: Any,
+    size: tuple[int, int],
+    sensor_width_mm: float | None,
+    warnings: list[str],
+) -> tuple[float, float, float, str]:
+    """Focal length (mm), its 35 mm equivalent, the sensor's width (mm) and where that came from."""
+    focal_mm = _float(exif_ifd.get(0x920A))
+    focal_35 = _float(exif_ifd.get(0xA405))
+    # No camera has a lens under 1.5 mm (35 mm equivalent under 8 mm): 0 and 1 are placeholders.
+    if math.isfinite(focal_mm) and focal_mm < 1.5:
+        warnings.append(f"FocalLength {focal_mm:g} mm is not a lens: ignored")
+        focal_mm = math.nan
+    if math.isfinite(focal_35) and focal_35 < 8:
+        warnings.append(f"FocalLengthIn35mmFilm {focal_35:g} mm is not a lens: ignored")
+        focal_35 = math.nan
+    sw, sw_source = _sensor_width(make, model, focal_mm, focal_35, exif_ifd, size, sensor_width_mm)
+    if not math.isfinite(focal_mm) and math.isfinite(focal_35):
+        # No true focal length: the 35 mm equivalent on a 36 mm-wide virtual sensor.
+        focal_mm = focal_35
+        sw, sw_source = _width_from_35mm(focal_35, focal_35, size)
+    return focal_mm, focal_35, sw, sw_source
+
+
+def _taken_at(exif: Any, exif_ifd: Any) -> str:
+    """DateTimeOriginal (else DateTime) as ISO 8601, with SubSecTimeOriginal's fraction."""
+    taken = _text(exif_ifd.get(0x9003)) or _text(exif.get(306))
+    if re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d.*", taken):
+        taken = taken[:10].replace(":", "-") + "T" + taken[11:19]
+        # SubSecTimeOriginal: the fraction of a second (a PPK position is matched to the exposure by it)
+        subsec = re.sub(r"\D", "", _text(exif_ifd.get(0x9291)))[:6]
+        if subsec:
+            taken += "." + subsec
+    return taken
 
 
 def _check_jpeg_complete(path: Path) -> None:
