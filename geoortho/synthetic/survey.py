@@ -1271,13 +1271,6 @@ def _dms(value: float) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int
 
 def _xmp(shot: Shot) -> bytes:
     """The photo's XMP packet as its maker writes it (``shot.maker``)."""
-
-    def f(v: float) -> str:
-        return f"{v:+.2f}"
-
-    def opt(name: str, v: float) -> str:
-        return f'    {name}="{f(v)}"\n' if math.isfinite(v) else ""
-
     make = MAKER_MAKE[shot.maker]
     ns = {
         "dji": 'xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"',
@@ -1288,31 +1281,67 @@ def _xmp(shot: Shot) -> bytes:
         "pix4d": 'xmlns:Camera="http://pix4d.com/camera/1.0/"',
         "sensefly": 'xmlns:Camera="http://ns.sensefly.com/Camera/1.0/"',
     }[shot.maker]
-    attrs, body = "", ""
-    if shot.rtk_flag >= 0:  # (metres to the millimetre: a receiver's centimetres need it)
-        if shot.maker in ("dji", "autel"):
-            p = "drone-dji" if shot.maker == "dji" else "drone"
-            attrs += (
-                f'    {p}:RtkFlag="{shot.rtk_flag}"\n'
-                f'    {p}:RtkStdLon="{shot.rtk_sigma_h_m:.4f}"\n'
-                f'    {p}:RtkStdLat="{shot.rtk_sigma_h_m * 0.9:.4f}"\n'
-                f'    {p}:RtkStdHgt="{shot.rtk_sigma_v_m:.4f}"\n'
-            )
-        elif shot.maker in ("pix4d", "sensefly", "parrot"):
-            attrs += (
-                f'    Camera:GPSXYAccuracy="{shot.rtk_sigma_h_m:.4f}"\n'
-                f'    Camera:GPSZAccuracy="{shot.rtk_sigma_v_m:.4f}"\n'
-            )
-    if shot.maker == "dji" and math.isfinite(shot.cal_focal_px):
-        k = shot.cal_distortion
-        attrs += (
-            f'    drone-dji:CalibratedFocalLength="{shot.cal_focal_px:.6f}"\n'
-            f'    drone-dji:CalibratedOpticalCenterX="{shot.cal_cx_px:.6f}"\n'
-            f'    drone-dji:CalibratedOpticalCenterY="{shot.cal_cy_px:.6f}"\n'
-            f'    drone-dji:DewarpData="2026-05-01;{shot.cal_focal_px:.6f},{shot.cal_focal_px:.6f},0.000000,0.000000,'
-            + ",".join(f"{v:.9f}" for v in k)
-            + '"\n    drone-dji:DewarpFlag="0"\n'
+    attitude, body = _xmp_attitude(shot)
+    attrs = _xmp_accuracy(shot) + _xmp_calibration(shot) + attitude
+    return (
+        '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
+        ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
+        f'  <rdf:Description rdf:about="{make} Meta Data"\n'
+        f'    xmlns:tiff="http://ns.adobe.com/tiff/1.0/" {ns}\n'
+        f'    tiff:Make="{make}" tiff:Model="{CAMERA_MODEL}"\n' + attrs + "  >\n" + body + "  </rdf:Description>\n"
+        " </rdf:RDF>\n"
+        "</x:xmpmeta>\n"
+        '<?xpacket end="w"?>'
+    ).encode()
+
+
+def _xmp_signed(v: float) -> str:
+    return f"{v:+.2f}"
+
+
+def _xmp_optional(name: str, v: float) -> str:
+    """An attribute line, or nothing for a value not recorded (NaN)."""
+    return f'    {name}="{_xmp_signed(v)}"\n' if math.isfinite(v) else ""
+
+
+def _xmp_accuracy(shot: Shot) -> str:
+    """The position's stated accuracy, as each maker writes it (m, to the millimetre: a receiver's
+    centimetres need it); nothing without an RTK flag."""
+    if shot.rtk_flag < 0:
+        return ""
+    if shot.maker in ("dji", "autel"):
+        p = "drone-dji" if shot.maker == "dji" else "drone"
+        return (
+            f'    {p}:RtkFlag="{shot.rtk_flag}"\n'
+            f'    {p}:RtkStdLon="{shot.rtk_sigma_h_m:.4f}"\n'
+            f'    {p}:RtkStdLat="{shot.rtk_sigma_h_m * 0.9:.4f}"\n'
+            f'    {p}:RtkStdHgt="{shot.rtk_sigma_v_m:.4f}"\n'
         )
+    if shot.maker in ("pix4d", "sensefly", "parrot"):
+        return (
+            f'    Camera:GPSXYAccuracy="{shot.rtk_sigma_h_m:.4f}"\n    Camera:GPSZAccuracy="{shot.rtk_sigma_v_m:.4f}"\n'
+        )
+    return ""
+
+
+def _xmp_calibration(shot: Shot) -> str:
+    """DJI's factory calibration (focal length, optical centre, DewarpData), when the shot has one."""
+    if shot.maker != "dji" or not math.isfinite(shot.cal_focal_px):
+        return ""
+    return (
+        f'    drone-dji:CalibratedFocalLength="{shot.cal_focal_px:.6f}"\n'
+        f'    drone-dji:CalibratedOpticalCenterX="{shot.cal_cx_px:.6f}"\n'
+        f'    drone-dji:CalibratedOpticalCenterY="{shot.cal_cy_px:.6f}"\n'
+        f'    drone-dji:DewarpData="2026-05-01;{shot.cal_focal_px:.6f},{shot.cal_focal_px:.6f},0.000000,0.000000,'
+        + ",".join(f"{v:.9f}" for v in shot.cal_distortion)
+        + '"\n    drone-dji:DewarpFlag="0"\n'
+    )
+
+
+def _xmp_attitude(shot: Shot) -> tuple[str, str]:
+    """Heights and angles as each maker writes them: (attribute lines, element lines)."""
+    f, opt = _xmp_signed, _xmp_optional
     if shot.maker in ("dji", "autel"):
         p = "drone-dji" if shot.maker == "dji" else "drone"
         absolute = (
@@ -1320,7 +1349,7 @@ def _xmp(shot: Shot) -> bytes:
             if shot.rtk_flag >= 0 and math.isfinite(shot.rec_abs_alt_m)
             else opt(f"{p}:AbsoluteAltitude", shot.rec_abs_alt_m)
         )
-        attrs += (
+        return (
             absolute
             + opt(f"{p}:RelativeAltitude", shot.rec_rel_alt_m)
             + opt(f"{p}:GimbalRollDegree", shot.rec_roll_deg)
@@ -1329,10 +1358,10 @@ def _xmp(shot: Shot) -> bytes:
             + opt(f"{p}:FlightRollDegree", shot.flight_roll_deg)
             + opt(f"{p}:FlightYawDegree", shot.flight_yaw_deg)
             + opt(f"{p}:FlightPitchDegree", shot.flight_pitch_deg)
-        )
-    elif shot.maker == "parrot":
+        ), ""
+    if shot.maker == "parrot":
         # Parrot writes its NED angles and the same attitude in Pix4D's Camera: convention.
-        body = (
+        return "", (
             f"   <drone-parrot:CameraRollDegree>{f(shot.rec_roll_deg)}</drone-parrot:CameraRollDegree>\n"
             f"   <drone-parrot:CameraPitchDegree>{f(shot.rec_pitch_deg)}</drone-parrot:CameraPitchDegree>\n"
             f"   <drone-parrot:CameraYawDegree>{f(shot.rec_yaw_deg)}</drone-parrot:CameraYawDegree>\n"
@@ -1345,13 +1374,12 @@ def _xmp(shot: Shot) -> bytes:
                 else ""
             )
         )
-    elif shot.maker == "skydio":
+    if shot.maker == "skydio":
         # Several frames share the field names: the camera's is CameraOrientationNED (a struct),
         # written after a body-frame struct that must not be taken for it.
-        attrs = opt("drone-skydio:AbsoluteAltitude", shot.rec_abs_alt_m) + opt(
+        return opt("drone-skydio:AbsoluteAltitude", shot.rec_abs_alt_m) + opt(
             "drone-skydio:RelativeAltitude", shot.rec_rel_alt_m
-        )
-        body = (
+        ), (
             '   <drone-skydio:CameraOrientationFLU rdf:parseType="Resource">\n'
             "    <drone-skydio:Yaw>+12.00</drone-skydio:Yaw><drone-skydio:Pitch>+3.00</drone-skydio:Pitch>"
             "<drone-skydio:Roll>+1.00</drone-skydio:Roll>\n"
@@ -1362,25 +1390,14 @@ def _xmp(shot: Shot) -> bytes:
             f"    <drone-skydio:Roll>{f(shot.rec_roll_deg)}</drone-skydio:Roll>\n"
             "   </drone-skydio:CameraOrientationNED>\n"
         )
-    elif shot.maker in ("pix4d", "sensefly"):
-        roll = -shot.rec_roll_deg if shot.maker == "sensefly" else shot.rec_roll_deg
-        attrs += (
-            opt("Camera:Yaw", shot.rec_yaw_deg)
-            + opt("Camera:Pitch", shot.rec_pitch_deg + 90.0)
-            + opt("Camera:Roll", roll)
-            + opt("Camera:AboveGroundAltitude", shot.rec_rel_alt_m)
-        )
+    # pix4d, sensefly
+    roll = -shot.rec_roll_deg if shot.maker == "sensefly" else shot.rec_roll_deg
     return (
-        '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
-        '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
-        ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
-        f'  <rdf:Description rdf:about="{make} Meta Data"\n'
-        f'    xmlns:tiff="http://ns.adobe.com/tiff/1.0/" {ns}\n'
-        f'    tiff:Make="{make}" tiff:Model="{CAMERA_MODEL}"\n' + attrs + "  >\n" + body + "  </rdf:Description>\n"
-        " </rdf:RDF>\n"
-        "</x:xmpmeta>\n"
-        '<?xpacket end="w"?>'
-    ).encode()
+        opt("Camera:Yaw", shot.rec_yaw_deg)
+        + opt("Camera:Pitch", shot.rec_pitch_deg + 90.0)
+        + opt("Camera:Roll", roll)
+        + opt("Camera:AboveGroundAltitude", shot.rec_rel_alt_m)
+    ), ""
 
 
 def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) -> None:
