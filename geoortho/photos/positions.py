@@ -30,7 +30,7 @@ import io
 import math
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -381,21 +381,7 @@ _COLUMNS = {
 
 
 def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
-    from pyproj import CRS
-    from pyproj.exceptions import CRSError
-
-    from geoortho.core.crs import WGS84, transformer
-
-    crs_text = ""
-    body: list[tuple[int, str]] = []
-    for n, line in enumerate(text.splitlines(), 1):
-        if line.lstrip().startswith("#"):
-            m = re.search(r"(EPSG:\d+|crs\s*[:=]\s*\S+)", line, re.IGNORECASE)
-            if m and not crs_text:
-                crs_text = re.sub(r"^crs\s*[:=]\s*", "", m.group(1), flags=re.IGNORECASE)
-            continue
-        if line.strip():
-            body.append((n, line))
+    crs_text, body = _csv_lines(text)
     if not body:
         raise InputError("has no header row", path=path)
     try:
@@ -404,18 +390,7 @@ def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
         dialect = csv.excel
     rows = list(csv.reader(io.StringIO("\n".join(line for _, line in body)), dialect))
     header = [h.strip().lower() for h in rows[0]]
-    col: dict[str, int] = {}
-    for key, names in _COLUMNS.items():
-        for i, h in enumerate(header):
-            if h in names and key not in col:
-                col[key] = i
-    missing = [k for k in ("image", "x", "y", "z") if k not in col]
-    if missing:
-        raise InputError(
-            f"line {body[0][0]}: the header names no {', '.join(missing)} column "
-            "(image, x/easting/longitude, y/northing/latitude, z/height; sigma_h, sigma_v optional)",
-            path=path,
-        )
+    col = _csv_columns(path, header, body[0][0])
     lonlat = header[col["x"]] in ("lon", "long", "longitude") or header[col["y"]] in ("lat", "latitude")
     by_name = {p.image.lower(): p for p in photos} | {Path(p.image).stem.lower(): p for p in photos}
     by_image: dict[str, Position] = {}
@@ -426,34 +401,12 @@ def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
             continue
         if len(row) <= max(col.values()):
             raise InputError(f"line {n}: {len(row)} columns, the header has {len(header)}", path=path)
-
-        def number(key: str, n: int = n, row: list[str] = row) -> float:
-            text_v = row[col[key]].strip()
-            try:
-                return float(text_v)
-            except ValueError:
-                raise InputError(
-                    f"line {n}: {text_v!r} is not a number in column {header[col[key]]}", path=path
-                ) from None
-
+        number = _csv_number(path, n, row, header, col)
         x, y, z = number("x"), number("y"), number("z")
         sh = number("sigma_h") if "sigma_h" in col and row[col["sigma_h"]].strip() else math.nan
         sv = number("sigma_v") if "sigma_v" in col and row[col["sigma_v"]].strip() else math.nan
         row_crs = row[col["crs"]].strip() if "crs" in col else ""
-        crs_of_row = row_crs or crs_text or ("EPSG:4326" if lonlat else "")
-        if not crs_of_row:
-            raise InputError(
-                f"line {n}: x/y without a CRS: add a '# EPSG:…' line or a crs column (or name the columns lat/lon)",
-                path=path,
-            )
-        if crs_of_row not in to_ll_cache:
-            try:
-                to_ll_cache[crs_of_row] = transformer(CRS.from_user_input(crs_of_row), WGS84)
-            except CRSError:
-                raise InputError(f"line {n}: unknown CRS {crs_of_row!r}", path=path) from None
-        lon, lat = to_ll_cache[crs_of_row].transform(x, y)  # type: ignore[attr-defined]
-        if not (math.isfinite(lat) and math.isfinite(lon) and abs(lat) <= 90 and abs(lon) <= 180):
-            raise InputError(f"line {n}: ({x:g}, {y:g}) is no position in {crs_of_row}", path=path)
+        lon, lat = _csv_lonlat(path, n, x, y, row_crs or crs_text or ("EPSG:4326" if lonlat else ""), to_ll_cache)
         name = row[col["image"]].strip()
         p = by_name.get(name.lower()) or by_name.get(Path(name).stem.lower())
         if p is None:
@@ -469,3 +422,71 @@ def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
         raise InputError("no line matches a photo by its image name", path=path)
     without = tuple(p.image for p in photos if p.image not in by_image)
     return PositionFile(path, "CSV", by_image, without, tuple(lines_without))
+
+
+def _csv_lines(text: str) -> tuple[str, list[tuple[int, str]]]:
+    """The CRS a comment line names ('' if none), and the other non-blank lines with their numbers."""
+    crs_text = ""
+    body: list[tuple[int, str]] = []
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.lstrip().startswith("#"):
+            m = re.search(r"(EPSG:\d+|crs\s*[:=]\s*\S+)", line, re.IGNORECASE)
+            if m and not crs_text:
+                crs_text = re.sub(r"^crs\s*[:=]\s*", "", m.group(1), flags=re.IGNORECASE)
+            continue
+        if line.strip():
+            body.append((n, line))
+    return crs_text, body
+
+
+def _csv_columns(path: Path, header: list[str], line: int) -> dict[str, int]:
+    """Each known column's index (the first header cell that names it); image, x, y and z required."""
+    col: dict[str, int] = {}
+    for key, names in _COLUMNS.items():
+        for i, h in enumerate(header):
+            if h in names and key not in col:
+                col[key] = i
+    missing = [k for k in ("image", "x", "y", "z") if k not in col]
+    if missing:
+        raise InputError(
+            f"line {line}: the header names no {', '.join(missing)} column "
+            "(image, x/easting/longitude, y/northing/latitude, z/height; sigma_h, sigma_v optional)",
+            path=path,
+        )
+    return col
+
+
+def _csv_number(path: Path, n: int, row: list[str], header: list[str], col: dict[str, int]) -> Callable[[str], float]:
+    """Reads a column of line ``n`` as a number, or refuses naming the line and the column."""
+
+    def number(key: str) -> float:
+        text_v = row[col[key]].strip()
+        try:
+            return float(text_v)
+        except ValueError:
+            raise InputError(f"line {n}: {text_v!r} is not a number in column {header[col[key]]}", path=path) from None
+
+    return number
+
+
+def _csv_lonlat(path: Path, n: int, x: float, y: float, crs_text: str, cache: dict[str, object]) -> tuple[float, float]:
+    """Line ``n``'s (x, y) in ``crs_text`` as WGS 84 longitude and latitude (degrees)."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    from geoortho.core.crs import WGS84, transformer
+
+    if not crs_text:
+        raise InputError(
+            f"line {n}: x/y without a CRS: add a '# EPSG:…' line or a crs column (or name the columns lat/lon)",
+            path=path,
+        )
+    if crs_text not in cache:
+        try:
+            cache[crs_text] = transformer(CRS.from_user_input(crs_text), WGS84)
+        except CRSError:
+            raise InputError(f"line {n}: unknown CRS {crs_text!r}", path=path) from None
+    lon, lat = cache[crs_text].transform(x, y)  # type: ignore[attr-defined]
+    if not (math.isfinite(lat) and math.isfinite(lon) and abs(lat) <= 90 and abs(lon) <= 180):
+        raise InputError(f"line {n}: ({x:g}, {y:g}) is no position in {crs_text}", path=path)
+    return float(lon), float(lat)
