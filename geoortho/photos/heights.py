@@ -428,9 +428,46 @@ def _from_gnss(
     )
     if check is not None and not check.trusted:
         raise InputError(f"{what} that is not trustworthy ({check.describe()}): {give}")
-    # Each reading of the altitude → camera elevation in the ground model's datum. Height above
-    # take-off is what old DJI firmware (no XMP at all) wrote; other cameras follow EXIF's sea level
-    # or write ellipsoidal heights, so that reading is only offered for those DJI photos.
+    readings = _gnss_readings(photos, g, base, known_ground, gps_altitude, lonlat, datum, notes)
+    if gps_altitude != "auto":
+        key = gps_altitude if gps_altitude in readings else None
+        if key is None:
+            raise InputError(f"gps_altitude {gps_altitude} needs a ground model in a known datum: {give}")
+        note = f"{what}: {readings[key][1]}, as told"
+    else:
+        key, note = _likeliest_reading(readings, under, flight_height_range_m(photos, xy), known_ground, what, give)
+    z = readings[key][0]
+    notes.insert(0, note)
+    sources = (f"{readings[key][1]}; {label}",) * n
+    surf = surface if surface is not None else FlatSurface(base)
+    return HeightModel(
+        np.asarray(z, float),
+        sources,
+        readings[key][1],
+        datum,
+        base,
+        surf,
+        tuple(notes),
+        checks,
+        check is None or check.trusted,
+    )
+
+
+def _gnss_readings(
+    photos: Sequence[Photo],
+    g: np.ndarray,
+    base: float,
+    known_ground: bool,
+    gps_altitude: str,
+    lonlat: np.ndarray,
+    datum: str,
+    notes: list[str],
+) -> dict[str, tuple[np.ndarray, str]]:
+    """Each reading of the GPS altitude → (camera elevations in the ground model's datum, how read).
+
+    Height above take-off is what old DJI firmware (no XMP at all) wrote; other cameras follow
+    EXIF's sea level or write ellipsoidal heights, so that reading is only offered for those DJI
+    photos (or when asked for)."""
     readings: dict[str, tuple[np.ndarray, str]] = {}
     old_dji = all(p.make.strip().upper().startswith("DJI") and not p.has_xmp for p in photos)
     if old_dji or gps_altitude == "above-takeoff":
@@ -452,56 +489,45 @@ def _from_gnss(
             )
         except DependencyError as e:
             notes.append(f"no geoid model: {e}")
-    bounds = flight_height_range_m(photos, xy)
-    if gps_altitude != "auto":
-        key = gps_altitude if gps_altitude in readings else None
-        if key is None:
-            raise InputError(f"gps_altitude {gps_altitude} needs a ground model in a known datum: {give}")
-        z, how = readings[key]
-        note = f"{what}: {how}, as told"
-    else:
-        fits = {}
-        for key, (z, how) in readings.items():
-            agl = float(np.median(z - under))
-            if agl > 2.0 and (
-                bounds is None or bounds[0] * 0.85 <= agl <= bounds[1] * 1.15
-            ):  # GNSS heights err by metres
-                fits[key] = (agl, z, how)
-        spacing = (
-            f"the photo spacing says {bounds[0]:.0f}–{bounds[1]:.0f} m"
-            if bounds
-            else "the photo spacing could not bound it"
-        )
-        if not readings:
-            raise InputError(
-                f"{what}, which is a sea-level or ellipsoidal height, and there is no ground "
-                f"model to take it from; {give}"
-            )
-        if not fits:
-            raise InputError(f"{what}: no reading of it is a plausible height above the ground ({spacing}); {give}")
-        if bounds is None and not known_ground:
-            raise InputError(f"{what} and {spacing}; {give}")
-        # Several readings fit: the one nearest the middle of the spacing's range (geometric),
-        # the EXIF standard (orthometric) on ties.
-        mid = math.sqrt(bounds[0] * bounds[1]) if bounds else None
-        order = ["orthometric", "above-takeoff", "orthometric→ellipsoidal", "ellipsoidal"]
-        key = min(fits, key=lambda k: (abs(math.log(fits[k][0] / mid)) if mid else 0.0, order.index(k)))
-        agl, z, how = fits[key]
-        note = f"{what}: {how}; height above ground {agl:.0f} m ({spacing})"
-        if len(fits) > 1:
-            others = ", ".join(f"{k} {fits[k][0]:.0f} m" for k in fits if k != key)
-            note += f"; other readings also fit ({others}): give flight_height_m if this is wrong"
-    notes.insert(0, note)
-    sources = (f"{readings[key][1]}; {label}",) * n
-    surf = surface if surface is not None else FlatSurface(base)
-    return HeightModel(
-        np.asarray(z, float),
-        sources,
-        readings[key][1],
-        datum,
-        base,
-        surf,
-        tuple(notes),
-        checks,
-        check is None or check.trusted,
+    return readings
+
+
+def _likeliest_reading(
+    readings: dict[str, tuple[np.ndarray, str]],
+    under: np.ndarray,
+    bounds: tuple[float, float] | None,
+    known_ground: bool,
+    what: str,
+    give: str,
+) -> tuple[str, str]:
+    """The reading whose height above the ground fits the photo spacing's range best, and the note
+    that says so (and names the others that fit too); refuses when none is plausible."""
+    fits = {}
+    for key, (z, how) in readings.items():
+        agl = float(np.median(z - under))
+        if agl > 2.0 and (bounds is None or bounds[0] * 0.85 <= agl <= bounds[1] * 1.15):  # GNSS heights err by metres
+            fits[key] = (agl, how)
+    spacing = (
+        f"the photo spacing says {bounds[0]:.0f}–{bounds[1]:.0f} m"
+        if bounds
+        else "the photo spacing could not bound it"
     )
+    if not readings:
+        raise InputError(
+            f"{what}, which is a sea-level or ellipsoidal height, and there is no ground model to take it from; {give}"
+        )
+    if not fits:
+        raise InputError(f"{what}: no reading of it is a plausible height above the ground ({spacing}); {give}")
+    if bounds is None and not known_ground:
+        raise InputError(f"{what} and {spacing}; {give}")
+    # Several readings fit: the one nearest the middle of the spacing's range (geometric),
+    # the EXIF standard (orthometric) on ties.
+    mid = math.sqrt(bounds[0] * bounds[1]) if bounds else None
+    order = ["orthometric", "above-takeoff", "orthometric→ellipsoidal", "ellipsoidal"]
+    key = min(fits, key=lambda k: (abs(math.log(fits[k][0] / mid)) if mid else 0.0, order.index(k)))
+    agl, how = fits[key]
+    note = f"{what}: {how}; height above ground {agl:.0f} m ({spacing})"
+    if len(fits) > 1:
+        others = ", ".join(f"{k} {fits[k][0]:.0f} m" for k in fits if k != key)
+        note += f"; other readings also fit ({others}): give flight_height_m if this is wrong"
+    return key, note
