@@ -483,9 +483,6 @@ def _footprints_from_sfm(
 ) -> FootprintResult:
     """Footprints of the SfM's registered cameras (measured poses, calibrated intrinsics) on the
     DSM, and the metadata's heights checked against them."""
-    from dataclasses import replace
-
-    from geoortho.core.camera import ypr_from_rotation
     from geoortho.reconstruction.model import cameras_from_sfm
 
     s_read, s_cast, s_write = split(fb, [3, 2, 1])
@@ -499,57 +496,9 @@ def _footprints_from_sfm(
     unregistered = [p.image for p in photos.photos if p.image not in registered]
     photos.skipped.extend((name, "not registered by the SfM") for name in unregistered)
     warn_grouped(fb, "no footprint: not registered by the SfM", unregistered)
-    if dsm is not None:
-        centres = np.array([c.pose.center for c in sfm_cams])
-        reach = max_range_m
-        box = (
-            float(centres[:, 0].min() - reach),
-            float(centres[:, 1].min() - reach),
-            float(centres[:, 0].max() + reach),
-            float(centres[:, 1].max() + reach),
-        )
-        grid = read_surface(dsm, work, extend=True, bounds=box, max_cells=DSM_MAX_CELLS)
-        surface: Surface = grid
-        ground = "DSM"
-        # A DSM in another vertical datum than the SfM (a lidar DSM, a model on drifting GPS
-        # heights): the cameras' height over it would be off by the difference. The tie points
-        # measure it; past ELEVATION_TOLERANCE_M the DSM is moved onto the SfM, and that is said.
-        if len(tie_points):
-            with np.errstate(invalid="ignore"):
-                under = np.asarray(surface.elevation(tie_points[:, 0], tie_points[:, 1]), float)
-            offset = _median(tie_points[:, 2] - under)
-            if math.isfinite(offset) and abs(offset) > ELEVATION_TOLERANCE_M:
-                surface = replace(grid, grid=grid.grid + np.float32(offset))
-                ground = f"DSM moved {offset:+.1f} m onto the SfM's tie points"
-                fb.warning(
-                    f"the DSM lies {-offset:+.1f} m off the SfM's tie points (another vertical datum?): the heights "
-                    "above ground are measured on it moved onto the SfM"
-                )
-    else:
-        # no surface given: the tie points' ground level (below roofs and trees)
-        z = tie_points[:, 2] if len(tie_points) else np.array([0.0])
-        surface = FlatSurface(float(np.percentile(z, 30)))
-        ground = "the SfM tie points' ground level"
-    lon = np.array([by_name[c.name].longitude_deg for c in sfm_cams], float)
-    lat = np.array([by_name[c.name].latitude_deg for c in sfm_cams], float)
-    convergence, _ = grid_north(work, lon, lat)
-    cams = []
-    for c, conv in zip(sfm_cams, np.nan_to_num(convergence)):
-        yaw, pitch, roll = ypr_from_rotation(c.pose.rotation)
-        photo = replace(
-            by_name[c.name], yaw_deg=yaw - float(conv), pitch_deg=pitch, roll_deg=roll, attitude_source="SfM"
-        )
-        cams.append(
-            PhotoCamera(
-                c.intrinsics,
-                c.pose,
-                c.name,
-                c.path,
-                photo=photo,
-                height_source="SfM pose",
-                grid_convergence_deg=float(conv),
-            )
-        )
+    centres = np.array([c.pose.center for c in sfm_cams])
+    surface, ground = _ground_under_sfm(dsm, work, centres, max_range_m, tie_points, fb)
+    cams = _sfm_photo_cameras(sfm_cams, by_name, work)
     s_read.progress(1.0)
     table = compute_footprints(cams, surface, max_range_m=max_range_m)
     s_cast.progress(1.0)
@@ -592,6 +541,73 @@ class HeightCheck:
     per_photo_m: np.ndarray  # the same per photo
     problem: str  # the disagreement, in words ("" when they agree)
     notes: tuple[str, ...]
+
+
+def _ground_under_sfm(
+    dsm: Path | None, work: CRS, centres: np.ndarray, reach_m: float, tie_points: np.ndarray, fb: Feedback
+) -> tuple[Surface, str]:
+    """The ground the SfM cameras' footprints are cast on, and its name: the DSM (moved onto the
+    tie points when it lies in another vertical datum), else the tie points' ground level."""
+    from dataclasses import replace
+
+    if dsm is None:
+        # no surface given: the tie points' ground level (below roofs and trees)
+        z = tie_points[:, 2] if len(tie_points) else np.array([0.0])
+        return FlatSurface(float(np.percentile(z, 30))), "the SfM tie points' ground level"
+    box = (
+        float(centres[:, 0].min() - reach_m),
+        float(centres[:, 1].min() - reach_m),
+        float(centres[:, 0].max() + reach_m),
+        float(centres[:, 1].max() + reach_m),
+    )
+    grid = read_surface(dsm, work, extend=True, bounds=box, max_cells=DSM_MAX_CELLS)
+    surface: Surface = grid
+    ground = "DSM"
+    # A DSM in another vertical datum than the SfM (a lidar DSM, a model on drifting GPS
+    # heights): the cameras' height over it would be off by the difference. The tie points
+    # measure it; past ELEVATION_TOLERANCE_M the DSM is moved onto the SfM, and that is said.
+    if len(tie_points):
+        with np.errstate(invalid="ignore"):
+            under = np.asarray(surface.elevation(tie_points[:, 0], tie_points[:, 1]), float)
+        offset = _median(tie_points[:, 2] - under)
+        if math.isfinite(offset) and abs(offset) > ELEVATION_TOLERANCE_M:
+            surface = replace(grid, grid=grid.grid + np.float32(offset))
+            ground = f"DSM moved {offset:+.1f} m onto the SfM's tie points"
+            fb.warning(
+                f"the DSM lies {-offset:+.1f} m off the SfM's tie points (another vertical datum?): the heights "
+                "above ground are measured on it moved onto the SfM"
+            )
+    return surface, ground
+
+
+def _sfm_photo_cameras(sfm_cams: Sequence[Any], by_name: dict[str, Photo], work: CRS) -> list[PhotoCamera]:
+    """The SfM's cameras as photo cameras: measured pose and intrinsics, the photo's attitude
+    replaced by the pose's (its yaw from grid north to true north)."""
+    from dataclasses import replace
+
+    from geoortho.core.camera import ypr_from_rotation
+
+    lon = np.array([by_name[c.name].longitude_deg for c in sfm_cams], float)
+    lat = np.array([by_name[c.name].latitude_deg for c in sfm_cams], float)
+    convergence, _ = grid_north(work, lon, lat)
+    cams = []
+    for c, conv in zip(sfm_cams, np.nan_to_num(convergence)):
+        yaw, pitch, roll = ypr_from_rotation(c.pose.rotation)
+        photo = replace(
+            by_name[c.name], yaw_deg=yaw - float(conv), pitch_deg=pitch, roll_deg=roll, attitude_source="SfM"
+        )
+        cams.append(
+            PhotoCamera(
+                c.intrinsics,
+                c.pose,
+                c.name,
+                c.path,
+                photo=photo,
+                height_source="SfM pose",
+                grid_convergence_deg=float(conv),
+            )
+        )
+    return cams
 
 
 def check_given_heights(
