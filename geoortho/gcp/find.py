@@ -745,101 +745,119 @@ def _judge(
             fb.warning(f"{image}: {error}")
         wins = windows.get(image, [])
         if not wins:  # searched whole: any id of the file, once
-            seen: dict[int, Detection] = {}
-            for d in dets:
-                if d.marker_id in by_id:
-                    seen.setdefault(d.marker_id, d)
-                else:
-                    obs.append(
-                        Observation(image, "", d.marker_id, WRONG_ID, x_px=d.x_px, y_px=d.y_px, attempt=d.attempt)
-                    )
-            for mid, d in sorted(seen.items()):
-                obs.append(
-                    Observation(
-                        image,
-                        by_id[mid],
-                        mid,
-                        DETECTED,
-                        x_px=d.x_px,
-                        y_px=d.y_px,
-                        attempt=d.attempt,
-                        side_px=d.side_px,
-                        corners_px=d.corners_px,
-                        method="decoded",
-                        photo_blur_px=photo_blur,
-                    )
-                )
+            obs += _judge_whole_photo(image, dets, by_id, photo_blur)
             continue
         for k, win in enumerate(wins):
-            base: dict[str, Any] = dict(
-                image=image,
-                gcp=win.gcp,
-                marker_id=win.marker_id if coded else -1,
-                predicted_x_px=win.x_px,
-                predicted_y_px=win.y_px,
-                window_px=win.max_radius_px,
-                photo_blur_px=photo_blur,
-            )
-            if win.ambiguous_with and not coded:
-                obs.append(
-                    Observation(
-                        **base, status=AMBIGUOUS, reason=f"{win.ambiguous_with} is predicted in the same window"
-                    )
-                )
-                continue
-            found = _nearest(dets, k, win)
-            note = ""
-            if found is None and win.gcp in decoded:
-                found = _placed(dets, k, win)
-                if found is not None:
-                    note = (
-                        f"id read in other photos (here {found[0].id_margin:.2f} over the next id), "
-                        "placed by this photo's other markers"
-                    )
-            if found is None:
-                refused = [d for d in dets if d.window == k and d.reason]
-                why = max(refused, key=lambda d: d.score).reason if refused else "nothing like the target in the window"
-                obs.append(Observation(**base, status=NOT_FOUND, reason=why))
-                continue
-            d, err = found
-            status, reason = (DETECTED if err <= win.max_radius_px else TOO_FAR), note
-            w, h = frames[image]
-            if status == DETECTED and not in_frame(
-                d.x_px, d.y_px, w, h, w * margin_pct / 100.0, h * margin_pct / 100.0
-            ):
-                status = IN_MARGIN
-            if status == DETECTED and not coded:
-                other = _closer_prediction(d, err, win, wins)
-                if other:
-                    status, reason = AMBIGUOUS, f"the target found is as near {other}'s prediction"
-            obs.append(
-                Observation(
-                    **base,
-                    status=status,
-                    x_px=d.x_px,
-                    y_px=d.y_px,
-                    error_px=err,
-                    attempt=d.attempt,
-                    side_px=d.side_px,
-                    corners_px=d.corners_px,
-                    method=d.attempt if d.attempt in ("verified", "fitted") else "decoded",
-                    score=d.score,
-                    id_margin=d.id_margin,
-                    position_margin=d.position_margin,
-                    blur_px=d.blur_px,
-                    contrast_dn=d.contrast_dn,
-                    worst_part=d.worst_part,
-                    shape_margin=d.shape_margin,
-                    reason=reason,
-                )
-            )
+            obs.append(_judge_window(image, k, win, wins, dets, decoded, photo_blur, frames[image], margin_pct, coded))
         # markers seen whose id is in no GCP file: recorded, never written
         for mid in sorted({d.marker_id for d in dets if d.marker_id not in by_id and coded}):
             d = next(d for d in dets if d.marker_id == mid)
             obs.append(Observation(image, "", mid, WRONG_ID, x_px=d.x_px, y_px=d.y_px, attempt=d.attempt))
     if not coded:
         obs = _agree_within_photos(obs)
-    # one observation per (image, GCP): windows of two GCPs can overlap
+    return _one_per_gcp(obs)
+
+
+def _judge_whole_photo(
+    image: str, dets: list[Detection], by_id: dict[int, str], photo_blur: float
+) -> list[Observation]:
+    """A photo searched whole: each id of the GCP file once, any other id recorded as wrong."""
+    obs: list[Observation] = []
+    seen: dict[int, Detection] = {}
+    for d in dets:
+        if d.marker_id in by_id:
+            seen.setdefault(d.marker_id, d)
+        else:
+            obs.append(Observation(image, "", d.marker_id, WRONG_ID, x_px=d.x_px, y_px=d.y_px, attempt=d.attempt))
+    for mid, d in sorted(seen.items()):
+        obs.append(
+            Observation(
+                image,
+                by_id[mid],
+                mid,
+                DETECTED,
+                x_px=d.x_px,
+                y_px=d.y_px,
+                attempt=d.attempt,
+                side_px=d.side_px,
+                corners_px=d.corners_px,
+                method="decoded",
+                photo_blur_px=photo_blur,
+            )
+        )
+    return obs
+
+
+def _judge_window(
+    image: str,
+    k: int,
+    win: SearchWindow,
+    wins: list[SearchWindow],
+    dets: list[Detection],
+    decoded: set[str],
+    photo_blur: float,
+    frame: tuple[int, int],
+    margin_pct: float,
+    coded: bool,
+) -> Observation:
+    """The verdict on window ``k``: its target found (and where), too far, in the margin,
+    ambiguous, or not found with the best refused candidate's reason."""
+    base: dict[str, Any] = dict(
+        image=image,
+        gcp=win.gcp,
+        marker_id=win.marker_id if coded else -1,
+        predicted_x_px=win.x_px,
+        predicted_y_px=win.y_px,
+        window_px=win.max_radius_px,
+        photo_blur_px=photo_blur,
+    )
+    if win.ambiguous_with and not coded:
+        return Observation(**base, status=AMBIGUOUS, reason=f"{win.ambiguous_with} is predicted in the same window")
+    found = _nearest(dets, k, win)
+    note = ""
+    if found is None and win.gcp in decoded:
+        found = _placed(dets, k, win)
+        if found is not None:
+            note = (
+                f"id read in other photos (here {found[0].id_margin:.2f} over the next id), "
+                "placed by this photo's other markers"
+            )
+    if found is None:
+        refused = [d for d in dets if d.window == k and d.reason]
+        why = max(refused, key=lambda d: d.score).reason if refused else "nothing like the target in the window"
+        return Observation(**base, status=NOT_FOUND, reason=why)
+    d, err = found
+    status, reason = (DETECTED if err <= win.max_radius_px else TOO_FAR), note
+    w, h = frame
+    if status == DETECTED and not in_frame(d.x_px, d.y_px, w, h, w * margin_pct / 100.0, h * margin_pct / 100.0):
+        status = IN_MARGIN
+    if status == DETECTED and not coded:
+        other = _closer_prediction(d, err, win, wins)
+        if other:
+            status, reason = AMBIGUOUS, f"the target found is as near {other}'s prediction"
+    return Observation(
+        **base,
+        status=status,
+        x_px=d.x_px,
+        y_px=d.y_px,
+        error_px=err,
+        attempt=d.attempt,
+        side_px=d.side_px,
+        corners_px=d.corners_px,
+        method=d.attempt if d.attempt in ("verified", "fitted") else "decoded",
+        score=d.score,
+        id_margin=d.id_margin,
+        position_margin=d.position_margin,
+        blur_px=d.blur_px,
+        contrast_dn=d.contrast_dn,
+        worst_part=d.worst_part,
+        shape_margin=d.shape_margin,
+        reason=reason,
+    )
+
+
+def _one_per_gcp(obs: list[Observation]) -> list[Observation]:
+    """One detection per (image, GCP): windows of two GCPs can overlap."""
     seen_pairs: set[tuple[str, str]] = set()
     unique = []
     for o in obs:
