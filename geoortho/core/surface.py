@@ -284,6 +284,8 @@ class GridSurface(Surface):
         hit: np.ndarray,
     ) -> None:
         """Fill ``t_end``/``hit`` for the ``active`` rays (those with t0 < t1)."""
+        # One piece: the coarse skip, the march and the bisection share a dozen per-ray float32
+        # arrays in grid units; split, each step would pass them all (the renderer's hot path).
         tr = self.transform
         # Per-ray state in grid units, float32 and contiguous: each step is then three
         # multiply-adds and one cv2.remap, with no gathers of (N, 3) arrays.

@@ -825,6 +825,8 @@ def _refine(
     blur: tuple[float, float],
 ) -> tuple[tuple[float, ...], tuple[int, int, np.ndarray] | None]:
     """Least-squares fit of the model's geometry, blur and defocus to the pixels around ``start``."""
+    # One piece: the model, its glare term, residuals and bounds are closures over the patch's
+    # pixels, mask and renderer; split, they would pass the same eight arrays to each other.
     from scipy.optimize import least_squares
 
     cx0, cy0, angle0 = start

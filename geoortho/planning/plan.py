@@ -802,6 +802,7 @@ def _summary(
     seconds: float,
 ) -> dict[str, Any]:
     """summary.json: the camera, the ground, the flight, the overlaps measured, the GCPs and markers."""
+    # One piece: a single literal that reads as the file's schema, top to bottom.
     cam = site.cam
     gsd = np.asarray(flight.table.gsd_cm, float)
     return {
