@@ -116,6 +116,11 @@ def _flight_bounds(photos: Sequence[Photo], crs: CRS, reach_m: float) -> tuple[f
     t = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
     lonlat = np.array([[p.longitude_deg, p.latitude_deg] for p in photos if p.has_gps])
     x, y = t.transform(lonlat[:, 0], lonlat[:, 1])
+    return _box_around(np.asarray(x), np.asarray(y), reach_m)
+
+
+def _box_around(x: np.ndarray, y: np.ndarray, reach_m: float) -> tuple[float, float, float, float]:
+    """The bounding box of the points (x, y), widened by ``reach_m`` on every side."""
     return float(x.min() - reach_m), float(y.min() - reach_m), float(x.max() + reach_m), float(y.max() + reach_m)
 
 
@@ -554,12 +559,7 @@ def _ground_under_sfm(
         # no surface given: the tie points' ground level (below roofs and trees)
         z = tie_points[:, 2] if len(tie_points) else np.array([0.0])
         return FlatSurface(float(np.percentile(z, 30))), "the SfM tie points' ground level"
-    box = (
-        float(centres[:, 0].min() - reach_m),
-        float(centres[:, 1].min() - reach_m),
-        float(centres[:, 0].max() + reach_m),
-        float(centres[:, 1].max() + reach_m),
-    )
+    box = _box_around(centres[:, 0], centres[:, 1], reach_m)
     grid = read_surface(dsm, work, extend=True, bounds=box, max_cells=DSM_MAX_CELLS)
     surface: Surface = grid
     ground = "DSM"

@@ -616,11 +616,7 @@ def _focal_drift(rec: Any, priors_px: dict[int, float]) -> dict[int, float]:
 def _probe_free_focal(rec: Any, refine_distortion: bool = True) -> dict[int, float]:
     """Focal lengths a bundle adjustment reaches when it may refine them (on a copy)."""
     pc = load_pycolmap()
-    opts = pc.BundleAdjustmentOptions()
-    opts.print_summary = False
-    opts.refine_focal_length = True
-    opts.refine_extra_params = refine_distortion
-    opts.ceres.loss_function_type = pc.LossFunctionType.SOFT_L1
+    opts = _ba_options(refine_distortion=refine_distortion, robust=True)
     probe = _adjusted_copy(rec, opts, pc.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     return {cid: _focal_px(cam) for cid, cam in probe.cameras.items()}
 
@@ -654,14 +650,7 @@ def _hold_unsupported_distortion(mapped: _Mapped, notes: list[str]) -> _Mapped:
     if not cams or rec.num_reg_images() < 3:
         return mapped
     gauge = pc.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD
-
-    def opts(refine_distortion: bool, iterations: int, refine_focal: bool = True) -> Any:
-        o = pc.BundleAdjustmentOptions()
-        o.print_summary = False
-        o.refine_focal_length = refine_focal
-        o.refine_extra_params = refine_distortion
-        o.ceres.solver_options.max_num_iterations = iterations
-        return o
+    trial = DISTORTION_TRIAL_ITERATIONS
 
     def zeroed(src: Any, ids: Sequence[int]) -> Any:
         out = pc.Reconstruction(src)
@@ -672,15 +661,16 @@ def _hold_unsupported_distortion(mapped: _Mapped, notes: list[str]) -> _Mapped:
             cam.params = params
         return out
 
-    refined_px = _mean_reprojection_px(_adjusted_copy(rec, opts(True, DISTORTION_TRIAL_ITERATIONS), gauge))
+    refined_px = _mean_reprojection_px(_adjusted_copy(rec, _ba_options(iterations=trial), gauge))
     test: dict[int, tuple[float, float]] = {}
     for cid in cams:
-        trial = _adjusted_copy(zeroed(rec, [cid]), opts(False, DISTORTION_TRIAL_ITERATIONS), gauge)
-        test[cid] = (refined_px, _mean_reprojection_px(trial))
+        held_copy = _adjusted_copy(zeroed(rec, [cid]), _ba_options(refine_distortion=False, iterations=trial), gauge)
+        test[cid] = (refined_px, _mean_reprojection_px(held_copy))
     held = frozenset(cid for cid, (a, b) in test.items() if b <= a * (1.0 + DISTORTION_SUPPORT_PCT / 100.0))
     if not held:
         return replace(mapped, distortion_test=test)
-    block = _adjusted_copy(zeroed(rec, sorted(held)), opts(False, 100, refine_focal=not mapped.focal_held), gauge)
+    opts = _ba_options(refine_focal=not mapped.focal_held, refine_distortion=False)
+    block = _adjusted_copy(zeroed(rec, sorted(held)), opts, gauge)
     for cid in sorted(held):
         a, b = test[cid]
         notes.append(
@@ -688,6 +678,23 @@ def _hold_unsupported_distortion(mapped: _Mapped, notes: list[str]) -> _Mapped:
             f"{a:.3f} px refined, {b:.3f} px without; refined, it would bend the block into a dome)"
         )
     return replace(mapped, rec=block, distortion_test=test, distortion_held=held)
+
+
+def _ba_options(
+    *, refine_focal: bool = True, refine_distortion: bool = True, robust: bool = False, iterations: int | None = None
+) -> Any:
+    """COLMAP's bundle-adjustment options, quiet: what each adjustment here refines, a soft-L1 loss
+    when ``robust``, and an iteration cap when given (Ceres' 100 otherwise)."""
+    pc = load_pycolmap()
+    opts = pc.BundleAdjustmentOptions()
+    opts.print_summary = False
+    opts.refine_focal_length = refine_focal
+    opts.refine_extra_params = refine_distortion
+    if robust:
+        opts.ceres.loss_function_type = pc.LossFunctionType.SOFT_L1
+    if iterations is not None:
+        opts.ceres.solver_options.max_num_iterations = iterations
+    return opts
 
 
 def _mean_reprojection_px(rec: Any) -> float:
@@ -854,10 +861,7 @@ def _gcp_bundle_adjust(rec: Any, states: list[_GcpState], refine_distortion: boo
             cfg.add_image(iid)
         for pid in gcp_points:
             cfg.add_constant_point(pid)
-        opts = pc.BundleAdjustmentOptions()
-        opts.print_summary = False
-        opts.refine_extra_params = refine_distortion
-        opts.ceres.loss_function_type = pc.LossFunctionType.SOFT_L1
+        opts = _ba_options(refine_distortion=refine_distortion, robust=True)
         pc.create_default_bundle_adjuster(opts, cfg, rec).solve()
     for pid in gcp_points:
         rec.delete_point3D(pid)
@@ -1492,11 +1496,7 @@ def _refine_time_lag(mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> tupl
 def _free_network(rec: Any, refine_distortion: bool = True) -> Any:
     """A copy of the block bundle-adjusted on its photos alone (no position priors)."""
     pc = load_pycolmap()
-    opts = pc.BundleAdjustmentOptions()
-    opts.print_summary = False
-    opts.refine_focal_length = False
-    opts.refine_extra_params = refine_distortion
-    opts.ceres.solver_options.max_num_iterations = FREE_NETWORK_ITERATIONS
+    opts = _ba_options(refine_focal=False, refine_distortion=refine_distortion, iterations=FREE_NETWORK_ITERATIONS)
     return _adjusted_copy(rec, opts, pc.BundleAdjustmentGauge.THREE_POINTS)
 
 
@@ -1636,10 +1636,7 @@ def _prior_bundle_adjustment(rec: Any, priors: _Priors, refine_focal: bool, refi
                 coordinate_system=pc.PosePriorCoordinateSystem.CARTESIAN,
             )
         )
-    opts = pc.BundleAdjustmentOptions()
-    opts.print_summary = False
-    opts.refine_focal_length = refine_focal
-    opts.refine_extra_params = refine_distortion
+    opts = _ba_options(refine_focal=refine_focal, refine_distortion=refine_distortion)
     pc.create_pose_prior_bundle_adjuster(opts, pc.PosePriorBundleAdjustmentOptions(), cfg, pose_priors, rec).solve()
 
 
@@ -1680,7 +1677,10 @@ class _Mapped:
     submodel: dict[str, int] = field(default_factory=dict)  # split-merge: image name -> its submodel
     # camera id -> (mean reprojection px with its lens distortion refined, with it held at zero)
     distortion_test: dict[int, tuple[float, float]] = field(default_factory=dict)
-    distortion_held: frozenset[int] = frozenset()  # cameras whose distortion stays at zero from here
+    # Cameras whose distortion stays at zero from here. COLMAP holds distortion for a whole
+    # adjustment, not per camera: when any is held, the later adjustments hold every camera's at
+    # the value the mapping gave it (the others' were refined there already).
+    distortion_held: frozenset[int] = frozenset()
 
 
 def _reconstruct(
