@@ -250,3 +250,54 @@ def test_fusion_spilled_to_tiles_on_disk_equals_the_cloud_held_whole(tmp_path):
     assert dist.max() < 1e-4
     assert len(np.unique(idx)) == len(idx)
     assert np.abs(a[1][idx] - b[1]).max() < 1e-2
+
+
+def test_a_match_under_the_ground_at_a_tilted_photos_near_side_is_dropped(tmp_path, monkeypatch):
+    """Toledo: a tilted photo's pairs agreed on 27 points 15 m under the ground at its near side,
+    where their depth along the axis (118.5 m) was still inside the photo's band of tie-point
+    depths (104.6-115.5 m + 3.4 m); the DSM and DTM had a 19 m pit at the survey's edge. Depth
+    along the axis cannot bound them; the lowest tie point each pair shares does."""
+    import cv2
+
+    import geoortho.reconstruction.dense as D
+
+    K = np.array([[400.0, 0, 199.5], [0, 400.0, 149.5], [0, 0, 1]])
+    t = np.radians(35.0)  # tilted forward: the photo's top rows see far, its bottom rows near
+    tilt = np.diag([1.0, -1.0, -1.0]) @ np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    photo = tmp_path / "p.png"
+    cv2.imwrite(str(photo), np.random.default_rng(1).integers(0, 255, (300, 400, 3), dtype=np.uint8))
+    ref, b, c = (
+        D._View(n, photo, K, np.zeros((5, 1)), (400, 300), tilt, np.array([x, 0.0, 100.0]))
+        for n, x in (
+            ("ref", 0.0),
+            ("b", 20.0),
+            ("c", -20.0),
+        )
+    )
+
+    cols, rows = np.meshgrid(np.arange(0, 400, 2), np.arange(0, 300, 2))
+    rays = np.c_[(cols.ravel() - K[0, 2]) / 400.0, (rows.ravel() - K[1, 2]) / 400.0, np.ones(cols.size)] @ tilt.T
+    ground_depth = -ref.C[2] / rays[:, 2]  # flat ground at z = 0 (depth along the axis: rays have z = 1 in the camera)
+    lo, hi = np.percentile(ground_depth, [1, 99])
+    pad = 0.1 * (hi - lo) + 0.02 * hi
+    pit_depth = (-15.0 - ref.C[2]) / rays[:, 2]  # the same rays 15 m under the ground
+    pit = (rows.ravel() > 250) & (pit_depth < hi + pad)  # the near side, inside the band
+    assert pit.sum() > 500
+    ground = ref.C + rays * ground_depth[:, None]
+    under = ref.C + rays[pit] * pit_depth[pit, None]
+
+    def pair(a, other, img_a, img_b, rng):  # both pairs "agree" on the pit, as toledo's did
+        if a is not ref:
+            return None
+        xyz = np.vstack([ground[~pit], under]).astype(np.float32)
+        return xyz, np.full((len(xyz), 3), 128, np.uint8), rng[0]
+
+    monkeypatch.setattr(D, "_pair", pair)
+
+    def fused(floor_z):
+        job = D._Job(ref, (b, c), ((lo, hi), (lo, hi)), (floor_z, floor_z), 2, 0.01, 0.5, 2, (b, c))
+        return D._depth_task(job).xyz[:, 2]
+
+    z = fused(0.0)  # the pairs' lowest shared tie point: the ground
+    assert z.min() > -0.01 and len(z) > 1000  # the ground kept, the pit gone
+    assert (fused(-np.inf) < -14.0).sum() > 100  # without the floor the pit is fused (the test can fail)

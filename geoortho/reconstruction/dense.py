@@ -100,6 +100,8 @@ class _Job:
     ref: _View
     neighbours: tuple[_View, ...]  # candidates, best first: more than wanted, so a failed pair is replaced
     depth_ranges: tuple[tuple[float, float], ...]
+    #: each pair's lowest shared tie point, elevation in the local frame (-inf: no "up" known)
+    floors_z: tuple[float, ...]
     min_views: int
     depth_tolerance: float
     voxel_m: float
@@ -165,19 +167,19 @@ def dense(
     scales = [min(1.0, max_image_size / max(c.intrinsics.width_px, c.intrinsics.height_px)) for c in cams]
     views = [_view(c, s, origin) for c, s in zip(cams, scales)]
     scale = float(np.median(scales))
-    pairs, gsd = _plan(cams, pts, neighbours)
+    pairs, gsd = _plan(cams, pts, neighbours, up=crs is not None)
     if not pairs:
         raise InputError("no pair of photos overlaps with enough baseline for depth", path=sfm)
     voxel = gsd / scale  # about one depth-map pixel on the ground
     centres = np.array([v.C for v in views])
     jobs = [
         _Job(
-            views[i], tuple(views[j] for j in nbrs), rngs, min_views, depth_tolerance, voxel, neighbours,
-            _nearest_views(views, centres, i),
+            views[i], tuple(views[j] for j in nbrs), rngs, tuple(f - origin[2] for f in floors), min_views,
+            depth_tolerance, voxel, neighbours, _nearest_views(views, centres, i),
         )
-        for i, nbrs, rngs in pairs
+        for i, nbrs, rngs, floors in pairs
     ]  # fmt: skip
-    planned = {views[i].name for i, _, _ in pairs}
+    planned = {views[i].name for i, *_ in pairs}
     no_map: dict[str, str] = {
         v.name: "no partner: no other photo shares its view with a baseline for depth"
         for v in views
@@ -249,7 +251,7 @@ def dense(
             "depth_maps": n_maps,
             "pairs": sum(len(v) for v in used.values()),
             "views": used,  # each depth map's partners (the pairs that gave points)
-            "candidates": {views[i].name: [views[j].name for j in nbrs] for i, nbrs, _ in pairs},
+            "candidates": {views[i].name: [views[j].name for j in nbrs] for i, nbrs, *_ in pairs},
             "max_image_size": max_image_size,
             "image_scale": scale,
             "depth_map_megapixels": sum(j.ref.size[0] * j.ref.size[1] for j in jobs) / 1e6,
@@ -319,12 +321,13 @@ def _view(cam: Any, scale: float, origin: np.ndarray) -> _View:
     )
 
 
-_Pairs = list[tuple[int, tuple[int, ...], tuple[tuple[float, float], ...]]]
+_Pairs = list[tuple[int, tuple[int, ...], tuple[tuple[float, float], ...], tuple[float, ...]]]
 
 
-def _plan(cams: list[Any], pts: np.ndarray, neighbours: int) -> tuple[_Pairs, float]:
-    """Each photo's best neighbours with the pairs' depth ranges, and the survey's median GSD
-    (model units, metres when georeferenced) at full resolution."""
+def _plan(cams: list[Any], pts: np.ndarray, neighbours: int, up: bool = True) -> tuple[_Pairs, float]:
+    """Each photo's best neighbours with the pairs' depth ranges and lowest shared tie point
+    (elevation, model frame; -inf where the model has no known ``up``), and the survey's median
+    GSD (model units, metres when georeferenced) at full resolution."""
     seen, depth = [], []
     for c in cams:
         px, d = c.project(pts)
@@ -351,11 +354,12 @@ def _plan(cams: list[Any], pts: np.ndarray, neighbours: int) -> tuple[_Pairs, fl
             if ratio < _MIN_BASE_RATIO or angle > _MAX_VIEW_ANGLE_DEG:
                 continue
             lo, hi = np.percentile(depth[i][shared], [1, 99])
-            scored.append((n_shared * min(1.0, ratio / 0.25), j, (float(lo), float(hi))))
+            floor = float(np.percentile(pts[shared, 2], 1)) if up else -math.inf
+            scored.append((n_shared * min(1.0, ratio / 0.25), j, (float(lo), float(hi)), floor))
         scored.sort(reverse=True)
         best = scored[: neighbours * _CANDIDATES_PER_PAIR]
         if best:
-            jobs.append((i, tuple(j for _, j, _ in best), tuple(r for _, _, r in best)))
+            jobs.append((i, tuple(b[1] for b in best), tuple(b[2] for b in best), tuple(b[3] for b in best)))
     return jobs, float(np.median(gsds))
 
 
@@ -586,7 +590,7 @@ def _depth_task(job: _Job) -> _DepthResult:
     partners: list[str] = []
     n_raw = 0
     z_relief = math.inf  # the nearest depth a pair's probe found: every later pair searches it too
-    for other, rng in zip(job.neighbours, job.depth_ranges):
+    for other, rng, floor_z in zip(job.neighbours, job.depth_ranges, job.floors_z):
         if len(per_pair) >= job.wanted:
             break
         img_other = _read(other)
@@ -611,6 +615,11 @@ def _depth_task(job: _Job) -> _DepthResult:
         pad = 0.1 * (hi - lo) + 0.02 * hi
         lo = min(lo, z_near)  # relief a probe found nearer than the tie points
         inside = (depth > lo - pad) & (depth < hi + pad) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        # Depth is measured along the reference's axis: at a tilted photo's far corner a point
+        # 15 m under the ground is still inside the band (toledo: 27 points at 118.5 m against
+        # 104.6-115.5 + 3.4 m, a 19 m pit in the DSM and DTM at the survey's edge). Nothing the
+        # pair sees lies that far under the lowest tie point it shares.
+        inside &= xyz[:, 2] > floor_z - pad
         idx = np.where(inside, row * w + col, 0)
         zbuf = np.full(w * h, np.inf, np.float32)
         np.minimum.at(zbuf, idx[inside], depth[inside].astype(np.float32))
