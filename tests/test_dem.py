@@ -543,3 +543,22 @@ def test_output_crs_reprojects_and_points_crs_overrides(tmp_path):
     # Points without a CRS: --crs alone is theirs, as before.
     r2 = dem(xyz[:50_000], tmp_path / "same.tif", crs="EPSG:32629", resolution_m=2.0)
     assert "32629" in r2.crs and not any("reprojected" in n for n in r2.notes)
+
+
+def test_auto_method_is_idw_for_a_cloud_from_photos_and_max_for_lidar(tmp_path):
+    """A photo cloud is one noisy surface: a cell's highest point stands above it (the free-heading
+    survey: +1.1 GSD gridded by max). dem's default grids a cloud dense made (its report beside it)
+    by the distance-weighted mean, any other cloud by max, and says which."""
+    rng = np.random.default_rng(5)
+    n = 40_000
+    xyz = np.c_[rng.uniform(500000, 500040, n), rng.uniform(4e6, 4e6 + 40, n), 10 + rng.normal(0, 0.05, n)]
+    ply = _write_ply(tmp_path / "cloud.ply", xyz)
+    lidar = dem(ply, tmp_path / "lidar.tif", crs="EPSG:32629", resolution_m=0.5)
+    (tmp_path / "cloud_report.json").write_text(json.dumps({"photos": 3, "depth_maps": 3}))  # dense's
+    photos = dem(ply, tmp_path / "photos.tif", crs="EPSG:32629", resolution_m=0.5)
+    assert any("method auto: max" in n for n in lidar.notes) and any("method auto: idw" in n for n in photos.notes)
+    with rasterio.open(lidar.dsm) as a, rasterio.open(photos.dsm) as b:
+        high, mean = a.read(1, masked=True).mean(), b.read(1, masked=True).mean()
+    assert high - 10 > 0.04 and abs(mean - 10) < 0.01  # max of ~6 points: 1.3 sigma high; idw: on the surface
+    explicit = dem(ply, tmp_path / "max.tif", crs="EPSG:32629", resolution_m=0.5, method="max")
+    assert not any("method auto" in n for n in explicit.notes)

@@ -174,9 +174,7 @@ STAGES: tuple[Stage, ...] = (
             "crs": p.crs if p.points is not None else None,
             # the photos' cloud is carried to the edge of what they saw; a lidar cloud is what it is
             "sfm": p.folder("sfm") if p.points is None else None,
-            # the photos' cloud is one noisy surface: the highest point of a cell stood 4 cm (1.1 GSD)
-            # above the true ground on the free-heading survey, the distance-weighted mean 1.3 cm
-            # (RMSE 8.5 -> 4.1 cm, roofs 3.7 -> 2.0 cm); a lidar cloud keeps its first returns (max).
+            # the photos' cloud is one noisy surface: idw, as dem's auto chooses, named in the ledger
             # (only when it applies: a stage option may still choose)
             **({"method": "idw"} if p.points is None else {}),
         },

@@ -13,6 +13,7 @@ so); every distance parameter is in metres and converted.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from dataclasses import dataclass, field, replace
@@ -33,7 +34,6 @@ from geoortho.elevation.grid import (
     Accumulator,
     Box,
     Grid,
-    Method,
     finite_points,
     grid_points,
     with_nodata,
@@ -47,6 +47,8 @@ __all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
 GroundMethod = Literal["smrf", "csf", "classification"]
 Engine = Literal["native", "pdal"]
 GROUND_METHODS: tuple[str, ...] = get_args(GroundMethod)
+#: the DSM statistics, and auto: chosen from what the cloud is
+DemMethod = Literal["auto", "max", "min", "mean", "idw", "count"]
 ENGINES: tuple[str, ...] = get_args(Engine)
 
 
@@ -217,7 +219,7 @@ def dem(
     output: Path,
     dtm: Path | None = None,
     resolution_m: float | None = None,
-    method: Method = "max",
+    method: DemMethod = "auto",
     ground_method: GroundMethod = "smrf",
     crs: str | None = None,
     max_gap_m: float = 25.0,
@@ -256,7 +258,8 @@ def dem(
         ``resolution`` states it in feet); default (or 0): from the point density, about
         two points per cell.
     method : str
-        DSM statistic per cell: max, min, mean, idw or count.
+        DSM statistic per cell: max, min, mean, idw or count; auto (default): idw for a cloud
+        made from photos (``sfm`` given, or the dense report beside the points), max otherwise.
     ground_method : str
         Ground points for the DTM: smrf (filter), csf (cloth simulation) or classification (the file's class 2).
     crs : str
@@ -296,8 +299,11 @@ def dem(
         3 fallback plane).
     """
     fb = as_feedback(feedback)
-    _check_options(method, ground_method, resolution_m, max_gap_m, smooth_px, engine)
+    chosen, why_method = _auto_method(method, points, sfm)
+    _check_options(chosen, ground_method, resolution_m, max_gap_m, smooth_px, engine)
     src = open_points(points, points_crs, default_crs=crs)
+    if why_method:
+        src.notes.append(why_method)
     if crs is not None and parse_crs(crs) != src.crs:
         if engine == "pdal":
             raise ParameterError("engine", "reprojection (--crs) runs on the native engine only")
@@ -318,17 +324,17 @@ def dem(
     if want_ground and ground_method == "smrf":
         params = _check_smrf(src, params, fb)
     if engine == "pdal":
-        return _run_pdal(src, plan.grid, output, dtm, method, ground_method, max_gap_m, params, fb)
+        return _run_pdal(src, plan.grid, output, dtm, chosen, ground_method, max_gap_m, params, fb)
 
     if tiles_allowed and float(plan.grid.rows) * plan.grid.cols > _whole_grid_max_cells():
         tiled = _dem_tiled(
-            src, plan, method, ground_method, params, scan.keep, output, dtm, classified, hillshade,
+            src, plan, chosen, ground_method, params, scan.keep, output, dtm, classified, hillshade,
             max_gap_m, smooth_px, s_pass1, s_write, fb,
         )  # fmt: skip
         return tiled if sfm is None else complete_to_photos(tiled, src, scan.keep, Path(sfm), fb)
     ground = GROUND_FILTERS[ground_method](src, params) if want_ground else None
     dtm_acc = Accumulator(plan.grid, "idw") if dtm is not None else None
-    first = _first_pass(src, plan.grid, method, ground, dtm_acc, scan.keep, s_pass1, fb)
+    first = _first_pass(src, plan.grid, chosen, ground, dtm_acc, scan.keep, s_pass1, fb)
     n_ground = first.n_ground
     if ground is not None:
         ground.prepare()
@@ -338,7 +344,7 @@ def dem(
     with atomic_paths(output, dtm, hillshade, commit_check=fb.check_canceled) as (t_dsm, t_dtm, t_shade):
         assert t_dsm is not None
         result = _write_products(
-            src, plan, method, first, dtm_acc, t_dsm, t_dtm, t_shade, max_gap_m, smooth_px, classified, n_ground
+            src, plan, chosen, first, dtm_acc, t_dsm, t_dtm, t_shade, max_gap_m, smooth_px, classified, n_ground
         )
     result = replace(
         result,
@@ -352,6 +358,30 @@ def dem(
         result = complete_to_photos(result, src, scan.keep, Path(sfm), fb)
     s_write.progress(1.0)
     return result
+
+
+def _json_or_empty(path: Path) -> dict[str, Any]:
+    try:
+        got = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return got if isinstance(got, dict) else {}
+
+
+def _auto_method(method: str, points: Any, sfm: Path | None) -> tuple[str, str]:
+    """The DSM statistic ``auto`` stands for, and the note that says why ("" when chosen).
+
+    A cloud from the photos is one noisy surface: a cell's highest point stood 4 cm (1.1 GSD)
+    above the true ground on the free-heading survey, the distance-weighted mean 1.3 cm (RMSE
+    8.5 -> 4.1 cm, roofs 3.7 -> 2.0 cm). A lidar cloud keeps its first returns (max)."""
+    if method != "auto":
+        return method, ""
+    from_dense = False
+    if isinstance(points, (str, os.PathLike)):  # dense writes its report beside its cloud
+        from_dense = "depth_maps" in _json_or_empty(Path(points).with_name(Path(points).stem + "_report.json"))
+    if sfm is not None or from_dense:
+        return "idw", "method auto: idw (a cloud from photos: a cell's highest point would stand above the surface)"
+    return "max", "method auto: max (a lidar or other cloud: each cell's first return)"
 
 
 def _dem_tiled(
