@@ -87,12 +87,12 @@ def _checked(function: Any, ref: str) -> Any:
 
     @functools.wraps(function)
     def door(*args: Any, **kwargs: Any) -> Any:
-        from geoortho.processing.registry import check_call
+        from geoortho.processing.registry import check_call  # here: `import geoortho` stays light
 
         try:
             bound = signature.bind(*args, **kwargs)
         except TypeError as e:
-            from geoortho.errors import InputError
+            from geoortho.errors import InputError  # here: as above
 
             raise InputError(f"{function.__name__}(): {e}") from None
         check_call(ref, dict(bound.arguments))

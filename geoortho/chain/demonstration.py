@@ -7,7 +7,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
+from geoortho.chain.pipeline import run
 from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.gcp.io import read_gcp_file
+from geoortho.planning.plan import check_plan, plan
+from geoortho.synthetic.survey import synth
 
 if TYPE_CHECKING:
     from geoortho.synthetic.survey import SynthResult
@@ -63,9 +67,6 @@ def demo(
         The cloud the DSM and DTM are made from: dense (from the photos, as a survey without
         lidar) or lidar (the survey's own lidar-like cloud; the dense stage is skipped).
     """
-    from geoortho.chain.pipeline import run
-    from geoortho.gcp.io import read_gcp_file
-    from geoortho.synthetic.survey import synth
 
     fb = as_feedback(feedback)
     output = Path(output)
@@ -106,8 +107,6 @@ def _plan_and_check(survey: SynthResult, folder: Path, fb: Feedback) -> dict[str
     checked against the GCPs and the overlap needed."""
     import geopandas as gpd
     import shapely
-
-    from geoortho.planning.plan import check_plan, plan
 
     info = json.loads((survey.truth / "survey.json").read_text())
     aoi = folder / "aoi.gpkg"

@@ -23,9 +23,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from geoortho.core.outputs import write_json
+from geoortho.core.pointcloud import check_las_header
+from geoortho.core.surface import refuse_image
 from geoortho.errors import CanceledError, GeoorthoError, InputError
 from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.gcp.io import read_gcp_file
 from geoortho.photos.heights import GpsAltitude
+from geoortho.photos.metadata import list_images
+from geoortho.processing.registry import check_in_context, convert_value, get_algorithm, run_algorithm
 
 __all__ = [
     "STAGES",
@@ -103,7 +109,6 @@ def _found_checkpoints(p: Project, done: Done) -> str | None:
     gcp_list = _gcp_observations(p, done)
     if not p.checkpoints or gcp_list is None:
         return None
-    from geoortho.gcp.io import read_gcp_file
 
     if p.checkpoints.strip().lower() in ("all", "none"):
         return p.checkpoints.strip().lower()
@@ -274,7 +279,6 @@ class Hasher:
     def photos(self, folder: Path) -> str:
         """The photos of a folder as the stages read them (its image files, not below it): notes or
         a project folder beside them change nothing."""
-        from geoortho.photos.metadata import list_images
 
         h = hashlib.sha256()
         for f in list_images(folder):
@@ -364,7 +368,6 @@ class Ledger:
         self.save()
 
     def save(self) -> None:
-        from geoortho.core.outputs import write_json
 
         write_json(self.path, self.data)
 
@@ -509,8 +512,6 @@ def _stage_problems(stage: str, outputs: dict[str, Any], project: Project) -> li
     if stage == "footprints" and project.gcp_list is not None:
         observed = project.gcp_list
     if observed is not None and project.checkpoints:
-        from geoortho.gcp.io import read_gcp_file
-
         found = set(read_gcp_file(observed).by_name())
         missing = [c.strip() for c in project.checkpoints.split(",") if c.strip() and c.strip() not in found]
         if missing:
@@ -606,7 +607,6 @@ def _run_stages(
 ) -> list[StageRun]:
     """Each stage in turn: skipped when it does not apply, reused when its fingerprint and products
     are unchanged, else run and recorded in the ledger; then the run itself is recorded."""
-    from geoortho.processing.registry import run_algorithm
 
     ledger = Ledger(root / LEDGER_NAME, force=force)
     state = _RunState(ledger, Hasher(ledger.data.get("hash_cache")), _versions(), time.perf_counter())
@@ -836,10 +836,6 @@ def _check_given(project: Project) -> None:
     import rasterio
     from rasterio.errors import RasterioIOError
 
-    from geoortho.core.surface import refuse_image
-    from geoortho.gcp.io import read_gcp_file
-    from geoortho.photos.metadata import list_images
-
     list_images(project.images)
     if project.dsm is not None:
         try:
@@ -850,8 +846,6 @@ def _check_given(project: Project) -> None:
         except RasterioIOError as e:
             raise InputError(f"not an elevation raster ({e})", path=project.dsm) from None
     if project.points is not None and project.points.suffix.lower() in (".las", ".laz"):
-        from geoortho.core.pointcloud import check_las_header
-
         if not project.points.is_file():
             raise InputError("no such file", path=project.points)
         check_las_header(project.points)
@@ -883,7 +877,6 @@ def parse_stage_options(text: str, stages: Sequence[Stage] = STAGES) -> dict[str
     """Stage options from JSON text or a JSON file: ``{"sfm": {"max_image_size": 2048}, ...}``.
     Each stage's options are its own algorithm's parameters (one declaration per parameter);
     the ones the chain sets itself (inputs, outputs) cannot be given."""
-    from geoortho.processing.registry import check_in_context, convert_value, get_algorithm
 
     if not text:
         return {}

@@ -23,8 +23,17 @@ from typing import Any
 
 import numpy as np
 
+from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, STAGES, from_ledger, ledger_problem
+from geoortho.chain.quality import assess, verdict
+from geoortho.core.crs import transformer
+from geoortho.core.outputs import write_json, write_text
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback
+from geoortho.gcp.io import read_gcp_file
+from geoortho.photos.metadata import list_images
+from geoortho.processing.registry import refuse_writing_into
+from geoortho.reconstruction.colmap import load_pycolmap
+from geoortho.version import __version__
 
 __all__ = ["ReportResult", "report"]
 
@@ -67,8 +76,6 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
     output : Path
         The HTML file to write (default: report.html in the project).
     """
-    from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, ledger_problem
-    from geoortho.core.outputs import write_json, write_text
 
     fb = as_feedback(feedback)
     project = Path(project)
@@ -111,8 +118,6 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
 def _refuse_project_inputs(out: Path, project: Path, ledger: dict[str, Any]) -> None:
     """The report must not overwrite what the project was made from (its photos, GCP files, a
     given DSM) any more than the project's own files (the same check as every command's)."""
-    from geoortho.chain.pipeline import from_ledger
-    from geoortho.processing.registry import refuse_writing_into
 
     for record in ledger["stages"].values():
         for name, value in from_ledger(record.get("values") or {}, project).items():
@@ -129,7 +134,6 @@ def _refuse_project_inputs(out: Path, project: Path, ledger: dict[str, Any]) -> 
 
 def _grade(ctx: _Context) -> None:
     """The quality check of what the stages measured (see geoortho.chain.quality)."""
-    from geoortho.chain.quality import assess, verdict
 
     ctx.checks = assess(
         ctx.sfm_report(), ctx.dense_report(), ctx.done("dem"), ctx.ortho_report(), ctx.done("footprints")
@@ -161,7 +165,6 @@ class _Context:
     """The project's ledger and products, read once, paths resolved."""
 
     def __init__(self, project: Path, ledger: dict[str, Any]) -> None:
-        from geoortho.chain.pipeline import from_ledger
 
         self.project = project
         self.ledger = ledger
@@ -554,9 +557,6 @@ def _gcp_positions(ctx: _Context) -> list[tuple[str, float, float, float]]:
         return []
     from pyproj import CRS
 
-    from geoortho.core.crs import transformer
-    from geoortho.gcp.io import read_gcp_file
-
     gcps = read_gcp_file(path)
     points = list(gcps.by_name().items())
     # the products' CRS, whatever CRS the GCP list is in (EPSG:4326 lon/lat drew at (0, 0) of UTM axes)
@@ -746,7 +746,6 @@ def _reprojection(ctx: _Context) -> str:
     sfm = ctx.sfm_report()
     if model is None or sfm is None:
         return _missing("SfM did not finish.")
-    from geoortho.reconstruction.colmap import load_pycolmap
 
     pycolmap = load_pycolmap()
 
@@ -777,7 +776,6 @@ def _reprojection(ctx: _Context) -> str:
 
 
 def _not_used(ctx: _Context) -> str:
-    from geoortho.photos.metadata import list_images
 
     rows: list[list[Any]] = []
     images = ctx.values("footprints").get("images")
@@ -935,7 +933,6 @@ def _seams(ctx: _Context) -> str:
 
 
 def _timing(ctx: _Context) -> str:
-    from geoortho.chain.pipeline import STAGES
 
     current = ctx.ledger.get("current_run") or {}
     this_run = current.get("stages", {})
@@ -990,7 +987,6 @@ def _status_html(status: str) -> str:
 
 
 def _parameters(ctx: _Context) -> str:
-    from geoortho.chain.pipeline import STAGES
 
     parts = []
     for s in STAGES:
@@ -1071,7 +1067,6 @@ nav ol { columns: 2; font-size: 0.95em; }
 
 
 def _page(ctx: _Context, sections: list[str]) -> str:
-    from geoortho.version import __version__
 
     started = (ctx.ledger.get("current_run") or {}).get("started")
     when = time.strftime("%Y-%m-%d %H:%M", time.localtime(started)) if started else "–"

@@ -13,6 +13,8 @@ import numpy as np
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
+from geoortho.errors import DependencyError
+
 __all__ = [
     "WGS84",
     "parse_crs",
@@ -143,8 +145,6 @@ def _geoid_transformer() -> Transformer:
     ]
     found = next((d for d in dirs for g in _GEOID_GRIDS if d and os.path.isfile(os.path.join(d, g))), None)
     if found is None:
-        from geoortho.errors import DependencyError
-
         raise DependencyError(
             "no EGM96 geoid grid (egm96_15.gtx): install Debian's proj-data "
             "(apt-get install proj-data) or put us_nga_egm96_15.tif in PROJ's data folder"

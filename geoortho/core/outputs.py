@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from geoortho.errors import InputError
+
 __all__ = [
     "atomic_path",
     "atomic_paths",
@@ -231,8 +233,6 @@ def write_vector(target: str | os.PathLike[str], layers: dict[str, Any]) -> Path
     target = Path(target)
     driver = VECTOR_DRIVERS.get(target.suffix.lower())
     if driver is None:
-        from geoortho.errors import InputError
-
         raise InputError(
             f"unknown vector format {target.suffix!r}; use one of {', '.join(sorted(VECTOR_DRIVERS))}",
             path=target,

@@ -26,6 +26,7 @@ import numpy as np
 from pyproj import CRS
 
 from geoortho.core.crs import horizontal_unit_m, parse_crs, transformer
+from geoortho.core.outputs import atomic_path
 from geoortho.errors import InputError
 
 __all__ = ["Chunk", "PointSource", "open_points", "write_las", "UNIT_CODES"]
@@ -229,8 +230,6 @@ def write_las_parts(
     None), each as there — and is never held whole. ``lowest``: the cloud's smallest x, y, z (in
     ``xyz``'s frame), known before the first part, for the header's offsets. Atomic."""
     import laspy
-
-    from geoortho.core.outputs import atomic_path
 
     base = np.zeros(3) if offset is None else np.asarray(offset, float).reshape(3)
     header = laspy.LasHeader(point_format=3, version="1.4")

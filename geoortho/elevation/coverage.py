@@ -21,6 +21,7 @@ import numpy as np
 from affine import Affine
 
 from geoortho.core.gapfill import fill_gaps_by_windows, fill_harmonic
+from geoortho.photos.footprint import compute_footprints
 
 __all__ = [
     "FALLBACK",
@@ -56,8 +57,6 @@ def footprint_polygons(cams: Sequence[Any], surface: Any, max_range_m: float | N
     Rays that meet nothing end at ``max_range_m`` (default: 3 x the median camera height over the
     surface), so an oblique photo's polygon stops short of the horizon."""
     import shapely
-
-    from geoortho.photos.footprint import compute_footprints
 
     if not cams:
         return []

@@ -25,8 +25,20 @@ from affine import Affine
 
 from geoortho.core.crs import crs_to_text, parse_crs
 from geoortho.core.gapfill import fill_harmonic, gap_mask
-from geoortho.core.outputs import atomic_paths
+from geoortho.core.outputs import atomic_path, atomic_paths, cog_options, write_cog
 from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
+from geoortho.core.surface import GridSurface
+from geoortho.elevation.coverage import (
+    FALLBACK,
+    INTERPOLATED,
+    MEASURED,
+    SOURCE_DESCRIPTION,
+    complete_grid,
+    extended_grid,
+    footprint_polygons,
+    seen_count,
+    source_path,
+)
 from geoortho.elevation.grid import (
     GROUND,
     METHODS,
@@ -39,8 +51,10 @@ from geoortho.elevation.grid import (
     with_nodata,
 )
 from geoortho.elevation.ground import SmrfParams, ground_mask, smrf_surface
+from geoortho.elevation.tiles import WHOLE_GRID_MAX_CELLS, make_tiled, work_folder
 from geoortho.errors import DependencyError, InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.reconstruction.model import cameras_from_sfm
 
 __all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
 
@@ -402,7 +416,6 @@ def _dem_tiled(
     fb: Feedback,
 ) -> DemResult:
     """:func:`dem` for a grid too large to hold whole: tile by tile (:mod:`geoortho.elevation.tiles`)."""
-    from geoortho.elevation.tiles import make_tiled, work_folder
 
     grid = plan.grid
     want_ground = dtm is not None or classified is not None
@@ -456,8 +469,6 @@ def _cog_of(tif: Path, target: Path, name: str, units: str) -> None:
     """A tiled GeoTIFF made a COG by GDAL, block by block (as write_cog makes one from an array)."""
     import rasterio
     from rasterio.shutil import copy as rio_copy
-
-    from geoortho.core.outputs import cog_options
 
     with rasterio.open(tif, "r+") as ds:
         ds.set_band_description(1, name)
@@ -548,7 +559,6 @@ class _GridPlan:
 
 
 def _whole_grid_max_cells() -> int:
-    from geoortho.elevation.tiles import WHOLE_GRID_MAX_CELLS
 
     return WHOLE_GRID_MAX_CELLS
 
@@ -810,7 +820,6 @@ def _write_products(
     n_ground: int,
 ) -> DemResult:
     """Fill, smooth and write the DSM, the DTM and the hillshade."""
-    from geoortho.core.outputs import write_cog
 
     grid = plan.grid
     # no gap is wider than the grid: a larger max gap means "every gap" (and must not pad the grid by it)
@@ -854,21 +863,6 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     """The DSM and DTM just written, carried over the ground at least two of the SfM's registered
     photos saw, with a source raster beside each (see :mod:`geoortho.elevation.coverage`)."""
     import rasterio
-
-    from geoortho.core.outputs import write_cog
-    from geoortho.core.surface import GridSurface
-    from geoortho.elevation.coverage import (
-        FALLBACK,
-        INTERPOLATED,
-        MEASURED,
-        SOURCE_DESCRIPTION,
-        complete_grid,
-        extended_grid,
-        footprint_polygons,
-        seen_count,
-        source_path,
-    )
-    from geoortho.reconstruction.model import cameras_from_sfm
 
     if src.horizontal_m != 1.0 or src.vertical_m != 1.0:
         note = "not carried to the photos' edge: the cloud is not in metres"
@@ -1027,8 +1021,6 @@ def write_hillshade(
     """A greyscale hillshade PNG (sun from the north-west, 45° up); nodata transparent."""
     import cv2
 
-    from geoortho.core.outputs import atomic_path
-
     valid = np.isfinite(z)
     fill = np.nanmean(z) if valid.any() else 0.0
     az, alt = math.radians(azimuth_deg), math.radians(altitude_deg)
@@ -1059,8 +1051,6 @@ class _ClassifiedWriter:
         import contextlib
 
         import laspy
-
-        from geoortho.core.outputs import atomic_path
 
         assert src.path is not None
         self._stack = contextlib.ExitStack()
@@ -1141,8 +1131,6 @@ def _run_pdal(
     import tempfile
 
     import rasterio
-
-    from geoortho.core.outputs import write_cog
 
     if src.path is None:
         raise ParameterError("engine", "engine pdal reads files only")

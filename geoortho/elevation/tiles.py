@@ -41,7 +41,10 @@ from typing import Any
 
 import numpy as np
 
+from geoortho.core.gapfill import fill_harmonic, gap_mask
+from geoortho.core.outputs import temp_prefix
 from geoortho.core.parallel import imap_ordered
+from geoortho.elevation.grid import GROUND, NODATA, Accumulator, Grid, finite_points, with_nodata
 from geoortho.elevation.ground import SmrfParams, bilinear, ground_mask, smrf_surface
 from geoortho.feedback import Feedback, split
 
@@ -136,8 +139,6 @@ def make_tiled(
 ) -> TiledGrids:
     """Sort the points into tiles, grid each tile, fill each tile's gaps (see the module's doc)."""
     import rasterio
-
-    from geoortho.elevation.grid import NODATA, Accumulator, Grid, finite_points
 
     hm = src.horizontal_m
     smrf_grid, smrf_whole = None, False
@@ -291,7 +292,6 @@ class _TileJob:
 def make_tile(job: _TileJob) -> tuple[int, list[np.ndarray], np.ndarray, np.ndarray]:
     """One tile's unfilled DSM (and DTM) cells (NaN: no point) and its own points' ground flags
     (their source indices and flags)."""
-    from geoortho.elevation.grid import Accumulator
 
     tiling = job.tiling
     grid, t = tiling.grid, tiling.t
@@ -343,7 +343,6 @@ class _CoarseSums:
 
     def filled(self, max_gap_cells: float, stem: Path) -> tuple[Path, Path]:
         """The coarse grid's harmonic gap fill and its gap-closed outline, saved."""
-        from geoortho.core.gapfill import fill_harmonic, gap_mask
 
         known = self.counts > 0
         z = np.where(known, self.sums / np.maximum(self.counts, 1), np.nan)
@@ -373,9 +372,6 @@ class _FillJob:
 def fill_tile(job: _FillJob) -> np.ndarray:
     """The tile's final cells (float32, nodata as NODATA)."""
     import rasterio
-
-    from geoortho.core.gapfill import gap_mask
-    from geoortho.elevation.grid import with_nodata
 
     grid = job.tiling.grid
     r0, r1, c0, c1 = job.tiling.window(job.k)
@@ -434,7 +430,6 @@ def _ground(pts: np.ndarray, job: _TileJob) -> np.ndarray:
     """Which of the tile's points are ground: the file's class 2, or SMRF's test against the whole
     cloud's surface (or, where that is too large to hold, one made on the global SMRF grid's cells
     that the points cover)."""
-    from geoortho.elevation.grid import GROUND, Accumulator
 
     if job.ground_method == "classification":
         return np.asarray(pts["c"] == GROUND)
@@ -484,6 +479,5 @@ def append_by_tile(rows: np.ndarray, tile: np.ndarray, file_of: Callable[[int], 
 def work_folder(near: Path) -> tempfile.TemporaryDirectory[str]:
     """A temporary folder for the tile files beside the output (the same disk as the products),
     named as every geoortho temporary is, so that a killed run's is removed by the next run."""
-    from geoortho.core.outputs import temp_prefix
 
     return tempfile.TemporaryDirectory(prefix=temp_prefix(Path(near).name), dir=Path(near).absolute().parent)

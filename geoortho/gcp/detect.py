@@ -13,8 +13,9 @@ import cv2
 import numpy as np
 
 from geoortho.core.camera import in_frame
-from geoortho.gcp.markers import CODED, get_dictionary, target_half_extent
+from geoortho.gcp.markers import CODED, get_dictionary, marker_cells, target_half_extent
 from geoortho.gcp.targets import SATURATED, estimate_motion_blur, fit_target
+from geoortho.photos.metadata import decode_photo
 
 __all__ = [
     "Detection",
@@ -351,7 +352,6 @@ def _fit(
 ) -> Detection | None:
     """The window's target by model fit, as a detection (refused ones carry their reason);
     ``near``: see :func:`.targets.fit_target`."""
-    from geoortho.gcp.markers import marker_cells
 
     coded = target in CODED
     cells = marker_cells(dictionary, win.marker_id) if coded else None
@@ -488,7 +488,6 @@ def detect_task(args: tuple[str, list[SearchWindow], str, str, bool]) -> tuple[s
     markers are searched in grey, as the detector reads them; other targets are fitted in
     :func:`paint_channel`."""
     path, windows, dictionary, target, fit = args
-    from geoortho.photos.metadata import decode_photo
 
     coded = target in CODED
     try:  # strict: a corrupt scan would be searched as grey smears, with libjpeg noise on stderr

@@ -45,6 +45,7 @@ from pyproj import CRS
 
 from geoortho.core.camera import in_frame, pixel_rays
 from geoortho.core.crs import crs_to_text, parse_crs, transformer
+from geoortho.core.outputs import atomic_path, write_text, write_vector
 from geoortho.core.parallel import map_ordered, process_pool
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
@@ -930,7 +931,6 @@ def _warn_counts(observations: list[Observation], fb: Feedback) -> None:
 
 def write_gcp_list(path: Path, observations: list[Observation], gcps: GcpSet, crs: CRS) -> Path:
     """gcp_list.txt as OpenDroneMap reads it: CRS line, then ``x y z px py image name``."""
-    from geoortho.core.outputs import write_text
 
     t = transformer(gcps.crs, crs)
     by_name = gcps.by_name()
@@ -948,8 +948,6 @@ def write_detections(path: Path, observations: list[Observation], gcps: GcpSet) 
     """Every candidate as a table: GeoPackage (points at the GCP) or CSV, by extension."""
     import geopandas as gpd
     import shapely
-
-    from geoortho.core.outputs import write_text, write_vector
 
     by_name = gcps.by_name()
     rows: list[dict[str, Any]] = []
@@ -978,8 +976,6 @@ def write_review(
     """PNG contact sheet: a crop around each detection, centre marked, labelled GCP / image; model
     fits are marked (V verified on blue, F fitted on orange, a yellow centre), decoded ones plain."""
     import cv2
-
-    from geoortho.core.outputs import atomic_path
 
     accepted = [o for o in observations if o.status == DETECTED]
     tiles = []

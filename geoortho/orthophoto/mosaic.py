@@ -25,10 +25,11 @@ from rasterio.windows import Window
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.crs import crs_to_text, horizontal_unit_m
+from geoortho.core.gapfill import fill_gaps_by_windows
 from geoortho.core.outputs import atomic_path, temp_prefix, write_json
 from geoortho.core.parallel import imap_ordered, map_ordered
-from geoortho.core.surface import FlatSurface, GridSurface, Surface
-from geoortho.elevation.coverage import source_path
+from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface, sample_grid
+from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_count, source_path
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.orthophoto.cameras import cameras_from_metadata
@@ -46,7 +47,7 @@ from geoortho.orthophoto.rectify import (
     window_xyz,
 )
 from geoortho.orthophoto.seams import BALANCE, SEAMS, Balance, SeamMethod, SeamPlan, plan_seams, read_photo_bgr
-from geoortho.photos.footprint import compute_footprints
+from geoortho.photos.footprint import compute_footprints, photos_with_altitude, working_crs
 from geoortho.photos.heights import GpsAltitude
 from geoortho.reconstruction.model import cameras_from_sfm
 
@@ -179,8 +180,6 @@ def measure_coverage(
     import rasterio
     from rasterio.enums import Resampling
 
-    from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_count
-
     with rasterio.open(ortho) as ds:
         crs = ds.crs
         f = max(1, math.ceil(math.sqrt(ds.width * ds.height / COVERAGE_CELLS)))
@@ -207,7 +206,6 @@ def measure_coverage(
         out["on_interpolated_m2"] = float((alpha & (src_grid != MEASURED)).sum()) * cell_m2
     elif isinstance(surface, GridSurface):
         # the ortho's DSM has its holes filled on reading: what is left off it lies past its grid
-        from geoortho.core.surface import sample_grid
 
         rows, cols = np.nonzero(alpha)
         x, y = t * (cols + 0.5, rows + 0.5)
@@ -993,7 +991,6 @@ def ortho(
     max_dsm_offset_m : float
         Largest vertical offset between the DSM and the SfM points taken as agreement.
     """
-    from geoortho.photos.footprint import photos_with_altitude, working_crs
 
     fb = as_feedback(feedback)
     images = Path(images)
@@ -1082,7 +1079,6 @@ def _check_dsm_against_points(
     ``max_offset_m``: move the DSM onto the points (correct), refuse, or only say it (ignore)."""
     z = surface.grid
     c, r = surface.colrow(pts[:, 0], pts[:, 1])
-    from geoortho.core.surface import sample_grid
 
     dsm_z = sample_grid(z, c, r).astype(float)
     ok = np.isfinite(dsm_z)
@@ -1155,8 +1151,6 @@ def _feet_against_points(points_z: np.ndarray, dsm_z: np.ndarray, unit: str) -> 
 
 def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurface:
     """The DSM in the output CRS, its small nodata holes filled (reported)."""
-    from geoortho.core.gapfill import fill_gaps_by_windows
-    from geoortho.core.surface import read_surface
 
     surf = read_surface(path, crs, extend=True)
     if surf.height_unit != "metre":

@@ -25,6 +25,7 @@ from rasterio.windows import Window
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.surface import Surface
+from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.orthophoto.rectify import (
     Projection,
@@ -37,6 +38,7 @@ from geoortho.orthophoto.rectify import (
     slices_in,
     window_xyz,
 )
+from geoortho.photos.metadata import decode_photo, read_photo
 
 __all__ = ["SeamPlan", "plan_seams", "read_photo_bgr"]
 
@@ -79,8 +81,6 @@ def read_photo_bgr(path: str, reduction: int = 1, *, verify: bool = False) -> np
     OpenCV (and Pillow, for a bad Huffman code) only warns "Corrupt JPEG data" and returns a
     grey-smeared image; simplejpeg's strict mode turns the warning into an error."""
     if verify:
-        from geoortho.photos.metadata import decode_photo
-
         img = decode_photo(path, reduction)
         if img is not None:
             return img
@@ -98,8 +98,6 @@ def read_photo_bgr(path: str, reduction: int = 1, *, verify: bool = False) -> np
 
 def _exposure(path: Any) -> float:
     """ISO · t / N² from the photo's EXIF (NaN when unknown or unreadable)."""
-    from geoortho.errors import InputError
-    from geoortho.photos.metadata import read_photo
 
     try:
         return read_photo(path).exposure_value

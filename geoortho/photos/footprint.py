@@ -26,13 +26,15 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
-from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr, undistort_pixels
+from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr, undistort_pixels, ypr_from_rotation
 from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
+from geoortho.core.outputs import write_cog, write_vector
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split, warn_grouped
 from geoortho.photos.heights import GpsAltitude, HeightModel, resolve_heights
 from geoortho.photos.metadata import Photo, PhotoSet, read_photos
+from geoortho.reconstruction.model import cameras_from_sfm
 
 __all__ = [
     "PhotoCamera",
@@ -440,7 +442,6 @@ def _write_layers(
     output: Path, fp: Any, cam_layer: Any, work: CRS, out_crs: CRS | None, overlap: Path | None, cell_m: float
 ) -> Path | None:
     """The overlap raster (in the working CRS), then both layers in the output CRS; the overlap's path."""
-    from geoortho.core.outputs import write_vector
 
     overlap_path = write_overlap(overlap, fp.geometry.values, work, cell_m) if overlap is not None else None
     if out_crs is not None and not out_crs.equals(work):
@@ -488,7 +489,6 @@ def _footprints_from_sfm(
 ) -> FootprintResult:
     """Footprints of the SfM's registered cameras (measured poses, calibrated intrinsics) on the
     DSM, and the metadata's heights checked against them."""
-    from geoortho.reconstruction.model import cameras_from_sfm
 
     s_read, s_cast, s_write = split(fb, [3, 2, 1])
     photos = read_photos(images, sensor_width_mm, feedback=s_read)
@@ -584,8 +584,6 @@ def _sfm_photo_cameras(sfm_cams: Sequence[Any], by_name: dict[str, Photo], work:
     """The SfM's cameras as photo cameras: measured pose and intrinsics, the photo's attitude
     replaced by the pose's (its yaw from grid north to true north)."""
     from dataclasses import replace
-
-    from geoortho.core.camera import ypr_from_rotation
 
     lon = np.array([by_name[c.name].longitude_deg for c in sfm_cams], float)
     lat = np.array([by_name[c.name].latitude_deg for c in sfm_cams], float)
@@ -775,8 +773,6 @@ def write_overlap(path: str | os.PathLike[str], polygons: Sequence[Any], crs: CR
     import shapely
     from rasterio.features import MergeAlg, rasterize
     from rasterio.transform import from_origin
-
-    from geoortho.core.outputs import write_cog
 
     x0, y0, x1, y1 = shapely.total_bounds(np.asarray(polygons))
     x0, y0 = math.floor(x0 / cell_m) * cell_m, math.floor(y0 / cell_m) * cell_m

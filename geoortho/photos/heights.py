@@ -31,6 +31,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
+from geoortho.core.crs import geoid_undulation_m
 from geoortho.core.surface import FlatSurface, GridSurface, Surface
 from geoortho.errors import DependencyError, InputError
 from geoortho.photos.metadata import Photo, photo_seconds
@@ -206,7 +207,6 @@ def _ground_under(surface: Surface | None, xy: np.ndarray) -> np.ndarray:
 
 
 def _undulation(lonlat: np.ndarray) -> float:
-    from geoortho.core.crs import geoid_undulation_m
 
     return float(np.median(geoid_undulation_m(lonlat[:, 0], lonlat[:, 1])))
 

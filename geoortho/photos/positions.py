@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from geoortho.core.crs import WGS84, transformer
 from geoortho.errors import InputError
 from geoortho.photos.metadata import DEFAULT_SIGMA_M, RTK_FLAGS, Photo, photo_seconds
 
@@ -473,8 +474,6 @@ def _csv_lonlat(path: Path, n: int, x: float, y: float, crs_text: str, cache: di
     """Line ``n``'s (x, y) in ``crs_text`` as WGS 84 longitude and latitude (degrees)."""
     from pyproj import CRS
     from pyproj.exceptions import CRSError
-
-    from geoortho.core.crs import WGS84, transformer
 
     if not crs_text:
         raise InputError(

@@ -20,6 +20,7 @@ from geoortho.errors import CanceledError, GeoorthoError, InputError
 from geoortho.feedback import Feedback, JsonLinesFeedback, TerminalFeedback
 from geoortho.processing.registry import describe_json, list_algorithms, run_algorithm
 from geoortho.processing.spec import PARAM_TYPES, Algorithm, Param
+from geoortho.version import __version__
 
 __all__ = ["ARGPARSE_OPTIONS", "build_parser", "main"]
 
@@ -132,8 +133,6 @@ def build_parser() -> argparse.ArgumentParser:
         description="geoortho: drone photos to survey products, georeference first.",
         epilog=f"Run '{PROG} <algorithm> --help' for its options.",
     )
-    from geoortho.version import __version__
-
     parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="<algorithm>", parser_class=_Parser)
     for alg in list_algorithms():

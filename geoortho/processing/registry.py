@@ -12,7 +12,9 @@ from typing import Any
 
 from geoortho.errors import ParameterError
 from geoortho.feedback import Feedback, as_feedback
+from geoortho.processing.algorithms import ALGORITHMS
 from geoortho.processing.spec import PARAM_TYPES, PATH_TYPES, Algorithm, Param
+from geoortho.version import __version__
 
 __all__ = ["CONVERTERS", "convert_value", "get_algorithm", "list_algorithms", "run_algorithm", "describe"]
 
@@ -89,7 +91,7 @@ def _bool(p: Param, v: Any) -> bool:
 
 
 def _crs(p: Param, v: Any) -> Any:
-    from geoortho.core.crs import parse_crs
+    from geoortho.core.crs import parse_crs  # here: pyproj is no part of --help
 
     try:
         crs = parse_crs(v)
@@ -134,8 +136,6 @@ def convert_value(p: Param, value: Any) -> Any:
 
 def list_algorithms() -> list[Algorithm]:
     """Every registered algorithm, in registry order."""
-    from geoortho.processing.algorithms import ALGORITHMS
-
     return list(ALGORITHMS)
 
 
@@ -234,7 +234,7 @@ def refuse_writing_into(out_name: str, out_path: Path, in_name: str, in_folder: 
     """Refuse an output file whose writing would change what an input folder holds: a file of it
     replaced (photos are read from the folder itself, not below it), or a new image that the next
     reading of a photo folder would take for a photo."""
-    from geoortho.photos.metadata import IMAGE_EXTENSIONS
+    from geoortho.photos.metadata import IMAGE_EXTENSIONS  # here: the EXIF readers are no part of --help
 
     rel = _inside(out_path, in_folder)
     if rel is None:
@@ -288,7 +288,7 @@ def run_algorithm(
 
     ``scheduler``: a Dask scheduler's address (default ``$GEOORTHO_SCHEDULER``) to run the
     per-photo and per-tile work on; its workers must see every input and output path."""
-    from geoortho.core.parallel import use_scheduler
+    from geoortho.core.parallel import use_scheduler  # here: the pool's imports are no part of --help
 
     alg = algorithm_id if isinstance(algorithm_id, Algorithm) else get_algorithm(algorithm_id)
     kwargs = convert_values(alg, values)
@@ -306,7 +306,7 @@ def run_algorithm(
 def _clean_beside_outputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
     """Each output can be written (refused now, not after the computing); temporaries of killed
     runs beside (or in) it are removed before this run starts."""
-    from geoortho.core.outputs import remove_stale_temporaries
+    from geoortho.core.outputs import remove_stale_temporaries  # here: numpy is no part of --help
 
     for p in alg.params:
         if p.output and kwargs.get(p.name) is not None:
@@ -364,8 +364,6 @@ def _param_json(p: Param) -> dict[str, Any]:
 
 def describe() -> dict[str, Any]:
     """The whole registry as a JSON-ready dict (the contract other faces build on)."""
-    from geoortho.version import __version__
-
     return {
         "name": "geoortho",
         "version": __version__,

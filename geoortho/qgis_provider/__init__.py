@@ -10,6 +10,6 @@ relatively, as the only package in geoortho that does, because the zip renames i
 
 def classFactory(iface):  # noqa: N802 (QGIS's name)
     """QGIS plugin entry point."""
-    from .plugin import GeoorthoPlugin
+    from .plugin import GeoorthoPlugin  # here: QGIS imports this package before its GUI is up
 
     return GeoorthoPlugin(iface)

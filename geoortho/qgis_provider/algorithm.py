@@ -381,7 +381,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         return self._results(values, outputs, context)
 
     def _run_in_process(self, values: dict[str, Any], feedback: Any) -> dict[str, Any]:
-        try:
+        try:  # here: QGIS's own Python may not have geoortho's dependencies (the default runs our interpreter)
             from geoortho.errors import CanceledError, GeoorthoError
             from geoortho.processing.registry import run_algorithm
         except ImportError as e:
@@ -389,7 +389,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
                 f"'run in the QGIS process' is on, but geoortho cannot be imported here ({e}); "
                 "turn the setting off to run geoortho's own interpreter"
             ) from None
-        from .inprocess import feedback_adapter
+        from .inprocess import feedback_adapter  # here: only the in-process setting needs it
 
         if "workers" in {p["name"] for p in self._spec["parameters"]} and "workers" not in values:
             # Worker processes would be spawned with sys.executable, which inside

@@ -129,7 +129,7 @@ class GeoorthoProvider(QgsProcessingProvider):
             return self._given_description, "given"
         settings = self.settings()
         if settings["in_process"]:
-            try:
+            try:  # here: QGIS's own Python may not have geoortho's dependencies
                 from geoortho.processing.registry import describe
 
                 return describe(), "the geoortho imported in QGIS"

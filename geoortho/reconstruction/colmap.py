@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from geoortho.feedback import reclaim_signal_handlers
+
 __all__ = ["load_pycolmap"]
 
 
@@ -13,8 +15,6 @@ def load_pycolmap() -> Any:
     """pycolmap as every geoortho caller needs it: Python's SIGTERM handler taken back from glog,
     COLMAP's INFO logging off."""
     import pycolmap
-
-    from geoortho.feedback import reclaim_signal_handlers
 
     reclaim_signal_handlers()
     # COLMAP logs every image and iteration at INFO; geoortho's feedback says what matters.

@@ -12,7 +12,7 @@ import numpy as np
 from pyproj import CRS
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera
-from geoortho.core.crs import parse_crs
+from geoortho.core.crs import parse_crs, transformer
 from geoortho.errors import InputError
 from geoortho.reconstruction.colmap import load_pycolmap
 
@@ -108,8 +108,6 @@ def cameras_from_sfm(
     if model_crs is None and out_crs is not None:
         raise InputError("the SfM model is in a local frame (no CRS): it cannot be moved to a CRS", path=geo_path)
     if out_crs is not None and model_crs is not None and not out_crs.equals(model_crs):
-        from geoortho.core.crs import transformer
-
         move = transformer(model_crs, out_crs)
     # without a photo folder (the dem's footprints need only the poses) no photo is looked for
     by_name = {p.name: p for p in Path(images).rglob("*") if p.is_file()} if images is not None else {}

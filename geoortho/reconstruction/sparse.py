@@ -44,17 +44,19 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from geoortho.core.camera import rotation_from_ypr, ypr_from_rotation
-from geoortho.core.crs import WGS84, crs_to_text, parse_crs, transformer
+from geoortho.core.crs import WGS84, crs_to_text, geoid_undulation_m, parse_crs, transformer, utm_crs_for
 from geoortho.core.outputs import temp_prefix, write_json, write_vector
+from geoortho.core.parallel import map_ordered
 from geoortho.core.pointcloud import write_las
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.gcp.io import GcpSet, heights_are_placeholders, read_gcp_file
 from geoortho.photos.footprint import photo_cameras, working_crs
 from geoortho.photos.heights import absolute_altitude, check_altitudes
-from geoortho.photos.metadata import Photo, list_images, read_photos
+from geoortho.photos.metadata import Photo, list_images, photo_seconds, read_photos
 from geoortho.photos.positions import PositionFile, apply_positions, read_positions
 from geoortho.reconstruction.colmap import load_pycolmap
+from geoortho.reconstruction.splitmerge import merge, partition, run_submodel
 
 __all__ = ["SfmResult", "sfm", "MATCHING", "MAPPERS", "CAMERA_MODELS", "ce90", "le90"]
 
@@ -1518,7 +1520,6 @@ TURN_MAX_DEG = 30.0
 def _own_gps_velocities(inputs: _Inputs) -> dict[str, np.ndarray]:
     """Each photo's velocity (m/s, local frame) from its neighbours' GPS positions and times, where
     the path runs straight through it (not at a turn) and the neighbours are within 10 s."""
-    from geoortho.photos.metadata import photo_seconds
 
     timed = sorted(
         (t, inputs.names[p.path])
@@ -1760,8 +1761,6 @@ def _split_reconstruct(
 ) -> tuple[_Mapped, list[dict[str, Any]]]:
     """Split-merge (:mod:`geoortho.reconstruction.splitmerge`): submodels by position, each reconstructed by
     :func:`sfm`, merged into one model for the georeferencing that follows."""
-    from geoortho.core.parallel import map_ordered
-    from geoortho.reconstruction.splitmerge import merge, partition, run_submodel
 
     if split < 3 or overlap_m < 0:
         raise InputError(f"split {split}: submodels need at least 3 photos, and an overlap of 0 m or more")
@@ -1958,7 +1957,6 @@ def _shift_cause(effect: dict[str, Any], inputs: _Inputs, heights_compared: bool
         )
     if not heights_compared or inputs.out_crs is None or abs(v) < 10.0:
         return ""
-    from geoortho.core.crs import geoid_undulation_m
 
     lon, lat = transformer(inputs.out_crs, WGS84).transform(*inputs.priors.offset[:2])
     n = float(geoid_undulation_m(lon, lat))
@@ -2385,7 +2383,6 @@ def _output_crs(crs: str | None, photos: Sequence[Photo], gcps: GcpSet | None) -
     if gcps is not None:
         g = gcps.points[0]
         lon, lat = transformer(gcps.crs, WGS84).transform(g.x, g.y)
-        from geoortho.core.crs import utm_crs_for
 
         return utm_crs_for(lon, lat)
     return None

@@ -33,6 +33,7 @@ import numpy as np
 
 from geoortho.errors import GeoorthoError
 from geoortho.feedback import Feedback
+from geoortho.reconstruction.colmap import load_pycolmap
 
 __all__ = ["partition", "Submodel"]
 
@@ -116,8 +117,6 @@ def merge(
     how far their centres disagree with the merged ones), and the submodel each photo in it
     came from."""
     import json
-
-    from geoortho.reconstruction.colmap import load_pycolmap
 
     pycolmap = load_pycolmap()
     merged = pycolmap.Reconstruction()

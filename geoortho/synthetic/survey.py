@@ -35,8 +35,10 @@ from affine import Affine
 from pyproj import CRS
 
 from geoortho.core.camera import Intrinsics, Pose, pixel_rays, project_points, rotation_from_ypr, ypr_from_rotation
-from geoortho.core.crs import transformer, utm_crs_for
+from geoortho.core.crs import geoid_undulation_m, grid_north, transformer, utm_crs_for
+from geoortho.core.outputs import atomic_path, write_cog, write_json, write_text, write_vector
 from geoortho.core.parallel import map_ordered
+from geoortho.core.pointcloud import write_las
 from geoortho.core.surface import GridSurface, sample_grid
 from geoortho.elevation.grid import NODATA
 from geoortho.errors import InputError
@@ -729,7 +731,7 @@ def fly_plan(plan: Path, preset: SynthPreset, scene: Scene, rng: np.random.Gener
     height and attitude, flown with the same wander as the built-in flight. Heights: the plan's
     absolute ones when it was planned on a DTM (the scene's truth/dtm.tif), else its altitude above
     the take-off over the scene's home point."""
-    from geoortho.planning.plan import read_plan_photos
+    from geoortho.planning.plan import read_plan_photos  # here: 0.9 s (geopandas) in every render worker
 
     photos, summary = read_plan_photos(plan)
     cam = summary.get("camera", {})
@@ -769,7 +771,6 @@ def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random
     alt_bias = rng.normal(0, GPS_ALT_BIAS_SIGMA_M)
     t0 = dt.datetime(2026, 5, 14, 10, 0, 0)
     # The drone writes yaw from true north; the truth's yaw is from the grid's north.
-    from geoortho.core.crs import grid_north
 
     lon_t, lat_t = to_ll.transform(np.array([s.x for s in shots]), np.array([s.y for s in shots]))
     convergence, _ = grid_north(scene.crs, lon_t, lat_t)
@@ -1404,8 +1405,6 @@ def _write_jpeg(path: Path, pixels: np.ndarray, shot: Shot, intr: Intrinsics) ->
     import piexif
     from PIL import Image
 
-    from geoortho.core.outputs import atomic_path
-
     zeroth = {
         piexif.ImageIFD.Make: MAKER_MAKE[shot.maker].encode(),
         piexif.ImageIFD.Model: CAMERA_MODEL.encode(),
@@ -1620,8 +1619,6 @@ def synth(
     shots = [replace(s, maker=maker) for s in _record(planned, scene, p, rng)]
     undulation = 0.0
     if pathologies:
-        from geoortho.core.crs import geoid_undulation_m
-
         undulation = float(geoid_undulation_m(longitude_deg, latitude_deg))
         shots = _apply_pathologies(shots, scene, pathologies, undulation, np.random.default_rng(seed + 11))
     if blur_px > 0:
@@ -1756,7 +1753,6 @@ def _write_truth(
 
 def _write_truth_rasters(truth: Path, scene: Scene, pathologies: Sequence[str], undulation_m: float) -> None:
     """The true DSM and DTM, and the DSMs the pathologies ask for (another datum, a partial one)."""
-    from geoortho.core.outputs import write_cog
 
     write_cog(truth / "dsm.tif", scene.dsm, transform=scene.transform, crs=scene.crs, nodata=NODATA)
     write_cog(truth / "dtm.tif", scene.dtm, transform=scene.transform, crs=scene.crs, nodata=NODATA)
@@ -1819,8 +1815,6 @@ def _write_poses_and_footprints(
     import geopandas as gpd
     import shapely
 
-    from geoortho.core.outputs import write_json, write_vector
-
     polys, clipped = [], []
     for s in shots:
         ring, clip = true_footprint(scene, s, intr)
@@ -1838,7 +1832,6 @@ def _write_poses_and_footprints(
 
 def _write_gcp_files(truth: Path, scene: Scene) -> None:
     """GCP files as a surveyor hands them over: UTM with an EPSG line, WGS84 text and CSV."""
-    from geoortho.core.outputs import write_text
 
     gcps = [m for m in scene.markers if not m.decoy]
     to_ll = transformer(scene.crs, CRS.from_epsg(4326))
@@ -1867,7 +1860,6 @@ def _write_survey_json(
     rtk: dict[str, Any] | None = None,
     degradations: dict[str, Any] | None = None,
 ) -> None:
-    from geoortho.core.outputs import write_json
 
     write_json(
         truth / "survey.json",
@@ -1938,7 +1930,6 @@ def _write_survey_json(
 
 def _write_true_ortho(path: Path, scene: Scene, cell_m: float, progress: Feedback) -> None:
     """The true orthophoto over the flown area (plus a little), coloured from the scene itself."""
-    from geoortho.core.outputs import write_cog
 
     fx0, fy0, fx1, fy1 = scene.flight_box
     pad = 15.0
@@ -1963,7 +1954,6 @@ def _write_true_ortho(path: Path, scene: Scene, cell_m: float, progress: Feedbac
 
 
 def _write_points(path: Path, scene: Scene, p: SynthPreset, rng: np.random.Generator) -> None:
-    from geoortho.core.pointcloud import write_las
 
     fx0, fy0, fx1, fy1 = scene.flight_box
     pad = 20.0
