@@ -28,6 +28,7 @@ from geoortho.core.gapfill import fill_harmonic, gap_mask
 from geoortho.core.outputs import atomic_path, atomic_paths, cog_options, write_cog
 from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
 from geoortho.core.surface import GridSurface
+from geoortho.elevation import tiles as dem_tiles
 from geoortho.elevation.coverage import (
     FALLBACK,
     INTERPOLATED,
@@ -51,7 +52,7 @@ from geoortho.elevation.grid import (
     with_nodata,
 )
 from geoortho.elevation.ground import SmrfParams, ground_mask, smrf_surface
-from geoortho.elevation.tiles import WHOLE_GRID_MAX_CELLS, make_tiled, work_folder
+from geoortho.elevation.tiles import make_tiled, work_folder
 from geoortho.errors import DependencyError, InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.reconstruction.model import cameras_from_sfm
@@ -559,8 +560,7 @@ class _GridPlan:
 
 
 def _whole_grid_max_cells() -> int:
-
-    return WHOLE_GRID_MAX_CELLS
+    return dem_tiles.WHOLE_GRID_MAX_CELLS  # read when called: a test (or a user) may lower it
 
 
 def _plan_grid(src: PointSource, resolution_m: float | None, fb: Feedback, tiles_allowed: bool = True) -> _GridPlan:
@@ -880,17 +880,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     bounds = tuple(shapely.total_bounds(np.asarray(polys, dtype=object))) if polys else None
     if bounds is None or not np.isfinite(bounds).all():
         return result
-    new_t, shape, (r0, c0) = extended_grid(transform, dsm.shape, bounds)  # type: ignore[arg-type]
-    seen = seen_count(polys, new_t, shape)
-    target = seen >= 2
-    z = np.full(shape, np.nan, np.float32)
-    z[r0 : r0 + dsm.shape[0], c0 : c0 + dsm.shape[1]] = dsm
-    # crop to what has a value or must: the polygons' bounding box holds the single-photo fringe too
-    rows = np.flatnonzero((target | np.isfinite(z)).any(axis=1))
-    cols = np.flatnonzero((target | np.isfinite(z)).any(axis=0))
-    sl = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
-    z, seen, target = z[sl], seen[sl], target[sl]
-    new_t = new_t * Affine.translation(int(cols[0]), int(rows[0]))
+    z, target, new_t = _over_the_footprints(dsm, transform, polys, bounds)
     measured = _point_cells(src, keep, new_t, z.shape)
     done = complete_grid(z, measured, target, new_t, tie_points)
     cell_m2 = abs(new_t.a * new_t.e)
@@ -912,33 +902,10 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     ]
     if done.fallback_plane is not None:
         notes.append("nothing was measured under the photos: the DSM is a plane through the SfM tie points")
-    dtm_source = None
-    dtm_grid = None
+    dtm_source = dtm_grid = None
     if result.dtm is not None:
-        with rasterio.open(result.dtm) as ds:
-            d = ds.read(1, masked=True).filled(np.nan).astype(np.float32)
-            dt = ds.transform
-        grid = np.full(z.shape, np.nan, np.float32)
-        rr = int(round((new_t.f - dt.f) / new_t.a))
-        cc = int(round((dt.c - new_t.c) / new_t.a))
-        grid[rr : rr + d.shape[0], cc : cc + d.shape[1]] = d
-        # ground measured where the DSM was measured and is the ground (no object on it)
-        with np.errstate(invalid="ignore"):
-            ground_seen = measured & (np.abs(z - grid) <= max(2.0 * new_t.a, 0.1))
-        plane = _dtm_support(done, grid, new_t)
-        dtm_done = complete_grid(grid, ground_seen, target, new_t, plane)
-        dtm_grid = dtm_done.z
-        write_cog(
-            result.dtm, with_nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit
-        )
-        dtm_source = write_cog(
-            source_path(result.dtm), dtm_done.source, transform=new_t, crs=crs, nodata=0,
-            band_names=(SOURCE_DESCRIPTION,),
-        )  # fmt: skip
-        notes.append(
-            f"DTM: ground measured {dtm_done.share(MEASURED):.1%}, interpolated {dtm_done.share(INTERPOLATED):.1%}, "
-            f"fallback plane {dtm_done.share(FALLBACK):.1%} of its cells"
-        )
+        dtm_source, dtm_grid, note = _complete_dtm(result.dtm, done, z, measured, target, new_t, crs, unit)
+        notes.append(note)
     if result.hillshade is not None:
         write_hillshade(result.hillshade, dtm_grid if dtm_grid is not None else done.z, new_t.a, 1.0)
     for n in notes:
@@ -961,6 +928,55 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         fallback_share=shares[FALLBACK],
         notes=(*result.notes, *notes),
     )
+
+
+def _over_the_footprints(
+    dsm: np.ndarray, transform: Affine, polys: list[Any], bounds: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray, Affine]:
+    """The DSM on a grid grown to the footprints' bounds and cropped to what has a value or must
+    have one; the cells seen by >= 2 photos, and the grid's transform."""
+    new_t, shape, (r0, c0) = extended_grid(transform, dsm.shape, bounds)  # type: ignore[arg-type]
+    target = seen_count(polys, new_t, shape) >= 2
+    z = np.full(shape, np.nan, np.float32)
+    z[r0 : r0 + dsm.shape[0], c0 : c0 + dsm.shape[1]] = dsm
+    # crop to what has a value or must: the polygons' bounding box holds the single-photo fringe too
+    rows = np.flatnonzero((target | np.isfinite(z)).any(axis=1))
+    cols = np.flatnonzero((target | np.isfinite(z)).any(axis=0))
+    sl = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    new_t = new_t * Affine.translation(int(cols[0]), int(rows[0]))
+    return z[sl], target[sl], new_t
+
+
+def _complete_dtm(
+    path: Path, done: Any, z: np.ndarray, measured: np.ndarray, target: np.ndarray, new_t: Affine, crs: Any, unit: str
+) -> tuple[Path, np.ndarray, str]:
+    """The DTM just written, carried over the same cells as the DSM (``done``): its source raster,
+    its grid and the note of its shares."""
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        d = ds.read(1, masked=True).filled(np.nan).astype(np.float32)
+        dt = ds.transform
+    grid = np.full(z.shape, np.nan, np.float32)
+    rr = int(round((new_t.f - dt.f) / new_t.a))
+    cc = int(round((dt.c - new_t.c) / new_t.a))
+    grid[rr : rr + d.shape[0], cc : cc + d.shape[1]] = d
+    # ground measured where the DSM was measured and is the ground (no object on it)
+    with np.errstate(invalid="ignore"):
+        ground_seen = measured & (np.abs(z - grid) <= max(2.0 * new_t.a, 0.1))
+    plane = _dtm_support(done, grid, new_t)
+    dtm_done = complete_grid(grid, ground_seen, target, new_t, plane)
+    dtm_grid = dtm_done.z
+    write_cog(path, with_nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit)
+    dtm_source = write_cog(
+        source_path(path), dtm_done.source, transform=new_t, crs=crs, nodata=0,
+        band_names=(SOURCE_DESCRIPTION,),
+    )  # fmt: skip
+    note = (
+        f"DTM: ground measured {dtm_done.share(MEASURED):.1%}, interpolated {dtm_done.share(INTERPOLATED):.1%}, "
+        f"fallback plane {dtm_done.share(FALLBACK):.1%} of its cells"
+    )
+    return dtm_source, dtm_grid, note
 
 
 def _dtm_support(dsm: Any, dtm: np.ndarray, transform: Any) -> np.ndarray | None:

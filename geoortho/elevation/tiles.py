@@ -138,8 +138,65 @@ def make_tiled(
     progress: Feedback,
 ) -> TiledGrids:
     """Sort the points into tiles, grid each tile, fill each tile's gaps (see the module's doc)."""
-    import rasterio
+    plan = _plan_tiles(src, grid, ground_method, params, max_gap_cells, smooth_px, fb)
+    s_sort, s_tiles, s_fill = split(progress, [1, 1, 1])
+    files = [work / f"tile_{k}.bin" for k in range(plan.n_tiles)]
+    n_used, surface_npy = _sort_into_tiles(src, plan, keep, params, files, work, fb, s_sort)
+    layers = ["dsm", "dtm"] if want_dtm else ["dsm"]
+    base = _TileJob(
+        k=0,
+        files=files,
+        tiling=plan.tiling,
+        points_halo=plan.points_halo,
+        method=method,
+        ground_method=ground_method,
+        smrf_grid=plan.smrf_grid,
+        smrf_surface=surface_npy,
+        params=params,
+        horizontal_m=src.horizontal_m,
+        vertical_m=src.vertical_m,
+        want_dtm=want_dtm,
+    )
+    profile = _tile_profile(src, grid)
+    raw = {name: work / f"{name}_unfilled.tif" for name in layers}
+    ground_flags = np.zeros(src.count, bool) if ground_method is not None else None
+    coarse = {name: _CoarseSums(grid, plan.coarse_factor) for name in layers} if plan.coarse_factor else {}
+    n_ground = _grid_tiles(base, plan, layers, raw, profile, coarse, ground_flags, s_tiles)
+    for file in files:
+        file.unlink(missing_ok=True)
+    coarse_npy = {name: c.filled(max_gap_cells, work / f"{name}_coarse") for name, c in coarse.items()}
+    filled = {name: work / f"{name}.tif" for name in layers}
+    fill_jobs = [
+        _FillJob(
+            k, name, plan.tiling, plan.halo, raw[name], coarse_npy.get(name), plan.coarse_factor, max_gap_cells,
+            smooth_px, finish,
+        )
+        for name in layers
+        for k in range(plan.n_tiles)
+    ]  # fmt: skip
+    _fill_tiles(fill_jobs, plan.tiling, filled, profile, s_fill)
+    for path in raw.values():
+        path.unlink(missing_ok=True)
+    return TiledGrids(filled["dsm"], filled.get("dtm"), ground_flags, n_used, n_ground, plan.n_tiles)
 
+
+@dataclass(frozen=True)
+class _TilePlan:
+    """How the grid is cut: tiles, the halos they read, the coarse grid for wide gaps, SMRF's grid."""
+
+    tiling: _Tiling
+    n_tiles: int
+    points_halo: float  # a tile reads the points this far beyond its edge (the cloud's units)
+    halo: int  # cells of gap-fill halo
+    coarse_factor: int  # gaps wider than the halo are held at this coarser grid's fill (0: none)
+    smrf_grid: Any  # SMRF's grid, or None
+    smrf_whole: bool  # SMRF's provisional surface made once over the whole cloud
+
+
+def _plan_tiles(
+    src: Any, grid: Any, ground_method: str | None, params: SmrfParams, max_gap_cells: float, smooth_px: int,
+    fb: Feedback,
+) -> _TilePlan:  # fmt: skip
     hm = src.horizontal_m
     smrf_grid, smrf_whole = None, False
     if ground_method == "smrf":
@@ -163,11 +220,19 @@ def make_tiled(
         + (f"; gaps wider than it held at a {f}x coarser grid's fill" if f else "")
         + (")" if smrf_grid is None or smrf_whole else "; SMRF per tile: its grid is too large to hold whole)")
     )
-    s_sort, s_tiles, s_fill = split(progress, [1, 1, 1])
-    files = [work / f"tile_{k}.bin" for k in range(n_tiles)]
-    zmin = Accumulator(smrf_grid, "min") if smrf_grid is not None and smrf_whole else None
-    n_used = 0
-    n_bad = 0
+    return _TilePlan(tiling, n_tiles, points_halo, halo, f, smrf_grid, smrf_whole)
+
+
+def _sort_into_tiles(
+    src: Any, plan: _TilePlan, keep: Any, params: SmrfParams, files: list[Path], work: Path, fb: Feedback,
+    progress: Feedback,
+) -> tuple[int, Path | None]:  # fmt: skip
+    """Every point into its tile's file; the points used, and SMRF's provisional surface of the
+    whole cloud (a file, when it is made once) as when the grid is held whole."""
+    grid, t, n_tc = plan.tiling.grid, plan.tiling.t, plan.tiling.n_tc
+    whole = plan.smrf_grid is not None and plan.smrf_whole
+    zmin = Accumulator(plan.smrf_grid, "min") if whole else None
+    n_used = n_bad = 0
     for ch in src.chunks(READ_POINTS):
         fb.check_canceled()
         fin, ok = finite_points(ch, keep)
@@ -183,21 +248,21 @@ def make_tiled(
         rec["i"] = (ch.start + np.flatnonzero(ok))[inside]
         rec["c"] = fin.classification[inside] if fin.classification is not None else 0
         n_used += len(rec)
-        append_by_tile(rec, (r[inside] // t) * tiling.n_tc + (c[inside] // t), lambda k: files[k])
-        s_sort.progress(min(1.0, (ch.start + len(ch.x)) / max(src.count, 1)))
+        append_by_tile(rec, (r[inside] // t) * n_tc + (c[inside] // t), lambda k: files[k])
+        progress.progress(min(1.0, (ch.start + len(ch.x)) / max(src.count, 1)))
     if n_bad:
         fb.warning(f"{n_bad} points with non-finite coordinates skipped")
-    surface_npy = None
-    if zmin is not None:
-        assert smrf_grid is not None
-        # the provisional ground of the whole cloud, once, as when the grid is held whole
-        surface = smrf_surface(zmin.result(), smrf_grid.cell, params, hm, src.vertical_m)
-        del zmin
-        surface_npy = work / "smrf_surface.npy"
-        np.save(surface_npy, surface)
-        del surface
-    ground_flags = np.zeros(src.count, bool) if ground_method is not None else None
-    profile = dict(
+    if zmin is None:
+        return n_used, None
+    surface = smrf_surface(zmin.result(), plan.smrf_grid.cell, params, src.horizontal_m, src.vertical_m)
+    del zmin
+    surface_npy = work / "smrf_surface.npy"
+    np.save(surface_npy, surface)
+    return n_used, surface_npy
+
+
+def _tile_profile(src: Any, grid: Any) -> dict[str, Any]:
+    return dict(
         driver="GTiff",
         width=grid.cols,
         height=grid.rows,
@@ -211,32 +276,25 @@ def make_tiled(
         blockysize=256,
         BIGTIFF="YES",
     )
-    raw_profile = {**profile, "dtype": "float64", "nodata": np.nan}
-    layers = ["dsm", "dtm"] if want_dtm else ["dsm"]
-    raw = {name: work / f"{name}_unfilled.tif" for name in layers}
+
+
+def _grid_tiles(
+    base: _TileJob, plan: _TilePlan, layers: list[str], raw: dict[str, Path], profile: dict[str, Any],
+    coarse: dict[str, _CoarseSums], ground_flags: np.ndarray | None, progress: Feedback,
+) -> int:  # fmt: skip
+    """Each tile gridded (unfilled, float64) into ``raw``; the coarse sums and the ground flags
+    gathered on the way. The ground points counted."""
+    import rasterio
+
     n_ground = 0
-    base = _TileJob(
-        k=0,
-        files=files,
-        tiling=tiling,
-        points_halo=points_halo,
-        method=method,
-        ground_method=ground_method,
-        smrf_grid=smrf_grid,
-        smrf_surface=surface_npy,
-        params=params,
-        horizontal_m=hm,
-        vertical_m=src.vertical_m,
-        want_dtm=want_dtm,
-    )
-    coarse = {name: _CoarseSums(grid, f) for name in layers} if f else {}
+    raw_profile = {**profile, "dtype": "float64", "nodata": np.nan}
     with rasterio.Env(GDAL_CACHEMAX=64):
         outs = {name: rasterio.open(raw[name], "w", **raw_profile) for name in layers}
         try:
             # one tile at a time here (memory follows one tile); on the Dask cluster when one is given
-            jobs = [replace(base, k=k) for k in range(n_tiles)]
-            for k, grids, own_i, own_g in imap_ordered(make_tile, jobs, workers=1, feedback=s_tiles):
-                r0, r1, c0, c1 = tiling.window(k)
+            jobs = [replace(base, k=k) for k in range(plan.n_tiles)]
+            for k, grids, own_i, own_g in imap_ordered(make_tile, jobs, workers=1, feedback=progress):
+                r0, r1, c0, c1 = plan.tiling.window(k)
                 win = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
                 for name, z in zip(layers, grids):
                     outs[name].write(z, 1, window=win)
@@ -248,27 +306,24 @@ def make_tiled(
         finally:
             for o in outs.values():
                 o.close()
-    for file in files:
-        file.unlink(missing_ok=True)
-    coarse_npy = {name: c.filled(max_gap_cells, work / f"{name}_coarse") for name, c in coarse.items()}
-    filled = {name: work / f"{name}.tif" for name in layers}
-    fill_jobs = [
-        _FillJob(k, name, tiling, halo, raw[name], coarse_npy.get(name), f, max_gap_cells, smooth_px, finish)
-        for name in layers
-        for k in range(n_tiles)
-    ]
+    return n_ground
+
+
+def _fill_tiles(
+    fill_jobs: list[_FillJob], tiling: _Tiling, filled: dict[str, Path], profile: dict[str, Any], progress: Feedback
+) -> None:
+    """Each tile's gaps filled (with its halo) into the ``filled`` COG-ready GeoTIFFs."""
+    import rasterio
+
     with rasterio.Env(GDAL_CACHEMAX=64):
-        outs = {name: rasterio.open(filled[name], "w", **profile) for name in layers}
+        outs = {name: rasterio.open(path, "w", **profile) for name, path in filled.items()}
         try:
-            for job, z in zip(fill_jobs, imap_ordered(fill_tile, fill_jobs, workers=1, feedback=s_fill)):
+            for job, z in zip(fill_jobs, imap_ordered(fill_tile, fill_jobs, workers=1, feedback=progress)):
                 r0, r1, c0, c1 = tiling.window(job.k)
                 outs[job.layer].write(z, 1, window=rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0))
         finally:
             for o in outs.values():
                 o.close()
-    for path in raw.values():
-        path.unlink(missing_ok=True)
-    return TiledGrids(filled["dsm"], filled.get("dtm"), ground_flags, n_used, n_ground, n_tiles)
 
 
 @dataclass(frozen=True)

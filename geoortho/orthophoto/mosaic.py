@@ -556,43 +556,11 @@ def mosaic(
     # the temporaries (visibility grids, the tiled mosaic) beside the output, on the same disk
     output.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
-        vis: tuple[VisibilityGrid | None, ...] = (None,) * len(placed.cams)
-        if options.occlusion and isinstance(surface, GridSurface):
-            jobs = [
-                (cam, box, str(Path(work_dir) / f"visibility_{i}.npy"))
-                for i, (cam, box) in enumerate(zip(placed.cams, placed.boxes))
-            ]
-            # a photo's rays march over its DSM window: seconds a photo on a fine DSM, so in parallel
-            vis = tuple(
-                map_ordered(
-                    _visibility_task,
-                    jobs,
-                    workers=options.workers,
-                    initializer=_init_visibility,
-                    # the skip levels made here once (full-grid passes), sent with the DSM (1/64 of it)
-                    initargs=(surface, block_tops(surface)),
-                    feedback=st_vis,
-                )
-            )
+        vis = _visibility(placed, surface, options, Path(work_dir), st_vis)
         times["visibility"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
-        # Seams and gains are decided on cells 8x coarser (and no more than 2 Mpx): the graph cut's time
-        # grows with the cells in the seam bands.
-        factor = max(8, int(math.ceil(math.sqrt(shape[0] * shape[1] / 2.0e6))))
-        plan = plan_seams(
-            list(placed.cams),
-            list(placed.boxes),
-            list(placed.gsds),
-            surface,
-            list(vis),
-            transform,
-            shape,
-            factor,
-            seams=options.seams,
-            balance=options.balance,
-            feedback=st_plan,
-        )
+        plan = _seams_and_gains(placed, surface, vis, transform, shape, options, st_plan)
         skipped += plan.skipped
         notes.extend(plan.notes)
         bad = {name for name, _ in plan.skipped}
@@ -629,21 +597,7 @@ def mosaic(
     st_write.progress(1.0)
 
     cover = measure_coverage(output, placed.cams, surface, Path(dsm_source) if dsm_source is not None else None)
-    line = (
-        f"the orthophoto shows {cover['area_m2']:,.0f} m²: {cover['share_of_seen_1']:.1%} of the "
-        f"{cover['seen_1_m2']:,.0f} m² its photos saw, {cover['share_of_seen_2']:.1%} of the "
-        f"{cover['seen_2_m2']:,.0f} m² seen by >= 2; {cover['on_interpolated_m2']:,.0f} m² of it on an "
-        "interpolated surface"
-    )
-    notes.append(line)
-    fb.info(line)
-    if cover["share_of_seen_1"] < MIN_SHARE_OF_SEEN:
-        notes.append(
-            f"the orthophoto misses {1 - cover['share_of_seen_1']:.0%} of the ground its photos saw "
-            f"(less than {MIN_SHARE_OF_SEEN:.0%} covered)"
-        )
-        fb.warning(notes[-1])
-
+    notes.extend(_coverage_notes(cover, fb))
     raw, bal = _ratio(totals, "seam_raw", "seam_n"), _ratio(totals, "seam_bal", "seam_n")
     if options.balance != "none" and math.isfinite(raw) and math.isfinite(bal) and bal >= raw:
         notes.append(f"colour balance did not lower the colour mismatch across seams ({raw:.2f} → {bal:.2f} DN)")
@@ -681,6 +635,74 @@ def mosaic(
         f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing"
     )
     return result
+
+
+def _visibility(
+    placed: Any, surface: Surface, options: MosaicOptions, work_dir: Path, fb: Feedback
+) -> tuple[VisibilityGrid | None, ...]:
+    """Each photo's occlusion grid over its window of the DSM (None on flat ground or when off)."""
+    if not (options.occlusion and isinstance(surface, GridSurface)):
+        return (None,) * len(placed.cams)
+    jobs = [
+        (cam, box, str(work_dir / f"visibility_{i}.npy")) for i, (cam, box) in enumerate(zip(placed.cams, placed.boxes))
+    ]
+    # a photo's rays march over its DSM window: seconds a photo on a fine DSM, so in parallel
+    return tuple(
+        map_ordered(
+            _visibility_task,
+            jobs,
+            workers=options.workers,
+            initializer=_init_visibility,
+            # the skip levels made here once (full-grid passes), sent with the DSM (1/64 of it)
+            initargs=(surface, block_tops(surface)),
+            feedback=fb,
+        )
+    )
+
+
+def _seams_and_gains(
+    placed: Any,
+    surface: Surface,
+    vis: tuple[VisibilityGrid | None, ...],
+    transform: Affine,
+    shape: tuple[int, int],
+    options: MosaicOptions,
+    fb: Feedback,
+) -> Any:
+    # Seams and gains are decided on cells 8x coarser (and no more than 2 Mpx): the graph cut's time
+    # grows with the cells in the seam bands.
+    factor = max(8, int(math.ceil(math.sqrt(shape[0] * shape[1] / 2.0e6))))
+    return plan_seams(
+        list(placed.cams),
+        list(placed.boxes),
+        list(placed.gsds),
+        surface,
+        list(vis),
+        transform,
+        shape,
+        factor,
+        seams=options.seams,
+        balance=options.balance,
+        feedback=fb,
+    )
+
+
+def _coverage_notes(cover: dict[str, Any], fb: Feedback) -> list[str]:
+    """The orthophoto's area against the ground its photos saw; a warning when it misses some."""
+    notes = [
+        f"the orthophoto shows {cover['area_m2']:,.0f} m²: {cover['share_of_seen_1']:.1%} of the "
+        f"{cover['seen_1_m2']:,.0f} m² its photos saw, {cover['share_of_seen_2']:.1%} of the "
+        f"{cover['seen_2_m2']:,.0f} m² seen by >= 2; {cover['on_interpolated_m2']:,.0f} m² of it on an "
+        "interpolated surface"
+    ]
+    fb.info(notes[-1])
+    if cover["share_of_seen_1"] < MIN_SHARE_OF_SEEN:
+        notes.append(
+            f"the orthophoto misses {1 - cover['share_of_seen_1']:.0%} of the ground its photos saw "
+            f"(less than {MIN_SHARE_OF_SEEN:.0%} covered)"
+        )
+        fb.warning(notes[-1])
+    return notes
 
 
 def _ratio(totals: dict[str, float], a: str, n: str) -> float:
