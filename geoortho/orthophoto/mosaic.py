@@ -575,18 +575,9 @@ def mosaic(
 
         t2 = time.perf_counter()
         ctx = _Context(
-            placed.cams,
-            box_windows,
-            vis,
-            surface,
-            transform,
-            shape,
-            plan,
-            options.blend,
-            int(options.max_hole_px),
-            2 ** (_BANDS + 1),
-            _INTERPOLATION[options.interpolation],
-        )
+            placed.cams, box_windows, vis, surface, transform, shape, plan, options.blend, int(options.max_hole_px),
+            2 ** (_BANDS + 1), _INTERPOLATION[options.interpolation],
+        )  # fmt: skip
         tiled = Path(work_dir) / "mosaic.tif"
         totals, used = _render(ctx, crs, tiled, options, st_tiles)
         times["tiles"] = time.perf_counter() - t2
@@ -1037,26 +1028,13 @@ def ortho(
             f"the orthophoto is made in a CRS in metres and {crs_to_text(out_crs)} is not: "
             "give crs in metres (and reproject the product if feet are wanted)"
         )
-    surface: Surface
     measured_offset = math.nan
-    if dsm is not None:
-        surface = _read_dsm(Path(dsm), out_crs, fb, notes)
-    elif ground_elevation_m is not None:
-        surface = FlatSurface(float(ground_elevation_m))
-    elif default_ground is not None:
-        surface = FlatSurface(default_ground)
-        notes.append(f"no DSM: flat ground at the SfM points' median height {default_ground:.2f} m")
-    else:
-        surface = None  # type: ignore[assignment]
+    surface = _given_surface(dsm, ground_elevation_m, default_ground, out_crs, notes, fb)
     if cams is None:
         cams, heights = cameras_from_metadata(
-            photoset.photos,
-            out_crs,
-            surface,
-            takeoff_elevation_m,
-            flight_height_m=flight_height_m,
+            photoset.photos, out_crs, surface, takeoff_elevation_m, flight_height_m=flight_height_m,
             gps_altitude=gps_altitude,
-        )
+        )  # fmt: skip
         surface = heights.surface
         notes.append(f"heights: {heights.method}; vertical datum: {heights.datum}")
         for note in heights.notes:
@@ -1067,30 +1045,34 @@ def ortho(
     if len(cams) == 0:
         raise InputError("no registered photo to rectify", path=sfm or images)
     options = MosaicOptions(
-        seams=seams,
-        balance=balance,
-        blend=blend,
-        max_hole_px=max_hole_px,
-        compress=compress,
-        interpolation=interpolation,
-        tile_px=tile_px,
-        workers=workers,
-    )
+        seams=seams, balance=balance, blend=blend, max_hole_px=max_hole_px, compress=compress,
+        interpolation=interpolation, tile_px=tile_px, workers=workers,
+    )  # fmt: skip
     return mosaic(
-        cams,
-        surface,
-        out_crs,
-        output,
-        resolution_m,
-        options,
-        preview=preview,
-        poses=poses,
-        notes=notes,
-        skipped=skipped,
-        dsm_source=source_path(dsm) if dsm is not None else None,
-        dsm_offset_m=measured_offset,
+        cams, surface, out_crs, output, resolution_m, options, preview=preview, poses=poses, notes=notes,
+        skipped=skipped, dsm_source=source_path(dsm) if dsm is not None else None, dsm_offset_m=measured_offset,
         feedback=fb,
-    )
+    )  # fmt: skip
+
+
+def _given_surface(
+    dsm: Path | None,
+    ground_elevation_m: float | None,
+    default_ground: float | None,
+    crs: CRS,
+    notes: list[str],
+    fb: Feedback,
+) -> Any:
+    """The surface to rectify on: the DSM, else flat ground at the given elevation, else at the
+    SfM points' median height; None when nothing gives one (the metadata's heights then do)."""
+    if dsm is not None:
+        return _read_dsm(Path(dsm), crs, fb, notes)
+    if ground_elevation_m is not None:
+        return FlatSurface(float(ground_elevation_m))
+    if default_ground is not None:
+        notes.append(f"no DSM: flat ground at the SfM points' median height {default_ground:.2f} m")
+        return FlatSurface(default_ground)
+    return None
 
 
 def _check_dsm_against_points(

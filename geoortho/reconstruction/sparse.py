@@ -1185,32 +1185,14 @@ def sfm(
             mapped, sub_stats = _split_reconstruct(inputs, work, split, split_overlap_m, sub_kwargs, timer, fb)
         else:
             mapped = _reconstruct(
-                inputs,
-                db,
-                work,
-                matching,
-                mapper,
-                camera_model,
-                max_image_size,
-                max_features,
-                gps_sigma_m,
-                seed,
-                workers,
-                timer,
-                fb,
-            )
+                inputs, db, work, matching, mapper, camera_model, max_image_size, max_features, gps_sigma_m, seed,
+                workers, timer, fb,
+            )  # fmt: skip
         notes += mapped.notes
         t0 = time.perf_counter()
         mapped = _hold_unsupported_distortion(mapped, notes)
         timer.add("lens_distortion_test", t0)
-        t0 = time.perf_counter()
-        inputs, lag = _refine_time_lag(mapped, inputs, notes)
-        geo = _georeference_by_gps(mapped.rec, inputs, gps_sigma_m)
-        geo = _georeference_by_gcps(
-            mapped.rec, inputs, mapped.registered, geo, fb, refine_distortion=not mapped.distortion_held
-        )
-        notes += geo.notes
-        timer.add("georeferencing", t0)
+        inputs, lag, geo = _georeference(mapped, inputs, gps_sigma_m, notes, timer, fb)
         intrinsics = _intrinsics_report(mapped, geo.gcp_obs_used, notes)
         if geo.gps_sim is None and not any(s.triangulated is not None for s in geo.states) and not local_frame:
             raise InputError(
@@ -1228,16 +1210,7 @@ def sfm(
         if lag is not None and inputs.positions is None:
             report["gps_time_lag"] = lag
         if inputs.positions is not None:
-            report["positions"] = {
-                "file": str(inputs.positions.path),
-                "format": inputs.positions.source,
-                "photos": len(inputs.positions.by_image),
-                "photos_without": list(inputs.positions.photos_without),
-                "lines_without": list(inputs.positions.lines_without),
-                "time_offset_s": inputs.positions.time_offset_s,
-                "time_offset_found": inputs.positions.offset_found,
-                "time_lag": lag,
-            }
+            report["positions"] = _positions_report(inputs.positions, lag)
         write_json(output / "report.json", report | ({"submodels": sub_stats} if sub_stats else {}))
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -1258,6 +1231,36 @@ def sfm(
         georeferenced_by=geo.how,
         notes=tuple(notes),
     )
+
+
+def _georeference(
+    mapped: _Mapped, inputs: _Inputs, gps_sigma_m: float, notes: list[str], timer: _Timer, fb: Feedback
+) -> tuple[_Inputs, Any, Any]:
+    """The block's time lag found (and the positions read again at it), then the block put in
+    the CRS by the GPS and by the GCPs; the inputs as read again, the lag and the georeference."""
+    t0 = time.perf_counter()
+    inputs, lag = _refine_time_lag(mapped, inputs, notes)
+    geo = _georeference_by_gps(mapped.rec, inputs, gps_sigma_m)
+    geo = _georeference_by_gcps(
+        mapped.rec, inputs, mapped.registered, geo, fb, refine_distortion=not mapped.distortion_held
+    )
+    notes += geo.notes
+    timer.add("georeferencing", t0)
+    return inputs, lag, geo
+
+
+def _positions_report(positions: Any, lag: Any) -> dict[str, Any]:
+    """What the report says of the positions file that replaced the photos' own."""
+    return {
+        "file": str(positions.path),
+        "format": positions.source,
+        "photos": len(positions.by_image),
+        "photos_without": list(positions.photos_without),
+        "lines_without": list(positions.lines_without),
+        "time_offset_s": positions.time_offset_s,
+        "time_offset_found": positions.offset_found,
+        "time_lag": lag,
+    }
 
 
 def _check_choice(what: str, value: str, choices: tuple[str, ...]) -> None:

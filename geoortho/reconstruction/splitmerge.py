@@ -23,6 +23,7 @@ reconstruct each (on other nodes when there are some), align them and merge. Her
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -116,85 +117,124 @@ def merge(
     Returns it, the photos not in it (with why), per-submodel statistics (shared photos and
     how far their centres disagree with the merged ones), and the submodel each photo in it
     came from."""
-    import json
-
     pycolmap = load_pycolmap()
     merged = pycolmap.Reconstruction()
     placed: dict[str, np.ndarray] = {}  # image name -> centre in the merged frame
-    left_out: dict[str, str] = {}
     stats: list[dict[str, Any]] = []
     ok = [s for s in subs if s.ok]
     # GCP-controlled submodels first (they are in the CRS), then by size
     ok.sort(key=lambda s: ("GCP" not in s.message, -s.n_registered))
-    # a photo's home: its group's submodel if that one succeeded, else the first that has it
+    owner = _owners(ok, home)
+    recs: list[tuple[Any, dict[int, int]]] = []  # each submodel, in the merged frame, and its photos' ids
+    keypoints: dict[int, np.ndarray] = {}  # merged image -> its keypoints
+    for s in ok:
+        rec, centres, shared, aligned = _in_merged_frame(s, offset, placed)
+        gaps = [float(np.linalg.norm(centres[n] - placed[n])) for n in shared]
+        stats.append(_submodel_stats(s, shared, gaps, aligned))
+        image_ids = _add_own_photos(merged, rec, s.index, owner, placed, centres)
+        recs.append((rec, image_ids))
+        for i, new_id in image_ids.items():
+            keypoints[new_id] = np.array([p.xy for p in rec.image(i).points2D])
+    n_joined = _add_points(merged, recs, keypoints)
+    failed = {s.index: s.message for s in subs if not s.ok}
+    left_out = {
+        n: f"submodel {k} failed: {failed[k]}" if k in failed else f"not registered in submodel {k}"
+        for n, k in home.items()
+        if n not in placed
+    }
+    merged.update_point_3d_errors()
+    fb.info(
+        f"merged {len(ok)} of {len(subs)} submodels: {len(placed)} photos, {merged.num_points3D():,} points "
+        f"({n_joined:,} seen from two submodels joined)" + (f"; {len(left_out)} photos left out" if left_out else "")
+    )
+    return merged, left_out, stats, {n: owner[n] for n in placed}
+
+
+def _owners(ok: Sequence[Submodel], home: dict[str, int]) -> dict[str, int]:
+    """A photo's submodel: its group's if that one succeeded, else the first that has it."""
     owner: dict[str, int] = {}
     for s in ok:
         for n in s.photos:
             if home.get(n) == s.index or (n not in owner and not any(t.index == home.get(n) for t in ok)):
                 owner.setdefault(n, s.index)
-    next_camera = 1
-    next_image = 1
-    recs: list[tuple[Any, dict[int, int]]] = []  # each submodel, in the merged frame, and its photos' ids
-    keypoints: dict[int, np.ndarray] = {}  # merged image -> its keypoints
-    for s in ok:
-        model = s.output / "model"
-        rec = pycolmap.Reconstruction(str(model))
-        sub_offset = np.asarray(json.loads((model / "georeference.json").read_text())["offset"], float)
-        shift = sub_offset - offset  # merged frame = submodel frame + shift
-        rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), shift))
-        centres = {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
-        shared = sorted(set(centres) & set(placed))
-        aligned = ""
-        if "GCP" not in s.message and len(shared) >= 3:
-            src = np.array([centres[n] for n in shared])
-            dst = np.array([placed[n] for n in shared])
-            sim = pycolmap.estimate_sim3d(src, dst)
-            if sim is not None:
-                rec.transform(sim)
-                centres = {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
-                aligned = f"aligned on {len(shared)} shared photos"
-        gaps = [float(np.linalg.norm(centres[n] - placed[n])) for n in shared]
-        stats.append(
-            {
-                "submodel": s.index,
-                "photos": len(s.photos),
-                "registered": s.n_registered,
-                "georeferenced_by": s.message,
-                "aligned": aligned or "as georeferenced",
-                "shared_photos": len(shared),
-                "shared_centre_rms_m": round(math.sqrt(float(np.mean(np.square(gaps)))), 4) if gaps else None,
-                "gcp_rmse_m": None if not math.isfinite(s.gcp_rmse_m) else round(s.gcp_rmse_m, 4),
-                "checkpoint_rmse_m": None if not math.isfinite(s.checkpoint_rmse_m) else round(s.checkpoint_rmse_m, 4),
-                "seconds": round(s.seconds, 1),
-            }
-        )
-        cam_ids: dict[int, int] = {}
-        image_ids: dict[int, int] = {}
-        for i in sorted(rec.reg_image_ids()):
-            im = rec.image(i)
-            if owner.get(im.name) != s.index or im.name in placed:
-                continue
-            if im.camera_id not in cam_ids:
-                c = rec.camera(im.camera_id)
-                cam = pycolmap.Camera(
-                    model=c.model, width=c.width, height=c.height, params=c.params, camera_id=next_camera
-                )
-                merged.add_camera_with_trivial_rig(cam)
-                cam_ids[im.camera_id] = next_camera
-                next_camera += 1
-            points = pycolmap.Point2DList([pycolmap.Point2D(p.xy) for p in im.points2D])
-            new = pycolmap.Image(name=im.name, points2D=points, camera_id=cam_ids[im.camera_id], image_id=next_image)
-            merged.add_image_with_trivial_frame(new, im.cam_from_world())
-            image_ids[i] = next_image
-            placed[im.name] = centres[im.name]
-            next_image += 1
-        recs.append((rec, image_ids))
-        for i, new_id in image_ids.items():
-            keypoints[new_id] = np.array([p.xy for p in rec.image(i).points2D])
-    # Points, from every submodel onto the merged photos. A photo a submodel shares with another is
-    # the same photo with the same features (extraction is deterministic): its observations join the
-    # owner's copy, and points seen from both submodels become one — the tie that lets the bundle
-    # adjustment that follows make the submodels one block, not several held only by the GCPs.
+    return owner
+
+
+def _in_merged_frame(
+    s: Submodel, offset: np.ndarray, placed: dict[str, np.ndarray]
+) -> tuple[Any, dict[str, np.ndarray], list[str], str]:
+    """A submodel moved into the merged frame (and, without GCPs, aligned on the photos it shares
+    with those placed); its photos' centres, the shared photos and how it was aligned."""
+    pycolmap = load_pycolmap()
+    model = s.output / "model"
+    rec = pycolmap.Reconstruction(str(model))
+    sub_offset = np.asarray(json.loads((model / "georeference.json").read_text())["offset"], float)
+    shift = sub_offset - offset  # merged frame = submodel frame + shift
+    rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), shift))
+    centres = {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+    shared = sorted(set(centres) & set(placed))
+    aligned = ""
+    if "GCP" not in s.message and len(shared) >= 3:
+        src = np.array([centres[n] for n in shared])
+        dst = np.array([placed[n] for n in shared])
+        sim = pycolmap.estimate_sim3d(src, dst)
+        if sim is not None:
+            rec.transform(sim)
+            centres = {rec.image(i).name: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+            aligned = f"aligned on {len(shared)} shared photos"
+    return rec, centres, shared, aligned
+
+
+def _submodel_stats(s: Submodel, shared: list[str], gaps: list[float], aligned: str) -> dict[str, Any]:
+    return {
+        "submodel": s.index,
+        "photos": len(s.photos),
+        "registered": s.n_registered,
+        "georeferenced_by": s.message,
+        "aligned": aligned or "as georeferenced",
+        "shared_photos": len(shared),
+        "shared_centre_rms_m": round(math.sqrt(float(np.mean(np.square(gaps)))), 4) if gaps else None,
+        "gcp_rmse_m": None if not math.isfinite(s.gcp_rmse_m) else round(s.gcp_rmse_m, 4),
+        "checkpoint_rmse_m": None if not math.isfinite(s.checkpoint_rmse_m) else round(s.checkpoint_rmse_m, 4),
+        "seconds": round(s.seconds, 1),
+    }
+
+
+def _add_own_photos(
+    merged: Any, rec: Any, index: int, owner: dict[str, int], placed: dict[str, np.ndarray], centres: dict[str, Any]
+) -> dict[int, int]:
+    """The submodel's photos it owns (not placed yet) added to ``merged`` with their cameras; its
+    image ids -> the merged ones."""
+    pycolmap = load_pycolmap()
+    cam_ids: dict[int, int] = {}
+    image_ids: dict[int, int] = {}
+    for i in sorted(rec.reg_image_ids()):
+        im = rec.image(i)
+        if owner.get(im.name) != index or im.name in placed:
+            continue
+        if im.camera_id not in cam_ids:
+            c = rec.camera(im.camera_id)
+            cam_ids[im.camera_id] = merged.num_cameras() + 1
+            cam = pycolmap.Camera(
+                model=c.model, width=c.width, height=c.height, params=c.params, camera_id=cam_ids[im.camera_id]
+            )
+            merged.add_camera_with_trivial_rig(cam)
+        points = pycolmap.Point2DList([pycolmap.Point2D(p.xy) for p in im.points2D])
+        image_ids[i] = merged.num_images() + 1
+        new = pycolmap.Image(name=im.name, points2D=points, camera_id=cam_ids[im.camera_id], image_id=image_ids[i])
+        merged.add_image_with_trivial_frame(new, im.cam_from_world())
+        placed[im.name] = centres[im.name]
+    return image_ids
+
+
+def _add_points(merged: Any, recs: list[tuple[Any, dict[int, int]]], keypoints: dict[int, np.ndarray]) -> int:
+    """Points, from every submodel onto the merged photos; the points seen from two submodels.
+
+    A photo a submodel shares with another is the same photo with the same features (extraction
+    is deterministic): its observations join the owner's copy, and points seen from both
+    submodels become one — the tie that lets the bundle adjustment that follows make the
+    submodels one block, not several held only by the GCPs."""
+    pycolmap = load_pycolmap()
     by_name = {merged.image(i).name: i for i in merged.reg_image_ids()}
     occupied: dict[tuple[int, int], int] = {}  # (merged image, keypoint) -> merged point
     n_joined = 0
@@ -232,13 +272,4 @@ def merge(
             pid = merged.add_point3D(p.xyz, track, p.color)
             for i, j in els.items():
                 occupied[(i, j)] = pid
-    failed = {s.index: s.message for s in subs if not s.ok}
-    for n, k in home.items():
-        if n not in placed:
-            left_out[n] = f"submodel {k} failed: {failed[k]}" if k in failed else f"not registered in submodel {k}"
-    merged.update_point_3d_errors()
-    fb.info(
-        f"merged {len(ok)} of {len(subs)} submodels: {len(placed)} photos, {merged.num_points3D():,} points "
-        f"({n_joined:,} seen from two submodels joined)" + (f"; {len(left_out)} photos left out" if left_out else "")
-    )
-    return merged, left_out, stats, {n: owner[n] for n in placed}
+    return n_joined
