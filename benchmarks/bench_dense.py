@@ -3,8 +3,8 @@
 Makes (or takes) a synthetic survey, runs ``python -m geoortho sfm`` (GCPs from gcp-find, as the
 demo does) and then ``python -m geoortho dense`` on its model, each in a child process, and prints:
 
-* wall time of each, and dense / sfm (issue 46: <= 1, as the user meets it on real photos;
-  synthetic photos match fast, so their sfm is short and the ratio higher);
+* wall time of each, and dense / sfm (issue 46: <= 1), each at its own defaults as ``run``
+  uses them (``--sfm-max-image-size`` to change sfm's);
 * depth-map megapixels per second (the photos at ``--max-image-size``, one map per photo);
 * fusion points per second (consistent points merged into voxels per second of merging);
 * peak memory: the dense process, its largest worker, and their sum for the workers in flight
@@ -35,7 +35,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--preset", default="small")
     ap.add_argument("--survey", type=Path, help="an existing synth output folder")
-    ap.add_argument("--max-image-size", type=int, default=1024)
+    ap.add_argument("--max-image-size", type=int, default=1024, help="dense's (its default)")
+    ap.add_argument("--sfm-max-image-size", type=int, help="default: sfm's own, as run uses it")
     ap.add_argument("--workers", type=int, default=0)
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_dense_"))
@@ -52,7 +53,8 @@ def main() -> None:
     )  # fmt: skip
     t_sfm, rss_sfm = _geoortho(
         "sfm", "--images", str(images), "--output", str(work / "sfm"), "--gcp-list", str(work / "gcp_list.txt"),
-        "--max-image-size", str(args.max_image_size), "--workers", str(args.workers),
+        "--workers", str(args.workers),
+        *(["--max-image-size", str(args.sfm_max_image_size)] if args.sfm_max_image_size else []),
     )  # fmt: skip
     t_dense, rss_dense = _geoortho(
         "dense", "--sfm", str(work / "sfm"), "--images", str(images), "--output", str(work / "dense.laz"),
@@ -62,7 +64,11 @@ def main() -> None:
     sec = rep["seconds"]
     workers = args.workers or os.cpu_count() or 1
     worker_mb = rep["peak_memory_mb"]["largest_worker"]
-    print(f"survey: {survey} ({n_photos} photos), depth maps at {args.max_image_size} px, {workers} workers")
+    sfm_px = args.sfm_max_image_size or "sfm's default"
+    print(
+        f"survey: {survey} ({n_photos} photos), sfm at {sfm_px} px, depth maps at {args.max_image_size} px, "
+        f"{workers} workers"
+    )
     print(f"sfm   : {t_sfm:7.1f} s   peak {rss_sfm / 1024:6.0f} MB")
     print(
         f"dense : {t_dense:7.1f} s   peak {rss_dense / 1024:6.0f} MB (main) + {worker_mb:.0f} MB (largest worker)"
