@@ -316,18 +316,7 @@ def dem(
     fb = as_feedback(feedback)
     chosen, why_method = _auto_method(method, points, sfm)
     _check_options(chosen, ground_method, resolution_m, max_gap_m, smooth_px, engine)
-    src = open_points(points, points_crs, default_crs=crs)
-    if why_method:
-        src.notes.append(why_method)
-    if crs is not None and parse_crs(crs) != src.crs:
-        if engine == "pdal":
-            raise ParameterError("engine", "reprojection (--crs) runs on the native engine only")
-        src = reprojected(src, crs)
-        if classified is not None:
-            src.notes.append(f"the classified cloud keeps the points' CRS ({src.file_crs.name})")
-    _check_source(src, classified, ground_method)
-    for n in src.notes:
-        fb.info(n)
+    src = _open_source(points, points_crs, crs, engine, classified, ground_method, why_method, fb)
     want_ground = dtm is not None or classified is not None
     s_scan, s_pass1, s_pass2, s_write = split(fb, [1, 4, 4 if want_ground else 0, 2])
     scan = _scan_extent(src, s_scan)
@@ -373,6 +362,27 @@ def dem(
         result = complete_to_photos(result, src, scan.keep, Path(sfm), fb)
     s_write.progress(1.0)
     return result
+
+
+def _open_source(
+    points: Any, points_crs: str | None, crs: str | None, engine: str, classified: Path | None,
+    ground_method: str, why_method: str, fb: Feedback,
+) -> PointSource:  # fmt: skip
+    """The points as gridding reads them: reprojected into ``crs`` when it is another, checked,
+    and what was assumed said."""
+    src = open_points(points, points_crs, default_crs=crs)
+    if why_method:
+        src.notes.append(why_method)
+    if crs is not None and parse_crs(crs) != src.crs:
+        if engine == "pdal":
+            raise ParameterError("engine", "reprojection (--crs) runs on the native engine only")
+        src = reprojected(src, crs)
+        if classified is not None:
+            src.notes.append(f"the classified cloud keeps the points' CRS ({src.file_crs.name})")
+    _check_source(src, classified, ground_method)
+    for n in src.notes:
+        fb.info(n)
+    return src
 
 
 def _json_or_empty(path: Path) -> dict[str, Any]:
