@@ -1173,20 +1173,7 @@ def _run_pdal(
             "nodata": NODATA,
         }
         pdal.Pipeline(json.dumps([str(src.path), {**writer, "filename": str(raw_dsm)}])).execute()
-        stages: list[Any] = [str(src.path)]
-        if ground_method == "smrf":
-            stages.append(
-                {
-                    "type": "filters.smrf",
-                    "cell": params.cell_m / src.horizontal_m,
-                    "slope": params.slope,
-                    "window": params.window_m / src.horizontal_m,
-                    "threshold": params.threshold_m / src.vertical_m,
-                    "scalar": params.scalar,
-                }
-            )
-        elif ground_method == "csf":
-            stages.append({"type": "filters.csf"})
+        stages: list[Any] = [str(src.path), *_pdal_ground_filter(ground_method, params, src)]
         n_ground = 0
         if dtm is not None:
             stages += [
@@ -1216,14 +1203,22 @@ def _run_pdal(
             )
     fb.info("engine: PDAL")
     return DemResult(
-        outs[0],
-        outs[1] if dtm is not None else None,
-        None,
-        None,
-        grid.cell,
-        crs_to_text(src.crs),
-        src.describe_units(),
-        src.count,
-        n_ground,
-        tuple(src.notes),
-    )
+        outs[0], outs[1] if dtm is not None else None, None, None, grid.cell, crs_to_text(src.crs),
+        src.describe_units(), src.count, n_ground, tuple(src.notes),
+    )  # fmt: skip
+
+
+def _pdal_ground_filter(ground_method: str, params: SmrfParams, src: PointSource) -> list[dict[str, Any]]:
+    """PDAL's stage that classifies the ground as ours would (its parameters in the cloud's units)."""
+    if ground_method == "smrf":
+        return [
+            {
+                "type": "filters.smrf",
+                "cell": params.cell_m / src.horizontal_m,
+                "slope": params.slope,
+                "window": params.window_m / src.horizontal_m,
+                "threshold": params.threshold_m / src.vertical_m,
+                "scalar": params.scalar,
+            }
+        ]
+    return [{"type": "filters.csf"}] if ground_method == "csf" else []

@@ -317,25 +317,7 @@ def gcp_find(
     """
     fb = as_feedback(feedback)
     s_read, s_detect, s_write = split(fb, [1, 8, 1])
-    get_dictionary(dictionary)  # fail early on a bad name
-    if target not in (*TARGETS, "auto"):
-        raise InputError(f"unknown target {target!r}; choose one of {', '.join(TARGETS)}, auto")
-    if target == "apriltag" and "APRILTAG" not in str(dictionary).upper():
-        raise InputError(
-            f"--target apriltag needs an AprilTag --dictionary (e.g. DICT_APRILTAG_36H11), not {dictionary}"
-        )
-    gcps = read_gcp_file(gcp_file, gcp_crs)
-    auto_kinds: tuple[str, ...] = ()
-    if target == "auto":
-        coded = "apriltag" if "APRILTAG" in str(dictionary).upper() else "aruco"
-        try:  # names ending in marker ids: coded markers are a candidate
-            ids = _marker_ids(gcps, dictionary)
-            auto_kinds = (coded, "checkerboard", "cross", "circle")
-        except InputError:
-            ids = _marker_ids(gcps, dictionary, "checkerboard")
-            auto_kinds = ("checkerboard", "cross", "circle")
-    else:
-        ids = _marker_ids(gcps, dictionary, target)
+    gcps, ids, auto_kinds = _gcps_and_targets(gcp_file, gcp_crs, dictionary, target)
     uncertainty = dict(
         margin_pct=margin,
         position_uncertainty_m=position_uncertainty_m,
@@ -373,16 +355,32 @@ def gcp_find(
         f"{len(accepted)} observations of {len({o.gcp for o in accepted})} GCPs in "
         f"{len({o.image for o in accepted})} photos ({len(observations)} candidates); {photos.summary()}"
     )
+    n_gcps = len({o.gcp for o in accepted})
     return GcpFindResult(
-        written,
-        det_path,
-        review_path,
-        len(accepted),
-        len({o.gcp for o in accepted}),
-        len(observations),
-        crs_to_text(out_crs),
-        offset_m,
+        written, det_path, review_path, len(accepted), n_gcps, len(observations), crs_to_text(out_crs), offset_m
     )
+
+
+def _gcps_and_targets(
+    gcp_file: Path, gcp_crs: str | None, dictionary: str, target: str
+) -> tuple[Any, dict[str, int], tuple[str, ...]]:
+    """The GCP file, each GCP's marker id, and the target kinds ``auto`` tries (none for a named
+    target); a bad dictionary or target is refused before the file is read."""
+    get_dictionary(dictionary)
+    if target not in (*TARGETS, "auto"):
+        raise InputError(f"unknown target {target!r}; choose one of {', '.join(TARGETS)}, auto")
+    if target == "apriltag" and "APRILTAG" not in str(dictionary).upper():
+        raise InputError(
+            f"--target apriltag needs an AprilTag --dictionary (e.g. DICT_APRILTAG_36H11), not {dictionary}"
+        )
+    gcps = read_gcp_file(gcp_file, gcp_crs)
+    if target != "auto":
+        return gcps, _marker_ids(gcps, dictionary, target), ()
+    coded = "apriltag" if "APRILTAG" in str(dictionary).upper() else "aruco"
+    try:  # names ending in marker ids: coded markers are a candidate
+        return gcps, _marker_ids(gcps, dictionary), (coded, "checkerboard", "cross", "circle")
+    except InputError:
+        return gcps, _marker_ids(gcps, dictionary, "checkerboard"), ("checkerboard", "cross", "circle")
 
 
 @dataclass

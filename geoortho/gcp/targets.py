@@ -466,20 +466,7 @@ def _verdict(
     t = THRESHOLDS
     id_margin = id_score = math.nan
     if kind in CODED and dictionary and cells is not None:
-        # ids differ only inside the border: score the code cells alone, the expected id
-        # against every other id rendered at the same place
-        u, v = rend.uv(cx, cy, A, blen, bdeg, dpx)
-        lim = 0.5 - 1.0 / cells.shape[0]
-        # a pixel speaks for the code when at least half of its samples (pixel area, motion path)
-        # fall on the code cells: demanding all of them leaves a blurred marker a few pixels
-        on_code = ((np.abs(u) <= lim) & (np.abs(v) <= lim)).mean(axis=1) >= 0.5
-        inner = weight * on_code
-        # the expected id in any quarter turn (a marker is laid at any heading; the border alone
-        # fixed the fit's) against every other id in any quarter turn
-        scores = list(rend.ncc_ids(pix, inner, cx, cy, A, blen, bdeg, dpx, _coded_patterns(dictionary)))
-        mine = slice(4 * marker_id, 4 * marker_id + 4)
-        id_score = max(scores[mine])
-        id_margin = id_score - max(scores[: mine.start] + scores[mine.stop :])
+        id_score, id_margin = _id_scores(cand, cells, dictionary, marker_id)
     if kind == "checkerboard":
         cx, cy = _saddle(crop, cx, cy, A)
     corners = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]]) @ A.T + [cx + x0, cy + y0]
@@ -525,24 +512,28 @@ def _verdict(
     )
     refused_on, reason = next(((name, why) for name, failed, why in refusals if failed), ("", ""))
     return Fit(
-        float(cx + x0),
-        float(cy + y0),
-        float(angle % 360.0),
-        float(scale),
-        float(blen),
-        float(bdeg % 180.0),
-        float(dpx),
-        float(score),
-        float(id_margin),
-        float(pos_margin),
-        tuple(map(tuple, corners.tolist())),
-        float(contrast),
-        float(worst_part),
-        float(shape_margin),
-        reason,
-        float(id_score),
-        refused_on,
-    )
+        float(cx + x0), float(cy + y0), float(angle % 360.0), float(scale), float(blen), float(bdeg % 180.0),
+        float(dpx), float(score), float(id_margin), float(pos_margin), tuple(map(tuple, corners.tolist())),
+        float(contrast), float(worst_part), float(shape_margin), reason, float(id_score), refused_on,
+    )  # fmt: skip
+
+
+def _id_scores(cand: _Candidate, cells: np.ndarray, dictionary: str, marker_id: int) -> tuple[float, float]:
+    """A coded candidate's score for its expected id, and the margin over the best other id.
+
+    Ids differ only inside the border: the code cells alone are scored, the expected id in any
+    quarter turn (a marker is laid at any heading; the border alone fixed the fit's) against
+    every other id in any quarter turn, each rendered at the same place."""
+    _, cx, cy, _, _, blen, bdeg, dpx, A, rend, pix, weight, _, _ = cand
+    u, v = rend.uv(cx, cy, A, blen, bdeg, dpx)
+    lim = 0.5 - 1.0 / cells.shape[0]
+    # a pixel speaks for the code when at least half of its samples (pixel area, motion path)
+    # fall on the code cells: demanding all of them leaves a blurred marker a few pixels
+    on_code = ((np.abs(u) <= lim) & (np.abs(v) <= lim)).mean(axis=1) >= 0.5
+    scores = list(rend.ncc_ids(pix, weight * on_code, cx, cy, A, blen, bdeg, dpx, _coded_patterns(dictionary)))
+    mine = slice(4 * marker_id, 4 * marker_id + 4)
+    id_score = max(scores[mine])
+    return id_score, id_score - max(scores[: mine.start] + scores[mine.stop :])
 
 
 def _shape_margin(kind: str, f: _Candidate) -> float:
@@ -748,31 +739,7 @@ def _coarse(
     side = float(np.sqrt(abs(np.linalg.det(base))))
     out: list[tuple[float, float, float, float, float]] = []
     if near is not None:
-        # the place is known to a few pixels, the turn is not: the best place of each rotation
-        # there, each refined (under glare the best rotation's peak can be one 20 degrees off)
-        ry, rx = np.mgrid[0 : top.shape[0], 0 : top.shape[1]]
-        outside = np.hypot(rx + reach - near[0], ry + reach - near[1]) > near[2]
-        by_angle: dict[float, tuple[float, Sequence[int], float]] = {}
-        for res, (a, f) in zip(maps, used):
-            r = np.where(outside, -2.0, res)
-            _, mx, _, loc = cv2.minMaxLoc(r)
-            if mx > by_angle.get(a, (-3.0,))[0]:
-                by_angle[a] = (float(mx), loc, f)
-        ranked = sorted(by_angle.items(), key=lambda kv: -kv[1][0])
-        for a, (mx, loc, f) in ranked[:3]:
-            if coded:
-                a = _quarter_turn(crop, rend, loc, base, a, f, blur)
-            out.append((loc[0] + reach, loc[1] + reach, a, f, mx))
-        # and every rotation from the known place itself: blur and glare pull the peaks a few
-        # pixels aside, and the short polish does not bring them back
-        at = (int(round(near[0])) - reach, int(round(near[1])) - reach)
-        if 0 <= at[0] < top.shape[1] and 0 <= at[1] < top.shape[0]:
-            for a in _angles(kind):
-                mx = max(res[at[1], at[0]] for res, (b, _) in zip(maps, used) if b == a)
-                if coded:
-                    a = _quarter_turn(crop, rend, at, base, a, 1.0, blur)
-                out.append((near[0], near[1], float(a), 1.0, float(mx)))
-        return out
+        return _near_candidates(crop, kind, base, blur, rend, maps, used, reach, near, coded)
     work = top.copy()
     for _ in range(max_peaks):
         _, mx, _, loc = cv2.minMaxLoc(work)
@@ -783,6 +750,48 @@ def _coarse(
             a = _quarter_turn(crop, rend, loc, base, a, f, blur)
         out.append((loc[0] + reach, loc[1] + reach, a, f, float(mx)))
         cv2.circle(work, loc, int(math.ceil(0.75 * side)), -2.0, -1)
+    return out
+
+
+def _near_candidates(
+    crop: np.ndarray,
+    kind: str,
+    base: np.ndarray,
+    blur: tuple[float, float],
+    rend: _Renderer,
+    maps: list[np.ndarray],
+    used: list[tuple[float, float]],
+    reach: int,
+    near: tuple[float, float, float],
+    coded: bool,
+) -> list[tuple[float, float, float, float, float]]:
+    """Candidates where the place is known (``near``: x, y, radius in crop pixels)."""
+    top_shape = maps[0].shape
+    out: list[tuple[float, float, float, float, float]] = []
+    # the place is known to a few pixels, the turn is not: the best place of each rotation
+    # there, each refined (under glare the best rotation's peak can be one 20 degrees off)
+    ry, rx = np.mgrid[0 : top_shape[0], 0 : top_shape[1]]
+    outside = np.hypot(rx + reach - near[0], ry + reach - near[1]) > near[2]
+    by_angle: dict[float, tuple[float, Sequence[int], float]] = {}
+    for res, (a, f) in zip(maps, used):
+        r = np.where(outside, -2.0, res)
+        _, mx, _, loc = cv2.minMaxLoc(r)
+        if mx > by_angle.get(a, (-3.0,))[0]:
+            by_angle[a] = (float(mx), loc, f)
+    ranked = sorted(by_angle.items(), key=lambda kv: -kv[1][0])
+    for a, (mx, loc, f) in ranked[:3]:
+        if coded:
+            a = _quarter_turn(crop, rend, loc, base, a, f, blur)
+        out.append((loc[0] + reach, loc[1] + reach, a, f, mx))
+    # and every rotation from the known place itself: blur and glare pull the peaks a few
+    # pixels aside, and the short polish does not bring them back
+    at = (int(round(near[0])) - reach, int(round(near[1])) - reach)
+    if 0 <= at[0] < top_shape[1] and 0 <= at[1] < top_shape[0]:
+        for a in _angles(kind):
+            mx = max(res[at[1], at[0]] for res, (b, _) in zip(maps, used) if b == a)
+            if coded:
+                a = _quarter_turn(crop, rend, at, base, a, 1.0, blur)
+            out.append((near[0], near[1], float(a), 1.0, float(mx)))
     return out
 
 

@@ -428,27 +428,8 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
         patches[int(i)] = _Patch(psl, bgr, need[r0:r1, c0:c1])
 
     gains = ctx.plan.gains
-    out = np.zeros(shape + (3,), np.uint8)
     labelled = lab >= 0
-    if ctx.blend == "none" or len(patches) == 1:
-        for i, patch in patches.items():
-            m = lab[patch.sl] == i
-            out[patch.sl][m] = np.clip(patch.bgr[m] * gains[i] + 0.5, 0, 255).astype(np.uint8)
-    elif patches:
-        blender = (
-            cv2.detail.MultiBandBlender(0, _BANDS) if ctx.blend == "multiband" else cv2.detail.FeatherBlender(0.05)
-        )
-        blender.prepare((0, 0, shape[1], shape[0]))
-        for i, patch in patches.items():
-            # Multiband blends across the seam masks by its pyramid; feathering needs the masks to
-            # overlap (OpenCV weighs each mask by the distance to its own edge): the grown region.
-            own = (lab[patch.sl] == i) if ctx.blend == "multiband" else patch.valid
-            m = (own & patch.valid).astype(np.uint8) * 255
-            img16 = np.clip(patch.bgr * gains[i] + 0.5, 0, 255).astype(np.int16)
-            blender.feed(img16, m, (patch.sl[1].start, patch.sl[0].start))
-        res, _ = blender.blend(None, None)  # type: ignore[call-overload]  # OpenCV allocates the outputs
-        res = res.get() if isinstance(res, cv2.UMat) else np.asarray(res)
-        out[labelled] = np.clip(res[: shape[0], : shape[1]][labelled], 0, 255).astype(np.uint8)
+    out = _blended(ctx.blend, lab, patches, gains, shape)
     stats = _seam_stats(lab, patches, gains, out, core)
     holes = coverage & ~labelled
     filled = _fill_holes(out, holes, ctx.max_hole_px)
@@ -464,6 +445,34 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     rgba[3] = np.where(alpha[core], 255, 0)
     used = {int(i) for i in np.unique(lab[core]) if i >= 0}
     return win, rgba, {**stats, "used": used}  # type: ignore[dict-item]
+
+
+def _blended(
+    blend: str, lab: np.ndarray, patches: dict[int, _Patch], gains: np.ndarray, shape: tuple[int, int]
+) -> np.ndarray:
+    """The tile (BGR, 0 where no photo) from each photo's balanced patch, blended across the seams."""
+    out = np.zeros(shape + (3,), np.uint8)
+    if blend == "none" or len(patches) == 1:
+        for i, patch in patches.items():
+            m = lab[patch.sl] == i
+            out[patch.sl][m] = np.clip(patch.bgr[m] * gains[i] + 0.5, 0, 255).astype(np.uint8)
+        return out
+    if not patches:
+        return out
+    blender = cv2.detail.MultiBandBlender(0, _BANDS) if blend == "multiband" else cv2.detail.FeatherBlender(0.05)
+    blender.prepare((0, 0, shape[1], shape[0]))
+    for i, patch in patches.items():
+        # Multiband blends across the seam masks by its pyramid; feathering needs the masks to
+        # overlap (OpenCV weighs each mask by the distance to its own edge): the grown region.
+        own = (lab[patch.sl] == i) if blend == "multiband" else patch.valid
+        m = (own & patch.valid).astype(np.uint8) * 255
+        img16 = np.clip(patch.bgr * gains[i] + 0.5, 0, 255).astype(np.int16)
+        blender.feed(img16, m, (patch.sl[1].start, patch.sl[0].start))
+    res, _ = blender.blend(None, None)  # type: ignore[call-overload]  # OpenCV allocates the outputs
+    res = res.get() if isinstance(res, cv2.UMat) else np.asarray(res)
+    labelled = lab >= 0
+    out[labelled] = np.clip(res[: shape[0], : shape[1]][labelled], 0, 255).astype(np.uint8)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------

@@ -207,24 +207,7 @@ def _plan(
 ) -> SeamPlan | dict[int, str]:
     """One streamed plan, or the photos that newly failed to decode (the caller plans again without them)."""
     full = Window(0, 0, cshape[1], cshape[0])
-    skipped: list[tuple[str, str]] = []
-    wins: dict[int, Window] = {}
-    # Voronoi-like first split: each cell to the photo that sees it best.
-    best = np.full(cshape, np.inf, np.float32)
-    labels = np.full(cshape, -1, np.int16)
-    for i, (cam, box) in enumerate(zip(cams, boxes)):
-        fb.check_canceled()
-        if i in failed:
-            skipped.append((cam.name, failed[i]))
-            continue
-        win = bounds_window(ctr, cshape, box) if box is not None else None
-        if win is None:
-            skipped.append((cam.name, "its footprint lies outside the mosaic"))
-            continue
-        wins[i] = win
-        keep_best(best, labels, slices_in(win, full), _coarse_projection(cam, surface, vis[i], ctr, win).cost, i)
-        fb.progress(0.2 * (i + 1) / len(cams))
-
+    labels, wins, skipped = _first_split(cams, boxes, surface, vis, ctr, cshape, failed, fb)
     band_px = max(1, int(round(band_m / ctr.a)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
     along_rows = cshape[0] >= cshape[1]  # sweep along the longer axis: fewer photos cross a sweep line
@@ -261,19 +244,7 @@ def _plan(
     if new_failures:
         return new_failures
 
-    notes: tuple[str, ...] = ()
-    if balance != "none":
-        pairs.sort(key=lambda p: (p[0], p[1]))  # the solution does not depend on the decoding order
-        sol = solve_gains(
-            pairs, len(cams), per_channel=balance == "channels", exposure=[_exposure(c.file) for c in cams]
-        )
-        gains, notes = sol.gains, sol.notes
-        if sol.exposure_seeded:
-            notes += (f"gains seeded by the EXIF exposure of {sol.exposure_seeded} photos",)
-        for note in notes:
-            fb.warning(note)
-    else:
-        gains = np.ones((len(cams), 3), np.float32)
+    gains, notes = _gains(pairs, cams, balance, fb)
     fb.progress(0.75)
 
     if seams == "graphcut" and len(wins) > 1:
@@ -281,6 +252,54 @@ def _plan(
         labels = _graph_cut(sorted(bands, key=lambda b: b.index), labels, cshape, gains)
     fb.progress(1.0)
     return SeamPlan(ctr, labels, gains, tuple(skipped), notes, held_max)
+
+
+def _first_split(
+    cams: Sequence[PosedCamera],
+    boxes: Sequence[tuple[float, float, float, float] | None],
+    surface: Surface,
+    vis: Sequence[VisibilityGrid | None],
+    ctr: Affine,
+    cshape: tuple[int, int],
+    failed: dict[int, str],
+    fb: Feedback,
+) -> tuple[np.ndarray, dict[int, Window], list[tuple[str, str]]]:
+    """Voronoi-like first split: each cell to the photo that sees it best. The labels, each
+    photo's window on the coarse grid, and the photos skipped (with why)."""
+    full = Window(0, 0, cshape[1], cshape[0])
+    skipped: list[tuple[str, str]] = []
+    wins: dict[int, Window] = {}
+    best = np.full(cshape, np.inf, np.float32)
+    labels = np.full(cshape, -1, np.int16)
+    for i, (cam, box) in enumerate(zip(cams, boxes)):
+        fb.check_canceled()
+        if i in failed:
+            skipped.append((cam.name, failed[i]))
+            continue
+        win = bounds_window(ctr, cshape, box) if box is not None else None
+        if win is None:
+            skipped.append((cam.name, "its footprint lies outside the mosaic"))
+            continue
+        wins[i] = win
+        keep_best(best, labels, slices_in(win, full), _coarse_projection(cam, surface, vis[i], ctr, win).cost, i)
+        fb.progress(0.2 * (i + 1) / len(cams))
+    return labels, wins, skipped
+
+
+def _gains(
+    pairs: list[tuple[int, int, float, np.ndarray]], cams: Sequence[PosedCamera], balance: str, fb: Feedback
+) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Each photo's colour gains from the overlapping pairs' statistics (ones when not balanced)."""
+    if balance == "none":
+        return np.ones((len(cams), 3), np.float32), ()
+    pairs.sort(key=lambda p: (p[0], p[1]))  # the solution does not depend on the decoding order
+    sol = solve_gains(pairs, len(cams), per_channel=balance == "channels", exposure=[_exposure(c.file) for c in cams])
+    notes = sol.notes
+    if sol.exposure_seeded:
+        notes += (f"gains seeded by the EXIF exposure of {sol.exposure_seeded} photos",)
+    for note in notes:
+        fb.warning(note)
+    return sol.gains, notes
 
 
 def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int, float, np.ndarray] | None:

@@ -124,6 +124,25 @@ def remove_partial_outputs(destinations: Iterable[str | os.PathLike[str]]) -> li
     return removed
 
 
+def _start(cmd: list[str]) -> subprocess.Popen[str]:
+    """The CLI started in a clean environment and a neutral folder, its streams piped."""
+    try:
+        return subprocess.Popen(
+            cmd,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            encoding="utf-8",
+            errors="replace",
+            env=clean_environment(),
+            cwd=NEUTRAL_CWD,
+            **_popen_kwargs(),
+        )
+    except OSError as e:
+        raise RunFailed(f"could not start {cmd[0]}: {e}", -1) from None
+
+
 def run_geoortho(
     interpreter: str,
     algorithm_id: str,
@@ -143,21 +162,7 @@ def run_geoortho(
     """
     cmd = [interpreter, "-m", "geoortho", algorithm_id, *arguments, "--json", "--progress-json"]
     feedback.pushConsoleInfo(" ".join(_quote(c) for c in cmd))
-    try:
-        proc = subprocess.Popen(
-            cmd,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            encoding="utf-8",
-            errors="replace",
-            env=clean_environment(),
-            cwd=NEUTRAL_CWD,
-            **_popen_kwargs(),
-        )
-    except OSError as e:
-        raise RunFailed(f"could not start {interpreter}: {e}", -1) from None
+    proc = _start(cmd)
 
     lines: queue.Queue[str | None] = queue.Queue()
     stdout_chunks: list[str] = []

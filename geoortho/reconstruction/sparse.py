@@ -1294,6 +1294,43 @@ class _Inputs:
         return crs_to_text(self.out_crs) if self.out_crs is not None else ""
 
 
+def _read_gcps(gcp_list: Path | None, checkpoints: str, photos: list[Photo], notes: list[str]) -> tuple[Any, set[str]]:
+    """The GCP file (None without one) and the GCPs held out as checkpoints."""
+    gcps = read_gcp_file(gcp_list) if gcp_list else None
+    if gcps is not None and not gcps.observations:
+        raise InputError(
+            "the GCP file has no image observations: SfM needs a gcp_list.txt "
+            "(x y z px py image name rows), e.g. from gcp-find",
+            path=gcp_list,
+        )
+    held_out = _checkpoint_names(checkpoints, gcps, photos, notes)
+    if gcps is not None and held_out - set(gcps.by_name()):
+        raise InputError(
+            f"checkpoint(s) not in the GCP file: {', '.join(sorted(held_out - set(gcps.by_name())))}", path=gcp_list
+        )
+    return gcps, held_out
+
+
+def _priors_for(
+    photos: list[Photo], names: Any, out_crs: Any, takeoff_elevation_m: float | None, gcps: Any
+) -> tuple[_Priors, list[str]]:
+    """The photos' GPS as pose priors in the output CRS (its local frame's origin: the GCPs'
+    median where no photo has GPS), and what their heights are, in words."""
+    priors = (
+        _gps_priors(photos, names, out_crs, takeoff_elevation_m)
+        if out_crs is not None
+        else _Priors(None, np.zeros(3), {}, "no GPS")
+    )
+    notes = [f"heights: {priors.heights}", *priors.notes]
+    if gcps is not None and priors.positions and out_crs is not None:
+        _check_gcps_near_photos(gcps, priors, out_crs)
+    if gcps is not None and not priors.positions:
+        to_local = transformer(gcps.crs, out_crs)
+        xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
+        priors = _Priors(out_crs, np.array([*np.round(np.median(xy, axis=0), -2), 0.0]), {}, "no GPS")
+    return priors, notes
+
+
 def _read_inputs(
     images: Path,
     gcp_list: Path | None,
@@ -1324,24 +1361,13 @@ def _read_inputs(
     if len(photos) < 3:
         raise InputError(f"SfM needs at least 3 readable photos, found {len(photos)}", path=images)
     root, names = _image_names(photos)
-    gcps = read_gcp_file(gcp_list) if gcp_list else None
-    if gcps is not None and not gcps.observations:
-        raise InputError(
-            "the GCP file has no image observations: SfM needs a gcp_list.txt "
-            "(x y z px py image name rows), e.g. from gcp-find",
-            path=gcp_list,
-        )
     early: list[str] = []
     if contradicted:
         early.append(
             f"{len(contradicted)} photo(s) state a fixed RTK solution with deviations of metres (weighed by the "
             "deviations): " + ", ".join(contradicted[:8]) + ("…" if len(contradicted) > 8 else "")
         )
-    held_out = _checkpoint_names(checkpoints, gcps, photos, early)
-    if gcps is not None and held_out - set(gcps.by_name()):
-        raise InputError(
-            f"checkpoint(s) not in the GCP file: {', '.join(sorted(held_out - set(gcps.by_name())))}", path=gcp_list
-        )
+    gcps, held_out = _read_gcps(gcp_list, checkpoints, photos, early)
     has_gps = sum(p.has_gps for p in photos)
     if has_gps < 3 and gcps is None and not local_frame:
         raise InputError(
@@ -1350,18 +1376,7 @@ def _read_inputs(
             path=images,
         )
     out_crs = _output_crs(crs, photos, gcps)
-    priors = (
-        _gps_priors(photos, names, out_crs, takeoff_elevation_m)
-        if out_crs is not None
-        else _Priors(None, np.zeros(3), {}, "no GPS")
-    )
-    notes = [f"heights: {priors.heights}", *priors.notes]
-    if gcps is not None and priors.positions and out_crs is not None:
-        _check_gcps_near_photos(gcps, priors, out_crs)
-    if gcps is not None and not priors.positions:
-        to_local = transformer(gcps.crs, out_crs)
-        xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
-        priors = _Priors(out_crs, np.array([*np.round(np.median(xy, axis=0), -2), 0.0]), {}, "no GPS")
+    priors, notes = _priors_for(photos, names, out_crs, takeoff_elevation_m, gcps)
     bodies = _bodies(photos)
     notes += _factory_calibration_notes(bodies)
     fb.info(

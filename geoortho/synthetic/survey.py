@@ -1578,10 +1578,9 @@ def synth(
         Paths of the images, the truth folder and its main files.
     """
     fb = as_feedback(feedback)
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    if not -80 <= latitude_deg <= 84 or not -180 <= longitude_deg <= 180:
-        raise InputError("latitude/longitude outside the UTM domain")
+    # every option checked before an earlier survey in the folder is cleared
+    _check_options(preset, latitude_deg, longitude_deg, target, dictionary, glare, blur_px, maker)
+    pathologies = parse_pathologies(pathology)
     p = replace(PRESETS[preset])
     output = Path(output)
     images_dir = output / "images"
@@ -1590,13 +1589,6 @@ def synth(
     images_dir.mkdir(parents=True, exist_ok=True)
     truth_dir.mkdir(parents=True, exist_ok=True)
     step_scene, step_render, step_truth = split(fb, [1, 8, 2])
-    pathologies = parse_pathologies(pathology)
-    if target not in TARGETS:
-        raise InputError(f"unknown target {target!r}; choose one of {', '.join(TARGETS)}")
-    if target == "apriltag" and "APRILTAG" not in str(dictionary).upper():
-        raise InputError(f"target apriltag needs an AprilTag dictionary (e.g. DICT_APRILTAG_36H11), not {dictionary}")
-    if not 0.0 <= glare <= 1.0 or not 0.0 <= blur_px <= 200.0:
-        raise InputError("glare is a share 0–1 and blur_px 0–200 pixels")
     rng = np.random.default_rng(seed)
     scene = build_scene(
         p,
@@ -1614,33 +1606,15 @@ def synth(
     if "water" in pathologies:
         scene.water = _place_water(scene)
     planned = fly_plan(Path(plan), p, scene, rng) if plan is not None else plan_flight(p, scene, rng)
-    if maker not in MAKERS:
-        raise InputError(f"unknown maker {maker!r}; choose one of {', '.join(MAKERS)}")
     shots = [replace(s, maker=maker) for s in _record(planned, scene, p, rng)]
     undulation = 0.0
     if pathologies:
         undulation = float(geoid_undulation_m(longitude_deg, latitude_deg))
         shots = _apply_pathologies(shots, scene, pathologies, undulation, np.random.default_rng(seed + 11))
-    if blur_px > 0:
-        blur_rng = np.random.default_rng([seed, 13])
-        shots = [
-            replace(s, blur_px=float(blur_rng.uniform(blur_px / 3, blur_px))) if blur_rng.random() < 0.5 else s
-            for s in shots
-        ]
+    shots = _with_blur(shots, blur_px, seed)
     w, h = p.image_px
     intr = Intrinsics.from_sensor(w, h, FOCAL_MM, SENSOR_WIDTH_MM, distortion=p.distortion)
-    if "factory-calibration" in pathologies or "wrong-calibration" in pathologies:
-        factor = WRONG_CALIBRATION_FACTOR if "wrong-calibration" in pathologies else 1.0
-        shots = [
-            replace(
-                s,
-                cal_focal_px=intr.focal_px * factor,
-                cal_cx_px=intr.cx_px + 0.5,  # corner origin, as DJI writes it
-                cal_cy_px=intr.cy_px + 0.5,
-                cal_distortion=tuple((*p.distortion, 0.0, 0.0, 0.0, 0.0, 0.0)[:5]),
-            )
-            for s in shots
-        ]
+    shots = _with_calibration(shots, intr, p, pathologies)
     fb.info(
         f"synth {preset}: {len(shots)} photos of {w}x{h} px over {p.area_m[0]:.0f}x{p.area_m[1]:.0f} m "
         f"in {scene.crs.name}"
@@ -1673,6 +1647,48 @@ def synth(
         n_photos=len(shots),
         crs=f"EPSG:{scene.crs.to_epsg()}",
     )
+
+
+def _check_options(
+    preset: str, lat: float, lon: float, target: str, dictionary: str, glare: float, blur_px: float, maker: str
+) -> None:
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if not -80 <= lat <= 84 or not -180 <= lon <= 180:
+        raise InputError("latitude/longitude outside the UTM domain")
+    if target not in TARGETS:
+        raise InputError(f"unknown target {target!r}; choose one of {', '.join(TARGETS)}")
+    if target == "apriltag" and "APRILTAG" not in str(dictionary).upper():
+        raise InputError(f"target apriltag needs an AprilTag dictionary (e.g. DICT_APRILTAG_36H11), not {dictionary}")
+    if not 0.0 <= glare <= 1.0 or not 0.0 <= blur_px <= 200.0:
+        raise InputError("glare is a share 0–1 and blur_px 0–200 pixels")
+    if maker not in MAKERS:
+        raise InputError(f"unknown maker {maker!r}; choose one of {', '.join(MAKERS)}")
+
+
+def _with_blur(shots: list[Shot], blur_px: float, seed: int) -> list[Shot]:
+    """Half the photos motion-blurred, each by a length drawn between a third of ``blur_px`` and it."""
+    if blur_px <= 0:
+        return shots
+    rng = np.random.default_rng([seed, 13])
+    return [replace(s, blur_px=float(rng.uniform(blur_px / 3, blur_px))) if rng.random() < 0.5 else s for s in shots]
+
+
+def _with_calibration(shots: list[Shot], intr: Intrinsics, p: SynthPreset, pathologies: tuple[str, ...]) -> list[Shot]:
+    """The maker's calibration tags, true or (wrong-calibration) with a focal length off."""
+    if "factory-calibration" not in pathologies and "wrong-calibration" not in pathologies:
+        return shots
+    factor = WRONG_CALIBRATION_FACTOR if "wrong-calibration" in pathologies else 1.0
+    return [
+        replace(
+            s,
+            cal_focal_px=intr.focal_px * factor,
+            cal_cx_px=intr.cx_px + 0.5,  # corner origin, as DJI writes it
+            cal_cy_px=intr.cy_px + 0.5,
+            cal_distortion=tuple((*p.distortion, 0.0, 0.0, 0.0, 0.0, 0.0)[:5]),
+        )
+        for s in shots
+    ]
 
 
 def true_footprint(
