@@ -185,12 +185,15 @@ class _TilePlan:
     """How the grid is cut: tiles, the halos they read, the coarse grid for wide gaps, SMRF's grid."""
 
     tiling: _Tiling
-    n_tiles: int
     points_halo: float  # a tile reads the points this far beyond its edge (the cloud's units)
     halo: int  # cells of gap-fill halo
     coarse_factor: int  # gaps wider than the halo are held at this coarser grid's fill (0: none)
     smrf_grid: Any  # SMRF's grid, or None
     smrf_whole: bool  # SMRF's provisional surface made once over the whole cloud
+
+    @property
+    def n_tiles(self) -> int:
+        return self.tiling.n_tr * self.tiling.n_tc
 
 
 def _plan_tiles(
@@ -220,7 +223,7 @@ def _plan_tiles(
         + (f"; gaps wider than it held at a {f}x coarser grid's fill" if f else "")
         + (")" if smrf_grid is None or smrf_whole else "; SMRF per tile: its grid is too large to hold whole)")
     )
-    return _TilePlan(tiling, n_tiles, points_halo, halo, f, smrf_grid, smrf_whole)
+    return _TilePlan(tiling, points_halo, halo, f, smrf_grid, smrf_whole)
 
 
 def _sort_into_tiles(

@@ -22,7 +22,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from geoortho.core.crs import crs_to_text
 from geoortho.core.outputs import write_json
 from geoortho.core.parallel import imap_ordered
 from geoortho.errors import InputError
@@ -145,7 +144,8 @@ def dense(
         Processes for the depth maps (0 = every core).
     """
     # here, not at the top: the depth-map workers import this module and need none of these
-    # (pycolmap, laspy, the DEM tiles: 0.3 -> 0.9 s a worker)
+    # (pycolmap, laspy, the DEM tiles: 0.3 -> 0.9 s a worker; pyproj alone 70 ms)
+    from geoortho.core.crs import crs_to_text
     from geoortho.elevation.tiles import work_folder
     from geoortho.reconstruction.model import cameras_from_sfm
 
