@@ -549,35 +549,55 @@ def _search(
         results = [(p, [replace(d, reason=d.reason or why) for d in dets], e, b) for p, dets, e, b in results]
         return results, windows, None, target
     if offset is not None:
-        shift_m, residual_m, n_used = offset
-        fb.info(
-            f"flight offset from {n_used} detections in {len(pilot)} photos: {shift_m[0]:+.2f} m E, "
-            f"{shift_m[1]:+.2f} m N; windows sized for a {residual_m:.1f} m residual "
-            f"(wide fallback: the stated uncertainty)"
-        )
-        if target not in CODED:
-            # a target without an id is told by position: search every photo again, in windows
-            # placed with the measured offset (the pilot's were sized for the stated uncertainty)
-            rest, results = rest + pilot, []
-        narrowed = predict_windows(
-            [plan.cams[im] for im in rest],
-            plan.names,
-            plan.xyz + [shift_m[0], shift_m[1], 0.0],
-            ids,
-            residual_m=residual_m,
-            **uncertainty,
-        )
-        if not coded:  # a target without an id is only trusted where the measured offset puts it
-            narrowed = {im: [replace(w, wide_radius_px=0.0) for w in ws] for im, ws in narrowed.items()}
-        for im in rest:
-            windows.pop(im)
-        windows.update(narrowed)
-        rest = [im for im in rest if im in windows]
+        rest, results = _narrow_windows(plan, windows, rest, pilot, results, offset, ids, uncertainty, target, fb)
     # photos without a pose are searched whole, for coded markers only (nothing else tells a target)
     whole = [SearchWindow("", -1, 0.0, 0.0, 0.0)]
     jobs = [(im, windows[im]) for im in rest] + [(p.image, whole) for p in plan.unplaced if target in CODED]
     results += run(jobs, target, s_rest)
     return results, windows, None if offset is None else (float(offset[0][0]), float(offset[0][1])), target
+
+
+def _narrow_windows(
+    plan: _Plan,
+    windows: dict[str, list[SearchWindow]],
+    rest: list[str],
+    pilot: list[str],
+    results: Results,
+    offset: tuple[np.ndarray, float, int],
+    ids: dict[str, int],
+    uncertainty: dict[str, float],
+    target: str,
+    fb: Feedback,
+) -> tuple[list[str], Results]:
+    """The flight's measured offset said, and the windows of the photos still to search placed
+    with it and sized by its residual (``windows`` updated); the photos to search and the
+    results kept."""
+    shift_m, residual_m, n_used = offset
+    fb.info(
+        f"flight offset from {n_used} detections in {len(pilot)} photos: {shift_m[0]:+.2f} m E, "
+        f"{shift_m[1]:+.2f} m N; windows sized for a {residual_m:.1f} m residual "
+        f"(wide fallback: the stated uncertainty)"
+    )
+    coded = target in CODED
+    if not coded:
+        # a target without an id is told by position: search every photo again, in windows
+        # placed with the measured offset (the pilot's were sized for the stated uncertainty)
+        rest, results = rest + pilot, []
+    narrowed = predict_windows(
+        [plan.cams[im] for im in rest],
+        plan.names,
+        plan.xyz + [shift_m[0], shift_m[1], 0.0],
+        ids,
+        residual_m=residual_m,
+        **uncertainty,
+    )
+    if not coded:  # a target without an id is only trusted where the measured offset puts it
+        narrowed = {im: [replace(w, wide_radius_px=0.0) for w in ws] for im, ws in narrowed.items()}
+    for im in rest:
+        windows.pop(im)
+    windows.update(narrowed)
+    rest = [im for im in rest if im in windows]
+    return rest, results
 
 
 def _choose_target(

@@ -562,38 +562,12 @@ def mosaic(
     transform, shape = _grid(placed.boxes, surface, resolution_m)
     if shape[0] * shape[1] > 4e9:
         raise InputError(f"the mosaic would be {shape[1]}x{shape[0]} px: give a coarser resolution")
-    # the temporaries (visibility grids, the tiled mosaic) beside the output, on the same disk
-    output.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
-        vis = _visibility(placed, surface, options, Path(work_dir), st_vis)
-        times["visibility"] = time.perf_counter() - t0
-
-        t1 = time.perf_counter()
-        plan = _seams_and_gains(placed, surface, vis, transform, shape, options, st_plan)
-        skipped += plan.skipped
-        notes.extend(plan.notes)
-        bad = {name for name, _ in plan.skipped}
-        box_windows = tuple(
-            None if c.name in bad else bounds_window(transform, shape, b) for c, b in zip(placed.cams, placed.boxes)
-        )
-        times["seams_and_balance"] = time.perf_counter() - t1
-        fb.info(
-            f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(placed.cams) - len(bad)} photos; "
-            f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}"
-        )
-
-        t2 = time.perf_counter()
-        ctx = _Context(
-            placed.cams, box_windows, vis, surface, transform, shape, plan, options.blend, int(options.max_hole_px),
-            2 ** (_BANDS + 1), _INTERPOLATION[options.interpolation],
-        )  # fmt: skip
-        tiled = Path(work_dir) / "mosaic.tif"
-        totals, used = _render(ctx, crs, tiled, options, st_tiles)
-        times["tiles"] = time.perf_counter() - t2
-        t3 = time.perf_counter()
-        _write_cog(tiled, output, options.compress.upper())
-        preview_path = _write_preview(output, Path(preview)) if preview else None
-        times["cog"] = time.perf_counter() - t3
+    plan, totals, used, preview_path = _build_mosaic(
+        placed, surface, crs, transform, shape, output, options, preview, resolution_m, times,
+        (st_vis, st_plan, st_tiles), fb,
+    )  # fmt: skip
+    skipped += plan.skipped
+    notes.extend(plan.notes)
     st_write.progress(1.0)
 
     cover = measure_coverage(output, placed.cams, surface, Path(dsm_source) if dsm_source is not None else None)
@@ -635,6 +609,57 @@ def mosaic(
         f"{result.seam_mismatch_raw:.1f} → {result.seam_mismatch_balanced:.1f} DN after balancing"
     )
     return result
+
+
+def _build_mosaic(
+    placed: Any,
+    surface: Surface,
+    crs: CRS,
+    transform: Affine,
+    shape: tuple[int, int],
+    output: Path,
+    options: MosaicOptions,
+    preview: str | os.PathLike[str] | None,
+    resolution_m: float,
+    times: dict[str, float],
+    steps: tuple[Feedback, Feedback, Feedback],
+    fb: Feedback,
+) -> tuple[Any, dict[str, float], set[int], Path | None]:
+    """Visibility, seams and gains, the tiles, the COG: the mosaic's plan, its tile totals, the
+    photos used and the preview written. The temporaries (visibility grids, the tiled mosaic) sit
+    beside the output, on the same disk."""
+    st_vis, st_plan, st_tiles = steps
+    t0 = time.perf_counter()
+    output.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
+        vis = _visibility(placed, surface, options, Path(work_dir), st_vis)
+        times["visibility"] = time.perf_counter() - t0
+
+        t1 = time.perf_counter()
+        plan = _seams_and_gains(placed, surface, vis, transform, shape, options, st_plan)
+        bad = {name for name, _ in plan.skipped}
+        box_windows = tuple(
+            None if c.name in bad else bounds_window(transform, shape, b) for c, b in zip(placed.cams, placed.boxes)
+        )
+        times["seams_and_balance"] = time.perf_counter() - t1
+        fb.info(
+            f"mosaic {shape[1]}x{shape[0]} px at {resolution_m * 100:.2f} cm, {len(placed.cams) - len(bad)} photos; "
+            f"gains {plan.gains.min():.3f}..{plan.gains.max():.3f}"
+        )
+
+        t2 = time.perf_counter()
+        ctx = _Context(
+            placed.cams, box_windows, vis, surface, transform, shape, plan, options.blend, int(options.max_hole_px),
+            2 ** (_BANDS + 1), _INTERPOLATION[options.interpolation],
+        )  # fmt: skip
+        tiled = Path(work_dir) / "mosaic.tif"
+        totals, used = _render(ctx, crs, tiled, options, st_tiles)
+        times["tiles"] = time.perf_counter() - t2
+        t3 = time.perf_counter()
+        _write_cog(tiled, output, options.compress.upper())
+        preview_path = _write_preview(output, Path(preview)) if preview else None
+        times["cog"] = time.perf_counter() - t3
+    return plan, totals, used, preview_path
 
 
 def _visibility(

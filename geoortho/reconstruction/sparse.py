@@ -1204,18 +1204,41 @@ def sfm(
         n_points = _write_model(output, work, db, mapped, inputs, notes)
         timer.add("outputs", t0)
         figures = _figures(mapped.rec, inputs, geo)
-        accuracy = gps_accuracy(mapped.rec, inputs.priors, notes)
-        report = _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes)
-        report["gps_accuracy"] = accuracy
-        if lag is not None and inputs.positions is None:
-            report["gps_time_lag"] = lag
-        if inputs.positions is not None:
-            report["positions"] = _positions_report(inputs.positions, lag)
-        write_json(output / "report.json", report | ({"submodels": sub_stats} if sub_stats else {}))
+        _write_report(output, inputs, mapped, geo, figures, intrinsics, mapper, lag, sub_stats, timer, t_start, notes)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     _announce(notes, mapped, inputs, geo, figures, n_points, fb)
     fb.set_progress(1.0)
+    return _result(output, inputs, mapped, geo, figures, notes)
+
+
+def _write_report(
+    output: Path,
+    inputs: _Inputs,
+    mapped: _Mapped,
+    geo: Any,
+    figures: Any,
+    intrinsics: Any,
+    mapper: str,
+    lag: Any,
+    sub_stats: list[dict[str, Any]],
+    timer: _Timer,
+    t_start: float,
+    notes: list[str],
+) -> None:
+    """report.json: the block, its georeference and figures, the GPS's accuracy as measured, the
+    time lag or the positions file, and the submodels of a split block."""
+    accuracy = gps_accuracy(mapped.rec, inputs.priors, notes)
+    report = _report(inputs, mapped, geo, figures, intrinsics, mapper, timer, t_start, notes)
+    report["gps_accuracy"] = accuracy
+    if lag is not None and inputs.positions is None:
+        report["gps_time_lag"] = lag
+    if inputs.positions is not None:
+        report["positions"] = _positions_report(inputs.positions, lag)
+    write_json(output / "report.json", report | ({"submodels": sub_stats} if sub_stats else {}))
+
+
+def _result(output: Path, inputs: _Inputs, mapped: _Mapped, geo: Any, figures: Any, notes: list[str]) -> SfmResult:
     return SfmResult(
         output=output,
         model=output / "model",
