@@ -726,22 +726,27 @@ def plan_flight(preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> 
     return shots
 
 
-def fly_plan(plan: Path, preset: SynthPreset, scene: Scene, rng: np.random.Generator) -> list[Shot]:
+def fly_plan(plan: Path, scene: Scene, rng: np.random.Generator) -> tuple[list[Shot], tuple[int, int]]:
     """The photos of a ``plan`` (plan.gpkg or its folder) as this scene's shots: planned position,
-    height and attitude, flown with the same wander as the built-in flight. Heights: the plan's
-    absolute ones when it was planned on a DTM (the scene's truth/dtm.tif), else its altitude above
-    the take-off over the scene's home point."""
+    height and attitude, flown with the same wander as the built-in flight, and the pixel size of the
+    plan's camera. Heights: the plan's absolute ones when it was planned on a DTM (the scene's
+    truth/dtm.tif), else its altitude above the take-off over the scene's home point. The camera's
+    field of view must be the synthetic camera's; its pixel count may differ (a 12 MP plan renders
+    12 MP photos)."""
     from geoortho.planning.plan import read_plan_photos  # here: 0.9 s (geopandas) in every render worker
 
     photos, summary = read_plan_photos(plan)
     cam = summary.get("camera", {})
-    w, h = preset.image_px
-    if (cam.get("width_px"), cam.get("height_px")) != (w, h) or abs(
-        cam.get("focal_mm", 0) / max(cam.get("sensor_width_mm", 1e-9), 1e-9) - FOCAL_MM / SENSOR_WIDTH_MM
-    ) > 1e-6:
+    w, h = int(cam.get("width_px") or 0), int(cam.get("height_px") or 0)
+    if (
+        min(w, h) < 64
+        or abs(cam.get("focal_mm", 0) / max(cam.get("sensor_width_mm", 1e-9), 1e-9) - FOCAL_MM / SENSOR_WIDTH_MM) > 1e-6
+    ):
         raise InputError(
-            f"the plan's camera ({cam.get('name')}, {cam.get('width_px')}x{cam.get('height_px')} px) is not this "
-            f"preset's ({CAMERA_MODEL}, {w}x{h} px): plan with --camera one of its photos",
+            f"the plan's camera ({cam.get('name')}, focal {cam.get('focal_mm')} mm on a "
+            f"{cam.get('sensor_width_mm')} mm sensor) has not the synthetic camera's field of view "
+            f"({CAMERA_MODEL}, {FOCAL_MM} mm on {SENSOR_WIDTH_MM} mm): plan with --camera {CAMERA_MODEL} "
+            "(any --image-width-px/--image-height-px)",
             path=plan,
         )
     t = transformer(CRS.from_user_input(photos.crs), scene.crs)
@@ -749,7 +754,7 @@ def fly_plan(plan: Path, preset: SynthPreset, scene: Scene, rng: np.random.Gener
     on_dtm = str(summary.get("ground", {}).get("model", "")).startswith("DTM")
     z = photos["z_m"].to_numpy() if on_dtm else scene.home[2] + photos["altitude_m"].to_numpy()
     j = TRUE_ATTITUDE_JITTER_DEG
-    return [
+    shots = [
         Shot(
             "",
             float(xi + rng.normal(0, 0.3)),
@@ -762,6 +767,7 @@ def fly_plan(plan: Path, preset: SynthPreset, scene: Scene, rng: np.random.Gener
         )
         for xi, yi, zi, hd, pt in zip(x, y, z, photos["grid_heading_deg"], photos["pitch_deg"])
     ]
+    return shots, (w, h)
 
 
 def _record(shots: list[Shot], scene: Scene, preset: SynthPreset, rng: np.random.Generator) -> list[Shot]:
@@ -1549,7 +1555,9 @@ def synth(
         poor-gps (truth/survey.json says what each did).
     plan : Path
         Fly this plan (a ``plan`` output folder or its plan.gpkg) instead of the preset's
-        flight, over the preset's scene: the round trip that checks a plan.
+        flight, over the preset's scene: the round trip that checks a plan. The plan's camera
+        has the synthetic camera's lens (``--camera FC6310``); its pixel size is rendered (a
+        12 MP plan gives 12 MP photos).
     target : str
         What the GCP targets look like: aruco or apriltag (coded markers of the dictionary),
         checkerboard (2 × 2 squares), cross (white bars a fifth of the side wide, painted on
@@ -1605,7 +1613,11 @@ def synth(
         _add_cover(scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)])
     if "water" in pathologies:
         scene.water = _place_water(scene)
-    planned = fly_plan(Path(plan), p, scene, rng) if plan is not None else plan_flight(p, scene, rng)
+    if plan is not None:
+        planned, image_px = fly_plan(Path(plan), scene, rng)
+        p = replace(p, image_px=image_px)
+    else:
+        planned = plan_flight(p, scene, rng)
     shots = [replace(s, maker=maker) for s in _record(planned, scene, p, rng)]
     undulation = 0.0
     if pathologies:
