@@ -7,6 +7,7 @@ import math
 import re
 from collections import Counter
 
+import cv2
 import geopandas as gpd
 import numpy as np
 import pytest
@@ -76,6 +77,24 @@ def test_flying_the_plan_gives_the_planned_overlap_gsd_and_gcp_sightings(flown, 
     found = Counter(ln.split()[6] for ln in rows if ln.strip())
     for g in summary["gcps"]:
         assert abs(found.get(g["name"], 0) - g["n_photos"]) <= 1, g
+
+
+def test_synth_flies_a_plan_at_its_camera_pixel_size_and_refuses_another_lens(tiny_survey, tmp_path):
+    """A plan for the synthetic lens at another pixel count (as a 12 MP benchmark plans it) is
+    rendered at that count; a plan for another lens is refused before anything is rendered."""
+    survey = json.loads((tiny_survey.truth / "survey.json").read_text())
+    x0, y0, x1, y1 = survey["flight_box"]
+    aoi = _aoi(tmp_path / "aoi.gpkg", shapely.box(x0 + 4, y0 + 4, x1 - 4, y1 - 4), survey["crs"])
+    size = dict(image_width_px=480, image_height_px=360)  # 4:3, where the preset renders 3:2
+    p = geoortho.plan(aoi, tmp_path / "plan", camera="FC6310", altitude_m=30.0, **size)
+    s = geoortho.synth(tmp_path / "flown", preset="tiny", plan=p.plan)
+    info = json.loads((s.truth / "survey.json").read_text())
+    assert (info["camera"]["width_px"], info["camera"]["height_px"]) == (480, 360)
+    shapes = {cv2.imread(str(f)).shape[:2] for f in s.images.iterdir()}
+    assert shapes == {(360, 480)} and s.n_photos == p.n_photos
+    other = geoortho.plan(aoi, tmp_path / "plan330", camera="DJI FC330", altitude_m=30.0)
+    with pytest.raises(InputError, match="field of view"):
+        geoortho.synth(tmp_path / "flown330", preset="tiny", plan=other.plan)
 
 
 def test_plan_layers_and_exports(flown):
