@@ -1598,32 +1598,11 @@ def synth(
     truth_dir.mkdir(parents=True, exist_ok=True)
     step_scene, step_render, step_truth = split(fb, [1, 8, 2])
     rng = np.random.default_rng(seed)
-    scene = build_scene(
-        p,
-        rng,
-        lat=latitude_deg,
-        lon=longitude_deg,
-        dictionary=dictionary,
-        marker_size_m=marker_size_m,
-        slope_deg=SLOPE_DEG if "slope" in pathologies else 0.0,
-    )
-    scene.target = target
+    scene = _scene(p, rng, latitude_deg, longitude_deg, dictionary, marker_size_m, target, pathologies, seed)
     step_scene.progress(0.5)
-    if "canopy" in pathologies or "cars" in pathologies:
-        _add_cover(scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)])
-    if "water" in pathologies:
-        scene.water = _place_water(scene)
-    if plan is not None:
-        planned, image_px = fly_plan(Path(plan), scene, rng)
-        p = replace(p, image_px=image_px)
-    else:
-        planned = plan_flight(p, scene, rng)
-    shots = [replace(s, maker=maker) for s in _record(planned, scene, p, rng)]
-    undulation = 0.0
-    if pathologies:
-        undulation = float(geoid_undulation_m(longitude_deg, latitude_deg))
-        shots = _apply_pathologies(shots, scene, pathologies, undulation, np.random.default_rng(seed + 11))
-    shots = _with_blur(shots, blur_px, seed)
+    p, shots, undulation = _flight(
+        p, scene, plan, rng, maker, pathologies, seed, blur_px, (latitude_deg, longitude_deg)
+    )
     w, h = p.image_px
     intr = Intrinsics.from_sensor(w, h, FOCAL_MM, SENSOR_WIDTH_MM, distortion=p.distortion)
     shots = _with_calibration(shots, intr, p, pathologies)
@@ -1659,6 +1638,62 @@ def synth(
         n_photos=len(shots),
         crs=f"EPSG:{scene.crs.to_epsg()}",
     )
+
+
+def _scene(
+    p: SynthPreset,
+    rng: np.random.Generator,
+    lat: float,
+    lon: float,
+    dictionary: str,
+    marker_size_m: float,
+    target: str,
+    pathologies: tuple[str, ...],
+    seed: int,
+) -> Scene:
+    """The preset's scene, with the cover and the water its pathologies ask for."""
+    scene = build_scene(
+        p,
+        rng,
+        lat=lat,
+        lon=lon,
+        dictionary=dictionary,
+        marker_size_m=marker_size_m,
+        slope_deg=SLOPE_DEG if "slope" in pathologies else 0.0,
+    )
+    scene.target = target
+    if "canopy" in pathologies or "cars" in pathologies:
+        _add_cover(scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)])
+    if "water" in pathologies:
+        scene.water = _place_water(scene)
+    return scene
+
+
+def _flight(
+    p: SynthPreset,
+    scene: Scene,
+    plan: Path | None,
+    rng: np.random.Generator,
+    maker: str,
+    pathologies: tuple[str, ...],
+    seed: int,
+    blur_px: float,
+    lat_lon_deg: tuple[float, float],
+) -> tuple[SynthPreset, list[Shot], float]:
+    """The shots flown (the preset's flight or a plan's, which sets the pixel size) and recorded
+    by the drone with the pathologies and the blur; the preset as flown, the shots and the geoid
+    undulation the pathologies used (0 without any)."""
+    if plan is not None:
+        planned, image_px = fly_plan(Path(plan), scene, rng)
+        p = replace(p, image_px=image_px)
+    else:
+        planned = plan_flight(p, scene, rng)
+    shots = [replace(s, maker=maker) for s in _record(planned, scene, p, rng)]
+    undulation = 0.0
+    if pathologies:
+        undulation = float(geoid_undulation_m(lat_lon_deg[1], lat_lon_deg[0]))
+        shots = _apply_pathologies(shots, scene, pathologies, undulation, np.random.default_rng(seed + 11))
+    return p, _with_blur(shots, blur_px, seed), undulation
 
 
 def _check_options(
