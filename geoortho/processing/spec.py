@@ -175,11 +175,11 @@ class Algorithm:
 
     @property
     def help(self) -> str:
-        return parse_docstring(read_function(self.function_ref).doc)["description"]
+        return str(parse_docstring(read_function(self.function_ref).doc)["description"])
 
     @property
     def short_help(self) -> str:
-        return parse_docstring(read_function(self.function_ref).doc)["summary"]
+        return str(parse_docstring(read_function(self.function_ref).doc)["summary"])
 
     def param(self, name: str) -> Param:
         for p in self.params:

@@ -221,13 +221,13 @@ def _choices(module: str, annotation: ast.expr | None) -> tuple[Any, ...]:
     if isinstance(annotation, ast.BinOp) and isinstance(annotation.op, ast.BitOr):
         return _choices(module, annotation.left) or _choices(module, annotation.right)
     if isinstance(annotation, ast.Subscript) and _name_of(annotation.value) == "Literal":
-        return _value(module, annotation).values
+        return tuple(_value(module, annotation).values)
     if isinstance(annotation, ast.Name):
         bound = _binding(module, annotation.id)
         if bound is not None:
             bound_module, expr = bound
             if isinstance(expr, ast.Subscript) and _name_of(expr.value) == "Literal":
-                return _value(bound_module, expr).values
+                return tuple(_value(bound_module, expr).values)
     return ()
 
 
