@@ -111,11 +111,18 @@ def marker_centre(corners: np.ndarray) -> np.ndarray:
 
 
 def _detector(
-    dictionary: str, glare: bool = False, threshold_win_px: int = 0, refine: int = cv2.aruco.CORNER_REFINE_CONTOUR
+    dictionary: str,
+    glare: bool = False,
+    threshold_win_px: int = 0,
+    refine: int = cv2.aruco.CORNER_REFINE_CONTOUR,
+    min_perimeter_rate: float = 0.0,
 ) -> cv2.aruco.ArucoDetector:
     params = cv2.aruco.DetectorParameters()
     if threshold_win_px:
         params.adaptiveThreshWinSizeMin = params.adaptiveThreshWinSizeMax = threshold_win_px
+    # OpenCV's default (3 % of the image's larger side) lets a small window's specks of a few
+    # pixels through as candidates: 4.1 of a window's 4.6 ms (161 px, a 25 px marker)
+    params.minMarkerPerimeterRate = max(params.minMarkerPerimeterRate, min_perimeter_rate)
     params.cornerRefinementMethod = refine
     params.cornerRefinementWinSize = 3
     params.cornerRefinementMaxIterations = 50
@@ -149,12 +156,16 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
         lut = (255.0 * (np.arange(256) / 255.0) ** 1.8).astype(np.uint8)
         img = cv2.LUT(gray, lut)
     glare = attempt == "glare"
+    # No quad under half the predicted side is kept (plausible_quad), and a quad's perimeter is at
+    # least 4 sqrt(its area): candidates shorter than 2 sides (with a fifth off for blur) are skipped
+    rate = 1.6 * side_px * scale / max(img.shape[:2]) if side_px > 0 else 0.0
     try:
-        corners, ids, _ = _detector(dictionary, glare, win).detectMarkers(img)
+        corners, ids, _ = _detector(dictionary, glare, win, min_perimeter_rate=rate).detectMarkers(img)
     except cv2.error:
         # OpenCV's contour refinement asserts on some degenerate candidates (seen on the toledo
         # photos: "nContours.size() >= 2"); its corner sub-pixel refinement does not
-        corners, ids, _ = _detector(dictionary, glare, win, cv2.aruco.CORNER_REFINE_SUBPIX).detectMarkers(img)
+        refine = cv2.aruco.CORNER_REFINE_SUBPIX
+        corners, ids, _ = _detector(dictionary, glare, win, refine, min_perimeter_rate=rate).detectMarkers(img)
     if ids is None:
         return []
     out = []
