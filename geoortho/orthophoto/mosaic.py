@@ -429,7 +429,7 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
 
     gains = ctx.plan.gains
     labelled = lab >= 0
-    out = _blended(ctx.blend, lab, patches, gains, shape)
+    out = _blended(ctx.blend, lab, labelled, patches, gains, shape)
     stats = _seam_stats(lab, patches, gains, out, core)
     holes = coverage & ~labelled
     filled = _fill_holes(out, holes, ctx.max_hole_px)
@@ -448,7 +448,12 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
 
 
 def _blended(
-    blend: str, lab: np.ndarray, patches: dict[int, _Patch], gains: np.ndarray, shape: tuple[int, int]
+    blend: str,
+    lab: np.ndarray,
+    labelled: np.ndarray,
+    patches: dict[int, _Patch],
+    gains: np.ndarray,
+    shape: tuple[int, int],
 ) -> np.ndarray:
     """The tile (BGR, 0 where no photo) from each photo's balanced patch, blended across the seams."""
     out = np.zeros(shape + (3,), np.uint8)
@@ -470,7 +475,6 @@ def _blended(
         blender.feed(img16, m, (patch.sl[1].start, patch.sl[0].start))
     res, _ = blender.blend(None, None)  # type: ignore[call-overload]  # OpenCV allocates the outputs
     res = res.get() if isinstance(res, cv2.UMat) else np.asarray(res)
-    labelled = lab >= 0
     out[labelled] = np.clip(res[: shape[0], : shape[1]][labelled], 0, 255).astype(np.uint8)
     return out
 
@@ -563,7 +567,7 @@ def mosaic(
     if shape[0] * shape[1] > 4e9:
         raise InputError(f"the mosaic would be {shape[1]}x{shape[0]} px: give a coarser resolution")
     plan, totals, used, preview_path = _build_mosaic(
-        placed, surface, crs, transform, shape, output, options, preview, resolution_m, times,
+        placed, surface, crs, transform, shape, output, options, preview, resolution_m, (t0, times),
         (st_vis, st_plan, st_tiles), fb,
     )  # fmt: skip
     skipped += plan.skipped
@@ -621,15 +625,16 @@ def _build_mosaic(
     options: MosaicOptions,
     preview: str | os.PathLike[str] | None,
     resolution_m: float,
-    times: dict[str, float],
+    clock: tuple[float, dict[str, float]],
     steps: tuple[Feedback, Feedback, Feedback],
     fb: Feedback,
 ) -> tuple[Any, dict[str, float], set[int], Path | None]:
     """Visibility, seams and gains, the tiles, the COG: the mosaic's plan, its tile totals, the
     photos used and the preview written. The temporaries (visibility grids, the tiled mosaic) sit
-    beside the output, on the same disk."""
+    beside the output, on the same disk. ``clock``: the mosaic's start (the visibility's seconds
+    count the placing of the photos too, as the report always has) and the seconds of each step."""
     st_vis, st_plan, st_tiles = steps
-    t0 = time.perf_counter()
+    t0, times = clock
     output.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
         vis = _visibility(placed, surface, options, Path(work_dir), st_vis)
