@@ -154,17 +154,23 @@ def _affine(base: np.ndarray, angle_deg: float, scale: float, e1: float, e2: flo
     return scale * shape @ base @ rot
 
 
-def _coded_lookup(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float]:
-    """A coded marker as tables over its board's cells with one more ring around them: white
-    (1.0 on white cells and the quiet zone) and on (1 on the board, 0 on the ground beyond), flat;
-    with the cells across (border included) and the board's half side in marker sides."""
+#: A coded table's "on the board" weight: a sample reads white (0 or 1) + _ON × on (0 or 1), so one
+#: gather and one sum over a pixel's samples give both counts (white < _ON for any sample count).
+_ON = 1024.0
+_BLOCK = 256  # pixels a coded render takes at once
+
+
+def _coded_lookup(cells: np.ndarray) -> tuple[np.ndarray, int, float]:
+    """A coded marker as one table over its board's cells with one more ring around them, flat:
+    white (1.0 on white cells and the quiet zone) + :data:`_ON` on the board (0 on the ground
+    beyond); with the cells across (border included) and the board's half side in marker sides."""
     n = cells.shape[0]
     white = np.zeros((n + 4, n + 4))
     on = np.zeros((n + 4, n + 4))
     on[1:-1, 1:-1] = 1.0
     white[1:-1, 1:-1] = 1.0  # the quiet zone
     white[2:-2, 2:-2] = cells.astype(float)
-    return white.ravel(), on.ravel(), n, target_half_extent("aruco", n)
+    return (white + _ON * on).ravel(), n, target_half_extent("aruco", n)
 
 
 def _to_marker(dx: np.ndarray, dy: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -179,38 +185,65 @@ class _Renderer:
     def __init__(self, kind: str, cells: np.ndarray | None, xs: np.ndarray, ys: np.ndarray, bar: float = CROSS_BAR):
         self.kind, self.cells, self.bar = kind, cells, bar
         self.xs, self.ys = xs.astype(float).ravel(), ys.astype(float).ravel()
-        self.sx, self.sy, self.st, self.nx, self.ny = (o[None, :] for o in _offsets())
-        # every sample's place in the patch, before the model moves it: computed once
-        self.px0, self.py0 = self.xs[:, None] + self.sx, self.ys[:, None] + self.sy
+        self.sx, self.sy, self.st, self.nx, self.ny = _offsets()
         self.lut = _coded_lookup(cells) if kind in CODED and cells is not None else None
+
+    def _separable(
+        self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The marker-frame coordinates as a pixel's part plus a sample's: the model is affine, so
+        u = M·(pixel − centre) + M·(sample offset), each part computed once on its own axis
+        (pixels, samples) and the grid of every sample of every pixel is one outer sum."""
+        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+        inv = np.array([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]]) / det
+        b = math.radians(blur_deg)
+        # blur direction anticlockwise from x as seen (image y points down)
+        sdx = self.sx + blur_px * math.cos(b) * self.st + defocus_px * self.nx
+        sdy = self.sy - blur_px * math.sin(b) * self.st + defocus_px * self.ny
+        ax, ay = self.xs - cx, self.ys - cy
+        return (
+            inv[0, 0] * ax + inv[0, 1] * ay,
+            inv[0, 0] * sdx + inv[0, 1] * sdy,
+            inv[1, 0] * ax + inv[1, 1] * ay,
+            inv[1, 0] * sdx + inv[1, 1] * sdy,
+        )
 
     def uv(
         self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Marker-frame coordinates of every sample of every pixel."""
-        b = math.radians(blur_deg)
-        # blur direction anticlockwise from x as seen (image y points down); the per-sample shift
-        # is one row, added to the fixed sample places
-        dx = blur_px * math.cos(b) * self.st + defocus_px * self.nx - cx
-        dy = -blur_px * math.sin(b) * self.st + defocus_px * self.ny - cy
-        return _to_marker(self.px0 + dx, self.py0 + dy, A)
+        """Marker-frame coordinates of every sample of every pixel (pixels × samples)."""
+        pu, su, pv, sv = self._separable(cx, cy, A, blur_px, blur_deg, defocus_px)
+        return np.add.outer(pu, su), np.add.outer(pv, sv)
 
     def render(
         self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """Mean reflectance per pixel, and the share of its samples that fall on the model."""
-        u, v = self.uv(cx, cy, A, blur_px, blur_deg, defocus_px)
         if self.lut is not None:
             # a coded marker is a grid of cells: each sample's cell read from a table (the same
-            # values as target_reflectance, a third of the work)
-            white, on, n, half = self.lut
-            ci = np.floor((u + half) * n).astype(np.intp) + 1
-            ri = np.floor((half - v) * n).astype(np.intp) + 1
-            np.clip(ci, 0, n + 3, out=ci)
-            np.clip(ri, 0, n + 3, out=ri)
-            flat = ri * (n + 4) + ci
-            count = on[flat].sum(axis=1)
-            return white[flat].sum(axis=1) / np.maximum(count, 1), count / u.shape[1]
+            # values as target_reflectance, a third of the work), its column and row straight
+            # from the separable parts, scaled to cells (the table has one more ring around),
+            # in blocks of pixels that stay in the cache: 2.8x faster than one pass over every
+            # sample. (float32 was a fifth faster again, but read a sample on a cell's edge in
+            # the next cell: 1 of 576,000.)
+            table, n, half = self.lut
+            pu, su, pv, sv = self._separable(cx, cy, A, blur_px, blur_deg, defocus_px)
+            pu, pv = pu * n + (half * n + 1), -pv * n + (half * n + 1)
+            su, sv = su * n, -sv * n
+            packed = np.empty(len(pu))
+            for a in range(0, len(pu), _BLOCK):
+                col = np.add.outer(pu[a : a + _BLOCK], su)
+                row = np.add.outer(pv[a : a + _BLOCK], sv)
+                # clipped to the ring, truncation is the floor
+                ci = np.clip(col, 0, n + 3, out=col).astype(np.int32)
+                ri = np.clip(row, 0, n + 3, out=row).astype(np.int32)
+                ri *= n + 4
+                ri += ci
+                packed[a : a + _BLOCK] = table.take(ri).sum(axis=1)
+            count = np.floor(packed / _ON)
+            white = packed - _ON * count
+            return white / np.maximum(count, 1), count / len(su)
+        u, v = self.uv(cx, cy, A, blur_px, blur_deg, defocus_px)
         r = _fit_reflectance(self.kind, u, v, self.cells, self.bar)
         ok = np.isfinite(r)
         cover = ok.mean(axis=1)
@@ -887,13 +920,16 @@ def _refine(
     x0 = np.array([cx0, cy0, angle0, 0.0, 0.0, 0.0, bx, by, 0.7, CROSS_BAR, gx, gy, math.log(0.25 * side)])
     free = [i for i in range(13) if (i != 9 or kind == "cross") and (i < 10 or glare)]
     xf, yf = xs.ravel()[use].astype(float), ys.ravel()[use].astype(float)
+    # the fit renders only the pixels it uses (a pixel's value depends on no other): 30-48 % of
+    # the patch's square (median 42 %, the tiny degraded survey's 63 refinements)
+    fitted = _Renderer(kind, cells, xf, yf)
 
     def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
-        rend.bar = float(np.clip(bar, 0.08, 0.45))
+        fitted.bar = float(np.clip(bar, 0.08, 0.45))
         A = _affine(base, ang, math.exp(ls), e1, e2)
         blen, bdeg = math.hypot(vx, vy), math.degrees(math.atan2(vy, vx))
-        return rend.render(cx, cy, A, blen, bdeg, abs(dpx))
+        return fitted.render(cx, cy, A, blen, bdeg, abs(dpx))
 
     path = _offsets()[2][None, :]  # the motion path's samples, as the target's (−½…½)
 
@@ -907,7 +943,7 @@ def _refine(
         return np.exp(-(dx * dx + dy * dy) / (2 * var)).mean(axis=1).reshape(x.shape)
 
     def design(p: np.ndarray) -> np.ndarray:
-        t, cover = (m[use] for m in model(p))
+        t, cover = model(p)
         cols = [t * cover, 1.0 - cover, np.ones_like(t)] if rim else [t, np.ones_like(t)]
         if glare:
             cols.append(spot(p, xf, yf))
