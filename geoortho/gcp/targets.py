@@ -174,8 +174,10 @@ def _coded_lookup(cells: np.ndarray) -> tuple[np.ndarray, int, float]:
 
 
 def _to_marker(dx: np.ndarray, dy: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel offsets from the centre → marker-frame coordinates (sides), through ``A``'s inverse."""
-    inv = np.linalg.inv(A)
+    """Pixel offsets from the centre → marker-frame coordinates (sides), through ``A``'s inverse
+    (2 × 2, in closed form: the renderer calls this twice a render, thousands of times a fit)."""
+    det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    inv = np.array([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]]) / det
     return inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy
 
 
@@ -194,19 +196,13 @@ class _Renderer:
         """The marker-frame coordinates as a pixel's part plus a sample's: the model is affine, so
         u = M·(pixel − centre) + M·(sample offset), each part computed once on its own axis
         (pixels, samples) and the grid of every sample of every pixel is one outer sum."""
-        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-        inv = np.array([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]]) / det
         b = math.radians(blur_deg)
         # blur direction anticlockwise from x as seen (image y points down)
         sdx = self.sx + blur_px * math.cos(b) * self.st + defocus_px * self.nx
         sdy = self.sy - blur_px * math.sin(b) * self.st + defocus_px * self.ny
-        ax, ay = self.xs - cx, self.ys - cy
-        return (
-            inv[0, 0] * ax + inv[0, 1] * ay,
-            inv[0, 0] * sdx + inv[0, 1] * sdy,
-            inv[1, 0] * ax + inv[1, 1] * ay,
-            inv[1, 0] * sdx + inv[1, 1] * sdy,
-        )
+        pu, pv = _to_marker(self.xs - cx, self.ys - cy, A)
+        su, sv = _to_marker(sdx, sdy, A)
+        return pu, su, pv, sv
 
     def uv(
         self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
