@@ -24,9 +24,13 @@ $(STAMP): pyproject.toml tools/make_venv.sh
 demo: $(STAMP)
 	$(PY) -m geoortho demo --output $(DEMO_OUTPUT)
 
+# The test files run on one pytest-xdist worker per core (at most 4; a file stays on one worker,
+# so its module fixtures are made once); tests/conftest.py makes each session fixture once per run.
+TEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile
+
 test: $(STAMP)
 	@sh tools/browser_setup.sh
-	$(PY) -m pytest $(PYTEST_ARGS)
+	$(PY) -m pytest $(TEST_WORKERS) $(PYTEST_ARGS)
 
 test-qgis:
 	@sh tools/qgis_setup.sh "$(QGIS_VENV)"

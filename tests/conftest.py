@@ -1,8 +1,17 @@
-"""Shared fixtures: synthetic surveys are made once per session."""
+"""Shared fixtures: synthetic surveys are made once per session.
+
+``make test`` runs the files on several pytest-xdist workers; a session fixture here is then made
+once for the whole run, by the first worker that needs it, and read back by the others.
+"""
 
 from __future__ import annotations
 
+import fcntl
 import os
+import pickle
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import pytest
 from realdata import real_data  # noqa: F401 (tests import it from here)
@@ -10,32 +19,59 @@ from realdata import real_data  # noqa: F401 (tests import it from here)
 from geoortho.feedback import Feedback
 
 
+def made_once(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], Any]) -> Any:
+    """``make(folder)``, once per test run: under pytest-xdist every worker would otherwise make its own.
+
+    The first worker to ask makes it in the run's shared temporary folder, under a file lock, and
+    leaves the result pickled beside it; the others wait on the lock and read that. A make that
+    raises leaves nothing behind, so the next worker to ask tries again (and fails the same way).
+    """
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        return make(tmp_path_factory.mktemp(name))
+    shared = tmp_path_factory.getbasetemp().parent  # the workers' own folders are inside it
+    made = shared / f"{name}.pickle"
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if made.exists():
+            return pickle.loads(made.read_bytes())
+        folder = shared / name
+        if folder.exists():  # a make that failed on another worker
+            import shutil
+
+            shutil.rmtree(folder)
+        folder.mkdir()
+        value = make(folder)
+        made.write_bytes(pickle.dumps(value))
+        return value
+
+
+def _synth(preset: str, seed: int, **options: Any) -> Callable[[Path], Any]:
+    def make(folder: Path) -> Any:
+        from geoortho.synthetic.survey import synth
+
+        return synth(folder, preset=preset, seed=seed, **options)
+
+    return make
+
+
 @pytest.fixture(scope="session")
 def tiny_survey(tmp_path_factory: pytest.TempPathFactory):
-    from geoortho.synthetic.survey import synth
-
-    return synth(tmp_path_factory.mktemp("tiny"), preset="tiny", seed=3, workers=os.cpu_count() or 1)
+    return made_once(tmp_path_factory, "tiny", _synth("tiny", 3, workers=os.cpu_count() or 1))
 
 
 @pytest.fixture(scope="session")
 def small_survey(tmp_path_factory: pytest.TempPathFactory):
-    from geoortho.synthetic.survey import synth
-
-    return synth(tmp_path_factory.mktemp("small"), preset="small", seed=1)
+    return made_once(tmp_path_factory, "small", _synth("small", 1))
 
 
 @pytest.fixture(scope="session")
 def oblique_survey(tmp_path_factory: pytest.TempPathFactory):
-    from geoortho.synthetic.survey import synth
-
-    return synth(tmp_path_factory.mktemp("oblique"), preset="oblique", seed=2)
+    return made_once(tmp_path_factory, "oblique", _synth("oblique", 2))
 
 
 @pytest.fixture(scope="session")
 def hard_survey(tmp_path_factory: pytest.TempPathFactory):
-    from geoortho.synthetic.survey import synth
-
-    return synth(tmp_path_factory.mktemp("hard"), preset="hard", seed=4)
+    return made_once(tmp_path_factory, "hard", _synth("hard", 4))
 
 
 class RecordingFeedback(Feedback):
@@ -63,23 +99,28 @@ SFM_FAST = {"max_image_size": 1024, "max_features": 4096}
 @pytest.fixture(scope="session")
 def sfm_with_gcps(small_survey, tmp_path_factory):
     """SfM of the small survey with the GCPs gcp-find located; every third GCP is a checkpoint."""
-    from geoortho.gcp.find import gcp_find
-    from geoortho.reconstruction.sparse import sfm
 
-    d = tmp_path_factory.mktemp("sfm_gcp")
-    found = gcp_find(small_survey.images, small_survey.gcp_file, d / "gcp_list.txt")
-    seen = sorted({line.split()[6] for line in (d / "gcp_list.txt").read_text().splitlines()[1:]})
-    checkpoints = seen[::3]
-    r = sfm(small_survey.images, d / "out", gcp_list=found.output, checkpoints=",".join(checkpoints), **SFM_FAST)
-    return r, checkpoints
+    def make(d: Path):
+        from geoortho.gcp.find import gcp_find
+        from geoortho.reconstruction.sparse import sfm
+
+        found = gcp_find(small_survey.images, small_survey.gcp_file, d / "gcp_list.txt")
+        seen = sorted({line.split()[6] for line in (d / "gcp_list.txt").read_text().splitlines()[1:]})
+        checkpoints = seen[::3]
+        r = sfm(small_survey.images, d / "out", gcp_list=found.output, checkpoints=",".join(checkpoints), **SFM_FAST)
+        return r, checkpoints
+
+    return made_once(tmp_path_factory, "sfm_gcp", make)
 
 
 @pytest.fixture(scope="session")
 def toledo_sfm(tmp_path_factory):
     """SfM of the real toledo_dji photos with their gcp_list.txt."""
-    from geoortho.reconstruction.sparse import sfm
-
     base = real_data("toledo_dji")
-    return sfm(
-        base / "images", tmp_path_factory.mktemp("toledo_sfm"), gcp_list=base / "gcp" / "gcp_list.txt", **SFM_FAST
-    )
+
+    def make(d: Path):
+        from geoortho.reconstruction.sparse import sfm
+
+        return sfm(base / "images", d, gcp_list=base / "gcp" / "gcp_list.txt", **SFM_FAST)
+
+    return made_once(tmp_path_factory, "toledo_sfm", make)
