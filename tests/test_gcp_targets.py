@@ -455,3 +455,38 @@ def test_glare_styles_differ_as_said():
             half = (g >= 0.5 * g.max()).sum()
             width = 2 * np.sqrt(half / np.pi) / side  # full width at half maximum, in sides (a disc's)
             assert lo_w <= width <= hi_w, (style, seed, width)
+
+
+@pytest.mark.parametrize("blur_style", ["exact", "shake"])
+def test_ground_carried_from_a_sharp_photo_places_a_marker_in_a_blurred_one(blur_style):
+    """The ground around a marker in one photo, turned, scaled and blurred in another, is found
+    there to a pixel; unrelated ground places nothing."""
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp.detect import SearchWindow, carried_place
+    from geoortho.synthetic.survey import _other_motion_kernel, motion_kernel
+
+    rng = np.random.default_rng(5)
+    ground = cv2.GaussianBlur(rng.uniform(0, 255, (900, 900)).astype(np.float32), (0, 0), 3.0)
+    ground = cv2.normalize(ground, None, 20, 230, cv2.NORM_MINMAX)
+    side_px = 14.0
+    # the donor sees the ground as it is, the marker at (450, 450); this photo turned by 25 deg
+    # (a yaw 3 deg off what the metadata says) and 6 % nearer, its centre 17.3, -11.8 px away
+    turn_deg, scale, at = 25.0, 1.06, np.array([467.3, 438.2])
+    rot = cv2.getRotationMatrix2D((450.0, 450.0), turn_deg, scale)
+    rot[:, 2] += at - 450.0
+    here = cv2.warpAffine(ground, rot, (900, 900), flags=cv2.INTER_CUBIC)
+    kernel = motion_kernel(9.0, 40.0) if blur_style == "exact" else _other_motion_kernel(9.0, 40.0, "shake", rng)
+    here = cv2.filter2D(here, -1, kernel) + rng.normal(0, 2.0, here.shape).astype(np.float32)
+
+    def ground_px(angle_deg: float, s: float) -> tuple[float, ...]:
+        a = np.radians(angle_deg)  # pixels per marker side along east and north (y down)
+        return tuple((side_px * s * np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])).ravel())
+
+    predicted = SearchWindow("G", 1, 450.0, 450.0, 40.0, side_px, 0.0, ground_px(turn_deg - 3.0, scale))
+    x, y, tol = carried_place(here, predicted, ground, (450.0, 450.0), ground_px(0.0, 1.0))
+    assert np.hypot(x - at[0], y - at[1]) < 1.0
+    assert tol == pytest.approx(2.52)
+    elsewhere = cv2.GaussianBlur(rng.uniform(0, 255, (900, 900)).astype(np.float32), (0, 0), 3.0)
+    assert carried_place(elsewhere, predicted, ground, (450.0, 450.0), ground_px(0.0, 1.0)) is None

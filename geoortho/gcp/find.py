@@ -17,12 +17,15 @@
    there.
    Where the detector cannot decode a marker (blur, glare), its model is
    fitted (verified); where two other markers of the photo were found, only
-   within a few pixels of where they put it.
+   within a few pixels of where they put it. A marker still not found is
+   fitted again where the nearest photo that decoded it puts it: the ground
+   around it there, matched in this photo's window.
 4. Keep only detections with the GCP's id within the window: a wrong id, an
    id not in the GCP file, or a marker too far from its prediction is
    reported, never written. A verified marker whose code is too blurred to
    tell its id in this photo is taken only when its place was given by the
-   photo's other markers and its id was decoded in another photo.
+   photo's other markers, or by another photo's ground, and its id was
+   decoded in another photo.
 
 Photos without a usable pose (no GPS, no altitude) are searched whole; there
 only ids of the GCP file are accepted. The take-off elevation, unless given,
@@ -50,7 +53,7 @@ from geoortho.core.parallel import map_ordered, process_pool
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
-from geoortho.gcp.detect import Detection, SearchWindow, detect_task, fit_similarity, init_worker
+from geoortho.gcp.detect import Detection, SearchWindow, carry_task, detect_task, fit_similarity, init_worker
 from geoortho.gcp.io import GcpSet, marker_id_of, read_gcp_file
 from geoortho.gcp.markers import CODED, TARGETS, Dictionary, FindTarget, get_dictionary
 from geoortho.photos.footprint import PhotoCamera, photo_cameras, working_crs
@@ -336,6 +339,8 @@ def gcp_find(
         results, windows, offset_m, used = _search(
             plan, pool, workers, dictionary, ids, uncertainty, s_detect, target, auto_kinds
         )
+        if used in CODED:
+            results = _carry_over(results, windows, plan, dictionary, used, pool, workers)
     work = plan.work
 
     frames = {p.image: (p.width_px, p.height_px) for p in photos.photos}
@@ -703,6 +708,58 @@ def _flight_offset(
     worst_m = float(np.linalg.norm(s - shift_m, axis=1).max())
     # half again the worst residual seen, never under a metre: the pilot photos are a sample
     return shift_m, max(1.0, 1.5 * worst_m), len(shifts)
+
+
+def _carry_over(
+    results: Results,
+    windows: dict[str, list[SearchWindow]],
+    plan: _Plan,
+    dictionary: str,
+    target: str,
+    pool: Executor | None,
+    workers: int,
+) -> Results:
+    """Coded markers not found in a photo, fitted again where the nearest photo that decoded
+    them puts them (:func:`.detect.carried_place`): a blurred photo often has no marker of its
+    own found to place the others by. A marker so fitted is taken as one placed by its photo's
+    other markers (:func:`_placed`)."""
+    donors: dict[str, list[tuple[str, Detection, SearchWindow]]] = {}
+    for path, dets, *_ in results:
+        for k, win in enumerate(windows.get(Path(path).name, [])):
+            got = _nearest(dets, k, win)
+            if got is not None and got[0].attempt not in ("verified", "fitted") and got[1] <= win.max_radius_px:
+                donors.setdefault(win.gcp, []).append((path, got[0], win))
+    jobs: dict[str, list[tuple[int, SearchWindow, str, tuple[float, float], tuple[float, ...]]]] = {}
+    for path, dets, *_ in results:
+        image = Path(path).name
+        cam = plan.cams.get(image)
+        for k, win in enumerate(windows.get(image, [])):
+            if cam is None or not donors.get(win.gcp) or len(win.ground_px) != 4 or _nearest(dets, k, win):
+                continue
+            w, h = cam.photo.width_px, cam.photo.height_px
+            if not in_frame(win.x_px, win.y_px, w, h, 0.5 * win.side_px, 0.5 * win.side_px):
+                continue
+            # the nearest camera sees the ground most alike (least turned, least parallax)
+            here = np.asarray(cam.pose.center)
+            d_path, d, d_win = min(
+                donors[win.gcp], key=lambda dd: float(np.linalg.norm(plan.cams[Path(dd[0]).name].pose.center - here))
+            )
+            jobs.setdefault(path, []).append((k, win, d_path, (d.x_px, d.y_px), d_win.ground_px))
+    if not jobs:
+        return results
+    items = [(path, js, dictionary, target) for path, js in jobs.items()]
+    carried = {
+        path: (found, set(done))
+        for path, found, done in map_ordered(carry_task, items, workers=1 if pool is None else workers, executor=pool)
+    }
+    out: Results = []
+    for path, dets, error, blur in results:
+        if path in carried:
+            found, done = carried[path]
+            # the carried fit says why where it ran; elsewhere the first search's refusals stand
+            dets = [d for d in dets if not (d.window in done and d.reason)] + found
+        out.append((path, dets, error, blur))
+    return out
 
 
 def _nearest(dets: list[Detection], k: int, win: SearchWindow) -> tuple[Detection, float] | None:
