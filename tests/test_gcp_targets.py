@@ -490,3 +490,18 @@ def test_ground_carried_from_a_sharp_photo_places_a_marker_in_a_blurred_one(blur
     assert tol == pytest.approx(2.52)
     elsewhere = cv2.GaussianBlur(rng.uniform(0, 255, (900, 900)).astype(np.float32), (0, 0), 3.0)
     assert carried_place(elsewhere, predicted, ground, (450.0, 450.0), ground_px(0.0, 1.0)) is None
+
+
+@pytest.mark.parametrize("turn_deg", [0.0, 30.0, 84.0, 123.0])
+def test_a_markers_turn_on_the_ground_is_read_from_its_corners_in_any_photo(turn_deg):
+    import numpy as np
+
+    from geoortho.gcp.detect import ground_turn
+    from geoortho.gcp.targets import _affine
+
+    for yaw_deg in (0.0, 71.0, -140.0):  # the photo's heading turns its ground_px, not the marker
+        a = np.radians(yaw_deg)
+        base = 15.0 * np.array([[np.cos(a), np.sin(a)], [np.sin(a), -np.cos(a)]])  # east, north (y down)
+        corners = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]]) @ _affine(base, turn_deg, 1, 0, 0).T
+        got = ground_turn(corners + [300.0, 200.0], tuple(base.ravel()))
+        assert abs((got - turn_deg + 45.0) % 90.0 - 45.0) < 1e-6

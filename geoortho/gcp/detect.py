@@ -324,10 +324,11 @@ def _fit_model(
     blur: tuple[float, float],
     found: list[Detection],
     local: tuple[float, float, float] | None = None,
+    turn_deg: float | None = None,
 ) -> None:
     """The target by model fit, appended to ``found`` (refusals too, with their reason): in its
     window, then the wide one; or, given ``local`` (:func:`local_prediction`), only around where
-    the photo's other markers put it."""
+    the photo's other markers put it (``turn_deg``: see :func:`.targets.fit_target`)."""
     h, w = gray.shape[:2]
     if local is None:
         radii = [win.radius_px] + ([win.wide_radius_px] if win.wide_radius_px > win.radius_px else [])
@@ -343,7 +344,7 @@ def _fit_model(
     base = np.abs(np.array(win.ground_px, float).reshape(2, 2)).sum(axis=1).max()
     reach = base * target_half_extent(target) * 1.2 + blur[0] / 2 + 3
     box = _square(replace(win, x_px=x, y_px=y), tol + reach, w, h)
-    d = _fit(gray, win, k, box, target, dictionary, blur, local)
+    d = _fit(gray, win, k, box, target, dictionary, blur, local, turn_deg)
     if d is None:
         return
     off = math.hypot(d.x_px - x, d.y_px - y)
@@ -362,6 +363,7 @@ def _fit(
     dictionary: str,
     blur: tuple[float, float],
     near: tuple[float, float, float] | None = None,
+    turn_deg: float | None = None,
 ) -> Detection | None:
     """The window's target by model fit, as a detection (refused ones carry their reason);
     ``near``: see :func:`.targets.fit_target`."""
@@ -380,6 +382,7 @@ def _fit(
         blur=blur,
         predicted_xy=(win.x_px, win.y_px),
         near=near,
+        turn_deg=turn_deg,
     )
     if fit is None:
         return None
@@ -580,13 +583,14 @@ def carried_place(
     return x0 + bx + fx + half, y0 + by + fy + half, max(0.18 * win.side_px, 2.5)
 
 
-def carry_task(
-    args: tuple[str, list[tuple[int, SearchWindow, str, tuple[float, float], tuple[float, ...]]], str, str],
-) -> tuple[str, list[Detection], list[int]]:
+CarryJob = tuple[int, SearchWindow, str, tuple[float, float], tuple[float, ...], tuple[tuple[float, float], ...]]
+
+
+def carry_task(args: tuple[str, list[CarryJob], str, str]) -> tuple[str, list[Detection], list[int]]:
     """Worker entry: windows of one photo whose coded marker was not found, fitted again where a
     photo that found it puts it (:func:`carried_place`); each job is (window index, window, donor
-    photo, the marker's centre there, its ``ground_px`` there). Returns the photo, the new
-    detections (refusals with their reason) and the windows searched again."""
+    photo, the marker's centre there, its ``ground_px`` there, its corners there). Returns the
+    photo, the new detections (refusals with their reason) and the windows searched again."""
     path, jobs, dictionary, target = args
     gray = _read_grey(path)
     if gray is None:
@@ -595,7 +599,7 @@ def carry_task(
     found: list[Detection] = []
     done: list[int] = []
     donors: dict[str, np.ndarray | None] = {}
-    for k, win, donor_path, donor_xy, donor_ground in jobs:
+    for k, win, donor_path, donor_xy, donor_ground, donor_corners in jobs:
         if donor_path not in donors:
             donors[donor_path] = _read_grey(donor_path)
         donor = donors[donor_path]
@@ -603,8 +607,17 @@ def carry_task(
         if place is None:
             continue
         done.append(k)
-        _fit_model(gray, win, k, target, dictionary, blur, found, place)
+        _fit_model(gray, win, k, target, dictionary, blur, found, place, ground_turn(donor_corners, donor_ground))
     return path, found, done
+
+
+def ground_turn(corners_px: Sequence[Sequence[float]], ground_px: Sequence[float]) -> float:
+    """A square marker's turn on the ground (degrees, modulo 90; :func:`.targets.fit_target`'s
+    angle) from its corners in a photo and the photo's ``ground_px`` there: the same in every
+    photo, to their yaw errors' difference (a few degrees)."""
+    c = np.asarray(corners_px, float)
+    edge = np.linalg.solve(np.array(ground_px, float).reshape(2, 2), c[1] - c[0])  # in east/north sides
+    return math.degrees(math.atan2(-edge[1], edge[0])) % 90.0
 
 
 def _read_grey(path: str) -> np.ndarray | None:

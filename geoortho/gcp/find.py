@@ -53,7 +53,15 @@ from geoortho.core.parallel import map_ordered, process_pool
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
-from geoortho.gcp.detect import Detection, SearchWindow, carry_task, detect_task, fit_similarity, init_worker
+from geoortho.gcp.detect import (
+    CarryJob,
+    Detection,
+    SearchWindow,
+    carry_task,
+    detect_task,
+    fit_similarity,
+    init_worker,
+)
 from geoortho.gcp.io import GcpSet, marker_id_of, read_gcp_file
 from geoortho.gcp.markers import CODED, TARGETS, Dictionary, FindTarget, get_dictionary
 from geoortho.photos.footprint import PhotoCamera, photo_cameras, working_crs
@@ -729,7 +737,7 @@ def _carry_over(
             got = _nearest(dets, k, win)
             if got is not None and got[0].attempt not in ("verified", "fitted") and got[1] <= win.max_radius_px:
                 donors.setdefault(win.gcp, []).append((path, got[0], win))
-    jobs: dict[str, list[tuple[int, SearchWindow, str, tuple[float, float], tuple[float, ...]]]] = {}
+    jobs: dict[str, list[CarryJob]] = {}
     for path, dets, *_ in results:
         image = Path(path).name
         cam = plan.cams.get(image)
@@ -744,7 +752,7 @@ def _carry_over(
             d_path, d, d_win = min(
                 donors[win.gcp], key=lambda dd: float(np.linalg.norm(plan.cams[Path(dd[0]).name].pose.center - here))
             )
-            jobs.setdefault(path, []).append((k, win, d_path, (d.x_px, d.y_px), d_win.ground_px))
+            jobs.setdefault(path, []).append((k, win, d_path, (d.x_px, d.y_px), d_win.ground_px, d.corners_px))
     if not jobs:
         return results
     items = [(path, js, dictionary, target) for path, js in jobs.items()]

@@ -418,6 +418,7 @@ def fit_target(
     blur: tuple[float, float] = (0.0, 0.0),
     predicted_xy: tuple[float, float] | None = None,
     near: tuple[float, float, float] | None = None,
+    turn_deg: float | None = None,
 ) -> Fit | None:
     """Find and fit one target of ``kind`` in ``box`` (x0, y0, x1, y1) of a grey photo.
 
@@ -427,14 +428,18 @@ def fit_target(
     id, where the GCP is predicted (photo pixels): of the targets in the box that pass the
     score, the one nearest it is taken, unless another is about as near (ambiguous).
     ``near`` (x, y, radius; photo pixels): the target's centre is known to lie within radius of
-    (x, y) — the search starts only there. None when the box is too small."""
+    (x, y) — the search starts only there. ``turn_deg``: the target's turn on the ground (as
+    :func:`_affine`'s angle) is known to a few degrees, modulo its period: only the rotations
+    within 10° of it are tried. None when the box is too small."""
     x0, y0, x1, y1 = box
     crop = gray[y0:y1, x0:x1].astype(np.float32)
     if crop.shape[0] < 8 or crop.shape[1] < 8:
         return None
     by_place = predicted_xy is not None and kind not in CODED
     within = None if near is None else (near[0] - x0, near[1] - y0, near[2])
-    coarse = _coarse(crop, kind, base, cells, blur, max_peaks=4 if by_place else 6, absolute=by_place, near=within)
+    coarse = _coarse(
+        crop, kind, base, cells, blur, max_peaks=4 if by_place else 6, absolute=by_place, near=within, turn_deg=turn_deg
+    )
     if not coarse:
         return None
     verdict = partial(_verdict, crop, box, kind, base, cells, dictionary, marker_id, by_place)
@@ -741,9 +746,11 @@ def _coarse(
     max_peaks: int = 3,
     absolute: bool = False,
     near: tuple[float, float, float] | None = None,
+    turn_deg: float | None = None,
 ) -> list[tuple[float, float, float, float, float]] | None:
     """Candidate positions, rotations and sizes by masked template matching, best first;
-    ``near`` (x, y, radius in crop pixels): centres within radius of (x, y) only."""
+    ``near`` (x, y, radius in crop pixels): centres within radius of (x, y) only; ``turn_deg``:
+    rotations within 10° of it only (see :func:`fit_target`)."""
     half = target_half_extent(kind, cells)
     reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.2 + blur[0] / 2 + 1))
     size = 2 * reach + 1
@@ -754,7 +761,12 @@ def _coarse(
     coded = kind in CODED and cells is not None
     maps, used = [], []
     # the predicted size is off by the camera height's error (10 % is common): three sizes
-    for angle, scale in ((a, f) for a in _angles(kind) for f in (0.88, 1.0, 1.12)):
+    angles = _angles(kind)
+    if turn_deg is not None and len(angles) > 1:
+        period = 10.0 * len(angles)
+        off = np.abs((angles - turn_deg + period / 2) % period - period / 2)
+        angles = angles[off <= 10.0]
+    for angle, scale in ((a, f) for a in angles for f in (0.88, 1.0, 1.12)):
         A = _affine(base, float(angle), scale, 0.0, 0.0)
         tpl, cover = rend.render(reach, reach, A, blur[0], blur[1], 0.5)
         t = tpl.reshape(size, size).astype(np.float32)
@@ -829,7 +841,8 @@ def _near_candidates(
     # surveys and saved under a tenth of the time.)
     at = (int(round(near[0])) - reach, int(round(near[1])) - reach)
     if 0 <= at[0] < top_shape[1] and 0 <= at[1] < top_shape[0]:
-        here = [(max(res[at[1], at[0]] for res, (b, _) in zip(maps, used) if b == a), a) for a in _angles(kind)]
+        turns = sorted({a for a, _ in used})
+        here = [(max(res[at[1], at[0]] for res, (b, _) in zip(maps, used) if b == a), a) for a in turns]
         for mx, a in sorted(here, reverse=True):
             if coded:
                 a = _quarter_turn(crop, rend, at, base, a, 1.0, blur)
