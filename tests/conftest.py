@@ -9,6 +9,7 @@ from __future__ import annotations
 import fcntl
 import os
 import pickle
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -36,8 +37,6 @@ def made_once(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callabl
             return pickle.loads(made.read_bytes())
         folder = shared / name
         if folder.exists():  # a make that failed on another worker
-            import shutil
-
             shutil.rmtree(folder)
         folder.mkdir()
         value = make(folder)

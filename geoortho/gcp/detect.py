@@ -24,6 +24,7 @@ __all__ = [
     "detect_task",
     "carry_task",
     "carried_place",
+    "ground_turn",
     "init_worker",
     "marker_centre",
     "diagonal_intersection",
@@ -506,13 +507,10 @@ def detect_task(args: tuple[str, list[SearchWindow], str, str, bool]) -> tuple[s
     path, windows, dictionary, target, fit = args
 
     coded = target in CODED
-    try:  # strict: a corrupt scan would be searched as grey smears, with libjpeg noise on stderr
-        img = decode_photo(path, grey=coded)
+    try:
+        img = _read_photo(path, grey=coded)
     except OSError as e:
         return path, [], str(e), math.nan
-    if img is None:
-        flags = cv2.IMREAD_GRAYSCALE if coded else cv2.IMREAD_COLOR
-        img = cv2.imread(path, flags | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         return path, [], "cannot decode the image", math.nan
     gray = img if coded else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -593,7 +591,7 @@ def carry_task(args: tuple[str, list[CarryJob], str, str]) -> tuple[str, list[De
     photo, the new detections (refusals with their reason) and the windows searched again."""
     path, jobs, dictionary, target = args
     gray = _read_grey(path)
-    if gray is None:
+    if gray is None:  # its search already said why
         return path, [], []
     blur = estimate_motion_blur(gray)
     found: list[Detection] = []
@@ -620,13 +618,22 @@ def ground_turn(corners_px: Sequence[Sequence[float]], ground_px: Sequence[float
     return math.degrees(math.atan2(-edge[1], edge[0])) % 90.0
 
 
+def _read_photo(path: str, *, grey: bool) -> np.ndarray | None:
+    """A photo's pixels (BGR or grey), None when nothing decodes it; OSError for a corrupt JPEG
+    (strict: it would be searched as grey smears, with libjpeg noise on stderr)."""
+    img = decode_photo(path, grey=grey)
+    if img is None:  # not a JPEG: OpenCV's own way
+        flags = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR
+        img = cv2.imread(path, flags | cv2.IMREAD_IGNORE_ORIENTATION)
+    return img
+
+
 def _read_grey(path: str) -> np.ndarray | None:
-    """A photo in grey, or None when it cannot be read (its search already said why)."""
+    """A photo in grey, or None when it cannot be read."""
     try:
-        img = decode_photo(path, grey=True)
+        return _read_photo(path, grey=True)
     except OSError:
         return None
-    return img if img is not None else cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
 
 
 def init_worker() -> None:

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -732,11 +732,8 @@ def _carry_over(
     own found to place the others by. A marker so fitted is taken as one placed by its photo's
     other markers (:func:`_placed`)."""
     donors: dict[str, list[tuple[str, Detection, SearchWindow]]] = {}
-    for path, dets, *_ in results:
-        for k, win in enumerate(windows.get(Path(path).name, [])):
-            got = _nearest(dets, k, win)
-            if got is not None and got[0].attempt not in ("verified", "fitted") and got[1] <= win.max_radius_px:
-                donors.setdefault(win.gcp, []).append((path, got[0], win))
+    for path, d, win in _decoded(results, windows):
+        donors.setdefault(win.gcp, []).append((path, d, win))
     jobs: dict[str, list[CarryJob]] = {}
     for path, dets, *_ in results:
         image = Path(path).name
@@ -780,15 +777,18 @@ def _nearest(dets: list[Detection], k: int, win: SearchWindow) -> tuple[Detectio
     return min(mine, key=lambda de: de[1]) if mine else None
 
 
-def _decoded_gcps(results: Results, windows: dict[str, list[SearchWindow]]) -> set[str]:
-    """GCPs whose marker the detector decoded in their window of some photo."""
-    out = set()
+def _decoded(results: Results, windows: dict[str, list[SearchWindow]]) -> Iterator[tuple[str, Detection, SearchWindow]]:
+    """Each window whose marker the detector decoded: (photo path, the detection, the window)."""
     for path, dets, *_ in results:
         for k, win in enumerate(windows.get(Path(path).name, [])):
             found = _nearest(dets, k, win)
             if found is not None and found[0].attempt not in ("verified", "fitted") and found[1] <= win.max_radius_px:
-                out.add(win.gcp)
-    return out
+                yield path, found[0], win
+
+
+def _decoded_gcps(results: Results, windows: dict[str, list[SearchWindow]]) -> set[str]:
+    """GCPs whose marker the detector decoded in their window of some photo."""
+    return {win.gcp for _, _, win in _decoded(results, windows)}
 
 
 def _placed(dets: list[Detection], k: int, win: SearchWindow) -> tuple[Detection, float] | None:
