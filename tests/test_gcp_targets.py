@@ -369,8 +369,8 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
     from dataclasses import replace
 
     from geoortho.feedback import as_feedback
-    from geoortho.gcp.detect import Detection, SearchWindow
-    from geoortho.gcp.find import DETECTED, PLACED_ID_MARGIN, _judge
+    from geoortho.gcp.detect import PLACED_ID_MARGIN, Detection, SearchWindow
+    from geoortho.gcp.find import DETECTED, _judge
 
     win = SearchWindow("GCP07", 7, 500.0, 400.0, 60.0, side_px=16.0)
     corners = ((492.0, 393.0), (508.0, 393.0), (508.0, 409.0), (492.0, 409.0))

@@ -22,7 +22,8 @@ __all__ = [
     "SearchWindow",
     "detect_in_image",
     "detect_task",
-    "carry_task",
+    "second_look_task",
+    "fit_missed",
     "carried_place",
     "ground_turn",
     "init_worker",
@@ -194,17 +195,15 @@ def detect_in_image(
 
     Coded targets: retries go on until the window's expected id is decoded; every marker
     seen on the way is returned, so the caller can judge wrong ids too. Where none decodes,
-    the expected marker is verified by fitting its model (:mod:`.targets`): after the detector
-    has run on every window, and where two markers of the photo are found, only within a few
-    pixels of where they put it (:func:`local_prediction`; on the blurred small surveys the
-    window's prediction is 6-29 px off, theirs 0.3-1.9 px). Targets without a code are fitted
-    in every window. ``blur``: the photo's motion blur (estimated when needed).
-    ``fit`` False: coded markers by the detector alone (no model fits).
+    the expected marker is verified by fitting its model (:mod:`.targets`; :func:`fit_missed`).
+    Targets without a code are fitted in every window. ``blur``: the photo's motion blur
+    (estimated when needed). ``fit`` False: coded markers by the detector alone (no model fits;
+    :func:`second_look_task` fits them once every photo has been searched).
     """
     h, w = gray.shape[:2]
     coded = target in CODED
     found: list[Detection] = []
-    to_fit: list[int] = []
+    missed: list[int] = []
     for k, win in enumerate(windows):
         if win.radius_px <= 0:
             if not coded:
@@ -223,6 +222,37 @@ def detect_in_image(
                 continue
         elif win.ambiguous_with:
             continue
+        missed.append(k)
+    return fit_missed(gray, windows, found, missed, target, dictionary, blur)
+
+
+def fit_missed(
+    gray: np.ndarray,
+    windows: list[SearchWindow],
+    found: list[Detection],
+    missed: Sequence[int],
+    target: str,
+    dictionary: str,
+    blur: tuple[float, float] | None,
+    carried: dict[int, tuple[float, float, float]] | None = None,
+    turns: dict[int, float] | None = None,
+) -> list[Detection]:
+    """Windows ``missed`` (indices) fitted by their target's model, their fits and refusals
+    added to ``found`` (returned).
+
+    Coded markers: where two markers of the photo are found, only within a few pixels of where
+    they put it (:func:`local_prediction`; on the blurred small surveys the window's prediction
+    is 6-29 px off, theirs 0.3-1.9 px); else where a photo that decoded it puts it
+    (``carried``: window -> (x, y, tolerance); :func:`carried_place`); only then in the whole
+    window. A marker fitted so is an anchor for the rest. The wide fits come last because they
+    cost most and fail most: on a degraded small survey, 29 of 50 failed at 0.65 s each, where a
+    carried fit costs a fifth of that. ``turns``: window -> the marker's turn on the ground, where
+    a photo decoded it (:func:`ground_turn`): its fits try only the rotations near it."""
+    h, w = gray.shape[:2]
+    coded = target in CODED
+    to_fit: list[int] = []
+    for k in missed:
+        win = windows[k]
         # A target is kept only where the fit lies wholly in the photo: one cut by the frame cannot
         # be told from texture. One predicted nearer the edge than half its side may still be
         # whole (the prediction errs by a few sides): targets without a code are fitted in every
@@ -246,26 +276,38 @@ def detect_in_image(
         for k in to_fit:
             _fit_model(gray, windows[k], k, target, dictionary, blur, found)
         return found
-    # Coded markers the detector missed, after it has run on every window: where it decoded
-    # others in this photo, they put this one within a few pixels (the pose's error moves every
-    # prediction alike) and the fit searches there; a marker fitted so is an anchor for the rest.
-    searched: dict[int, str] = {}  # window -> "wide" or "near": how its marker was last fitted
-    while True:
-        progress = False
-        for k in to_fit:
-            if searched.get(k) == "near" or any(_accepted(d, windows[k]) for d in found if d.window == k):
-                continue
-            local = local_prediction(windows, found, k)
-            if local is not None and local[2] > 0.5 * windows[k].side_px:
-                local = None  # the photo's markers disagree: they place nothing
-            if local is None and k in searched:
-                continue
-            searched[k] = "wide" if local is None else "near"
-            found[:] = [d for d in found if not (d.window == k and d.reason)]  # the new fit says why
-            _fit_model(gray, windows[k], k, target, dictionary, blur, found, local)
-            progress |= any(_accepted(d, windows[k]) for d in found if d.window == k)
-        if not progress:
-            return found
+    carried, turns = carried or {}, turns or {}
+    tried: dict[int, set[str]] = {k: set() for k in to_fit}  # "carried", "near", "wide"
+
+    def settled(k: int) -> bool:
+        return any(d.window == k and (_accepted(d, windows[k]) or placed_by_others(d)) for d in found)
+
+    for last_resort in (False, True):
+        while True:
+            progress = False
+            for k in to_fit:
+                if settled(k):
+                    continue
+                local = local_prediction(windows, found, k)
+                if local is not None and local[2] > 0.5 * windows[k].side_px:
+                    local = None  # the photo's markers disagree: they place nothing
+                # the carried place first: the ground of a 113 px square places a 14 px marker
+                # better than two blurred markers' similarity (a marker lost on a degraded survey)
+                if k in carried and "carried" not in tried[k]:
+                    how, local = "carried", carried[k]
+                elif local is not None and "near" not in tried[k]:
+                    how = "near"
+                elif last_resort and not tried[k]:
+                    how = "wide"
+                else:
+                    continue
+                tried[k].add(how)
+                found[:] = [d for d in found if not (d.window == k and d.reason)]  # the new fit says why
+                _fit_model(gray, windows[k], k, target, dictionary, blur, found, local, turns.get(k))
+                progress |= settled(k)
+            if not progress:
+                break
+    return found
 
 
 def _accepted(d: Detection, win: SearchWindow) -> bool:
@@ -275,6 +317,18 @@ def _accepted(d: Detection, win: SearchWindow) -> bool:
         and not d.reason
         and math.hypot(d.x_px - win.x_px, d.y_px - win.y_px) <= win.max_radius_px
     )
+
+
+#: The id margin a coded marker placed by its photo's other markers needs, when its id was decoded
+#: in another photo (:func:`placed_by_others`).
+PLACED_ID_MARGIN = 0.0
+
+
+def placed_by_others(d: Detection) -> bool:
+    """A fit where the photo's other markers (or a photo that decoded it) put it, refused only
+    because its code is too blurred to tell its id here: the marker, when its id was decoded in
+    another photo (the caller's to know)."""
+    return d.refused_on == "id_margin" and math.isfinite(d.near_px) and d.id_margin >= PLACED_ID_MARGIN
 
 
 def local_prediction(windows: list[SearchWindow], found: list[Detection], k: int) -> tuple[float, float, float] | None:
@@ -500,10 +554,9 @@ def paint_channel(bgr: np.ndarray) -> np.ndarray:
 
 
 def detect_task(args: tuple[str, list[SearchWindow], str, str, bool]) -> tuple[str, list[Detection], str, float]:
-    """Worker entry: decode one photo and search its windows (``fit``: coded markers the
-    detector misses are verified by a model fit); and the photo's motion blur (px). Coded
-    markers are searched in grey, as the detector reads them; other targets are fitted in
-    :func:`paint_channel`."""
+    """Worker entry: decode one photo and search its windows (``fit``: see
+    :func:`detect_in_image`); and the photo's motion blur (px). Coded markers are searched in
+    grey, as the detector reads them; other targets are fitted in :func:`paint_channel`."""
     path, windows, dictionary, target, fit = args
 
     coded = target in CODED
@@ -516,7 +569,8 @@ def detect_task(args: tuple[str, list[SearchWindow], str, str, bool]) -> tuple[s
     gray = img if coded else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     blur = estimate_motion_blur(gray)
     searched = gray if coded else paint_channel(img)
-    return path, detect_in_image(searched, windows, dictionary, target=target, blur=blur, fit=fit), "", blur[0]
+    dets = detect_in_image(searched, windows, dictionary, target=target, blur=blur, fit=fit)
+    return path, dets, "", blur[0]
 
 
 #: What ground carried over from another photo must score (OpenCV's normalised correlation) to
@@ -581,32 +635,39 @@ def carried_place(
     return x0 + bx + fx + half, y0 + by + fy + half, max(0.18 * win.side_px, 2.5)
 
 
-CarryJob = tuple[int, SearchWindow, str, tuple[float, float], tuple[float, ...], tuple[tuple[float, float], ...]]
+#: A window to fit where another photo found its marker: (window index, donor photo, the marker's
+#: centre there, its ``ground_px`` there, its corners there).
+CarryJob = tuple[int, str, tuple[float, float], tuple[float, ...], tuple[tuple[float, float], ...]]
 
 
-def carry_task(args: tuple[str, list[CarryJob], str, str]) -> tuple[str, list[Detection], list[int]]:
-    """Worker entry: windows of one photo whose coded marker was not found, fitted again where a
-    photo that found it puts it (:func:`carried_place`); each job is (window index, window, donor
-    photo, the marker's centre there, its ``ground_px`` there, its corners there). Returns the
-    photo, the new detections (refusals with their reason) and the windows searched again."""
-    path, jobs, dictionary, target = args
+def second_look_task(
+    args: tuple[str, list[SearchWindow], list[Detection], list[CarryJob], str, str],
+) -> tuple[str, list[Detection]]:
+    """Worker entry, once every photo has been searched by the detector: the windows of one photo
+    whose coded marker it did not decode, fitted (:func:`fit_missed`) where a photo that decoded it
+    puts it (``jobs``; :func:`carried_place`) and at the turn it has there (:func:`ground_turn`),
+    else where this photo's markers put it, else in the whole window. Returns the photo and its
+    detections: ``found`` and the new fits (refusals with their reason)."""
+    path, windows, found, jobs, dictionary, target = args
     gray = _read_grey(path)
     if gray is None:  # its search already said why
-        return path, [], []
-    blur = estimate_motion_blur(gray)
-    found: list[Detection] = []
-    done: list[int] = []
+        return path, found
+    h, w = gray.shape[:2]
+    carried: dict[int, tuple[float, float, float]] = {}
+    turns: dict[int, float] = {}
     donors: dict[str, np.ndarray | None] = {}
-    for k, win, donor_path, donor_xy, donor_ground, donor_corners in jobs:
+    for k, donor_path, donor_xy, donor_ground, donor_corners in jobs:
+        turns[k] = ground_turn(donor_corners, donor_ground)
         if donor_path not in donors:
             donors[donor_path] = _read_grey(donor_path)
-        donor = donors[donor_path]
-        place = None if donor is None else carried_place(gray, win, donor, donor_xy, donor_ground)
-        if place is None:
+        donor, win = donors[donor_path], windows[k]
+        if donor is None or not in_frame(win.x_px, win.y_px, w, h, 0.5 * win.side_px, 0.5 * win.side_px):
             continue
-        done.append(k)
-        _fit_model(gray, win, k, target, dictionary, blur, found, place, ground_turn(donor_corners, donor_ground))
-    return path, found, done
+        place = carried_place(gray, win, donor, donor_xy, donor_ground)
+        if place is not None:
+            carried[k] = place
+    missed = [k for k, win in enumerate(windows) if not any(_accepted(d, win) for d in found if d.window == k)]
+    return path, fit_missed(gray, windows, list(found), missed, target, dictionary, None, carried, turns)
 
 
 def ground_turn(corners_px: Sequence[Sequence[float]], ground_px: Sequence[float]) -> float:

@@ -57,10 +57,11 @@ from geoortho.gcp.detect import (
     CarryJob,
     Detection,
     SearchWindow,
-    carry_task,
     detect_task,
     fit_similarity,
     init_worker,
+    placed_by_others,
+    second_look_task,
 )
 from geoortho.gcp.io import GcpSet, marker_id_of, read_gcp_file
 from geoortho.gcp.markers import CODED, TARGETS, Dictionary, FindTarget, get_dictionary
@@ -75,9 +76,6 @@ NOT_FOUND = "not found"
 TOO_FAR = "too far from prediction"
 WRONG_ID = "id not in GCP file"
 IN_MARGIN = "inside the margin"
-#: The id margin a coded marker placed by its photo's other markers needs, when its id was decoded
-#: in another photo (:func:`_placed`).
-PLACED_ID_MARGIN = 0.0
 AMBIGUOUS = "ambiguous"
 
 
@@ -348,7 +346,7 @@ def gcp_find(
             plan, pool, workers, dictionary, ids, uncertainty, s_detect, target, auto_kinds
         )
         if used in CODED:
-            results = _carry_over(results, windows, plan, dictionary, used, pool, workers)
+            results = _second_look(results, windows, plan, dictionary, used, pool, workers)
     work = plan.work
 
     frames = {p.image: (p.width_px, p.height_px) for p in photos.photos}
@@ -566,7 +564,9 @@ def _search(
     # photos without a pose are searched whole, for coded markers only (nothing else tells a target)
     whole = [SearchWindow("", -1, 0.0, 0.0, 0.0)]
     jobs = [(im, windows[im]) for im in rest] + [(p.image, whole) for p in plan.unplaced if target in CODED]
-    results += run(jobs, target, s_rest)
+    # coded markers by the detector alone here: the ones it misses are fitted once every photo has
+    # been searched, where the photos that decoded them put them (_second_look)
+    results += run(jobs, target, s_rest, fit=not coded)
     return results, windows, None if offset is None else (float(offset[0][0]), float(offset[0][1])), target
 
 
@@ -718,7 +718,7 @@ def _flight_offset(
     return shift_m, max(1.0, 1.5 * worst_m), len(shifts)
 
 
-def _carry_over(
+def _second_look(
     results: Results,
     windows: dict[str, list[SearchWindow]],
     plan: _Plan,
@@ -727,44 +727,40 @@ def _carry_over(
     pool: Executor | None,
     workers: int,
 ) -> Results:
-    """Coded markers not found in a photo, fitted again where the nearest photo that decoded
-    them puts them (:func:`.detect.carried_place`): a blurred photo often has no marker of its
-    own found to place the others by. A marker so fitted is taken as one placed by its photo's
-    other markers (:func:`_placed`)."""
+    """Coded markers not found in a photo once every photo is searched, fitted again
+    (:func:`.detect.second_look_task`): where the nearest photo that decoded them puts them
+    (:func:`.detect.carried_place`), else in their whole window. A blurred photo often has no
+    marker of its own found to place the others by; a sharp neighbour has. A marker so carried is
+    taken as one placed by its photo's other markers (:func:`_placed`)."""
     donors: dict[str, list[tuple[str, Detection, SearchWindow]]] = {}
     for path, d, win in _decoded(results, windows):
         donors.setdefault(win.gcp, []).append((path, d, win))
     jobs: dict[str, list[CarryJob]] = {}
-    for path, dets, *_ in results:
+    for path, dets, error, _ in results:
         image = Path(path).name
         cam = plan.cams.get(image)
+        if cam is None or error:
+            continue
         for k, win in enumerate(windows.get(image, [])):
-            if cam is None or not donors.get(win.gcp) or len(win.ground_px) != 4 or _nearest(dets, k, win):
+            if len(win.ground_px) != 4 or _nearest(dets, k, win):
                 continue
-            w, h = cam.photo.width_px, cam.photo.height_px
-            if not in_frame(win.x_px, win.y_px, w, h, 0.5 * win.side_px, 0.5 * win.side_px):
+            if not in_frame(win.x_px, win.y_px, cam.photo.width_px, cam.photo.height_px):
+                continue
+            carries = jobs.setdefault(path, [])
+            if not donors.get(win.gcp):
                 continue
             # the nearest camera sees the ground most alike (least turned, least parallax)
             here = np.asarray(cam.pose.center)
             d_path, d, d_win = min(
                 donors[win.gcp], key=lambda dd: float(np.linalg.norm(plan.cams[Path(dd[0]).name].pose.center - here))
             )
-            jobs.setdefault(path, []).append((k, win, d_path, (d.x_px, d.y_px), d_win.ground_px, d.corners_px))
+            carries.append((k, d_path, (d.x_px, d.y_px), d_win.ground_px, d.corners_px))
     if not jobs:
         return results
-    items = [(path, js, dictionary, target) for path, js in jobs.items()]
-    carried = {
-        path: (found, set(done))
-        for path, found, done in map_ordered(carry_task, items, workers=1 if pool is None else workers, executor=pool)
-    }
-    out: Results = []
-    for path, dets, error, blur in results:
-        if path in carried:
-            found, done = carried[path]
-            # the carried fit says why where it ran; elsewhere the first search's refusals stand
-            dets = [d for d in dets if not (d.window in done and d.reason)] + found
-        out.append((path, dets, error, blur))
-    return out
+    by_path = {path: dets for path, dets, *_ in results}
+    items = [(path, windows[Path(path).name], by_path[path], js, dictionary, target) for path, js in jobs.items()]
+    looked = dict(map_ordered(second_look_task, items, workers=1 if pool is None else workers, executor=pool))
+    return [(path, looked.get(path, dets), error, blur) for path, dets, error, blur in results]
 
 
 def _nearest(dets: list[Detection], k: int, win: SearchWindow) -> tuple[Detection, float] | None:
@@ -793,18 +789,14 @@ def _decoded_gcps(results: Results, windows: dict[str, list[SearchWindow]]) -> s
 
 def _placed(dets: list[Detection], k: int, win: SearchWindow) -> tuple[Detection, float] | None:
     """A coded marker fitted where the photo's other markers put it, refused only because its code
-    is too blurred to tell its id here (an id margin of :data:`PLACED_ID_MARGIN` or more): taken
+    is too blurred to tell its id here (:func:`.detect.placed_by_others`): taken
     when its GCP's id was decoded in another photo. Its place is then the proof: another marker
     within a few pixels of where this one must be is no marker of the survey (they stand metres
     apart), and texture there does not reach the fit's score."""
     mine = [
         (d, math.hypot(d.x_px - win.x_px, d.y_px - win.y_px))
         for d in dets
-        if d.window == k
-        and d.marker_id == win.marker_id
-        and d.refused_on == "id_margin"
-        and math.isfinite(d.near_px)
-        and d.id_margin >= PLACED_ID_MARGIN
+        if d.window == k and d.marker_id == win.marker_id and placed_by_others(d)
     ]
     return min(mine, key=lambda de: de[1]) if mine else None
 
