@@ -182,6 +182,12 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
     return out
 
 
+#: A photo blurred by this many marker sides or more is searched by the detector's "fast" and
+#: "glare" attempts alone: on four degraded small surveys (14-16 px markers) its other attempts
+#: decoded nothing there in 540 runs, and "glare" 2 of 306.
+SMEARED = 0.4
+
+
 def detect_in_image(
     gray: np.ndarray,
     windows: list[SearchWindow],
@@ -213,10 +219,13 @@ def detect_in_image(
             _search(gray, (0, 0, w, h), win, tries, dictionary, -1, found, stop_at_id=False)
             continue
         if coded:
-            if _search(gray, _square(win, win.radius_px, w, h), win, attempts, dictionary, k, found):
+            tries = attempts
+            if blur is not None and blur[0] >= SMEARED * win.side_px:
+                tries = tuple(a for a in attempts if a in ("fast", "glare"))
+            if _search(gray, _square(win, win.radius_px, w, h), win, tries, dictionary, k, found):
                 continue
             if win.wide_radius_px > win.radius_px and in_frame(win.x_px, win.y_px, w, h):
-                if _search(gray, _square(win, win.wide_radius_px, w, h), win, attempts, dictionary, k, found):
+                if _search(gray, _square(win, win.wide_radius_px, w, h), win, tries, dictionary, k, found):
                     continue
             if not fit:
                 continue
