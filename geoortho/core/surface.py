@@ -218,11 +218,6 @@ class GridSurface(Surface):
         # March a step past the lowest cell: in float32 a ray that ends exactly on the
         # lowest ground could otherwise stop a hair above it and miss.
         t1 = np.minimum(t_bot + step, max_range_m)
-        # ... and only while over the grid: beyond it every sample is no data, which a ray passes.
-        # An oblique photo's rays near the horizon would otherwise step hundreds of metres past it.
-        t_in, t_out = _box_span(o[:, :2], d[:, :2], self.bounds)
-        t0 = np.maximum(t0, t_in - step)
-        t1 = np.minimum(t1, t_out + step)
         t_end = np.full(n, float(max_range_m))
         hit = np.zeros(n, bool)
         active = np.nonzero(t1 > t0)[0]
@@ -370,20 +365,6 @@ class GridSurface(Surface):
             w = np.where(fa - fb > 0, fa / (fa - fb), 0.5)
         t_end[active[fi]] = a + np.clip(w, 0, 1) * (b - a)
         hit[active[fi]] = True
-
-
-def _box_span(o: np.ndarray, d: np.ndarray, bounds: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Where rays (origins ``o``, directions ``d``: n × 2, in x and y) enter and leave the box
-    ``bounds`` (west, south, east, north): ranges along each ray; enter > leave for a ray that
-    misses it."""
-    lo, hi = np.array(bounds[:2], float), np.array(bounds[2:], float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a, b = (lo - o) / d, (hi - o) / d
-    # a ray parallel to an axis: within the slab for all of its length, or never
-    inside = (o >= lo) & (o <= hi)
-    near = np.where(d == 0, np.where(inside, -np.inf, np.inf), np.minimum(a, b))
-    far = np.where(d == 0, np.where(inside, np.inf, -np.inf), np.maximum(a, b))
-    return near.max(axis=1), far.min(axis=1)
 
 
 def read_surface(
