@@ -505,3 +505,37 @@ def test_a_markers_turn_on_the_ground_is_read_from_its_corners_in_any_photo(turn
         corners = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]]) @ _affine(base, turn_deg, 1, 0, 0).T
         got = ground_turn(corners + [300.0, 200.0], tuple(base.ravel()))
         assert abs((got - turn_deg + 45.0) % 90.0 - 45.0) < 1e-6
+
+
+def test_a_missed_marker_is_fitted_where_it_was_carried_and_its_whole_window_searched_only_without():
+    """fit_missed: a blurred marker the detector missed, carried (where a photo that decoded it puts
+    it, and its turn there), is fitted there, within a pixel of the truth, and its whole window
+    is never searched (the costliest fit); with nothing to place it, the whole window is."""
+    import math
+
+    from geoortho.gcp import detect
+
+    img, (cx, cy), A = _blurred_marker(7, 16.0, 8.0)
+    blur = estimate_motion_blur(img)
+    win = detect.SearchWindow("GCP07", 7, cx + 12.0, cy - 5.0, 40.0, side_px=16.0, ground_px=tuple(A.ravel()))
+    # its first edge as decoded elsewhere runs along the marker's u axis: no turn on the ground
+    turn = detect.ground_turn(((cx, cy), (cx + A[0, 0], cy + A[1, 0])), tuple(A.ravel()))
+    assert min(turn, 90.0 - turn) < 1e-6
+    searched: list[bool] = []  # per fit: searched near a known place
+    fit_target = detect.fit_target
+
+    def counting(*args, **kwargs):
+        searched.append(kwargs.get("near") is not None)
+        return fit_target(*args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(detect, "fit_target", counting)
+        carried = {0: (cx + 0.8, cy - 0.6, 2.5)}
+        found = detect.fit_missed(img, [win], [], [0], "aruco", "DICT_4X4_50", blur, carried, {0: turn})
+        assert searched == [True]
+        d = next(d for d in found if d.window == 0)
+        assert not d.reason or detect.placed_by_others(d), d.reason
+        assert math.hypot(d.x_px - cx, d.y_px - cy) < 1.0  # fitted blurred markers: 0.3-0.7 px
+        searched.clear()
+        detect.fit_missed(img, [win], [], [0], "aruco", "DICT_4X4_50", blur)
+        assert searched and not any(searched)
