@@ -457,6 +457,48 @@ def test_glare_styles_differ_as_said():
             assert lo_w <= width <= hi_w, (style, seed, width)
 
 
+def test_noise_styles_differ_as_said():
+    """even: the same spread on dark and bright pixels, independent; shot: bright pixels about 3x
+    noisier than dark; grain: blotches (neighbours alike), a spread of its own on every channel."""
+    import numpy as np
+
+    from geoortho.synthetic.survey import EVEN_NOISE, GRAIN_NOISE, sensor_noise
+
+    img = np.zeros((200, 200, 3), np.float32)
+    img[:, 100:] = 0.95  # a dark half and a bright half
+
+    def neighbour_corr(n: np.ndarray) -> float:
+        return float(np.corrcoef(n[:, :-1, 1].ravel(), n[:, 1:, 1].ravel())[0, 1])
+
+    for seed in range(3):
+        even, shot, grain = (sensor_noise(np.random.default_rng(seed), s, img) for s in ("even", "shot", "grain"))
+        assert even.std() == pytest.approx(EVEN_NOISE, rel=0.05)
+        assert even[:, 100:].std() / even[:, :100].std() == pytest.approx(1.0, abs=0.05)
+        assert 2.5 <= shot[:, 100:].std() / shot[:, :100].std() <= 4.0
+        assert abs(neighbour_corr(even)) < 0.05 and abs(neighbour_corr(shot)) < 0.05
+        assert neighbour_corr(grain) > 0.5
+        assert grain.std() == pytest.approx(GRAIN_NOISE, rel=0.05)
+        # each channel its own: coloured, not grey, blotches
+        assert abs(np.corrcoef(grain[..., 0].ravel(), grain[..., 2].ravel())[0, 1]) < 0.1
+
+
+def test_markers_are_found_under_another_sensors_noise(tmp_path):
+    """The degraded tiny survey with its noise drawn as coloured blotches (grain) instead of evenly:
+    the same floors. Measured 13/13 at 0.073 px mean error (even: 13/13, 0.073 px; shot noise:
+    13/13, 0.090 px); six held-back small renderings are in the README."""
+    survey = synth(
+        tmp_path / "s", preset="tiny", seed=3, blur_px=9.0, glare=0.5, noise_style="grain", workers=os.cpu_count() or 1
+    )
+    info = json.loads((survey.truth / "survey.json").read_text())
+    assert info["degradations"]["noise_style"] == "grain"
+    out = tmp_path / "gcp_list.txt"
+    gcp_find(survey.images, survey.gcp_file, out)
+    s = _score(survey, out)
+    assert s["precision"] == 1.0, s
+    assert s["recall"] >= 0.9, s
+    assert s["mean_error_px"] <= 0.15, s
+
+
 @pytest.mark.parametrize("blur_style", ["exact", "shake"])
 def test_ground_carried_from_a_sharp_photo_places_a_marker_in_a_blurred_one(blur_style):
     """The ground around a marker in one photo, turned, scaled and blurred in another, is found

@@ -59,6 +59,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("maker", "enum", advanced=True),
             Param("glare_style", "enum", advanced=True),
             Param("blur_style", "enum", advanced=True),
+            Param("noise_style", "enum", advanced=True),
         ),
         outputs=(
             Output("output", "folder"),

@@ -125,6 +125,15 @@ GlareStyle = Literal["spot", "bloom", "sheen"]
 #: How motion blur is drawn (``blur_px``): the exact path spread bilinearly (exact), a line drawn by
 #: OpenCV's rasteriser at a whole length (line), or a shaken, curved path (shake).
 BlurStyle = Literal["exact", "line", "shake"]
+#: How the sensor's noise is drawn: the same spread on every pixel, independent (even); photon
+#: noise that grows with the light, bright pixels noisier than dark (shot); or the blotches an
+#: in-camera denoiser and demosaicing leave, each a couple of pixels across and coloured (grain).
+NoiseStyle = Literal["even", "shot", "grain"]
+#: The noise's spread (1.0 = white): even everywhere; shot's photon term (per unit of light) and
+#: read term, so white gets about 5 grey levels and black 1.5; grain's, once smoothed.
+EVEN_NOISE = 0.008
+SHOT_NOISE_PER_LIGHT, READ_NOISE = 0.0004, 0.006
+GRAIN_NOISE, GRAIN_PX = 0.012, 1.0
 MAKERS: tuple[str, ...] = get_args(Maker)
 MAKER_MAKE = {
     "dji": "DJI",
@@ -1050,12 +1059,12 @@ def _init_worker(scene: Scene) -> None:
     cv2.setNumThreads(1)
 
 
-def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float, str, str]) -> dict[str, Any]:
-    shot, intr, hard, seed, path, glare, glare_style, blur_style = args
+def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float, str, str, str]) -> dict[str, Any]:
+    shot, intr, hard, seed, path, glare, glare_style, blur_style, noise_style = args
     assert _SCENE is not None
     return render_photo(
         _SCENE, shot, intr, hard=hard, seed=seed, path=Path(path), glare=glare, glare_style=glare_style,
-        blur_style=blur_style,
+        blur_style=blur_style, noise_style=noise_style,
     )  # fmt: skip
 
 
@@ -1070,6 +1079,7 @@ def render_photo(
     glare: float = 0.0,
     glare_style: str = "spot",
     blur_style: str = "exact",
+    noise_style: str = "even",
 ) -> dict[str, Any]:
     """Render one photo (and write it when ``path`` is given); return its marker truth."""
     rng = np.random.default_rng(seed)
@@ -1115,11 +1125,26 @@ def render_photo(
             else _other_motion_kernel(shot.blur_px, blur_deg, blur_style, opt)
         )
         img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
-    img = img + rng.normal(0, 0.008, img.shape).astype(np.float32)
+    img = img + sensor_noise(rng, noise_style, img)
     out = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if path is not None:
         _write_jpeg(path, out, shot, intr)
     return {"image": shot.name, "markers": markers, "blur_px": shot.blur_px, "blur_deg": blur_deg}
+
+
+def sensor_noise(rng: np.random.Generator, style: str, img: np.ndarray) -> np.ndarray:
+    """The noise of ``style`` (:data:`NoiseStyle`) to add to a rendered photo (h, w, 3; 1.0 =
+    white), drawn from ``rng``."""
+    if style == "shot":
+        sigma = np.sqrt(SHOT_NOISE_PER_LIGHT * np.clip(img, 0.0, None) + READ_NOISE**2)
+        return (rng.standard_normal(img.shape) * sigma).astype(np.float32)
+    if style == "grain":
+        # white noise smoothed over a couple of pixels, each channel its own (coloured blotches),
+        # scaled back to its spread
+        raw = rng.standard_normal(img.shape).astype(np.float32)
+        smooth = cv2.GaussianBlur(raw, (0, 0), GRAIN_PX, borderType=cv2.BORDER_REFLECT)
+        return smooth * np.float32(GRAIN_NOISE / max(float(smooth.std()), 1e-9))
+    return rng.normal(0, EVEN_NOISE, img.shape).astype(np.float32)
 
 
 def _glare(
@@ -1517,6 +1542,7 @@ def synth(
     maker: Maker = "dji",
     glare_style: GlareStyle = "spot",
     blur_style: BlurStyle = "exact",
+    noise_style: NoiseStyle = "even",
     *,
     feedback: Feedback | None = None,
 ) -> SynthResult:
@@ -1574,6 +1600,10 @@ def synth(
     blur_style : str
         How the motion blur is drawn: exact (the path spread over the pixels it crosses), line
         (OpenCV's line rasteriser at a whole length) or shake (a curved path, the shutter ramping).
+    noise_style : str
+        How the sensor's noise is drawn: even (the same on every pixel, about 2 grey levels), shot
+        (growing with the light: about 5 grey levels on white, 1.5 on black) or grain (blotches a
+        couple of pixels across, each colour its own, as an in-camera denoiser leaves).
     maker : str
         Whose metadata tags the photos carry: dji (drone-dji:), autel (drone:), parrot
         (drone-parrot: and Camera:), skydio (drone-skydio: structs), pix4d (Camera:, as MicaSense
@@ -1613,7 +1643,7 @@ def synth(
     step_scene.progress(1.0)
 
     tasks = [
-        (s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name), glare, glare_style, blur_style)
+        (s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name), glare, glare_style, blur_style, noise_style)
         for i, s in enumerate(shots)
     ]
     results: list[dict[str, Any]] = map_ordered(
@@ -1621,8 +1651,14 @@ def synth(
     )
     # how the degradations were drawn, beside the survey's truth
     degradations = (
-        {"glare": glare, "glare_style": glare_style, "blur_px": blur_px, "blur_style": blur_style}
-        if glare or blur_px
+        {
+            "glare": glare,
+            "glare_style": glare_style,
+            "blur_px": blur_px,
+            "blur_style": blur_style,
+            "noise_style": noise_style,
+        }
+        if glare or blur_px or noise_style != "even"
         else None
     )
     _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth, pathologies, undulation, degradations)
