@@ -482,6 +482,15 @@ def test_noise_styles_differ_as_said():
         assert abs(np.corrcoef(grain[..., 0].ravel(), grain[..., 2].ravel())[0, 1]) < 0.1
 
 
+@pytest.mark.parametrize("option", ["glare_style", "blur_style", "noise_style"])
+def test_an_unknown_degradation_style_is_refused_before_anything_is_written(tmp_path, option):
+    from geoortho.errors import InputError
+
+    with pytest.raises(InputError, match=f"unknown {option} 'soft'; choose one of"):
+        synth(tmp_path / "s", preset="tiny", seed=3, **{option: "soft"})
+    assert not (tmp_path / "s").exists()
+
+
 def test_markers_are_found_under_another_sensors_noise(tmp_path):
     """The degraded tiny survey with its noise drawn as coloured blotches (grain) instead of evenly:
     the same floors. Measured 13/13 at 0.073 px mean error (even: 13/13, 0.073 px; shot noise:

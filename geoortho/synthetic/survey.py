@@ -1618,6 +1618,7 @@ def synth(
     fb = as_feedback(feedback)
     # every option checked before an earlier survey in the folder is cleared
     _check_options(preset, latitude_deg, longitude_deg, target, dictionary, glare, blur_px, maker)
+    _check_styles(glare_style=glare_style, blur_style=blur_style, noise_style=noise_style)
     pathologies = parse_pathologies(pathology)
     p = replace(PRESETS[preset])
     output = Path(output)
@@ -1747,6 +1748,14 @@ def _check_options(
         raise InputError("glare is a share 0–1 and blur_px 0–200 pixels")
     if maker not in MAKERS:
         raise InputError(f"unknown maker {maker!r}; choose one of {', '.join(MAKERS)}")
+
+
+def _check_styles(**styles: str) -> None:
+    """Each degradation's style is one of its kind's (an unknown one would be drawn as the default)."""
+    kinds = {"glare_style": GlareStyle, "blur_style": BlurStyle, "noise_style": NoiseStyle}
+    for name, style in styles.items():
+        if style not in get_args(kinds[name]):
+            raise InputError(f"unknown {name} {style!r}; choose one of {', '.join(get_args(kinds[name]))}")
 
 
 def _with_blur(shots: list[Shot], blur_px: float, seed: int) -> list[Shot]:
