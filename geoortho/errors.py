@@ -17,6 +17,7 @@ __all__ = [
     "ClusterError",
     "WorkerError",
     "GeoorthoWarning",
+    "interrupted",
 ]
 
 
@@ -77,3 +78,19 @@ class WorkerError(GeoorthoError, RuntimeError):
 
 class GeoorthoWarning(UserWarning):
     """Root of geoortho's warning classes."""
+
+
+def interrupted(exc: BaseException) -> bool:
+    """True when a Ctrl-C is what ``exc`` stands for, however a library wrapped it.
+
+    A KeyboardInterrupt that lands while a C extension initialises comes back as that
+    library's own error: pybind11 turns it into ``ImportError("initialization failed")``
+    and pycolmap that into ``RuntimeError("Cannot import the C++ backend")``."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, (KeyboardInterrupt, CanceledError)):
+            return True
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return False

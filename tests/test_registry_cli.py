@@ -235,3 +235,56 @@ def test_no_room_for_the_output_is_said_before_any_work(tmp_path, capsys, monkey
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and f"cannot write {tmp_path / 's'}" in err[0] and "MB free" in err[0]
     assert not (tmp_path / "s").exists()
+
+
+def _ctrl_c_wrapped_by_a_c_extension() -> RuntimeError:
+    """What pycolmap raises when Ctrl-C lands while its C++ backend starts: the KeyboardInterrupt,
+    turned into ImportError by pybind11, turned into RuntimeError by pycolmap (seen in CI)."""
+    try:
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as e:
+                raise ImportError("initialization failed") from e
+        except ImportError as e:
+            raise RuntimeError("Cannot import the C++ backend pycolmap._core.") from e
+    except RuntimeError as e:
+        return e
+
+
+def test_a_ctrl_c_a_library_wrapped_is_still_canceled_with_130(tmp_path, capsys, monkeypatch):
+    """A Ctrl-C 1.5 s into `ortho` reported 'unexpected error: RuntimeError: Cannot import the
+    C++ backend' and exit 1: it had landed during pycolmap's import."""
+    import geoortho.processing.cli as cli_module
+
+    def interrupted_run(*args, **kwargs):
+        raise _ctrl_c_wrapped_by_a_c_extension()
+
+    monkeypatch.setattr(cli_module, "run_algorithm", interrupted_run)
+    code = main(["synth", "--output", str(tmp_path / "s"), "--preset", "tiny", "--quiet"])
+    assert code == 130 and capsys.readouterr().err.strip().splitlines() == ["geoortho synth: canceled"]
+
+    def broken_run(*args, **kwargs):
+        raise RuntimeError("Cannot import the C++ backend pycolmap._core.") from ImportError("no such file")
+
+    monkeypatch.setattr(cli_module, "run_algorithm", broken_run)
+    code = main(["synth", "--output", str(tmp_path / "s"), "--preset", "tiny", "--quiet"])
+    assert code == 1 and "unexpected error: RuntimeError" in capsys.readouterr().err
+
+
+def test_pycolmap_interrupted_while_loading_raises_keyboard_interrupt(monkeypatch):
+    """The Python API's caller gets the Ctrl-C back as itself, not as a broken install."""
+    import builtins
+
+    from geoortho.reconstruction.colmap import load_pycolmap
+
+    real_import = builtins.__import__
+
+    def importing(name, *args, **kwargs):
+        if name == "pycolmap":
+            raise _ctrl_c_wrapped_by_a_c_extension()
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", importing)
+    with pytest.raises(KeyboardInterrupt):
+        load_pycolmap()

@@ -16,7 +16,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
-from geoortho.errors import CanceledError, GeoorthoError, InputError
+from geoortho.errors import CanceledError, GeoorthoError, InputError, interrupted
 from geoortho.feedback import Feedback, JsonLinesFeedback, TerminalFeedback
 from geoortho.processing.registry import describe_json, list_algorithms, run_algorithm
 from geoortho.processing.spec import PARAM_TYPES, Algorithm, Param
@@ -217,6 +217,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         return fail("error", f"error: {_one_line(e)}", 1)
     except Exception as e:  # unexpected: a bug or an environment problem
+        if interrupted(e):  # a Ctrl-C a library wrapped in its own error
+            return fail("canceled", "canceled", 130)
         if args.debug:
             feedback.close()
             raise

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from geoortho.errors import interrupted
 from geoortho.feedback import reclaim_signal_handlers
 
 __all__ = ["load_pycolmap"]
@@ -14,7 +15,12 @@ __all__ = ["load_pycolmap"]
 def load_pycolmap() -> Any:
     """pycolmap as every geoortho caller needs it: Python's SIGTERM handler taken back from glog,
     COLMAP's INFO logging off."""
-    import pycolmap
+    try:
+        import pycolmap
+    except RuntimeError as e:
+        if interrupted(e):  # a Ctrl-C during the C++ backend's start-up, wrapped twice on its way
+            raise KeyboardInterrupt from None
+        raise
 
     reclaim_signal_handlers()
     # COLMAP logs every image and iteration at INFO; geoortho's feedback says what matters.
