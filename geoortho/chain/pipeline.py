@@ -26,7 +26,7 @@ from typing import Any, Literal
 from geoortho.core.outputs import write_json
 from geoortho.core.pointcloud import check_las_header
 from geoortho.core.surface import refuse_image
-from geoortho.errors import CanceledError, GeoorthoError, InputError
+from geoortho.errors import GeoorthoError, InputError, interrupted
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.gcp.io import read_gcp_file
 from geoortho.photos.heights import GpsAltitude
@@ -718,7 +718,7 @@ def _execute(
             outputs = run_one(stage.name, dict(values), recorder)
     except BaseException as e:
         seconds = time.perf_counter() - t0
-        status = "canceled" if isinstance(e, (CanceledError, KeyboardInterrupt)) else "failed"
+        status = "canceled" if interrupted(e) else "failed"
         ledger.set_stage(
             stage.name,
             {
