@@ -288,23 +288,27 @@ class GridSurface(Surface):
         # arrays in grid units; split, each step would pass them all (the renderer's hot path).
         tr = self.transform
         # Per-ray state in grid units, float32 and contiguous: each step is then three
-        # multiply-adds and one cv2.remap, with no gathers of (N, 3) arrays.
+        # multiply-adds and one cv2.remap. The rays still marching are kept in packed copies,
+        # packed again only when a third of them have finished: a gather of every array at
+        # every step cost more than the march's own arithmetic.
         sub_o, sub_d = o[active], d[active]
-        oc = ((sub_o[:, 0] - tr.c) / tr.a - 0.5).astype(np.float32)
-        orr = ((sub_o[:, 1] - tr.f) / tr.e - 0.5).astype(np.float32)
-        oz = sub_o[:, 2].astype(np.float32)
-        dc = (sub_d[:, 0] / tr.a).astype(np.float32)
-        dr = (sub_d[:, 1] / tr.e).astype(np.float32)
-        dzz = sub_d[:, 2].astype(np.float32)
+        ray = _Rays(
+            ((sub_o[:, 0] - tr.c) / tr.a - 0.5).astype(np.float32),
+            ((sub_o[:, 1] - tr.f) / tr.e - 0.5).astype(np.float32),
+            sub_o[:, 2].astype(np.float32),
+            (sub_d[:, 0] / tr.a).astype(np.float32),
+            (sub_d[:, 1] / tr.e).astype(np.float32),
+            sub_d[:, 2].astype(np.float32),
+        )
         grid = self.grid
 
-        def f(i: np.ndarray | slice, t: np.ndarray) -> np.ndarray:
-            h = sample_grid(grid, oc[i] + t * dc[i], orr[i] + t * dr[i])
-            return np.asarray(np.where(np.isnan(h), np.float32(1.0), oz[i] + t * dzz[i] - h))  # >0 above
+        def f(r: _Rays, t: np.ndarray) -> np.ndarray:
+            h = sample_grid(grid, r.oc + t * r.dc, r.orr + t * r.dr)
+            return np.asarray(np.where(np.isnan(h), np.float32(1.0), r.oz + t * r.dz - h))  # >0 above
 
         lo = t0[active].astype(np.float32)
         t_stop = t1[active].astype(np.float32)
-        below = f(slice(None), lo) <= 0  # origin already under the surface
+        below = f(ray, lo) <= 0  # origin already under the surface
         t_end[active[below]] = lo[below]
         hit[active[below]] = True
         idx = np.nonzero(~below)[0]  # positions into the active arrays
@@ -314,57 +318,82 @@ class GridSurface(Surface):
         coarse, block = self._coarse_max()
         if block > 1 and idx.size:
             c_step = np.float32(block * self.cell_m)
-            cidx, clo = idx, lo
             skip = np.zeros(idx.size, np.float32)
             pos = np.arange(idx.size)
-            while cidx.size:
-                t = np.minimum(clo + c_step, t_stop[cidx])
+            cr, clo, cstop, clo0 = ray.take(idx), lo, t_stop[idx], lo
+            live = np.ones(idx.size, bool)
+            while pos.size:
+                t = np.minimum(clo + c_step, cstop)
                 hb = sample_grid(
                     coarse,
-                    (oc[cidx] + t * dc[cidx]) / block - 0.5 + 0.5 / block,
-                    (orr[cidx] + t * dr[cidx]) / block - 0.5 + 0.5 / block,
+                    (cr.oc + t * cr.dc) / block - 0.5 + 0.5 / block,
+                    (cr.orr + t * cr.dr) / block - 0.5 + 0.5 / block,
                     nearest=True,
                 )
-                clear = (oz[cidx] + t * dzz[cidx] > hb) | np.isnan(hb)
-                go_on = clear & (t < t_stop[cidx])
-                done = ~go_on
-                skip[pos[done]] = np.where(clear[done], t[done], clo[done]) - lo[pos[done]]
-                cidx, clo, pos = cidx[go_on], t[go_on], pos[go_on]
+                clear = (cr.oz + t * cr.dz > hb) | np.isnan(hb)
+                done = live & ~(clear & (t < cstop))
+                skip[pos[done]] = np.where(clear[done], t[done], clo[done]) - clo0[done]
+                live &= ~done
+                clo = t
+                if np.count_nonzero(live) < _PACK * pos.size:
+                    cr, clo, cstop, clo0, pos = cr.take(live), clo[live], cstop[live], clo0[live], pos[live]
+                    live = np.ones(pos.size, bool)
             lo = lo + skip
             keep = lo < t_stop[idx]
             idx, lo = idx[keep], lo[keep]
         span = t_stop[idx] - lo
-        n_steps = np.zeros(oz.size, np.int32)
-        n_steps[idx] = np.maximum(1, np.ceil(span / step)).astype(np.int32)
-        start = np.zeros(oz.size, np.float32)
-        start[idx] = lo
-        span_all = np.zeros(oz.size, np.float32)
-        span_all[idx] = span
+        n_steps = np.maximum(1, np.ceil(span / step)).astype(np.int32)
         k = 0
         found: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        cr, start = ray.take(idx), lo
+        live = np.ones(idx.size, bool)
         while idx.size:
             k += 1
-            hi = start[idx] + span_all[idx] * np.minimum(np.float32(k) / n_steps[idx], 1)
-            crossed = f(idx, hi) <= 0
+            hi = start + span * np.minimum(np.float32(k) / n_steps, 1)
+            crossed = (f(cr, hi) <= 0) & live
             if crossed.any():
                 found.append((idx[crossed], lo[crossed], hi[crossed]))
-            alive = ~crossed & (k < n_steps[idx])
-            idx, lo = idx[alive], hi[alive]
+            live &= ~crossed & (k < n_steps)
+            lo = hi
+            if np.count_nonzero(live) < _PACK * idx.size:
+                cr, idx, lo = cr.take(live), idx[live], lo[live]
+                start, span, n_steps = start[live], span[live], n_steps[live]
+                live = np.ones(idx.size, bool)
         if not found:
             return
         fi = np.concatenate([a for a, _, _ in found])
         a = np.concatenate([b for _, b, _ in found])
         b = np.concatenate([c for _, _, c in found])
+        cr = ray.take(fi)
         for _ in range(6):  # bisection to step/64, then one secant step
             m = 0.5 * (a + b)
-            above = f(fi, m) > 0
+            above = f(cr, m) > 0
             a = np.where(above, m, a)
             b = np.where(above, b, m)
-        fa, fb = f(fi, a), f(fi, b)
+        fa, fb = f(cr, a), f(cr, b)
         with np.errstate(divide="ignore", invalid="ignore"):
             w = np.where(fa - fb > 0, fa / (fa - fb), 0.5)
         t_end[active[fi]] = a + np.clip(w, 0, 1) * (b - a)
         hit[active[fi]] = True
+
+
+#: The march packs its rays again when fewer than this share of them are still marching.
+_PACK = 0.7
+
+
+@dataclass(frozen=True)
+class _Rays:
+    """Rays in grid units (column, row, height; their steps per metre of range), float32."""
+
+    oc: np.ndarray
+    orr: np.ndarray
+    oz: np.ndarray
+    dc: np.ndarray
+    dr: np.ndarray
+    dz: np.ndarray
+
+    def take(self, which: np.ndarray) -> _Rays:
+        return _Rays(self.oc[which], self.orr[which], self.oz[which], self.dc[which], self.dr[which], self.dz[which])
 
 
 def read_surface(
