@@ -65,7 +65,8 @@ def small_survey(tmp_path_factory: pytest.TempPathFactory):
 
 @pytest.fixture(scope="session")
 def oblique_survey(tmp_path_factory: pytest.TempPathFactory):
-    return made_once(tmp_path_factory, "oblique", _synth("oblique", 2))
+    # only its tags and truth are read (footprints): its photos are not rendered
+    return made_once(tmp_path_factory, "oblique", _synth("oblique", 2, pixels=False))
 
 
 @pytest.fixture(scope="session")

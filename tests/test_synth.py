@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import xml.etree.ElementTree as ET
@@ -324,3 +325,40 @@ def test_motion_kernel_is_the_blur_it_is_said_to_be(length_px, angle_deg):
     assert abs((k * xs).sum()) < 1e-4 and abs((k * ys).sum()) < 1e-4
     assert math.sqrt((k * along**2).sum()) == pytest.approx(math.sqrt(length_px**2 / 12 + 1 / 6), abs=0.02)
     assert (k * across**2).sum() < 0.2
+
+
+def test_a_survey_without_pixels_has_the_same_tags_and_truth(tmp_path, tiny_survey):
+    """--no-pixels: flat grey photos with only their markers drawn, every tag and truth file the
+    same, in a fraction of the time; survey.json says so, and what is drawn on pixels is refused."""
+    from geoortho.errors import InputError
+    from geoortho.photos.metadata import read_photos
+    from geoortho.synthetic.survey import synth
+
+    bare = synth(tmp_path / "bare", preset="tiny", seed=3, workers=1, pixels=False)
+    for name in ("poses.json", "markers.json", "gcp_utm.txt"):
+        assert (bare.truth / name).read_text() == (tiny_survey.truth / name).read_text(), name
+    assert json.loads((bare.truth / "survey.json").read_text())["pixels"].startswith("markers only")
+    assert "pixels" not in _info(tiny_survey)
+    rendered = {p.path.name: dataclasses.asdict(p) for p in read_photos(tiny_survey.images).photos}
+    bare_photos = read_photos(bare.images).photos
+    assert len(bare_photos) == len(rendered) == tiny_survey.n_photos
+    for photo in bare_photos:
+        tags, want = dataclasses.asdict(photo), rendered[photo.path.name]
+        assert {k: v for k, v in tags.items() if k != "path"}.__repr__() == {
+            k: v for k, v in want.items() if k != "path"
+        }.__repr__()  # repr: NaN (a tag the photo lacks) is equal to itself there
+    # the markers are drawn where the truth says, on grey: OpenCV finds them there
+    info, markers = _info(bare), _markers(bare)
+    found = 0
+    for image, ms in markers.items():
+        pixels = cv2.imread(str(bare.images / image))
+        assert np.median(pixels) == 128  # the rest is flat grey
+        detections = _detect(bare.images / image, info["dictionary"])
+        for m in ms:
+            if m["inside"] and m["marker_id"] in detections:
+                found += 1
+                assert np.hypot(*(detections[m["marker_id"]] - [m["x_px"], m["y_px"]])) < 1.5
+    assert found >= 10
+    with pytest.raises(InputError, match="without --no-pixels"):
+        synth(tmp_path / "blurred", preset="tiny", seed=3, blur_px=5.0, pixels=False)
+    assert not (tmp_path / "blurred").exists()

@@ -24,7 +24,7 @@ import datetime as dt
 import io
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, get_args
@@ -39,7 +39,7 @@ from geoortho.core.crs import geoid_undulation_m, grid_north, transformer, utm_c
 from geoortho.core.outputs import atomic_path, write_cog, write_json, write_text, write_vector
 from geoortho.core.parallel import map_ordered
 from geoortho.core.pointcloud import write_las
-from geoortho.core.surface import GridSurface, sample_grid
+from geoortho.core.surface import GridSurface, RayHits, sample_grid
 from geoortho.elevation.grid import NODATA
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
@@ -1059,12 +1059,12 @@ def _init_worker(scene: Scene) -> None:
     cv2.setNumThreads(1)
 
 
-def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float, str, str, str]) -> dict[str, Any]:
-    shot, intr, hard, seed, path, glare, glare_style, blur_style, noise_style = args
+def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float, str, str, str, bool]) -> dict[str, Any]:
+    shot, intr, hard, seed, path, glare, glare_style, blur_style, noise_style, pixels = args
     assert _SCENE is not None
     return render_photo(
         _SCENE, shot, intr, hard=hard, seed=seed, path=Path(path), glare=glare, glare_style=glare_style,
-        blur_style=blur_style, noise_style=noise_style,
+        blur_style=blur_style, noise_style=noise_style, pixels=pixels,
     )  # fmt: skip
 
 
@@ -1080,21 +1080,43 @@ def render_photo(
     glare_style: str = "spot",
     blur_style: str = "exact",
     noise_style: str = "even",
+    pixels: bool = True,
 ) -> dict[str, Any]:
-    """Render one photo (and write it when ``path`` is given); return its marker truth."""
+    """Render one photo (and write it when ``path`` is given); return its marker truth.
+
+    ``pixels`` False: only the markers' windows are cast and drawn, on flat grey, with no
+    camera effects; the marker truth is the same."""
     rng = np.random.default_rng(seed)
     pose = Pose.from_ypr((shot.x, shot.y, shot.z), shot.yaw_deg, shot.pitch_deg, shot.roll_deg)
     w, h = intr.width_px, intr.height_px
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    rays = pixel_rays(np.c_[uu.ravel(), vv.ravel()], intr, pose)
     surf = scene.surface
-    hits = surf.intersect(pose.center, rays, max_range_m=2000.0, step_m=0.6)
+
+    def cast(cols: np.ndarray, rows: np.ndarray) -> RayHits:
+        rays = pixel_rays(np.c_[cols.ravel(), rows.ravel()], intr, pose)
+        return surf.intersect(pose.center, rays, max_range_m=2000.0, step_m=0.6)
+
+    if not pixels:
+        img = np.full((h, w, 3), 0.5, np.float32)
+
+        def hits_in(y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+            cols, rows = np.meshgrid(np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64))
+            return cast(cols, rows).points.reshape(y1 - y0 + 1, x1 - x0 + 1, 3)
+
+        markers = _marker_truth_and_antialias(scene, shot, intr, pose, img, hits_in)
+        if path is not None:
+            _write_jpeg(path, _to_bytes(img), shot, intr)
+        return {"image": shot.name, "markers": markers, "blur_px": shot.blur_px, "blur_deg": 0.0}
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    hits = cast(uu, vv)
     pts = hits.points
-    rgb = np.full((len(rays), 3), (0.75, 0.80, 0.88), np.float32)  # sky / off-scene haze
+    rgb = np.full((len(pts), 3), (0.75, 0.80, 0.88), np.float32)  # sky / off-scene haze
     good = hits.hit
     rgb[good] = scene.color(pts[good, 0], pts[good, 1], pts[good, 2])
     img = rgb.reshape(h, w, 3)
-    markers = _marker_truth_and_antialias(scene, shot, intr, pose, img, pts.reshape(h, w, 3))
+    grid_pts = pts.reshape(h, w, 3)
+    markers = _marker_truth_and_antialias(
+        scene, shot, intr, pose, img, lambda y0, y1, x0, x1: grid_pts[y0 : y1 + 1, x0 : x1 + 1]
+    )
 
     # Camera effects: vignetting, exposure, glare, blur, noise.
     r2 = ((uu - intr.cx_px) ** 2 + (vv - intr.cy_px) ** 2) / (intr.cx_px**2 + intr.cy_px**2)
@@ -1126,10 +1148,13 @@ def render_photo(
         )
         img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
     img = img + sensor_noise(rng, noise_style, img)
-    out = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if path is not None:
-        _write_jpeg(path, out, shot, intr)
+        _write_jpeg(path, _to_bytes(img), shot, intr)
     return {"image": shot.name, "markers": markers, "blur_px": shot.blur_px, "blur_deg": blur_deg}
+
+
+def _to_bytes(img: np.ndarray) -> np.ndarray:
+    return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
 def sensor_noise(rng: np.random.Generator, style: str, img: np.ndarray) -> np.ndarray:
@@ -1226,9 +1251,16 @@ def _spread_path(x: np.ndarray, y: np.ndarray, weight: np.ndarray, size: int) ->
 
 
 def _marker_truth_and_antialias(
-    scene: Scene, shot: Shot, intr: Intrinsics, pose: Pose, img: np.ndarray, pts: np.ndarray
+    scene: Scene,
+    shot: Shot,
+    intr: Intrinsics,
+    pose: Pose,
+    img: np.ndarray,
+    hits_in: Callable[[int, int, int, int], np.ndarray],
 ) -> list[dict[str, Any]]:
-    """Exact projected marker centres, and 4×4 supersampled marker pixels (markers lie on flat pads)."""
+    """Exact projected marker centres, and 4×4 supersampled marker pixels (markers lie on flat pads).
+
+    ``hits_in(y0, y1, x0, x1)``: where the rays of those pixels (inclusive) meet the scene, (rows, cols, 3)."""
     s = scene.marker_size_m
     quiet = s * target_half_extent(scene.target, next(iter(scene.marker_cells.values()), None))
     h, w = img.shape[:2]
@@ -1256,7 +1288,7 @@ def _marker_truth_and_antialias(
         # Occlusion: the ray to the centre must reach the pad.
         centre_visible = False
         if 0 <= cx <= w - 1 and 0 <= cy <= h - 1:
-            p = pts[int(round(cy)), int(round(cx))]
+            p = hits_in(int(round(cy)), int(round(cy)), int(round(cx)), int(round(cx)))[0, 0]
             centre_visible = bool(abs(p[2] - m.z) < 0.1 and math.hypot(p[0] - m.x, p[1] - m.y) < s)
         qc = world(np.array([-quiet, quiet, quiet, -quiet]), np.array([quiet, quiet, -quiet, -quiet]))
         qpx, _ = project_points(qc, intr, pose)
@@ -1264,7 +1296,7 @@ def _marker_truth_and_antialias(
         y0, y1 = int(max(0, np.floor(qpx[:, 1].min()) - 1)), int(min(h - 1, np.ceil(qpx[:, 1].max()) + 1))
         if x1 >= x0 and y1 >= y0:
             gu, gv = np.meshgrid(np.arange(x0, x1 + 1, dtype=float), np.arange(y0, y1 + 1, dtype=float))
-            on_pad = np.abs(pts[y0 : y1 + 1, x0 : x1 + 1, 2] - m.z) < 0.15
+            on_pad = np.abs(hits_in(y0, y1, x0, x1)[..., 2] - m.z) < 0.15
             su = (gu.ravel()[:, None, None] + sub[None, None, :]).repeat(4, 1)
             sv = (gv.ravel()[:, None, None] + sub[None, :, None]).repeat(4, 2)
             rays = pixel_rays(np.c_[su.ravel(), sv.ravel()], intr, pose)
@@ -1543,6 +1575,7 @@ def synth(
     glare_style: GlareStyle = "spot",
     blur_style: BlurStyle = "exact",
     noise_style: NoiseStyle = "even",
+    pixels: bool = True,
     *,
     feedback: Feedback | None = None,
 ) -> SynthResult:
@@ -1609,6 +1642,10 @@ def synth(
         (drone-parrot: and Camera:), skydio (drone-skydio: structs), pix4d (Camera:, as MicaSense
         writes it), sensefly (Camera:, roll negated) or exif (EXIF GPS and GPSImgDirection only,
         as a fixed-wing geotagger writes it). The same attitude and position in each.
+    pixels : bool
+        Render the photos. Off: each photo is flat grey with only its markers drawn, and no
+        camera effects, in a fraction of the time; every tag and every truth file is the same
+        (survey.json says so). For the tools that read only the metadata (footprints, plans).
 
     Returns
     -------
@@ -1619,6 +1656,8 @@ def synth(
     # every option checked before an earlier survey in the folder is cleared
     _check_options(preset, latitude_deg, longitude_deg, target, dictionary, glare, blur_px, maker)
     _check_styles(glare_style=glare_style, blur_style=blur_style, noise_style=noise_style)
+    if not pixels and (blur_px or glare or PRESETS[preset].hard):
+        raise InputError("blur, glare and the hard preset are drawn on the pixels: give them without --no-pixels")
     pathologies = parse_pathologies(pathology)
     p = replace(PRESETS[preset])
     output = Path(output)
@@ -1644,7 +1683,8 @@ def synth(
     step_scene.progress(1.0)
 
     tasks = [
-        (s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name), glare, glare_style, blur_style, noise_style)
+        (s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name), glare, glare_style, blur_style)
+        + (noise_style, pixels)
         for i, s in enumerate(shots)
     ]
     results: list[dict[str, Any]] = map_ordered(
@@ -1662,7 +1702,9 @@ def synth(
         if glare or blur_px or noise_style != "even"
         else None
     )
-    _write_truth(truth_dir, scene, shots, intr, p, results, seed, step_truth, pathologies, undulation, degradations)
+    _write_truth(
+        truth_dir, scene, shots, intr, p, results, seed, step_truth, pathologies, undulation, degradations, pixels
+    )
     return SynthResult(
         output=output,
         images=images_dir,
@@ -1829,6 +1871,7 @@ def _write_truth(
     pathologies: Sequence[str] = (),
     undulation_m: float = 0.0,
     degradations: dict[str, Any] | None = None,
+    pixels: bool = True,
 ) -> None:
     """Every truth product: rasters, poses and footprints, GCP files, survey.json, ortho, point cloud."""
     steps = split(fb, [1, 1, 3, 2, 1])
@@ -1851,7 +1894,7 @@ def _write_truth(
     )
     _write_survey_json(
         truth, scene, intr, p, seed, pathologies, undulation_m, shots[0].maker if shots else "dji", dropped, rtk,
-        degradations,
+        degradations, pixels,
     )  # fmt: skip
     steps[2].progress(1.0)
     _write_true_ortho(truth / "ortho.tif", scene, p.ortho_cell_m, steps[3])
@@ -1967,6 +2010,7 @@ def _write_survey_json(
     dropped: dict[str, str] | None = None,
     rtk: dict[str, Any] | None = None,
     degradations: dict[str, Any] | None = None,
+    pixels: bool = True,
 ) -> None:
 
     write_json(
@@ -2005,6 +2049,7 @@ def _write_survey_json(
             **({"dropped_photo": dropped} if dropped else {}),
             **({"rtk": rtk} if rtk else {}),
             **({"degradations": degradations} if degradations else {}),
+            **({"pixels": "markers only, on flat grey, without camera effects"} if not pixels else {}),
             **({"gps_lag_s": GPS_LAG_S} if "gps-lag" in pathologies else {}),
             **(
                 {"ppk": {"pos": "trajectory.pos", "lag_s": PPK_LAG_S, "gps_minus_camera_clock_s": GPS_MINUS_UTC_S}}
