@@ -21,7 +21,13 @@ $(STAMP): pyproject.toml tools/make_venv.sh
 	$(PY) -m pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
+# The package's bytecode, written ahead: an editable install has none, and where
+# PYTHONDONTWRITEBYTECODE is set every command and every pool worker would compile
+# geoortho from source at start-up (gcp-find on 35 photos: 12 % of its wall time).
+BYTECODE = $(PY) -m compileall -q geoortho
+
 demo: $(STAMP)
+	@$(BYTECODE)
 	$(PY) -m geoortho demo --output $(DEMO_OUTPUT)
 
 # The test files run on one pytest-xdist worker per core (at most 4; a file stays on one worker,
@@ -30,10 +36,12 @@ TEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile
 
 test: $(STAMP)
 	@sh tools/browser_setup.sh
+	@$(BYTECODE)
 	$(PY) -m pytest $(TEST_WORKERS) $(PYTEST_ARGS)
 
 test-qgis:
 	@sh tools/qgis_setup.sh "$(QGIS_VENV)"
+	@$(QGIS_VENV)/bin/python -m compileall -q geoortho
 	$(QGIS_VENV)/bin/python -m pytest tests_qgis $(PYTEST_ARGS)
 
 plugin: $(STAMP)
