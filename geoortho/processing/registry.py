@@ -405,9 +405,11 @@ _PYTHON_TYPES: dict[str, tuple[tuple[type, ...], str]] = {
 
 
 def check_call(function_ref: str, bound: dict[str, Any]) -> None:
-    """The Python API's door: each argument of a core function is of its declared type, refused
-    with the parameter's name (a ParameterError, as the CLI's) rather than a TypeError from deep
-    inside. Values are checked by the function itself."""
+    """The Python API's door: each argument of a core function is of its declared type, one of
+    its choices and within its declared range, refused with the parameter's name (a
+    ParameterError, in the CLI's words) rather than a TypeError from deep inside, or a value
+    nobody checked taken silently for the default. What depends on more than one value is
+    checked by the function itself."""
     alg = next((a for a in list_algorithms() if a.function_ref == function_ref), None)
     if alg is None:
         return
@@ -423,3 +425,7 @@ def check_call(function_ref: str, bound: dict[str, Any]) -> None:
             ok = p.type == "number" or isinstance(value, np.integer)
         if not ok:
             raise ParameterError(p.name, f"{value!r} is {type(value).__name__}, not {said}")
+        if p.type == "enum":
+            _enum(p, value)
+        elif p.type in ("number", "integer"):
+            _check_range(p, float(value))
