@@ -372,6 +372,8 @@ def test_toledo_height_source_gsd_and_focal(toledo_sfm, tmp_path):
     base = real_data("toledo_dji")
     r = footprints(base / "images", tmp_path / "fp.gpkg")
     assert "above take-off" in r.height_source
+    layer = gpd.read_file(tmp_path / "fp.gpkg", layer="footprints")
+    assert (layer.height_source.str.count("flat take-off ground") == 1).all(), layer.height_source[0]
     from geoortho.photos.metadata import read_photos
 
     photos = read_photos(base / "images").photos

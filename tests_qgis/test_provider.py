@@ -213,6 +213,38 @@ def test_cancel_stops_a_long_run_within_seconds(provider, tmp_path, in_process):
         assert jpg.read_bytes()[-2:] == b"\xff\xd9"
 
 
+def test_in_process_a_cancel_a_library_wrapped_is_still_canceled(provider, tiny, tmp_path, monkeypatch):
+    """A cancel raised inside a library's callback comes back as that library's own error
+    (pycolmap: RuntimeError); in the QGIS process it is still a cancel, not a crash."""
+    from processing.core.ProcessingConfig import ProcessingConfig
+    from qgis.core import QgsProcessingException
+
+    import geoortho.processing.registry as registry
+    from geoortho.errors import CanceledError
+    from geoortho.qgis_provider.provider import SETTING_IN_PROCESS
+
+    def wrapped(*args, **kwargs):
+        try:
+            raise CanceledError("canceled")
+        except CanceledError as e:
+            raise RuntimeError("Cannot import the C++ backend pycolmap._core") from e
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("Cannot import the C++ backend pycolmap._core")
+
+    ProcessingConfig.setSettingValue(SETTING_IN_PROCESS, True)
+    try:
+        monkeypatch.setattr(registry, "run_algorithm", wrapped)
+        with pytest.raises(QgsProcessingException, match="footprints: canceled; no output"):
+            _run("footprints", {"IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "f.gpkg")})
+        monkeypatch.setattr(registry, "run_algorithm", broken)  # a real failure stays one
+        with pytest.raises(Exception) as raised:
+            _run("footprints", {"IMAGES": str(tiny / "images"), "OUTPUT": str(tmp_path / "f.gpkg")})
+        assert "canceled" not in str(raised.value)
+    finally:
+        ProcessingConfig.setSettingValue(SETTING_IN_PROCESS, False)
+
+
 def test_bad_input_and_missing_interpreter_are_clear(provider, tiny, tmp_path, monkeypatch):
     from qgis.core import QgsProcessingException
 

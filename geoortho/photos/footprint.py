@@ -711,6 +711,11 @@ def photos_with_altitude(
     return photos
 
 
+def _with_ground(ground: str, source: str) -> str:
+    """A photo's height source naming its ground once: the heights' own sources often end with it."""
+    return source if ground in source else f"{ground}; {source}"
+
+
 def _footprint_layers(
     cams: Sequence[PhotoCamera], table: FootprintTable, heights: HeightModel, ground: str, work: CRS
 ) -> tuple[Any, Any]:
@@ -734,7 +739,7 @@ def _footprint_layers(
         "area_m2": shapely.area(polys),
         "clipped": table.clipped,
         "outside_dsm": table.outside,
-        "height_source": [f"{ground}; {c.height_source}" for c in cams],
+        "height_source": [_with_ground(ground, c.height_source) for c in cams],
         "vertical_datum": [heights.datum] * len(cams),
         "attitude_source": [c.photo.attitude_source for c in cams],
         "grid_convergence_deg": [c.grid_convergence_deg for c in cams],

@@ -382,7 +382,7 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
 
     def _run_in_process(self, values: dict[str, Any], feedback: Any) -> dict[str, Any]:
         try:  # here: QGIS's own Python may not have geoortho's dependencies (the default runs our interpreter)
-            from geoortho.errors import CanceledError, GeoorthoError
+            from geoortho.errors import CanceledError, GeoorthoError, interrupted
             from geoortho.processing.registry import run_algorithm
         except ImportError as e:
             raise QgsProcessingException(
@@ -401,6 +401,10 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
             raise QgsProcessingException(f"geoortho {self._spec['id']}: canceled; no output was written") from None
         except GeoorthoError as e:
             raise QgsProcessingException(f"geoortho {self._spec['id']}: error: {e}") from None
+        except Exception as e:
+            if interrupted(e):  # a cancel a library wrapped in its own error (pybind11, pycolmap)
+                raise QgsProcessingException(f"geoortho {self._spec['id']}: canceled; no output was written") from None
+            raise
 
     def _results(
         self, values: dict[str, Any], outputs: dict[str, Any], context: QgsProcessingContext
