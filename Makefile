@@ -32,7 +32,8 @@ demo: $(STAMP)
 
 # The test files run on one pytest-xdist worker per core (at most 4; a file stays on one worker,
 # so its module fixtures are made once); tests/conftest.py makes each session fixture once per run.
-TEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile
+# The slowest are listed at the end: the suite's time is watched against CI's 25-minute budget.
+TEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile --durations=30
 
 test: $(STAMP)
 	@sh tools/browser_setup.sh
