@@ -141,6 +141,22 @@ def test_tiny_everything_found(tiny_survey, tmp_path):
     assert s["precision"] == 1.0 and s["recall"] >= 0.98
 
 
+def test_a_wrong_dictionary_is_answered_by_the_photos(tiny_survey, tmp_path):
+    """No marker decodes as the dictionary given (5x5; these are 4x4): the one they decode in
+    where predicted is searched instead, said with the option to give; before, nothing was
+    found and the warning was only that."""
+    from conftest import RecordingFeedback
+
+    fb = RecordingFeedback()
+    r = gcp_find(
+        tiny_survey.images, tiny_survey.gcp_file, tmp_path / "gcp_list.txt", dictionary="DICT_5X5_50", feedback=fb
+    )
+    assert r.dictionary == "DICT_4X4_50"
+    assert any("no marker decodes as DICT_5X5_50" in w and "--dictionary DICT_4X4_50" in w for w in fb.warnings)
+    s = _score(tiny_survey, r.output)
+    assert s["precision"] == 1.0 and s["recall"] >= 0.98, s
+
+
 def test_real_findgcp_photos_without_gps_match_upstream(tmp_path):
     folder = real_data("findgcp_aruco")
     out = tmp_path / "gcp_list.txt"

@@ -679,6 +679,45 @@ def second_look_task(
     return path, fit_missed(gray, windows, list(found), missed, target, dictionary, None, carried, turns)
 
 
+#: The dictionaries tried where no marker decodes in the one given: each ArUco family's largest
+#: (a family's smaller dictionaries are its first ids) and the others whole.
+PROBED = (
+    "DICT_4X4_1000",
+    "DICT_5X5_1000",
+    "DICT_6X6_1000",
+    "DICT_7X7_1000",
+    "DICT_ARUCO_ORIGINAL",
+    "DICT_ARUCO_MIP_36H12",
+    "DICT_APRILTAG_16H5",
+    "DICT_APRILTAG_25H9",
+    "DICT_APRILTAG_36H10",
+    "DICT_APRILTAG_36H11",
+)
+
+
+def probe_task(args: tuple[str, list[SearchWindow], tuple[str, ...]]) -> dict[str, list[str]]:
+    """Worker entry: per dictionary, the GCPs of one photo whose expected id the detector's plain
+    attempt decodes in their window as that dictionary, in a marker's shape and size."""
+    path, windows, dictionaries = args
+    gray = _read_grey(path)
+    seen: dict[str, list[str]] = {}
+    if gray is None:
+        return seen
+    h, w = gray.shape[:2]
+    for win in windows:
+        if win.radius_px <= 0:
+            continue
+        x0, y0, x1, y1 = _square(win, win.radius_px, w, h)
+        if x1 - x0 < 8 or y1 - y0 < 8:
+            continue
+        crop = gray[y0:y1, x0:x1]
+        for name in dictionaries:
+            hits = _run(crop, "plain", name, win.side_px)
+            if any(mid == win.marker_id and plausible_quad(c, win) for mid, c in hits):
+                seen.setdefault(name, []).append(win.gcp)
+    return seen
+
+
 def ground_turn(corners_px: Sequence[Sequence[float]], ground_px: Sequence[float]) -> float:
     """A square marker's turn on the ground (degrees, modulo 90; :func:`.targets.fit_target`'s
     angle) from its corners in a photo and the photo's ``ground_px`` there: the same in every

@@ -54,6 +54,7 @@ from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.gcp.detect import (
+    PROBED,
     CarryJob,
     Detection,
     SearchWindow,
@@ -61,6 +62,7 @@ from geoortho.gcp.detect import (
     fit_similarity,
     init_worker,
     placed_by_others,
+    probe_task,
     second_look_task,
 )
 from geoortho.gcp.io import GcpSet, marker_id_of, read_gcp_file
@@ -134,6 +136,10 @@ class GcpFindResult:
         The markers' side as the decoded ones measure, metres (the median over them, at the
         camera heights used; NaN when fewer than 3 were decoded). Where it differs from the size
         given by more than 15 %, the markers the detector missed were fitted at it, with a warning.
+    dictionary : str
+        The marker dictionary searched: the one given, or, where no marker decoded in it in the
+        first photos, the one the GCPs' markers decode in there (with a warning); "" for
+        targets without a code.
     """
 
     output: Path
@@ -147,6 +153,8 @@ class GcpFindResult:
     flight_offset_m: tuple[float, float] | None = None
     #: the markers' side as the decoded ones measure (m; NaN when fewer than 3 were decoded)
     marker_size_m: float = math.nan
+    #: the marker dictionary searched ("" for targets without a code)
+    dictionary: str = ""
 
 
 def _marker_ids(gcps: GcpSet, dictionary: str, target: str = "aruco") -> dict[str, int]:
@@ -348,11 +356,11 @@ def gcp_find(
             raise InputError(f"no readable photo ({photos.summary()})", path=images)
         plan = _plan(photos.photos, gcps, ids, dsm, takeoff_elevation_m, flight_height_m, uncertainty, fb)
         s_read.progress(1.0)
-        results, windows, offset_m, used, marker_m = _search(
+        results, windows, offset_m, used, marker_m, searched_as = _search(
             plan, pool, workers, dictionary, ids, uncertainty, s_detect, target, auto_kinds
         )
         if used in CODED:
-            results = _second_look(results, windows, plan, dictionary, used, pool, workers)
+            results = _second_look(results, windows, plan, searched_as, used, pool, workers)
     work = plan.work
 
     frames = {p.image: (p.width_px, p.height_px) for p in photos.photos}
@@ -383,6 +391,7 @@ def gcp_find(
         crs_to_text(out_crs),
         offset_m,
         marker_m,
+        searched_as if used in CODED else "",
     )
 
 
@@ -513,11 +522,12 @@ def _search(
     fb: Feedback,
     target: str = "aruco",
     auto_kinds: tuple[str, ...] = (),
-) -> tuple[Results, dict[str, list[SearchWindow]], tuple[float, float] | None, str, float]:
+) -> tuple[Results, dict[str, list[SearchWindow]], tuple[float, float] | None, str, float, str]:
     """Detect in a few pilot photos with the stated uncertainty, measure the flight's common
     offset and the markers' size there, then search the rest in windows sized by what was
     measured. ``auto``: the pilot photos are searched for each target type and the one found
-    most is used. Also the markers' side measured (m; NaN when too few were decoded)."""
+    most is used. Also the markers' side measured (m; NaN when too few were decoded) and the
+    dictionary searched (another than the one given when only it decodes: :func:`_other_dictionary`)."""
     windows = dict(plan.windows)
     searched = [im for im in plan.cams if im in windows]
     pilot = _pilot_images(searched, windows, plan.cams, workers)
@@ -537,6 +547,16 @@ def _search(
         target, results = _choose_target(pilot, windows, pilot_run, auto_kinds, s_pilot)
     else:
         results = pilot_run(pilot, target, s_pilot)
+        if target in CODED and next(_decoded(results, windows), None) is None:
+            other = _other_dictionary(plan, pilot, windows, dictionary, ids, pool, workers)
+            if other is not None:
+                fb.warning(
+                    f"no marker decodes as {dictionary} in the first {len(pilot)} photos, while {other[1]} of the "
+                    f"GCPs' markers decode as {other[0]} where predicted: searched as {other[0]} "
+                    f"(give --dictionary {other[0]})"
+                )
+                dictionary = other[0]
+                results = pilot_run(pilot, target, s_pilot)
     coded = target in CODED
 
     def offset_of(results: Results) -> tuple[np.ndarray, float, int] | None:
@@ -573,7 +593,7 @@ def _search(
         )
         fb.warning(f"nothing accepted: {why}")
         results = [(p, [replace(d, reason=d.reason or why) for d in dets], e, b) for p, dets, e, b in results]
-        return results, windows, None, target, math.nan
+        return results, windows, None, target, math.nan, dictionary
     if offset is not None:
         rest, results = _narrow_windows(plan, windows, rest, pilot, results, offset, ids, uncertainty, target, fb)
     # photos without a pose are searched whole, for coded markers only (nothing else tells a target)
@@ -586,7 +606,39 @@ def _search(
     if coded:  # every photo searched by the detector: the fits to come need the markers' true size
         marker_m, windows = _marker_size(results, windows, uncertainty["marker_size_m"], fb)
     shift = None if offset is None else (float(offset[0][0]), float(offset[0][1]))
-    return results, windows, shift, target, marker_m
+    return results, windows, shift, target, marker_m, dictionary
+
+
+def _other_dictionary(
+    plan: _Plan,
+    pilot: list[str],
+    windows: dict[str, list[SearchWindow]],
+    given: str,
+    ids: dict[str, int],
+    pool: Executor | None,
+    workers: int,
+) -> tuple[str, int] | None:
+    """Where no marker decoded in the dictionary given: the dictionary the GCPs' markers decode in
+    at their predictions in the pilot photos (2 GCPs at least, or the one there is), as the
+    smallest of its family that holds every GCP id, and how many GCPs decoded; None when none
+    does. A wrong dictionary otherwise finds nothing, and says only that nothing was found."""
+    aruco = given[:7] in ("DICT_4X", "DICT_5X", "DICT_6X", "DICT_7X")
+    family = given.rsplit("_", 1)[0] + "_" if aruco else given  # its own ids decoded nothing
+    tried = tuple(d for d in PROBED if not d.startswith(family))
+    items = [(plan.path_of[im], windows[im], tried) for im in pilot]
+    seen: dict[str, set[str]] = {}
+    for found in map_ordered(probe_task, items, workers=1 if pool is None else workers, executor=pool):
+        for name, names in found.items():
+            seen.setdefault(name, set()).update(names)
+    if not seen:
+        return None
+    name, gcps = max(seen.items(), key=lambda kv: len(kv[1]))
+    if len(gcps) < min(2, len(ids)):
+        return None
+    if name[5] in "4567" and name.endswith("_1000"):  # the family's smallest that holds every id
+        size = next(n for n in (50, 100, 250, 1000) if n > max(ids.values()))
+        name = f"{name[:-5]}_{size}"
+    return name, len(gcps)
 
 
 #: How far the markers' measured size may be from the size given before the search and the fits
