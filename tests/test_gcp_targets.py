@@ -81,6 +81,13 @@ def test_a_marker_size_given_wrong_is_measured_said_and_fitted_right(degraded, t
     assert any("not the 0.6 m given" in w and "--marker-size-m" in w for w in fb.warnings), fb.warnings
     s = _score(degraded, r.output)
     assert s["precision"] == 1.0 and s["recall"] >= 0.9, s
+    # past the detector's size gate (half to twice the predicted side) nothing decoded: measured there
+    fb = RecordingFeedback()
+    r = gcp_find(degraded.images, degraded.gcp_file, tmp_path / "gcp_list_2.txt", marker_size_m=2.5, feedback=fb)
+    assert abs(r.marker_size_m - 1.0) <= 0.15, r.marker_size_m
+    assert any("no marker decodes at the size given (2.5 m)" in w for w in fb.warnings), fb.warnings
+    s = _score(degraded, r.output)
+    assert s["precision"] == 1.0 and s["recall"] >= 0.9, s
 
 
 @pytest.mark.parametrize(

@@ -695,12 +695,14 @@ PROBED = (
 )
 
 
-def probe_task(args: tuple[str, list[SearchWindow], tuple[str, ...]]) -> dict[str, list[str]]:
+def probe_task(args: tuple[str, list[SearchWindow], tuple[str, ...], str]) -> dict[str, list[tuple[str, float]]]:
     """Worker entry: per dictionary, the GCPs of one photo whose expected id the detector's plain
-    attempt decodes in their window as that dictionary, in a marker's shape and size."""
-    path, windows, dictionaries = args
+    attempt decodes in their window as that dictionary, in a marker's shape and size, each with
+    its side over the predicted side. ``unsized``: a dictionary tried at any size (a marker size
+    given wrong by more than the detector's 2x)."""
+    path, windows, dictionaries, unsized = args
     gray = _read_grey(path)
-    seen: dict[str, list[str]] = {}
+    seen: dict[str, list[tuple[str, float]]] = {}
     if gray is None:
         return seen
     h, w = gray.shape[:2]
@@ -711,11 +713,25 @@ def probe_task(args: tuple[str, list[SearchWindow], tuple[str, ...]]) -> dict[st
         if x1 - x0 < 8 or y1 - y0 < 8:
             continue
         crop = gray[y0:y1, x0:x1]
-        for name in dictionaries:
-            hits = _run(crop, "plain", name, win.side_px)
-            if any(mid == win.marker_id and plausible_quad(c, win) for mid, c in hits):
-                seen.setdefault(name, []).append(win.gcp)
+        for name in (*dictionaries, unsized) if unsized else dictionaries:
+            free = replace(win, side_px=0.0) if name == unsized else win
+            for mid, c in _run(crop, "plain", name, free.side_px):
+                if mid == win.marker_id and plausible_quad(c, free):
+                    seen.setdefault(name, []).append((win.gcp, side_ratio(c, win)))
+                    break
     return seen
+
+
+def side_ratio(corners: np.ndarray | Sequence[Sequence[float]], win: SearchWindow) -> float:
+    """A decoded marker's side over the side its window predicts (NaN without a prediction). The
+    detector's corners sit on the centres of the border's outer pixels: its side is a pixel
+    short (gf_spot_exact's 38 decoded 14 px markers: 0.96 px)."""
+    expected = win.side_px
+    if len(win.ground_px) == 4:
+        ex, nx, ey, ny = win.ground_px
+        expected = math.sqrt(abs(ex * ny - nx * ey))
+    side = math.sqrt(abs(float(cv2.contourArea(np.asarray(corners, np.float32).reshape(4, 2)))))
+    return (side + 1.0) / expected if expected > 0 else math.nan
 
 
 def ground_turn(corners_px: Sequence[Sequence[float]], ground_px: Sequence[float]) -> float:

@@ -64,6 +64,7 @@ from geoortho.gcp.detect import (
     placed_by_others,
     probe_task,
     second_look_task,
+    side_ratio,
 )
 from geoortho.gcp.io import GcpSet, marker_id_of, read_gcp_file
 from geoortho.gcp.markers import CODED, TARGETS, Dictionary, FindTarget, get_dictionary
@@ -548,8 +549,18 @@ def _search(
     else:
         results = pilot_run(pilot, target, s_pilot)
         if target in CODED and next(_decoded(results, windows), None) is None:
-            other = _other_dictionary(plan, pilot, windows, dictionary, ids, pool, workers)
-            if other is not None:
+            ratio, other = _probe(plan, pilot, windows, dictionary, ids, pool, workers)
+            if ratio is not None:
+                measured = uncertainty["marker_size_m"] * ratio
+                fb.warning(
+                    f"no marker decodes at the size given ({uncertainty['marker_size_m']:g} m) in the first "
+                    f"{len(pilot)} photos; they decode at {measured:.2f} m a side: searched at that "
+                    "(give --marker-size-m when that is their size; else the camera heights are off)"
+                )
+                windows = _rescaled(windows, ratio)
+                uncertainty = dict(uncertainty, marker_size_m=measured)
+                results = pilot_run(pilot, target, s_pilot)
+            elif other is not None:
                 fb.warning(
                     f"no marker decodes as {dictionary} in the first {len(pilot)} photos, while {other[1]} of the "
                     f"GCPs' markers decode as {other[0]} where predicted: searched as {other[0]} "
@@ -609,7 +620,7 @@ def _search(
     return results, windows, shift, target, marker_m, dictionary
 
 
-def _other_dictionary(
+def _probe(
     plan: _Plan,
     pilot: list[str],
     windows: dict[str, list[SearchWindow]],
@@ -617,28 +628,52 @@ def _other_dictionary(
     ids: dict[str, int],
     pool: Executor | None,
     workers: int,
-) -> tuple[str, int] | None:
-    """Where no marker decoded in the dictionary given: the dictionary the GCPs' markers decode in
-    at their predictions in the pilot photos (2 GCPs at least, or the one there is), as the
-    smallest of its family that holds every GCP id, and how many GCPs decoded; None when none
-    does. A wrong dictionary otherwise finds nothing, and says only that nothing was found."""
+) -> tuple[float | None, tuple[str, int] | None]:
+    """Where no marker decoded in the pilot photos, what the photos say was given wrong: the
+    markers' size (their side over the predicted, when the dictionary given decodes the GCPs'
+    ids at any size: the detector keeps only half to twice the predicted side), else the
+    dictionary they decode in (the smallest of its family that holds every GCP id, and how many
+    GCPs decoded). Two GCPs at least (or the one there is) must agree; (None, None) when none
+    does. A wrong size or dictionary otherwise finds nothing, and says only that."""
     aruco = given[:7] in ("DICT_4X", "DICT_5X", "DICT_6X", "DICT_7X")
     family = given.rsplit("_", 1)[0] + "_" if aruco else given  # its own ids decoded nothing
     tried = tuple(d for d in PROBED if not d.startswith(family))
-    items = [(plan.path_of[im], windows[im], tried) for im in pilot]
-    seen: dict[str, set[str]] = {}
+    items = [(plan.path_of[im], windows[im], tried, given) for im in pilot]
+    seen: dict[str, list[tuple[str, float]]] = {}
     for found in map_ordered(probe_task, items, workers=1 if pool is None else workers, executor=pool):
-        for name, names in found.items():
-            seen.setdefault(name, set()).update(names)
+        for name, hits in found.items():
+            seen.setdefault(name, []).extend(hits)
+    enough = min(2, len(ids))
+    own = seen.pop(given, [])
+    if len({g for g, _ in own}) >= enough:
+        return float(np.median([r for _, r in own])), None
     if not seen:
-        return None
-    name, gcps = max(seen.items(), key=lambda kv: len(kv[1]))
-    if len(gcps) < min(2, len(ids)):
-        return None
+        return None, None
+    name, hits = max(seen.items(), key=lambda kv: len({g for g, _ in kv[1]}))
+    n_gcps = len({g for g, _ in hits})
+    if n_gcps < enough:
+        return None, None
     if name[5] in "4567" and name.endswith("_1000"):  # the family's smallest that holds every id
         size = next(n for n in (50, 100, 250, 1000) if n > max(ids.values()))
         name = f"{name[:-5]}_{size}"
-    return name, len(gcps)
+    return None, (name, n_gcps)
+
+
+def _rescaled(windows: dict[str, list[SearchWindow]], ratio: float) -> dict[str, list[SearchWindow]]:
+    """The windows for markers ``ratio`` times the size they were predicted for."""
+
+    def one(w: SearchWindow) -> SearchWindow:
+        # a window reaches a marker and a half beyond the prediction's error (predict_windows)
+        grow = 1.5 * w.side_px * (ratio - 1.0)
+        return replace(
+            w,
+            side_px=w.side_px * ratio,
+            ground_px=tuple(v * ratio for v in w.ground_px),
+            radius_px=max(w.radius_px + grow, 24.0),
+            wide_radius_px=max(w.wide_radius_px + grow, 24.0) if w.wide_radius_px > 0 else 0.0,
+        )
+
+    return {im: [one(w) for w in wins] for im, wins in windows.items()}
 
 
 #: How far the markers' measured size may be from the size given before the search and the fits
@@ -660,15 +695,9 @@ def _marker_size(
         wins = windows.get(Path(path).name, [])
         for d in dets:
             if 0 <= d.window < len(wins) and d.marker_id == wins[d.window].marker_id and not d.reason:
-                win = wins[d.window]
-                expected = win.side_px
-                if len(win.ground_px) == 4:
-                    ex, nx, ey, ny = win.ground_px
-                    expected = math.sqrt(abs(ex * ny - nx * ey))
-                if expected > 0 and d.side_px > 0:
-                    # the detector's corners sit on the centres of the border's outer pixels: its
-                    # side is a pixel short (gf_spot_exact's 38 decoded 14 px markers: 0.96 px)
-                    ratios.append((d.side_px + 1.0) / expected)
+                r = side_ratio(d.corners_px, wins[d.window])
+                if math.isfinite(r):
+                    ratios.append(r)
     if len(ratios) < 3:
         return math.nan, windows
     ratio = float(np.median(ratios))
@@ -680,19 +709,7 @@ def _marker_size(
         f"used, not the {given_m:g} m given: the rest are fitted at {measured:.2f} m (give --marker-size-m "
         "when that is their size; else the camera heights are off)"
     )
-
-    def rescaled(w: SearchWindow) -> SearchWindow:
-        # a window reaches a marker and a half beyond the prediction's error (predict_windows)
-        grow = 1.5 * w.side_px * (ratio - 1.0)
-        return replace(
-            w,
-            side_px=w.side_px * ratio,
-            ground_px=tuple(v * ratio for v in w.ground_px),
-            radius_px=max(w.radius_px + grow, 24.0),
-            wide_radius_px=max(w.wide_radius_px + grow, 24.0) if w.wide_radius_px > 0 else 0.0,
-        )
-
-    return measured, {im: [rescaled(w) for w in wins] for im, wins in windows.items()}
+    return measured, _rescaled(windows, ratio)
 
 
 def _narrow_windows(
