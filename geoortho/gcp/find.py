@@ -528,7 +528,7 @@ def _search(
     offset and the markers' size there, then search the rest in windows sized by what was
     measured. ``auto``: the pilot photos are searched for each target type and the one found
     most is used. Also the markers' side measured (m; NaN when too few were decoded) and the
-    dictionary searched (another than the one given when only it decodes: :func:`_other_dictionary`)."""
+    dictionary searched (another than the one given when only it decodes: :func:`_probe`)."""
     windows = dict(plan.windows)
     searched = [im for im in plan.cams if im in windows]
     pilot = _pilot_images(searched, windows, plan.cams, workers)
@@ -646,7 +646,10 @@ def _probe(
     enough = min(2, len(ids))
     own = seen.pop(given, [])
     if len({g for g, _ in own}) >= enough:
-        return float(np.median([r for _, r in own])), None
+        ratio = float(np.median([r for _, r in own]))
+        # at about the size given they were missed for another cause (blur: the ladder's "plain"
+        # attempt is skipped on a smeared photo): neither the size nor the dictionary was wrong
+        return (ratio, None) if abs(ratio - 1.0) > MARKER_SIZE_TOLERANCE else (None, None)
     if not seen:
         return None, None
     name, hits = max(seen.items(), key=lambda kv: len({g for g, _ in kv[1]}))
