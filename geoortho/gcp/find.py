@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
@@ -173,6 +174,13 @@ def _marker_ids(gcps: GcpSet, dictionary: str, target: str = "aruco") -> dict[st
     return ids
 
 
+#: A search window reaches this many marker sides beyond the prediction's error, and is never
+#: under this radius (px): predict_windows sizes them so, and _rescaled keeps it when the size
+#: the markers are searched at changes.
+WINDOW_REACH_SIDES = 1.5
+MIN_WINDOW_PX = 24.0
+
+
 def predict_windows(
     cams: Sequence[PhotoCamera],
     names: Sequence[str],
@@ -210,7 +218,7 @@ def predict_windows(
         slope = np.hypot(d[:, 0], d[:, 1]) / np.maximum(np.abs(d[:, 2]), 1e-6)
         err_m = position_uncertainty_m + height_uncertainty_m * slope + rng * tan_att
         marker_px = marker_size_m / gsd_m
-        radius = err_m / gsd_m + 1.5 * marker_px
+        radius = err_m / gsd_m + WINDOW_REACH_SIDES * marker_px
         # pixels per marker side along east and north: the target's shape before its rotation
         east = cam.project(xyz + [marker_size_m, 0.0, 0.0])[0] - px
         north = cam.project(xyz + [0.0, marker_size_m, 0.0])[0] - px
@@ -218,14 +226,16 @@ def predict_windows(
             x, y = px[j]
             if not (np.isfinite(x) and np.isfinite(y)) or name not in ids:
                 continue
-            wide = float(max(radius[j], 24.0))
+            wide = float(max(radius[j], MIN_WINDOW_PX))
             narrow = (
-                wide if residual_m is None else float(min(wide, max(residual_m / gsd_m[j] + 1.5 * marker_px[j], 24.0)))
+                wide
+                if residual_m is None
+                else float(min(wide, max(residual_m / gsd_m[j] + WINDOW_REACH_SIDES * marker_px[j], MIN_WINDOW_PX)))
             )
             # The prediction may be off by the window's error part: a marker just inside the
             # frame can be predicted just outside it. Search when the window reaches the frame;
             # the margin is enforced on the detected centre (_judge).
-            slack = max(0.0, narrow - 1.5 * marker_px[j])
+            slack = max(0.0, narrow - WINDOW_REACH_SIDES * marker_px[j])
             if not in_frame(x, y, w, h, mx - slack, my - slack):
                 continue
             jac = (east[j, 0], north[j, 0], east[j, 1], north[j, 1])
@@ -635,18 +645,17 @@ def _probe(
     dictionary they decode in (the smallest of its family that holds every GCP id, and how many
     GCPs decoded). Two GCPs at least (or the one there is) must agree; (None, None) when none
     does. A wrong size or dictionary otherwise finds nothing, and says only that."""
-    aruco = given[:7] in ("DICT_4X", "DICT_5X", "DICT_6X", "DICT_7X")
-    family = given.rsplit("_", 1)[0] + "_" if aruco else given  # its own ids decoded nothing
-    tried = tuple(d for d in PROBED if not d.startswith(family))
+    own = _aruco_family(given)  # its own ids decoded nothing: nor would its family's larger ones
+    tried = tuple(d for d in PROBED if d != given and (own is None or _aruco_family(d) != own))
     items = [(plan.path_of[im], windows[im], tried, given) for im in pilot]
     seen: dict[str, list[tuple[str, float]]] = {}
     for found in map_ordered(probe_task, items, workers=1 if pool is None else workers, executor=pool):
         for name, hits in found.items():
             seen.setdefault(name, []).extend(hits)
     enough = min(2, len(ids))
-    own = seen.pop(given, [])
-    if len({g for g, _ in own}) >= enough:
-        ratio = float(np.median([r for _, r in own]))
+    unsized = seen.pop(given, [])
+    if len({g for g, _ in unsized}) >= enough:
+        ratio = float(np.median([r for _, r in unsized]))
         # at about the size given they were missed for another cause (blur: the ladder's "plain"
         # attempt is skipped on a smeared photo): neither the size nor the dictionary was wrong
         return (ratio, None) if abs(ratio - 1.0) > MARKER_SIZE_TOLERANCE else (None, None)
@@ -656,24 +665,31 @@ def _probe(
     n_gcps = len({g for g, _ in hits})
     if n_gcps < enough:
         return None, None
-    if name[5] in "4567" and name.endswith("_1000"):  # the family's smallest that holds every id
+    family = _aruco_family(name)
+    if family is not None:  # the family's smallest that holds every id
         size = next(n for n in (50, 100, 250, 1000) if n > max(ids.values()))
-        name = f"{name[:-5]}_{size}"
+        name = f"{family}_{size}"
     return None, (name, n_gcps)
+
+
+def _aruco_family(dictionary: str) -> str | None:
+    """An ArUco dictionary's family ("DICT_4X4" for DICT_4X4_50): its dictionaries of 50, 100, 250
+    and 1000 ids are each the first ids of the next. None for the others (AprilTag, original)."""
+    m = re.fullmatch(r"(DICT_[4-7]X[4-7])_\d+", dictionary)
+    return m.group(1) if m else None
 
 
 def _rescaled(windows: dict[str, list[SearchWindow]], ratio: float) -> dict[str, list[SearchWindow]]:
     """The windows for markers ``ratio`` times the size they were predicted for."""
 
     def one(w: SearchWindow) -> SearchWindow:
-        # a window reaches a marker and a half beyond the prediction's error (predict_windows)
-        grow = 1.5 * w.side_px * (ratio - 1.0)
+        grow = WINDOW_REACH_SIDES * w.side_px * (ratio - 1.0)
         return replace(
             w,
             side_px=w.side_px * ratio,
             ground_px=tuple(v * ratio for v in w.ground_px),
-            radius_px=max(w.radius_px + grow, 24.0),
-            wide_radius_px=max(w.wide_radius_px + grow, 24.0) if w.wide_radius_px > 0 else 0.0,
+            radius_px=max(w.radius_px + grow, MIN_WINDOW_PX),
+            wide_radius_px=max(w.wide_radius_px + grow, MIN_WINDOW_PX) if w.wide_radius_px > 0 else 0.0,
         )
 
     return {im: [one(w) for w in wins] for im, wins in windows.items()}
@@ -693,14 +709,7 @@ def _marker_size(
     cent: a size given wrong (0.55 m markers searched as the default 1 m) left the fits failing,
     recall 0.38 against 0.92, at six times the time. Beyond :data:`MARKER_SIZE_TOLERANCE` the
     windows take the measured size (the fits are made in them), said."""
-    ratios = []
-    for path, dets, *_ in results:
-        wins = windows.get(Path(path).name, [])
-        for d in dets:
-            if 0 <= d.window < len(wins) and d.marker_id == wins[d.window].marker_id and not d.reason:
-                r = side_ratio(d.corners_px, wins[d.window])
-                if math.isfinite(r):
-                    ratios.append(r)
+    ratios = [r for _, d, win in _decoded(results, windows) if math.isfinite(r := side_ratio(d.corners_px, win))]
     if len(ratios) < 3:
         return math.nan, windows
     ratio = float(np.median(ratios))

@@ -395,15 +395,16 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
             # Worker processes would be spawned with sys.executable, which inside
             # QGIS is QGIS itself (or whatever python3 is on PATH), not a Python.
             values = dict(values, workers=1)
+        canceled = f"geoortho {self._spec['id']}: canceled; no output was written"
         try:
             return run_algorithm(self._spec["id"], values, feedback_adapter(feedback))
         except CanceledError:
-            raise QgsProcessingException(f"geoortho {self._spec['id']}: canceled; no output was written") from None
+            raise QgsProcessingException(canceled) from None
         except GeoorthoError as e:
             raise QgsProcessingException(f"geoortho {self._spec['id']}: error: {e}") from None
         except Exception as e:
             if interrupted(e):  # a cancel a library wrapped in its own error (pybind11, pycolmap)
-                raise QgsProcessingException(f"geoortho {self._spec['id']}: canceled; no output was written") from None
+                raise QgsProcessingException(canceled) from None
             raise
 
     def _results(
