@@ -618,3 +618,54 @@ def test_a_missed_marker_is_fitted_where_it_was_carried_and_its_whole_window_sea
         searched.clear()
         detect.fit_missed(img, [win], [], [0], "aruco", "DICT_4X4_50", blur)
         assert searched and not any(searched)
+
+
+@pytest.mark.parametrize(
+    "white, bloom, blur_px",
+    [
+        (330.0, None, 0.0),  # white paint in sun: clipped all over, no glare
+        (300.0, (0.3, -0.2, 0.45, 160.0), 0.0),  # and a bloom under a side across, off-centre
+        (300.0, (-0.4, 0.3, 0.5, 150.0), 0.0),
+        (280.0, (0.5, 0.4, 0.7, 260.0), 0.0),  # wider and brighter, off a corner
+        (300.0, (0.3, -0.2, 0.45, 160.0), 1.5),  # smeared a little by the camera
+    ],
+)
+def test_a_marker_whose_white_paint_clips_is_verified_on_what_the_clip_says(white, bloom, blur_px):
+    """A clipped pixel is not glare where glare alone would not clip black paint: it is white paint,
+    at least as bright as the clip less the glare there. Left out (the whole white of a marker in
+    sun), the score had only the black left to correlate (four of these five were refused); the
+    fit now takes the clip as a bound and the score counts it there."""
+    import math
+
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp.markers import marker_cells, paint_target
+    from geoortho.gcp.targets import fit_target
+    from geoortho.synthetic.survey import motion_kernel
+
+    rng = np.random.default_rng(5)
+    side, cx, cy = 15.0, 80.4, 79.7
+    img = cv2.GaussianBlur(rng.normal(120, 25, (160, 160)), (0, 0), 2.0)
+    a = math.radians(-24.0)
+    A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
+    paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", 9), white, 45.0)
+    if bloom is not None:  # a Gaussian bloom (offset and sigma in sides, peak in grey levels)
+        bx, by, sigma, peak = bloom
+        yy, xx = np.mgrid[0:160, 0:160]
+        img += peak * np.exp(-((xx - cx - bx * side) ** 2 + (yy - cy - by * side) ** 2) / (2 * (sigma * side) ** 2))
+    img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(blur_px, 120.0))
+    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    blur = estimate_motion_blur(img) if blur_px else (0.0, 0.0)
+    box = (40, 40, 121, 121)
+    for marker_id in (9, 21):
+        fit = fit_target(
+            img, box, "aruco", A, cells=marker_cells("DICT_4X4_50", marker_id), dictionary="DICT_4X4_50",
+            marker_id=marker_id, blur=blur, near=(cx + 1.5, cy - 1.0, 4.0),
+        )  # fmt: skip
+        assert fit is not None
+        if marker_id == 9:
+            assert not fit.reason, fit
+            assert math.hypot(fit.x_px - cx, fit.y_px - cy) < 0.35, fit
+        else:  # the same place painted with another id is refused
+            assert fit.reason, fit

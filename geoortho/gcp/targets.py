@@ -657,13 +657,19 @@ def _score(
     start: tuple[float, float, float],
     blur: tuple[float, float],
 ) -> _Candidate:
-    """Refine from one candidate; its final score on every pixel the model covers (saturated out)."""
+    """Refine from one candidate; its final score on every pixel the model covers (saturated ones
+    out, but for a coded marker's clipped paint: :func:`_censored`)."""
     fit, glare = _refine(crop, kind, base, cells, start, blur)
     cx, cy, angle, scale, e1, e2, blen, bdeg, dpx, bar = fit
     crops = [crop]
+    raw = crop
+    glare_at = None
     if glare is not None:
-        # take the fitted glare spot off (saturated pixels stay out of the score)
+        # take the fitted glare spot off (a saturated pixel is scored only where it says how bright
+        # the paint is at least: see _censored)
         gx0, gy0, spot = glare
+        glare_at = np.zeros(crop.shape, np.float32)
+        glare_at[gy0 : gy0 + spot.shape[0], gx0 : gx0 + spot.shape[1]] = spot
         crop = crop.copy()
         sub = crop[gy0 : gy0 + spot.shape[0], gx0 : gx0 + spot.shape[1]]
         hot = sub >= SATURATED
@@ -689,9 +695,13 @@ def _score(
         if kind not in CODED and c is as_is:
             # white paint in sun clips: where no glare is taken off, a saturated pixel where the
             # model is white says what it should (only on the dark parts is it glare). Coded ids
-            # keep them out: a clipped cell must not vote for the id that has it white.
+            # keep them out as they are: a cell clipped by glare must not vote for the id that has
+            # it white (one clipped where glare alone would not clip black paint is white: _censored).
             unsaturated |= tpl >= 0.5
         w = ((cover > 0.999) & unsaturated & band).astype(np.float64)
+        if kind in CODED:
+            g = None if glare_at is None else glare_at[gy0:gy1, gx0:gx1].ravel()
+            p, w = _censored(p, tpl, w, cover, raw[gy0:gy1, gx0:gx1].ravel(), g)
         score = _ncc(p, tpl, w)
         if score > best:
             best, pix, weight = score, p, w
@@ -701,6 +711,31 @@ def _score(
     gain = float((weight * dt * pix).sum() / max((weight * dt * dt).sum(), 1e-12))
     worst = _worst_part(kind, xs.ravel() - cx, ys.ravel() - cy, A, pix, tpl, weight, gain)
     return _Candidate(best, cx, cy, angle, scale, blen, bdeg, dpx, A, rend, pix, weight, gain, worst)
+
+
+def _censored(
+    pix: np.ndarray, tpl: np.ndarray, w: np.ndarray, cover: np.ndarray, raw: np.ndarray, glare: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """A coded marker's scored pixels with the clipped ones that still say something: a pixel at
+    the clip is at least the clip less the glare fitted there; where that bound is brighter than
+    half way from the fitted black to the fitted white, the pixel is bright paint (white paint in
+    sun clips), and it is scored at its bound. Where glare alone would clip black paint, it says
+    nothing and stays out."""
+    hot = (raw >= SATURATED) & (cover > 0.999)
+    if not hot.any() or w.sum() < 8:
+        return pix, w
+    sw = w.sum()
+    mt, mp = (w * tpl).sum() / sw, (w * pix).sum() / sw
+    var = (w * (tpl - mt) ** 2).sum()
+    if var < 1e-9:
+        return pix, w
+    gain = (w * (tpl - mt) * (pix - mp)).sum() / var
+    mid = mp + gain * (0.5 - mt)
+    bound = SATURATED - (0.0 if glare is None else glare)
+    says = hot & (gain > 0) & (bound > mid)
+    if not says.any():
+        return pix, w
+    return np.where(says, bound, pix), np.where(says, 1.0, w)
 
 
 def _cross_band(dx: np.ndarray, dy: np.ndarray, A: np.ndarray, bar: float) -> np.ndarray:
@@ -965,6 +1000,14 @@ def _refine(
         [cx0, cy0, angle0, math.log(scale0), e10, e20, bx, by, defocus0, CROSS_BAR, gx, gy, math.log(0.25 * side)]
     )
     free = [i for i in range(13) if (i != 9 or kind == "cross") and (i < 10 or glare)]
+    # Clipped pixels (white paint in sun, glare) are censored: they say the model is at least the
+    # clip there. Scored one-sided, they pull a model that is darker there, never a brighter one.
+    censor = None
+    if rim:
+        censor_px = (cover0 > 0.5) & (pix >= SATURATED)
+        if censor_px.any():
+            use = use | censor_px
+            censor = censor_px[use]
     xf, yf = xs.ravel()[use].astype(float), ys.ravel()[use].astype(float)
     # the fit renders only the pixels it uses (a pixel's value depends on no other): 30-48 % of
     # the patch's square (median 42 %, the tiny degraded survey's 63 refinements)
@@ -1000,8 +1043,13 @@ def _refine(
         p[free] = q
         d = design(p)
         # gain, offset (and glare amplitude) in closed form
-        coef, *_ = np.linalg.lstsq(d, pix[use], rcond=None)
-        return (d @ coef - pix[use]) / 8.0
+        if censor is None:
+            coef, *_ = np.linalg.lstsq(d, pix[use], rcond=None)
+            return (d @ coef - pix[use]) / 8.0
+        coef, *_ = np.linalg.lstsq(d[~censor], pix[use][~censor], rcond=None)
+        r = d @ coef - pix[use]
+        r[censor] = np.minimum(r[censor], 0.0)
+        return r / 8.0
 
     # Motion blur is the photo's (measured from its texture), so the target's stays near it, and
     # defocus is a pixel or two: a model free to smear itself fits any texture.
@@ -1038,7 +1086,8 @@ def _refine(
     if glare:
         # the fitted glare, to take off the pixels before scoring
         d = design(p)
-        coef, *_ = np.linalg.lstsq(d, pix[use], rcond=None)
+        keep = slice(None) if censor is None else ~censor
+        coef, *_ = np.linalg.lstsq(d[keep], pix[use][keep], rcond=None)
         gxx, gyy = xs.astype(float), ys.astype(float)
         glare_img = coef[-1] * spot(p, gxx, gyy)  # the last term
     cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
