@@ -288,3 +288,52 @@ def test_pycolmap_interrupted_while_loading_raises_keyboard_interrupt(monkeypatc
     monkeypatch.setattr(builtins, "__import__", importing)
     with pytest.raises(KeyboardInterrupt):
         load_pycolmap()
+
+
+def test_a_ctrl_c_a_library_swallows_still_cancels_the_run(tmp_path, capsys, monkeypatch):
+    """A Ctrl-C that landed while an optional library loaded, caught there as its ImportError,
+    was lost: the command ran to the end and exited 0. The run stops at its next progress call."""
+    import os
+    import signal
+
+    import geoortho.processing.cli as cli_module
+
+    def run_whose_library_swallows_the_interrupt(alg, values, feedback, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            signal.sigtimedwait([], 1.0)  # the handler runs here, at the latest
+        except KeyboardInterrupt:
+            pass  # as `try: import optional except ImportError:` does with pybind11's wrapping
+        feedback.progress(0.5)
+        return {}
+
+    monkeypatch.setattr(cli_module, "run_algorithm", run_whose_library_swallows_the_interrupt)
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    code = main(["synth", "--output", str(tmp_path / "s"), "--preset", "tiny", "--quiet"])
+    assert code == 130 and capsys.readouterr().err.strip().splitlines() == ["geoortho synth: canceled"]
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
+def test_a_ctrl_c_caught_inside_an_exec_still_exits_130(tmp_path, capsys, monkeypatch):
+    """`ortho` printed 'canceled' and then died by SIGINT (-2, not 130) when the Ctrl-C landed as
+    a dataclass built its methods: CPython 3.11 kept the interrupt marked unhandled, and under
+    `python -m` ends so at exit. The mark is read where the interpreter exports it."""
+    import ctypes
+
+    import geoortho.processing.cli as cli_module
+
+    try:
+        mark = ctypes.c_int.in_dll(ctypes.pythonapi, "_Py_UnhandledKeyboardInterrupt")
+    except ValueError:
+        pytest.skip("this interpreter does not export the mark")
+
+    def run_interrupted_inside_an_exec(*args, **kwargs):
+        exec("raise KeyboardInterrupt")
+
+    monkeypatch.setattr(cli_module, "run_algorithm", run_interrupted_inside_an_exec)
+    try:
+        code = main(["synth", "--output", str(tmp_path / "s"), "--preset", "tiny", "--quiet"])
+        assert code == 130 and capsys.readouterr().err.strip().splitlines() == ["geoortho synth: canceled"]
+        assert mark.value == 0
+    finally:
+        mark.value = 0  # this test process itself runs under `python -m pytest`

@@ -13,7 +13,8 @@ import os
 import signal
 import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any, NoReturn
 
 from geoortho.errors import CanceledError, GeoorthoError, InputError, interrupted
@@ -153,16 +154,43 @@ def _describe_text() -> str:
     return "\n".join(lines)
 
 
-def _install_sigterm(feedback: Feedback) -> None:
-    # A terminated run (QGIS Cancel) stops at the next progress call, so temporary
-    # outputs are removed rather than left half-written.
-    def handler(signum: int, frame: Any) -> None:
+@contextmanager
+def _signals_cancel(feedback: Feedback) -> Iterator[None]:
+    """While the command runs, SIGTERM (QGIS Cancel, systemd's stop) cancels the feedback: the run
+    stops at its next progress call and removes its temporary outputs. SIGINT does that too and
+    still raises KeyboardInterrupt at once: a library that swallows the KeyboardInterrupt (an
+    optional import whose failure is caught as ImportError, which pybind11 makes of a Ctrl-C during
+    a module's initialisation) would otherwise lose the Ctrl-C and run to the end. A SIGINT the
+    parent ignored (nohup, a background job) stays ignored. The previous handlers come back after."""
+
+    def on_sigterm(signum: int, frame: Any) -> None:
         feedback.cancel()
 
+    def on_sigint(signum: int, frame: Any) -> NoReturn:
+        feedback.cancel()
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread
-        pass
+        signal.signal(signal.SIGTERM, on_sigterm)
+        if previous[signal.SIGINT] is signal.default_int_handler:
+            signal.signal(signal.SIGINT, on_sigint)
+    except ValueError:  # not the main thread: no handler to set or restore
+        previous = {}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            if handler is not None:  # None: set outside Python, cannot be put back
+                signal.signal(sig, handler)
+
+
+def _forget_unhandled_interrupt() -> None:
+    """Keep exit code 130 after a caught Ctrl-C. CPython 3.11 marks a KeyboardInterrupt that
+    leaves an exec() of a string (dataclasses and namedtuple build their methods so, at import) as
+    unhandled even when it is caught, and under ``python -m`` then ends the process by SIGINT at
+    exit instead of with the code returned. Any exec() of a string that completes clears the mark."""
+    exec("pass")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -192,11 +220,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         feedback = JsonLinesFeedback(sys.stderr)
     else:
         feedback = TerminalFeedback(alg.id, quiet=args.quiet)
-    _install_sigterm(feedback)
     prog = f"{PROG} {alg.id}"
 
     def fail(kind: str, message: str, code: int) -> int:
         """The last stderr line: plain text, or one JSON object under --progress-json."""
+        if code == 130:
+            _forget_unhandled_interrupt()
         feedback.close()
         if args.progress_json:
             line = f"{prog}: {message}"
@@ -206,7 +235,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return code
 
     try:
-        outputs = run_algorithm(alg, values, feedback, scheduler=args.scheduler)
+        with _signals_cancel(feedback):
+            outputs = run_algorithm(alg, values, feedback, scheduler=args.scheduler)
     except InputError as e:
         return fail("error", f"error: {_one_line(e)}", 2)
     except (CanceledError, KeyboardInterrupt):
