@@ -77,6 +77,10 @@ SIZE_TOLERANCE = {"circle": 0.15}
 CONTRAST_BY_KIND = {"aruco": 85.0, "apriltag": 85.0}
 SATURATED = 250  # grey levels at or above: glare, not target
 SUBSAMPLES = 32  # per pixel: pixel area, motion path and defocus at once
+#: The samples per pixel and the evaluations of the last steps of an accepted coded fit's centre
+#: (:func:`_centred`).
+CENTRE_SUBSAMPLES = 256
+CENTRE_EVALUATIONS = 4
 
 
 def min_score(kind: str) -> float:
@@ -184,10 +188,18 @@ def _to_marker(dx: np.ndarray, dy: np.ndarray, A: np.ndarray) -> tuple[np.ndarra
 class _Renderer:
     """Renders the target model into a fixed grid of pixels (a patch of the photo)."""
 
-    def __init__(self, kind: str, cells: np.ndarray | None, xs: np.ndarray, ys: np.ndarray, bar: float = CROSS_BAR):
+    def __init__(
+        self,
+        kind: str,
+        cells: np.ndarray | None,
+        xs: np.ndarray,
+        ys: np.ndarray,
+        bar: float = CROSS_BAR,
+        samples: int = SUBSAMPLES,
+    ):
         self.kind, self.cells, self.bar = kind, cells, bar
         self.xs, self.ys = xs.astype(float).ravel(), ys.astype(float).ravel()
-        self.sx, self.sy, self.st, self.nx, self.ny = _offsets()
+        self.sx, self.sy, self.st, self.nx, self.ny = _offsets(samples)
         self.lut = _coded_lookup(cells) if kind in CODED and cells is not None else None
 
     def _separable(
@@ -585,7 +597,16 @@ def _centred(
     shape = cand.A @ np.linalg.inv(base @ rot) / cand.scale
     e1, e2 = 0.5 * (shape[0, 0] - shape[1, 1]), 0.5 * (shape[0, 1] + shape[1, 0])
     start, size = (cand.cx, cand.cy, cand.angle), (cand.scale, e1, e2, cand.dpx)
-    (cx, cy, *_), _ = _refine(crop, kind, base, cells, start, (cand.blen, cand.bdeg), converge=True, shape=size)
+    blur = (cand.blen, cand.bdeg)
+    (cx, cy, ang, scale, e1, e2, blen, bdeg, dpx, _), _ = _refine(
+        crop, kind, base, cells, start, blur, converge=True, shape=size
+    )
+    # the model's 32 samples a pixel leave it a few grey levels off the exact integral, enough to
+    # hold a centre 0.05-0.2 px from the optimum; a few steps with 256 take it there
+    (cx, cy, *_), _ = _refine(
+        crop, kind, base, cells, (cx, cy, ang), (blen, bdeg), converge=True, shape=(scale, e1, e2, dpx),
+        samples=CENTRE_SUBSAMPLES, evaluations=CENTRE_EVALUATIONS,
+    )  # fmt: skip
     dx, dy = cx - cand.cx, cy - cand.cy
     # a pixel or more away is not the same optimum, but along the blur, where the polish could not
     # tell the place (see _along_blur)
@@ -965,6 +986,8 @@ def _refine(
     blur: tuple[float, float],
     converge: bool | None = None,
     shape: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.7),
+    samples: int = SUBSAMPLES,
+    evaluations: int = 30,
 ) -> tuple[tuple[float, ...], tuple[int, int, np.ndarray] | None]:
     """Least-squares fit of the model's geometry, blur and defocus to the pixels around ``start``
     (and ``shape``: scale, shape correction e1 and e2, defocus px), with its optimiser run to
@@ -1023,7 +1046,7 @@ def _refine(
     xf, yf = xs.ravel()[use].astype(float), ys.ravel()[use].astype(float)
     # the fit renders only the pixels it uses (a pixel's value depends on no other): 30-48 % of
     # the patch's square (median 42 %, the tiny degraded survey's 63 refinements)
-    fitted = _Renderer(kind, cells, xf, yf)
+    fitted = _Renderer(kind, cells, xf, yf, samples=samples)
 
     def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
@@ -1032,7 +1055,7 @@ def _refine(
         blen, bdeg = math.hypot(vx, vy), math.degrees(math.atan2(vy, vx))
         return fitted.render(cx, cy, A, blen, bdeg, abs(dpx))
 
-    path = _offsets()[2][None, :]  # the motion path's samples, as the target's (−½…½)
+    path = _offsets(samples)[2][None, :]  # the motion path's samples, as the target's (−½…½)
 
     def spot(p: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         # the glare is in the scene, so the camera's motion smears it as it smears the target:
@@ -1075,7 +1098,7 @@ def _refine(
     x0 = np.clip(x0, lo, hi)  # (a start from an earlier fit may sit a rounding error outside)
     try:
         if (kind in CONVERGED) if converge is None else converge:
-            p = _converge(residuals, x0, free, lo, hi, side)
+            p = _converge(residuals, x0, free, lo, hi, side, evaluations)
             if rim:
                 p = _along_blur(residuals, p, free, lo, hi)
         else:
@@ -1138,6 +1161,7 @@ def _converge(
     lo: np.ndarray,
     hi: np.ndarray,
     side: float,
+    evaluations: int = 30,
 ) -> np.ndarray:
     """:func:`_refine`'s least squares, run to convergence: the parameters (``x0``, the ``free``
     ones within ``lo``..``hi``) at the end.
@@ -1168,7 +1192,7 @@ def _converge(
         bounds=((lo[free] - start) / unit, upper),
         loss="soft_l1",
         f_scale=2.0,
-        max_nfev=30,  # evaluations of the residuals: most fits converge in 20-26
+        max_nfev=evaluations,  # of the residuals: most fits converge in 20-26
     )
     p = x0.copy()
     p[free] = start + sol.x * unit
