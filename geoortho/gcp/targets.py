@@ -243,8 +243,9 @@ class _Renderer:
                 col = np.add.outer(pu[a : a + _BLOCK], su)
                 row = np.add.outer(pv[a : a + _BLOCK], sv)
                 # clipped to the ring, truncation is the floor
-                ci = np.clip(col, 0, n + 3, out=col).astype(np.int32)
-                ri = np.clip(row, 0, n + 3, out=row).astype(np.int32)
+                # (np.maximum/np.minimum: np.clip's Python wrapper cost 5 % of a degraded run)
+                ci = np.minimum(np.maximum(col, 0, out=col), n + 3, out=col).astype(np.int32)
+                ri = np.minimum(np.maximum(row, 0, out=row), n + 3, out=row).astype(np.int32)
                 ri *= n + 4
                 ri += ci
                 packed[a : a + _BLOCK] = table.take(ri).sum(axis=1)
@@ -1050,7 +1051,7 @@ def _refine(
 
     def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
-        fitted.bar = float(np.clip(bar, 0.08, 0.45))
+        fitted.bar = min(max(float(bar), 0.08), 0.45)
         A = _affine(base, ang, math.exp(ls), e1, e2)
         blen, bdeg = math.hypot(vx, vy), math.degrees(math.atan2(vy, vx))
         return fitted.render(cx, cy, A, blen, bdeg, abs(dpx))
