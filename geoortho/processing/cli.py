@@ -186,7 +186,7 @@ def _signals_cancel(feedback: Feedback) -> Iterator[None]:
 
 
 def _forget_unhandled_interrupt() -> None:
-    """Keep exit code 130 after a caught Ctrl-C. CPython 3.11 marks a KeyboardInterrupt that
+    """Keep the exit code after a caught Ctrl-C. CPython 3.11 marks a KeyboardInterrupt that
     leaves an exec() of a string (dataclasses and namedtuple build their methods so, at import) as
     unhandled even when it is caught, and under ``python -m`` then ends the process by SIGINT at
     exit instead of with the code returned. Any exec() of a string that completes clears the mark."""
@@ -194,6 +194,14 @@ def _forget_unhandled_interrupt() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line; returns the exit code. A command that returns has handled any Ctrl-C
+    (130, or a run that ended anyway after a library swallowed it): the exit is the code."""
+    code = _main(argv)
+    _forget_unhandled_interrupt()
+    return code
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -224,8 +232,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def fail(kind: str, message: str, code: int) -> int:
         """The last stderr line: plain text, or one JSON object under --progress-json."""
-        if code == 130:
-            _forget_unhandled_interrupt()
         feedback.close()
         if args.progress_json:
             line = f"{prog}: {message}"
