@@ -191,7 +191,7 @@ def process_pool(
     if hasattr(pool, "_safe_to_dynamically_spawn_children"):
         pool._safe_to_dynamically_spawn_children = False
     try:  # a Ctrl-C held while the workers start is raised as they are: the pool is shut down then too
-        with _workers_skip_main(), _children_block_sigint():
+        with _workers_skip_main(), _children_block_sigint(), _children_share_cores(n_procs):
             for _ in range(n_procs):
                 # start the workers now (they import while the caller prepares)
                 pool.submit(os.getpid)
@@ -242,6 +242,31 @@ def _workers_skip_main() -> Iterator[None]:
             yield
         finally:
             spawn.get_preparation_data = original
+
+
+#: The thread-count variables of the BLAS and OpenMP runtimes a worker's NumPy, SciPy and OpenCV
+#: read once, at their import.
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextmanager
+def _children_share_cores(n_procs: int) -> Iterator[None]:
+    """Workers started in this block share the cores: each one's BLAS gets its part of them
+    (one thread each when the pool fills them), unless the user set the variable. A worker's BLAS
+    otherwise starts a thread per core too, and the processes' threads take turns: gcp-find on a
+    degraded small survey (two workers, two cores) ran 14.0 s, 10.9 s with one thread each,
+    output the same. The caller keeps its own threads: alone, it has every core."""
+    share = str(max(1, (os.cpu_count() or 1) // max(1, n_procs)))
+    given = {k: os.environ.get(k) for k in THREAD_VARS}
+    for k, v in given.items():
+        if v is None:
+            os.environ[k] = share
+    try:
+        yield
+    finally:
+        for k, v in given.items():
+            if v is None:
+                os.environ.pop(k, None)
 
 
 @contextmanager
