@@ -1067,11 +1067,27 @@ def _refine(
         dy = y.ravel()[:, None] - p[11] - p[7] * path
         return np.exp(-(dx * dx + dy * dy) / (2 * var)).mean(axis=1).reshape(x.shape)
 
+    # A difference step in one parameter moves the model or the glare term, never both (but for
+    # the blur's): each term is kept by the parameters it depends on, and a Jacobian's columns for
+    # the other term's reuse it (a glare fit's 13 columns: 3 renders and 8 spots saved).
+    rendered: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+    spotted: dict[bytes, np.ndarray] = {}
+
     def design(p: np.ndarray) -> np.ndarray:
-        t, cover = model(p)
+        key = p[:10].tobytes()
+        if key not in rendered:
+            if len(rendered) > 32:
+                rendered.clear()
+            rendered[key] = model(p)
+        t, cover = rendered[key]
         cols = [t * cover, 1.0 - cover, np.ones_like(t)] if rim else [t, np.ones_like(t)]
         if glare:
-            cols.append(spot(p, xf, yf))
+            key = p[[6, 7, 10, 11, 12]].tobytes()
+            if key not in spotted:
+                if len(spotted) > 32:
+                    spotted.clear()
+                spotted[key] = spot(p, xf, yf)
+            cols.append(spotted[key])
         return np.column_stack(cols)
 
     def residuals(q: np.ndarray) -> np.ndarray:
