@@ -913,6 +913,8 @@ def _second_look(
         return results
     by_path = {path: dets for path, dets, *_ in results}
     items = [(path, windows[Path(path).name], by_path[path], js, dictionary, target) for path, js in jobs.items()]
+    # the photos with the most markers to fit first: a long one started last holds the pool open
+    items.sort(key=lambda item: -len(item[3]))
     looked = dict(map_ordered(second_look_task, items, workers=1 if pool is None else workers, executor=pool))
     return [(path, looked.get(path, dets), error, blur) for path, dets, error, blur in results]
 
