@@ -81,6 +81,12 @@ SUBSAMPLES = 32  # per pixel: pixel area, motion path and defocus at once
 #: (:func:`_centred`).
 CENTRE_SUBSAMPLES = 256
 CENTRE_EVALUATIONS = 4
+#: The short polish stops at a step under this share of its parameters' norm (the centre in window
+#: pixels and the turn in degrees make it 0.001-0.004). scipy's default, 1e-8, took 10.4 Jacobians a
+#: polish on a degraded small survey, this 7.9: on seven degraded and clean small surveys 565 markers
+#: found (564 before), none wrong, mean centre error 0.002 px higher on one, the same or lower
+#: (by up to 0.016 px) on the others; 0.88-0.91x the time.
+POLISH_XTOL = 1e-5
 
 
 def min_score(kind: str) -> float:
@@ -1128,6 +1134,7 @@ def _refine(
                 f_scale=2.0,
                 diff_step=1e-3,
                 max_nfev=80,
+                xtol=POLISH_XTOL,
                 x_scale=scales[free],
             )
             p = x0.copy()
