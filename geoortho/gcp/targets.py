@@ -1201,8 +1201,14 @@ def _converge(
     start = x0[free]
     upper = (hi[free] - start) / unit
 
+    last: dict[bytes, np.ndarray] = {}  # the latest point's residuals: scipy asks them, then its Jacobian
+
     def at(d: np.ndarray) -> np.ndarray:
-        return residuals(start + d * unit)
+        key = d.tobytes()
+        if key not in last:
+            last.clear()
+            last[key] = residuals(start + d * unit)
+        return last[key].copy()  # (scipy scales what it is given in place under a robust loss)
 
     def jac(d: np.ndarray) -> np.ndarray:
         r0 = at(d)
