@@ -1096,13 +1096,15 @@ def _refine(
             cols.append(spotted[key])
         return np.column_stack(cols)
 
+    seen, seen_solved = pix[use], pix[use][solved]
+
     def residuals(q: np.ndarray) -> np.ndarray:
         p = x0.copy()
         p[free] = q
         d = design(p)
         # gain, offset (and glare amplitude) in closed form
-        coef, *_ = np.linalg.lstsq(d[solved], pix[use][solved], rcond=None)
-        r = d @ coef - pix[use]
+        coef, *_ = np.linalg.lstsq(d[solved], seen_solved, rcond=None)
+        r = d @ coef - seen
         if censor is not None:
             r[censor] = np.minimum(r[censor], 0.0)
         return r / 8.0
@@ -1147,7 +1149,7 @@ def _refine(
     if glare:
         # the fitted glare, to take off the pixels before scoring
         d = design(p)
-        coef, *_ = np.linalg.lstsq(d[solved], pix[use][solved], rcond=None)
+        coef, *_ = np.linalg.lstsq(d[solved], seen_solved, rcond=None)
         gxx, gyy = xs.astype(float), ys.astype(float)
         glare_img = coef[-1] * spot(p, gxx, gyy)  # the last term
     cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
