@@ -299,3 +299,57 @@ def test_id_scores_without_rendering_every_id_equal_the_rendered_ones():
     rendered /= np.maximum(board.sum(axis=1), 1)[None]
     plain = [_ncc(img, t, w) for t in rendered]
     np.testing.assert_allclose(fast, plain, atol=1e-9)
+
+
+def _photo_with_markers(placed: dict[int, tuple[int, int]], side_px: int = 24) -> np.ndarray:
+    """A grey 600 x 400 photo with DICT_4X4_50 markers (id -> top-left pixel) on white boards."""
+    import cv2
+
+    gray = np.full((400, 600), 110, np.uint8)
+    for marker_id, (x, y) in placed.items():
+        board = np.full((side_px * 2, side_px * 2), 255, np.uint8)
+        marker = cv2.aruco.generateImageMarker(
+            cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), marker_id, side_px
+        )
+        board[side_px // 2 : side_px // 2 + side_px, side_px // 2 : side_px // 2 + side_px] = marker
+        gray[y - side_px // 2 : y + side_px + side_px // 2, x - side_px // 2 : x + side_px + side_px // 2] = board
+    return gray
+
+
+def test_the_wide_window_is_searched_only_where_the_photo_does_not_place_the_marker(monkeypatch):
+    """A marker 60 px from its prediction (a pose off by more than the measured residual) is found
+    in the wide window; where two markers of the photo decoded in their own windows place it inside
+    its window, the wide one is not searched (on degraded surveys it decoded none of 122 there)."""
+    from geoortho.gcp import detect
+
+    def window(gcp: str, marker_id: int, x: float, y: float) -> detect.SearchWindow:
+        return detect.SearchWindow(gcp, marker_id, x, y, radius_px=30.0, side_px=24.0, wide_radius_px=120.0)
+
+    searched: list[tuple[int, int]] = []
+    search = detect._search
+
+    def counting(gray, box, win, *args, **kwargs):
+        searched.append((win.marker_id, box[2] - box[0]))
+        return search(gray, box, win, *args, **kwargs)
+
+    monkeypatch.setattr(detect, "_search", counting)
+    # one marker, predicted 60 px off (both ways): the detector finds it in the wide window
+    gray = _photo_with_markers({7: (300, 200)})
+    dets = detect.detect_in_image(gray, [window("G7", 7, 372.0, 212.0)], "DICT_4X4_50", fit=False)
+    found = [d for d in dets if d.marker_id == 7]
+    assert found and abs(found[0].x_px - 312) < 1 and abs(found[0].y_px - 212) < 1
+    assert (7, 241) in searched  # the wide square: 2 x 120 px
+    # two markers found where predicted place the third where predicted: it is not in its window
+    # (its paint is elsewhere: a GCP whose coordinates are off), and the wide window is not searched
+    searched.clear()
+    gray = _photo_with_markers({1: (100, 100), 2: (450, 300), 7: (300, 100)})
+    wins = [window("G1", 1, 112.0, 112.0), window("G2", 2, 462.0, 312.0), window("G7", 7, 312.0, 300.0)]
+    dets = detect.detect_in_image(gray, wins, "DICT_4X4_50", fit=False)
+    assert {d.marker_id for d in dets if not d.reason} == {1, 2}
+    assert all(width <= 61 for mid, width in searched if mid == 7)
+    # a smeared photo: its detector cannot decode the marker where it is either (its fit, in the
+    # second look, covers the wide window)
+    searched.clear()
+    gray = _photo_with_markers({7: (300, 200)})
+    detect.detect_in_image(gray, [window("G7", 7, 372.0, 212.0)], "DICT_4X4_50", blur=(12.0, 0.0), fit=False)
+    assert searched and all(width <= 61 for _, width in searched)
