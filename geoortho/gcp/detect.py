@@ -14,7 +14,7 @@ import numpy as np
 
 from geoortho.core.camera import in_frame
 from geoortho.gcp.markers import CODED, get_dictionary, marker_cells, target_half_extent
-from geoortho.gcp.targets import SATURATED, estimate_motion_blur, fit_target
+from geoortho.gcp.targets import PLACED_ID_MARGIN, SATURATED, estimate_motion_blur, fit_target
 from geoortho.photos.metadata import decode_photo
 
 __all__ = [
@@ -353,11 +353,6 @@ def _accepted(d: Detection, win: SearchWindow) -> bool:
         and not d.reason
         and math.hypot(d.x_px - win.x_px, d.y_px - win.y_px) <= win.max_radius_px
     )
-
-
-#: The id margin a coded marker placed by its photo's other markers needs, when its id was decoded
-#: in another photo (:func:`placed_by_others`).
-PLACED_ID_MARGIN = 0.0
 
 
 def placed_by_others(d: Detection) -> bool:

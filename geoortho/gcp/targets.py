@@ -81,6 +81,9 @@ SUBSAMPLES = 32  # per pixel: pixel area, motion path and defocus at once
 #: (:func:`_centred`).
 CENTRE_SUBSAMPLES = 256
 CENTRE_EVALUATIONS = 4
+#: The id margin a coded marker placed by its photo's other markers needs, when its id was decoded
+#: in another photo (:func:`.detect.placed_by_others`).
+PLACED_ID_MARGIN = 0.0
 #: The short polish stops at a step under this share of its parameters' norm (the centre in window
 #: pixels and the turn in degrees make it 0.001-0.004). scipy's default, 1e-8, took 10.4 Jacobians a
 #: polish on a degraded small survey, this 7.9: on seven degraded and clean small surveys 565 markers
@@ -472,7 +475,7 @@ def fit_target(
             # match first) that passes is the marker, and the rest are not refined
             fit = verdict(cand, math.nan, math.nan, "")
             if not fit.refused_on:
-                return _centred(fit, cand, crop, box, kind, base, cells)
+                return _centred(fit, cand, crop, box, kind, base, cells, near is not None)
         scored.append(cand)
     fits = sorted(scored, key=lambda f: -f.score)
     margins = [_shape_margin(kind, f) for f in fits]
@@ -505,7 +508,8 @@ def fit_target(
     if not by_place:
         others = (f.score for f in fits[1:] if math.hypot(f.cx - best.cx, f.cy - best.cy) > 0.75 * side)
         pos_margin = best.score - max(others, default=-1.0)
-    return _centred(verdict(best, margins[0], pos_margin, ambiguous), best, crop, box, kind, base, cells)
+    fit = verdict(best, margins[0], pos_margin, ambiguous)
+    return _centred(fit, best, crop, box, kind, base, cells, near is not None)
 
 
 def _verdict(
@@ -590,14 +594,19 @@ def _centred(
     kind: str,
     base: np.ndarray,
     cells: np.ndarray | None,
+    placed: bool = False,
 ) -> Fit:
     """A coded fit that is accepted, or placed (refused only on its id margin), with its centre
     where its model fitted to convergence puts it, started from the fit itself (its place, turn,
     size, shape, blur and defocus). The verdict stands on the short polish, on which the thresholds
     were set; the centre does not (six degraded small surveys: mean centre error 0.17-0.39 px from
-    0.22-0.41, recall the same or one more). Any other fit as it is."""
+    0.22-0.41, recall the same or one more). Any other fit as it is, and one refused on its id
+    margin that cannot be taken as placed (``placed``: it was searched where its place was known;
+    its margin under :data:`PLACED_ID_MARGIN`): 11 of the 22 refused so on a degraded survey."""
     if kind not in CODED or fit.refused_on not in ("", "id_margin"):
         return fit
+    if fit.refused_on and not (placed and fit.id_margin >= PLACED_ID_MARGIN):
+        return fit  # it cannot be taken as placed: a refusal where its polish put it
     # the shape correction back from A = scale · shape · base · rot (see _affine)
     a = math.radians(cand.angle)
     rot = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
