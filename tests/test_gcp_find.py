@@ -319,7 +319,7 @@ def _photo_with_markers(placed: dict[int, tuple[int, int]], side_px: int = 24) -
 def test_the_wide_window_is_searched_only_where_the_photo_does_not_place_the_marker(monkeypatch):
     """A marker 60 px from its prediction (a pose off by more than the measured residual) is found
     in the wide window; where two markers of the photo decoded in their own windows place it inside
-    its window, the wide one is not searched (on degraded surveys it decoded none of 122 there)."""
+    its window, the wide one is not searched (on degraded surveys 122 wide searches decoded nothing)."""
     from geoortho.gcp import detect
 
     def window(gcp: str, marker_id: int, x: float, y: float) -> detect.SearchWindow:
