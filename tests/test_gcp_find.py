@@ -305,12 +305,12 @@ def _photo_with_markers(placed: dict[int, tuple[int, int]], side_px: int = 24) -
     """A grey 600 x 400 photo with DICT_4X4_50 markers (id -> top-left pixel) on white boards."""
     import cv2
 
+    from geoortho.gcp.markers import get_dictionary
+
     gray = np.full((400, 600), 110, np.uint8)
     for marker_id, (x, y) in placed.items():
         board = np.full((side_px * 2, side_px * 2), 255, np.uint8)
-        marker = cv2.aruco.generateImageMarker(
-            cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), marker_id, side_px
-        )
+        marker = cv2.aruco.generateImageMarker(get_dictionary("DICT_4X4_50"), marker_id, side_px)
         board[side_px // 2 : side_px // 2 + side_px, side_px // 2 : side_px // 2 + side_px] = marker
         gray[y - side_px // 2 : y + side_px + side_px // 2, x - side_px // 2 : x + side_px + side_px // 2] = board
     return gray

@@ -254,8 +254,9 @@ def _children_share_cores(n_procs: int) -> Iterator[None]:
     """Workers started in this block share the cores: each one's BLAS gets its part of them
     (one thread each when the pool fills them), unless the user set the variable. A worker's BLAS
     otherwise starts a thread per core too, and the processes' threads take turns: gcp-find on a
-    degraded small survey (two workers, two cores) ran 14.0 s, 10.9 s with one thread each,
-    output the same. The caller keeps its own threads: alone, it has every core."""
+    degraded small survey (two workers, two cores) took 0.84 times the time with one thread each
+    (four paired runs), output the same. The caller keeps its own threads: alone, it has every
+    core."""
     share = str(max(1, (os.cpu_count() or 1) // max(1, n_procs)))
     given = {k: os.environ.get(k) for k in THREAD_VARS}
     for k, v in given.items():

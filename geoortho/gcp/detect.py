@@ -210,7 +210,8 @@ def detect_in_image(
     coded = target in CODED
     found: list[Detection] = []
     missed: list[int] = []
-    unseen: list[tuple[int, tuple[str, ...]]] = []  # coded windows the detector missed, and its attempts
+    # coded windows the detector missed, with the attempts for their wide window (none: smeared)
+    unseen: list[tuple[int, tuple[str, ...]]] = []
     for k, win in enumerate(windows):
         if win.radius_px <= 0:
             if not coded:

@@ -29,7 +29,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from functools import cache, partial
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import cv2
 import numpy as np
@@ -123,6 +123,20 @@ class Fit:
     reason: str = ""  # why it was refused; "" = accepted
     id_score: float = math.nan  # coded: the expected id's correlation over the code cells
     refused_on: str = ""  # the first threshold it failed ("score", "id_margin", ...); "" = accepted
+
+
+_T = TypeVar("_T")
+
+
+def _kept(store: dict[bytes, _T], key: bytes, make: Callable[[], _T], keep: int) -> _T:
+    """``store[key]``, made by ``make()`` when missing; the store is emptied first when it holds
+    more than ``keep`` (a fit's evaluations come near each other: the latest few are the ones asked
+    again)."""
+    if key not in store:
+        if len(store) > keep:
+            store.clear()
+        store[key] = make()
+    return store[key]
 
 
 @cache
@@ -1089,23 +1103,14 @@ def _refine(
     spotted: dict[bytes, np.ndarray] = {}
 
     def design(p: np.ndarray) -> np.ndarray:
-        key = p[:10].tobytes()
-        if key not in rendered:
-            if len(rendered) > 32:
-                rendered.clear()
-            rendered[key] = model(p)
-        t, cover = rendered[key]
+        t, cover = _kept(rendered, p[:10].tobytes(), lambda: model(p), 32)
         cols = [t * cover, 1.0 - cover, np.ones_like(t)] if rim else [t, np.ones_like(t)]
         if glare:
-            key = p[[6, 7, 10, 11, 12]].tobytes()
-            if key not in spotted:
-                if len(spotted) > 32:
-                    spotted.clear()
-                spotted[key] = spot(p, xf, yf)
-            cols.append(spotted[key])
+            cols.append(_kept(spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: spot(p, xf, yf), 32))
         return np.column_stack(cols)
 
-    seen, seen_solved = pix[use], pix[use][solved]
+    seen = pix[use]
+    seen_solved = seen[solved]
 
     def residuals(q: np.ndarray) -> np.ndarray:
         p = x0.copy()
@@ -1215,11 +1220,8 @@ def _converge(
     last: dict[bytes, np.ndarray] = {}  # the latest point's residuals: scipy asks them, then its Jacobian
 
     def at(d: np.ndarray) -> np.ndarray:
-        key = d.tobytes()
-        if key not in last:
-            last.clear()
-            last[key] = residuals(start + d * unit)
-        return last[key].copy()  # (scipy scales what it is given in place under a robust loss)
+        # a copy: scipy scales what it is given in place under a robust loss
+        return _kept(last, d.tobytes(), lambda: residuals(start + d * unit), 0).copy()
 
     def jac(d: np.ndarray) -> np.ndarray:
         r0 = at(d)
