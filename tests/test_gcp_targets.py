@@ -440,6 +440,48 @@ def test_coded_render_by_table_equals_the_reflectance():
         assert np.allclose(value, np.where(ok, r, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1))
 
 
+@pytest.mark.parametrize("samples", [32, 256])
+def test_compiled_coded_render_is_the_numpy_render_to_the_bit(samples, monkeypatch):
+    """The compiled render (numba, a dependency) gives the numpy path's values exactly, so a fit
+    ends where it ends without it; and it is the one used where numba imports."""
+    import numpy as np
+
+    from geoortho.gcp import kernels, targets
+    from geoortho.gcp.markers import marker_cells
+
+    cells = marker_cells("DICT_4X4_50", 7)
+    ys, xs = np.mgrid[0:41, 0:41]
+    rng = np.random.default_rng(3)
+    keep = rng.random(xs.size) < 0.5  # a fit renders a scattered subset of its patch
+    rend = targets._Renderer("aruco", cells, xs.ravel()[keep], ys.ravel()[keep], samples=samples)
+    base = 14.0 * np.array([[0.96, 0.28], [0.28, -0.96]])
+    cases = []
+    for _ in range(60):
+        A = targets._affine(base, rng.uniform(-180, 180), rng.uniform(0.7, 1.3), *rng.uniform(-0.2, 0.2, 2))
+        cases.append((*rng.uniform(8, 32, 2), A, rng.uniform(0, 12), rng.uniform(-180, 180), rng.uniform(0, 2)))
+
+    def renders(switch):
+        monkeypatch.setenv(kernels.ENV_SWITCH, switch)
+        kernels._compiled_coded_render.cache_clear()
+        return [rend.render(*c) for c in cases], kernels.coded_render_kernel()
+
+    monkeypatch.setattr(kernels, "_numpy_renders", 0)
+    plain_while_warming = [rend.render(*c) for c in cases]
+    assert kernels._numpy_renders == len(cases)  # a process that renders little never loads numba
+    monkeypatch.setattr(kernels, "_numpy_renders", kernels.WARM_RENDERS)
+    try:
+        compiled, kernel = renders("1")
+        plain, none = renders("0")
+    finally:
+        kernels._compiled_coded_render.cache_clear()
+    assert kernel is not None and none is None
+    for (v1, c1), (v0, c0) in zip(plain_while_warming, plain):
+        assert np.array_equal(v1, v0) and np.array_equal(c1, c0)
+    for (v1, c1), (v0, c0) in zip(compiled, plain):
+        assert np.array_equal(v1, v0) and np.array_equal(c1, c0)
+    assert 0.1 < np.mean([c.mean() for _, c in plain]) < 0.9  # the board and the ground both read
+
+
 @pytest.mark.parametrize("style", ["line", "shake"])
 def test_motion_blur_drawn_another_way_keeps_its_length_and_direction(style):
     """synth's other blur kernels: normalised, as long as asked (to a pixel) and along the angle."""

@@ -34,6 +34,7 @@ from typing import NamedTuple, TypeVar
 import cv2
 import numpy as np
 
+from geoortho.gcp.kernels import coded_render_kernel
 from geoortho.gcp.markers import (
     CODED,
     CROSS_BAR,
@@ -225,16 +226,21 @@ class _Renderer:
         self.sx, self.sy, self.st, self.nx, self.ny = _offsets(samples)
         self.lut = _coded_lookup(cells) if kind in CODED and cells is not None else None
 
+    def _sample_offsets(self, blur_px: float, blur_deg: float, defocus_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """Each sample's offset (px) from its pixel's centre: pixel area, motion path, defocus."""
+        b = math.radians(blur_deg)
+        # blur direction anticlockwise from x as seen (image y points down)
+        sdx = self.sx + blur_px * math.cos(b) * self.st + defocus_px * self.nx
+        sdy = self.sy - blur_px * math.sin(b) * self.st + defocus_px * self.ny
+        return sdx, sdy
+
     def _separable(
         self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The marker-frame coordinates as a pixel's part plus a sample's: the model is affine, so
         u = M·(pixel − centre) + M·(sample offset), each part computed once on its own axis
         (pixels, samples) and the grid of every sample of every pixel is one outer sum."""
-        b = math.radians(blur_deg)
-        # blur direction anticlockwise from x as seen (image y points down)
-        sdx = self.sx + blur_px * math.cos(b) * self.st + defocus_px * self.nx
-        sdy = self.sy - blur_px * math.sin(b) * self.st + defocus_px * self.ny
+        sdx, sdy = self._sample_offsets(blur_px, blur_deg, defocus_px)
         pu, pv = _to_marker(self.xs - cx, self.ys - cy, A)
         su, sv = _to_marker(sdx, sdy, A)
         return pu, su, pv, sv
@@ -258,6 +264,12 @@ class _Renderer:
             # sample. (float32 was a fifth faster again, but read a sample on a cell's edge in
             # the next cell: 1 of 576,000.)
             table, n, half = self.lut
+            kernel = coded_render_kernel()
+            if kernel is not None:
+                sdx, sdy = self._sample_offsets(blur_px, blur_deg, defocus_px)
+                det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+                inv = (A[1, 1] / det, -A[0, 1] / det, -A[1, 0] / det, A[0, 0] / det)
+                return kernel(self.xs - cx, self.ys - cy, sdx, sdy, inv, table, n, half * n + 1, _ON)
             pu, su, pv, sv = self._separable(cx, cy, A, blur_px, blur_deg, defocus_px)
             pu, pv = pu * n + (half * n + 1), -pv * n + (half * n + 1)
             su, sv = su * n, -sv * n
