@@ -440,10 +440,21 @@ def test_coded_render_by_table_equals_the_reflectance():
         assert np.allclose(value, np.where(ok, r, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1))
 
 
+def _numpy_or_compiled(monkeypatch, switch):
+    """Kernels switched on ("1", loaded at once) or off ("0") for what follows."""
+    from geoortho.gcp import kernels
+
+    monkeypatch.setenv(kernels.ENV_SWITCH, switch)
+    monkeypatch.setattr(kernels, "_numpy_calls", kernels.WARM_CALLS)
+    kernels._compiled.cache_clear()
+    monkeypatch.setattr(kernels, "_compiled", kernels._compiled)
+
+
 @pytest.mark.parametrize("samples", [32, 256])
 def test_compiled_coded_render_is_the_numpy_render_to_the_bit(samples, monkeypatch):
     """The compiled render (numba, a dependency) gives the numpy path's values exactly, so a fit
-    ends where it ends without it; and it is the one used where numba imports."""
+    ends where it ends without it; it is the one used where numba imports, once a process has
+    rendered enough to pay for loading it."""
     import numpy as np
 
     from geoortho.gcp import kernels, targets
@@ -460,26 +471,59 @@ def test_compiled_coded_render_is_the_numpy_render_to_the_bit(samples, monkeypat
         A = targets._affine(base, rng.uniform(-180, 180), rng.uniform(0.7, 1.3), *rng.uniform(-0.2, 0.2, 2))
         cases.append((*rng.uniform(8, 32, 2), A, rng.uniform(0, 12), rng.uniform(-180, 180), rng.uniform(0, 2)))
 
-    def renders(switch):
-        monkeypatch.setenv(kernels.ENV_SWITCH, switch)
-        kernels._compiled_coded_render.cache_clear()
-        return [rend.render(*c) for c in cases], kernels.coded_render_kernel()
-
-    monkeypatch.setattr(kernels, "_numpy_renders", 0)
-    plain_while_warming = [rend.render(*c) for c in cases]
-    assert kernels._numpy_renders == len(cases)  # a process that renders little never loads numba
-    monkeypatch.setattr(kernels, "_numpy_renders", kernels.WARM_RENDERS)
-    try:
-        compiled, kernel = renders("1")
-        plain, none = renders("0")
-    finally:
-        kernels._compiled_coded_render.cache_clear()
-    assert kernel is not None and none is None
-    for (v1, c1), (v0, c0) in zip(plain_while_warming, plain):
+    monkeypatch.setattr(kernels, "_numpy_calls", 0)
+    warming = [rend.render(*c) for c in cases]
+    assert kernels._numpy_calls == len(cases)  # a process that renders little never loads numba
+    _numpy_or_compiled(monkeypatch, "1")
+    compiled = [rend.render(*c) for c in cases]
+    assert kernels.compiled("_coded_render") is not None
+    _numpy_or_compiled(monkeypatch, "0")
+    plain = [rend.render(*c) for c in cases]
+    assert kernels.compiled("_coded_render") is None
+    for (v1, c1), (v0, c0), (vw, cw) in zip(compiled, plain, warming):
         assert np.array_equal(v1, v0) and np.array_equal(c1, c0)
-    for (v1, c1), (v0, c0) in zip(compiled, plain):
-        assert np.array_equal(v1, v0) and np.array_equal(c1, c0)
+        assert np.array_equal(vw, v0) and np.array_equal(cw, c0)
     assert 0.1 < np.mean([c.mean() for _, c in plain]) < 0.9  # the board and the ground both read
+
+
+@pytest.mark.parametrize("marker_id", [9, 21])
+def test_a_fit_with_glare_and_clipped_paint_ends_where_it_ends_without_the_kernels(marker_id, monkeypatch):
+    """Every compiled piece of a coded fit (its render, its glare spot's exponent, its levels
+    solved in closed form on the unclipped pixels, its clipped pixels' one-sided residuals) leaves
+    the fit where the numpy paths leave it, to the last bit: accepted on its id, refused on another."""
+    import math
+
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp.markers import marker_cells, paint_target
+    from geoortho.gcp.targets import fit_target
+    from geoortho.synthetic.survey import motion_kernel
+
+    rng = np.random.default_rng(8)
+    side, cx, cy = 15.0, 80.4, 79.7
+    img = cv2.GaussianBlur(rng.normal(120, 25, (160, 160)), (0, 0), 2.0)
+    a = math.radians(-24.0)
+    A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
+    paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", 9), 240.0, 45.0)
+    yy, xx = np.mgrid[0:160, 0:160]
+    img += 150.0 * np.exp(-((xx - cx - 7.0) ** 2 + (yy - cy + 4.0) ** 2) / (2 * 6.0**2))  # a bloom, clipping
+    img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(4.0, 120.0))
+    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    assert (img[70:90, 70:90] == 255).sum() > 20
+    fits = {}
+    for switch in ("1", "0"):
+        _numpy_or_compiled(monkeypatch, switch)
+        fits[switch] = fit_target(
+            img, (40, 40, 121, 121), "aruco", A, cells=marker_cells("DICT_4X4_50", marker_id),
+            dictionary="DICT_4X4_50", marker_id=marker_id, blur=estimate_motion_blur(img),
+            near=(cx + 1.5, cy - 1.0, 4.0),
+        )  # fmt: skip
+    assert fits["1"] == fits["0"]
+    fit = fits["1"]
+    assert fit is not None and (not fit.reason) == (marker_id == 9), fit
+    if marker_id == 9:
+        assert math.hypot(fit.x_px - cx, fit.y_px - cy) < 0.5, fit
 
 
 @pytest.mark.parametrize("style", ["line", "shake"])

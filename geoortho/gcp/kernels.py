@@ -1,14 +1,15 @@
 """Compiled kernels for the target fits, with numba when it imports (numpy paths otherwise).
 
-A degraded survey's coded fits render their model some 40,000 times; in numpy each render is a
-dozen small array operations, most of its time spent starting them. Compiled, the render is one
-loop, with the same arithmetic in the same order, so its result is the same to the bit.
+A degraded survey's coded fits render their model some 40,000 times, and solve its levels as
+often; in numpy each is a dozen small array operations, most of their time spent starting them.
+Compiled, each is one loop, with the same arithmetic in the same order, so a fit ends where the
+numpy paths end it, to the last bit (tests/test_gcp_targets.py holds them so).
 
-numba is imported once a process has rendered :data:`WARM_RENDERS` models the numpy way, not with
+numba is imported once a process has rendered :data:`WARM_CALLS` models the numpy way, not with
 the package: importing it and loading the cached code takes 0.4 s a process, which a clean
 survey's few fits would never pay back (a compiled render saves about 90 us). The compiled code is
 cached on disk (numba's own cache, beside this file or in its user-wide folder), so a fresh process
-loads it rather than compiling.
+loads it rather than compiling. Compiling takes 6 s (:func:`warm`, which ``make`` runs ahead).
 """
 
 from __future__ import annotations
@@ -23,32 +24,58 @@ import numpy as np
 ENV_SWITCH = "GEOORTHO_COMPILED"
 
 
-#: numpy renders before the compiled one is loaded: a degraded small survey's worker renders some
-#: 19,000 models, a clean survey's none; 3,000 is a handful of fits, and loading the kernel then
-#: costs what 4,500 compiled renders save.
-WARM_RENDERS = 3000
-_numpy_renders = 0
+#: Calls for a kernel answered "the numpy way" before the compiled kernels are loaded: a degraded
+#: small survey's worker renders some 19,000 models, a clean survey's none; 3,000 is a handful of
+#: fits, and loading the kernels then costs what 4,500 compiled renders save.
+WARM_CALLS = 3000
+_numpy_calls = 0
 
 
-def coded_render_kernel() -> Callable[..., tuple[np.ndarray, np.ndarray]] | None:
-    """The compiled coded-marker render, or None: the numpy path is to be taken (numba absent or
-    switched off, or the process has not rendered enough to pay for loading it)."""
-    global _numpy_renders
-    if _numpy_renders < WARM_RENDERS:
-        _numpy_renders += 1
+def compiled(name: str) -> Callable[..., object] | None:
+    """The compiled kernel ``name`` (a function of this module), or None: the numpy path is to be
+    taken (numba absent or switched off, or the process has not done enough to pay for loading
+    it)."""
+    global _numpy_calls
+    if _numpy_calls < WARM_CALLS:
+        _numpy_calls += 1
         return None
-    return _compiled_coded_render()
+    return _compiled(name)
 
 
 @cache
-def _compiled_coded_render() -> Callable[..., tuple[np.ndarray, np.ndarray]] | None:
+def _compiled(name: str) -> Callable[..., object] | None:
     if os.environ.get(ENV_SWITCH, "1") == "0":
         return None
     try:
         from numba import njit
     except ImportError:  # an environment without it (a QGIS install's own Python): numpy paths
         return None
-    return njit(cache=True, nogil=True)(_coded_render)
+    return njit(cache=True, nogil=True)(globals()[name])
+
+
+def warm() -> None:
+    """Compile every kernel into numba's cache, by a small fit that takes each path (a clipped
+    coded marker under glare), so that no command pays for it."""
+    import math
+
+    from geoortho.gcp.markers import marker_cells, paint_target
+    from geoortho.gcp.targets import fit_target
+
+    global _numpy_calls
+    calls, _numpy_calls = _numpy_calls, WARM_CALLS
+    try:
+        side, cx, cy = 15.0, 40.4, 39.7
+        img = np.full((80, 80), 110.0)
+        a = math.radians(-24.0)
+        A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
+        cells = marker_cells("DICT_4X4_50", 9)
+        paint_target(img, "aruco", cx, cy, A, cells, 240.0, 45.0)
+        yy, xx = np.mgrid[0:80, 0:80]
+        img += 150.0 * np.exp(-((xx - cx - 7.0) ** 2 + (yy - cy + 4.0) ** 2) / 72.0)
+        grey = np.clip(img, 0, 255).astype(np.uint8)
+        fit_target(grey, (10, 10, 71, 71), "aruco", A, cells=cells, dictionary="DICT_4X4_50", marker_id=9)
+    finally:
+        _numpy_calls = calls
 
 
 def _coded_render(
@@ -101,3 +128,53 @@ def _coded_render(
         value[i] = (packed - on * count) / max(count, 1.0)
         cover[i] = count / samples
     return value, cover
+
+
+def _glare_exponent(
+    x: np.ndarray, y: np.ndarray, gx: float, gy: float, vx: float, vy: float, path: np.ndarray, var: float
+) -> np.ndarray:
+    """The exponent of a Gaussian glare spot centred at (``gx``, ``gy``) of variance ``var`` (px²)
+    at each sample of each pixel (pixels × samples), the samples along the motion path ``path``
+    (−½…½) of the blur vector (``vx``, ``vy``). numpy takes the exponential and the mean: its own
+    exp is not the compiled one to the last bit, and a fit's path follows the last bit."""
+    out = np.empty((x.shape[0], path.shape[0]))
+    for i in range(x.shape[0]):
+        for j in range(path.shape[0]):
+            dx = x[i] - gx + vx * path[j]
+            dy = y[i] - gy - vy * path[j]
+            out[i, j] = -(dx * dx + dy * dy) / (2 * var)
+    return out
+
+
+def _level_residuals(
+    t: np.ndarray,
+    cover: np.ndarray,
+    spot: np.ndarray,
+    rim: bool,
+    seen: np.ndarray,
+    solved: np.ndarray,
+    censor: np.ndarray,
+) -> np.ndarray:
+    """A fit's residuals (grey levels / 8) once its levels are solved in closed form: gain, the
+    board's and the ground's offsets (``rim``: the model covers ``cover`` of a pixel, the ground
+    the rest) and the glare's amplitude (``spot``, empty for none), by least squares on the
+    ``solved`` pixels; a ``censor``-ed (clipped) pixel counts only where the model is brighter."""
+    k = (3 if rim else 2) + (1 if spot.shape[0] else 0)
+    d = np.empty((t.shape[0], k))
+    for i in range(t.shape[0]):
+        if rim:
+            d[i, 0] = t[i] * cover[i]
+            d[i, 1] = 1.0 - cover[i]
+            d[i, 2] = 1.0
+        else:
+            d[i, 0] = t[i]
+            d[i, 1] = 1.0
+        if spot.shape[0]:
+            d[i, k - 1] = spot[i]
+    rows = np.flatnonzero(solved)
+    coef = np.linalg.lstsq(d[rows], seen[rows], rcond=np.finfo(np.float64).eps * max(rows.shape[0], k))[0]
+    r = d @ coef - seen
+    for i in range(r.shape[0]):
+        if censor[i] and r[i] > 0.0:
+            r[i] = 0.0
+    return r / 8.0

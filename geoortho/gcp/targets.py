@@ -34,7 +34,7 @@ from typing import NamedTuple, TypeVar
 import cv2
 import numpy as np
 
-from geoortho.gcp.kernels import coded_render_kernel
+from geoortho.gcp.kernels import compiled
 from geoortho.gcp.markers import (
     CODED,
     CROSS_BAR,
@@ -264,7 +264,7 @@ class _Renderer:
             # sample. (float32 was a fifth faster again, but read a sample on a cell's edge in
             # the next cell: 1 of 576,000.)
             table, n, half = self.lut
-            kernel = coded_render_kernel()
+            kernel = compiled("_coded_render")
             if kernel is not None:
                 sdx, sdy = self._sample_offsets(blur_px, blur_deg, defocus_px)
                 det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
@@ -1104,6 +1104,10 @@ def _refine(
         # the spot averaged along the same path (a spot narrower than the blur makes a flat-topped
         # streak, not a longer Gaussian)
         var = math.exp(2 * p[12])
+        kernel = compiled("_glare_exponent")
+        if kernel is not None:
+            e = kernel(x.ravel().astype(float), y.ravel().astype(float), p[10], p[11], p[6], p[7], path[0], var)
+            return np.exp(e, out=e).mean(axis=1).reshape(x.shape)
         dx = x.ravel()[:, None] - p[10] + p[6] * path
         dy = y.ravel()[:, None] - p[11] - p[7] * path
         return np.exp(-(dx * dx + dy * dy) / (2 * var)).mean(axis=1).reshape(x.shape)
@@ -1124,9 +1128,18 @@ def _refine(
     seen = pix[use]
     seen_solved = seen[solved]
 
+    no_spot = np.empty(0)
+    solved_rows = np.ones(len(seen), bool) if censor is None else ~censor
+    censored_rows = np.zeros(len(seen), bool) if censor is None else censor
+
     def residuals(q: np.ndarray) -> np.ndarray:
         p = x0.copy()
         p[free] = q
+        kernel = compiled("_level_residuals")
+        if kernel is not None:
+            t, cover = _kept(rendered, p[:10].tobytes(), lambda: model(p), 32)
+            g = _kept(spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: spot(p, xf, yf), 32) if glare else no_spot
+            return kernel(t, cover, g, rim, seen, solved_rows, censored_rows)
         d = design(p)
         # gain, offset (and glare amplitude) in closed form
         coef, *_ = np.linalg.lstsq(d[solved], seen_solved, rcond=None)
