@@ -526,6 +526,38 @@ def test_a_fit_with_glare_and_clipped_paint_ends_where_it_ends_without_the_kerne
         assert math.hypot(fit.x_px - cx, fit.y_px - cy) < 0.5, fit
 
 
+def test_the_correlation_at_a_known_place_is_opencvs_masked_match_there():
+    """Where the place is known, the coarse match is computed at the disc's places only: the same
+    values as OpenCV's masked TM_CCOEFF_NORMED over the whole crop (to its float32 rounding), and
+    -1 on a flat window, as OpenCV's NaN is taken."""
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp import targets
+    from geoortho.gcp.markers import marker_cells
+
+    rng = np.random.default_rng(4)
+    cells = marker_cells("DICT_4X4_50", 7)
+    size = 35
+    ys, xs = np.mgrid[0:size, 0:size]
+    rend = targets._Renderer("aruco", cells, xs, ys)
+    for _ in range(12):
+        crop = cv2.GaussianBlur(rng.normal(120, 30, (48, 48)), (0, 0), 1.5).astype(np.float32)
+        A = targets._affine(14.0 * np.eye(2), rng.uniform(0, 90), rng.uniform(0.9, 1.1), 0.0, 0.0)
+        tpl, cover = rend.render(17, 17, A, rng.uniform(0, 8), rng.uniform(0, 180), 0.5)
+        t = tpl.reshape(size, size).astype(np.float32)
+        m = ((cover > 0.999) & ~targets._code_cells(xs.ravel() - 17, ys.ravel() - 17, A, cells)).reshape(size, size)
+        m = m.astype(np.float32)
+        ref = np.nan_to_num(cv2.matchTemplate(crop, t, cv2.TM_CCOEFF_NORMED, mask=m), nan=-1.0)
+        places = np.nonzero(rng.random(ref.shape) < 0.5)
+        windows = np.lib.stride_tricks.sliding_window_view(crop, (size, size))[places].astype(np.float64)
+        mine = targets._masked_ncc(windows, t, m)
+        assert np.abs(mine - ref[places]).max() < 1e-4  # OpenCV works in float32
+        assert np.ptp(ref) > 0.3  # not a flat map
+    flat = np.full((1, size, size), 90.0)
+    assert targets._masked_ncc(flat, t, m)[0] == -1.0
+
+
 @pytest.mark.parametrize("style", ["line", "shake"])
 def test_motion_blur_drawn_another_way_keeps_its_length_and_direction(style):
     """synth's other blur kernels: normalised, as long as asked (to a pixel) and along the angle."""

@@ -905,6 +905,18 @@ def _coarse(
         period = 10.0 * len(angles)
         off = np.abs((angles - turn_deg + period / 2) % period - period / 2)
         angles = angles[off <= 10.0]
+    places = None
+    if near is not None:
+        # the place is known to a few pixels: the correlation is needed there only (a disc of some
+        # 20 places), not over the crop (OpenCV's masked match costs its Fourier transforms
+        # whatever the crop: 1.9 ms a template on a 45 px crop, 0.1 ms at the disc's places)
+        ry, rx = np.mgrid[0 : crop.shape[0] - size + 1, 0 : crop.shape[1] - size + 1]
+        disc = np.hypot(rx + reach - near[0], ry + reach - near[1]) <= near[2]
+        at = (int(round(near[1])) - reach, int(round(near[0])) - reach)
+        if 0 <= at[0] < disc.shape[0] and 0 <= at[1] < disc.shape[1]:
+            disc[at] = True
+        places = np.nonzero(disc)
+        windows = np.lib.stride_tricks.sliding_window_view(crop, (size, size))[places].astype(np.float64)
     for angle, scale in ((a, f) for a in angles for f in (0.88, 1.0, 1.12)):
         A = _affine(base, float(angle), scale, 0.0, 0.0)
         tpl, cover = rend.render(reach, reach, A, blur[0], blur[1], 0.5)
@@ -917,8 +929,12 @@ def _coarse(
         m = keep.reshape(size, size).astype(np.float32)
         if m.sum() < 8 or t[m > 0].std() < 1e-3:
             continue
-        res = cv2.matchTemplate(crop, t, cv2.TM_CCOEFF_NORMED, mask=m)
-        res = np.nan_to_num(res, nan=-1.0, posinf=-1.0, neginf=-1.0)
+        if places is None:
+            res = cv2.matchTemplate(crop, t, cv2.TM_CCOEFF_NORMED, mask=m)
+            res = np.nan_to_num(res, nan=-1.0, posinf=-1.0, neginf=-1.0)
+        else:
+            res = np.full(disc.shape, -2.0, np.float32)  # (where _near_candidates never looks)
+            res[places] = _masked_ncc(windows, t, m)
         maps.append(res)
         used.append((float(angle), scale))
     if not maps:
@@ -942,6 +958,22 @@ def _coarse(
         out.append((loc[0] + reach, loc[1] + reach, a, f, float(mx)))
         cv2.circle(work, loc, int(math.ceil(0.75 * side)), -2.0, -1)
     return out
+
+
+def _masked_ncc(windows: np.ndarray, t: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """OpenCV's masked TM_CCOEFF_NORMED of template ``t`` (mask ``m``, 0 or 1) on each of
+    ``windows`` (k × its shape): the template and each window less their means over the mask,
+    correlated over it; -1 where either is flat there."""
+    w = m.astype(np.float64)
+    n = w.sum()
+    tz = w * (t - (w * t).sum() / n)
+    num = np.einsum("kij,ij->k", windows, tz)
+    s1 = np.einsum("kij,ij->k", windows, w)
+    s2 = np.einsum("kij,ij->k", windows * windows, w)
+    den = (tz * tz).sum() * (s2 - s1 * s1 / n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = num / np.sqrt(den)
+    return np.where(den > 0, out, -1.0)
 
 
 def _near_candidates(
