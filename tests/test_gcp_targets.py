@@ -477,6 +477,8 @@ def test_compiled_coded_render_is_the_numpy_render_to_the_bit(samples, monkeypat
     _numpy_or_compiled(monkeypatch, "1")
     compiled = [rend.render(*c) for c in cases]
     assert kernels.compiled("_coded_render") is not None
+    with pytest.raises(ValueError):  # a NaN place indexes nothing (a fit's ValueError: it keeps its start)
+        rend.render(float("nan"), *cases[0][1:])
     _numpy_or_compiled(monkeypatch, "0")
     plain = [rend.render(*c) for c in cases]
     assert kernels.compiled("_coded_render") is None

@@ -103,27 +103,25 @@ def _coded_render(
     for j in range(samples):
         su[j] = (i00 * sdx[j] + i01 * sdy[j]) * n
         sv[j] = -(i10 * sdx[j] + i11 * sdy[j]) * n
+    if np.isnan(su).any() or np.isnan(sv).any():
+        raise ValueError("the model's blur or shape is not a number")
     top = n + 3.0
     width = n + 4
     value = np.empty(px.shape[0])
     cover = np.empty(px.shape[0])
+    cell = np.empty(samples, np.int64)
     for i in range(px.shape[0]):
         a = (i00 * px[i] + i01 * py[i]) * n + origin
         b = -(i10 * px[i] + i11 * py[i]) * n + origin
+        if np.isnan(a) or np.isnan(b):  # (a NaN would index anywhere)
+            raise ValueError("the model's place is not a number")
+        # each sample's cell first, clipped to the ring (truncation is the floor), then their sum:
+        # two loops without a branch, which the compiler vectorises (2x the one loop with ifs)
+        for j in range(samples):
+            cell[j] = int(min(max(b + sv[j], 0.0), top)) * width + int(min(max(a + su[j], 0.0), top))
         packed = 0.0
         for j in range(samples):
-            col = a + su[j]
-            row = b + sv[j]
-            # clipped to the ring; truncation is the floor (a NaN reads the corner, not memory)
-            if not col >= 0.0:
-                col = 0.0
-            elif col > top:
-                col = top
-            if not row >= 0.0:
-                row = 0.0
-            elif row > top:
-                row = top
-            packed += table[int(row) * width + int(col)]
+            packed += table[cell[j]]
         count = np.floor(packed / on)
         value[i] = (packed - on * count) / max(count, 1.0)
         cover[i] = count / samples
