@@ -297,6 +297,42 @@ def test_a_target_predicted_at_the_edge_is_kept_only_when_wholly_in_the_photo():
             assert not kept, dets
 
 
+@pytest.mark.parametrize("edge_px", [5.0, 9.0])
+def test_a_blurred_marker_by_the_edge_predicted_beyond_it_is_fitted(edge_px):
+    """The prediction errs by more than a side: a blurred coded marker whose corners lie a few
+    pixels inside the photo's top edge, predicted 20 px beyond it, is fitted there, its blurred
+    board reaching past the edge (before: its window was never fitted, 'nothing like the target');
+    the same window painted with another id is refused."""
+    import math
+
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp.detect import SearchWindow, detect_in_image
+    from geoortho.gcp.markers import marker_cells, paint_target
+    from geoortho.synthetic.survey import motion_kernel
+
+    side = 15.0
+    a = math.radians(-12.0)
+    A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
+    half_extent = 0.5 * float(np.abs(A).sum(axis=1)[1])  # the corners' reach up from the centre
+    cx, cy = 140.3, edge_px + half_extent
+    for painted_id, found in ((9, True), (21, False)):
+        rng = np.random.default_rng(2)
+        img = cv2.GaussianBlur(rng.normal(120, 25, (200, 300)), (0, 0), 2.0)
+        paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", painted_id), 235.0, 40.0)
+        img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(6.0, 80.0))  # smeared up and down
+        gray = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        win = SearchWindow("GCP01", 9, cx + 6.0, -20.0, 60.0, side, 0.0, tuple(np.ravel(A).tolist()))
+        dets = detect_in_image(gray, [win], "DICT_4X4_50", blur=(6.0, 80.0))
+        kept = [d for d in dets if not d.reason and d.marker_id == 9]
+        if found:
+            assert len(kept) == 1, dets
+            assert math.hypot(kept[0].x_px - cx, kept[0].y_px - cy) < 0.5, kept
+        else:
+            assert not kept, dets
+
+
 @pytest.mark.parametrize("kind", ["cross", "circle"])
 def test_a_12px_target_is_fitted_to_convergence(kind):
     """A 12 px target 8 % larger and 7-37 degrees turned from the prediction (a camera height 8 %

@@ -483,11 +483,28 @@ def fit_target(
     crop = gray[y0:y1, x0:x1].astype(np.float32)
     if crop.shape[0] < 8 or crop.shape[1] < 8:
         return None
+    matched = crop
+    photo = None  # the photo's part of the crop, where it goes beyond the photo
+    if kind in CODED:
+        # A coded marker near the photo's edge: its blurred board (and the model's margin) may reach
+        # past it. The crop goes on beyond the edge as pixels that say nothing (NaN: no fit or
+        # score uses them), and the coarse match sees the edge's pixels repeated there; the id
+        # proves the marker, and one whose corners leave the photo is refused (detect._fit).
+        reach = int(math.ceil(np.abs(base).sum(axis=1).max() * target_half_extent(kind, cells) * 1.2 + blur[0] / 2 + 2))
+        h, w = gray.shape[:2]
+        pads = (max(0, reach - y0), max(0, y1 + reach - h), max(0, reach - x0), max(0, x1 + reach - w))
+        if any(pads):
+            top, bottom, left, right = pads
+            matched = cv2.copyMakeBorder(crop, top, bottom, left, right, cv2.BORDER_REPLICATE)
+            crop = cv2.copyMakeBorder(crop, top, bottom, left, right, cv2.BORDER_CONSTANT, value=math.nan)
+            x0, y0, x1, y1 = box = (x0 - left, y0 - top, x1 + right, y1 + bottom)
+            photo = (left, top, crop.shape[1] - right, crop.shape[0] - bottom)
     by_place = predicted_xy is not None and kind not in CODED
     within = None if near is None else (near[0] - x0, near[1] - y0, near[2])
     coarse = _coarse(
-        crop, kind, base, cells, blur, max_peaks=4 if by_place else 6, absolute=by_place, near=within, turn_deg=turn_deg
-    )
+        matched, kind, base, cells, blur, max_peaks=4 if by_place else 6, absolute=by_place, near=within,
+        turn_deg=turn_deg, photo=photo,
+    )  # fmt: skip
     if not coarse:
         return None
     verdict = partial(_verdict, crop, box, kind, base, cells, dictionary, marker_id, by_place)
@@ -759,7 +776,8 @@ def _score(
     best = -math.inf
     for c in crops:
         p = c[gy0:gy1, gx0:gx1].ravel()
-        unsaturated = p < SATURATED
+        unsaturated = p < SATURATED  # (and in the photo: beyond its edge a crop is NaN)
+        p = np.where(np.isnan(p), 0.0, p)
         if kind not in CODED and c is as_is:
             # white paint in sun clips: where no glare is taken off, a saturated pixel where the
             # model is white says what it should (only on the dark parts is it glare). Coded ids
@@ -886,10 +904,12 @@ def _coarse(
     absolute: bool = False,
     near: tuple[float, float, float] | None = None,
     turn_deg: float | None = None,
+    photo: tuple[int, int, int, int] | None = None,
 ) -> list[tuple[float, float, float, float, float]] | None:
     """Candidate positions, rotations and sizes by masked template matching, best first;
     ``near`` (x, y, radius in crop pixels): centres within radius of (x, y) only; ``turn_deg``:
-    rotations within 10° of it only (see :func:`fit_target`)."""
+    rotations within 10° of it only (see :func:`fit_target`); ``photo`` (x0, y0, x1, y1): centres
+    in this part of the crop only (the rest lies beyond the photo's edge)."""
     half = target_half_extent(kind, cells)
     reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.2 + blur[0] / 2 + 1))
     size = 2 * reach + 1
@@ -935,6 +955,10 @@ def _coarse(
         else:
             res = np.full(disc.shape, -2.0, np.float32)  # (where _near_candidates never looks)
             res[places] = _masked_ncc(windows, t, m)
+        if photo is not None:  # no centre beyond the edge
+            beyond = np.ones(res.shape, bool)
+            beyond[max(0, photo[1] - reach) : photo[3] - reach, max(0, photo[0] - reach) : photo[2] - reach] = False
+            res[beyond] = -1.0
         maps.append(res)
         used.append((float(angle), scale))
     if not maps:
@@ -1094,7 +1118,7 @@ def _refine(
         _, cover0 = rend.render(cx0, cy0, A0 * 0.9, 0.0, 0.0, 0.0)
         use = (cover0 > 0.999) & (pix < SATURATED)
     if use.sum() < 12:
-        use = cover0 > 0.5
+        use = (cover0 > 0.5) & ~np.isnan(pix)
     bx, by = blur[0] * math.cos(math.radians(blur[1])), blur[0] * math.sin(math.radians(blur[1]))
     side = float(np.sqrt(abs(np.linalg.det(base))))
     # A glare spot: an additive bright blob (its saturated core is masked), fitted as one more
