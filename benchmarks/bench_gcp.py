@@ -15,7 +15,10 @@ truth. Targets (issue 52): >= 3x faster on clean photos and >= 1x on degraded, p
 The issue's clean survey is 99 photos of 1.7 MP: ``geoortho plan`` over the small preset's flight box
 (``flight_box`` in its truth/survey.json) with ``--camera FC6310 --image-width-px 1600
 --image-height-px 1067 --altitude-m 40 --front-overlap 85 --side-overlap 72`` gives 105, and
-``--plan`` flies it over the small scene.
+``--plan`` flies it over the small scene. Degraded as the issue's (16 px markers, blur on half the
+photos, bloom glare on a tenth of the markers): ``--preset small --plan plan.gpkg --marker-size-m 0.6
+--blur-px 10 --glare 0.1`` (``geoortho synth --glare-style bloom --blur-style line`` to render it
+another way, then ``--survey``).
 
 On a degraded survey the recall is also given per blur length and marker size (ours vs plain).
 """
