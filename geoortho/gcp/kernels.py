@@ -48,9 +48,12 @@ def _compiled(name: str) -> Callable[..., object] | None:
         return None
     try:
         from numba import njit
-    except ImportError:  # an environment without it (a QGIS install's own Python): numpy paths
+    except (ImportError, OSError):  # none in this environment (a QGIS install's own Python), or its
+        return None  # LLVM fails to load: the numpy paths
+    try:
+        return njit(cache=True, nogil=True)(globals()[name])
+    except RuntimeError:  # no folder to cache in: compiling in every process would cost 6 s each
         return None
-    return njit(cache=True, nogil=True)(globals()[name])
 
 
 def warm() -> None:
