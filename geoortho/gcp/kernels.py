@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from functools import cache
+from typing import Any
 
 import numpy as np
 
@@ -31,7 +32,7 @@ WARM_CALLS = 3000
 _numpy_calls = 0
 
 
-def compiled(name: str) -> Callable[..., object] | None:
+def compiled(name: str) -> Callable[..., Any] | None:
     """The compiled kernel ``name`` (a function of this module), or None: the numpy path is to be
     taken (numba absent or switched off, or the process has not done enough to pay for loading
     it)."""
@@ -43,7 +44,7 @@ def compiled(name: str) -> Callable[..., object] | None:
 
 
 @cache
-def _compiled(name: str) -> Callable[..., object] | None:
+def _compiled(name: str) -> Callable[..., Any] | None:
     if os.environ.get(ENV_SWITCH, "1") == "0":
         return None
     try:

@@ -480,7 +480,7 @@ def fit_target(
     :func:`_affine`'s angle) is known to a few degrees, modulo its period: only the rotations
     within 10° of it are tried. None when the box is too small."""
     x0, y0, x1, y1 = box
-    crop = gray[y0:y1, x0:x1].astype(np.float32)
+    crop: np.ndarray = gray[y0:y1, x0:x1].astype(np.float32)
     if crop.shape[0] < 8 or crop.shape[1] < 8:
         return None
     matched = crop
@@ -490,9 +490,9 @@ def fit_target(
         # past it. The crop goes on beyond the edge as pixels that say nothing (NaN: no fit or
         # score uses them), and the coarse match sees the edge's pixels repeated there; the id
         # proves the marker, and one whose corners leave the photo is refused (detect._fit).
-        reach = int(math.ceil(np.abs(base).sum(axis=1).max() * target_half_extent(kind, cells) * 1.2 + blur[0] / 2 + 2))
+        out = int(math.ceil(np.abs(base).sum(axis=1).max() * target_half_extent(kind, cells) * 1.2 + blur[0] / 2 + 2))
         h, w = gray.shape[:2]
-        pads = (max(0, reach - y0), max(0, y1 + reach - h), max(0, reach - x0), max(0, x1 + reach - w))
+        pads = (max(0, out - y0), max(0, y1 + out - h), max(0, out - x0), max(0, x1 + out - w))
         if any(pads):
             top, bottom, left, right = pads
             matched = cv2.copyMakeBorder(crop, top, bottom, left, right, cv2.BORDER_REPLICATE)
