@@ -5,9 +5,10 @@ often; in numpy each is a dozen small array operations, most of their time spent
 Compiled, each is one loop, with the same arithmetic in the same order, so a fit ends where the
 numpy paths end it, to the last bit (tests/test_gcp_targets.py holds them so).
 
-numba is imported once a process has rendered :data:`WARM_CALLS` models the numpy way, not with
-the package: importing it and loading the cached code takes 0.4 s a process, which a clean
-survey's few fits would never pay back (a compiled render saves about 90 us). The compiled code is
+numba is imported once a process has asked for a kernel :data:`WARM_CALLS` times (and taken the
+numpy path), not with the package: importing it and loading the cached code takes 0.4 s and
+130 MiB a process, which a clean survey's few fits would never pay back (a compiled render saves
+about 90 us). The compiled code is
 cached on disk (numba's own cache, beside this file or in its user-wide folder), so a fresh process
 loads it rather than compiling. Compiling takes 6 s (:func:`warm`, which ``make`` runs ahead).
 """
