@@ -524,6 +524,26 @@ def test_compiled_coded_render_is_the_numpy_render_to_the_bit(samples, monkeypat
     assert 0.1 < np.mean([c.mean() for _, c in plain]) < 0.9  # the board and the ground both read
 
 
+def test_the_numpy_paths_are_taken_where_numba_cannot_cache_or_is_switched_off(monkeypatch):
+    """numba finding no folder to cache in (a read-only install) would compile in every process,
+    6 s each: the numpy paths instead; GEOORTHO_COMPILED=0 keeps them too."""
+    import numba
+
+    from geoortho.gcp import kernels
+
+    def no_locator(**_):
+        raise RuntimeError("cannot cache function: no locator available")
+
+    _numpy_or_compiled(monkeypatch, "1")
+    monkeypatch.setattr(numba, "njit", no_locator)
+    assert kernels.compiled("_coded_render") is None
+    monkeypatch.undo()
+    _numpy_or_compiled(monkeypatch, "0")
+    assert kernels.compiled("_level_residuals") is None
+    _numpy_or_compiled(monkeypatch, "1")
+    assert kernels.compiled("_level_residuals") is not None
+
+
 @pytest.mark.parametrize("marker_id", [9, 21])
 def test_a_fit_with_glare_and_clipped_paint_ends_where_it_ends_without_the_kernels(marker_id, monkeypatch):
     """Every compiled piece of a coded fit (its render, its glare spot's exponent, its levels
