@@ -201,12 +201,17 @@ def _coded_lookup(cells: np.ndarray) -> tuple[np.ndarray, int, float]:
     return (white + _ON * on).ravel(), n, target_half_extent("aruco", n)
 
 
-def _to_marker(dx: np.ndarray, dy: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel offsets from the centre → marker-frame coordinates (sides), through ``A``'s inverse
-    (2 × 2, in closed form: the renderer calls this twice a render, thousands of times a fit)."""
+def _inverse(A: np.ndarray) -> tuple[float, float, float, float]:
+    """A 2 × 2 matrix's inverse in closed form, row by row (the renderer asks it thousands of times
+    a fit)."""
     det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-    inv = np.array([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]]) / det
-    return inv[0, 0] * dx + inv[0, 1] * dy, inv[1, 0] * dx + inv[1, 1] * dy
+    return A[1, 1] / det, -A[0, 1] / det, -A[1, 0] / det, A[0, 0] / det
+
+
+def _to_marker(dx: np.ndarray, dy: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel offsets from the centre → marker-frame coordinates (sides), through ``A``'s inverse."""
+    i00, i01, i10, i11 = _inverse(A)
+    return i00 * dx + i01 * dy, i10 * dx + i11 * dy
 
 
 class _Renderer:
@@ -267,9 +272,7 @@ class _Renderer:
             kernel = compiled("_coded_render")
             if kernel is not None:
                 sdx, sdy = self._sample_offsets(blur_px, blur_deg, defocus_px)
-                det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-                inv = (A[1, 1] / det, -A[0, 1] / det, -A[1, 0] / det, A[0, 0] / det)
-                return kernel(self.xs - cx, self.ys - cy, sdx, sdy, inv, table, n, half * n + 1, _ON)
+                return kernel(self.xs - cx, self.ys - cy, sdx, sdy, _inverse(A), table, n, half * n + 1, _ON)
             pu, su, pv, sv = self._separable(cx, cy, A, blur_px, blur_deg, defocus_px)
             pu, pv = pu * n + (half * n + 1), -pv * n + (half * n + 1)
             su, sv = su * n, -sv * n
@@ -490,7 +493,7 @@ def fit_target(
         # past it. The crop goes on beyond the edge as pixels that say nothing (NaN: no fit or
         # score uses them), and the coarse match sees the edge's pixels repeated there; the id
         # proves the marker, and one whose corners leave the photo is refused (detect._fit).
-        out = int(math.ceil(np.abs(base).sum(axis=1).max() * target_half_extent(kind, cells) * 1.2 + blur[0] / 2 + 2))
+        out = _coarse_reach(kind, base, cells, blur) + 1
         h, w = gray.shape[:2]
         pads = (max(0, out - y0), max(0, y1 + out - h), max(0, out - x0), max(0, x1 + out - w))
         if any(pads):
@@ -894,6 +897,12 @@ def _angles(kind: str) -> np.ndarray:
     return np.arange(0.0, {"checkerboard": 180.0}.get(kind, 90.0), 10.0)
 
 
+def _coarse_reach(kind: str, base: np.ndarray, cells: np.ndarray | None, blur: tuple[float, float]) -> int:
+    """The coarse templates' half size (px): the target's board turned any way, 20 % larger, and half
+    its blur."""
+    return int(math.ceil(np.abs(base).sum(axis=1).max() * target_half_extent(kind, cells) * 1.2 + blur[0] / 2 + 1))
+
+
 def _coarse(
     crop: np.ndarray,
     kind: str,
@@ -910,8 +919,7 @@ def _coarse(
     ``near`` (x, y, radius in crop pixels): centres within radius of (x, y) only; ``turn_deg``:
     rotations within 10° of it only (see :func:`fit_target`); ``photo`` (x0, y0, x1, y1): centres
     in this part of the crop only (the rest lies beyond the photo's edge)."""
-    half = target_half_extent(kind, cells)
-    reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.2 + blur[0] / 2 + 1))
+    reach = _coarse_reach(kind, base, cells, blur)
     size = 2 * reach + 1
     if size >= min(crop.shape):
         return None
@@ -930,8 +938,7 @@ def _coarse(
         # the place is known to a few pixels: the correlation is needed there only (a disc of some
         # 20 places), not over the crop (OpenCV's masked match costs its Fourier transforms
         # whatever the crop: 1.9 ms a template on a 45 px crop, 0.1 ms at the disc's places)
-        ry, rx = np.mgrid[0 : crop.shape[0] - size + 1, 0 : crop.shape[1] - size + 1]
-        disc = np.hypot(rx + reach - near[0], ry + reach - near[1]) <= near[2]
+        disc = _near_disc((crop.shape[0] - size + 1, crop.shape[1] - size + 1), reach, near)
         at = (int(round(near[1])) - reach, int(round(near[0])) - reach)
         if 0 <= at[0] < disc.shape[0] and 0 <= at[1] < disc.shape[1]:
             disc[at] = True
@@ -984,6 +991,13 @@ def _coarse(
     return out
 
 
+def _near_disc(shape: tuple[int, int], reach: int, near: tuple[float, float, float]) -> np.ndarray:
+    """Of a match map (``shape``; a place is its template's corner, ``reach`` px from the centre),
+    the places whose centre lies within ``near`` (x, y, radius; crop pixels)."""
+    ry, rx = np.mgrid[0 : shape[0], 0 : shape[1]]
+    return np.hypot(rx + reach - near[0], ry + reach - near[1]) <= near[2]
+
+
 def _masked_ncc(windows: np.ndarray, t: np.ndarray, m: np.ndarray) -> np.ndarray:
     """OpenCV's masked TM_CCOEFF_NORMED of template ``t`` (mask ``m``, 0 or 1) on each of
     ``windows`` (k × its shape): the template and each window less their means over the mask,
@@ -1017,8 +1031,7 @@ def _near_candidates(
     out: list[tuple[float, float, float, float, float]] = []
     # the place is known to a few pixels, the turn is not: the best place of each rotation
     # there, each refined (under glare the best rotation's peak can be one 20 degrees off)
-    ry, rx = np.mgrid[0 : top_shape[0], 0 : top_shape[1]]
-    outside = np.hypot(rx + reach - near[0], ry + reach - near[1]) > near[2]
+    outside = ~_near_disc(top_shape, reach, near)
     by_angle: dict[float, tuple[float, Sequence[int], float]] = {}
     for res, (a, f) in zip(maps, used):
         r = np.where(outside, -2.0, res)
@@ -1134,13 +1147,10 @@ def _refine(
     free = [i for i in range(13) if (i != 9 or kind == "cross") and (i < 10 or glare)]
     # Clipped pixels (white paint in sun, glare) are censored: they say the model is at least the
     # clip there. Scored one-sided, they pull a model that is darker there, never a brighter one.
-    censor = None
     if rim:
-        censor_px = (cover0 > 0.5) & (pix >= SATURATED)
-        if censor_px.any():
-            use = use | censor_px
-            censor = censor_px[use]
-    solved = slice(None) if censor is None else ~censor  # the rows the levels are solved on
+        use = use | ((cover0 > 0.5) & (pix >= SATURATED))
+    censor = hot[use] if rim else np.zeros(int(use.sum()), bool)
+    solved = ~censor  # the rows the levels are solved on
     xf, yf = xs.ravel()[use].astype(float), ys.ravel()[use].astype(float)
     # the fit renders only the pixels it uses (a pixel's value depends on no other): 30-48 % of
     # the patch's square (median 42 %, the tiny degraded survey's 63 refinements)
@@ -1174,34 +1184,33 @@ def _refine(
     rendered: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
     spotted: dict[bytes, np.ndarray] = {}
 
-    def design(p: np.ndarray) -> np.ndarray:
+    no_spot = np.empty(0)
+
+    def terms(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The model (its value and share on each pixel) and the glare term (empty: none), kept."""
         t, cover = _kept(rendered, p[:10].tobytes(), lambda: model(p), 32)
+        g = _kept(spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: spot(p, xf, yf), 32) if glare else no_spot
+        return t, cover, g
+
+    def design(p: np.ndarray) -> np.ndarray:
+        t, cover, g = terms(p)
         cols = [t * cover, 1.0 - cover, np.ones_like(t)] if rim else [t, np.ones_like(t)]
-        if glare:
-            cols.append(_kept(spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: spot(p, xf, yf), 32))
-        return np.column_stack(cols)
+        return np.column_stack([*cols, g] if glare else cols)
 
     seen = pix[use]
     seen_solved = seen[solved]
-
-    no_spot = np.empty(0)
-    solved_rows = np.ones(len(seen), bool) if censor is None else ~censor
-    censored_rows = np.zeros(len(seen), bool) if censor is None else censor
 
     def residuals(q: np.ndarray) -> np.ndarray:
         p = x0.copy()
         p[free] = q
         kernel = compiled("_level_residuals")
         if kernel is not None:
-            t, cover = _kept(rendered, p[:10].tobytes(), lambda: model(p), 32)
-            g = _kept(spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: spot(p, xf, yf), 32) if glare else no_spot
-            return kernel(t, cover, g, rim, seen, solved_rows, censored_rows)
+            return kernel(*terms(p), rim, seen, solved, censor)
         d = design(p)
         # gain, offset (and glare amplitude) in closed form
         coef, *_ = np.linalg.lstsq(d[solved], seen_solved, rcond=None)
         r = d @ coef - seen
-        if censor is not None:
-            r[censor] = np.minimum(r[censor], 0.0)
+        r[censor] = np.minimum(r[censor], 0.0)
         return r / 8.0
 
     # Motion blur is the photo's (measured from its texture), so the target's stays near it, and
