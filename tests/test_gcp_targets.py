@@ -512,14 +512,16 @@ def test_compiled_coded_render_is_the_numpy_render_to_the_bit(samples, monkeypat
     assert kernels._numpy_calls == len(cases)  # a process that renders little never loads numba
     _numpy_or_compiled(monkeypatch, "1")
     compiled = [rend.render(*c) for c in cases]
+    at_once = rend.render_rows(cases)  # a Jacobian's columns: one call
     assert kernels.compiled("_coded_render") is not None
     with pytest.raises(ValueError):  # a NaN place indexes nothing (a fit's ValueError: it keeps its start)
         rend.render(float("nan"), *cases[0][1:])
     _numpy_or_compiled(monkeypatch, "0")
     plain = [rend.render(*c) for c in cases]
     assert kernels.compiled("_coded_render") is None
-    for (v1, c1), (v0, c0), (vw, cw) in zip(compiled, plain, warming):
+    for (v1, c1), (v0, c0), (vw, cw), (vr, cr) in zip(compiled, plain, warming, at_once, strict=True):
         assert np.array_equal(v1, v0) and np.array_equal(c1, c0)
+        assert np.array_equal(vr, v0) and np.array_equal(cr, c0)
         assert np.array_equal(vw, v0) and np.array_equal(cw, c0)
     assert 0.1 < np.mean([c.mean() for _, c in plain]) < 0.9  # the board and the ground both read
 

@@ -33,13 +33,13 @@ WARM_CALLS = 3000
 _numpy_calls = 0
 
 
-def compiled(name: str) -> Callable[..., Any] | None:
+def compiled(name: str, calls: int = 1) -> Callable[..., Any] | None:
     """The compiled kernel ``name`` (a function of this module), or None: the numpy path is to be
     taken (numba absent or switched off, or the process has not done enough to pay for loading
-    it)."""
+    it). ``calls``: how many the asker makes at once (a kernel's rows)."""
     global _numpy_calls
     if _numpy_calls < WARM_CALLS:
-        _numpy_calls += 1
+        _numpy_calls += calls
         return None
     return _compiled(name)
 
@@ -84,52 +84,57 @@ def warm() -> None:
 
 
 def _coded_render(
-    px: np.ndarray,
-    py: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    cxs: np.ndarray,
+    cys: np.ndarray,
     sdx: np.ndarray,
     sdy: np.ndarray,
-    inv: tuple[float, float, float, float],
+    inv: np.ndarray,
     table: np.ndarray,
     n: int,
     origin: float,
     on: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean reflectance and share on the board of each pixel of a coded marker's model.
+    """Mean reflectance and share on the board of each pixel of a coded marker's model, for each
+    of a few places of it (rows): a fit's Jacobian asks a dozen at once.
 
-    ``px, py``: pixel offsets from the centre; ``sdx, sdy``: sample offsets (pixel area, motion
-    path, defocus); ``inv``: pixel offsets → marker sides (row-major 2 × 2); ``table``: the board's
-    cells with a ring around them, flat, each white + ``on`` × on the board; ``origin``: a cell
-    index's offset. :meth:`.targets._Renderer.render`'s numpy path step for step (its test holds
-    the two equal)."""
-    i00, i01, i10, i11 = inv
-    samples = sdx.shape[0]
+    ``xs, ys``: the pixels; per row, ``cxs, cys``: the centre, ``sdx, sdy``: the sample offsets
+    (pixel area, motion path, defocus), ``inv``: pixel offsets → marker sides (row-major 2 × 2);
+    ``table``: the board's cells with a ring around them, flat, each white + ``on`` × on the board;
+    ``origin``: a cell index's offset. :meth:`.targets._Renderer.render`'s numpy path step for step
+    (its test holds the two equal)."""
+    rows, pixels, samples = cxs.shape[0], xs.shape[0], sdx.shape[1]
+    value = np.empty((rows, pixels))
+    cover = np.empty((rows, pixels))
     su = np.empty(samples)
     sv = np.empty(samples)
-    for j in range(samples):
-        su[j] = (i00 * sdx[j] + i01 * sdy[j]) * n
-        sv[j] = -(i10 * sdx[j] + i11 * sdy[j]) * n
-    if np.isnan(su).any() or np.isnan(sv).any():
-        raise ValueError("the model's blur or shape is not a number")
+    cell = np.empty(samples, np.int64)
     top = n + 3.0
     width = n + 4
-    value = np.empty(px.shape[0])
-    cover = np.empty(px.shape[0])
-    cell = np.empty(samples, np.int64)
-    for i in range(px.shape[0]):
-        a = (i00 * px[i] + i01 * py[i]) * n + origin
-        b = -(i10 * px[i] + i11 * py[i]) * n + origin
-        if np.isnan(a) or np.isnan(b):  # (a NaN would index anywhere)
-            raise ValueError("the model's place is not a number")
-        # each sample's cell first, clipped to the ring (truncation is the floor), then their sum:
-        # two loops without a branch, which the compiler vectorises (2x the one loop with ifs)
+    for k in range(rows):
+        i00, i01, i10, i11 = inv[k, 0], inv[k, 1], inv[k, 2], inv[k, 3]
         for j in range(samples):
-            cell[j] = int(min(max(b + sv[j], 0.0), top)) * width + int(min(max(a + su[j], 0.0), top))
-        packed = 0.0
-        for j in range(samples):
-            packed += table[cell[j]]
-        count = np.floor(packed / on)
-        value[i] = (packed - on * count) / max(count, 1.0)
-        cover[i] = count / samples
+            su[j] = (i00 * sdx[k, j] + i01 * sdy[k, j]) * n
+            sv[j] = -(i10 * sdx[k, j] + i11 * sdy[k, j]) * n
+        if np.isnan(su).any() or np.isnan(sv).any():
+            raise ValueError("the model's blur or shape is not a number")
+        for i in range(pixels):
+            px, py = xs[i] - cxs[k], ys[i] - cys[k]
+            a = (i00 * px + i01 * py) * n + origin
+            b = -(i10 * px + i11 * py) * n + origin
+            if np.isnan(a) or np.isnan(b):  # (a NaN would index anywhere)
+                raise ValueError("the model's place is not a number")
+            # each sample's cell first, clipped to the ring (truncation is the floor), then their
+            # sum: two loops without a branch, which the compiler vectorises (2x the one loop with ifs)
+            for j in range(samples):
+                cell[j] = int(min(max(b + sv[j], 0.0), top)) * width + int(min(max(a + su[j], 0.0), top))
+            packed = 0.0
+            for j in range(samples):
+                packed += table[cell[j]]
+            count = np.floor(packed / on)
+            value[k, i] = (packed - on * count) / max(count, 1.0)
+            cover[k, i] = count / samples
     return value, cover
 
 
@@ -158,26 +163,33 @@ def _level_residuals(
     solved: np.ndarray,
     censor: np.ndarray,
 ) -> np.ndarray:
-    """A fit's residuals (grey levels / 8) once its levels are solved in closed form: gain, the
-    board's and the ground's offsets (``rim``: the model covers ``cover`` of a pixel, the ground
-    the rest) and the glare's amplitude (``spot``, empty for none), by least squares on the
-    ``solved`` pixels; a ``censor``-ed (clipped) pixel counts only where the model is brighter."""
-    k = (3 if rim else 2) + (1 if spot.shape[0] else 0)
-    d = np.empty((t.shape[0], k))
-    for i in range(t.shape[0]):
-        if rim:
-            d[i, 0] = t[i] * cover[i]
-            d[i, 1] = 1.0 - cover[i]
-            d[i, 2] = 1.0
-        else:
-            d[i, 0] = t[i]
-            d[i, 1] = 1.0
-        if spot.shape[0]:
-            d[i, k - 1] = spot[i]
+    """A fit's residuals (grey levels / 8) once its levels are solved in closed form, for each of a
+    few models (rows of ``t``, ``cover`` and ``spot``): gain, the board's and the ground's offsets
+    (``rim``: the model covers ``cover`` of a pixel, the ground the rest) and the glare's amplitude
+    (``spot``, no columns for none), by least squares on the ``solved`` pixels; a ``censor``-ed
+    (clipped) pixel counts only where the model is brighter."""
+    glare = spot.shape[1] > 0
+    k = (3 if rim else 2) + (1 if glare else 0)
+    pixels = t.shape[1]
+    out = np.empty(t.shape)
+    d = np.empty((pixels, k))
     rows = np.flatnonzero(solved)
-    coef = np.linalg.lstsq(d[rows], seen[rows], rcond=np.finfo(np.float64).eps * max(rows.shape[0], k))[0]
-    r = d @ coef - seen
-    for i in range(r.shape[0]):
-        if censor[i] and r[i] > 0.0:
-            r[i] = 0.0
-    return r / 8.0
+    rcond = np.finfo(np.float64).eps * max(rows.shape[0], k)
+    for m in range(t.shape[0]):
+        for i in range(pixels):
+            if rim:
+                d[i, 0] = t[m, i] * cover[m, i]
+                d[i, 1] = 1.0 - cover[m, i]
+                d[i, 2] = 1.0
+            else:
+                d[i, 0] = t[m, i]
+                d[i, 1] = 1.0
+            if glare:
+                d[i, k - 1] = spot[m, i]
+        coef = np.linalg.lstsq(d[rows], seen[rows], rcond=rcond)[0]
+        r = d @ coef - seen
+        for i in range(pixels):
+            if censor[i] and r[i] > 0.0:
+                r[i] = 0.0
+        out[m] = r / 8.0
+    return out

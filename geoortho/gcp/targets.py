@@ -26,10 +26,10 @@ exactly that), a cross's two bar centre lines crossing, a circle's ellipse centr
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from functools import cache, partial
-from typing import NamedTuple, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import cv2
 import numpy as np
@@ -233,11 +233,16 @@ class _Renderer:
 
     def _sample_offsets(self, blur_px: float, blur_deg: float, defocus_px: float) -> tuple[np.ndarray, np.ndarray]:
         """Each sample's offset (px) from its pixel's centre: pixel area, motion path, defocus."""
-        b = math.radians(blur_deg)
+        sdx, sdy = self._offset_rows([(blur_px, blur_deg, defocus_px)])
+        return sdx[0], sdy[0]
+
+    def _offset_rows(self, blurs: Sequence[tuple[float, float, float]]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_sample_offsets` for each (blur px, blur deg, defocus px) of ``blurs``, as rows."""
         # blur direction anticlockwise from x as seen (image y points down)
-        sdx = self.sx + blur_px * math.cos(b) * self.st + defocus_px * self.nx
-        sdy = self.sy - blur_px * math.sin(b) * self.st + defocus_px * self.ny
-        return sdx, sdy
+        along_x = np.array([[blur_px * math.cos(math.radians(deg))] for blur_px, deg, _ in blurs])
+        along_y = np.array([[blur_px * math.sin(math.radians(deg))] for blur_px, deg, _ in blurs])
+        defocus = np.array([[d] for *_, d in blurs], float)
+        return self.sx + along_x * self.st + defocus * self.nx, self.sy - along_y * self.st + defocus * self.ny
 
     def _separable(
         self, cx: float, cy: float, A: np.ndarray, blur_px: float, blur_deg: float, defocus_px: float
@@ -271,8 +276,7 @@ class _Renderer:
             table, n, half = self.lut
             kernel = compiled("_coded_render")
             if kernel is not None:
-                sdx, sdy = self._sample_offsets(blur_px, blur_deg, defocus_px)
-                return kernel(self.xs - cx, self.ys - cy, sdx, sdy, _inverse(A), table, n, half * n + 1, _ON)
+                return self._coded_rows(kernel, [(cx, cy, A, blur_px, blur_deg, defocus_px)])[0]
             pu, su, pv, sv = self._separable(cx, cy, A, blur_px, blur_deg, defocus_px)
             pu, pv = pu * n + (half * n + 1), -pv * n + (half * n + 1)
             su, sv = su * n, -sv * n
@@ -296,6 +300,27 @@ class _Renderer:
         cover = ok.mean(axis=1)
         value = np.where(ok, r, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
         return value, cover
+
+    def render_rows(
+        self, places: list[tuple[float, float, np.ndarray, float, float, float]]
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`render` at each of ``places`` (its arguments), a coded marker's in one compiled call."""
+        kernel = compiled("_coded_render", len(places)) if self.lut is not None else None
+        if kernel is None:
+            return [self.render(*place) for place in places]
+        return self._coded_rows(kernel, places)
+
+    def _coded_rows(
+        self, kernel: Callable[..., Any], places: list[tuple[float, float, np.ndarray, float, float, float]]
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        assert self.lut is not None
+        table, n, half = self.lut
+        sdx, sdy = self._offset_rows([place[3:] for place in places])
+        value, cover = kernel(
+            self.xs, self.ys, np.array([p[0] for p in places], float), np.array([p[1] for p in places], float),
+            sdx, sdy, np.array([_inverse(p[2]) for p in places]), table, n, half * n + 1, _ON,
+        )  # fmt: skip
+        return list(zip(value, cover))
 
     def ncc_ids(
         self,
@@ -1156,12 +1181,15 @@ def _refine(
     # the patch's square (median 42 %, the tiny degraded survey's 63 refinements)
     fitted = _Renderer(kind, cells, xf, yf, samples=samples)
 
-    def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
-        fitted.bar = min(max(float(bar), 0.08), 0.45)
+    def placed(p: np.ndarray) -> tuple[float, float, np.ndarray, float, float, float]:
+        """The renderer's arguments at ``p``: centre, affine, blur length and direction, defocus."""
+        cx, cy, ang, ls, e1, e2, vx, vy, dpx = p[:9]
         A = _affine(base, ang, math.exp(ls), e1, e2)
-        blen, bdeg = math.hypot(vx, vy), math.degrees(math.atan2(vy, vx))
-        return fitted.render(cx, cy, A, blen, bdeg, abs(dpx))
+        return cx, cy, A, math.hypot(vx, vy), math.degrees(math.atan2(vy, vx)), abs(dpx)
+
+    def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        fitted.bar = min(max(float(p[9]), 0.08), 0.45)
+        return fitted.render(*placed(p))
 
     path = _offsets(samples)[2][None, :]  # the motion path's samples, as the target's (−½…½)
 
@@ -1189,8 +1217,10 @@ def _refine(
     def terms(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The model (its value and share on each pixel) and the glare term (empty: none), kept."""
         t, cover = _kept(rendered, p[:10].tobytes(), lambda: model(p), 32)
-        g = _kept(spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: spot(p, xf, yf), 32) if glare else no_spot
-        return t, cover, g
+        return t, cover, glare_term(p)
+
+    def glare_term(p: np.ndarray) -> np.ndarray:
+        return _kept(spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: spot(p, xf, yf), 32) if glare else no_spot
 
     def design(p: np.ndarray) -> np.ndarray:
         t, cover, g = terms(p)
@@ -1200,18 +1230,53 @@ def _refine(
     seen = pix[use]
     seen_solved = seen[solved]
 
+    def models(ps: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:func:`model` at each of ``ps``, kept as :func:`terms` keeps it; a coded marker's that
+        are not kept rendered in one call."""
+        keys = [p[:10].tobytes() for p in ps]
+        out = {key: rendered[key] for key in keys if key in rendered}
+        todo = {key: p for key, p in zip(keys, ps) if key not in out}
+        if todo:
+            if fitted.lut is not None:
+                made = fitted.render_rows([placed(p) for p in todo.values()])
+            else:
+                made = [model(p) for p in todo.values()]
+            out.update(zip(todo, made))
+            if len(rendered) + len(todo) > 32:
+                rendered.clear()
+            rendered.update(zip(todo, made))
+        return [out[key] for key in keys]
+
+    def residual_rows(qs: np.ndarray) -> np.ndarray:
+        """The residuals at each row of ``qs`` (free parameters): the Jacobian's columns and a
+        scan's points each in one compiled call of the render and one of the levels."""
+        ps = []
+        for q in qs:
+            p = x0.copy()
+            p[free] = q
+            ps.append(p)
+        kernel = compiled("_level_residuals", len(ps))
+        if kernel is None:
+            rows = []
+            for p in ps:
+                d = design(p)
+                # gain, offset (and glare amplitude) in closed form
+                coef, *_ = np.linalg.lstsq(d[solved], seen_solved, rcond=None)
+                r = d @ coef - seen
+                r[censor] = np.minimum(r[censor], 0.0)
+                rows.append(r / 8.0)
+            return np.array(rows)
+        looks = models(ps)
+        spots = [glare_term(p) for p in ps]
+        t, cover = np.array([m[0] for m in looks]), np.array([m[1] for m in looks])
+        return kernel(t, cover, np.array(spots).reshape(len(ps), -1), rim, seen, solved, censor)
+
     def residuals(q: np.ndarray) -> np.ndarray:
-        p = x0.copy()
-        p[free] = q
-        kernel = compiled("_level_residuals")
-        if kernel is not None:
-            return kernel(*terms(p), rim, seen, solved, censor)
-        d = design(p)
-        # gain, offset (and glare amplitude) in closed form
-        coef, *_ = np.linalg.lstsq(d[solved], seen_solved, rcond=None)
-        r = d @ coef - seen
-        r[censor] = np.minimum(r[censor], 0.0)
-        return r / 8.0
+        return residual_rows(q[None])[0]
+
+    def batched(fun: Callable[[np.ndarray], np.ndarray], points: Iterable[np.ndarray]) -> np.ndarray:
+        # scipy's map for its finite differences, whose fun is the residuals: the points at once
+        return residual_rows(np.array(list(points)))
 
     # Motion blur is the photo's (measured from its texture), so the target's stays near it, and
     # defocus is a pixel or two: a model free to smear itself fits any texture.
@@ -1227,9 +1292,9 @@ def _refine(
     x0 = np.clip(x0, lo, hi)  # (a start from an earlier fit may sit a rounding error outside)
     try:
         if (kind in CONVERGED) if converge is None else converge:
-            p = _converge(residuals, x0, free, lo, hi, side, evaluations)
+            p = _converge(residual_rows, x0, free, lo, hi, side, evaluations)
             if rim:
-                p = _along_blur(residuals, p, free, lo, hi)
+                p = _along_blur(residual_rows, p, free, lo, hi)
         else:
             scales = np.array([0.3, 0.3, 2.0, 0.03, 0.03, 0.03, 1.0, 1.0, 0.3, 0.02, 1.0, 1.0, 0.1])
             sol = least_squares(
@@ -1242,11 +1307,12 @@ def _refine(
                 max_nfev=80,
                 xtol=POLISH_XTOL,
                 x_scale=scales[free],
+                workers=batched,
             )
             p = x0.copy()
             p[free] = sol.x
             if rim:  # the verdict's place too: a marker scored 1 px off along its blur scores low
-                p = _along_blur(residuals, p, free, lo, hi)
+                p = _along_blur(residual_rows, p, free, lo, hi)
     except (ValueError, np.linalg.LinAlgError):
         p = x0
     glare_img = None
@@ -1285,7 +1351,7 @@ CONVERGED = frozenset({"cross", "circle"})
 
 
 def _converge(
-    residuals: Callable[[np.ndarray], np.ndarray],  # of the free parameters
+    residual_rows: Callable[[np.ndarray], np.ndarray],  # of rows of the free parameters
     x0: np.ndarray,
     free: list[int],
     lo: np.ndarray,
@@ -1311,12 +1377,13 @@ def _converge(
 
     def at(d: np.ndarray) -> np.ndarray:
         # a copy: scipy scales what it is given in place under a robust loss
-        return _kept(last, d.tobytes(), lambda: residuals(start + d * unit), 0).copy()
+        return _kept(last, d.tobytes(), lambda: residual_rows((start + d * unit)[None])[0], 0).copy()
 
     def jac(d: np.ndarray) -> np.ndarray:
         r0 = at(d)
         steps = np.where(d + 0.1 <= upper, 0.1, -0.1)
-        return np.column_stack([(at(d + h * e) - r0) / h for h, e in zip(steps, np.eye(len(d)))])
+        shifted = residual_rows(np.array([start + (d + h * e) * unit for h, e in zip(steps, np.eye(len(d)))]))
+        return np.column_stack([(r - r0) / h for r, h in zip(shifted, steps)])
 
     sol = least_squares(
         at,
@@ -1343,7 +1410,7 @@ def _along_reach(blur_px: float) -> float:
 
 
 def _along_blur(
-    residuals: Callable[[np.ndarray], np.ndarray],  # of the free parameters
+    residual_rows: Callable[[np.ndarray], np.ndarray],  # of rows of the free parameters
     p: np.ndarray,
     free: list[int],
     lo: np.ndarray,
@@ -1366,13 +1433,16 @@ def _along_blur(
     reach = max(1.0, _along_reach(length))
     offsets = np.arange(-reach, reach + 1e-9, 0.25)
 
-    def cost(off: float) -> float:
+    def moved(off: float) -> np.ndarray:
         q = p.copy()
         q[0], q[1] = p[0] + off * ux, p[1] + off * uy
-        z = (residuals(np.clip(q, lo, hi)[free]) / 2.0) ** 2  # soft_l1 at f_scale 2, as fitted
+        return np.clip(q, lo, hi)[free]
+
+    def cost(r: np.ndarray) -> float:
+        z = (r / 2.0) ** 2  # soft_l1 at f_scale 2, as fitted
         return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
 
-    costs = np.array([cost(o) for o in offsets])
+    costs = np.array([cost(r) for r in residual_rows(np.array([moved(o) for o in offsets]))])
     i = int(np.argmin(costs))
     best = float(offsets[i])
     if 0 < i < len(offsets) - 1:  # the parabola's vertex through the least and its neighbours
