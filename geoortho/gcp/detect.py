@@ -182,9 +182,11 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
     return out
 
 
-#: A photo blurred by this many marker sides or more is searched by the detector's "fast" and
-#: "glare" attempts alone: on four degraded small surveys (14-16 px markers) its other attempts
-#: decoded nothing there in 540 runs, and "glare" 2 of 306.
+#: A photo blurred by this many marker sides or more is searched by the detector's "fast" attempt
+#: alone; its fits find what the others would: on four degraded small surveys (14-16 px markers)
+#: they decoded nothing there in 540 runs, "glare" 2 of 306; on a planned degraded flight (105
+#: photos) "glare" 0 of 105, in 0.66 s of a worker's 18 s, and without it gcp_list.txt is the same
+#: on eleven degraded surveys.
 SMEARED = 0.4
 
 
@@ -224,7 +226,7 @@ def detect_in_image(
             tries = attempts
             smeared = blur is not None and blur[0] >= SMEARED * win.side_px
             if smeared:
-                tries = tuple(a for a in attempts if a in ("fast", "glare"))
+                tries = tuple(a for a in attempts if a == "fast")
             if not _search(gray, _square(win, win.radius_px, w, h), win, tries, dictionary, k, found):
                 unseen.append((k, () if smeared else tries))
             continue
