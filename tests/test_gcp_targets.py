@@ -422,12 +422,12 @@ def test_the_photos_other_markers_place_a_missed_one():
 
 def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_photo():
     """A coded fit whose code is too blurred to read (id margin under the threshold), searched where
-    the photo's other markers put it, is taken when its GCP's id was decoded in another photo, and
-    only then."""
+    the photo's other markers put it, is taken when its GCP's id was decoded in another photo, or
+    read in this one with the photo's blur undone, and only then."""
     from dataclasses import replace
 
     from geoortho.feedback import as_feedback
-    from geoortho.gcp.detect import PLACED_ID_MARGIN, Detection, SearchWindow
+    from geoortho.gcp.detect import DEBLURRED, PLACED_ID_MARGIN, Detection, SearchWindow
     from geoortho.gcp.find import DETECTED, _judge
 
     win = SearchWindow("GCP07", 7, 500.0, 400.0, 60.0, side_px=16.0)
@@ -440,9 +440,13 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
     windows = {"DJI_0001.JPG": [win], "DJI_0002.JPG": [replace(win, x_px=600.0, y_px=385.0)]}
     frames = {"DJI_0001.JPG": (1600, 1200), "DJI_0002.JPG": (1600, 1200)}
 
-    def status(d: Detection, *others) -> str:
-        obs = _judge([("a/DJI_0001.JPG", [d], "", 7.0), *others], windows, {"GCP07": 7}, as_feedback(None), frames, 0)
-        return next(o.status for o in obs if o.image == "DJI_0001.JPG")
+    def judged(d: Detection | list[Detection], *others):
+        here = ("a/DJI_0001.JPG", d if isinstance(d, list) else [d], "", 7.0)
+        obs = _judge([here, *others], windows, {"GCP07": 7}, as_feedback(None), frames, 0)
+        return next(o for o in obs if o.image == "DJI_0001.JPG")
+
+    def status(d: Detection | list[Detection], *others) -> str:
+        return judged(d, *others).status
 
     assert status(unread, read) == DETECTED
     assert status(unread) != DETECTED  # its id read nowhere
@@ -451,6 +455,46 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
     assert status(replace(unread, refused_on="score", reason="best aruco match scores 0.70"), read) != DETECTED
     verified_only = ("b/DJI_0002.JPG", [replace(read[1][0], attempt="verified")], "", 0.0)
     assert status(unread, verified_only) != DETECTED  # proven by decoding, not by another fit
+    # read in this photo with its blur undone, where the fit was searched: the read proves the id
+    read_here = Detection(7, 503.2, 400.8, corners, "deblur", 0, 16.0, reason=DEBLURRED, refused_on="deblur")
+    found = judged([unread, read_here])
+    assert found.status == DETECTED and (found.x_px, found.y_px) == (503.0, 401.0)  # the fit's centre
+    assert status([read_here]) != DETECTED  # the read alone is no find: its corners are tenths off
+    assert status([replace(unread, id_margin=PLACED_ID_MARGIN - 0.01), read_here]) != DETECTED
+    refused = replace(unread, refused_on="score", reason="best aruco match scores 0.70")
+    assert judged([read_here, refused]).reason == refused.reason  # the fit says why, not the read
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3])
+def test_a_smeared_marker_reads_with_the_photos_blur_undone(seed):
+    """A 16 px marker smeared by 8 px, which the detector cannot read, reads with the photo's blur
+    undone (a Wiener filter, the "deblur" attempt), its centre within 0.2 px, also with the blur
+    estimated 0.7 px and 3 degrees off; a crop without the marker reads nothing."""
+    import math
+
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp.detect import _run, marker_centre
+    from geoortho.gcp.markers import marker_cells, paint_target
+    from geoortho.gcp.targets import motion_kernel
+
+    rng = np.random.default_rng(seed)
+    side, cx, cy = 16.0, 60.3, 59.6
+    img = cv2.GaussianBlur(rng.normal(120, 20, (120, 120)), (0, 0), 1.5)
+    a = math.radians(30.0)
+    A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
+    paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", 7), 235.0, 40.0)
+    img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(8.0, 20.0))
+    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    assert not _run(img, "plain", "DICT_4X4_50", side) and not _run(img, "upscale", "DICT_4X4_50", side)
+    for blur in [(8.0, 20.0), (8.7, 23.0)]:
+        hits = [c for i, c in _run(img, "deblur", "DICT_4X4_50", side, blur) if i == 7]
+        assert len(hits) == 1, blur
+        x, y = marker_centre(hits[0])
+        assert math.hypot(x - cx, y - cy) < 0.2, (blur, x, y)
+    assert not _run(img, "deblur", "DICT_4X4_50", side, None)  # no blur measured: nothing to undo
+    assert not _run(img[:, :40], "deblur", "DICT_4X4_50", side, (8.0, 20.0))
 
 
 def test_coded_render_by_table_equals_the_reflectance():

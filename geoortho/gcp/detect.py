@@ -14,7 +14,7 @@ import numpy as np
 
 from geoortho.core.camera import in_frame
 from geoortho.gcp.markers import CODED, get_dictionary, marker_cells, target_half_extent
-from geoortho.gcp.targets import PLACED_ID_MARGIN, SATURATED, estimate_motion_blur, fit_target
+from geoortho.gcp.targets import PLACED_ID_MARGIN, SATURATED, deblurred, estimate_motion_blur, fit_target
 from geoortho.photos.metadata import decode_photo
 
 __all__ = [
@@ -143,7 +143,9 @@ def _detector(
     return cv2.aruco.ArucoDetector(get_dictionary(dictionary), params)
 
 
-def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) -> list[tuple[int, np.ndarray]]:
+def _run(
+    gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0, blur: tuple[float, float] | None = None
+) -> list[tuple[int, np.ndarray]]:
     scale = 1.0
     img = gray
     win = 0
@@ -155,6 +157,13 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
     elif attempt == "upscale":
         scale = 2.0
         img = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+    elif attempt == "deblur":
+        # the photo's motion blur undone (a Wiener filter), and twice the pixels: a 15 px marker
+        # blurred by 4-10 px reads again (see DEBLUR)
+        if blur is None or blur[0] < 2.0:
+            return []
+        scale = 2.0
+        img = cv2.resize(deblurred(gray, blur), None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
     elif attempt == "glare":
         # compress the highlights so a glare spot does not swamp the threshold
         lut = (255.0 * (np.arange(256) / 255.0) ** 1.8).astype(np.uint8)
@@ -183,11 +192,16 @@ def _run(gray: np.ndarray, attempt: str, dictionary: str, side_px: float = 0.0) 
 
 
 #: A photo blurred by this many marker sides or more is searched by the detector's "fast" attempt
-#: alone; its fits find what the others would: on four degraded small surveys (14-16 px markers)
-#: they decoded nothing there in 540 runs, "glare" 2 of 306; on a planned degraded flight (105
-#: photos) "glare" 0 of 105, in 0.66 s of a worker's 18 s, and without it gcp_list.txt is the same
-#: on eleven degraded surveys.
+#: and, where that reads nothing, with its blur undone ("deblur": the read places the marker's fit
+#: and proves its id, :func:`deblurred_place`). The other attempts read nothing the fits do not
+#: find: on four degraded small surveys (14-16 px markers) nothing in 540 runs, "glare" 2 of 306;
+#: on a planned degraded flight (105 photos) "glare" 0 of 105, in 0.66 s of a worker's 18 s, and
+#: without it gcp_list.txt is the same on eleven degraded surveys.
 SMEARED = 0.4
+
+#: Why a "deblur" read of a window's id, kept as the place of its fit, is not a find: a refusal of
+#: its own (refused on "deblur"), so that no verdict takes it for the marker.
+DEBLURRED = "its id read with the photo's blur undone, where no fit placed it"
 
 
 def detect_in_image(
@@ -226,8 +240,8 @@ def detect_in_image(
             tries = attempts
             smeared = blur is not None and blur[0] >= SMEARED * win.side_px
             if smeared:
-                tries = tuple(a for a in attempts if a == "fast")
-            if not _search(gray, _square(win, win.radius_px, w, h), win, tries, dictionary, k, found):
+                tries = (*(a for a in attempts if a == "fast"), "deblur")
+            if not _search(gray, _square(win, win.radius_px, w, h), win, tries, dictionary, k, found, blur=blur):
                 unseen.append((k, () if smeared else tries))
             continue
         if win.ambiguous_with:
@@ -319,7 +333,11 @@ def fit_missed(
         for k in to_fit:
             _fit_model(gray, windows[k], k, target, dictionary, blur, found)
         return found
-    carried, turns = carried or {}, turns or {}
+    carried, turns = dict(carried or {}), dict(turns or {})
+    for k in to_fit:
+        read = deblurred_place(found, windows[k], k)
+        if read is not None:  # this photo's own read places it better than another photo's ground
+            carried[k], turns[k] = read
     tried: dict[int, set[str]] = {k: set() for k in to_fit}  # "carried", "near", "wide"
 
     def settled(k: int) -> bool:
@@ -345,12 +363,37 @@ def fit_missed(
                 else:
                     continue
                 tried[k].add(how)
-                found[:] = [d for d in found if not (d.window == k and d.reason)]  # the new fit says why
+                # the new fit says why (a deblurred read stays: it proves the id)
+                found[:] = [d for d in found if not (d.window == k and d.reason and d.refused_on != "deblur")]
                 _fit_model(gray, windows[k], k, target, dictionary, blur, found, local, turns.get(k))
                 progress |= settled(k)
             if not progress:
                 break
     return found
+
+
+def deblurred_place(
+    found: Sequence[Detection], win: SearchWindow, k: int
+) -> tuple[tuple[float, float, float], float] | None:
+    """Where the "deblur" attempt read window ``k``'s id (x, y, tolerance px), and the marker's
+    turn on the ground by its corners (:func:`ground_turn`); None where it did not. The read's
+    centre is 0.1-0.25 px off on average (four degraded surveys), its tolerance a carried place's."""
+    read = deblurred_read(found, k)
+    if read is None or len(win.ground_px) != 4:
+        return None
+    return (read.x_px, read.y_px, place_tolerance(win)), ground_turn(read.corners_px, win.ground_px)
+
+
+def deblurred_read(found: Sequence[Detection], k: int) -> Detection | None:
+    """The "deblur" attempt's read of window ``k``'s id (:data:`DEBLURRED`), if any."""
+    return next((d for d in found if d.window == k and d.refused_on == "deblur"), None)
+
+
+def place_tolerance(win: SearchWindow) -> float:
+    """How far (px) a marker may lie from where another photo's ground or its own deblurred read puts
+    it: 0.18 of a side, 2.5 px at least (a blurred marker's fit slides along the blur, and 3 px off
+    is a wrong place for a 14 px marker)."""
+    return max(0.18 * win.side_px, 2.5)
 
 
 def _accepted(d: Detection, win: SearchWindow) -> bool:
@@ -551,8 +594,11 @@ def _search(
     found: list[Detection],
     *,
     stop_at_id: bool = True,
+    blur: tuple[float, float] | None = None,
 ) -> bool:
-    """Run the attempts on one crop until the window's id is seen; True if it was."""
+    """Run the attempts on one crop until the window's id is seen; True if it was. The "deblur"
+    attempt's read of the window's id is added as a place for its fit (:data:`DEBLURRED`), not a
+    find: its corners are a few tenths of a pixel off (the filter rings)."""
     x0, y0, x1, y1 = box
     if x1 - x0 < 8 or y1 - y0 < 8:
         return False
@@ -567,7 +613,28 @@ def _search(
             continue
         if attempt not in ("fast", "plain") and not in_frame(win.x_px, win.y_px, w, h):
             continue
-        hits = [(mid, c) for mid, c in _run(crop, attempt, dictionary, win.side_px) if plausible_quad(c, win)]
+        hits = [(mid, c) for mid, c in _run(crop, attempt, dictionary, win.side_px, blur) if plausible_quad(c, win)]
+        if attempt == "deblur":
+            for _, c in (hit for hit in hits if hit[0] == win.marker_id):
+                c = c + [x0, y0]
+                x, y = marker_centre(c)
+                side = float(np.sqrt(abs(cv2.contourArea(c.astype(np.float32)))))
+                corners = tuple(map(tuple, c.tolist()))
+                found.append(
+                    Detection(
+                        win.marker_id,
+                        float(x),
+                        float(y),
+                        corners,
+                        attempt,
+                        k,
+                        side,
+                        reason=DEBLURRED,
+                        refused_on=attempt,
+                    )
+                )
+                return False
+            continue
         for mid, c in hits:
             c = c + [x0, y0]
             centre = marker_centre(c)
@@ -632,9 +699,8 @@ def carried_place(
     its textured ground locates far better than the blurred marker alone. The match's place is
     where the marker's centre is, to the yaw error's turn of the patch and the parallax of what
     stands on it. Measured on two degraded small surveys (38 places): 0.3 and 1.0 px from the truth
-    (medians; p90 0.5 and 1.6 px, the latter a curved blur path's), one 3.5 px. The tolerance,
-    0.18 of a side and 2.5 px at least, is tighter than a photo's own markers give: a blurred
-    marker's fit slides along the blur, and 3 px off is a wrong place for a 14 px marker."""
+    (medians; p90 0.5 and 1.6 px, the latter a curved blur path's), one 3.5 px. The tolerance
+    (:func:`place_tolerance`) is tighter than a photo's own markers give."""
     g_here = np.array(win.ground_px, float).reshape(2, 2)
     g_there = np.array(donor_ground_px, float).reshape(2, 2)
     if abs(np.linalg.det(g_there)) < 1e-9 or win.side_px <= 0:
@@ -670,7 +736,7 @@ def carried_place(
 
     fx = vertex(res[by, bx - 1], best, res[by, bx + 1]) if 0 < bx < res.shape[1] - 1 else 0.0
     fy = vertex(res[by - 1, bx], best, res[by + 1, bx]) if 0 < by < res.shape[0] - 1 else 0.0
-    return x0 + bx + fx + half, y0 + by + fy + half, max(0.18 * win.side_px, 2.5)
+    return x0 + bx + fx + half, y0 + by + fy + half, place_tolerance(win)
 
 
 #: A window to fit where another photo found its marker: (window index, donor photo, the marker's
@@ -696,6 +762,8 @@ def second_look_task(
     donors: dict[str, np.ndarray | None] = {}
     for k, donor_path, donor_xy, donor_ground, donor_corners in jobs:
         turns[k] = ground_turn(donor_corners, donor_ground)
+        if deblurred_place(found, windows[k], k) is not None:  # placed by its own read (fit_missed)
+            continue
         if donor_path not in donors:
             donors[donor_path] = _read_grey(donor_path)
         donor, win = donors[donor_path], windows[k]

@@ -59,6 +59,7 @@ from geoortho.gcp.detect import (
     CarryJob,
     Detection,
     SearchWindow,
+    deblurred_read,
     detect_task,
     fit_similarity,
     init_worker,
@@ -1047,15 +1048,20 @@ def _judge_window(
         return Observation(**base, status=AMBIGUOUS, reason=f"{win.ambiguous_with} is predicted in the same window")
     found = _nearest(dets, k, win)
     note = ""
-    if found is None and win.gcp in decoded:
+    read_here = deblurred_read(dets, k) is not None
+    if found is None and (win.gcp in decoded or read_here):
         found = _placed(dets, k, win)
         if found is not None:
+            margin = found[0].id_margin
             note = (
-                f"id read in other photos (here {found[0].id_margin:.2f} over the next id), "
+                f"id read here with the photo's blur undone (its fit {margin:.2f} over the next id), placed by the read"
+                if read_here
+                else f"id read in other photos (here {margin:.2f} over the next id), "
                 "placed by this photo's other markers"
             )
     if found is None:
         refused = [d for d in dets if d.window == k and d.reason]
+        refused = [d for d in refused if d.refused_on != "deblur"] or refused  # a fit's reason says more
         why = max(refused, key=lambda d: d.score).reason if refused else "nothing like the target in the window"
         return Observation(**base, status=NOT_FOUND, reason=why)
     d, err = found

@@ -52,6 +52,7 @@ from geoortho.gcp.markers import (
     target_half_extent,
     target_reflectance,
 )
+from geoortho.gcp.targets import motion_kernel, spread_path
 from geoortho.synthetic.cover import CANOPY_STYLES, add_canopy, add_car_park, leaf_texture
 
 __all__ = ["PRESETS", "PATHOLOGIES", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
@@ -1229,31 +1230,7 @@ def _other_motion_kernel(length_px: float, angle_deg: float, style: str, rng: np
     # (bilinear spreading keeps a path's mean: the kernel's centroid is then its centre exactly)
     x += r - float(np.average(x, weights=weight))
     y += r - float(np.average(y, weights=weight))
-    return _spread_path(x, y, weight, 2 * r + 1)
-
-
-def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
-    """A straight motion-blur kernel: the path of a point moving ``length_px`` at ``angle_deg``
-    (anticlockwise from the x axis as seen), its exact length: a camera's blur is not a whole
-    number of pixels (an odd-sized line kernel made 7.6 px a 9 px blur while the truth said 7.6).
-    The path is sampled finely and spread over the pixels it crosses (bilinear)."""
-    n = max(2, int(math.ceil(16 * length_px)))
-    t = ((np.arange(n) + 0.5) / n - 0.5) * length_px
-    a = math.radians(angle_deg)
-    r = int(math.ceil(length_px / 2)) + 1
-    x, y = r + t * math.cos(a), r - t * math.sin(a)
-    return _spread_path(x, y, np.ones_like(t), 2 * r + 1)
-
-
-def _spread_path(x: np.ndarray, y: np.ndarray, weight: np.ndarray, size: int) -> np.ndarray:
-    """A kernel ``size`` square from the samples of a path (pixel x, y, and each sample's weight),
-    each spread over the four pixels around it (bilinear); normalised to sum 1."""
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = x - x0, y - y0
-    kernel = np.zeros((size, size), np.float64)
-    for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        np.add.at(kernel, (y0 + dy, x0 + dx), wgt * weight)
-    return (kernel / kernel.sum()).astype(np.float32)
+    return spread_path(x, y, weight, 2 * r + 1)
 
 
 def _marker_truth_and_antialias(
