@@ -159,7 +159,7 @@ def _run(
         img = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
     elif attempt == "deblur":
         # the photo's motion blur undone (a Wiener filter), and twice the pixels: a 15 px marker
-        # blurred by 4-10 px reads again (see DEBLUR)
+        # blurred by 4-10 px reads again (targets.deblurred)
         if blur is None or blur[0] < 2.0:
             return []
         scale = 2.0
@@ -614,34 +614,20 @@ def _search(
         if attempt not in ("fast", "plain") and not in_frame(win.x_px, win.y_px, w, h):
             continue
         hits = [(mid, c) for mid, c in _run(crop, attempt, dictionary, win.side_px, blur) if plausible_quad(c, win)]
-        if attempt == "deblur":
-            for _, c in (hit for hit in hits if hit[0] == win.marker_id):
-                c = c + [x0, y0]
-                x, y = marker_centre(c)
-                side = float(np.sqrt(abs(cv2.contourArea(c.astype(np.float32)))))
-                corners = tuple(map(tuple, c.tolist()))
-                found.append(
-                    Detection(
-                        win.marker_id,
-                        float(x),
-                        float(y),
-                        corners,
-                        attempt,
-                        k,
-                        side,
-                        reason=DEBLURRED,
-                        refused_on=attempt,
-                    )
-                )
-                return False
-            continue
+        deblur = attempt == "deblur"
         for mid, c in hits:
+            if deblur and mid != win.marker_id:
+                continue  # (another id, read through the filter's rings: nothing to place)
             c = c + [x0, y0]
             centre = marker_centre(c)
             side = float(np.sqrt(abs(cv2.contourArea(c.astype(np.float32)))))
+            corners = tuple(map(tuple, c.tolist()))
+            why, on = (DEBLURRED, attempt) if deblur else ("", "")
             found.append(
-                Detection(mid, float(centre[0]), float(centre[1]), tuple(map(tuple, c.tolist())), attempt, k, side)
+                Detection(mid, float(centre[0]), float(centre[1]), corners, attempt, k, side, reason=why, refused_on=on)
             )
+        if deblur:
+            return False  # the read places the window's fit; it is no find
         if stop_at_id and any(mid == win.marker_id for mid, _ in hits):
             return True
     return False
