@@ -748,7 +748,7 @@ def second_look_task(
     donors: dict[str, np.ndarray | None] = {}
     for k, donor_path, donor_xy, donor_ground, donor_corners in jobs:
         turns[k] = ground_turn(donor_corners, donor_ground)
-        if deblurred_place(found, windows[k], k) is not None:  # placed by its own read (fit_missed)
+        if deblurred_read(found, k) is not None:  # placed by its own read (fit_missed)
             continue
         if donor_path not in donors:
             donors[donor_path] = _read_grey(donor_path)

@@ -8,9 +8,9 @@ numpy paths end it, to the last bit (tests/test_gcp_targets.py holds them so).
 numba is imported once a process has asked for a kernel :data:`WARM_CALLS` times (and taken the
 numpy path), not with the package: importing it and loading the cached code takes 0.4 s and
 130 MiB a process, which a clean survey's few fits would never pay back (a compiled render saves
-about 90 us). The compiled code is
-cached on disk (numba's own cache, beside this file or in its user-wide folder), so a fresh process
-loads it rather than compiling. Compiling takes 6 s (:func:`warm`, which ``make`` runs ahead).
+about 90 us). The compiled code is cached on disk (numba's own cache, beside this file or in its
+user-wide folder), so a fresh process loads it rather than compiling. Compiling takes 6 s
+(:func:`warm`, which ``make`` runs ahead).
 """
 
 from __future__ import annotations
