@@ -422,12 +422,12 @@ def test_the_photos_other_markers_place_a_missed_one():
 
 def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_photo():
     """A coded fit whose code is too blurred to read (id margin under the threshold), searched where
-    the photo's other markers put it, is taken when its GCP's id was decoded in another photo, or
-    read in this one with the photo's blur undone, and only then."""
+    the photo's other markers put it, is taken when its GCP's id was decoded in another photo (by
+    any attempt, its blur undone too), and only then."""
     from dataclasses import replace
 
     from geoortho.feedback import as_feedback
-    from geoortho.gcp.detect import DEBLURRED, PLACED_ID_MARGIN, Detection, SearchWindow
+    from geoortho.gcp.detect import PLACED_ID_MARGIN, Detection, SearchWindow
     from geoortho.gcp.find import DETECTED, _judge
 
     win = SearchWindow("GCP07", 7, 500.0, 400.0, 60.0, side_px=16.0)
@@ -455,14 +455,12 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
     assert status(replace(unread, refused_on="score", reason="best aruco match scores 0.70"), read) != DETECTED
     verified_only = ("b/DJI_0002.JPG", [replace(read[1][0], attempt="verified")], "", 0.0)
     assert status(unread, verified_only) != DETECTED  # proven by decoding, not by another fit
-    # read in this photo with its blur undone, where the fit was searched: the read proves the id
-    read_here = Detection(7, 503.2, 400.8, corners, "deblur", 0, 16.0, reason=DEBLURRED, refused_on="deblur")
-    found = judged([unread, read_here])
-    assert found.status == DETECTED and (found.x_px, found.y_px) == (503.0, 401.0)  # the fit's centre
-    assert status([read_here]) != DETECTED  # the read alone is no find: its corners are tenths off
-    assert status([replace(unread, id_margin=PLACED_ID_MARGIN - 0.01), read_here]) != DETECTED
-    refused = replace(unread, refused_on="score", reason="best aruco match scores 0.70")
-    assert judged([read_here, refused]).reason == refused.reason  # the fit says why, not the read
+    deblurred = ("b/DJI_0002.JPG", [replace(read[1][0], attempt="deblur")], "", 0.0)
+    assert status(unread, deblurred) == DETECTED  # read with that photo's blur undone: decoded
+    # a read with the blur undone is a find of its own, at its corners' centre
+    found = judged([Detection(7, 503.2, 400.8, corners, "deblur", 0, 16.0)])
+    assert found.status == DETECTED and (found.x_px, found.y_px) == (503.2, 400.8)
+    assert found.method == "decoded" and found.attempt == "deblur"
 
 
 @pytest.mark.parametrize("seed", [0, 1, 3])
@@ -495,6 +493,41 @@ def test_a_smeared_marker_reads_with_the_photos_blur_undone(seed):
         assert math.hypot(x - cx, y - cy) < 0.2, (blur, x, y)
     assert not _run(img, "deblur", "DICT_4X4_50", side, None)  # no blur measured: nothing to undo
     assert not _run(img[:, :40], "deblur", "DICT_4X4_50", side, (8.0, 20.0))
+
+
+def test_a_smeared_marker_read_with_its_blur_undone_is_found_without_a_fit(monkeypatch):
+    """In a photo smeared by half a marker side, a window whose marker reads with the blur undone
+    is found by that read (at its corners' centre, within 0.2 px), and no model is fitted there;
+    a window whose marker does not read is still fitted."""
+    import math
+
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp import detect
+    from geoortho.gcp.markers import marker_cells, paint_target
+    from geoortho.gcp.targets import motion_kernel
+
+    rng = np.random.default_rng(2)
+    side, cx, cy = 16.0, 100.3, 80.6
+    img = cv2.GaussianBlur(rng.normal(120, 20, (160, 240)), (0, 0), 1.5)
+    a = math.radians(30.0)
+    A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
+    paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", 7), 235.0, 40.0)
+    img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(8.0, 20.0))
+    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    ground = (side, 0.0, 0.0, -side)
+    wins = [
+        detect.SearchWindow("GCP07", 7, cx + 3.0, cy - 2.0, 30.0, side_px=side, ground_px=ground),
+        detect.SearchWindow("GCP09", 9, 190.0, 80.0, 30.0, side_px=side, ground_px=ground),  # none there
+    ]
+    fitted: list[int] = []
+    monkeypatch.setattr(detect, "_fit_model", lambda gray, win, k, *a, **kw: fitted.append(k))
+    found = detect.detect_in_image(img, wins, "DICT_4X4_50", blur=(8.0, 20.0))
+    mine = [d for d in found if d.window == 0 and d.marker_id == 7]
+    assert len(mine) == 1 and mine[0].attempt == "deblur" and not mine[0].reason
+    assert math.hypot(mine[0].x_px - cx, mine[0].y_px - cy) < 0.2
+    assert fitted == [1]  # only the window whose marker did not read
 
 
 def test_coded_render_by_table_equals_the_reflectance():

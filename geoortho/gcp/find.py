@@ -7,7 +7,8 @@
    whose window reaches the frame minus a margin (the margin is then checked
    on the detected centre).
 3. Detect the coded marker in that window at full resolution, retrying
-   harder cases (CLAHE, ×2 upscale, a glare-tolerant threshold); corners are
+   harder cases (CLAHE, ×2 upscale, a glare-tolerant threshold; in a smeared
+   photo, the photo's measured blur undone by a Wiener filter); corners are
    refined on the marker's edges (OpenCV's contour refinement: 0.03 px mean
    centre error on the synthetic survey, against 0.18 px with corner
    sub-pixel refinement). A few pilot photos go first: their detections
@@ -59,7 +60,6 @@ from geoortho.gcp.detect import (
     CarryJob,
     Detection,
     SearchWindow,
-    deblurred_read,
     detect_task,
     fit_similarity,
     init_worker,
@@ -1048,20 +1048,15 @@ def _judge_window(
         return Observation(**base, status=AMBIGUOUS, reason=f"{win.ambiguous_with} is predicted in the same window")
     found = _nearest(dets, k, win)
     note = ""
-    read_here = deblurred_read(dets, k) is not None
-    if found is None and (win.gcp in decoded or read_here):
+    if found is None and win.gcp in decoded:
         found = _placed(dets, k, win)
         if found is not None:
-            margin = found[0].id_margin
             note = (
-                f"id read here with the photo's blur undone (its fit {margin:.2f} over the next id), placed by the read"
-                if read_here
-                else f"id read in other photos (here {margin:.2f} over the next id), "
+                f"id read in other photos (here {found[0].id_margin:.2f} over the next id), "
                 "placed by this photo's other markers"
             )
     if found is None:
         refused = [d for d in dets if d.window == k and d.reason]
-        refused = [d for d in refused if d.refused_on != "deblur"] or refused  # a fit's reason says more
         why = max(refused, key=lambda d: d.score).reason if refused else "nothing like the target in the window"
         return Observation(**base, status=NOT_FOUND, reason=why)
     d, err = found

@@ -515,8 +515,8 @@ DEBLUR_NOISE = 0.003
 def deblurred(gray: np.ndarray, blur: tuple[float, float]) -> np.ndarray:
     """A grey crop with a straight motion ``blur`` (length px, direction deg) undone by a Wiener
     filter, as uint8. The blur's sinc spectrum has zeros that no inverse crosses: the filter leaves
-    those frequencies out, and a marker's cells come back sharp enough for the detector to read
-    (its border's corners to a few tenths of a pixel, which a model fit then refines)."""
+    those frequencies out, and a marker's cells come back sharp enough for the detector to read,
+    its centre as well as a model fit places it (:func:`.detect._search`)."""
     img = gray.astype(np.float64)
     kernel = motion_kernel(*blur).astype(np.float64)
     pad = np.zeros(img.shape)
