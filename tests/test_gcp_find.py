@@ -6,6 +6,7 @@ import csv
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -353,3 +354,49 @@ def test_the_wide_window_is_searched_only_where_the_photo_does_not_place_the_mar
     gray = _photo_with_markers({7: (300, 200)})
     detect.detect_in_image(gray, [window("G7", 7, 372.0, 212.0)], "DICT_4X4_50", blur=(12.0, 0.0), fit=False)
     assert searched and all(width <= 61 for _, width in searched)
+
+
+def test_a_photo_is_looked_at_again_for_a_marker_predicted_just_beyond_its_edge(monkeypatch):
+    """The second look fits a photo's missed markers once every photo is searched. A photo whose
+    markers in the frame were all decoded, and whose missed one is predicted just beyond its edge
+    (within two marker sides: the prediction errs by that much), is looked at again; where the
+    missed one is predicted further out, or every marker was decoded, it is not. Ground is carried
+    from another photo only to a marker predicted in the frame."""
+    from types import SimpleNamespace
+
+    from geoortho.gcp import find
+    from geoortho.gcp.detect import Detection, SearchWindow
+
+    cam = SimpleNamespace(
+        photo=SimpleNamespace(width_px=1600, height_px=1067), pose=SimpleNamespace(center=np.zeros(3))
+    )
+    ground = (16.0, 0.0, 0.0, -16.0)
+
+    def window(gcp: str, marker_id: int, x: float, y: float) -> SearchWindow:
+        return SearchWindow(gcp, marker_id, x, y, 40.0, side_px=16.0, ground_px=ground)
+
+    def looked_at(y_missed: float) -> list[tuple[str, list]]:
+        windows = {
+            "a.JPG": [window("GCP01", 1, 400.0, 600.0), window("GCP02", 2, 300.0, y_missed)],
+            "b.JPG": [window("GCP02", 2, 500.0, 500.0)],
+        }
+        results = [
+            ("/x/a.JPG", [Detection(1, 401.0, 601.0, (), "deblur", 0, 16.0)], "", 4.0),
+            ("/x/b.JPG", [Detection(2, 502.0, 499.0, ((494.0, 491.0),) * 4, "fast", 0, 16.0)], "", 0.0),
+        ]
+        asked: list[tuple[str, list]] = []
+
+        def second_looks(task, items, **kwargs):
+            asked.extend((Path(item[0]).name, item[3]) for item in items)
+            return [(item[0], item[2]) for item in items]
+
+        monkeypatch.setattr(find, "map_ordered", second_looks)
+        find._second_look(
+            results, windows, SimpleNamespace(cams={"a.JPG": cam, "b.JPG": cam}), "DICT_4X4_50", "aruco", None, 1
+        )
+        return asked
+
+    assert looked_at(1080.0) == [("a.JPG", [])]  # 13 px beyond the edge: fitted, nothing carried
+    assert looked_at(1120.0) == []  # 53 px beyond: out of view
+    ((image, jobs),) = looked_at(1000.0)  # in the frame: ground carried from b.JPG
+    assert image == "a.JPG" and [(k, Path(donor).name) for k, donor, *_ in jobs] == [(1, "b.JPG")]

@@ -530,6 +530,32 @@ def test_a_smeared_marker_read_with_its_blur_undone_is_found_without_a_fit(monke
     assert fitted == [1]  # only the window whose marker did not read
 
 
+@pytest.mark.parametrize(
+    "blur, expected",
+    [
+        ((8.0, 20.0), ["fast", "deblur"]),  # smeared (half a side): these two only
+        ((4.0, 20.0), ["fast", "deblur", "plain", "clahe", "upscale", "glare"]),  # blurred: undone first
+        ((1.0, 20.0), ["fast", "plain", "clahe", "upscale", "glare"]),  # sharp: nothing to undo
+    ],
+)
+def test_a_blurred_photo_is_searched_with_its_blur_undone_right_after_the_fast_attempt(monkeypatch, blur, expected):
+    """The attempts a coded window gets by the photo's blur (a window with no marker: all of them)."""
+    import numpy as np
+
+    from geoortho.gcp import detect
+
+    tried: list[str] = []
+    run = detect._run
+    monkeypatch.setattr(
+        detect, "_run", lambda gray, attempt, *a, **kw: tried.append(attempt) or run(gray, attempt, *a, **kw)
+    )
+    monkeypatch.setattr(detect, "_fit_model", lambda *a, **kw: None)
+    gray = np.random.default_rng(0).normal(120, 5, (200, 200)).clip(0, 255).astype(np.uint8)
+    win = detect.SearchWindow("GCP07", 7, 100.0, 100.0, 30.0, side_px=16.0, ground_px=(16.0, 0.0, 0.0, -16.0))
+    detect.detect_in_image(gray, [win], "DICT_4X4_50", blur=blur)
+    assert tried == expected
+
+
 def test_coded_render_by_table_equals_the_reflectance():
     """A coded marker's model read from its cell table (the fits' fast path) is the same, sample
     for sample, as target_reflectance's: any place, turn, scale, blur and defocus."""

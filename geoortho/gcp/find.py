@@ -899,10 +899,14 @@ def _second_look(
         for k, win in enumerate(windows.get(image, [])):
             if len(win.ground_px) != 4 or _nearest(dets, k, win):
                 continue
-            if not in_frame(win.x_px, win.y_px, cam.photo.width_px, cam.photo.height_px):
+            w, h = cam.photo.width_px, cam.photo.height_px
+            # a marker predicted just beyond the frame may lie just inside it: the photo is looked
+            # at again for it too (fit_missed fits it there), though no ground is carried to it
+            beyond = -min(win.radius_px, 2.0 * win.side_px)
+            if not in_frame(win.x_px, win.y_px, w, h, beyond, beyond):
                 continue
             carries = jobs.setdefault(path, [])
-            if not donors.get(win.gcp):
+            if not in_frame(win.x_px, win.y_px, w, h) or not donors.get(win.gcp):
                 continue
             # the nearest camera sees the ground most alike (least turned, least parallax)
             here = np.asarray(cam.pose.center)
