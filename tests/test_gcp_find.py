@@ -320,11 +320,17 @@ def _photo_with_markers(placed: dict[int, tuple[int, int]], side_px: int = 24) -
 def test_the_wide_window_is_searched_only_where_the_photo_does_not_place_the_marker(monkeypatch):
     """A marker 60 px from its prediction (a pose off by more than the measured residual) is found
     in the wide window; where two markers of the photo decoded in their own windows place it inside
-    its window, the wide one is not searched (on degraded surveys 122 wide searches decoded nothing)."""
+    its window, the wide one is not searched (on degraded surveys 122 wide searches decoded nothing).
+    A coded marker's wide window is the detector's, in a smeared photo too: never fitted."""
+    import cv2
+
     from geoortho.gcp import detect
+    from geoortho.gcp.targets import motion_kernel
 
     def window(gcp: str, marker_id: int, x: float, y: float) -> detect.SearchWindow:
-        return detect.SearchWindow(gcp, marker_id, x, y, radius_px=30.0, side_px=24.0, wide_radius_px=120.0)
+        return detect.SearchWindow(
+            gcp, marker_id, x, y, radius_px=30.0, side_px=24.0, wide_radius_px=120.0, ground_px=(24.0, 0.0, 0.0, -24.0)
+        )
 
     searched: list[tuple[int, int]] = []
     search = detect._search
@@ -348,12 +354,24 @@ def test_the_wide_window_is_searched_only_where_the_photo_does_not_place_the_mar
     dets = detect.detect_in_image(gray, wins, "DICT_4X4_50", fit=False)
     assert {d.marker_id for d in dets if not d.reason} == {1, 2}
     assert all(width <= 61 for mid, width in searched if mid == 7)
-    # a smeared photo: its detector cannot decode the marker where it is either (its fit, in the
-    # second look, covers the wide window)
+    # a smeared photo: its wide window too is searched by the detector (its attempts there: the
+    # fast one and the blur undone), never fitted
     searched.clear()
+    fitted: list[tuple[int, int]] = []
+    fit = detect._fit
+
+    def counting_fits(gray, win, k, box, *args, **kwargs):
+        fitted.append((win.marker_id, box[2] - box[0]))
+        return fit(gray, win, k, box, *args, **kwargs)
+
+    monkeypatch.setattr(detect, "_fit", counting_fits)
     gray = _photo_with_markers({7: (300, 200)})
-    detect.detect_in_image(gray, [window("G7", 7, 372.0, 212.0)], "DICT_4X4_50", blur=(12.0, 0.0), fit=False)
-    assert searched and all(width <= 61 for _, width in searched)
+    blurred = cv2.filter2D(gray, -1, motion_kernel(12.0, 0.0))
+    wins = [window("G7", 7, 372.0, 212.0), window("G9", 9, 200.0, 300.0)]  # G9: not in the photo
+    dets = detect.detect_in_image(blurred, wins, "DICT_4X4_50", blur=(12.0, 0.0))
+    assert (7, 241) in searched and (9, 241) in searched
+    assert [d.attempt for d in dets if d.marker_id == 7 and not d.reason] == ["deblur"]
+    assert fitted == [(9, 61)]  # the marker not read: fitted in its own window only
 
 
 def test_a_photo_is_looked_at_again_for_a_marker_predicted_just_beyond_its_edge(monkeypatch):

@@ -203,8 +203,7 @@ SMEARED = 0.4
 #: reads nothing. Its read spares a fit as in a smeared photo: on a degraded flight 21 fits of
 #: 83 ms each were so read. On eight degraded surveys, recall +1 and +2 on two, -1 on one (a fit
 #: at its score threshold), the same on five; the mean centre error 0.001-0.011 px lower on six,
-#: 0.002-0.004 px higher on two. Not in the wide window: a large crop's filter costs more, and the wide searches
-#: decode little (see :func:`detect_in_image`).
+#: 0.002-0.004 px higher on two.
 DEBLUR_FROM_PX = 2.0
 
 
@@ -230,50 +229,52 @@ def detect_in_image(
     coded = target in CODED
     found: list[Detection] = []
     missed: list[int] = []
-    # coded windows the detector missed, with the attempts for their wide window (none: smeared)
-    unseen: list[tuple[int, tuple[str, ...]]] = []
+    unseen: list[int] = []  # coded windows the detector missed
+    tries = [_attempts(attempts, blur, win.side_px) for win in windows]
     for k, win in enumerate(windows):
         if win.radius_px <= 0:
             if not coded:
                 continue  # no prediction, no id: nothing to tell a target by
             # A whole photo has no expected id: run the cheap attempts and keep all they see.
-            tries = tuple(a for a in attempts if a in ("plain", "clahe"))
-            _search(gray, (0, 0, w, h), win, tries, dictionary, -1, found, stop_at_id=False)
+            cheap = tuple(a for a in attempts if a in ("plain", "clahe"))
+            _search(gray, (0, 0, w, h), win, cheap, dictionary, -1, found, stop_at_id=False)
             continue
         if coded:
-            tries = attempts
-            smeared = blur is not None and blur[0] >= SMEARED * win.side_px
-            here = tries
-            if blur is not None and blur[0] >= DEBLUR_FROM_PX:
-                fast = tuple(a for a in attempts if a == "fast")
-                if smeared:
-                    tries = here = (*fast, "deblur")
-                else:  # (the wide window, if searched, without it: see DEBLUR_FROM_PX)
-                    here = (*fast, "deblur", *(a for a in attempts if a != "fast"))
-            if not _search(gray, _square(win, win.radius_px, w, h), win, here, dictionary, k, found, blur=blur):
-                unseen.append((k, () if smeared else tries))
+            if not _search(gray, _square(win, win.radius_px, w, h), win, tries[k], dictionary, k, found, blur=blur):
+                unseen.append(k)
             continue
         if win.ambiguous_with:
             continue
         missed.append(k)
     # The wide window is for a marker the prediction missed by more than the measured residual (a
-    # pose off). Not searched where the detector cannot decode the marker where it is either (a
-    # smeared photo: its fit covers the wide window), nor where the photo's markers decoded so
-    # far place it well inside the window searched: it is there, not decoded (blur, glare). On
-    # two degraded small surveys 122 wide searches decoded nothing, in 7.1 s.
-    for k, tries in unseen:
+    # pose off): searched by the detector, with the same attempts, and never fitted (see
+    # _fit_model). Not where the photo's markers decoded so far place it well inside the window
+    # searched: it is there, not decoded (blur, glare). On two degraded small surveys 122 wide
+    # searches decoded nothing, in 7.1 s.
+    for k in unseen:
         win = windows[k]
         if (
-            tries
-            and win.wide_radius_px > win.radius_px
+            win.wide_radius_px > win.radius_px
             and in_frame(win.x_px, win.y_px, w, h)
             and not _placed_inside(windows, found, k)
         ):
-            if _search(gray, _square(win, win.wide_radius_px, w, h), win, tries, dictionary, k, found):
+            if _search(gray, _square(win, win.wide_radius_px, w, h), win, tries[k], dictionary, k, found, blur=blur):
                 continue
         if fit:
             missed.append(k)
     return fit_missed(gray, windows, found, missed, target, dictionary, blur)
+
+
+def _attempts(attempts: tuple[str, ...], blur: tuple[float, float] | None, side_px: float) -> tuple[str, ...]:
+    """The detector's attempts for a coded window, by the photo's motion blur (px): in a smeared
+    photo the fast one and the blur undone; in a blurred one the blur undone right after the fast
+    one; in a sharp one the ``attempts`` as given."""
+    if blur is None or blur[0] < DEBLUR_FROM_PX:
+        return attempts
+    fast = tuple(a for a in attempts if a == "fast")
+    if blur[0] >= SMEARED * side_px:
+        return (*fast, "deblur")
+    return (*fast, "deblur", *(a for a in attempts if a != "fast"))
 
 
 def _placed_inside(windows: list[SearchWindow], found: list[Detection], k: int) -> bool:
@@ -306,9 +307,10 @@ def fit_missed(
     they put it (:func:`local_prediction`; on the blurred small surveys the window's prediction
     is 6-29 px off, theirs 0.3-1.9 px); else where a photo that decoded it puts it
     (``carried``: window -> (x, y, tolerance); :func:`carried_place`); only then in the whole
-    window. A marker fitted so is an anchor for the rest. The wide fits come last because they
-    cost most and fail most: on a degraded small survey, 29 of 50 failed at 0.65 s each, where a
-    carried fit costs a fifth of that. ``turns``: window -> the marker's turn on the ground, where
+    window (its narrow one: the wide one is the detector's). A marker fitted so is an anchor for
+    the rest. The whole-window fits come last because they cost most and fail most: on a
+    degraded small survey, 29 of 50 failed at 0.65 s each, where a carried fit costs a fifth of
+    that. ``turns``: window -> the marker's turn on the ground, where
     a photo decoded it (:func:`ground_turn`): its fits try only the rotations near it."""
     h, w = gray.shape[:2]
     coded = target in CODED
@@ -450,11 +452,16 @@ def _fit_model(
     turn_deg: float | None = None,
 ) -> None:
     """The target by model fit, appended to ``found`` (refusals too, with their reason): in its
-    window, then the wide one; or, given ``local`` (:func:`local_prediction`), only around where
-    the photo's other markers put it (``turn_deg``: see :func:`.targets.fit_target`)."""
+    window, then (targets without a code) the wide one; or, given ``local``
+    (:func:`local_prediction`), only around where the photo's other markers put it (``turn_deg``:
+    see :func:`.targets.fit_target`)."""
     h, w = gray.shape[:2]
     if local is None:
-        radii = [win.radius_px] + ([win.wide_radius_px] if win.wide_radius_px > win.radius_px else [])
+        radii = [win.radius_px]
+        if win.wide_radius_px > win.radius_px and target not in CODED:
+            # (a coded marker's wide window is the detector's: 0 of 21 fits there found a marker on
+            # nine degraded surveys, at 0.45 s each, every miss inside its own window)
+            radii.append(win.wide_radius_px)
         for radius in radii:
             d = _fit(gray, win, k, _square(win, radius, w, h), target, dictionary, blur)
             if d is not None:
