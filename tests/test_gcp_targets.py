@@ -463,6 +463,26 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
     assert found.method == "decoded" and found.attempt == "deblur"
 
 
+def _smeared_marker(seed: int, shape: tuple[int, int], cx: float, cy: float, side: float):
+    """A grey photo of textured ground with marker 7 of DICT_4X4_50 at (cx, cy), turned 30°, smeared
+    by 8 px of motion blur at 20°, with noise."""
+    import math
+
+    import cv2
+    import numpy as np
+
+    from geoortho.gcp.markers import marker_cells, paint_target
+    from geoortho.gcp.targets import motion_kernel
+
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.normal(120, 20, shape), (0, 0), 1.5)
+    a = math.radians(30.0)
+    A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
+    paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", 7), 235.0, 40.0)
+    img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(8.0, 20.0))
+    return np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 3])
 def test_a_smeared_marker_reads_with_the_photos_blur_undone(seed):
     """A 16 px marker smeared by 8 px, which the detector cannot read, reads with the photo's blur
@@ -470,21 +490,10 @@ def test_a_smeared_marker_reads_with_the_photos_blur_undone(seed):
     estimated 0.7 px and 3 degrees off; a crop without the marker reads nothing."""
     import math
 
-    import cv2
-    import numpy as np
-
     from geoortho.gcp.detect import _run, marker_centre
-    from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import motion_kernel
 
-    rng = np.random.default_rng(seed)
     side, cx, cy = 16.0, 60.3, 59.6
-    img = cv2.GaussianBlur(rng.normal(120, 20, (120, 120)), (0, 0), 1.5)
-    a = math.radians(30.0)
-    A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
-    paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", 7), 235.0, 40.0)
-    img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(8.0, 20.0))
-    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    img = _smeared_marker(seed, (120, 120), cx, cy, side)
     assert not _run(img, "plain", "DICT_4X4_50", side) and not _run(img, "upscale", "DICT_4X4_50", side)
     for blur in [(8.0, 20.0), (8.7, 23.0)]:
         hits = [c for i, c in _run(img, "deblur", "DICT_4X4_50", side, blur) if i == 7]
@@ -501,21 +510,10 @@ def test_a_smeared_marker_read_with_its_blur_undone_is_found_without_a_fit(monke
     a window whose marker does not read is still fitted."""
     import math
 
-    import cv2
-    import numpy as np
-
     from geoortho.gcp import detect
-    from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import motion_kernel
 
-    rng = np.random.default_rng(2)
     side, cx, cy = 16.0, 100.3, 80.6
-    img = cv2.GaussianBlur(rng.normal(120, 20, (160, 240)), (0, 0), 1.5)
-    a = math.radians(30.0)
-    A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
-    paint_target(img, "aruco", cx, cy, A, marker_cells("DICT_4X4_50", 7), 235.0, 40.0)
-    img = cv2.filter2D(img.astype(np.float32), -1, motion_kernel(8.0, 20.0))
-    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    img = _smeared_marker(2, (160, 240), cx, cy, side)
     ground = (side, 0.0, 0.0, -side)
     wins = [
         detect.SearchWindow("GCP07", 7, cx + 3.0, cy - 2.0, 30.0, side_px=side, ground_px=ground),
