@@ -193,9 +193,9 @@ def _run(
 
 #: A photo blurred by this many marker sides or more is searched by the detector's "fast" attempt
 #: and, where that reads nothing, with its blur undone ("deblur"). The other attempts read nothing
-#: the fits do not find: on four degraded small surveys (14-16 px markers) nothing in 540 runs, "glare" 2 of 306;
-#: on a planned degraded flight (105 photos) "glare" 0 of 105, in 0.66 s of a worker's 18 s, and
-#: without it gcp_list.txt is the same on eight degraded surveys and a clean one.
+#: the fits do not find: on four degraded small surveys (14-16 px markers) nothing in 540 runs,
+#: "glare" 2 of 306; on a planned degraded flight (105 photos) "glare" 0 of 105, in 0.66 s of a
+#: worker's 18 s, and without it gcp_list.txt is the same on eight degraded surveys and a clean one.
 SMEARED = 0.4
 
 #: A photo blurred by this many pixels or more (and less than :data:`SMEARED`) is searched with its
@@ -310,8 +310,8 @@ def fit_missed(
     window (its narrow one: the wide one is the detector's). A marker fitted so is an anchor for
     the rest. The whole-window fits come last because they cost most and fail most: on a
     degraded small survey, 29 of 50 failed at 0.65 s each, where a carried fit costs a fifth of
-    that. ``turns``: window -> the marker's turn on the ground, where
-    a photo decoded it (:func:`ground_turn`): its fits try only the rotations near it."""
+    that. ``turns``: window -> the marker's turn on the ground, where a photo decoded it
+    (:func:`ground_turn`): its fits try only the rotations near it."""
     h, w = gray.shape[:2]
     coded = target in CODED
     to_fit: list[int] = []

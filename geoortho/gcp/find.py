@@ -7,8 +7,8 @@
    whose window reaches the frame minus a margin (the margin is then checked
    on the detected centre).
 3. Detect the coded marker in that window at full resolution, retrying
-   harder cases (CLAHE, ×2 upscale, a glare-tolerant threshold; in a smeared
-   photo, the photo's measured blur undone by a Wiener filter); corners are
+   harder cases (CLAHE, ×2 upscale, a glare-tolerant threshold; in a blurred
+   photo first its measured blur undone by a Wiener filter); corners are
    refined on the marker's edges (OpenCV's contour refinement: 0.03 px mean
    centre error on the synthetic survey, against 0.18 px with corner
    sub-pixel refinement). A few pilot photos go first: their detections
