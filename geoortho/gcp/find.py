@@ -15,9 +15,9 @@
    measure the flight's common offset (GPS bias), and the other photos are
    searched in windows sized by the residual left after it — a tenth of the
    area — with the stated uncertainty as a fallback when the marker is not
-   there.
+   there (searched by the detector only).
    Where the detector cannot decode a marker (blur, glare), its model is
-   fitted (verified); where two other markers of the photo were found, only
+   fitted (verified) in its window; where two other markers of the photo were found, only
    within a few pixels of where they put it. A marker still not found is
    fitted again where the nearest photo that decoded it puts it: the ground
    around it there, matched in this photo's window.
