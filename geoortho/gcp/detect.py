@@ -323,10 +323,8 @@ def fit_missed(
         # window; a coded one only where the detector had cause to miss a whole one (a blurred
         # photo, glare in the window). On a sharp, glare-free photo a coded miss there is a
         # marker cut by the frame; its fit would cost seconds.
-        # A coded marker predicted just beyond the edge may lie just inside it (the prediction errs
-        # by more than a side): it is fitted where its window overlaps the photo by a side, its id
-        # proving it (a degraded flight of 105 photos: 6 of 22 markers missed were so).
-        off = -min(win.radius_px, 2.0 * win.side_px) if coded else 0.0
+        # A coded marker predicted just beyond the edge may lie just inside it: see beyond_edge_px.
+        off = -beyond_edge_px(win) if coded else 0.0
         if len(win.ground_px) != 4 or not in_frame(win.x_px, win.y_px, w, h, off, off):
             continue
         if blur is None:
@@ -376,6 +374,14 @@ def fit_missed(
             if not progress:
                 break
     return found
+
+
+def beyond_edge_px(win: SearchWindow) -> float:
+    """How far (px) beyond the photo's edge a coded marker may be predicted and still be fitted: the
+    prediction errs by more than a side, so one predicted just beyond may lie just inside, its id
+    proving it (a degraded flight of 105 photos: 6 of 22 markers missed were so). Its window's
+    radius, two sides at most."""
+    return min(win.radius_px, 2.0 * win.side_px)
 
 
 def place_tolerance(win: SearchWindow) -> float:

@@ -17,8 +17,8 @@
    area — with the stated uncertainty as a fallback when the marker is not
    there (searched by the detector only).
    Where the detector cannot decode a marker (blur, glare), its model is
-   fitted (verified) in its window; where two other markers of the photo were found, only
-   within a few pixels of where they put it. A marker still not found is
+   fitted (verified) in its window; where two other markers of the photo
+   were found, only within a few pixels of where they put it. A marker still not found is
    fitted again where the nearest photo that decoded it puts it: the ground
    around it there, matched in this photo's window.
 4. Keep only detections with the GCP's id within the window: a wrong id, an
@@ -60,6 +60,7 @@ from geoortho.gcp.detect import (
     CarryJob,
     Detection,
     SearchWindow,
+    beyond_edge_px,
     detect_task,
     fit_similarity,
     init_worker,
@@ -902,7 +903,7 @@ def _second_look(
             w, h = cam.photo.width_px, cam.photo.height_px
             # a marker predicted just beyond the frame may lie just inside it: the photo is looked
             # at again for it too (fit_missed fits it there), though no ground is carried to it
-            beyond = -min(win.radius_px, 2.0 * win.side_px)
+            beyond = -beyond_edge_px(win)
             if not in_frame(win.x_px, win.y_px, w, h, beyond, beyond):
                 continue
             carries = jobs.setdefault(path, [])
