@@ -107,6 +107,50 @@ def test_flight_offset_is_measured_and_windows_follow_it(small_survey, tmp_path)
     assert s["precision"] == 1.0 and s["recall"] >= 0.98
 
 
+def test_the_pilot_reads_by_the_fast_attempt_alone_where_that_measures_the_offset(small_survey, tmp_path, monkeypatch):
+    """The flight's offset needs a few markers in more than one photo: the detector's cheapest read
+    ("fast") in twice the pilot photos gives them on a clean survey, so no other attempt runs in
+    a window sized for the stated uncertainty (a blurred photo's blur undone there cost a
+    degraded flight's pilot four times as much); everything is still found."""
+    from geoortho.gcp import detect, find
+
+    tried: list[str] = []
+    run = detect._run
+    monkeypatch.setattr(
+        detect, "_run", lambda gray, attempt, *a, **kw: tried.append(attempt) or run(gray, attempt, *a, **kw)
+    )
+    before_offset: list[list[str]] = []
+    offset = find._flight_offset
+
+    def measured(*a, **kw):
+        got = offset(*a, **kw)
+        if got is not None and not before_offset:
+            before_offset.append(list(tried))
+        return got
+
+    monkeypatch.setattr(find, "_flight_offset", measured)
+    r = gcp_find(small_survey.images, small_survey.gcp_file, tmp_path / "gcp_list.txt", workers=1)
+    assert before_offset and before_offset[0] and set(before_offset[0]) == {"fast"}
+    assert set(tried) - {"fast"}  # the other attempts still run, later, in the narrowed windows
+    s = _score(small_survey, r.output)
+    assert s["precision"] == 1.0 and s["recall"] >= 0.98, s
+
+
+def test_where_the_fast_attempt_reads_nothing_the_pilot_tries_every_attempt(tiny_survey, tmp_path, monkeypatch):
+    """No marker read by the fast attempt (a blurred flight): the pilot photos are searched with
+    every attempt, and the offset is measured from those."""
+    from geoortho.gcp import detect
+
+    run = detect._run
+    monkeypatch.setattr(
+        detect, "_run", lambda gray, attempt, *a, **kw: [] if attempt == "fast" else run(gray, attempt, *a, **kw)
+    )
+    r = gcp_find(tiny_survey.images, tiny_survey.truth / "gcp_wgs84.csv", tmp_path / "gcp_list.txt", workers=1)
+    assert r.flight_offset_m is not None
+    s = _score(tiny_survey, r.output)
+    assert s["precision"] == 1.0 and s["recall"] >= 0.98, s
+
+
 def test_hard_preset(hard_survey, tmp_path):
     out = tmp_path / "gcp_list.txt"
     gcp_find(hard_survey.images, hard_survey.truth / "gcp_wgs84.txt", out)

@@ -819,6 +819,8 @@ def test_markers_are_found_under_another_sensors_noise(tmp_path):
 def test_ground_carried_from_a_sharp_photo_places_a_marker_in_a_blurred_one(blur_style):
     """The ground around a marker in one photo, turned, scaled and blurred in another, is found
     there to a pixel; unrelated ground places nothing."""
+    from dataclasses import replace
+
     import cv2
     import numpy as np
 
@@ -848,6 +850,13 @@ def test_ground_carried_from_a_sharp_photo_places_a_marker_in_a_blurred_one(blur
     assert tol == pytest.approx(2.52)
     elsewhere = cv2.GaussianBlur(rng.uniform(0, 255, (900, 900)).astype(np.float32), (0, 0), 3.0)
     assert carried_place(elsewhere, predicted, ground, (450.0, 450.0), ground_px(0.0, 1.0)) is None
+    # searched in the window the flight's measured errors give: a place 60 px beyond it, inside
+    # the wide window only (the detector's), is not looked for
+    beyond = replace(predicted, x_px=at[0] - 100.0, wide_radius_px=200.0)
+    assert carried_place(here, beyond, ground, (450.0, 450.0), ground_px(0.0, 1.0)) is None
+    within = replace(beyond, radius_px=110.0)
+    x, y, _ = carried_place(here, within, ground, (450.0, 450.0), ground_px(0.0, 1.0))
+    assert np.hypot(x - at[0], y - at[1]) < 1.0
 
 
 @pytest.mark.parametrize("turn_deg", [0.0, 30.0, 84.0, 123.0])

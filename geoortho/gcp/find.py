@@ -11,8 +11,9 @@
    photo first its measured blur undone by a Wiener filter); corners are
    refined on the marker's edges (OpenCV's contour refinement: 0.03 px mean
    centre error on the synthetic survey, against 0.18 px with corner
-   sub-pixel refinement). A few pilot photos go first: their detections
-   measure the flight's common offset (GPS bias), and the other photos are
+   sub-pixel refinement). A few pilot photos go first, read by the
+   detector's cheapest attempt (all of them only where that reads too few):
+   their detections measure the flight's common offset (GPS bias), and the other photos are
    searched in windows sized by the residual left after it — a tenth of the
    area — with the stated uncertainty as a fallback when the marker is not
    there (searched by the detector only).
@@ -20,7 +21,7 @@
    fitted (verified) in its window; where two other markers of the photo
    were found, only within a few pixels of where they put it. A marker still not found is
    fitted again where the nearest photo that decoded it puts it: the ground
-   around it there, matched in this photo's window.
+   around it there, matched in this photo's (narrow) window.
 4. Keep only detections with the GCP's id within the window: a wrong id, an
    id not in the GCP file, or a marker too far from its prediction is
    reported, never written. A verified marker whose code is too blurred to
@@ -56,6 +57,7 @@ from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.gcp.detect import (
+    ATTEMPTS,
     PROBED,
     CarryJob,
     Detection,
@@ -545,20 +547,51 @@ def _search(
     searched = [im for im in plan.cams if im in windows]
     pilot = _pilot_images(searched, windows, plan.cams, workers)
     rest = [im for im in searched if im not in set(pilot)]
-    s_pilot, s_refit, s_rest = split(fb, [len(pilot), 0.5 * len(pilot), len(rest) + len(plan.unplaced)])
+    s_quick, s_pilot, s_refit, s_rest = split(
+        fb, [0.4 * len(pilot), len(pilot), 0.5 * len(pilot), len(rest) + len(plan.unplaced)]
+    )
 
-    def run(jobs: list[tuple[str, list[SearchWindow]]], kind: str, f: Feedback, fit: bool = True) -> Results:
-        items = [(plan.path_of[im], wins, dictionary, kind, fit) for im, wins in jobs]
+    def run(
+        jobs: list[tuple[str, list[SearchWindow]]],
+        kind: str,
+        f: Feedback,
+        fit: bool = True,
+        attempts: tuple[str, ...] = ATTEMPTS,
+    ) -> Results:
+        items = [(plan.path_of[im], wins, dictionary, kind, fit, attempts) for im, wins in jobs]
         return map_ordered(detect_task, items, workers=1 if pool is None else workers, executor=pool, feedback=f)
 
     # Coded markers in the pilot: the detector alone first. A model fit in a window sized for the
     # stated uncertainty costs seconds; in the window narrowed by the measured offset, a fraction.
-    def pilot_run(ims: list[str], kind: str, f: Feedback) -> Results:
-        return run([(im, windows[im]) for im in ims], kind, f, fit=kind not in CODED)
+    def pilot_run(ims: list[str], kind: str, f: Feedback, attempts: tuple[str, ...] = ATTEMPTS) -> Results:
+        return run([(im, windows[im]) for im in ims], kind, f, fit=kind not in CODED, attempts=attempts)
 
+    coded = target in CODED
+
+    def offset_of(results: Results) -> tuple[np.ndarray, float, int] | None:
+        return _flight_offset(
+            results,
+            windows,
+            plan.cams,
+            dict(zip(plan.names, plan.xyz)),
+            consensus_m=None if coded else max(1.5, 2.0 * uncertainty["marker_size_m"]),
+        )
+
+    results = None
+    if coded:
+        # The detector's cheapest read first, in twice as many photos: the offset needs a few
+        # markers in more than one photo, and a pilot photo with one missed is searched again with
+        # the rest, every attempt in its narrowed window. The other attempts in the wide windows
+        # (a blurred photo's blur undone over 500 px squares) cost a degraded flight's pilot four
+        # times as much; they run only where this read gives no offset.
+        more = _pilot_images(searched, windows, plan.cams, workers, times=2)
+        quick = pilot_run(more, target, s_quick, attempts=("fast",))
+        if len({path for path, *_ in _decoded(quick, windows)}) >= 2 and offset_of(quick) is not None:
+            pilot, results = more, quick
+            rest = [im for im in searched if im not in set(pilot)]
     if target == "auto":
         target, results = _choose_target(pilot, windows, pilot_run, auto_kinds, s_pilot)
-    else:
+    elif results is None:
         results = pilot_run(pilot, target, s_pilot)
         if target in CODED and next(_decoded(results, windows), None) is None:
             ratio, other = _probe(plan, pilot, windows, dictionary, ids, pool, workers)
@@ -581,16 +614,6 @@ def _search(
                 dictionary = other[0]
                 results = pilot_run(pilot, target, s_pilot)
     coded = target in CODED
-
-    def offset_of(results: Results) -> tuple[np.ndarray, float, int] | None:
-        return _flight_offset(
-            results,
-            windows,
-            plan.cams,
-            dict(zip(plan.names, plan.xyz)),
-            consensus_m=None if coded else max(1.5, 2.0 * uncertainty["marker_size_m"]),
-        )
-
     offset = offset_of(results)
     # pilot photos where the detector missed a coded marker: fitted in their narrowed windows
     # with the rest, or here (in the wide ones) when the decoded markers were too few to measure
@@ -808,11 +831,15 @@ def _has_pose(p: Photo) -> bool:
 
 
 def _pilot_images(
-    images: list[str], windows: dict[str, list[SearchWindow]], cams: dict[str, PhotoCamera], workers: int
+    images: list[str],
+    windows: dict[str, list[SearchWindow]],
+    cams: dict[str, PhotoCamera],
+    workers: int,
+    times: int = 1,
 ) -> list[str]:
     """The photos searched first to measure the flight's offset: those with the most
-    predictions well inside the frame. None when the flight is too small to gain."""
-    n = max(4, 2 * (workers or os.cpu_count() or 1))
+    predictions well inside the frame (``times`` as many). All when the flight is too small to gain."""
+    n = times * max(4, 2 * (workers or os.cpu_count() or 1))
     if len(images) < 3 * n:
         return list(images)
 
