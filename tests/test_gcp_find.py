@@ -443,8 +443,8 @@ def test_a_photo_is_looked_at_again_for_a_marker_predicted_just_beyond_its_edge(
             "b.JPG": [window("GCP02", 2, 500.0, 500.0)],
         }
         results = [
-            ("/x/a.JPG", [Detection(1, 401.0, 601.0, (), "deblur", 0, 16.0)], "", 4.0),
-            ("/x/b.JPG", [Detection(2, 502.0, 499.0, ((494.0, 491.0),) * 4, "fast", 0, 16.0)], "", 0.0),
+            ("/x/a.JPG", [Detection(1, 401.0, 601.0, (), "deblur", 0, 16.0)], "", (4.0, 0.0)),
+            ("/x/b.JPG", [Detection(2, 502.0, 499.0, ((494.0, 491.0),) * 4, "fast", 0, 16.0)], "", (0.0, 0.0)),
         ]
         asked: list[tuple[str, list]] = []
 

@@ -436,12 +436,12 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
         7, 503.0, 401.0, corners, "verified", 0, 16.0, score=0.88, id_margin=PLACED_ID_MARGIN + 0.03,
         reason="id 7 beats the next id by only 0.03 < 0.12", refused_on="id_margin", near_px=4.0,
     )  # fmt: skip
-    read = ("b/DJI_0002.JPG", [Detection(7, 611.0, 380.0, corners, "fast", 0, 16.0)], "", 0.0)
+    read = ("b/DJI_0002.JPG", [Detection(7, 611.0, 380.0, corners, "fast", 0, 16.0)], "", (0.0, 0.0))
     windows = {"DJI_0001.JPG": [win], "DJI_0002.JPG": [replace(win, x_px=600.0, y_px=385.0)]}
     frames = {"DJI_0001.JPG": (1600, 1200), "DJI_0002.JPG": (1600, 1200)}
 
     def judged(d: Detection | list[Detection], *others):
-        here = ("a/DJI_0001.JPG", d if isinstance(d, list) else [d], "", 7.0)
+        here = ("a/DJI_0001.JPG", d if isinstance(d, list) else [d], "", (7.0, 0.0))
         obs = _judge([here, *others], windows, {"GCP07": 7}, as_feedback(None), frames, 0)
         return next(o for o in obs if o.image == "DJI_0001.JPG")
 
@@ -453,9 +453,9 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
     assert status(replace(unread, near_px=float("nan")), read) != DETECTED  # searched in the window
     assert status(replace(unread, id_margin=PLACED_ID_MARGIN - 0.01), read) != DETECTED  # another id reads better
     assert status(replace(unread, refused_on="score", reason="best aruco match scores 0.70"), read) != DETECTED
-    verified_only = ("b/DJI_0002.JPG", [replace(read[1][0], attempt="verified")], "", 0.0)
+    verified_only = ("b/DJI_0002.JPG", [replace(read[1][0], attempt="verified")], "", (0.0, 0.0))
     assert status(unread, verified_only) != DETECTED  # proven by decoding, not by another fit
-    deblurred = ("b/DJI_0002.JPG", [replace(read[1][0], attempt="deblur")], "", 0.0)
+    deblurred = ("b/DJI_0002.JPG", [replace(read[1][0], attempt="deblur")], "", (0.0, 0.0))
     assert status(unread, deblurred) == DETECTED  # read with that photo's blur undone: decoded
     # a read with the blur undone is a find of its own, at its corners' centre
     found = judged([Detection(7, 503.2, 400.8, corners, "deblur", 0, 16.0)])

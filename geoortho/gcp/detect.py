@@ -646,24 +646,25 @@ def paint_channel(bgr: np.ndarray) -> np.ndarray:
 
 def detect_task(
     args: tuple[str, list[SearchWindow], str, str, bool, tuple[str, ...]],
-) -> tuple[str, list[Detection], str, float]:
+) -> tuple[str, list[Detection], str, tuple[float, float]]:
     """Worker entry: decode one photo and search its windows (``fit``, ``attempts``: see
-    :func:`detect_in_image`); and the photo's motion blur (px). Coded markers are searched in
-    grey, as the detector reads them; other targets are fitted in :func:`paint_channel`."""
+    :func:`detect_in_image`); and the photo's motion blur (length px, direction deg). Coded markers
+    are searched in grey, as the detector reads them; other targets are fitted in
+    :func:`paint_channel`."""
     path, windows, dictionary, target, fit, attempts = args
 
     coded = target in CODED
     try:
         img = _read_photo(path, grey=coded)
     except OSError as e:
-        return path, [], str(e), math.nan
+        return path, [], str(e), (math.nan, math.nan)
     if img is None:
-        return path, [], "cannot decode the image", math.nan
+        return path, [], "cannot decode the image", (math.nan, math.nan)
     gray = img if coded else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     blur = estimate_motion_blur(gray)
     searched = gray if coded else paint_channel(img)
     dets = detect_in_image(searched, windows, dictionary, attempts, target=target, blur=blur, fit=fit)
-    return path, dets, "", blur[0]
+    return path, dets, "", blur
 
 
 #: What ground carried over from another photo must score (OpenCV's normalised correlation) to
@@ -736,14 +737,15 @@ CarryJob = tuple[int, str, tuple[float, float], tuple[float, ...], tuple[tuple[f
 
 
 def second_look_task(
-    args: tuple[str, list[SearchWindow], list[Detection], list[CarryJob], str, str],
+    args: tuple[str, list[SearchWindow], list[Detection], list[CarryJob], str, str, tuple[float, float]],
 ) -> tuple[str, list[Detection]]:
     """Worker entry, once every photo has been searched by the detector: the windows of one photo
     whose coded marker it did not decode, fitted (:func:`fit_missed`) where a photo that decoded it
     puts it (``jobs``; :func:`carried_place`) and at the turn it has there (:func:`ground_turn`),
-    else where this photo's markers put it, else in the whole window. Returns the photo and its
-    detections: ``found`` and the new fits (refusals with their reason)."""
-    path, windows, found, jobs, dictionary, target = args
+    else where this photo's markers put it, else in the whole window; ``blur``: the photo's, as its
+    search measured it. Returns the photo and its detections: ``found`` and the new fits (refusals
+    with their reason)."""
+    path, windows, found, jobs, dictionary, target, blur = args
     gray = _read_grey(path)
     if gray is None:  # its search already said why
         return path, found
@@ -762,7 +764,7 @@ def second_look_task(
         if place is not None:
             carried[k] = place
     missed = [k for k, win in enumerate(windows) if not any(_accepted(d, win) for d in found if d.window == k)]
-    return path, fit_missed(gray, windows, list(found), missed, target, dictionary, None, carried, turns)
+    return path, fit_missed(gray, windows, list(found), missed, target, dictionary, blur, carried, turns)
 
 
 #: The dictionaries tried where no marker decodes in the one given: each ArUco family's largest

@@ -524,7 +524,7 @@ def _none_inside(
     return msg
 
 
-Results = list[tuple[str, list[Detection], str, float]]
+Results = list[tuple[str, list[Detection], str, tuple[float, float]]]  # photo, found, error, its blur
 
 
 def _search(
@@ -944,8 +944,11 @@ def _second_look(
             carries.append((k, d_path, (d.x_px, d.y_px), d_win.ground_px, d.corners_px))
     if not jobs:
         return results
-    by_path = {path: dets for path, dets, *_ in results}
-    items = [(path, windows[Path(path).name], by_path[path], js, dictionary, target) for path, js in jobs.items()]
+    by_path = {path: (dets, blur) for path, dets, _, blur in results}
+    items = [
+        (path, windows[Path(path).name], by_path[path][0], js, dictionary, target, by_path[path][1])
+        for path, js in jobs.items()
+    ]
     # the photos with the most markers to fit first: a long one started last holds the pool open
     items.sort(key=lambda item: -len(item[3]))
     looked = dict(map_ordered(second_look_task, items, workers=1 if pool is None else workers, executor=pool))
@@ -1010,10 +1013,12 @@ def _judge(
             fb.warning(f"{image}: {error}")
         wins = windows.get(image, [])
         if not wins:  # searched whole: any id of the file, once
-            obs += _judge_whole_photo(image, dets, by_id, photo_blur)
+            obs += _judge_whole_photo(image, dets, by_id, photo_blur[0])
             continue
         for k, win in enumerate(wins):
-            obs.append(_judge_window(image, k, win, wins, dets, decoded, photo_blur, frames[image], margin_pct, coded))
+            obs.append(
+                _judge_window(image, k, win, wins, dets, decoded, photo_blur[0], frames[image], margin_pct, coded)
+            )
         # markers seen whose id is in no GCP file: recorded, never written
         for mid in sorted({d.marker_id for d in dets if d.marker_id not in by_id and coded}):
             d = next(d for d in dets if d.marker_id == mid)
