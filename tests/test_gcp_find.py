@@ -361,11 +361,13 @@ def _photo_with_markers(placed: dict[int, tuple[int, int]], side_px: int = 24) -
     return gray
 
 
-def test_the_wide_window_is_searched_only_where_the_photo_does_not_place_the_marker(monkeypatch):
+def test_the_wide_window_is_searched_last_and_only_where_the_photo_does_not_place_the_marker(monkeypatch):
     """A marker 60 px from its prediction (a pose off by more than the measured residual) is found
-    in the wide window; where two markers of the photo decoded in their own windows place it inside
-    its window, the wide one is not searched (on degraded surveys 122 wide searches decoded nothing).
-    A coded marker's wide window is the detector's, in a smeared photo too: never fitted."""
+    in the wide window, searched by the detector after the fit in the marker's own window (in the
+    first pass, which does not fit, not at all: the second look fits, then searches it). Where two
+    markers of the photo place it inside its window, the wide one is not searched (on degraded
+    surveys 122 wide searches decoded nothing). A coded marker's wide window is the detector's, in
+    a smeared photo too: never fitted."""
     import cv2
 
     from geoortho.gcp import detect
@@ -376,46 +378,54 @@ def test_the_wide_window_is_searched_only_where_the_photo_does_not_place_the_mar
             gcp, marker_id, x, y, radius_px=30.0, side_px=24.0, wide_radius_px=120.0, ground_px=(24.0, 0.0, 0.0, -24.0)
         )
 
-    searched: list[tuple[int, int]] = []
-    search = detect._search
+    done: list[tuple[str, int, int]] = []  # (what, marker id, square's width), in order
+    search, fit = detect._search, detect._fit
 
     def counting(gray, box, win, *args, **kwargs):
-        searched.append((win.marker_id, box[2] - box[0]))
+        done.append(("search", win.marker_id, box[2] - box[0]))
         return search(gray, box, win, *args, **kwargs)
 
-    monkeypatch.setattr(detect, "_search", counting)
-    # one marker, predicted 60 px off (both ways): the detector finds it in the wide window
-    gray = _photo_with_markers({7: (300, 200)})
-    dets = detect.detect_in_image(gray, [window("G7", 7, 372.0, 212.0)], "DICT_4X4_50", fit=False)
-    found = [d for d in dets if d.marker_id == 7]
-    assert found and abs(found[0].x_px - 312) < 1 and abs(found[0].y_px - 212) < 1
-    assert (7, 241) in searched  # the wide square: 2 x 120 px
-    # two markers found where predicted place the third where predicted: it is not in its window
-    # (its paint is elsewhere: a GCP whose coordinates are off), and the wide window is not searched
-    searched.clear()
-    gray = _photo_with_markers({1: (100, 100), 2: (450, 300), 7: (300, 100)})
-    wins = [window("G1", 1, 112.0, 112.0), window("G2", 2, 462.0, 312.0), window("G7", 7, 312.0, 300.0)]
-    dets = detect.detect_in_image(gray, wins, "DICT_4X4_50", fit=False)
-    assert {d.marker_id for d in dets if not d.reason} == {1, 2}
-    assert all(width <= 61 for mid, width in searched if mid == 7)
-    # a smeared photo: its wide window too is searched by the detector (its attempts there: the
-    # fast one and the blur undone), never fitted
-    searched.clear()
-    fitted: list[tuple[int, int]] = []
-    fit = detect._fit
-
     def counting_fits(gray, win, k, box, *args, **kwargs):
-        fitted.append((win.marker_id, box[2] - box[0]))
+        done.append(("fit", win.marker_id, box[2] - box[0]))
         return fit(gray, win, k, box, *args, **kwargs)
 
+    monkeypatch.setattr(detect, "_search", counting)
     monkeypatch.setattr(detect, "_fit", counting_fits)
+    # one marker, predicted 60 px off (both ways): not in the first pass's squares
+    gray = _photo_with_markers({7: (300, 200)})
+    wins = [window("G7", 7, 372.0, 212.0)]
+    dets = detect.detect_in_image(gray, wins, "DICT_4X4_50", fit=False)
+    assert not [d for d in dets if d.marker_id == 7] and done == [("search", 7, 61)]
+    # fitted in its own window first (nothing there), then found by the detector in the wide one
+    done.clear()
+    dets = detect.detect_in_image(gray, wins, "DICT_4X4_50")
+    found = [d for d in dets if d.marker_id == 7 and not d.reason]
+    assert found and abs(found[0].x_px - 312) < 1 and abs(found[0].y_px - 212) < 1
+    assert done == [("search", 7, 61), ("fit", 7, 61), ("search", 7, 241)]  # the wide square: 2 x 120 px
+    # the second look's order is the same: the fits, then the wide window
+    done.clear()
+    dets = detect.search_wide(
+        gray, wins, detect.fit_missed(gray, wins, [], [0], "aruco", "DICT_4X4_50", None), [0], "DICT_4X4_50", None
+    )
+    assert [d.marker_id for d in dets if not d.reason] == [7] and done == [("fit", 7, 61), ("search", 7, 241)]
+    # two markers found where predicted place the third where predicted: it is not in its window
+    # (its paint is elsewhere: a GCP whose coordinates are off), and the wide window is not searched
+    done.clear()
+    gray = _photo_with_markers({1: (100, 100), 2: (450, 300), 7: (300, 100)})
+    wins = [window("G1", 1, 112.0, 112.0), window("G2", 2, 462.0, 312.0), window("G7", 7, 312.0, 300.0)]
+    dets = detect.detect_in_image(gray, wins, "DICT_4X4_50")
+    assert {d.marker_id for d in dets if not d.reason} == {1, 2}
+    assert ("search", 7, 61) in done and ("search", 7, 241) not in done
+    # a smeared photo: its wide window too is searched by the detector (its attempts there: the
+    # fast one and the blur undone), never fitted
+    done.clear()
     gray = _photo_with_markers({7: (300, 200)})
     blurred = cv2.filter2D(gray, -1, motion_kernel(12.0, 0.0))
     wins = [window("G7", 7, 372.0, 212.0), window("G9", 9, 200.0, 300.0)]  # G9: not in the photo
     dets = detect.detect_in_image(blurred, wins, "DICT_4X4_50", blur=(12.0, 0.0))
-    assert (7, 241) in searched and (9, 241) in searched
+    assert ("search", 7, 241) in done and ("search", 9, 241) in done
     assert [d.attempt for d in dets if d.marker_id == 7 and not d.reason] == ["deblur"]
-    assert fitted == [(9, 61)]  # the marker not read: fitted in its own window only
+    assert [(mid, width) for what, mid, width in done if what == "fit"] == [(7, 61), (9, 61)]  # own windows only
 
 
 def test_a_photo_is_looked_at_again_for_a_marker_predicted_just_beyond_its_edge(monkeypatch):
