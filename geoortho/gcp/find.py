@@ -13,10 +13,11 @@
    centre error on the synthetic survey, against 0.18 px with corner
    sub-pixel refinement). A few pilot photos go first, read by the
    detector's cheapest attempt (all of them only where that reads too few):
-   their detections measure the flight's common offset (GPS bias), and the other photos are
-   searched in windows sized by the residual left after it — a tenth of the
-   area — with the stated uncertainty as a fallback when the marker is not
-   there (searched by the detector only, after the fits below).
+   their detections measure the flight's common offset (GPS bias), and the
+   other photos are searched in windows sized by the residual left after
+   it — a tenth of the area — with the stated uncertainty as a fallback when
+   the marker is not there (searched by the detector only, after the fits
+   below).
    Where the detector cannot decode a marker (blur, glare), its model is
    fitted (verified) in its window; where two other markers of the photo
    were found, only within a few pixels of where they put it. A marker still not found is
