@@ -308,10 +308,18 @@ def test_a_ctrl_c_a_library_swallows_still_cancels_the_run(tmp_path, capsys, mon
         return {}
 
     monkeypatch.setattr(cli_module, "run_algorithm", run_whose_library_swallows_the_interrupt)
-    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
-    code = main(["synth", "--output", str(tmp_path / "s"), "--preset", "tiny", "--quiet"])
-    assert code == 130 and capsys.readouterr().err.strip().splitlines() == ["geoortho synth: canceled"]
-    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    # a command's process: SIGINT has Python's own handler and is not blocked (the test worker may
+    # have been left otherwise by an earlier test's library: CI once saw this run end with 0)
+    handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    try:
+        before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+        code = main(["synth", "--output", str(tmp_path / "s"), "--preset", "tiny", "--quiet"])
+        assert code == 130 and capsys.readouterr().err.strip().splitlines() == ["geoortho synth: canceled"]
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.signal(signal.SIGINT, handler)
 
 
 def test_a_ctrl_c_caught_inside_an_exec_still_exits_130(tmp_path, capsys, monkeypatch):
