@@ -222,10 +222,11 @@ def detect_in_image(
 
     Coded targets: retries go on until the window's expected id is decoded; every marker
     seen on the way is returned, so the caller can judge wrong ids too. Where none decodes,
-    the expected marker is verified by fitting its model (:mod:`.targets`; :func:`fit_missed`).
-    Targets without a code are fitted in every window. ``blur``: the photo's motion blur
-    (estimated when needed). ``fit`` False: coded markers by the detector alone (no model fits;
-    :func:`second_look_task` fits them once every photo has been searched).
+    the expected marker is verified by fitting its model (:mod:`.targets`; :func:`fit_missed`),
+    and only then is its wide window searched (:func:`search_wide`). Targets without a code are
+    fitted in every window. ``blur``: the photo's motion blur (estimated when needed). ``fit``
+    False: coded markers by the detector alone, in their own windows (:func:`second_look_task`
+    fits them once every photo has been searched, then searches the wide windows).
     """
     h, w = gray.shape[:2]
     coded = target in CODED
