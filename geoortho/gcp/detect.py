@@ -383,14 +383,11 @@ def fit_missed(
     carried, turns = carried or {}, turns or {}
     tried: dict[int, set[str]] = {k: set() for k in to_fit}  # "carried", "near", "wide"
 
-    def settled(k: int) -> bool:
-        return _settled(found, windows, k)
-
     for last_resort in (False, True):
         while True:
             progress = False
             for k in to_fit:
-                if settled(k):
+                if _settled(found, windows, k):
                     continue
                 local = local_prediction(windows, found, k)
                 if local is not None and local[2] > 0.5 * windows[k].side_px:
@@ -408,7 +405,7 @@ def fit_missed(
                 tried[k].add(how)
                 found[:] = [d for d in found if not (d.window == k and d.reason)]  # the new fit says why
                 _fit_model(gray, windows[k], k, target, dictionary, blur, found, local, turns.get(k))
-                progress |= settled(k)
+                progress |= _settled(found, windows, k)
             if not progress:
                 break
     return found
