@@ -176,6 +176,7 @@ STAGES: tuple[Stage, ...] = (
             "output": p.folder("dem") / "dsm.tif",
             "dtm": p.folder("dem") / "dtm.tif",
             "hillshade": p.folder("dem") / "dtm_hillshade.png",
+            "contours": p.folder("dem") / "contours.gpkg",
             "crs": p.crs if p.points is not None else None,
             # the photos' cloud is carried to the edge of what they saw; a lidar cloud is what it is
             "sfm": p.folder("sfm") if p.points is None else None,

@@ -61,6 +61,34 @@ THRESHOLDS: dict[str, Threshold] = {
         "has one stereo pair and is interpolated, which on a 9-photo block is most of it (a clean one: 38 %); "
         "under 10 % the DSM is a guess",
     ),
+    "dtm_roughness": Threshold(
+        "DTM roughness on open ground (less its 1 m median, RMS)",
+        "GSD",
+        0.35,
+        0.7,
+        False,
+        "bare ground is smooth at a metre (a synthetic survey's true ground: 0.01 GSD); a photogrammetric "
+        "DTM's speckle shows in the hillshade from about a third of a GSD (the demo's DTM before issue 74: "
+        "0.48 GSD, visibly dotted)",
+    ),
+    "dtm_no_ground": Threshold(
+        "DTM under objects with no ground seen (its source code 4)",
+        "%",
+        5.0,
+        25.0,
+        False,
+        "under a wood or a hall wider than 20 m the DTM is bridged from its edge: a guess; a quarter of the "
+        "survey guessed is not a terrain model",
+    ),
+    "footprint_step": Threshold(
+        "DTM step at the photos' footprint edges (RMS over the edges)",
+        "GSD",
+        0.5,
+        1.5,
+        False,
+        "a depth map off its neighbours leaves a patch with straight edges, one per photo; a step of half a GSD "
+        "is under the ground's own noise, one of 1.5 GSD shows in the hillshade and in contours",
+    ),
     "photos_registered": Threshold(
         "Photos registered by the SfM",
         "%",
@@ -237,6 +265,7 @@ def assess(
     sfm, dense, dem, ortho, fp = sfm or {}, dense or {}, dem or {}, ortho or {}, footprints or {}
     return [
         *_coverage_checks(dem, ortho),
+        *_terrain_checks(sfm, dem),
         *_photo_checks(sfm, dense, ortho),
         *_control_checks(sfm),
         *_gps_checks(sfm),
@@ -248,6 +277,26 @@ def _coverage_checks(dem: dict[str, Any], ortho: dict[str, Any]) -> list[Check]:
     return [
         _check("ortho_coverage", 100.0 * _num(ortho.get("share_of_seen_2", math.nan))),
         _check("dsm_measured", 100.0 * _num(dem.get("measured_share", math.nan)) if dem.get("seen_m2") else math.nan),
+    ]
+
+
+def _terrain_checks(sfm: dict[str, Any], dem: dict[str, Any]) -> list[Check]:
+    """The DTM as a hillshade shows it: its roughness on open ground and its steps at the photos'
+    footprint edges (in GSDs), and how much of it lies under objects with no ground seen."""
+    gsd_m = _num(sfm.get("gsd_cm")) / 100.0
+    rough_m, step_m = _num(dem.get("dtm_roughness_m", math.nan)), _num(dem.get("footprint_step_m", math.nan))
+    return [
+        _check(
+            "dtm_roughness",
+            rough_m / gsd_m if gsd_m > 0 else math.nan,
+            f"{100 * rough_m:.1f} cm" if math.isfinite(rough_m) else "",
+        ),
+        _check("dtm_no_ground", 100.0 * _num(dem.get("dtm_under_object_share", math.nan))),
+        _check(
+            "footprint_step",
+            step_m / gsd_m if gsd_m > 0 else math.nan,
+            f"{100 * step_m:.1f} cm" if math.isfinite(step_m) else "",
+        ),
     ]
 
 

@@ -28,6 +28,7 @@ __all__ = [
     "INTERPOLATED",
     "MEASURED",
     "SOURCE_NAMES",
+    "UNDER_OBJECT",
     "Completed",
     "complete_grid",
     "extended_grid",
@@ -36,10 +37,16 @@ __all__ = [
     "source_path",
 ]
 
-MEASURED, INTERPOLATED, FALLBACK = 1, 2, 3
-SOURCE_NAMES = {0: "none", MEASURED: "measured", INTERPOLATED: "interpolated", FALLBACK: "fallback plane"}
-#: The band raster's description, as QGIS shows it.
-SOURCE_DESCRIPTION = "0 no data, 1 measured, 2 interpolated, 3 fallback plane"
+MEASURED, INTERPOLATED, FALLBACK, UNDER_OBJECT = 1, 2, 3, 4
+SOURCE_NAMES = {
+    0: "none",
+    MEASURED: "measured",
+    INTERPOLATED: "interpolated",
+    FALLBACK: "fallback plane",
+    UNDER_OBJECT: "under an object, no ground seen",
+}
+#: The band raster's description, as QGIS shows it (4: the DTM only, under a wide object).
+SOURCE_DESCRIPTION = "0 no data, 1 measured, 2 interpolated, 3 fallback plane, 4 under an object, no ground seen"
 #: The harmonic fill is solved on a grid of at most this many cells (~120 bytes a cell), then
 #: carried to the fine grid; cells near measured data are solved again on the fine grid.
 MAX_SOLVE_CELLS = 2_000_000

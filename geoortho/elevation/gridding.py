@@ -29,11 +29,14 @@ from geoortho.core.outputs import atomic_path, atomic_paths, cog_options, write_
 from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
 from geoortho.core.surface import GridSurface
 from geoortho.elevation import tiles as dem_tiles
+from geoortho.elevation.artefacts import footprint_step_m, roughness_m
+from geoortho.elevation.bareearth import bare_earth
 from geoortho.elevation.coverage import (
     FALLBACK,
     INTERPOLATED,
     MEASURED,
     SOURCE_DESCRIPTION,
+    UNDER_OBJECT,
     complete_grid,
     extended_grid,
     footprint_polygons,
@@ -109,6 +112,24 @@ class DemResult:
         Share interpolated (gap fill, and carried to the photos' edge).
     fallback_share : float
         Share on the fallback plane.
+    dtm_measured_share : float
+        With ``sfm``: share of the DTM's cells that are measured ground (rims, objects and stray
+        ground islands taken out).
+    dtm_under_object_share : float
+        With ``sfm``: share of the DTM over the ground >= 2 photos saw that lies under an object
+        farther than 10 m from any ground seen (source code 4: a guess).
+    dtm_roughness_m : float
+        With ``sfm``: the DTM less its 1 m median, RMS, on open ground (metres).
+    footprint_step_m : float
+        With ``sfm``: the DTM's step across the photos' footprint edges, RMS over the edges (a
+        depth map's offset shows as a patch with straight edges), metres.
+    ground_noise_m : float
+        With ``sfm``: the speckle of the measured ground (robust sigma less its 0.5 m smoothing)
+        that the DTM was cleaned of, metres.
+    contours : Path
+        Contour lines of the DTM (GeoPackage), when asked for.
+    contour_interval_m : float
+        Their interval.
     """
 
     dsm: Path
@@ -128,6 +149,13 @@ class DemResult:
     measured_share: float = 1.0
     interpolated_share: float = 0.0
     fallback_share: float = 0.0
+    dtm_measured_share: float = math.nan
+    dtm_under_object_share: float = math.nan
+    dtm_roughness_m: float = math.nan
+    footprint_step_m: float = math.nan
+    ground_noise_m: float = math.nan
+    contours: Path | None = None
+    contour_interval_m: float = math.nan
 
 
 def _auto_resolution_m(src: PointSource) -> float:
@@ -250,6 +278,8 @@ def dem(
     engine: Engine = "native",
     points_crs: str | None = None,
     sfm: Path | None = None,
+    contours: Path | None = None,
+    contour_interval_m: float = 0.0,
     *,
     feedback: Feedback | None = None,
 ) -> DemResult:
@@ -311,7 +341,15 @@ def dem(
         the surface), interpolated from the measured cells and the SfM tie points across holes
         (water, canopy, cars) and out to that edge, a plane only where nothing was measured;
         ``<name>_source.tif`` beside each says per cell which (1 measured, 2 interpolated,
-        3 fallback plane).
+        3 fallback plane, 4 under an object with no ground seen: the DTM only). The DTM is made
+        bare earth: objects found on the DSM whatever their size, their rims taken in, stray
+        ground dropped, filled smoothly, its speckle smoothed where the ground is smooth.
+    contours : Path
+        Also write the DTM's contour lines here (GeoPackage; needs ``dtm``).
+    contour_interval_m : float
+        Their interval, metres; 0 (default): from the DTM's vertical accuracy (3.29 x its RMSE,
+        as NMAS asks: the SfM's checkpoints' when given, and the ground's own noise), a standard
+        step of 1, 2, 2.5 or 5.
     """
     fb = as_feedback(feedback)
     chosen, why_method = _auto_method(method, points, sfm)
@@ -335,7 +373,8 @@ def dem(
             src, plan, chosen, ground_method, params, scan.keep, output, dtm, classified, hillshade,
             max_gap_m, smooth_px, s_pass1, s_write, fb,
         )  # fmt: skip
-        return tiled if sfm is None else complete_to_photos(tiled, src, scan.keep, Path(sfm), fb)
+        tiled = tiled if sfm is None else complete_to_photos(tiled, src, scan.keep, Path(sfm), fb)
+        return _with_contours(tiled, contours, contour_interval_m, sfm, fb)
     ground = GROUND_FILTERS[ground_method](src, params) if want_ground else None
     dtm_acc = Accumulator(plan.grid, "idw") if dtm is not None else None
     first = _first_pass(src, plan.grid, chosen, ground, dtm_acc, scan.keep, s_pass1, fb)
@@ -360,8 +399,70 @@ def dem(
         fb.info(f"ground: {n_ground} of {first.n_used} points ({ground_method})")
     if sfm is not None:
         result = complete_to_photos(result, src, scan.keep, Path(sfm), fb)
+    result = _with_contours(result, contours, contour_interval_m, sfm, fb)
     s_write.progress(1.0)
     return result
+
+
+def _with_contours(
+    result: DemResult, contours: Path | None, interval_m: float, sfm: Path | None, fb: Feedback
+) -> DemResult:
+    """``result`` with the DTM's contour lines written to ``contours`` (when asked for)."""
+    if contours is None:
+        return result
+    if result.dtm is None:
+        raise ParameterError("contours", "contours are drawn from the DTM: give --dtm too")
+    import rasterio
+
+    from geoortho.elevation.bareearth import ground_noise_m
+    from geoortho.elevation.contours import contour_interval_m as auto_interval
+    from geoortho.elevation.contours import write_contours
+
+    with rasterio.open(result.dtm) as ds:
+        z = ds.read(1, masked=True).filled(np.nan).astype(np.float64)
+        transform, crs = ds.transform, ds.crs
+    z *= _unit_m(result, "vertical")
+    why = f"given: {interval_m:g} m"
+    if interval_m <= 0:
+        noise = result.ground_noise_m
+        if not math.isfinite(noise):
+            noise = ground_noise_m(z, np.isfinite(z), abs(transform.a) * _unit_m(result, "horizontal"))
+        checkpoints = _checkpoint_rmse_z_m(sfm)
+        rmse = math.hypot(noise, checkpoints if math.isfinite(checkpoints) else 0.0)
+        relief = float(np.nanmax(z) - np.nanmin(z)) if np.isfinite(z).any() else 0.0
+        interval_m = auto_interval(rmse, relief)
+        why = (
+            f"from a vertical RMSE of {100 * rmse:.1f} cm (ground noise {100 * noise:.1f} cm"
+            + (f", checkpoints {100 * checkpoints:.1f} cm" if math.isfinite(checkpoints) else "")
+            + f"): {interval_m:g} m"
+        )
+    drawn = write_contours(contours, z, transform, crs, interval_m, why)
+    note = f"contours every {drawn.interval_m:g} m ({drawn.why}): {drawn.n_lines:,} lines in {Path(contours).name}"
+    fb.info(note)
+    return replace(result, contours=Path(contours), contour_interval_m=drawn.interval_m, notes=(*result.notes, note))
+
+
+#: Metres per unit, by the names the point sources give their units.
+_UNIT_M = {"metre": 1.0, "foot": 0.3048, "US survey foot": 1200.0 / 3937.0}
+
+
+def _unit_m(result: DemResult, axis: str) -> float:
+    """Metres per ``axis`` (horizontal, vertical) unit of the result's rasters."""
+    for part in result.units.split(", "):
+        if part.startswith(axis + " "):
+            return _UNIT_M.get(part[len(axis) + 1 :], 1.0)
+    return 1.0
+
+
+def _checkpoint_rmse_z_m(sfm: Path | None) -> float:
+    """The SfM's checkpoints' vertical RMSE (NaN when it has none)."""
+    if sfm is None:
+        return math.nan
+    acc = _json_or_empty(Path(sfm) / "report.json").get("checkpoint_accuracy") or {}
+    try:
+        return float(acc["rmse_z_m"])
+    except (KeyError, TypeError, ValueError):
+        return math.nan
 
 
 def _open_source(
@@ -913,8 +1014,11 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     if done.fallback_plane is not None:
         notes.append("nothing was measured under the photos: the DSM is a plane through the SfM tie points")
     dtm_source = dtm_grid = None
+    dtm_fields: dict[str, Any] = {}
     if result.dtm is not None:
-        dtm_source, dtm_grid, note = _complete_dtm(result.dtm, done, z, measured, target, new_t, crs, unit)
+        dtm_source, dtm_grid, note, dtm_fields = _complete_dtm(
+            result.dtm, done, z, measured, target, new_t, crs, unit, polys
+        )
         notes.append(note)
     if result.hillshade is not None:
         write_hillshade(result.hillshade, dtm_grid if dtm_grid is not None else done.z, new_t.a, 1.0)
@@ -937,6 +1041,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         interpolated_share=shares[INTERPOLATED],
         fallback_share=shares[FALLBACK],
         notes=(*result.notes, *notes),
+        **dtm_fields,
     )
 
 
@@ -958,10 +1063,12 @@ def _over_the_footprints(
 
 
 def _complete_dtm(
-    path: Path, done: Any, z: np.ndarray, measured: np.ndarray, target: np.ndarray, new_t: Affine, crs: Any, unit: str
-) -> tuple[Path, np.ndarray, str]:
-    """The DTM just written, carried over the same cells as the DSM (``done``): its source raster,
-    its grid and the note of its shares."""
+    path: Path, done: Any, z: np.ndarray, measured: np.ndarray, target: np.ndarray, new_t: Affine, crs: Any,
+    unit: str, polys: list[Any],
+) -> tuple[Path, np.ndarray, str, dict[str, Any]]:  # fmt: skip
+    """The DTM just written, made bare earth (:mod:`geoortho.elevation.bareearth`) and carried over
+    the same cells as the DSM (``done``): its source raster, its grid, the note of its shares and
+    the DemResult fields it measured (its artefacts, :mod:`geoortho.elevation.artefacts`)."""
     import rasterio
 
     with rasterio.open(path) as ds:
@@ -976,17 +1083,37 @@ def _complete_dtm(
         ground_seen = measured & (np.abs(z - grid) <= max(2.0 * new_t.a, 0.1))
     plane = _dtm_support(done, grid, new_t)
     dtm_done = complete_grid(grid, ground_seen, target, new_t, plane)
-    dtm_grid = dtm_done.z
-    write_cog(path, with_nodata(dtm_grid), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit)
+    clean = bare_earth(done.z, dtm_done.z, ground_seen, new_t.a)
+    source = dtm_done.source.copy()
+    source[(source == MEASURED) & ~clean.ground] = INTERPOLATED
+    source[clean.no_ground & (source > 0)] = UNDER_OBJECT
+    dtm_done = replace(dtm_done, z=clean.z, source=source)
+    write_cog(path, with_nodata(clean.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit)
     dtm_source = write_cog(
-        source_path(path), dtm_done.source, transform=new_t, crs=crs, nodata=0,
-        band_names=(SOURCE_DESCRIPTION,),
-    )  # fmt: skip
+        source_path(path), source, transform=new_t, crs=crs, nodata=0, band_names=(SOURCE_DESCRIPTION,)
+    )
+    # open ground: ground kept, off every object, the DSM on it
+    with np.errstate(invalid="ignore"):
+        open_ground = clean.ground & ~clean.objects & (np.abs(done.z - clean.z) <= max(2.0 * new_t.a, 0.1))
+    rough = roughness_m(clean.z, open_ground, new_t.a)
+    step, n_edges = footprint_step_m(clean.z, new_t, polys, open_ground)
+    in_target = target & (source > 0)
+    fields = {
+        "dtm_measured_share": dtm_done.share(MEASURED),
+        "dtm_under_object_share": dtm_done.share(UNDER_OBJECT, within=in_target) if in_target.any() else 0.0,
+        "dtm_roughness_m": rough,
+        "footprint_step_m": step,
+        "ground_noise_m": clean.noise_m,
+    }
     note = (
         f"DTM: ground measured {dtm_done.share(MEASURED):.1%}, interpolated {dtm_done.share(INTERPOLATED):.1%}, "
-        f"fallback plane {dtm_done.share(FALLBACK):.1%} of its cells"
+        f"under an object with no ground seen {dtm_done.share(UNDER_OBJECT):.1%}, "
+        f"fallback plane {dtm_done.share(FALLBACK):.1%} of its cells; {clean.n_rim:,} cells of rims and "
+        f"objects and {clean.n_islands:,} of stray ground islands taken out; open-ground roughness "
+        f"{100 * rough:.1f} cm RMS (less its 1 m median), step at {n_edges} photo footprint edges "
+        f"{100 * step:.1f} cm RMS"
     )
-    return dtm_source, dtm_grid, note
+    return dtm_source, clean.z, note, fields
 
 
 def _dtm_support(dsm: Any, dtm: np.ndarray, transform: Any) -> np.ndarray | None:

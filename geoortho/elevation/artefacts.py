@@ -1,0 +1,102 @@
+"""What a surveyor sees in a DTM's hillshade, as numbers the quality check can grade.
+
+* :func:`roughness_m`: the surface less its own 1 m median, RMS, on open ground. Bare ground is
+  smooth at that scale (a synthetic survey's true ground: 0.03 cm); a photogrammetric DTM's
+  speckle shows here first.
+* :func:`footprint_step_m`: the step a surface makes where a photo's footprint ends. A depth map
+  that sits a few centimetres off its neighbours leaves a patch with straight edges, one per
+  photo: the step across each edge, less what the slope there explains, averaged along the edge
+  (noise averages out along it, a patch's step does not), then the RMS over the edges.
+
+Both take the cells to measure on (``open_ground``): the caller's judgement of where the ground
+shows (no object, measured).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from affine import Affine
+from scipy import ndimage
+
+from geoortho.elevation.ground import bilinear
+
+__all__ = ["footprint_step_m", "roughness_m"]
+
+#: Samples an edge needs for its mean step to count (noise / sqrt(20) is a fifth of a sample's).
+MIN_EDGE_SAMPLES = 20
+
+
+def roughness_m(z: np.ndarray, open_ground: np.ndarray, cell_m: float, window_m: float = 1.0) -> float:
+    """RMS of ``z`` less its median over ``window_m`` (odd cells, at least 3) on ``open_ground``;
+    NaN with fewer than 50 cells."""
+    size = max(3, int(round(window_m / cell_m)) | 1)
+    valid = np.isfinite(z)
+    # only cells whose whole window has values: a window reaching past the surface's edge measures
+    # what the edge was filled with
+    whole = ndimage.binary_erosion(valid, structure=np.ones((size, size), bool), border_value=0)
+    cells = np.asarray(open_ground, bool) & whole
+    if int(cells.sum()) < 50:
+        return math.nan
+    filled = np.where(valid, z, np.nanmedian(z[cells]))
+    med = ndimage.median_filter(filled, size=size)
+    return float(np.sqrt(np.mean((filled - med)[cells] ** 2)))
+
+
+def footprint_step_m(
+    z: np.ndarray, transform: Affine, polygons: Sequence[Any], open_ground: np.ndarray
+) -> tuple[float, int]:
+    """The RMS over footprint edges of each edge's mean step (metres), and the edges measured."""
+    cell = transform.a
+    inv = ~transform
+    ok_grid = np.asarray(open_ground, bool) & np.isfinite(z)
+    zz = np.where(np.isfinite(z), z, 0.0)
+    steps: list[float] = []
+    for poly in polygons:
+        for ring in _rings(poly):
+            xy = np.asarray(ring.coords, float)
+            for (x0, y0), (x1, y1) in zip(xy[:-1], xy[1:]):
+                step = _edge_step(zz, ok_grid, inv, cell, x0, y0, x1, y1)
+                if step is not None:
+                    steps.append(step)
+    if not steps:
+        return math.nan, 0
+    return float(np.sqrt(np.mean(np.square(steps)))), len(steps)
+
+
+def _rings(poly: Any) -> list[Any]:
+    geoms = getattr(poly, "geoms", [poly])
+    return [g.exterior for g in geoms if getattr(g, "exterior", None) is not None and not g.is_empty]
+
+
+def _edge_step(
+    z: np.ndarray, ok: np.ndarray, inv: Affine, cell: float, x0: float, y0: float, x1: float, y1: float
+) -> float | None:
+    length = math.hypot(x1 - x0, y1 - y0)
+    n_samples = int(length / cell)
+    if n_samples < MIN_EDGE_SAMPLES:
+        return None
+    # the edge's middle 80 %: a corner's two edges meet there
+    t = np.linspace(0.1, 0.9, n_samples)
+    px, py = x0 + t * (x1 - x0), y0 + t * (y1 - y0)
+    nx, ny = -(y1 - y0) / length, (x1 - x0) / length
+    vals = []
+    good = np.ones(n_samples, bool)
+    for d in (-4.5, -1.5, 1.5, 4.5):
+        sx, sy = px + d * cell * nx, py + d * cell * ny
+        col, row = inv * (sx, sy)  # type: ignore[operator]
+        col, row = np.asarray(col) - 0.5, np.asarray(row) - 0.5
+        inside = (col >= 0) & (row >= 0) & (col <= z.shape[1] - 1) & (row <= z.shape[0] - 1)
+        ci = np.clip(np.round(col).astype(np.int64), 0, z.shape[1] - 1)
+        ri = np.clip(np.round(row).astype(np.int64), 0, z.shape[0] - 1)
+        good &= inside & ok[ri, ci]
+        vals.append(bilinear(z, col, row))
+    if int(good.sum()) < MIN_EDGE_SAMPLES:
+        return None
+    far_minus, near_minus, near_plus, far_plus = vals
+    # a slope gives near = far / 3; a step of height s gives near = far = s: 1.5 x (near - far / 3) = s
+    step = 1.5 * ((near_plus - near_minus) - (far_plus - far_minus) / 3.0)
+    return float(np.mean(step[good]))

@@ -1,0 +1,225 @@
+"""A DTM that is bare earth: objects found on the DSM whatever their size, their rims taken in,
+ground cells that disagree with their neighbourhood dropped, and a fill that does not spike.
+
+The ground filter (SMRF) classifies points; gridding its ground points leaves three artefacts a
+surveyor sees at once in a hillshade (issue 74, measured on the demo survey and on real photos):
+
+* **rims**: a photogrammetric cloud has points halfway up walls and crowns; those within the
+  filter's threshold of its provisional surface are called ground, and the DTM keeps a ring of
+  half-height cells around every building and tree;
+* **cusps**: a harmonic fill pinned to a single ground cell is a cone (a harmonic function is
+  logarithmic about a point), a dark and a bright dot in the hillshade;
+* **canopy called ground**: under an object wider than any filter window.
+
+Here, on the DSM's own grid:
+
+1. The ground's lower envelope is the DTM opened by a disc (``RIM_RADIUS_M``): a rim is narrower
+   than the disc and falls away; open ground is unchanged (an opening lowers a convex surface by
+   its curvature times r²/2: millimetres).
+2. Objects are the cells where the DSM stands above that envelope: seeded where it stands more
+   than ``OBJECT_SEED_M`` above, grown (hysteresis, scikit-image) through every connected cell
+   more than ``OBJECT_GROW_M`` above it, then by one cell (the foot of a leaning wall). A wall's
+   half-height cells are connected to its roof: they join the object, whatever the object's size.
+3. Ground cells are the DTM's measured cells off the objects and within ``RIM_TOLERANCE_M`` of
+   the envelope; small islands of ground that disagree with a smooth surface through the rest
+   are dropped (a crown's gap, a wrong match) before they pin anything. A long disagreement (a
+   kerb, a bank) is a breakline and stays.
+4. Everything else is filled smoothly (:func:`geoortho.core.gapfill.fill_smooth`: harmonic at
+   large scale, biharmonic near the data: no cone at a single cell), then the whole DTM is
+   denoised by an edge-preserving smoothing whose range is the ground's own measured noise: the
+   dense cloud's speckle goes, a bank and a kerb stay.
+5. Cells under an object farther than ``BRIDGE_M`` from any ground cell are "under an object, no
+   ground seen" (their own code in the source raster): a guess, said so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from geoortho.core.gapfill import fill_harmonic, fill_smooth
+
+__all__ = [
+    "BRIDGE_M",
+    "OBJECT_GROW_M",
+    "OBJECT_SEED_M",
+    "BareEarth",
+    "bare_earth",
+    "ground_noise_m",
+    "lower_envelope",
+    "object_mask",
+]
+
+#: The lower envelope's disc radius: wider than a rim (a wall's smeared foot: 1-2 m), narrower
+#: than a terrace or a bank's top.
+RIM_RADIUS_M = 2.0
+#: An object stands this far above the envelope somewhere (a car: 1.45 m, a hedge: 1.2 m)...
+OBJECT_SEED_M = 0.5
+#: ... and reaches as far as the DSM stands this far above it (or the ground's noise times 4).
+OBJECT_GROW_M = 0.15
+#: Objects found, then found again on the envelope without them.
+ENVELOPE_PASSES = 3
+#: A DTM cell further above the envelope than this (or 4 noise) is no ground: a rim.
+RIM_TOLERANCE_M = 0.15
+#: Islands of ground smaller than this that disagree with the rest are dropped.
+ISLAND_M2 = 4.0
+#: The DTM is smoothed over this scale (a Gaussian's sigma) where it is smooth: a photogrammetric
+#: cloud's speckle is a few centimetres at 0.1-1 m (demo: 2.6 cm RMS less the 1 m median)...
+SMOOTH_M = 0.5
+#: ... and kept where it differs from the smoothed surface by many times that noise (a breakline).
+BREAK_SIGMAS = 3.0
+#: Under an object, farther than this from the nearest ground cell, the DTM is a guess of its own
+#: code: a building's floor (half-width 4-8 m) is bridged honestly, a wood's middle is not.
+BRIDGE_M = 10.0
+
+
+@dataclass(frozen=True)
+class BareEarth:
+    """The cleaned DTM and what was found on the way (all on the input grid)."""
+
+    z: np.ndarray  # float32, NaN where the input DTM had no value and no fill reached
+    ground: np.ndarray  # bool: ground cells kept (measured)
+    objects: np.ndarray  # bool: cells under an object
+    no_ground: np.ndarray  # bool: under an object, farther than BRIDGE_M from any ground
+    noise_m: float  # the ground's speckle (robust sigma less its smoothed self), metres
+    n_rim: int  # measured DTM cells dropped as rims or inside objects
+    n_islands: int  # ground cells dropped as islands that disagree
+
+
+def ground_noise_m(z: np.ndarray, ground: np.ndarray, cell_m: float) -> float:
+    """The robust sigma of a surface less its smoothed self (over ``SMOOTH_M``) on ``ground``
+    cells: the speckle a hillshade shows (0 when fewer than 50 cells)."""
+    if int(ground.sum()) < 50:
+        return 0.0
+    diff = (z - _smoothed(z, np.isfinite(z), cell_m))[ground]
+    diff = diff[np.isfinite(diff)]
+    return float(1.4826 * np.median(np.abs(diff - np.median(diff)))) if diff.size else 0.0
+
+
+def _smoothed(z: np.ndarray, valid: np.ndarray, cell_m: float) -> np.ndarray:
+    """A Gaussian of sigma ``SMOOTH_M`` over the ``valid`` cells (normalised convolution: cells with
+    no value do not pull it down); NaN where no valid cell is near."""
+    src = np.where(valid, z, 0.0).astype(np.float32)
+    sigma_px = max(0.5, SMOOTH_M / cell_m)
+    num = cv2.GaussianBlur(src, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+    den = cv2.GaussianBlur(valid.astype(np.float32), (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 1e-6, num / den, np.nan).astype(np.float64)
+
+
+def lower_envelope(
+    z: np.ndarray, cell_m: float, radius_m: float = RIM_RADIUS_M, exclude: np.ndarray | None = None
+) -> np.ndarray:
+    """``z`` (NaN: none) opened by a disc of ``radius_m``, the ``exclude`` cells (objects) left out
+    of it (their envelope is filled harmonically from around them).
+
+    Left out, an object's cells cannot hold up the envelope beside it: a ring of raised "ground"
+    round a tree's crown rests on the interpolated plateau under the crown in a plain opening,
+    and falls to the ground outside it here."""
+    known = np.isfinite(z)
+    skip = ~known if exclude is None else (~known | np.asarray(exclude, bool))
+    if skip.all():
+        return np.asarray(z, np.float64)
+    # cells with no value (or left out) take their nearest value's for the morphology's sake, then
+    # are neutral in it: +inf in the erosion (a minimum), -inf in the dilation (a maximum)
+    nearest = ndimage.distance_transform_edt(skip, return_distances=False, return_indices=True)
+    base = np.asarray(z, np.float64)[tuple(nearest)].astype(np.float32)
+    r = max(1, int(round(radius_m / cell_m)))
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    eroded = cv2.erode(np.where(skip, np.inf, base).astype(np.float32), k)
+    eroded[skip] = -np.inf
+    opened = cv2.dilate(eroded, k).astype(np.float64)
+    bad = ~np.isfinite(opened) | skip
+    if bad.any():
+        opened = fill_harmonic(np.where(bad, np.nan, opened), ~bad)
+    return opened
+
+
+def object_mask(
+    dsm: np.ndarray, envelope: np.ndarray, seed_m: float = OBJECT_SEED_M, grow_m: float = OBJECT_GROW_M
+) -> np.ndarray:
+    """Cells where the DSM stands above the envelope: seeded above ``seed_m``, grown through every
+    connected cell above ``grow_m`` (hysteresis), then by one cell."""
+    from skimage.filters import apply_hysteresis_threshold
+
+    above = np.where(np.isfinite(dsm) & np.isfinite(envelope), dsm - envelope, 0.0)
+    found = np.asarray(apply_hysteresis_threshold(above, grow_m, seed_m), bool)
+    return np.asarray(ndimage.binary_dilation(found, structure=np.ones((3, 3), bool)))
+
+
+def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: float) -> BareEarth:
+    """The DTM ``dtm`` (NaN: none) made bare earth against the DSM ``dsm`` on the same grid.
+
+    ``measured``: the DTM's cells measured from ground points (the rest were filled). Returns the
+    cleaned DTM over the same cells as ``dtm`` (see the module's steps)."""
+    dtm = np.asarray(dtm, np.float64)
+    valid = np.isfinite(dtm)
+    measured = np.asarray(measured, bool) & valid
+    if not measured.any():
+        none = np.zeros(dtm.shape, bool)
+        return BareEarth(dtm.astype(np.float32), none, none, none, 0.0, 0, 0)
+    noise = ground_noise_m(dtm, measured, cell_m)
+    seed_m, grow_m = max(OBJECT_SEED_M, 8 * noise), max(OBJECT_GROW_M, 4 * noise)
+    # twice: the objects found on a plain opening, then on the opening that leaves them out (a
+    # rim resting on an object's interpolated plateau falls to the ground outside it)
+    objects = np.zeros(dtm.shape, bool)
+    for _ in range(ENVELOPE_PASSES):
+        envelope = lower_envelope(dtm, cell_m, exclude=objects)
+        objects = object_mask(dsm, envelope, seed_m, grow_m)
+    with np.errstate(invalid="ignore"):
+        near_envelope = dtm - envelope <= max(RIM_TOLERANCE_M, 4 * noise)
+    ground = measured & ~objects & near_envelope
+    n_rim = int(measured.sum() - ground.sum())
+    ground, n_islands = _drop_islands(dtm, ground, cell_m, max(RIM_TOLERANCE_M, 4 * noise))
+    if not ground.any():  # nothing is ground: the input stands (the caller says it is a guess)
+        return BareEarth(dtm.astype(np.float32), ground, objects, objects & valid, noise, n_rim, n_islands)
+    z = fill_smooth(dtm, ground, valid & ~ground)
+    z = _denoise(z, valid, cell_m, noise)
+    dist_m = np.asarray(ndimage.distance_transform_edt(~ground)) * cell_m
+    no_ground = objects & valid & (dist_m > BRIDGE_M)
+    return BareEarth(z.astype(np.float32), ground, objects & valid, no_ground, noise, n_rim, n_islands)
+
+
+def _drop_islands(z: np.ndarray, ground: np.ndarray, cell_m: float, tolerance_m: float) -> tuple[np.ndarray, int]:
+    """``ground`` without its small islands (under ISLAND_M2) that stand off a harmonic surface
+    through the rest of the ground by more than ``tolerance_m``."""
+    labels, n = ndimage.label(ground, structure=np.ones((3, 3), bool))
+    if n <= 1:
+        return ground, 0
+    sizes = np.bincount(labels.ravel())
+    small = np.flatnonzero(sizes * cell_m * cell_m < ISLAND_M2)
+    small = small[small > 0]
+    if not len(small):
+        return ground, 0
+    is_small = np.isin(labels, small)
+    rest = fill_harmonic(z, ground & ~is_small)
+    with np.errstate(invalid="ignore"):
+        off = np.abs(z - rest) > tolerance_m
+    # an island is dropped when most of it stands off the rest
+    share_off = ndimage.mean(off, labels, small)
+    drop = small[np.asarray(share_off) > 0.5]
+    if not len(drop):
+        return ground, 0
+    dropped = np.isin(labels, drop)
+    return ground & ~dropped, int(dropped.sum())
+
+
+def _denoise(z: np.ndarray, valid: np.ndarray, cell_m: float, noise_m: float) -> np.ndarray:
+    """The DTM smoothed (:func:`_smoothed`) where it is smooth, kept where it is not: each cell
+    moves to the smoothed value by a weight that falls as the two differ by more than
+    ``BREAK_SIGMAS`` times the ground's noise. Speckle averages out; a step of many noise sigmas
+    (a bank, a kerb, a cutting's edge) stays."""
+    if noise_m <= 0 or not valid.any():
+        return z
+    # single-cell spikes and pits first (a 5 x 5 median, OpenCV): they stand many sigmas off the
+    # smoothed surface, and the rule below would keep them as it keeps a breakline
+    fill = float(np.nanmedian(z[valid]))
+    z = np.where(valid, cv2.medianBlur(np.where(valid, z, fill).astype(np.float32), 5), np.nan).astype(np.float64)
+    smooth = _smoothed(z, valid, cell_m)
+    with np.errstate(invalid="ignore"):
+        w = np.exp(-(((z - smooth) / (BREAK_SIGMAS * noise_m)) ** 2))
+    out = np.where(np.isfinite(w), w * smooth + (1 - w) * z, z)
+    return np.where(valid, out, np.nan)
