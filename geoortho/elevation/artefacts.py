@@ -26,24 +26,33 @@ from geoortho.elevation.ground import bilinear
 
 __all__ = ["footprint_step_m", "roughness_m"]
 
+#: Cells the roughness is measured on (evenly spread over the open ground).
+SAMPLES = 40_000
 #: Samples an edge needs for its mean step to count (noise / sqrt(20) is a fifth of a sample's).
 MIN_EDGE_SAMPLES = 20
 
 
-def roughness_m(z: np.ndarray, open_ground: np.ndarray, cell_m: float, window_m: float = 1.0) -> float:
-    """RMS of ``z`` less its median over ``window_m`` (odd cells, at least 3) on ``open_ground``;
-    NaN with fewer than 50 cells."""
+def roughness_m(
+    z: np.ndarray, open_ground: np.ndarray, cell_m: float, window_m: float = 1.0, max_samples: int = SAMPLES
+) -> float:
+    """RMS of ``z`` less its median over ``window_m`` (odd cells, at least 3) on ``open_ground``
+    (at most ``max_samples`` cells, evenly spread: a median filter over a whole 6 M-cell DTM took
+    30 s); NaN with fewer than 50 cells."""
     size = max(3, int(round(window_m / cell_m)) | 1)
+    half = size // 2
     valid = np.isfinite(z)
     # only cells whose whole window has values: a window reaching past the surface's edge measures
     # what the edge was filled with
-    whole = ndimage.binary_erosion(valid, structure=np.ones((size, size), bool), border_value=0)
-    cells = np.asarray(open_ground, bool) & whole
-    if int(cells.sum()) < 50:
+    whole = ndimage.minimum_filter(valid.astype(np.uint8), size=size, mode="constant", cval=0) > 0
+    rows, cols = np.nonzero(np.asarray(open_ground, bool) & whole)
+    if len(rows) < 50:
         return math.nan
-    filled = np.where(valid, z, np.nanmedian(z[cells]))
-    med = ndimage.median_filter(filled, size=size)
-    return float(np.sqrt(np.mean((filled - med)[cells] ** 2)))
+    step = max(1, len(rows) // max_samples)
+    rows, cols = rows[::step], cols[::step]
+    padded = np.pad(np.where(valid, z, 0.0), half)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size))[rows, cols]
+    med = np.median(windows.reshape(len(rows), -1), axis=1)
+    return float(np.sqrt(np.mean((z[rows, cols] - med) ** 2)))
 
 
 def footprint_step_m(

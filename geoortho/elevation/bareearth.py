@@ -56,6 +56,8 @@ __all__ = [
 #: The lower envelope's disc radius: wider than a rim (a wall's smeared foot: 1-2 m), narrower
 #: than a terrace or a bank's top.
 RIM_RADIUS_M = 2.0
+#: The envelope is found on cells at least this large.
+ENVELOPE_CELL_M = 0.2
 #: An object stands this far above the envelope somewhere (a car: 1.45 m, a hedge: 1.2 m)...
 OBJECT_SEED_M = 0.5
 #: ... and reaches as far as the DSM stands this far above it (or the ground's noise times 4).
@@ -71,6 +73,14 @@ ISLAND_M2 = 4.0
 SMOOTH_M = 0.5
 #: ... and kept where it differs from the smoothed surface by many times that noise (a breakline).
 BREAK_SIGMAS = 3.0
+#: A blob of ground cells under this area that stands off its neighbourhood (smoothed over
+#: BLOB_SMOOTH_M) by BLOB_SIGMAS noise sigmas, and at least BLOB_MIN_M, is a mismatch: dropped.
+BLOB_M2 = 2.0
+BLOB_SMOOTH_M = 1.0
+BLOB_SIGMAS = 5.0
+BLOB_MIN_M = 0.05
+#: The fill under an object rests on the ground at least this far from it.
+FILL_CLEARANCE_M = 1.0
 #: Under an object, farther than this from the nearest ground cell, the DTM is a guess of its own
 #: code: a building's floor (half-width 4-8 m) is bridged honestly, a wood's middle is not.
 BRIDGE_M = 10.0
@@ -81,7 +91,7 @@ class BareEarth:
     """The cleaned DTM and what was found on the way (all on the input grid)."""
 
     z: np.ndarray  # float32, NaN where the input DTM had no value and no fill reached
-    ground: np.ndarray  # bool: ground cells kept (measured)
+    ground: np.ndarray  # bool: ground cells kept as measured (the rest of the valid cells are filled)
     objects: np.ndarray  # bool: cells under an object
     no_ground: np.ndarray  # bool: under an object, farther than BRIDGE_M from any ground
     noise_m: float  # the ground's speckle (robust sigma less its smoothed self), metres
@@ -99,11 +109,11 @@ def ground_noise_m(z: np.ndarray, ground: np.ndarray, cell_m: float) -> float:
     return float(1.4826 * np.median(np.abs(diff - np.median(diff)))) if diff.size else 0.0
 
 
-def _smoothed(z: np.ndarray, valid: np.ndarray, cell_m: float) -> np.ndarray:
-    """A Gaussian of sigma ``SMOOTH_M`` over the ``valid`` cells (normalised convolution: cells with
+def _smoothed(z: np.ndarray, valid: np.ndarray, cell_m: float, sigma_m: float = 0.0) -> np.ndarray:
+    """A Gaussian of sigma ``sigma_m`` (default ``SMOOTH_M``) over the ``valid`` cells (normalised convolution: cells with
     no value do not pull it down); NaN where no valid cell is near."""
     src = np.where(valid, z, 0.0).astype(np.float32)
-    sigma_px = max(0.5, SMOOTH_M / cell_m)
+    sigma_px = max(0.5, (sigma_m or SMOOTH_M) / cell_m)
     num = cv2.GaussianBlur(src, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
     den = cv2.GaussianBlur(valid.astype(np.float32), (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -123,6 +133,15 @@ def lower_envelope(
     skip = ~known if exclude is None else (~known | np.asarray(exclude, bool))
     if skip.all():
         return np.asarray(z, np.float64)
+    # on a grid of at least ENVELOPE_CELL_M: a 2 m disc at 5 cm cells is 81 x 81 (6 s an opening on
+    # the demo's 6 M cells); the envelope is smooth at that scale, and the hysteresis stays fine
+    f = max(1, int(ENVELOPE_CELL_M / cell_m))
+    if f > 1:
+        coarse = _block_min(np.where(skip, np.nan, z), f)
+        env = lower_envelope(coarse, cell_m * f, radius_m)
+        h, w = z.shape
+        up = cv2.resize(env.astype(np.float32), (env.shape[1] * f, env.shape[0] * f), interpolation=cv2.INTER_LINEAR)
+        return np.asarray(up[:h, :w], np.float64)
     # cells with no value (or left out) take their nearest value's for the morphology's sake, then
     # are neutral in it: +inf in the erosion (a minimum), -inf in the dilation (a maximum)
     nearest = ndimage.distance_transform_edt(skip, return_distances=False, return_indices=True)
@@ -136,6 +155,16 @@ def lower_envelope(
     if bad.any():
         opened = fill_harmonic(np.where(bad, np.nan, opened), ~bad)
     return opened
+
+
+def _block_min(z: np.ndarray, f: int) -> np.ndarray:
+    """The lowest value of each f x f block (NaN where the block has none)."""
+    h, w = z.shape
+    hp, wp = -(-h // f) * f, -(-w // f) * f
+    padded = np.full((hp, wp), np.inf)
+    padded[:h, :w] = np.where(np.isfinite(z), z, np.inf)
+    low = padded.reshape(hp // f, f, wp // f, f).min(axis=(1, 3))
+    return np.where(np.isfinite(low), low, np.nan)
 
 
 def object_mask(
@@ -174,13 +203,45 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
     ground = measured & ~objects & near_envelope
     n_rim = int(measured.sum() - ground.sum())
     ground, n_islands = _drop_islands(dtm, ground, cell_m, max(RIM_TOLERANCE_M, 4 * noise))
+    ground, n_blobs = _drop_blobs(dtm, ground, cell_m, max(BLOB_MIN_M, BLOB_SIGMAS * noise))
+    n_islands += n_blobs
     if not ground.any():  # nothing is ground: the input stands (the caller says it is a guess)
         return BareEarth(dtm.astype(np.float32), ground, objects, objects & valid, noise, n_rim, n_islands)
-    z = fill_smooth(dtm, ground, valid & ~ground)
+    # the fill rests on the ground a little way off each object: the ring just beside it holds
+    # what is left of the rim, and a thin plate carries a ring's slope far into the gap
+    off_objects = np.asarray(ndimage.distance_transform_edt(~objects)) * cell_m > FILL_CLEARANCE_M
+    kept = ground & off_objects
+    z = fill_smooth(dtm, kept, valid & ~kept)
     z = _denoise(z, valid, cell_m, noise)
     dist_m = np.asarray(ndimage.distance_transform_edt(~ground)) * cell_m
     no_ground = objects & valid & (dist_m > BRIDGE_M)
+    ground = kept
     return BareEarth(z.astype(np.float32), ground, objects & valid, no_ground, noise, n_rim, n_islands)
+
+
+def _drop_blobs(z: np.ndarray, ground: np.ndarray, cell_m: float, tolerance_m: float) -> tuple[np.ndarray, int]:
+    """``ground`` without the small blobs (under BLOB_M2) of cells that stand off their smoothed
+    neighbourhood by more than ``tolerance_m``: a depth map's mismatches at a photo's edge, each a
+    bump or a pit a few decimetres across inside measured ground. A breakline disagrees with its
+    smoothed self too, but along its whole length: it is no small blob, and stays."""
+    if not ground.any():
+        return ground, 0
+    base = np.where(ground, z, np.nan)
+    fill = float(np.nanmedian(base))
+    despiked = np.where(ground, cv2.medianBlur(np.where(ground, base, fill).astype(np.float32), 5), np.nan)
+    with np.errstate(invalid="ignore"):
+        off = ground & (np.abs(z - _smoothed(despiked, ground, cell_m, BLOB_SMOOTH_M)) > tolerance_m)
+    if not off.any():
+        return ground, 0
+    labels, n = ndimage.label(off, structure=np.ones((3, 3), bool))
+    sizes = np.bincount(labels.ravel())
+    small = np.flatnonzero(sizes * cell_m * cell_m < BLOB_M2)
+    small = small[small > 0]
+    if not len(small):
+        return ground, 0
+    # the blob and a ring of a cell or two round it: its foot is as wrong, just less
+    dropped = ndimage.binary_dilation(np.isin(labels, small), iterations=2) & ground
+    return ground & ~dropped, int(dropped.sum())
 
 
 def _drop_islands(z: np.ndarray, ground: np.ndarray, cell_m: float, tolerance_m: float) -> tuple[np.ndarray, int]:
