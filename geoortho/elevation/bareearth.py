@@ -110,8 +110,8 @@ def ground_noise_m(z: np.ndarray, ground: np.ndarray, cell_m: float) -> float:
 
 
 def _smoothed(z: np.ndarray, valid: np.ndarray, cell_m: float, sigma_m: float = 0.0) -> np.ndarray:
-    """A Gaussian of sigma ``sigma_m`` (default ``SMOOTH_M``) over the ``valid`` cells (normalised convolution: cells with
-    no value do not pull it down); NaN where no valid cell is near."""
+    """A Gaussian of sigma ``sigma_m`` (default ``SMOOTH_M``) over the ``valid`` cells (normalised
+    convolution: cells with no value do not pull it down); NaN where no valid cell is near."""
     src = np.where(valid, z, 0.0).astype(np.float32)
     sigma_px = max(0.5, (sigma_m or SMOOTH_M) / cell_m)
     num = cv2.GaussianBlur(src, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
