@@ -27,7 +27,13 @@ def _clean():
         },
     }
     dense = {"photos": 50, "depth_maps": 50, "no_depth_map": {}}
-    dem = {"seen_m2": 1e4, "measured_share": 0.8}
+    dem = {
+        "seen_m2": 1e4,
+        "measured_share": 0.8,
+        "dtm_roughness_m": 0.004,
+        "dtm_under_object_share": 0.0,
+        "footprint_step_m": 0.003,
+    }
     ortho = {"share_of_seen_2": 0.995, "n_photos": 50, "n_used": 50, "dsm_offset_m": 0.02, "seam_mismatch_balanced": 4}
     fp = {"altitude_m": 60.0, "altitude_metadata_m": 61.0, "height_check": ""}
     return sfm, dense, dem, ortho, fp
@@ -50,6 +56,11 @@ def test_a_clean_run_is_green_on_every_item():
     ("change", "item", "state"),
     [
         (lambda s, d, m, o, f: o.update(share_of_seen_2=0.95), "ortho_coverage", "amber"),
+        # speckle at 0.9 and 0.5 GSD (the demo DTM before issue 74: 0.48 GSD), a third under objects, steps
+        (lambda s, d, m, o, f: m.update(dtm_roughness_m=0.018), "dtm_roughness", "red"),
+        (lambda s, d, m, o, f: m.update(dtm_roughness_m=0.01), "dtm_roughness", "amber"),
+        (lambda s, d, m, o, f: m.update(dtm_under_object_share=0.3), "dtm_no_ground", "red"),
+        (lambda s, d, m, o, f: m.update(footprint_step_m=0.04), "footprint_step", "red"),
         (lambda s, d, m, o, f: o.update(share_of_seen_2=0.14), "ortho_coverage", "red"),
         (lambda s, d, m, o, f: s.update(registered=44, unregistered=["A.JPG"]), "photos_registered", "red"),
         (lambda s, d, m, o, f: d.update(depth_maps=37, photos=75), "depth_maps", "red"),

@@ -79,6 +79,11 @@ BLOB_M2 = 2.0
 BLOB_SMOOTH_M = 1.0
 BLOB_SIGMAS = 5.0
 BLOB_MIN_M = 0.05
+#: "Ground" rougher than this (its speckle's robust sigma) is no ground: a canopy's top (its
+#: crowns 0.1-0.5 m apart at 0.5 m), where bare or grassed ground measures 1-3 cm.
+NOT_GROUND_NOISE_M = 0.2
+#: With no ground seen, the fallback plane runs through each block's lowest cell, blocks this wide.
+BLOCK_M = 5.0
 #: The fill under an object rests on the ground at least this far from it.
 FILL_CLEARANCE_M = 1.0
 #: Under an object, farther than this from the nearest ground cell, the DTM is a guess of its own
@@ -191,6 +196,8 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
         none = np.zeros(dtm.shape, bool)
         return BareEarth(dtm.astype(np.float32), none, none, none, 0.0, 0, 0)
     noise = ground_noise_m(dtm, measured, cell_m)
+    if noise > NOT_GROUND_NOISE_M:
+        return _no_ground_seen(dtm, valid, cell_m, noise)
     seed_m, grow_m = max(OBJECT_SEED_M, 8 * noise), max(OBJECT_GROW_M, 4 * noise)
     # twice: the objects found on a plain opening, then on the opening that leaves them out (a
     # rim resting on an object's interpolated plateau falls to the ground outside it)
@@ -217,6 +224,25 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
     no_ground = objects & valid & (dist_m > BRIDGE_M)
     ground = kept
     return BareEarth(z.astype(np.float32), ground, objects & valid, no_ground, noise, n_rim, n_islands)
+
+
+def _no_ground_seen(dtm: np.ndarray, valid: np.ndarray, cell_m: float, noise_m: float) -> BareEarth:
+    """What "ground" the filter kept is rougher than any ground (a survey all canopy: the crowns'
+    floor called ground): the DTM is the least-squares plane through each BLOCK_M block's lowest
+    cell, every cell under an object with no ground seen."""
+    f = max(1, int(round(BLOCK_M / cell_m)))
+    low = _block_min(np.where(valid, dtm, np.nan), f)
+    rows, cols = np.nonzero(np.isfinite(low))
+    z = np.full(dtm.shape, np.nan)
+    if len(rows):
+        x, y = (cols + 0.5) * f, (rows + 0.5) * f
+        a = np.c_[np.ones(len(x)), x, y] if len(x) >= 3 else np.ones((len(x), 1))
+        coef, *_ = np.linalg.lstsq(a, low[rows, cols], rcond=None)
+        rr, cc = np.nonzero(valid)
+        terms = np.c_[np.ones(len(rr)), cc + 0.5, rr + 0.5] if len(coef) == 3 else np.ones((len(rr), 1))
+        z[rr, cc] = terms @ coef
+    none = np.zeros(dtm.shape, bool)
+    return BareEarth(z.astype(np.float32), none, valid.copy(), valid.copy(), noise_m, int(valid.sum()), 0)
 
 
 def _drop_blobs(z: np.ndarray, ground: np.ndarray, cell_m: float, tolerance_m: float) -> tuple[np.ndarray, int]:

@@ -324,7 +324,9 @@ def dem(
     smrf_slope : float
         SMRF slope threshold (rise over run).
     smrf_window_m : float
-        SMRF largest opening window, metres (the widest object it removes is about twice this).
+        SMRF largest opening window, metres (the widest object it removes is about twice this);
+        0 (default): half the survey's width, at least 18 m (PDAL's) and at most 50 m, within a
+        time budget.
     smrf_threshold_m : float
         SMRF elevation threshold, metres.
     smrf_scalar : float
@@ -715,6 +717,21 @@ OPEN_S_PER_CELL_R2 = 3e-10
 MAX_SMRF_S = 600.0
 
 
+#: The automatic SMRF window: at least SmrfParams' published 18 m, at most this (a wood or a hall
+#: 100 m wide), at most half the survey, and what AUTO_SMRF_S of openings allow.
+AUTO_WINDOW_MIN_M = 18.0
+AUTO_WINDOW_MAX_M = 50.0
+AUTO_SMRF_S = 20.0
+
+
+def _auto_window_m(width_m: float, height_m: float, cell_m: float) -> float:
+    """The SMRF window that follows the largest object the survey can hold: a wood 40 m wide is
+    canopy called ground under the published 18 m window (a real survey: the DTM 6-8 m up)."""
+    cells = (width_m / cell_m + 1) * (height_m / cell_m + 1)
+    budget_m = cell_m * (3.0 * AUTO_SMRF_S / (OPEN_S_PER_CELL_R2 * cells)) ** (1.0 / 3.0)
+    return max(AUTO_WINDOW_MIN_M, min(AUTO_WINDOW_MAX_M, 0.5 * max(width_m, height_m), budget_m))
+
+
 def _check_smrf(src: PointSource, params: SmrfParams, fb: Feedback) -> SmrfParams:
     """SMRF parameters that can finish: a window wider than the cloud is cut to its size (an
     opening that wide removes nothing more), and a cell whose estimated run passes MAX_SMRF_S
@@ -722,8 +739,14 @@ def _check_smrf(src: PointSource, params: SmrfParams, fb: Feedback) -> SmrfParam
 
     xmin, ymin, _, xmax, ymax, _ = src.bounds
     width_m, height_m = (xmax - xmin) * src.horizontal_m, (ymax - ymin) * src.horizontal_m
-    if params.cell_m <= 0 or params.window_m <= 0:
-        raise ParameterError("smrf_cell_m", "the SMRF cell and window must be positive")
+    if params.cell_m <= 0 or params.window_m < 0:
+        raise ParameterError("smrf_cell_m", "the SMRF cell must be positive and the window not negative")
+    if params.window_m == 0:
+        params = replace(params, window_m=_auto_window_m(width_m, height_m, params.cell_m))
+        fb.info(
+            f"SMRF window {params.window_m:.0f} m: objects up to ~{2 * params.window_m:.0f} m wide are taken out "
+            "(the survey's half-width, within a time budget)"
+        )
     widest = max(width_m, height_m, params.cell_m)
     if params.window_m > widest:
         fb.info(f"SMRF window {params.window_m:g} m is wider than the cloud: {widest:.0f} m used")
@@ -1020,6 +1043,10 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
             result.dtm, done, z, measured, target, new_t, crs, unit, polys
         )
         notes.append(note)
+        warning = dtm_fields.pop("notes_extra", "")
+        if warning:
+            notes.append(warning)
+            fb.warning(f"dem: {warning}")
     if result.hillshade is not None:
         write_hillshade(result.hillshade, dtm_grid if dtm_grid is not None else done.z, new_t.a, 1.0)
     for n in notes:
@@ -1105,6 +1132,11 @@ def _complete_dtm(
         "footprint_step_m": step,
         "ground_noise_m": clean.noise_m,
     }
+    if not clean.ground.any() and clean.no_ground.any():
+        fields["notes_extra"] = (
+            f"no ground seen: what the ground filter kept is {100 * clean.noise_m:.0f} cm rough (canopy, not ground); "
+            "the DTM is a plane through the lowest points, every cell under an object"
+        )
     note = (
         f"DTM: ground measured {dtm_done.share(MEASURED):.1%}, interpolated {dtm_done.share(INTERPOLATED):.1%}, "
         f"under an object with no ground seen {dtm_done.share(UNDER_OBJECT):.1%}, "

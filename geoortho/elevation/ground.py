@@ -9,10 +9,12 @@
 4. The surface without objects (grown by ``margin_m``), refilled, is the provisional ground; a point
    is ground when within ``threshold_m + scalar × local slope`` of it.
 
-Defaults are PDAL's and ODM's (cell 1 m, slope 0.15, window 18 m, threshold
-0.5 m, scalar 1.25). Morphology runs in OpenCV (elliptical kernels, float32),
-the fill in :mod:`geoortho.core.gapfill`. Grids are in the cloud's units; the
-parameters are converted from metres.
+Defaults are PDAL's and ODM's (cell 1 m, slope 0.15, threshold 0.5 m, scalar 1.25), but
+the window: theirs is 18 m (objects up to ~36 m wide); ours follows the survey (half its width,
+18-50 m), as a wood or a hall wider than 36 m is otherwise canopy or roof called ground.
+Morphology runs in OpenCV (elliptical kernels, float32), the fill in
+:mod:`geoortho.core.gapfill`. Grids are in the cloud's units; the parameters are converted from
+metres.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ __all__ = ["SmrfParams", "smrf_surface", "ground_mask", "bilinear"]
 class SmrfParams:
     cell_m: float = 1.0
     slope: float = 0.15  # rise over run
-    window_m: float = 18.0
+    window_m: float = 0.0  # 0: chosen from the survey's size (gridding._auto_window_m)
     threshold_m: float = 0.5
     scalar: float = 1.25
     margin_m: float = 1.0  # objects grown by this before refilling (not in Pingel's paper; 0 = as published)

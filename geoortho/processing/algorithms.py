@@ -163,7 +163,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("hillshade", "file", output=True, extensions=(".png",)),
             Param("smrf_cell_m", "number", unit="m", minimum=0.05, advanced=True),
             Param("smrf_slope", "number", minimum=0.0, advanced=True),
-            Param("smrf_window_m", "number", unit="m", minimum=0.5, advanced=True),
+            Param("smrf_window_m", "number", unit="m", minimum=0.0, advanced=True),
             Param("smrf_threshold_m", "number", unit="m", minimum=0.0, advanced=True),
             Param("smrf_scalar", "number", minimum=0.0, advanced=True),
             Param("smrf_margin_m", "number", unit="m", minimum=0.0, advanced=True),

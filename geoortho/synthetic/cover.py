@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from affine import Affine
 
-__all__ = ["CANOPY_STYLES", "CoverPatch", "add_canopy", "add_car_park", "leaf_texture"]
+__all__ = ["CANOPY_STYLES", "CoverPatch", "add_canopy", "add_car_park", "add_hall", "add_hedge", "leaf_texture"]
 
 CANOPY_STYLES = ("pattern", "blobs")
 SUN_AZIMUTH_DEG = 225.0  # from the south-west: shadows fall to the north-east
@@ -104,13 +104,19 @@ def add_canopy(
     markers_xy: list[tuple[float, float]],
     rng: np.random.Generator,
     style: str = CANOPY_STYLES[0],
+    radius_m: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, CoverPatch]:
     """A wood of overlapping crowns: the new DSM and object colours, the canopy mask, and where
-    (its leaves drawn in ``style``, one of ``CANOPY_STYLES``)."""
+    (its leaves drawn in ``style``, one of ``CANOPY_STYLES``). ``radius_m``: a wood that wide,
+    placed over whatever stands there (default: on the open ground, as wide as it allows)."""
     fx0, fy0, fx1, fy1 = flight_box
-    want = 0.15 * min(fx1 - fx0, fy1 - fy0) + 1.5
-    cx, cy, radius = _open_spot(transform, dsm, dtm, flight_box, markers_xy, want, inset=0.3)
-    radius = max(radius, 2.0)
+    if radius_m is None:
+        want = 0.15 * min(fx1 - fx0, fy1 - fy0) + 1.5
+        cx, cy, radius = _open_spot(transform, dsm, dtm, flight_box, markers_xy, want, inset=0.3)
+        radius = max(radius, 2.0)
+    else:  # a wood that wide covers what stands there: only the markers are kept clear
+        cx, cy, _ = _open_spot(transform, dtm, dtm, flight_box, markers_xy, radius_m, inset=0.35)
+        radius = radius_m
     xs, ys = _centres(transform, dsm.shape)
     near = np.hypot(xs - cx, ys - cy) < radius + 4.0
     r0, r1 = np.nonzero(near.any(axis=1))[0][[0, -1]]
@@ -234,3 +240,82 @@ def add_car_park(
         "cars", cx, cy, half_w, half_h, {"cars": n_cars, "bays": 2 * n_bays, "angle_deg": math.degrees(angle)}
     )
     return new_dsm, new_objects, ground.astype(np.float32), patch
+
+
+#: A hall: a large flat or mono-pitched roof (the seed's parity), its footprint in metres.
+HALL_SIZE_M = (40.0, 24.0)
+HALL_EAVE_M = 7.0
+HALL_PITCH_RISE_M = 1.5
+HALL_ROOF_RGB = (0.55, 0.56, 0.58)
+#: A hedge line: its crown height, width and length (metres).
+HEDGE_M = (1.4, 1.2, 35.0)
+
+
+def add_hall(
+    transform: Affine,
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    objects: np.ndarray,
+    flight_box: tuple[float, float, float, float],
+    markers_xy: list[tuple[float, float]],
+    rng: np.random.Generator,
+    pitched: bool,
+    avoid: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, CoverPatch]:
+    """A hall wider than any ground filter's window (40 x 24 m, or half the flight area's width):
+    a flat roof, or one pitched along its width (``pitched``), over whatever stood there but the
+    ``avoid`` cells; the markers are kept clear. The new DSM and object colours, and where."""
+    fx0, fy0, fx1, fy1 = flight_box
+    length = min(HALL_SIZE_M[0], 0.5 * (fx1 - fx0))
+    width = min(HALL_SIZE_M[1], 0.5 * (fy1 - fy0))
+    # over whatever stands there but the cells to ``avoid`` (a wide wood)
+    taken = dtm if avoid is None else np.where(avoid, dtm + 1.0, dtm)
+    cx, cy, _ = _open_spot(transform, taken, dtm, flight_box, markers_xy, length / 2, inset=0.2)
+    angle = float(rng.uniform(-0.3, 0.3))
+    xs, ys = _centres(transform, dsm.shape)
+    u = (xs - cx) * math.cos(angle) + (ys - cy) * math.sin(angle)
+    v = -(xs - cx) * math.sin(angle) + (ys - cy) * math.cos(angle)
+    inside = (np.abs(u) <= length / 2) & (np.abs(v) <= width / 2) & _clear_of_markers(xs, ys, markers_xy, 2.5)
+    base = float(dtm[inside].max()) if inside.any() else float(np.median(dtm))
+    roof = base + HALL_EAVE_M + (HALL_PITCH_RISE_M * (0.5 + v / width) if pitched else 0.0)
+    new_dsm = np.where(inside, roof, dsm).astype(np.float32)
+    # a roof of panels: seams every 2.5 m give it texture to match
+    panel = np.where(np.mod(u, 2.5) < 0.15, 0.8, 1.0)[..., None]
+    new_objects = np.where(inside[..., None], np.array(HALL_ROOF_RGB, np.float32) * panel, objects)
+    detail = {"length_m": length, "width_m": width, "angle_deg": math.degrees(angle), "pitched": pitched}
+    half_w = abs(length / 2 * math.cos(angle)) + abs(width / 2 * math.sin(angle))
+    half_h = abs(length / 2 * math.sin(angle)) + abs(width / 2 * math.cos(angle))
+    return new_dsm, new_objects.astype(np.float32), CoverPatch("hall", cx, cy, half_w, half_h, detail)
+
+
+def add_hedge(
+    transform: Affine,
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    objects: np.ndarray,
+    flight_box: tuple[float, float, float, float],
+    markers_xy: list[tuple[float, float]],
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, CoverPatch]:
+    """A hedge line across open ground (1.4 m high, 1.2 m wide, 35 m long or the flight area's
+    width), its crown rough and leaf-textured: the new DSM, object colours, its canopy mask, and
+    where."""
+    height, width, length = HEDGE_M
+    fx0, fy0, fx1, fy1 = flight_box
+    length = min(length, 0.7 * (fx1 - fx0))
+    cx, cy, _ = _open_spot(transform, dsm, dtm, flight_box, markers_xy, length / 2, inset=0.25)
+    angle = float(rng.uniform(0, np.pi))
+    xs, ys = _centres(transform, dsm.shape)
+    u = (xs - cx) * math.cos(angle) + (ys - cy) * math.sin(angle)
+    v = -(xs - cx) * math.sin(angle) + (ys - cy) * math.cos(angle)
+    q = 1.0 - (v / (width / 2)) ** 2
+    along = np.clip((length / 2 - np.abs(u)) / 0.6, 0.0, 1.0)  # rounded ends
+    top = np.where(q > 0, height * np.sqrt(np.clip(q, 0, 1)) * along, 0.0)
+    top = top + np.where(top > 0, rng.normal(0.0, 0.06, top.shape), 0.0)
+    crown = (top > 0.2) & _clear_of_markers(xs, ys, markers_xy)
+    new_dsm = np.where(crown, np.maximum(dsm, dtm + top), dsm).astype(np.float32)
+    new_objects = np.where(crown[..., None], np.array([0.18, 0.33, 0.12], np.float32), objects)
+    detail = {"length_m": length, "angle_deg": math.degrees(angle), "height_m": height}
+    half = length / 2 + width
+    patch = CoverPatch("hedge", cx, cy, half, half, detail)
+    return new_dsm, new_objects.astype(np.float32), crown, patch

@@ -53,7 +53,7 @@ from geoortho.gcp.markers import (
     target_reflectance,
 )
 from geoortho.gcp.targets import motion_kernel, spread_path
-from geoortho.synthetic.cover import CANOPY_STYLES, add_canopy, add_car_park, leaf_texture
+from geoortho.synthetic.cover import CANOPY_STYLES, add_canopy, add_car_park, add_hall, add_hedge, leaf_texture
 
 __all__ = ["PRESETS", "PATHOLOGIES", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
 
@@ -168,6 +168,10 @@ GPS_MINUS_UTC_S = 18.0  # leap seconds since 2017: GPS time runs ahead of UTC (t
 PPK_EPOCH_S = 0.2
 PPK_SIGMA_M = (0.01, 0.02)
 
+WIDE_WOOD_RADIUS_M = 22.0
+BANK_M = (2.0,)  # height
+CUTTING_M = (1.2, 6.0)  # depth, road width
+
 # What real consumer drones get wrong, each one a survey can be made with (comma-separated).
 PATHOLOGIES: dict[str, str] = {
     "no-relative-altitude": "no RelativeAltitude/AbsoluteAltitude; EXIF GPSAltitude orthometric (EGM96), as "
@@ -206,6 +210,14 @@ PATHOLOGIES: dict[str, str] = {
     "the lens's (a calibration of another unit)",
     "gps-lag": f"the photos' GPS fixes {GPS_LAG_S:g} s stale: each photo records where the camera was {GPS_LAG_S:g} s "
     "before its exposure (a consumer camera's lag; survey.json: gps_lag_s)",
+    "wide-wood": f"a wood {2 * WIDE_WOOD_RADIUS_M:.0f} m across with no ground seen under it, over whatever stood "
+    "there (closed crowns 7-12 m high, leaves drawn as for canopy); survey.json gives where (cover.wide_wood)",
+    "hall": "a hall wider than any ground filter's window (40 x 24 m, or half the flight area), 7 m to its eaves: "
+    "a flat roof for an even seed, one pitched across its width for an odd one; survey.json: cover.hall",
+    "hedge": "a hedge line 1.4 m high and 1.2 m wide across open ground, leaf-textured; survey.json: cover.hedge",
+    "breaklines": f"a bank {BANK_M[0]:g} m high across the scene (45 deg for an even seed, 30 for an odd one) and a "
+    f"road cutting {CUTTING_M[1]:g} m wide, {CUTTING_M[0]:g} m deep with 45 deg sides: the ground's own sharp edges; "
+    "survey.json: cover.breaklines",
     "dropped-photo": "one photo in the middle of the flight that no SfM can register: smeared by a motion blur of "
     "a tenth of its width, or blown out (25x over-exposed), as the seed draws; survey.json names it "
     "(dropped_photo: image, how)",
@@ -349,6 +361,7 @@ def build_scene(
     dictionary: str,
     marker_size_m: float,
     slope_deg: float = 0.0,
+    bank_deg: float = 0.0,
 ) -> Scene:
     """The DTM, DSM, texture layers and marker layout for a preset.
 
@@ -361,6 +374,9 @@ def build_scene(
         lx, ly = g.local
         az = math.radians(SLOPE_AZIMUTH_DEG)
         dtm = dtm + math.tan(math.radians(slope_deg)) * (lx * math.sin(az) + ly * math.cos(az))
+    breaks: dict[str, Any] = {}
+    if bank_deg:
+        dtm, breaks = _breaklines(g, dtm, bank_deg, np.random.default_rng([int(1000 * bank_deg), 29]))
     landcover, n_fields = _landcover(g, preset, rng)
     taken = _Occupancy()
     markers, pad_r = _place_markers(g, preset, rng, dictionary, marker_size_m, taken)
@@ -387,7 +403,30 @@ def build_scene(
         (hx, hy, home_z),
     )
     scene.marker_cells = {m.marker_id: marker_cells(dictionary, m.marker_id) for m in markers}
+    if breaks:
+        scene.cover["breaklines"] = breaks
     return scene
+
+
+def _breaklines(
+    g: _SceneGrid, dtm: np.ndarray, bank_deg: float, rng: np.random.Generator
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """A bank across the scene (the ground BANK_M higher on one side, sloping at ``bank_deg``) and a
+    road cutting parallel to it, CUTTING_M deep and wide with 45 deg sides, a third of the flight
+    area away: the DTM with them, and where they are (their lines' offsets along one normal)."""
+    lx, ly = g.local
+    ang = float(rng.uniform(0, np.pi))
+    d = lx * math.cos(ang) + ly * math.sin(ang)  # distance along the normal from the centre
+    span = min(g.area_m)
+    bank_at, cut_at = -0.15 * span, 0.2 * span
+    run = BANK_M[0] / math.tan(math.radians(bank_deg))
+    bank = BANK_M[0] * np.clip((d - bank_at) / run + 0.5, 0.0, 1.0)
+    depth, road = CUTTING_M
+    cut = np.clip(depth - np.maximum(np.abs(d - cut_at) - road / 2, 0.0), 0.0, depth)  # 45 deg sides
+    where = {"normal_deg": math.degrees(ang), "bank_offset_m": bank_at, "bank_deg": bank_deg,
+             "bank_height_m": BANK_M[0], "cutting_offset_m": cut_at, "cutting_depth_m": depth,
+             "cutting_width_m": road}  # fmt: skip
+    return (dtm + bank - cut).astype(np.float64), where
 
 
 @dataclass(frozen=True)
@@ -957,13 +996,30 @@ def _rtk_positions(shots: list[Shot], scene: Scene, rng: np.random.Generator) ->
     return out
 
 
-def _add_cover(scene: Scene, pathologies: Sequence[str], rng: np.random.Generator, canopy_style: str) -> None:
-    """The wood and the car park, each on the open ground left by what stands there already."""
+def _add_cover(
+    scene: Scene, pathologies: Sequence[str], rng: np.random.Generator, canopy_style: str, seed: int = 0
+) -> None:
+    """The wood and the car park, each on the open ground left by what stands there already; a
+    wide wood and a hall over it; a hedge on what is left."""
     markers_xy = [(m.x, m.y) for m in scene.markers]
-    if "canopy" in pathologies:
+    if "wide-wood" in pathologies:
         scene.dsm, scene.objects, scene.canopy, patch = add_canopy(
+            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng, canopy_style,
+            radius_m=WIDE_WOOD_RADIUS_M,
+        )  # fmt: skip
+        scene.canopy_style = str(patch.detail["style"])
+        scene.cover["wide_wood"] = patch.record()
+    if "hall" in pathologies:
+        scene.dsm, scene.objects, patch = add_hall(
+            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng, seed % 2 == 1,
+            avoid=scene.canopy,
+        )  # fmt: skip
+        scene.cover["hall"] = patch.record()
+    if "canopy" in pathologies:
+        scene.dsm, scene.objects, wood, patch = add_canopy(
             scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng, canopy_style
         )
+        scene.canopy = wood if scene.canopy is None else (scene.canopy | wood)
         scene.canopy_style = str(patch.detail["style"])
         scene.cover["canopy"] = patch.record()
     if "cars" in pathologies:
@@ -971,6 +1027,12 @@ def _add_cover(scene: Scene, pathologies: Sequence[str], rng: np.random.Generato
             scene.transform, scene.dsm, scene.dtm, scene.objects, scene.landcover, scene.flight_box, markers_xy, rng
         )
         scene.cover["cars"] = patch.record()
+    if "hedge" in pathologies:
+        scene.dsm, scene.objects, hedge, patch = add_hedge(
+            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng
+        )
+        scene.canopy = hedge if scene.canopy is None else (scene.canopy | hedge)
+        scene.cover["hedge"] = patch.record()
 
 
 def _wrap180(a: float) -> float:
@@ -1722,10 +1784,13 @@ def _scene(
         dictionary=dictionary,
         marker_size_m=marker_size_m,
         slope_deg=SLOPE_DEG if "slope" in pathologies else 0.0,
+        bank_deg=(45.0 if seed % 2 == 0 else 30.0) if "breaklines" in pathologies else 0.0,
     )
     scene.target = target
-    if "canopy" in pathologies or "cars" in pathologies:
-        _add_cover(scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)])
+    if any(k in pathologies for k in ("canopy", "cars", "wide-wood", "hall", "hedge")):
+        _add_cover(
+            scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)], seed
+        )
     if "water" in pathologies:
         scene.water = _place_water(scene)
     return scene
