@@ -1125,7 +1125,7 @@ def _complete_dtm(
     rough = roughness_m(clean.z, open_ground, new_t.a)
     step, n_edges = footprint_step_m(clean.z, new_t, polys, open_ground)
     in_target = target & (source > 0)
-    fields = {
+    fields: dict[str, Any] = {
         "dtm_measured_share": dtm_done.share(MEASURED),
         "dtm_under_object_share": dtm_done.share(UNDER_OBJECT, within=in_target) if in_target.any() else 0.0,
         "dtm_roughness_m": rough,
