@@ -162,6 +162,11 @@ def _thin_plate(z: np.ndarray, known: np.ndarray, free: np.ndarray) -> np.ndarra
     out = np.where(known, z, np.nan)
     if not free.any():
         return out
+    # solved as a departure from the harmonic fill: the tiny ridge that keeps the system regular
+    # pulls a cell few stencils reach (a grid's corner) towards it, not towards 0 (a surface 100 m
+    # up: 4.5 cm low under a 16 m roof, 0.37 m at a corner)
+    base = _solve(np.where(known, z, 0.0), known, 30)
+    z = np.where(known, z, base)
     index = np.full((h, w), -1, np.int64)
     index[free] = np.arange(int(free.sum()))
     inside = known | free
@@ -197,7 +202,7 @@ def _thin_plate(z: np.ndarray, known: np.ndarray, free: np.ndarray) -> np.ndarra
             rows_a.append(eq[is_free])
             cols_a.append(idx[is_free])
             vals_a.append(np.full(int(is_free.sum()), wgt))
-            b -= np.where(is_free, 0.0, wgt * z[rr + dr, cc + dc])
+            b -= wgt * z[rr + dr, cc + dc]  # the free cells at the harmonic fill: d solves the rest
         rhs.append(b)
         n_eq += len(rr)
     a = sparse.csr_matrix(
@@ -207,7 +212,7 @@ def _thin_plate(z: np.ndarray, known: np.ndarray, free: np.ndarray) -> np.ndarra
     # a free cell no stencil ties to the data (an island of free cells) would make it singular
     normal = normal + sparse.identity(normal.shape[0], format="csc") * 1e-9
     solved = spsolve(normal, a.T @ np.concatenate(rhs))
-    out[free] = solved
+    out[free] = base[free] + solved
     return out
 
 

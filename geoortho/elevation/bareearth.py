@@ -36,6 +36,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import cv2
 import numpy as np
 from scipy import ndimage
@@ -115,14 +117,35 @@ def ground_noise_m(z: np.ndarray, ground: np.ndarray, cell_m: float) -> float:
 
 
 def _smoothed(z: np.ndarray, valid: np.ndarray, cell_m: float, sigma_m: float = 0.0) -> np.ndarray:
-    """A Gaussian of sigma ``sigma_m`` (default ``SMOOTH_M``) over the ``valid`` cells (normalised
-    convolution: cells with no value do not pull it down); NaN where no valid cell is near."""
-    src = np.where(valid, z, 0.0).astype(np.float32)
+    """The plane fitted about each cell to the ``valid`` cells within a Gaussian of sigma ``sigma_m``
+    (default ``SMOOTH_M``), at that cell (normalised convolution of the first order, OpenCV's
+    separable filters): a slope is kept to the grid's edge and past a gap's rim, where a plain
+    Gaussian bends it (0.1 m at a survey's edge on a 0.2 slope). NaN where no valid cell is near."""
     sigma_px = max(0.5, (sigma_m or SMOOTH_M) / cell_m)
-    num = cv2.GaussianBlur(src, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
-    den = cv2.GaussianBlur(valid.astype(np.float32), (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+    half = int(math.ceil(3 * sigma_px))
+    t = np.arange(-half, half + 1, dtype=np.float64)
+    g = np.exp(-0.5 * (t / sigma_px) ** 2)
+    g1, g2 = g * t, g * t * t
+    v = valid.astype(np.float64)
+    ref = float(np.nanmedian(z[valid])) if valid.any() else 0.0
+    zv = np.where(valid, z - ref, 0.0)
+
+    def conv(img: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
+        return np.asarray(cv2.sepFilter2D(img, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT), np.float64)
+
+    s0, sx, sy = conv(v, g, g), conv(v, g1, g), conv(v, g, g1)
+    sxx, syy, sxy = conv(v, g2, g), conv(v, g, g2), conv(v, g1, g1)
+    z0, zx, zy = conv(zv, g, g), conv(zv, g1, g), conv(zv, g, g1)
+    # the plane's value at the cell: Cramer's rule on the 3 x 3 normal equations
+    det = s0 * (sxx * syy - sxy * sxy) - sx * (sx * syy - sxy * sy) + sy * (sx * sxy - sxx * sy)
+    num = z0 * (sxx * syy - sxy * sxy) - sx * (zx * syy - sxy * zy) + sy * (zx * sxy - sxx * zy)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 1e-6, num / den, np.nan).astype(np.float64)
+        plane = num / det
+        mean = z0 / s0
+    # too few cells around to fit a slope (a lone cell, a line): their mean
+    weak = ~np.isfinite(plane) | (np.abs(det) < 1e-9 * np.maximum(s0, 1e-12) ** 3)
+    out = np.where(weak, mean, plane) + ref
+    return np.where(s0 > 1e-6, out, np.nan)
 
 
 def lower_envelope(
@@ -212,8 +235,8 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
     ground, n_islands = _drop_islands(dtm, ground, cell_m, max(RIM_TOLERANCE_M, 4 * noise))
     ground, n_blobs = _drop_blobs(dtm, ground, cell_m, max(BLOB_MIN_M, BLOB_SIGMAS * noise))
     n_islands += n_blobs
-    if not ground.any():  # nothing is ground: the input stands (the caller says it is a guess)
-        return BareEarth(dtm.astype(np.float32), ground, objects, objects & valid, noise, n_rim, n_islands)
+    if not ground.any():  # nothing is ground: never the objects' tops called ground
+        return _no_ground_seen(dtm, valid, cell_m, noise)
     # the fill rests on the ground a little way off each object: the ring just beside it holds
     # what is left of the rim, and a thin plate carries a ring's slope far into the gap
     off_objects = np.asarray(ndimage.distance_transform_edt(~objects)) * cell_m > FILL_CLEARANCE_M
@@ -255,19 +278,28 @@ def _drop_blobs(z: np.ndarray, ground: np.ndarray, cell_m: float, tolerance_m: f
     base = np.where(ground, z, np.nan)
     fill = float(np.nanmedian(base))
     despiked = np.where(ground, cv2.medianBlur(np.where(ground, base, fill).astype(np.float32), 5), np.nan)
+    # spikes and pits a few cells across first: off their own 5 x 5 median (a bank's ramp is its
+    # own median, a kink nearly so)
+    with np.errstate(invalid="ignore"):
+        spikes = ground & (np.abs(z - despiked) > tolerance_m)
+    n_spikes = 0
+    if spikes.any():
+        spiked = np.asarray(ndimage.binary_dilation(spikes, iterations=1)) & ground
+        n_spikes = int(spiked.sum())
+        ground = ground & ~spiked
     with np.errstate(invalid="ignore"):
         off = ground & (np.abs(z - _smoothed(despiked, ground, cell_m, BLOB_SMOOTH_M)) > tolerance_m)
     if not off.any():
-        return ground, 0
+        return ground, n_spikes
     labels, n = ndimage.label(off, structure=np.ones((3, 3), bool))
     sizes = np.bincount(labels.ravel())
     small = np.flatnonzero(sizes * cell_m * cell_m < BLOB_M2)
     small = small[small > 0]
     if not len(small):
-        return ground, 0
+        return ground, n_spikes
     # the blob and a ring of a cell or two round it: its foot is as wrong, just less
     dropped = ndimage.binary_dilation(np.isin(labels, small), iterations=2) & ground
-    return ground & ~dropped, int(dropped.sum())
+    return ground & ~dropped, n_spikes + int(dropped.sum())
 
 
 def _drop_islands(z: np.ndarray, ground: np.ndarray, cell_m: float, tolerance_m: float) -> tuple[np.ndarray, int]:

@@ -1,0 +1,193 @@
+"""A DTM that is bare earth, on grids whose truth is known exactly: rims taken in, breaklines kept,
+spikes dropped, speckle smoothed, fills without cones or sags; the artefact measures; contours."""
+
+from __future__ import annotations
+
+import geopandas as gpd
+import numpy as np
+import pytest
+import rasterio
+import shapely
+from affine import Affine
+from scipy import ndimage
+
+from geoortho.core.gapfill import fill_harmonic, fill_smooth
+from geoortho.elevation.artefacts import footprint_step_m, roughness_m
+from geoortho.elevation.bareearth import BRIDGE_M, bare_earth
+from geoortho.elevation.contours import contour_interval_m, write_contours
+from geoortho.elevation.ground import bilinear
+
+CELL_M = 0.1
+
+
+def _terrain(shape=(400, 500), bank=True):
+    """A crest with a bank 1.5 m high at 45 deg across it (the ground's own breakline), metres."""
+    rows, cols = np.indices(shape)
+    x, y = cols * CELL_M, rows * CELL_M
+    z = 100.0 + 0.004 * (x - 25.0) ** 2 * -1 + 0.02 * y
+    if bank:
+        z = z + np.clip(x - 10.0, 0.0, 1.5)  # 1.5 m over 1.5 m of run: 45 deg
+    return z
+
+
+def _building(shape, centre=(200, 330), half=(50, 70)):
+    rows, cols = np.indices(shape)
+    return (np.abs(rows - centre[0]) <= half[0]) & (np.abs(cols - centre[1]) <= half[1])
+
+
+def _photogrammetric_dtm(truth, inside, rng):
+    """What gridding the ground filter's points gives: the ground with speckle, a plateau under the
+    building (the filter's fill), a ring of half-height wall points called ground round it, and
+    single-cell mismatches."""
+    dtm = truth + rng.normal(0.0, 0.01, truth.shape)
+    ring = ndimage.binary_dilation(inside, iterations=8) & ~inside
+    dtm[ring] += 0.45  # a rim: within the filter's 0.5 m threshold of its raised surface
+    dtm[inside] = np.nan
+    spikes = rng.random(truth.shape) < 0.0005
+    dtm[spikes & ~inside & ~ring] += rng.choice([-0.4, 0.4], int((spikes & ~inside & ~ring).sum()))
+    measured = np.isfinite(dtm)
+    dtm = fill_harmonic(dtm, measured)  # the plateau under the roof, as the filter's fill leaves it
+    return dtm, measured, ring, spikes
+
+
+def test_rims_go_spikes_go_speckle_goes_the_bank_stays():
+    rng = np.random.default_rng(3)
+    truth = _terrain()
+    inside = _building(truth.shape)
+    dsm = np.where(inside, truth + 8.0, truth) + rng.normal(0.0, 0.01, truth.shape)
+    dtm, measured, ring, spikes = _photogrammetric_dtm(truth, inside, rng)
+    dsm = np.maximum(dsm, dtm)  # the wall's points are in the DSM too
+    clean = bare_earth(dsm, dtm, measured, CELL_M)
+    err = clean.z - truth
+    near = ndimage.binary_dilation(inside, iterations=30)
+    # the rim: 0.45 m before, gone after; under the roof a thin plate through ground of 1 cm
+    # speckle (measured: p95 3.9 cm beside the roof, 5.6 cm on the rim, 6.2 cm under the roof)
+    assert np.percentile(np.abs(dtm - truth)[ring], 50) > 0.4
+    assert np.percentile(np.abs(err)[ring], 95) < 0.07
+    assert np.percentile(np.abs(err)[near & ~inside], 95) < 0.05
+    assert np.percentile(np.abs(err)[inside], 95) < 0.08
+    assert clean.objects[ring].mean() > 0.95 and not clean.ground[ring].any()
+    # the mismatches: no cell of the DTM 10 cm off the truth anywhere
+    assert np.abs(err).max() < 0.1, np.abs(err).max()
+    # speckle: 1 cm of noise less its 1 m median, smoothed to a third or less
+    open_ground = ~near & (np.abs(np.indices(truth.shape)[1] * CELL_M - 10.75) > 2.0)
+    before, after = roughness_m(dtm, open_ground, CELL_M), roughness_m(clean.z, open_ground, CELL_M)
+    assert after < before / 3, (before, after)
+    # the bank: 1.5 m over 1.5 m, still as steep (no bank rounded into a ramp of metres)
+    profile = clean.z[100, 80:140] - truth[100, 80:140]
+    assert np.abs(profile).max() < 0.06
+    # the building's floor is bridged: it is 5-7 m from ground, under BRIDGE_M
+    assert not clean.no_ground.any()
+
+
+def test_a_wide_object_is_said_to_be_a_guess_and_a_canopy_is_never_ground():
+    rng = np.random.default_rng(5)
+    truth = _terrain((500, 500), bank=False)
+    wood = _building(truth.shape, (250, 250), (170, 170))  # 34 m across
+    dsm = np.where(wood, truth + 9.0 + rng.normal(0, 0.3, truth.shape), truth)
+    dtm, measured, _, _ = _photogrammetric_dtm(truth, wood, rng)
+    clean = bare_earth(dsm, dtm, measured, CELL_M)
+    dist_m = ndimage.distance_transform_edt(wood) * CELL_M
+    # (measured from the ground kept: the rim and the wood's edge are not, a metre or two)
+    assert clean.no_ground[dist_m > BRIDGE_M + 1].all() and not clean.no_ground[dist_m < BRIDGE_M - 3].any()
+    # all canopy: the filter's "ground" is the crowns' floor, rough at every scale
+    crowns = truth + 9.0 + ndimage.gaussian_filter(rng.normal(0, 30.0, truth.shape), 15) + rng.normal(0, 0.3, truth.shape)
+    canopy = bare_earth(crowns + 0.5, crowns, np.ones(truth.shape, bool), CELL_M)
+    assert not canopy.ground.any() and canopy.no_ground.all()
+    # a plane under the crowns (through each 5 m block's lowest), not on them
+    assert np.nanmedian(canopy.z) < np.nanpercentile(crowns, 10)
+
+
+def test_a_thin_plate_follows_the_ground_s_bend_and_has_no_cone():
+    rows, cols = np.indices((300, 400))
+    bend = 0.002 * (cols - 200.0) ** 2 - 0.001 * (rows - 150.0) ** 2 + 0.01 * cols
+    known = np.ones(bend.shape, bool)
+    known[100:200, 150:250] = False  # a roof 10 m across at 0.1 m cells, on a crest
+    harmonic = fill_harmonic(np.where(known, bend, np.nan), known)
+    smooth = fill_smooth(np.where(known, bend, np.nan), known)
+    assert np.abs(harmonic - bend)[~known].max() > 1.0  # the harmonic fill sags
+    assert np.abs(smooth - bend)[~known].max() < 0.01
+    # pinned to one cell in a wide gap: a harmonic fill is a cone there, a thin plate is round
+    z = np.full((200, 200), np.nan)
+    pin = np.zeros(z.shape, bool)
+    pin[:, :10] = pin[:, -10:] = True
+    pin[100, 100] = True
+    z[pin] = 0.0
+    z[100, 100] = 0.3
+    h, t = fill_harmonic(z, pin), fill_smooth(z, pin)
+    kink_h = h[100, 100] - 2 * h[100, 101] + h[100, 102]
+    kink_t = t[100, 100] - 2 * t[100, 101] + t[100, 102]
+    assert kink_h > 0.03 and abs(kink_t) < 0.005, (kink_h, kink_t)
+
+
+def test_the_step_at_a_footprint_edge_is_measured_and_a_plane_has_none():
+    rows, cols = np.indices((400, 400))
+    plane = 50.0 + 0.01 * cols - 0.02 * rows
+    transform = Affine(0.1, 0, 1000.0, 0, -0.1, 2000.0)
+    patch = shapely.box(1010.0, 1965.0, 1030.0, 1985.0)  # a photo's footprint, 20 m a side
+    inside = np.zeros(plane.shape, bool)
+    inside[150:350, 100:300] = True  # the same box in cells
+    grid = np.ones(plane.shape, bool)
+    flat, n = footprint_step_m(plane, transform, [patch], grid)
+    stepped, n2 = footprint_step_m(plane + 0.05 * inside, transform, [patch], grid)
+    assert n == n2 == 4
+    assert abs(flat) < 1e-6 and abs(stepped - 0.05) < 0.005, (flat, stepped)
+    assert roughness_m(plane, grid, 0.1) < 1e-6
+    noisy = plane + np.random.default_rng(1).normal(0.0, 0.01, plane.shape)
+    assert 0.008 < roughness_m(noisy, grid, 0.1) < 0.012
+
+
+def test_contours_lie_at_their_levels_at_an_interval_from_the_accuracy(tmp_path):
+    rows, cols = np.indices((300, 300))
+    cone = 20.0 - 0.05 * np.hypot(rows - 150.0, cols - 150.0)  # 20 m down to ~12.9 m at the corners
+    transform = Affine(0.2, 0, 500000.0, 0, -0.2, 4000000.0)
+    assert contour_interval_m(0.03, 7.0) == 0.1  # 3.29 x 3 cm
+    assert contour_interval_m(0.2, 7.0) == 1.0  # 0.66 m: the next standard step
+    assert contour_interval_m(0.001, 2000.0) == 10.0  # at most 200 levels
+    z = np.where(cols > 20, cone, np.nan)  # a strip without values: the lines stop at it
+    got = write_contours(tmp_path / "c.gpkg", z, transform, "EPSG:32629", 1.0)
+    lines = gpd.read_file(got.path, layer="contours")
+    assert lines.crs.to_epsg() == 32629
+    assert sorted(set(lines["elevation_m"])) == list(np.arange(np.ceil(np.nanmin(z)), 20.0, 1.0))
+    assert set(lines[lines["index"]]["elevation_m"]) == {10.0, 15.0}
+    inv = ~transform
+    for level, geom in zip(lines["elevation_m"], lines.geometry):
+        xy = np.asarray(geom.coords)
+        c, r = inv * (xy[:, 0], xy[:, 1])
+        assert np.nanmax(np.abs(bilinear(cone, np.asarray(c) - 0.5, np.asarray(r) - 0.5) - level)) < 0.01
+        assert (np.asarray(c) >= 20.5).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_synth_draws_the_new_scenes_two_ways(tmp_path, seed):
+    """The wide wood, the hall, the hedge and the breaklines in the truth, each drawn as its seed says."""
+    import json
+
+    import geoortho
+
+    s = geoortho.synth(
+        tmp_path / "s", preset="small", seed=seed, pathology="wide-wood,hall,hedge,breaklines", pixels=False
+    )
+    info = json.loads((s.truth / "survey.json").read_text())
+    cover = info["cover"]
+    assert cover["hall"]["pitched"] == (seed % 2 == 1)
+    assert cover["breaklines"]["bank_deg"] == (45.0 if seed % 2 == 0 else 30.0)
+    assert {"wide_wood", "hedge"} <= set(cover)
+    with rasterio.open(s.dsm) as a, rasterio.open(s.dtm) as b:
+        dsm, dtm, t = a.read(1), b.read(1), a.transform
+    rows, cols = np.indices(dsm.shape)
+    x, y = t * (cols + 0.5, rows + 0.5)
+    w = cover["wide_wood"]
+    in_wood = np.hypot(np.asarray(x) - w["x"], np.asarray(y) - w["y"]) < 0.8 * w["half_w_m"]
+    assert w["half_w_m"] >= 20 and np.median((dsm - dtm)[in_wood]) > 6.0
+    h = cover["hall"]
+    hall = (np.abs(np.asarray(x) - h["x"]) < 5) & (np.abs(np.asarray(y) - h["y"]) < 5)
+    assert np.median((dsm - dtm)[hall]) > 6.5
+    # the bank: the ground rises by its height across it
+    b = cover["breaklines"]
+    ang = np.radians(b["normal_deg"])
+    lx, ly = np.asarray(x) - np.mean(info["flight_box"][::2]), np.asarray(y) - np.mean(info["flight_box"][1::2])
+    d = lx * np.cos(ang) + ly * np.sin(ang)
+    gy, gx = np.gradient(dtm.astype(float), t.a)
+    steep = np.hypot(gx, gy)[np.abs(d - b["bank_offset_m"]) < 0.3]
+    assert np.median(steep) > 0.5  # 45 or 30 deg: 1.0 or 0.58 (the terrain's own slope adds to it)
