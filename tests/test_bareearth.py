@@ -91,7 +91,8 @@ def test_a_wide_object_is_said_to_be_a_guess_and_a_canopy_is_never_ground():
     # (measured from the ground kept: the rim and the wood's edge are not, a metre or two)
     assert clean.no_ground[dist_m > BRIDGE_M + 1].all() and not clean.no_ground[dist_m < BRIDGE_M - 3].any()
     # all canopy: the filter's "ground" is the crowns' floor, rough at every scale
-    crowns = truth + 9.0 + ndimage.gaussian_filter(rng.normal(0, 30.0, truth.shape), 15) + rng.normal(0, 0.3, truth.shape)
+    bumps = ndimage.gaussian_filter(rng.normal(0, 30.0, truth.shape), 15)
+    crowns = truth + 9.0 + bumps + rng.normal(0, 0.3, truth.shape)
     canopy = bare_earth(crowns + 0.5, crowns, np.ones(truth.shape, bool), CELL_M)
     assert not canopy.ground.any() and canopy.no_ground.all()
     # a plane under the crowns (through each 5 m block's lowest), not on them

@@ -34,9 +34,8 @@ Here, on the DSM's own grid:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
