@@ -65,6 +65,8 @@ OBJECT_SEED_M = 0.5
 OBJECT_GROW_M = 0.15
 #: Objects found, then found again on the envelope without them.
 ENVELOPE_PASSES = 3
+#: An object's cells reach at most this far from where it stands clear of the ground filter's DTM.
+RIM_REACH_M = 2.5
 #: A DTM cell further above the envelope than this (or 4 noise) is no ground: a rim.
 RIM_TOLERANCE_M = 0.15
 #: Islands of ground smaller than this that disagree with the rest are dropped.
@@ -195,14 +197,29 @@ def _block_min(z: np.ndarray, f: int) -> np.ndarray:
 
 
 def object_mask(
-    dsm: np.ndarray, envelope: np.ndarray, seed_m: float = OBJECT_SEED_M, grow_m: float = OBJECT_GROW_M
+    dsm: np.ndarray,
+    envelope: np.ndarray,
+    dtm: np.ndarray,
+    cell_m: float,
+    seed_m: float = OBJECT_SEED_M,
+    grow_m: float = OBJECT_GROW_M,
 ) -> np.ndarray:
-    """Cells where the DSM stands above the envelope: seeded above ``seed_m``, grown through every
-    connected cell above ``grow_m`` (hysteresis), then by one cell."""
+    """Cells of objects: seeded where the DSM stands more than ``seed_m`` above both the envelope and
+    the ground filter's DTM (it is no ground to the filter either), grown through every connected
+    cell above the envelope by ``grow_m`` within ``RIM_REACH_M`` of a seed (a wall's smeared foot,
+    not the terrace a bank holds up beside a hall), then by one cell."""
     from skimage.filters import apply_hysteresis_threshold
 
-    above = np.where(np.isfinite(dsm) & np.isfinite(envelope), dsm - envelope, 0.0)
-    found = np.asarray(apply_hysteresis_threshold(above, grow_m, seed_m), bool)
+    ok = np.isfinite(dsm) & np.isfinite(envelope)
+    above = np.where(ok, dsm - envelope, 0.0)
+    with np.errstate(invalid="ignore"):
+        seeds = (above > seed_m) & ~(dsm - dtm <= seed_m)
+    if not seeds.any():
+        return np.zeros(dsm.shape, bool)
+    reach = np.asarray(ndimage.distance_transform_edt(~seeds)) * cell_m <= RIM_REACH_M
+    # hysteresis on the reachable cells: the seeds' own height, the rest at most the seed threshold
+    level = np.where(seeds, np.maximum(above, seed_m + 1.0), np.where(reach, np.minimum(above, seed_m), 0.0))
+    found = np.asarray(apply_hysteresis_threshold(level, grow_m, seed_m), bool)
     return np.asarray(ndimage.binary_dilation(found, structure=np.ones((3, 3), bool)))
 
 
@@ -226,7 +243,7 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
     objects = np.zeros(dtm.shape, bool)
     for _ in range(ENVELOPE_PASSES):
         envelope = lower_envelope(dtm, cell_m, exclude=objects)
-        objects = object_mask(dsm, envelope, seed_m, grow_m)
+        objects = object_mask(dsm, envelope, dtm, cell_m, seed_m, grow_m)
     with np.errstate(invalid="ignore"):
         near_envelope = dtm - envelope <= max(RIM_TOLERANCE_M, 4 * noise)
     ground = measured & ~objects & near_envelope

@@ -1,0 +1,132 @@
+"""Benchmark: clean surfaces (issue 74). The DSM and DTM from the photos against the synthetic truth,
+the artefacts a hillshade shows, and dem's time and memory against the code before issue 74.
+
+For each survey (synth -> gcp-find -> sfm -> dense, cached in ``--work``), ``python -m geoortho dem
+--sfm`` runs in a fresh process (start-up included), and the same with the baseline checkout
+(``--baseline REF``, a git worktree made here: the ratio of the two is dem's cost of issue 74).
+Printed per survey, against the truth (``geoortho.synthetic.scoring``):
+
+* DTM RMSE, its |dZ| 95th percentile within 3 m of any object, its open-ground roughness beyond
+  the truth's (the DTM less its 1 m median, RMS) in GSD;
+* DSM |dZ| 95th percentile within 3 m of objects, its open-ground bias in GSD;
+* as dem measures itself: roughness, the step at the photos' footprint edges, the share under
+  objects with no ground seen;
+* dem's wall time and peak memory (and the baseline's).
+
+    python benchmarks/bench_surface.py [--work DIR] [--baseline d36ce45] [--surveys demo,scenes]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: name -> (preset, seed, pathologies): the demo's survey and the scenes issue 74 names.
+SURVEYS = {
+    "demo": ("small", 0, ""),
+    "scenes": ("small", 2, "wide-wood,hall,hedge,cars"),
+    "breaklines": ("small", 3, "breaklines,hedge"),
+}
+
+
+def _run(cmd: list[str], env: dict[str, str] | None = None) -> None:
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+
+
+def _prepare(work: Path, name: str) -> Path:
+    """The survey, its GCPs found, its SfM and dense cloud (made once)."""
+    preset, seed, pathology = SURVEYS[name]
+    d = work / name
+    py = [sys.executable, "-m", "geoortho"]
+    if not (d / "survey" / "truth" / "survey.json").is_file():
+        extra = ["--pathology", pathology] if pathology else []
+        _run([*py, "synth", "--output", str(d / "survey"), "--preset", preset, "--seed", str(seed), *extra])
+    if not (d / "dense.laz").is_file():
+        s = d / "survey"
+        _run([*py, "gcp-find", "--images", str(s / "images"), "--gcp-file", str(s / "truth" / "gcp_utm.txt"),
+              "--output", str(d / "gcp_list.txt")])  # fmt: skip
+        _run([*py, "sfm", "--images", str(s / "images"), "--output", str(d / "sfm"), "--gcp-list",
+              str(d / "gcp_list.txt"), "--max-image-size", "1024", "--max-features", "4096"])  # fmt: skip
+        _run([*py, "dense", "--sfm", str(d / "sfm"), "--images", str(s / "images"), "--output", str(d / "dense.laz")])
+    return d
+
+
+def _dem(d: Path, out: Path, pythonpath: str | None) -> tuple[float, float, dict[str, object]]:
+    """dem --sfm in a fresh process: wall seconds, peak MB (the child's), its JSON result."""
+    out.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath
+    cmd = [sys.executable, "-m", "geoortho", "dem", "--points", str(d / "dense.laz"), "--output", str(out / "dsm.tif"),
+           "--dtm", str(out / "dtm.tif"), "--sfm", str(d / "sfm"), "--method", "idw", "--json"]  # fmt: skip
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    t = time.perf_counter()
+    got = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
+    seconds = time.perf_counter() - t
+    peak_mb = max(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before) / 1024
+    try:
+        result = json.loads(got.stdout)
+    except ValueError:
+        result = {}
+    return seconds, peak_mb, result
+
+
+def _worktree(ref: str, into: Path) -> Path:
+    root = Path(__file__).resolve().parent.parent
+    subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(into), ref], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    return into
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "geoortho_bench_surface")
+    ap.add_argument("--surveys", default="demo,scenes,breaklines", help=f"comma-separated, of {', '.join(SURVEYS)}")
+    ap.add_argument("--baseline", default="", help="git ref of the code to time dem against (empty: none)")
+    args = ap.parse_args()
+    from geoortho.synthetic.scoring import score_surfaces
+
+    work = args.work
+    work.mkdir(parents=True, exist_ok=True)
+    base_tree = None
+    if args.baseline:
+        base_tree = work / f"baseline-{args.baseline}"
+        if not base_tree.exists():
+            _worktree(args.baseline, base_tree)
+    rows = []
+    for name in [n.strip() for n in args.surveys.split(",") if n.strip()]:
+        d = _prepare(work, name)
+        seconds, peak, result = _dem(d, d / "dem", None)
+        s = score_surfaces(d / "survey" / "truth", d / "dem" / "dsm.tif", d / "dem" / "dtm.tif")
+        row = {"survey": name, **s.as_dict(), "dem_s": seconds, "dem_peak_mb": peak}
+        for k in ("dtm_roughness_m", "footprint_step_m", "dtm_under_object_share"):
+            row[f"self_{k}"] = result.get(k)
+        if base_tree is not None:
+            b_seconds, b_peak, _ = _dem(d, d / "dem_baseline", str(base_tree))
+            b = score_surfaces(d / "survey" / "truth", d / "dem_baseline" / "dsm.tif", d / "dem_baseline" / "dtm.tif")
+            row.update({"baseline_dem_s": b_seconds, "baseline_peak_mb": b_peak, "time_ratio": seconds / b_seconds,
+                        "baseline": b.as_dict()})  # fmt: skip
+        rows.append(row)
+        gsd = s.gsd_m
+        print(f"== {name} (GSD {100 * gsd:.2f} cm)")
+        print(f"  DTM RMSE {s.dtm_rmse_m:.3f} m | p95 near objects {s.dtm_p95_near_objects_m:.3f} m | "
+              f"roughness excess {s.dtm_roughness_excess_gsd:.2f} GSD")  # fmt: skip
+        print(f"  DSM p95 near objects {s.dsm_p95_near_objects_m:.2f} m | open-ground bias {s.dsm_bias_open_gsd:+.2f} GSD")
+        print(f"  dem {seconds:.1f} s, peak {peak:.0f} MB" + (
+            f" | baseline {row['baseline_dem_s']:.1f} s, {row['baseline_peak_mb']:.0f} MB: x{row['time_ratio']:.2f}; "
+            f"baseline DTM RMSE {row['baseline']['dtm_rmse_m']:.3f} m, p95 near objects "
+            f"{row['baseline']['dtm_p95_near_objects_m']:.3f} m" if base_tree is not None else ""))  # fmt: skip
+    (work / "bench_surface.json").write_text(json.dumps(rows, indent=1, default=float))
+    print(f"written {work / 'bench_surface.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
