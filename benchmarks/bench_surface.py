@@ -118,7 +118,9 @@ def main() -> int:
         print(f"== {name} (GSD {100 * gsd:.2f} cm)")
         print(f"  DTM RMSE {s.dtm_rmse_m:.3f} m | p95 near objects {s.dtm_p95_near_objects_m:.3f} m | "
               f"roughness excess {s.dtm_roughness_excess_gsd:.2f} GSD")  # fmt: skip
-        print(f"  DSM p95 near objects {s.dsm_p95_near_objects_m:.2f} m | open-ground bias {s.dsm_bias_open_gsd:+.2f} GSD")
+        print(
+            f"  DSM p95 near objects {s.dsm_p95_near_objects_m:.2f} m | open-ground bias {s.dsm_bias_open_gsd:+.2f} GSD"
+        )
         print(f"  dem {seconds:.1f} s, peak {peak:.0f} MB" + (
             f" | baseline {row['baseline_dem_s']:.1f} s, {row['baseline_peak_mb']:.0f} MB: x{row['time_ratio']:.2f}; "
             f"baseline DTM RMSE {row['baseline']['dtm_rmse_m']:.3f} m, p95 near objects "
