@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -58,24 +56,34 @@ def _prepare(work: Path, name: str) -> Path:
     return d
 
 
-def _dem(d: Path, out: Path, pythonpath: str | None) -> tuple[float, float, dict[str, object]]:
-    """dem --sfm in a fresh process: wall seconds, peak MB (the child's), its JSON result."""
+def _dem(d: Path, out: Path, tree: str | None) -> tuple[float, float, dict[str, object]]:
+    """dem --sfm in a fresh process: wall seconds, its peak MB, its JSON result. ``tree``: run the
+    package of that checkout (the editable install's finder, a meta path hook that would find this
+    checkout's whatever PYTHONPATH says, is taken out in that process)."""
     out.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ)
-    if pythonpath:
-        env["PYTHONPATH"] = pythonpath
-    cmd = [sys.executable, "-m", "geoortho", "dem", "--points", str(d / "dense.laz"), "--output", str(out / "dsm.tif"),
+    boot = (
+        "import atexit, resource, runpy, sys; "
+        "atexit.register(lambda: print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
+        "file=sys.stderr)); "
+        + (
+            "sys.meta_path[:] = [f for f in sys.meta_path if not type(f).__module__.startswith('__editable__')]; "
+            f"sys.path.insert(0, {tree!r}); "
+            if tree
+            else ""
+        )
+        + "sys.argv[0] = 'geoortho'; runpy.run_module('geoortho', run_name='__main__', alter_sys=True)"
+    )
+    cmd = [sys.executable, "-c", boot, "dem", "--points", str(d / "dense.laz"), "--output", str(out / "dsm.tif"),
            "--dtm", str(out / "dtm.tif"), "--sfm", str(d / "sfm"), "--method", "idw", "--json"]  # fmt: skip
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t = time.perf_counter()
-    got = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env)
+    got = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=tree or None)
     seconds = time.perf_counter() - t
-    peak_mb = max(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before) / 1024
+    peak_kb = [float(line.split()[1]) for line in got.stderr.splitlines() if line.startswith("PEAK_KB")]
     try:
         result = json.loads(got.stdout)
     except ValueError:
         result = {}
-    return seconds, peak_mb, result
+    return seconds, (peak_kb[-1] / 1024 if peak_kb else float("nan")), result
 
 
 def _worktree(ref: str, into: Path) -> Path:

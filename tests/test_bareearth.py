@@ -193,3 +193,92 @@ def test_synth_draws_the_new_scenes_two_ways(tmp_path, seed):
     gy, gx = np.gradient(dtm.astype(float), t.a)
     steep = np.hypot(gx, gy)[np.abs(d - b["bank_offset_m"]) < 0.3]
     assert np.median(steep) > 0.5  # 45 or 30 deg: 1.0 or 0.58 (the terrain's own slope adds to it)
+
+
+# --- from the photos: the chain on synthetic surveys with the new scenes ------------------------
+
+
+def _chain(folder, seed, pathology):
+    """synth (tiny) -> gcp-find -> sfm -> dense -> dem --sfm with a DTM and contours."""
+    from conftest import SFM_FAST
+
+    import geoortho
+
+    s = geoortho.synth(folder / "survey", preset="tiny", seed=seed, pathology=pathology)
+    found = geoortho.gcp_find(s.images, s.gcp_file, folder / "gcp_list.txt")
+    r_sfm = geoortho.sfm(s.images, folder / "sfm", gcp_list=found.output, **SFM_FAST)
+    r_dense = geoortho.dense(r_sfm.output, s.images, folder / "dense.laz", max_image_size=640)
+    r_dem = geoortho.dem(
+        r_dense.output, folder / "dsm.tif", dtm=folder / "dtm.tif", sfm=r_sfm.output, contours=folder / "c.gpkg"
+    )
+    return s, r_sfm, r_dem
+
+
+@pytest.fixture(scope="module")
+def banks(tmp_path_factory):
+    """A bank and a road cutting, from the photos (seed 4: a 45 deg bank)."""
+    return _chain(tmp_path_factory.mktemp("banks"), 4, "breaklines")
+
+
+def _truth_on(s, r_dem):
+    from geoortho.synthetic.scoring import _on_grid
+
+    with rasterio.open(r_dem.dtm) as ds:
+        z = ds.read(1, masked=True).filled(np.nan).astype(float)
+        t, crs = ds.transform, ds.crs
+    with rasterio.open(r_dem.dtm_source) as ds:
+        source = ds.read(1)
+    return z, source, t, _on_grid(s.dtm, t, crs, z.shape), _on_grid(s.dsm, t, crs, z.shape)
+
+
+def test_the_dtm_from_the_photos_keeps_its_bank_and_its_cutting(banks):
+    import json
+
+    from geoortho.synthetic.scoring import score_surfaces
+
+    s, _, r_dem = banks
+    got = score_surfaces(s.truth, r_dem.dsm, r_dem.dtm)
+    z, source, t, tdtm, tdsm = _truth_on(s, r_dem)
+    objects = (tdsm - tdtm) > 0.2
+    # issue 74's roughness floor on open ground (measured, seed 4: 0.11 GSD beyond the truth's; the
+    # rims are not scored here: the dense cloud misses this survey's one building, seed 4)
+    assert got.dtm_roughness_excess_gsd <= 0.25, got
+    # the bank and the cutting: the ground across them as the truth's, away from the objects
+    info = json.loads((s.truth / "survey.json").read_text())
+    b = info["cover"]["breaklines"]
+    ang = np.radians(b["normal_deg"])
+    fx0, fy0, fx1, fy1 = info["flight_box"]
+    rows, cols = np.indices(z.shape)
+    x, y = (np.asarray(v) for v in t * (cols + 0.5, rows + 0.5))
+    d = (x - (fx0 + fx1) / 2) * np.cos(ang) + (y - (fy0 + fy1) / 2) * np.sin(ang)
+    clear = ndimage.distance_transform_edt(~objects) * t.a > 5.0
+    for at, half in ((b["bank_offset_m"], 3.0), (b["cutting_offset_m"], b["cutting_width_m"] / 2 + 3.0)):
+        across = clear & (np.abs(d - at) < half) & np.isfinite(z)
+        assert across.sum() > 200
+        # measured (seed 4): bank 2.7 / 15 cm (median / 80th percentile), cutting 2.4 / 8 cm; a stretch
+        # of the bank the dense cloud holed (0.7 m low) and one beside the tree make the rest
+        dz = np.abs(z - tdtm)[across]
+        assert np.median(dz) < 0.05 and np.percentile(dz, 80) < 0.2
+    lines = gpd.read_file(r_dem.contours, layer="contours")
+    assert len(lines) > 10 and r_dem.contour_interval_m in (0.1, 0.2, 0.25, 0.5)
+
+
+def test_a_survey_all_canopy_gives_a_stated_fallback_never_the_canopy(tmp_path):
+    """Bad input: the tiny survey under one wood (44 m across over a 32 x 24 m flight): no ground
+    seen. The DTM is not the crowns called ground; it is said to be a guess, and graded red."""
+    from geoortho.chain.quality import assess
+
+    s, r_sfm, r_dem = _chain(tmp_path, 6, "wide-wood")
+    z, source, t, tdtm, tdsm = _truth_on(s, r_dem)
+    wood = (tdsm - tdtm) > 5.0
+    assert wood.mean() > 0.5
+    # the crowns stand 7-12 m: the DTM under them is not they
+    assert np.nanmedian((z - tdtm)[wood]) < 3.0, np.nanmedian((z - tdtm)[wood])
+    assert r_dem.dtm_under_object_share > 0.5
+    assert (source[wood & np.isfinite(z)] == 4).mean() > 0.5
+    import json
+
+    sfm = json.loads(r_sfm.report.read_text())
+    keys = ("dtm_roughness_m", "dtm_under_object_share", "footprint_step_m", "seen_m2", "measured_share")
+    checks = {c.item: c.state for c in assess(sfm, None, {k: getattr(r_dem, k) for k in keys}, None, None)}
+    assert checks["dtm_no_ground"] == "red"

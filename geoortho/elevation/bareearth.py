@@ -82,6 +82,7 @@ BLOB_M2 = 2.0
 BLOB_SMOOTH_M = 1.0
 BLOB_SIGMAS = 5.0
 BLOB_MIN_M = 0.05
+BLOB_JOIN_M = 0.3
 #: "Ground" rougher than this (its speckle's robust sigma) is no ground: a canopy's top (its
 #: crowns 0.1-0.5 m apart at 0.5 m), where bare or grassed ground measures 1-3 cm.
 NOT_GROUND_NOISE_M = 0.2
@@ -246,7 +247,10 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
         objects = object_mask(dsm, envelope, dtm, cell_m, seed_m, grow_m)
     with np.errstate(invalid="ignore"):
         near_envelope = dtm - envelope <= max(RIM_TOLERANCE_M, 4 * noise)
-    ground = measured & ~objects & near_envelope
+    # a rim lies beside an object: elsewhere the envelope only undercuts the ground's own edges (a
+    # bank's brow, by up to 0.4 m at 45 deg), and the ground stands
+    beside = np.asarray(ndimage.distance_transform_edt(~objects)) * cell_m <= RIM_REACH_M
+    ground = measured & ~objects & (near_envelope | ~beside)
     n_rim = int(measured.sum() - ground.sum())
     ground, n_islands = _drop_islands(dtm, ground, cell_m, max(RIM_TOLERANCE_M, 4 * noise))
     ground, n_blobs = _drop_blobs(dtm, ground, cell_m, max(BLOB_MIN_M, BLOB_SIGMAS * noise))
@@ -307,14 +311,18 @@ def _drop_blobs(z: np.ndarray, ground: np.ndarray, cell_m: float, tolerance_m: f
         off = ground & (np.abs(z - _smoothed(despiked, ground, cell_m, BLOB_SMOOTH_M)) > tolerance_m)
     if not off.any():
         return ground, n_spikes
-    labels, n = ndimage.label(off, structure=np.ones((3, 3), bool))
-    sizes = np.bincount(labels.ravel())
-    small = np.flatnonzero(sizes * cell_m * cell_m < BLOB_M2)
+    # pieces within BLOB_JOIN_M of each other are one: a bank's brow, broken by noise into pieces
+    # that each disagree with the plane fitted across it, is a line, not a row of blobs
+    joined = ndimage.binary_dilation(off, iterations=max(1, int(round(BLOB_JOIN_M / cell_m))))
+    labels, n = ndimage.label(joined, structure=np.ones((3, 3), bool))
+    sizes = np.bincount(labels[off].ravel(), minlength=n + 1)
+    extent = np.bincount(labels.ravel(), minlength=n + 1)
+    small = np.flatnonzero((sizes * cell_m * cell_m < BLOB_M2) & (extent * cell_m * cell_m < 4 * BLOB_M2))
     small = small[small > 0]
     if not len(small):
         return ground, n_spikes
     # the blob and a ring of a cell or two round it: its foot is as wrong, just less
-    dropped = ndimage.binary_dilation(np.isin(labels, small), iterations=2) & ground
+    dropped = ndimage.binary_dilation(np.isin(labels, small) & off, iterations=2) & ground
     return ground & ~dropped, n_spikes + int(dropped.sum())
 
 

@@ -412,13 +412,18 @@ def _breaklines(
     g: _SceneGrid, dtm: np.ndarray, bank_deg: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """A bank across the scene (the ground BANK_M higher on one side, sloping at ``bank_deg``) and a
-    road cutting parallel to it, CUTTING_M deep and wide with 45 deg sides, a third of the flight
-    area away: the DTM with them, and where they are (their lines' offsets along one normal)."""
+    road cutting parallel to it on its low side, CUTTING_M deep and wide with 45 deg sides, a third
+    of the flight area away: the DTM with them, and where they are (their offsets along one normal)."""
     lx, ly = g.local
     ang = float(rng.uniform(0, np.pi))
     d = lx * math.cos(ang) + ly * math.sin(ang)  # distance along the normal from the centre
     span = min(g.area_m)
-    bank_at, cut_at = -0.15 * span, 0.2 * span
+    # the cutting on the bank's low side: the ground between them is a terrace below the bank, not
+    # a strip standing above the ground on both sides (an embankment, which every ground filter
+    # takes for an object); the bank near the middle, its high side wider than SMRF's reach (a
+    # terrace 10 m wide at a survey's edge, 2 m up, is an object to it)
+    bank_at = -0.05 * span
+    cut_at = bank_at - max(0.3 * span, 12.0)  # a shelf of 6 m or more between the bank and the cutting
     run = BANK_M[0] / math.tan(math.radians(bank_deg))
     bank = BANK_M[0] * np.clip((d - bank_at) / run + 0.5, 0.0, 1.0)
     depth, road = CUTTING_M
