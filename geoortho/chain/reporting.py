@@ -858,8 +858,43 @@ def _elevation(ctx: _Context) -> str:
                 " / ".join(f"{dense.get(k):,}" for k in ("points_matched", "points_consistent", "points_written")),
             ),
         ]
+    pairs += _terrain_pairs(d)
     parts.append(_kv(pairs))
     return "".join(parts)
+
+
+def _terrain_pairs(d: dict[str, Any]) -> list[tuple[str, Any]]:
+    """What the DTM is made of and what its hillshade would show, as dem measured it."""
+
+    def num(key: str) -> float:
+        try:
+            return float(d.get(key))  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            return math.nan
+
+    pairs: list[tuple[str, Any]] = []
+    measured, under = num("dtm_measured_share"), num("dtm_under_object_share")
+    if math.isfinite(measured):
+        seen = num("seen_m2")
+        area = f" ({under * seen:,.0f} m²)" if math.isfinite(seen) and math.isfinite(under) else ""
+        pairs.append(
+            (
+                "DTM: ground measured / under objects, no ground seen",
+                f"{measured:.1%} / {under:.1%}{area} (dtm_source.tif: 1 measured, 2 interpolated, 4 no ground seen)",
+            )
+        )
+    rough, step = num("dtm_roughness_m"), num("footprint_step_m")
+    if math.isfinite(rough) or math.isfinite(step):
+        pairs.append(
+            (
+                "DTM roughness on open ground / step at footprint edges",
+                f"{100 * rough:.1f} cm / {100 * step:.1f} cm RMS",
+            )
+        )
+    interval = num("contour_interval_m")
+    if math.isfinite(interval) and d.get("contours"):
+        pairs.append(("Contours", f"every {interval:g} m ({Path(str(d.get('contours'))).name})"))
+    return pairs
 
 
 def _ortho(ctx: _Context) -> str:
