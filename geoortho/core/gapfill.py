@@ -55,15 +55,23 @@ def gap_mask(
 def fill_harmonic(z: np.ndarray, known: np.ndarray, fill: np.ndarray | None = None, *, sweeps: int = 30) -> np.ndarray:
     """``z`` with the cells of ``fill`` (default: every unknown cell) solved from Laplace's equation,
     the known cells fixed. Other cells are NaN."""
-    z = np.asarray(z, np.float64)
-    known = np.asarray(known, bool) & np.isfinite(z)
-    target = ~known if fill is None else (np.asarray(fill, bool) & ~known)
-    out = np.where(known, z, np.nan)
+    z, known, target, out = _fill_inputs(z, known, fill)
     if not target.any() or not known.any():
         return out
     solved = _solve(np.where(known, z, 0.0), known, sweeps)
     out[target] = solved[target]
     return out
+
+
+def _fill_inputs(
+    z: np.ndarray, known: np.ndarray, fill: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A fill's grid (float64), its known cells (finite ones only), the cells to fill (default:
+    every unknown one), and the output with the known cells in place, NaN elsewhere."""
+    z = np.asarray(z, np.float64)
+    known = np.asarray(known, bool) & np.isfinite(z)
+    target = ~known if fill is None else (np.asarray(fill, bool) & ~known)
+    return z, known, target, np.where(known, z, np.nan)
 
 
 def _solve(z: np.ndarray, known: np.ndarray, sweeps: int) -> np.ndarray:
@@ -119,10 +127,7 @@ def fill_smooth(z: np.ndarray, known: np.ndarray, fill: np.ndarray | None = None
     thin plate carries the slope and the bend of the ground around a gap into it. It is clipped
     to the known values' range (widened by a tenth of it), so that far from any data it does
     not run away. Other cells are NaN."""
-    z = np.asarray(z, np.float64)
-    known = np.asarray(known, bool) & np.isfinite(z)
-    target = ~known if fill is None else (np.asarray(fill, bool) & ~known)
-    out = np.where(known, z, np.nan)
+    z, known, target, out = _fill_inputs(z, known, fill)
     if not target.any() or not known.any():
         return out
     h, w = z.shape
