@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 from affine import Affine
 
+from geoortho.core.outputs import write_vector
+
 __all__ = ["ContourResult", "contour_interval_m", "write_contours"]
 
 #: The standard steps of a contour interval, metres.
@@ -68,8 +70,6 @@ def write_contours(
     import geopandas as gpd
     import shapely
     from skimage.measure import find_contours
-
-    from geoortho.core.outputs import write_vector
 
     f = max(1, int(math.ceil(math.sqrt(z.size / MAX_CELLS))))
     zz = _block_mean(np.asarray(z, np.float64), f)

@@ -30,7 +30,9 @@ from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_poin
 from geoortho.core.surface import GridSurface
 from geoortho.elevation import tiles as dem_tiles
 from geoortho.elevation.artefacts import footprint_step_m, roughness_m
-from geoortho.elevation.bareearth import bare_earth
+from geoortho.elevation.bareearth import bare_earth, ground_noise_m
+from geoortho.elevation.contours import contour_interval_m as auto_interval
+from geoortho.elevation.contours import write_contours
 from geoortho.elevation.coverage import (
     FALLBACK,
     INTERPOLATED,
@@ -415,10 +417,6 @@ def _with_contours(
     if result.dtm is None:
         raise ParameterError("contours", "contours are drawn from the DTM: give --dtm too")
     import rasterio
-
-    from geoortho.elevation.bareearth import ground_noise_m
-    from geoortho.elevation.contours import contour_interval_m as auto_interval
-    from geoortho.elevation.contours import write_contours
 
     with rasterio.open(result.dtm) as ds:
         z = ds.read(1, masked=True).filled(np.nan).astype(np.float64)

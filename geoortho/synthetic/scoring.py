@@ -18,6 +18,7 @@ import numpy as np
 from scipy import ndimage
 
 from geoortho.elevation.artefacts import roughness_m
+from geoortho.elevation.coverage import seen_count
 
 __all__ = ["SurfaceScores", "score_surfaces"]
 
@@ -66,8 +67,6 @@ def _read(path: Path) -> tuple[np.ndarray, Any, Any]:
 
 def _seen_twice(truth: Path, transform: Any, shape: tuple[int, int]) -> np.ndarray:
     import geopandas as gpd
-
-    from geoortho.elevation.coverage import seen_count
 
     fp = gpd.read_file(truth / "footprints.gpkg")
     return seen_count(list(fp.geometry), transform, shape) >= 2
