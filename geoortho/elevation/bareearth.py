@@ -86,6 +86,13 @@ BLOB_JOIN_M = 0.3
 #: "Ground" rougher than this (its speckle's robust sigma) is no ground: a canopy's top (its
 #: crowns 0.1-0.5 m apart at 0.5 m), where bare or grassed ground measures 1-3 cm.
 NOT_GROUND_NOISE_M = 0.2
+#: ... or rougher than this at CROWN_SCALE_M (a closed canopy's crowns, 2-3 m across, 1-2.5 m deep;
+#: gentle ground and a field's furrows: a few cm, a bank a line of cells, not the median's).
+CROWN_SCALE_M = 2.0
+NOT_GROUND_ROUGH_M = 0.25
+#: Ground kept on less than this share of the DTM's cells is no ground seen (an all-canopy cloud:
+#: 21 of 92 k cells, its crowns' troughs).
+MIN_GROUND_SHARE = 0.02
 #: With no ground seen, the fallback plane runs through each block's lowest cell, blocks this wide.
 BLOCK_M = 5.0
 #: The fill under an object rests on the ground at least this far from it.
@@ -108,12 +115,12 @@ class BareEarth:
     n_islands: int  # ground cells dropped as islands that disagree
 
 
-def ground_noise_m(z: np.ndarray, ground: np.ndarray, cell_m: float) -> float:
-    """The robust sigma of a surface less its smoothed self (over ``SMOOTH_M``) on ``ground``
-    cells: the speckle a hillshade shows (0 when fewer than 50 cells)."""
+def ground_noise_m(z: np.ndarray, ground: np.ndarray, cell_m: float, scale_m: float = 0.0) -> float:
+    """The robust sigma of a surface less its smoothed self (over ``scale_m``, default
+    ``SMOOTH_M``) on ``ground`` cells: the speckle a hillshade shows (0 when fewer than 50 cells)."""
     if int(ground.sum()) < 50:
         return 0.0
-    diff = (z - _smoothed(z, np.isfinite(z), cell_m))[ground]
+    diff = (z - _smoothed(z, np.isfinite(z), cell_m, scale_m))[ground]
     diff = diff[np.isfinite(diff)]
     return float(1.4826 * np.median(np.abs(diff - np.median(diff)))) if diff.size else 0.0
 
@@ -236,7 +243,8 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
         none = np.zeros(dtm.shape, bool)
         return BareEarth(dtm.astype(np.float32), none, none, none, 0.0, 0, 0)
     noise = ground_noise_m(dtm, measured, cell_m)
-    if noise > NOT_GROUND_NOISE_M:
+    # crowns are rough at a couple of metres where ground (a field's furrows included) is not
+    if noise > NOT_GROUND_NOISE_M or ground_noise_m(dtm, measured, cell_m, CROWN_SCALE_M) > NOT_GROUND_ROUGH_M:
         return _no_ground_seen(dtm, valid, cell_m, noise)
     seed_m, grow_m = max(OBJECT_SEED_M, 8 * noise), max(OBJECT_GROW_M, 4 * noise)
     # twice: the objects found on a plain opening, then on the opening that leaves them out (a
@@ -255,7 +263,9 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
     ground, n_islands = _drop_islands(dtm, ground, cell_m, max(RIM_TOLERANCE_M, 4 * noise))
     ground, n_blobs = _drop_blobs(dtm, ground, cell_m, max(BLOB_MIN_M, BLOB_SIGMAS * noise))
     n_islands += n_blobs
-    if not ground.any():  # nothing is ground: never the objects' tops called ground
+    # nothing is ground, or a few stray cells of it (an all-canopy survey's troughs that the
+    # filter kept): never the objects' tops called ground
+    if int(ground.sum()) < MIN_GROUND_SHARE * int(valid.sum()):
         return _no_ground_seen(dtm, valid, cell_m, noise)
     # the fill rests on the ground a little way off each object: the ring just beside it holds
     # what is left of the rim, and a thin plate carries a ring's slope far into the gap
