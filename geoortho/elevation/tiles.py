@@ -536,6 +536,9 @@ def append_by_tile(rows: np.ndarray, tile: np.ndarray, file_of: Callable[[int], 
 
 def work_folder(near: Path) -> tempfile.TemporaryDirectory[str]:
     """A temporary folder for the tile files beside the output (the same disk as the products),
-    named as every geoortho temporary is, so that a killed run's is removed by the next run."""
-
-    return tempfile.TemporaryDirectory(prefix=temp_prefix(Path(near).name), dir=Path(near).absolute().parent)
+    named as every geoortho temporary is, so that a killed run's is removed by the next run. The
+    output's folder is made first, as the whole-grid path's writes make it (a new folder ended a
+    tiled dem in an unexpected FileNotFoundError)."""
+    parent = Path(near).absolute().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    return tempfile.TemporaryDirectory(prefix=temp_prefix(Path(near).name), dir=parent)
