@@ -13,21 +13,24 @@ surveyor sees at once in a hillshade (issue 74, measured on the demo survey and 
 
 Here, on the DSM's own grid:
 
-1. The ground's lower envelope is the DTM opened by a disc (``RIM_RADIUS_M``): a rim is narrower
-   than the disc and falls away; open ground is unchanged (an opening lowers a convex surface by
-   its curvature times r²/2: millimetres).
-2. Objects are the cells where the DSM stands above that envelope: seeded where it stands more
-   than ``OBJECT_SEED_M`` above, grown (hysteresis, scikit-image) through every connected cell
-   more than ``OBJECT_GROW_M`` above it, then by one cell (the foot of a leaning wall). A wall's
-   half-height cells are connected to its roof: they join the object, whatever the object's size.
-3. Ground cells are the DTM's measured cells off the objects and within ``RIM_TOLERANCE_M`` of
-   the envelope; small islands of ground that disagree with a smooth surface through the rest
-   are dropped (a crown's gap, a wrong match) before they pin anything. A long disagreement (a
-   kerb, a bank) is a breakline and stays.
-4. Everything else is filled smoothly (:func:`geoortho.core.gapfill.fill_smooth`: harmonic at
-   large scale, biharmonic near the data: no cone at a single cell), then the whole DTM is
-   denoised by an edge-preserving smoothing whose range is the ground's own measured noise: the
-   dense cloud's speckle goes, a bank and a kerb stay.
+1. The ground's lower envelope is the DTM opened by a disc (``RIM_RADIUS_M``, on blocks of
+   ``ENVELOPE_CELL_M``), the objects found so far left out of it: a rim resting on an object's
+   interpolated plateau falls to the ground outside it; open ground is unchanged.
+2. Objects are seeded where the DSM (its 5 x 5 median) stands ``OBJECT_SEED_M`` above both the
+   envelope and the filter's DTM over ``SEED_MIN_M2``, and grown (hysteresis, scikit-image) through
+   every connected cell ``OBJECT_GROW_M`` above the envelope within ``RIM_REACH_M`` of a seed, then
+   by one cell: a wall's half-height cells join its roof, whatever the object's size; the terrace a
+   bank holds up beside it does not.
+3. Ground cells are the DTM's measured cells off the objects, within ``RIM_TOLERANCE_M`` of the
+   envelope beside them; spikes off their own median, small blobs off a local plane fit and small
+   islands off a surface through the rest are dropped before they pin anything. A long
+   disagreement (a kerb, a bank's brow) is a breakline and stays. Ground on under
+   ``MIN_GROUND_SHARE`` of the cells, or rough as crowns are, is no ground seen at all: a plane
+   through the lowest cells, said so.
+4. Everything else is filled as a thin plate (:func:`geoortho.core.gapfill.fill_smooth`) resting on
+   ground ``FILL_CLEARANCE_M`` off each object, then the speckle is smoothed where the ground is
+   smooth (a local plane fit over ``SMOOTH_M``, kept past ``BREAK_SIGMAS`` noise sigmas), and the
+   DTM is kept under the DSM within twice the noise.
 5. Cells under an object farther than ``BRIDGE_M`` from any ground cell are "under an object, no
    ground seen" (their own code in the source raster): a guess, said so.
 """
