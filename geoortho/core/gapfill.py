@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["fill_gaps_by_windows", "fill_harmonic", "fill_smooth", "gap_mask"]
+__all__ = ["block_sums", "fill_gaps_by_windows", "fill_harmonic", "fill_smooth", "gap_mask"]
 
 OVERRELAX = 1.7  # measured best of 1.0-1.85 on a ramp through a 40-cell hole
 
@@ -63,6 +63,17 @@ def fill_harmonic(z: np.ndarray, known: np.ndarray, fill: np.ndarray | None = No
     return out
 
 
+def block_sums(z: np.ndarray, known: np.ndarray, f: int) -> tuple[np.ndarray, np.ndarray]:
+    """The sum of the ``known`` cells' values and their count in each f x f block of ``z`` (the
+    grid padded to whole blocks): a block mean is their ratio where the count is not 0."""
+    h, w = z.shape
+    hp, wp = -(-h // f) * f, -(-w // f) * f
+    zs, ks = np.zeros((hp, wp)), np.zeros((hp, wp))
+    zs[:h, :w] = np.where(known, z, 0.0)
+    ks[:h, :w] = known
+    return zs.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3)), ks.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+
+
 def _fill_inputs(
     z: np.ndarray, known: np.ndarray, fill: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -82,13 +93,7 @@ def _solve(z: np.ndarray, known: np.ndarray, sweeps: int) -> np.ndarray:
         v = z[known].mean() if known.any() else 0.0
         return np.where(known, z, v)
     # coarser level: mean of the known cells of each 2x2 block
-    hp, wp = h + h % 2, w + w % 2
-    zs = np.zeros((hp, wp))
-    ks = np.zeros((hp, wp))
-    zs[:h, :w] = np.where(known, z, 0.0)
-    ks[:h, :w] = known
-    zsum = zs.reshape(hp // 2, 2, wp // 2, 2).sum(axis=(1, 3))
-    ksum = ks.reshape(hp // 2, 2, wp // 2, 2).sum(axis=(1, 3))
+    zsum, ksum = block_sums(z, known, 2)
     kc = ksum > 0
     zc = np.where(kc, zsum / np.maximum(ksum, 1), 0.0)
     coarse = _solve(zc, kc, sweeps)
@@ -136,14 +141,9 @@ def fill_smooth(z: np.ndarray, known: np.ndarray, fill: np.ndarray | None = None
     h, w = z.shape
     f = max(1, int(math.ceil(math.sqrt(int(target.sum()) / THIN_PLATE_MAX_UNKNOWNS))))
     hp, wp = -(-h // f) * f, -(-w // f) * f
-    zs, ks, ts = np.zeros((hp, wp)), np.zeros((hp, wp)), np.zeros((hp, wp), bool)
-    zs[:h, :w] = np.where(known, z, 0.0)
-    ks[:h, :w] = known
-    ts[:h, :w] = target
-    zsum = zs.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
-    ksum = ks.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+    zsum, ksum = block_sums(z, known, f)
     kc = ksum > 0
-    tc = ts.reshape(hp // f, f, wp // f, f).any(axis=(1, 3)) & ~kc
+    tc = (block_sums(z, target, f)[1] > 0) & ~kc
     coarse = _thin_plate(np.where(kc, zsum / np.maximum(ksum, 1), 0.0), kc, tc)
     lo, hi = float(z[known].min()), float(z[known].max())
     coarse = np.clip(coarse, lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo))

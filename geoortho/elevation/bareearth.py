@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from geoortho.core.gapfill import fill_harmonic, fill_smooth
+from geoortho.core.gapfill import block_sums, fill_harmonic, fill_smooth
 
 __all__ = [
     "BRIDGE_M",
@@ -219,13 +219,7 @@ def _crown_roughness_m(dtm: np.ndarray, measured: np.ndarray, cell_m: float) -> 
     f = max(1, int(ENVELOPE_CELL_M / cell_m))
     if f == 1:
         return ground_noise_m(dtm, measured, cell_m, CROWN_SCALE_M)
-    h, w = dtm.shape
-    hp, wp = -(-h // f) * f, -(-w // f) * f
-    vals, have = np.zeros((hp, wp)), np.zeros((hp, wp))
-    vals[:h, :w] = np.where(measured, dtm, 0.0)
-    have[:h, :w] = measured
-    n = have.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
-    total = vals.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+    total, n = block_sums(dtm, measured, f)
     enough = n >= 0.5 * f * f
     coarse = np.where(enough, total / np.maximum(n, 1), np.nan)
     return ground_noise_m(coarse, enough, cell_m * f, CROWN_SCALE_M)
@@ -396,11 +390,7 @@ def _coarse_harmonic(z: np.ndarray, known: np.ndarray, cell_m: float) -> np.ndar
         return fill_harmonic(z, known)
     h, w = z.shape
     hp, wp = -(-h // f) * f, -(-w // f) * f
-    vals, have = np.zeros((hp, wp)), np.zeros((hp, wp))
-    vals[:h, :w] = np.where(known, z, 0.0)
-    have[:h, :w] = known
-    n = have.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
-    total = vals.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+    total, n = block_sums(z, known, f)
     coarse = fill_harmonic(np.where(n > 0, total / np.maximum(n, 1), np.nan), n > 0)
     coarse = np.where(np.isfinite(coarse), coarse, np.nanmean(coarse))
     return np.asarray(cv2.resize(coarse.astype(np.float64), (wp, hp), interpolation=cv2.INTER_LINEAR)[:h, :w])

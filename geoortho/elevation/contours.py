@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from affine import Affine
 
+from geoortho.core.gapfill import block_sums
 from geoortho.core.outputs import write_vector
 
 __all__ = ["ContourResult", "contour_interval_m", "write_contours"]
@@ -48,15 +49,7 @@ def contour_interval_m(vertical_rmse_m: float, relief_m: float) -> float:
 def _block_mean(z: np.ndarray, f: int) -> np.ndarray:
     if f <= 1:
         return z
-    h, w = z.shape
-    hp, wp = -(-h // f) * f, -(-w // f) * f
-    valid = np.zeros((hp, wp))
-    vals = np.zeros((hp, wp))
-    ok = np.isfinite(z)
-    valid[:h, :w] = ok
-    vals[:h, :w] = np.where(ok, z, 0.0)
-    n = valid.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
-    s = vals.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+    s, n = block_sums(z, np.isfinite(z), f)
     with np.errstate(invalid="ignore", divide="ignore"):
         # a block counts when most of it has values (its edge stays where the DTM's is)
         return np.where(n >= 0.5 * f * f, s / np.maximum(n, 1), np.nan)

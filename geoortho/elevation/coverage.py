@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from affine import Affine
 
-from geoortho.core.gapfill import fill_gaps_by_windows, fill_harmonic
+from geoortho.core.gapfill import block_sums, fill_gaps_by_windows, fill_harmonic
 from geoortho.photos.footprint import compute_footprints
 
 __all__ = [
@@ -162,12 +162,7 @@ def complete_grid(
     h, w = z.shape
     f = max(1, int(math.ceil(math.sqrt(h * w / max_solve_cells))))
     hp, wp = -(-h // f) * f, -(-w // f) * f
-    zs = np.zeros((hp, wp))
-    ks = np.zeros((hp, wp))
-    zs[:h, :w] = np.where(known, z, 0.0)
-    ks[:h, :w] = known
-    csum = zs.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
-    ccount = ks.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+    csum, ccount = block_sums(z, known, f)
     ck = ccount > 0
     cz = np.where(ck, csum / np.maximum(ccount, 1), np.nan)
     pts = _support_cells(support, transform, f, cz.shape, ck)

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from geoortho.core.gapfill import fill_harmonic, gap_mask
+from geoortho.core.gapfill import block_sums, fill_harmonic, gap_mask
 from geoortho.core.outputs import temp_prefix
 from geoortho.core.parallel import imap_ordered
 from geoortho.elevation.grid import GROUND, NODATA, Accumulator, Grid, finite_points, with_nodata
@@ -389,15 +389,10 @@ class _CoarseSums:
 
     def add(self, z: np.ndarray, r0: int, c0: int) -> None:
         f = self.f
-        h, w = z.shape
-        hp, wp = -(-h // f) * f, -(-w // f) * f
-        known = np.isfinite(z)
-        zz, kk = np.zeros((hp, wp)), np.zeros((hp, wp))
-        zz[:h, :w] = np.where(known, z, 0.0)
-        kk[:h, :w] = known
-        at = np.s_[r0 // f : r0 // f + hp // f, c0 // f : c0 // f + wp // f]
-        self.sums[at] += zz.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
-        self.counts[at] += kk.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+        sums, counts = block_sums(z, np.isfinite(z), f)
+        at = np.s_[r0 // f : r0 // f + sums.shape[0], c0 // f : c0 // f + sums.shape[1]]
+        self.sums[at] += sums
+        self.counts[at] += counts
 
     def filled(self, max_gap_cells: float, stem: Path) -> tuple[Path, Path]:
         """The coarse grid's harmonic gap fill and its gap-closed outline, saved."""
