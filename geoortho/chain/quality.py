@@ -12,7 +12,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
-__all__ = ["THRESHOLDS", "Check", "Threshold", "assess", "verdict"]
+__all__ = ["THRESHOLDS", "Check", "Threshold", "as_number", "assess", "verdict"]
 
 State = Literal["green", "amber", "red", "not measured"]
 _ORDER = {"not measured": 0, "green": 1, "amber": 2, "red": 3}
@@ -247,7 +247,8 @@ def _share(n: Any, of: Any) -> float:
         return math.nan
 
 
-def _num(v: Any) -> float:
+def as_number(v: Any) -> float:
+    """A measured value as a float; NaN (not measured) for anything that is not a number."""
     try:
         return float(v)
     except (TypeError, ValueError):
@@ -275,23 +276,26 @@ def assess(
 
 def _coverage_checks(dem: dict[str, Any], ortho: dict[str, Any]) -> list[Check]:
     return [
-        _check("ortho_coverage", 100.0 * _num(ortho.get("share_of_seen_2", math.nan))),
-        _check("dsm_measured", 100.0 * _num(dem.get("measured_share", math.nan)) if dem.get("seen_m2") else math.nan),
+        _check("ortho_coverage", 100.0 * as_number(ortho.get("share_of_seen_2", math.nan))),
+        _check(
+            "dsm_measured",
+            100.0 * as_number(dem.get("measured_share", math.nan)) if dem.get("seen_m2") else math.nan,
+        ),
     ]
 
 
 def _terrain_checks(sfm: dict[str, Any], dem: dict[str, Any]) -> list[Check]:
     """The DTM as a hillshade shows it: its roughness on open ground and its steps at the photos'
     footprint edges (in GSDs), and how much of it lies under objects with no ground seen."""
-    gsd_m = _num(sfm.get("gsd_cm")) / 100.0
-    rough_m, step_m = _num(dem.get("dtm_roughness_m", math.nan)), _num(dem.get("footprint_step_m", math.nan))
+    gsd_m = as_number(sfm.get("gsd_cm")) / 100.0
+    rough_m, step_m = as_number(dem.get("dtm_roughness_m", math.nan)), as_number(dem.get("footprint_step_m", math.nan))
     return [
         _check(
             "dtm_roughness",
             rough_m / gsd_m if gsd_m > 0 else math.nan,
             f"{100 * rough_m:.1f} cm" if math.isfinite(rough_m) else "",
         ),
-        _check("dtm_no_ground", 100.0 * _num(dem.get("dtm_under_object_share", math.nan))),
+        _check("dtm_no_ground", 100.0 * as_number(dem.get("dtm_under_object_share", math.nan))),
         _check(
             "footprint_step",
             step_m / gsd_m if gsd_m > 0 else math.nan,
@@ -327,7 +331,7 @@ def _photo_checks(sfm: dict[str, Any], dense: dict[str, Any], ortho: dict[str, A
 
 def _control_checks(sfm: dict[str, Any]) -> list[Check]:
     """The GCPs' and checkpoints' RMSE (in GSDs), and how far the GCPs moved the GPS georeference."""
-    gsd_m = _num(sfm.get("gsd_cm")) / 100.0
+    gsd_m = as_number(sfm.get("gsd_cm")) / 100.0
     checks = []
     for item, key in (("gcp_rmse", "gcp_accuracy"), ("checkpoint_rmse", "checkpoint_accuracy")):
         acc = sfm.get(key) or {}
@@ -336,21 +340,21 @@ def _control_checks(sfm: dict[str, Any]) -> list[Check]:
             continue
         # 3D when the heights are controlled; placeholder heights: horizontal only
         three_d = acc.get("rmse_3d_m") is not None
-        rmse = _num(acc.get("rmse_3d_m") if three_d else acc.get("rmse_horizontal_m"))
+        rmse = as_number(acc.get("rmse_3d_m") if three_d else acc.get("rmse_horizontal_m"))
         what = "3D" if three_d else "horizontal (heights not controlled)"
         checks.append(_check(item, rmse / gsd_m, f"{100 * rmse:.1f} cm {what} over {acc.get('n')}"))
     effect = sfm.get("gcp_vs_gps") or {}
     cause = str(effect.get("likely_cause") or "")
     if cause and checks[0].state != "not measured":  # the control residuals: what most likely made them
         checks[0] = Check(**{**asdict(checks[0]), "detail": f"{checks[0].detail}; likely cause: {cause}"})
-    edge = f"moves the site's edge {_num(effect.get('edge_shift_m')):.2f} m" if "edge_shift_m" in effect else ""
-    checks.append(_check("gcp_scale", abs(_num(effect.get("scale_change_pct", math.nan))), edge))
-    checks.append(_check("gcp_rotation", _num(effect.get("rotation_deg", math.nan)), edge))
+    edge = f"moves the site's edge {as_number(effect.get('edge_shift_m')):.2f} m" if "edge_shift_m" in effect else ""
+    checks.append(_check("gcp_scale", abs(as_number(effect.get("scale_change_pct", math.nan))), edge))
+    checks.append(_check("gcp_rotation", as_number(effect.get("rotation_deg", math.nan)), edge))
     checks.append(
         _check(
             "gcp_shift",
-            _num(effect.get("shift_horizontal_m", math.nan)),
-            f"{_num(effect.get('shift_vertical_m')):+.2f} m vertically" + (f"; {cause}" if cause else "")
+            as_number(effect.get("shift_horizontal_m", math.nan)),
+            f"{as_number(effect.get('shift_vertical_m')):+.2f} m vertically" + (f"; {cause}" if cause else "")
             if "shift_horizontal_m" in effect
             else "",
         )
@@ -363,12 +367,12 @@ def _gps_checks(sfm: dict[str, Any]) -> list[Check]:
     by_gps = str(sfm.get("georeferenced_by", "")).startswith("GPS")
     gps = sfm.get("gps") or {}
     spread = (
-        f"; {100 * _num(gps.get('inlier_share')):.0f} % of the photos fit it, rotation ± "
-        f"{_num(gps.get('rotation_sd_deg')):.2f}°, scale ± {_num(gps.get('scale_sd_pct')):.2f} %"
+        f"; {100 * as_number(gps.get('inlier_share')):.0f} % of the photos fit it, rotation ± "
+        f"{as_number(gps.get('rotation_sd_deg')):.2f}°, scale ± {as_number(gps.get('scale_sd_pct')):.2f} %"
         if "inlier_share" in gps
         else ""
     )
-    ce90_m = _num(gps.get("ce90_m"))
+    ce90_m = as_number(gps.get("ce90_m"))
     return [
         _check(
             "gps_fit",
@@ -377,9 +381,9 @@ def _gps_checks(sfm: dict[str, Any]) -> list[Check]:
         ),
         _check(
             "gps_fits_agree",
-            _num(gps.get("robust_vs_lsq_m")) / ce90_m if by_gps and ce90_m > 0 else math.nan,
-            f"{_num(gps.get('robust_vs_lsq_m')):.2f} m; least squares turns it "
-            f"{_num(gps.get('lsq_rotation_deg')):+.2f}°"
+            as_number(gps.get("robust_vs_lsq_m")) / ce90_m if by_gps and ce90_m > 0 else math.nan,
+            f"{as_number(gps.get('robust_vs_lsq_m')):.2f} m; least squares turns it "
+            f"{as_number(gps.get('lsq_rotation_deg')):+.2f}°"
             if by_gps
             else "",
         ),
@@ -389,18 +393,18 @@ def _gps_checks(sfm: dict[str, Any]) -> list[Check]:
 def _surface_checks(sfm: dict[str, Any], ortho: dict[str, Any], fp: dict[str, Any]) -> list[Check]:
     """The camera's focal drift, the DSM against the SfM, the heights given against those measured,
     and the colour step across the seams."""
-    drifts = [abs(_num(i.get("focal_drift_pct"))) for i in sfm.get("intrinsics") or []]
+    drifts = [abs(as_number(i.get("focal_drift_pct"))) for i in sfm.get("intrinsics") or []]
     drifts = [d for d in drifts if math.isfinite(d)]
-    measured, meta = _num(fp.get("altitude_m")), _num(fp.get("altitude_metadata_m"))
+    measured, meta = as_number(fp.get("altitude_m")), as_number(fp.get("altitude_metadata_m"))
     off = 100.0 * abs(meta - measured) / measured if measured > 0 else math.nan
     heights = _check("heights_given", off, str(fp.get("height_check") or ""))
     if fp.get("height_check") and heights.state != "red":  # an elevation 2 m off is red at any share
         heights = Check(**{**asdict(heights), "state": "red"})
     return [
         _check("focal_drift", max(drifts) if drifts else math.nan),
-        _check("dsm_vs_sfm", abs(_num(ortho.get("dsm_offset_m", math.nan)))),
+        _check("dsm_vs_sfm", abs(as_number(ortho.get("dsm_offset_m", math.nan)))),
         heights,
-        _check("seam_mismatch", _num(ortho.get("seam_mismatch_balanced", math.nan))),
+        _check("seam_mismatch", as_number(ortho.get("seam_mismatch_balanced", math.nan))),
     ]
 
 

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, STAGES, from_ledger, ledger_problem
-from geoortho.chain.quality import assess, verdict
+from geoortho.chain.quality import as_number, assess, verdict
 from geoortho.core.crs import transformer
 from geoortho.core.outputs import write_json, write_text
 from geoortho.errors import InputError, ParameterError
@@ -867,10 +867,7 @@ def _terrain_pairs(d: dict[str, Any]) -> list[tuple[str, Any]]:
     """What the DTM is made of and what its hillshade would show, as dem measured it."""
 
     def num(key: str) -> float:
-        try:
-            return float(d.get(key))  # type: ignore[arg-type]
-        except (TypeError, ValueError):
-            return math.nan
+        return as_number(d.get(key))
 
     pairs: list[tuple[str, Any]] = []
     measured, under = num("dtm_measured_share"), num("dtm_under_object_share")

@@ -53,6 +53,7 @@ __all__ = [
     "BareEarth",
     "bare_earth",
     "ground_noise_m",
+    "despiked",
     "lower_envelope",
     "object_mask",
 ]
@@ -235,6 +236,14 @@ def _block_min(z: np.ndarray, f: int) -> np.ndarray:
     return np.where(np.isfinite(low), low, np.nan)
 
 
+def despiked(dsm: np.ndarray) -> np.ndarray:
+    """The DSM's 5 x 5 median (OpenCV), NaN where it has no value: its own speckle (a real meadow's
+    tufts and mismatches, single cells metres up) seeds no object."""
+    ok = np.isfinite(dsm)
+    fill = float(np.nanmedian(dsm[ok])) if ok.any() else 0.0
+    return np.where(ok, cv2.medianBlur(np.where(ok, dsm, fill).astype(np.float32), 5), np.nan)
+
+
 def object_mask(
     dsm: np.ndarray,
     envelope: np.ndarray,
@@ -243,17 +252,14 @@ def object_mask(
     seed_m: float = OBJECT_SEED_M,
     grow_m: float = OBJECT_GROW_M,
 ) -> np.ndarray:
-    """Cells of objects: seeded where the DSM stands more than ``seed_m`` above both the envelope and
-    the ground filter's DTM (it is no ground to the filter either), grown through every connected
-    cell above the envelope by ``grow_m`` within ``RIM_REACH_M`` of a seed (a wall's smeared foot,
-    not the terrace a bank holds up beside a hall), then by one cell."""
+    """Cells of objects: seeded where the DSM (:func:`despiked`) stands more than ``seed_m`` above
+    both the envelope and the ground filter's DTM (it is no ground to the filter either) over
+    SEED_MIN_M2 at least (a bush), grown through every connected cell above the envelope by
+    ``grow_m`` within ``RIM_REACH_M`` of a seed (a wall's smeared foot, not the terrace a bank holds
+    up beside a hall), then by one cell."""
     from skimage.filters import apply_hysteresis_threshold
 
     ok = np.isfinite(dsm) & np.isfinite(envelope)
-    # the DSM's own speckle (a real meadow's tufts and mismatches, single cells metres up) seeds
-    # nothing: a 5 x 5 median first, and a seed is a patch of SEED_MIN_M2 at least (a bush)
-    fill = float(np.nanmedian(dsm[ok])) if ok.any() else 0.0
-    dsm = np.where(ok, cv2.medianBlur(np.where(ok, dsm, fill).astype(np.float32), 5), np.nan)
     above = np.where(ok, dsm - envelope, 0.0)
     with np.errstate(invalid="ignore"):
         seeds = (above > seed_m) & ~(dsm - dtm <= seed_m)
@@ -287,12 +293,13 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
     if noise > NOT_GROUND_NOISE_M or _crown_roughness_m(dtm, measured, cell_m) > NOT_GROUND_ROUGH_M:
         return _no_ground_seen(dtm, valid, cell_m, noise)
     seed_m, grow_m = max(OBJECT_SEED_M, 8 * noise), max(OBJECT_GROW_M, 4 * noise)
-    # twice: the objects found on a plain opening, then on the opening that leaves them out (a
-    # rim resting on an object's interpolated plateau falls to the ground outside it)
+    # the objects found on a plain opening, then again on the opening that leaves them out (a rim
+    # resting on an object's interpolated plateau falls to the ground outside it)
     objects = np.zeros(dtm.shape, bool)
+    smooth_dsm = despiked(dsm)
     for _ in range(ENVELOPE_PASSES):
         envelope = lower_envelope(dtm, cell_m, exclude=objects)
-        objects = object_mask(dsm, envelope, dtm, cell_m, seed_m, grow_m)
+        objects = object_mask(smooth_dsm, envelope, dtm, cell_m, seed_m, grow_m)
     with np.errstate(invalid="ignore"):
         near_envelope = dtm - envelope <= max(RIM_TOLERANCE_M, 4 * noise)
     # a rim lies beside an object: elsewhere the envelope only undercuts the ground's own edges (a

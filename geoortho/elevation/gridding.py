@@ -358,6 +358,8 @@ def dem(
     fb = as_feedback(feedback)
     chosen, why_method = _auto_method(method, points, sfm)
     _check_options(chosen, ground_method, resolution_m, max_gap_m, smooth_px, engine)
+    if contours is not None and dtm is None:  # refused before any work
+        raise ParameterError("contours", "contours are drawn from the DTM: give --dtm too")
     src = _open_source(points, points_crs, crs, engine, classified, ground_method, why_method, fb)
     want_ground = dtm is not None or classified is not None
     s_scan, s_pass1, s_pass2, s_write = split(fb, [1, 4, 4 if want_ground else 0, 2])
@@ -414,8 +416,7 @@ def _with_contours(
     """``result`` with the DTM's contour lines written to ``contours`` (when asked for)."""
     if contours is None:
         return result
-    if result.dtm is None:
-        raise ParameterError("contours", "contours are drawn from the DTM: give --dtm too")
+    assert result.dtm is not None  # dem refuses contours without a DTM before any work
     import rasterio
 
     with rasterio.open(result.dtm) as ds:
