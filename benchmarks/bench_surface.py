@@ -132,7 +132,8 @@ def main() -> int:
         print(f"  dem {seconds:.1f} s, peak {peak:.0f} MB" + (
             f" | baseline {row['baseline_dem_s']:.1f} s, {row['baseline_peak_mb']:.0f} MB: x{row['time_ratio']:.2f}; "
             f"baseline DTM RMSE {row['baseline']['dtm_rmse_m']:.3f} m, p95 near objects "
-            f"{row['baseline']['dtm_p95_near_objects_m']:.3f} m" if base_tree is not None else ""))  # fmt: skip
+            f"{row['baseline']['dtm_p95_near_objects_m']:.3f} m; baseline DSM p95 near objects "
+            f"{row['baseline']['dsm_p95_near_objects_m']:.2f} m" if base_tree is not None else ""))  # fmt: skip
     (work / "bench_surface.json").write_text(json.dumps(rows, indent=1, default=float))
     print(f"written {work / 'bench_surface.json'}")
     return 0

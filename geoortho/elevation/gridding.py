@@ -58,6 +58,7 @@ from geoortho.elevation.grid import (
 )
 from geoortho.elevation.ground import SmrfParams, ground_mask, smrf_surface
 from geoortho.elevation.tiles import make_tiled, work_folder
+from geoortho.elevation.walls import fill_beside_objects
 from geoortho.errors import DependencyError, InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.reconstruction.model import cameras_from_sfm
@@ -1024,7 +1025,6 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     crs = src.crs
     unit = _unit_tag(src.vertical_unit)
 
-    write_cog(result.dsm, with_nodata(done.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dsm",), units=unit)
     dsm_source = write_cog(
         source_path(result.dsm), done.source, transform=new_t, crs=crs, nodata=0, band_names=(SOURCE_DESCRIPTION,)
     )
@@ -1038,14 +1038,19 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     dtm_source = dtm_grid = None
     dtm_fields: dict[str, Any] = {}
     if result.dtm is not None:
-        dtm_source, dtm_grid, note, dtm_fields = _complete_dtm(
+        dtm_source, dtm_grid, objects, note, dtm_fields = _complete_dtm(
             result.dtm, done, z, measured, target, new_t, crs, unit, polys
         )
         notes.append(note)
+        # the DSM's gaps beside and under the objects the DTM found, each filled from its own side
+        dsm_z, n_walls = fill_beside_objects(done.z, measured, objects, new_t.a)
+        done = replace(done, z=dsm_z)
+        notes.append(f"DSM: {n_walls:,} filled cells beside and under objects filled again from their own side")
         warning = dtm_fields.pop("notes_extra", "")
         if warning:
             notes.append(warning)
             fb.warning(f"dem: {warning}")
+    write_cog(result.dsm, with_nodata(done.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dsm",), units=unit)
     if result.hillshade is not None:
         write_hillshade(result.hillshade, dtm_grid if dtm_grid is not None else done.z, new_t.a, 1.0)
     for n in notes:
@@ -1091,10 +1096,11 @@ def _over_the_footprints(
 def _complete_dtm(
     path: Path, done: Any, z: np.ndarray, measured: np.ndarray, target: np.ndarray, new_t: Affine, crs: Any,
     unit: str, polys: list[Any],
-) -> tuple[Path, np.ndarray, str, dict[str, Any]]:  # fmt: skip
+) -> tuple[Path, np.ndarray, np.ndarray, str, dict[str, Any]]:  # fmt: skip
     """The DTM just written, made bare earth (:mod:`geoortho.elevation.bareearth`) and carried over
-    the same cells as the DSM (``done``): its source raster, its grid, the note of its shares and
-    the DemResult fields it measured (its artefacts, :mod:`geoortho.elevation.artefacts`)."""
+    the same cells as the DSM (``done``): its source raster, its grid, the objects found on the
+    DSM, the note of its shares and the DemResult fields it measured (its artefacts,
+    :mod:`geoortho.elevation.artefacts`)."""
     import rasterio
 
     with rasterio.open(path) as ds:
@@ -1144,7 +1150,7 @@ def _complete_dtm(
         f"{100 * rough:.1f} cm RMS (less its 1 m median), step at {n_edges} photo footprint edges "
         f"{100 * step:.1f} cm RMS"
     )
-    return dtm_source, clean.z, note, fields
+    return dtm_source, clean.z, clean.objects, note, fields
 
 
 def _dtm_support(dsm: Any, dtm: np.ndarray, transform: Any) -> np.ndarray | None:
