@@ -377,3 +377,73 @@ def test_a_hole_filling_a_whole_tile_is_left_and_warns_nothing():
         small = np.zeros((40, 40), bool)
         small[10:13, 10:13] = True
         assert _fill_holes(bgr, small, 10).sum() == 9
+
+
+# --- where each pixel came from (issue 75) ------------------------------------------------------
+
+
+def test_each_pixel_names_the_photo_that_sees_it_and_the_seamlines_tile_the_mosaic(true_ortho, small_survey):
+    import xml.etree.ElementTree as ET
+
+    import geopandas as gpd
+
+    from geoortho.orthophoto.mosaic import OCCLUDED, SEEN
+
+    r, _ = true_ortho
+    cams = {c.name: c for c in _true_cameras(small_survey)}
+    with rasterio.open(r.source) as ds:
+        photo, how = ds.read(1), ds.read(2)
+        t = ds.transform
+        assert ds.descriptions == ("photo", "how") and ds.nodata == 0
+    with rasterio.open(r.output) as ds:
+        alpha = ds.read(4) > 0
+        assert ds.transform == t
+    # every opaque pixel has its photo, every transparent one none
+    assert (photo[alpha] > 0).all() and (photo[~alpha] == 0).all()
+    assert set(np.unique(how[alpha])) <= {SEEN, OCCLUDED, 3}
+    # the attribute table names the photos by number
+    table = ET.parse(str(r.source) + ".aux.xml").getroot().find(".//GDALRasterAttributeTable")
+    names = {int(row[0].text): row[1].text for row in table.findall("Row")}
+    assert set(names.values()) <= set(cams) and set(np.unique(photo[alpha])) <= set(names)
+    # a pixel said seen by a photo lies in that photo's frame (its ground point projected on the DSM)
+    surf = read_surface(small_survey.dsm)
+    rng = np.random.default_rng(1)
+    rows, cols = np.nonzero(how == SEEN)
+    pick = rng.choice(len(rows), 400, replace=False)
+    x, y = t * (cols[pick] + 0.5, rows[pick] + 0.5)
+    z = surf.elevation(np.asarray(x), np.asarray(y))
+    for k in range(len(pick)):
+        cam = cams[names[int(photo[rows[pick[k]], cols[pick[k]]])]]
+        (u, v), depth = (a[0] for a in cam.project(np.array([[x[k], y[k], z[k]]])))
+        assert depth > 0 and 0 <= u < cam.intrinsics.width_px and 0 <= v < cam.intrinsics.height_px
+    # the seamlines: one region per photo used, not overlapping, together the mosaic
+    lines = gpd.read_file(r.seamlines, layer="seamlines")
+    assert len(lines) == len(np.unique(photo[alpha])) and lines["photo"].is_unique
+    union = lines.geometry.union_all().area
+    assert abs(lines.geometry.area.sum() - union) < 0.01 * union
+    assert abs(union - r.area_m2) < 0.03 * r.area_m2
+    assert (lines["view_angle_deg"] < 10).all() and (lines["gsd_cm"] > 0).all()
+    assert (lines["taken_at"].str.len() > 0).all()
+    assert r.holes_inside_m2 == 0.0
+
+
+def test_a_wrong_spike_in_the_dsm_leaves_no_hole_and_is_marked(tiny_survey, tmp_path):
+    """Issue 75's bad input: a DSM with a 20 m spike under a roof hides the ground round it from every
+    photo. The orthophoto stays whole (each hidden pixel from the photo that has it in frame most
+    directly) and the source raster marks those pixels."""
+    from geoortho.orthophoto.mosaic import OCCLUDED
+
+    with rasterio.open(tiny_survey.dsm) as src:
+        prof, z = src.profile, src.read(1)
+    rows, cols = z.shape
+    z[rows // 2 - 4 : rows // 2 + 4, cols // 2 - 4 : cols // 2 + 4] += 20.0  # 2 x 2 m, 20 m up
+    spiked = tmp_path / "dsm_spike.tif"
+    with rasterio.open(spiked, "w", **prof) as dst:
+        dst.write(z, 1)
+    home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
+    r = ortho(tiny_survey.images, tmp_path / "o.tif", dsm=spiked, takeoff_elevation_m=home["ground_z"],
+              max_hole_px=0, workers=1)  # fmt: skip
+    assert r.holes_inside_m2 == 0.0 and r.holes_left_px == 0
+    assert r.occluded_m2 > 1.0
+    with rasterio.open(r.source) as ds:
+        assert (ds.read(2) == OCCLUDED).sum() * abs(ds.transform.a * ds.transform.e) > 1.0

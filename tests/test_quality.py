@@ -34,7 +34,10 @@ def _clean():
         "dtm_under_object_share": 0.0,
         "footprint_step_m": 0.003,
     }
-    ortho = {"share_of_seen_2": 0.995, "n_photos": 50, "n_used": 50, "dsm_offset_m": 0.02, "seam_mismatch_balanced": 4}
+    ortho = {
+        "share_of_seen_2": 0.995, "n_photos": 50, "n_used": 50, "dsm_offset_m": 0.02, "seam_mismatch_balanced": 4,
+        "holes_inside_m2": 0.0, "holes_inside_n": 0,
+    }  # fmt: skip
     fp = {"altitude_m": 60.0, "altitude_metadata_m": 61.0, "height_check": ""}
     return sfm, dense, dem, ortho, fp
 
@@ -63,6 +66,9 @@ def test_a_clean_run_is_green_on_every_item():
         (lambda s, d, m, o, f: m.update(footprint_step_m=0.03), "footprint_step", "red"),
         (lambda s, d, m, o, f: m.update(footprint_step_m=0.008), "footprint_step", "amber"),
         (lambda s, d, m, o, f: o.update(share_of_seen_2=0.14), "ortho_coverage", "red"),
+        # a real park survey's 25 holes under trees, 88 m² (issue 75); one small hole is not green
+        (lambda s, d, m, o, f: o.update(holes_inside_m2=88.0, holes_inside_n=25), "ortho_holes", "red"),
+        (lambda s, d, m, o, f: o.update(holes_inside_m2=0.4, holes_inside_n=1), "ortho_holes", "amber"),
         (lambda s, d, m, o, f: s.update(registered=44, unregistered=["A.JPG"]), "photos_registered", "red"),
         (lambda s, d, m, o, f: d.update(depth_maps=37, photos=75), "depth_maps", "red"),
         (lambda s, d, m, o, f: s["gcp_accuracy"].update(rmse_3d_m=0.97), "gcp_rmse", "red"),

@@ -51,6 +51,16 @@ THRESHOLDS: dict[str, Threshold] = {
         True,
         "OpenDroneMap, Pix4D and Metashape map all the stereo ground; under 90 % a user sees holes",
     ),
+    "ortho_holes": Threshold(
+        "Holes inside the orthophoto (transparent ground it surrounds)",
+        "m²",
+        0.0,
+        10.0,
+        False,
+        "every metre a photo's frame holds is drawn (a true occlusion from the nearest view, marked in "
+        "ortho_source.tif); a hole inside the map is what users of every anchor report first (a real park "
+        "survey: 25 holes under trees, 88 m²)",
+    ),
     "dsm_measured": Threshold(
         "DSM cells measured by the dense cloud",
         "%",
@@ -277,6 +287,14 @@ def assess(
 def _coverage_checks(dem: dict[str, Any], ortho: dict[str, Any]) -> list[Check]:
     return [
         _check("ortho_coverage", 100.0 * as_number(ortho.get("share_of_seen_2", math.nan))),
+        _check(
+            "ortho_holes",
+            as_number(ortho.get("holes_inside_m2", math.nan)),
+            f"{as_number(ortho.get('holes_inside_n', math.nan)):.0f} holes, the largest "
+            f"{as_number(ortho.get('largest_hole_m2', math.nan)):.1f} m²"
+            if as_number(ortho.get("holes_inside_n", 0)) > 0
+            else "",
+        ),
         _check(
             "dsm_measured",
             100.0 * as_number(dem.get("measured_share", math.nan)) if dem.get("seen_m2") else math.nan,

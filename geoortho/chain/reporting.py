@@ -914,10 +914,37 @@ def _ortho(ctx: _Context) -> str:
                     f"{o.get('holes_filled_px'):,} / {int(holes):,}"
                     + (f" ({100 * holes / (covered + holes):.1f} % of the extent)" if covered + holes else ""),
                 ),
+                *_ortho_sources(o),
             ]
         )
     )
     return "".join(parts)
+
+
+def _ortho_sources(o: dict[str, Any]) -> list[tuple[str, Any]]:
+    """Where the orthophoto's pixels came from: on a surface measured or not, seen or occluded."""
+    area = as_number(o.get("area_m2"))
+    if not math.isfinite(area) or area <= 0:
+        return []
+
+    def share(key: str) -> str:
+        v = as_number(o.get(key))
+        return f"{v:,.1f} m² ({100 * v / area:.2f} %)" if math.isfinite(v) else "–"
+
+    rows: list[tuple[str, Any]] = [
+        ("On an interpolated DSM", share("on_interpolated_m2")),
+        ("Seen by no photo (occluded: from the nearest view)", share("occluded_m2")),
+        (
+            "Holes inside the orthophoto",
+            f"{share('holes_inside_m2')}, {as_number(o.get('holes_inside_n')):.0f} holes"
+            if as_number(o.get("holes_inside_n")) > 0
+            else "none",
+        ),
+    ]
+    src, seams = o.get("source"), o.get("seamlines")
+    if src or seams:
+        rows.append(("Each pixel's photo", " and ".join(Path(str(p)).name for p in (src, seams) if p)))
+    return rows
 
 
 def _seams(ctx: _Context) -> str:

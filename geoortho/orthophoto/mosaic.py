@@ -33,6 +33,7 @@ from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_count
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.orthophoto.cameras import cameras_from_metadata
+from geoortho.orthophoto.provenance import SourceWriter, seamlines_path, write_seamlines
 from geoortho.orthophoto.rectify import (
     BlockTops,
     VisibilityGrid,
@@ -40,6 +41,7 @@ from geoortho.orthophoto.rectify import (
     bounds_window,
     intersect,
     keep_best,
+    preference_cost,
     project_window,
     remap_bgr,
     slices_in,
@@ -134,6 +136,21 @@ class OrthoResult:
     dsm_offset_m : float
         The DSM's height above the SfM's points (median), as measured before any correction (NaN:
         not measured: no SfM, or too few points over the DSM).
+    holes_inside_m2 : float
+        Transparent ground the mosaic surrounds (holes inside it, not its outer edge).
+    holes_inside_n : float
+        How many such holes.
+    largest_hole_m2 : float
+        The largest of them.
+    occluded_m2 : float
+        Ground no photo sees (a true occlusion on the DSM), drawn from the photo that has it in
+        frame most directly (marked 2 in the source raster).
+    source : Path
+        ``<name>_source.tif``: each pixel's photo (band 1, 1-based, named in its attribute table)
+        and how it was drawn (band 2: 1 seen, 2 occluded, 3 inpainted).
+    seamlines : Path
+        ``<name>_seamlines.gpkg``: one polygon per photo region, with the photo's name, GSD, view
+        angle, capture time and area.
     """
 
     output: Path
@@ -163,6 +180,12 @@ class OrthoResult:
     share_of_seen_2: float = 0.0
     on_interpolated_m2: float = 0.0
     dsm_offset_m: float = math.nan
+    holes_inside_m2: float = 0.0
+    holes_inside_n: float = 0.0
+    largest_hole_m2: float = 0.0
+    occluded_m2: float = 0.0
+    source: Path | None = None
+    seamlines: Path | None = None
 
 
 #: The orthophoto is said to fall short below this share of the ground the photos saw.
@@ -195,7 +218,14 @@ def measure_coverage(
         "share_of_seen_1": float((alpha & (seen >= 1)).sum()) / max(int((seen >= 1).sum()), 1),
         "share_of_seen_2": float((alpha & (seen >= 2)).sum()) / max(int((seen >= 2).sum()), 1),
         "on_interpolated_m2": 0.0,
+        **_holes_inside(alpha, cell_m2),
+        "occluded_m2": 0.0,
     }
+    own_source = source_path(ortho)
+    if own_source.is_file():
+        with rasterio.open(own_source) as ds:
+            how = ds.read(2, out_shape=shape, resampling=Resampling.nearest)
+        out["occluded_m2"] = float((alpha & (how == OCCLUDED)).sum()) * cell_m2
     if dsm_source is not None and dsm_source.is_file():
         from rasterio.warp import reproject
 
@@ -213,6 +243,21 @@ def measure_coverage(
         raw = sample_grid(surface.grid, c, r)
         out["on_interpolated_m2"] = float((~np.isfinite(raw)).sum()) * cell_m2
     return out
+
+
+def _holes_inside(alpha: np.ndarray, cell_m2: float) -> dict[str, float]:
+    """Transparent pixels the mosaic surrounds (not its outer edge): their area, how many holes,
+    the largest."""
+    from scipy import ndimage
+
+    holes = ndimage.binary_fill_holes(alpha) & ~alpha
+    labels, n = ndimage.label(holes, structure=np.ones((3, 3), bool))
+    sizes = np.bincount(labels.ravel())[1:] if n else np.zeros(0)
+    return {
+        "holes_inside_m2": float(holes.sum()) * cell_m2,
+        "holes_inside_n": float(n),
+        "largest_hole_m2": float(sizes.max()) * cell_m2 if n else 0.0,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -306,6 +351,15 @@ def _gather(
     return out, ok
 
 
+#: ``ortho_source.tif`` band 2: how each pixel was rendered.
+NONE, SEEN, OCCLUDED, INPAINTED = 0, 1, 2, 3
+SOURCE_KINDS = {
+    NONE: "no data",
+    SEEN: "seen by its photo (line of sight on the DSM)",
+    OCCLUDED: "seen by no photo (occluded): drawn from the photo that has it in frame most directly",
+    INPAINTED: "inpainted (a hole no photo's frame held)",
+}
+
 VISIBLE_SEAM_DN = 10.0
 _FEATHER_PX = 8  # feathering ramps over twice this across a seam
 
@@ -380,7 +434,7 @@ def _fill_holes(bgr: np.ndarray, holes: np.ndarray, max_hole_px: int) -> np.ndar
     return fill
 
 
-def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
+def _render_tile(win: Window) -> tuple[Window, np.ndarray, np.ndarray, dict[str, float]]:
     ctx = _CTX
     assert ctx is not None
     pad = ctx.pad_px
@@ -410,6 +464,9 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
         planned_ok[sl] |= (planned[sl] == i) & p.valid
     # The plan's owner where it sees the pixel at full resolution, else the best photo that does.
     lab = np.where(planned_ok, planned, best_lab).astype(np.int16)
+    occluded = _occluded_from_nearest(ctx, projs, coverage & (lab < 0), x, y, z)
+    lab = np.where(occluded >= 0, occluded, lab).astype(np.int16)
+    occluded_px = occluded >= 0
 
     # Each photo's pixels are rendered this far beyond what it owns: the multiband pyramid reads
     # them, feathering overlaps them, and without blending one pixel lets the seam be measured.
@@ -419,7 +476,8 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
     for i in np.unique(lab[lab >= 0]):
         sl, p = projs[int(i)]
         own = (lab[sl] == i).astype(np.uint8)
-        need = (cv2.dilate(own, kernel) if kernel is not None else own).astype(bool) & p.valid
+        usable = p.valid | (occluded_px[sl] & p.in_frame)
+        need = (cv2.dilate(own, kernel) if kernel is not None else own).astype(bool) & usable
         rr, cc = np.nonzero(need)
         r0, r1, c0, c1 = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
         img = _photo(ctx.cams[int(i)].file)
@@ -439,12 +497,43 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, dict[str, float]]:
         coverage=float(coverage[core].sum()),
         filled=float(filled[core].sum()),
         holes_left=float((holes & ~filled)[core].sum()),
+        occluded=float(occluded_px[core].sum()),
     )
     rgba = np.empty((4, win.height, win.width), np.uint8)
     rgba[0], rgba[1], rgba[2] = out[core][..., 2], out[core][..., 1], out[core][..., 0]
     rgba[3] = np.where(alpha[core], 255, 0)
+    # the source of each pixel: its photo (1-based) and how it was rendered
+    source = np.zeros((2, win.height, win.width), np.uint16)
+    seen = labelled[core] & ~occluded_px[core]
+    source[0] = np.where(labelled[core], lab[core].astype(np.int32) + 1, 0)
+    source[1] = np.select([seen, occluded_px[core], filled[core]], [SEEN, OCCLUDED, INPAINTED], NONE)
     used = {int(i) for i in np.unique(lab[core]) if i >= 0}
-    return win, rgba, {**stats, "used": used}  # type: ignore[dict-item]
+    return win, rgba, source, {**stats, "used": used}  # type: ignore[dict-item]
+
+
+def _occluded_from_nearest(
+    ctx: _Context,
+    projs: dict[int, tuple[tuple[slice, slice], Any]],
+    holes: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+) -> np.ndarray:
+    """For the cells in some photo's frame that no photo sees (a true occlusion: the ground behind a
+    wall that every photo's line of sight meets first), the photo that has them in frame most
+    directly (-1 elsewhere): drawn from it and marked, not left a hole."""
+    best = np.full(holes.shape, np.inf, np.float32)
+    lab = np.full(holes.shape, -1, np.int16)
+    if not holes.any():
+        return lab
+    for i, (sl, p) in projs.items():
+        here = holes[sl] & p.in_frame
+        if not here.any():
+            continue
+        zz = z[sl]
+        cost = preference_cost(ctx.cams[i], x[sl], y[sl], np.where(np.isfinite(zz), zz, 0.0), p.map_x, p.map_y)
+        keep_best(best, lab, sl, np.where(here, cost, np.inf).astype(np.float32), i)
+    return lab
 
 
 def _blended(
@@ -603,6 +692,8 @@ def mosaic(
         notes=tuple(notes),
         seconds=times,
         dsm_offset_m=dsm_offset_m,
+        source=source_path(output),
+        seamlines=seamlines_path(output),
         **cover,
     )
     gains = {c.name: [float(g) for g in plan.gains[i]] for i, c in enumerate(placed.cams)}
@@ -658,12 +749,21 @@ def _build_mosaic(
             2 ** (_BANDS + 1), _INTERPOLATION[options.interpolation],
         )  # fmt: skip
         tiled = Path(work_dir) / "mosaic.tif"
-        totals, used = _render(ctx, crs, tiled, options, st_tiles)
+        sources = SourceWriter(Path(work_dir), crs, transform, shape)
+        try:
+            totals, used = _render(ctx, crs, tiled, options, st_tiles, sources)
+        finally:
+            sources.close()
         times["tiles"] = time.perf_counter() - t2
         t3 = time.perf_counter()
         _write_cog(tiled, output, options.compress.upper())
         preview_path = _write_preview(output, Path(preview)) if preview else None
+        sources.finish(source_path(output), [c.name for c in placed.cams], SOURCE_KINDS)
         times["cog"] = time.perf_counter() - t3
+    t4 = time.perf_counter()
+    _, n_regions = write_seamlines(source_path(output), placed.cams, placed.gsds, seamlines_path(output))
+    totals["seamline_photos"] = float(n_regions)
+    times["seamlines"] = time.perf_counter() - t4
     return plan, totals, used, preview_path
 
 
@@ -723,9 +823,16 @@ def _coverage_notes(cover: dict[str, Any], fb: Feedback) -> list[str]:
         f"the orthophoto shows {cover['area_m2']:,.0f} m²: {cover['share_of_seen_1']:.1%} of the "
         f"{cover['seen_1_m2']:,.0f} m² its photos saw, {cover['share_of_seen_2']:.1%} of the "
         f"{cover['seen_2_m2']:,.0f} m² seen by >= 2; {cover['on_interpolated_m2']:,.0f} m² of it on an "
-        "interpolated surface"
+        f"interpolated surface, {cover['occluded_m2']:,.1f} m² seen by no photo (occluded: drawn from the "
+        "nearest view, marked in the source raster)"
     ]
     fb.info(notes[-1])
+    if cover["holes_inside_m2"] > 0:
+        notes.append(
+            f"{cover['holes_inside_n']:.0f} holes inside the orthophoto, {cover['holes_inside_m2']:,.1f} m² "
+            f"(the largest {cover['largest_hole_m2']:,.1f} m²)"
+        )
+        fb.warning(notes[-1])
     if cover["share_of_seen_1"] < MIN_SHARE_OF_SEEN:
         notes.append(
             f"the orthophoto misses {1 - cover['share_of_seen_1']:.0%} of the ground its photos saw "
@@ -859,9 +966,10 @@ def _resolution(
 
 
 def _render(
-    ctx: _Context, crs: CRS, target: Path, options: MosaicOptions, progress: Feedback
+    ctx: _Context, crs: CRS, target: Path, options: MosaicOptions, progress: Feedback, sources: SourceWriter
 ) -> tuple[dict[str, float], set[int]]:
-    """Every tile rendered (in parallel) into the tiled GeoTIFF ``target``.
+    """Every tile rendered (in parallel) into the tiled GeoTIFF ``target``, each pixel's source
+    into ``sources``.
 
     Returns the tiles' summed statistics and the photos used."""
     import rasterio
@@ -890,10 +998,11 @@ def _render(
     }
     with rasterio.open(target, "w", **profile) as dst:
         dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-        for win, rgba, stats in imap_ordered(
+        for win, rgba, source, stats in imap_ordered(
             _render_tile, tiles, workers=options.workers, initializer=_init_worker, initargs=(ctx,), feedback=progress
         ):
             dst.write(rgba, window=win)
+            sources.write(source, win)
             used |= stats.pop("used")  # type: ignore[arg-type]
             for k, v in stats.items():
                 totals[k] = totals.get(k, 0.0) + v
