@@ -447,3 +447,22 @@ def test_a_wrong_spike_in_the_dsm_leaves_no_hole_and_is_marked(tiny_survey, tmp_
     assert r.occluded_m2 > 1.0
     with rasterio.open(r.source) as ds:
         assert (ds.read(2) == OCCLUDED).sum() * abs(ds.transform.a * ds.transform.e) > 1.0
+
+
+def test_seams_keep_off_roofs_and_crowns(true_ortho, small_survey):
+    """The graph cut pays for the parallax between two photos where relief stands (issue 75): a roof
+    agrees in colour with itself and was crossed more than open ground (measured, small survey: 12.9 %
+    of the seam pixels on objects that cover 5.4 % of the mosaic; with the parallax cost 8.6 %)."""
+    from geoortho.synthetic.scoring import _on_grid
+
+    r, _ = true_ortho
+    with rasterio.open(r.source) as ds:
+        photo, t, crs = ds.read(1), ds.transform, ds.crs
+    relief = _on_grid(small_survey.dsm, t, crs, photo.shape) - _on_grid(small_survey.dtm, t, crs, photo.shape)
+    objects = relief > 0.5
+    seam = np.zeros(photo.shape, bool)
+    seam[:, :-1] |= (photo[:, :-1] > 0) & (photo[:, 1:] > 0) & (photo[:, :-1] != photo[:, 1:])
+    seam[:-1, :] |= (photo[:-1, :] > 0) & (photo[1:, :] > 0) & (photo[:-1, :] != photo[1:, :])
+    on_objects = (seam & objects).sum() / seam.sum()
+    assert seam.sum() > 1000 and objects[photo > 0].mean() > 0.03
+    assert on_objects < 0.11, on_objects

@@ -24,7 +24,7 @@ from affine import Affine
 from rasterio.windows import Window
 
 from geoortho.core.camera import PosedCamera
-from geoortho.core.surface import Surface
+from geoortho.core.surface import FlatSurface, Surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.orthophoto.rectify import (
@@ -123,6 +123,7 @@ class _Band:
     mask: np.ndarray  # uint8 0/255
     image: np.ndarray  # uint8 (rows, cols, 3)
     cost: np.ndarray  # float32
+    parallax: np.ndarray | None = None  # float32 (rows, cols, 2): relief x the line of sight's tangent, metres
 
 
 def _coarse_projection(
@@ -209,6 +210,7 @@ def _plan(
     full = Window(0, 0, cshape[1], cshape[0])
     labels, wins, skipped = _first_split(cams, boxes, surface, vis, ctr, cshape, failed, fb)
     band_px = max(1, int(round(band_m / ctr.a)))
+    relief = _relief(surface, ctr, full) if seams == "graphcut" else None
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
     along_rows = cshape[0] >= cshape[1]  # sweep along the longer axis: fewer photos cross a sweep line
 
@@ -235,7 +237,7 @@ def _plan(
                 if stat is not None:
                     pairs.append(stat)
         if seams == "graphcut":
-            band = _band(view, labels, full, kernel)
+            band = _band(view, labels, full, kernel, _parallax(cams[i], surface, ctr, view.win, relief))
             if band is not None:
                 bands.append(band)
         active.append(view)
@@ -326,7 +328,52 @@ def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int
     return (va.index, vb.index, math.sqrt(k), np.log(ma) - np.log(mb))
 
 
-def _band(view: _View, labels: np.ndarray, full: Window, kernel: np.ndarray) -> _Band | None:
+#: The ground under objects is the DSM opened by a square this wide (metres, on the coarse grid);
+#: what stands RELIEF_MIN_M above it is relief the seams keep off.
+RELIEF_WINDOW_M = 20.0
+RELIEF_MIN_M = 0.5
+#: A metre of parallax between two photos (relief x the difference of their lines of sight's
+#: tangents) costs the seam as much as this colour difference (DN).
+PARALLAX_DN_PER_M = 40.0
+
+
+def _relief(surface: Surface, ctr: Affine, full: Window) -> np.ndarray | None:
+    """Height above the ground (the DSM opened) on the coarse grid, 0 under ``RELIEF_MIN_M``;
+    None on flat ground."""
+    if isinstance(surface, FlatSurface):
+        return None
+    _, _, z = window_xyz(ctr, full, surface)
+    have = np.isfinite(z)
+    if not have.any():
+        return None
+    z32 = np.where(have, z, np.nanmin(z)).astype(np.float32)
+    k = max(3, int(round(RELIEF_WINDOW_M / ctr.a)) | 1)
+    ground = cv2.morphologyEx(z32, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    relief = np.where(have, z32 - ground, 0.0).astype(np.float32)
+    relief[relief < RELIEF_MIN_M] = 0.0
+    return relief
+
+
+def _parallax(
+    cam: PosedCamera, surface: Surface, ctr: Affine, win: Window, relief: np.ndarray | None
+) -> np.ndarray | None:
+    """Where relief stands, how far this photo displaces it (relief x its line of sight's tangent,
+    x and y, metres) over the photo's coarse window: two photos disagree on a roof by the
+    difference of theirs, which the graph cut then pays to cross."""
+    if relief is None:
+        return None
+    h = relief[slices_in(win, Window(0, 0, relief.shape[1], relief.shape[0]))]
+    if not h.any():
+        return None
+    x, y, z = window_xyz(ctr, win, surface)
+    cx, cy, cz = cam.pose.center
+    dz = np.maximum(cz - np.where(np.isfinite(z), z, cz - 1.0), 1e-3)
+    return np.stack([h * (x - cx) / dz, h * (y - cy) / dz], axis=-1).astype(np.float32)
+
+
+def _band(
+    view: _View, labels: np.ndarray, full: Window, kernel: np.ndarray, parallax: np.ndarray | None = None
+) -> _Band | None:
     """The view cropped to the band (``kernel`` wide) around the cells it owns after the Voronoi split."""
     own = (labels[slices_in(view.win, full)] == view.index).astype(np.uint8)
     if not own.any():
@@ -340,6 +387,7 @@ def _band(view: _View, labels: np.ndarray, full: Window, kernel: np.ndarray) -> 
         np.ascontiguousarray(band[y : y + h, x : x + w] * 255),
         view.image[y : y + h, x : x + w].copy(),
         view.cost[y : y + h, x : x + w].copy(),
+        parallax[y : y + h, x : x + w].copy() if parallax is not None else None,
     )
 
 
@@ -441,6 +489,12 @@ def _graph_cut(bands: list[_Band], labels: np.ndarray, cshape: tuple[int, int], 
     masks = [cv2.UMat(b.mask) for b in bands]  # type: ignore[call-overload]
     # Balanced colours: the cut should follow content, not exposure differences.
     images = [b.image.astype(np.float32) * gains[b.index] for b in bands]
+    # Relief: the two photos' displacements of it differ (parallax), added to the colours compared,
+    # so the cut goes round a roof or a crown, which would otherwise agree in colour and be crossed
+    # (the small survey: 12.9 % of the seams on objects, 5.4 % of the area).
+    for img, b in zip(images, bands):
+        if b.parallax is not None:
+            img[..., :2] += PARALLAX_DN_PER_M * b.parallax
     # The cut's cost is how much the two balanced photos disagree in colour on either side of it:
     # agreement is rewarded, not edges. OpenCV's COST_COLOR_GRAD divides by the gradients, which
     # drew seams along edges, where any misregistration shows (small survey: 2.76 DN across seams,
