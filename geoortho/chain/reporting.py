@@ -918,7 +918,55 @@ def _ortho(ctx: _Context) -> str:
             ]
         )
     )
+    parts.append(_ortho_sources_map(ctx, o))
     return "".join(parts)
+
+
+def _ortho_sources_map(ctx: _Context, o: dict[str, Any]) -> str:
+    """The orthophoto, greyed, with what was not plainly seen on a measured surface over it: the
+    DSM interpolated (its source raster), ground seen by no photo, inpainted pixels."""
+    src = Path(str(o.get("source") or ""))
+    if not src.is_file():
+        return ""
+    import rasterio
+    from matplotlib.patches import Patch
+    from rasterio.enums import Resampling
+
+    with rasterio.open(src) as ds:
+        scale = max(1.0, max(ds.width, ds.height) / _MAX_RASTER_PX)
+        shape = (max(1, round(ds.height / scale)), max(1, round(ds.width / scale)))
+        how = ds.read(2, out_shape=shape, resampling=Resampling.nearest)
+        b = ds.bounds
+    extent = (b.left, b.right, b.bottom, b.top)
+    fig = _figure(7.0, 4.8)
+    ax = fig.add_subplot()
+    path = ctx.path("ortho", "output")
+    if path is not None:
+        data, valid, o_extent, _ = _read_raster(path, [1, 2, 3])
+        grey = data.astype(float).mean(axis=0) / 255.0
+        ax.imshow(np.dstack([grey, grey, grey, valid * 0.6]), extent=o_extent, interpolation="bilinear")
+    legend = []
+    dsm_source = ctx.path("dem", "dsm_source")
+    if dsm_source is not None:
+        d, d_valid, d_extent, _ = _read_raster(dsm_source, [1])
+        interpolated = d_valid & (np.rint(d[0]) > 1)
+        ax.imshow(np.dstack([np.zeros_like(d[0]), 0.35 + 0 * d[0], np.ones_like(d[0]), interpolated * 0.35]),
+                  extent=d_extent, interpolation="nearest")  # fmt: skip
+        legend.append(Patch(color=(0.0, 0.35, 1.0, 0.5), label="on an interpolated DSM"))
+    for code, colour, label in ((2, (0.9, 0.0, 0.9), "seen by no photo (occluded)"), (3, (1.0, 0.1, 0.0), "inpainted")):
+        m = how == code
+        if m.any():
+            ax.imshow(np.dstack([np.full(m.shape, colour[0]), np.full(m.shape, colour[1]), np.full(m.shape, colour[2]),
+                                 m * 1.0]), extent=extent, interpolation="nearest")  # fmt: skip
+        legend.append(Patch(color=colour, label=label))
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.legend(handles=legend, fontsize=8, loc="lower right")
+    ax.set_title("Where the orthophoto is not plainly seen on a measured surface", fontsize=10)
+    return _png(fig, "orthophoto sources map")
 
 
 def _ortho_sources(o: dict[str, Any]) -> list[tuple[str, Any]]:
