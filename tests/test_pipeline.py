@@ -122,8 +122,11 @@ def test_report_numbers_are_the_stages_own(first_run):
         "Parameters",
     ):
         assert f">{section}</h2>" in page, section
+    # where each orthophoto pixel came from (issue 75): the files, their figures, the map
+    assert (project / "ortho" / "ortho_source.tif").is_file() and (project / "ortho" / "ortho_seamlines.gpkg").is_file()
+    assert f"{ortho['occluded_m2']:,.1f} m²" in page and 'alt="orthophoto sources map"' in page
     # self-contained: every image is embedded, nothing is fetched
-    assert page.count('src="data:image/png;base64,') >= 8
+    assert page.count('src="data:image/png;base64,') >= 9
     assert not re.search(r'(src|href)="(?!data:|#)', page)
 
 
