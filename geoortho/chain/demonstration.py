@@ -158,9 +158,14 @@ PRODUCTS = {
     "dsm": "dem/dsm.tif",
     "dtm": "dem/dtm.tif",
     "dtm_hillshade": "dem/dtm_hillshade.png",
+    "dsm_source": "dem/dsm_source.tif",
+    "dtm_source": "dem/dtm_source.tif",
+    "contours": "dem/contours.gpkg",
     "ortho": "ortho/ortho.tif",
     "ortho_preview": "ortho/ortho_preview.png",
     "ortho_report": "ortho/ortho_report.json",
+    "ortho_source": "ortho/ortho_source.tif",
+    "ortho_seamlines": "ortho/ortho_seamlines.gpkg",
     "ledger": "run.json",
 }
 
