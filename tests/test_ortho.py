@@ -466,3 +466,28 @@ def test_seams_keep_off_roofs_and_crowns(true_ortho, small_survey):
     on_objects = (seam & objects).sum() / seam.sum()
     assert seam.sum() > 1000 and objects[photo > 0].mean() > 0.03
     assert on_objects < 0.11, on_objects
+
+
+def test_a_photo_of_another_flight_is_named_and_left_out(tiny_survey, tmp_path):
+    """Issue 75's bad input: one photo in the folder is of another flight over the same site (three
+    days before, by its clock): it is named, with why, and no pixel of the mosaic is drawn from it."""
+    import shutil
+
+    import geopandas as gpd
+    import piexif
+
+    images = tmp_path / "images"
+    shutil.copytree(tiny_survey.images, images)
+    stray = sorted(images.glob("*.JPG"))[3]
+    exif = piexif.load(str(stray))
+    taken = exif["Exif"][piexif.ExifIFD.DateTimeOriginal].decode()
+    day = int(taken[8:10])
+    earlier = f"{taken[:8]}{day - 3 if day > 3 else day + 3:02d}{taken[10:]}"
+    exif["Exif"][piexif.ExifIFD.DateTimeOriginal] = earlier.encode()
+    piexif.insert(piexif.dump(exif), str(stray))
+    home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
+    r = ortho(images, tmp_path / "o.tif", dsm=tiny_survey.dsm, takeoff_elevation_m=home["ground_z"], workers=1)
+    reasons = dict(r.skipped)
+    assert "another flight" in reasons.get(stray.name, ""), r.skipped
+    assert len(r.skipped) == 1  # the survey's own photos are all used
+    assert stray.name not in set(gpd.read_file(r.seamlines, layer="seamlines")["photo"])

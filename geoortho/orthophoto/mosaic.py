@@ -664,7 +664,7 @@ def mosaic(
     notes = list(notes)
     skipped = list(skipped)
     st_vis, st_plan, st_tiles, st_write = split(fb, [2, 2, 10, 1])
-    placed = _place(cams, surface, fb)
+    placed = _without_other_flights(_place(cams, surface, fb), fb)
     skipped += placed.skipped
     resolution_m, median_gsd = _resolution(resolution_m, placed.gsds, notes, fb)
     transform, shape = _grid(placed.boxes, surface, resolution_m)
@@ -949,6 +949,55 @@ def _place(cams: Sequence[PosedCamera], surface: Surface, fb: Feedback) -> _Plac
     if not kept:
         raise InputError("no photo sees the surface: nothing to mosaic")
     return _Placed(tuple(kept), tuple(boxes), tuple(gsds), tuple(skipped))
+
+
+#: Photos taken this far apart in time are of different flights; a flight of one photo, or of under
+#: ``OTHER_FLIGHT_SHARE`` of them (a stray photo of another day in the folder: its shadows,
+#: cars and crops are not the survey's) is left out of the mosaic, named.
+FLIGHT_GAP_S = 2 * 3600.0
+OTHER_FLIGHT_SHARE = 0.1
+
+
+def _without_other_flights(placed: _Placed, fb: Feedback) -> _Placed:
+    """``placed`` less the photos of a small other flight (by the cameras' clocks)."""
+    from geoortho.photos.metadata import photo_seconds, read_photo
+
+    seconds = []
+    for cam in placed.cams:
+        try:
+            seconds.append(photo_seconds(read_photo(cam.file)))
+        except (InputError, ValueError, OSError):  # no file (a planned camera), no EXIF: no time
+            seconds.append(math.nan)
+    t = np.array(seconds)
+    timed = np.flatnonzero(np.isfinite(t))
+    if len(timed) < 3:
+        return placed
+    order = timed[np.argsort(t[timed], kind="stable")]
+    flights = np.split(order, np.flatnonzero(np.diff(t[order]) > FLIGHT_GAP_S) + 1)
+    main = max(flights, key=len)
+    out = set()
+    why: dict[int, str] = {}
+    for flight in flights:
+        if flight is main or len(flight) >= max(OTHER_FLIGHT_SHARE * len(timed), 2):
+            continue
+        hours = (float(np.median(t[flight])) - float(np.median(t[main]))) / 3600.0
+        for i in flight:
+            out.add(int(i))
+            why[int(i)] = (
+                f"taken {abs(hours):,.1f} h {'before' if hours < 0 else 'after'} the {len(main)} photos of the "
+                "survey's flight: another flight over the site, left out of the mosaic and its seams"
+            )
+    if not out:
+        return placed
+    for i in sorted(out):
+        fb.warning(f"skipped {placed.cams[i].name}: {why[i]}")
+    keep = [i for i in range(len(placed.cams)) if i not in out]
+    return _Placed(
+        tuple(placed.cams[i] for i in keep),
+        tuple(placed.boxes[i] for i in keep),
+        tuple(placed.gsds[i] for i in keep),
+        (*placed.skipped, *((placed.cams[i].name, why[i]) for i in sorted(out))),
+    )
 
 
 def _resolution(
