@@ -387,7 +387,7 @@ def test_each_pixel_names_the_photo_that_sees_it_and_the_seamlines_tile_the_mosa
 
     import geopandas as gpd
 
-    from geoortho.orthophoto.mosaic import OCCLUDED, SEEN
+    from geoortho.orthophoto.provenance import INPAINTED, OCCLUDED, SEEN
 
     r, _ = true_ortho
     cams = {c.name: c for c in _true_cameras(small_survey)}
@@ -400,7 +400,7 @@ def test_each_pixel_names_the_photo_that_sees_it_and_the_seamlines_tile_the_mosa
         assert ds.transform == t
     # every opaque pixel has its photo, every transparent one none
     assert (photo[alpha] > 0).all() and (photo[~alpha] == 0).all()
-    assert set(np.unique(how[alpha])) <= {SEEN, OCCLUDED, 3}
+    assert set(np.unique(how[alpha])) <= {SEEN, OCCLUDED, INPAINTED}
     # the attribute table names the photos by number
     table = ET.parse(str(r.source) + ".aux.xml").getroot().find(".//GDALRasterAttributeTable")
     names = {int(row[0].text): row[1].text for row in table.findall("Row")}
@@ -431,7 +431,7 @@ def test_a_wrong_spike_in_the_dsm_leaves_no_hole_and_is_marked(tiny_survey, tmp_
     """Issue 75's bad input: a DSM with a 20 m spike under a roof hides the ground round it from every
     photo. The orthophoto stays whole (each hidden pixel from the photo that has it in frame most
     directly) and the source raster marks those pixels."""
-    from geoortho.orthophoto.mosaic import OCCLUDED
+    from geoortho.orthophoto.provenance import OCCLUDED
 
     with rasterio.open(tiny_survey.dsm) as src:
         prof, z = src.profile, src.read(1)

@@ -33,7 +33,15 @@ from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_count
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.orthophoto.cameras import cameras_from_metadata
-from geoortho.orthophoto.provenance import SourceWriter, seamlines_path, write_seamlines
+from geoortho.orthophoto.provenance import (
+    INPAINTED,
+    NONE,
+    OCCLUDED,
+    SEEN,
+    SourceWriter,
+    seamlines_path,
+    write_seamlines,
+)
 from geoortho.orthophoto.rectify import (
     BlockTops,
     VisibilityGrid,
@@ -350,15 +358,6 @@ def _gather(
         ok[k[good]] = True
     return out, ok
 
-
-#: ``ortho_source.tif`` band 2: how each pixel was rendered.
-NONE, SEEN, OCCLUDED, INPAINTED = 0, 1, 2, 3
-SOURCE_KINDS = {
-    NONE: "no data",
-    SEEN: "seen by its photo (line of sight on the DSM)",
-    OCCLUDED: "seen by no photo (occluded): drawn from the photo that has it in frame most directly",
-    INPAINTED: "inpainted (a hole no photo's frame held)",
-}
 
 VISIBLE_SEAM_DN = 10.0
 _FEATHER_PX = 8  # feathering ramps over twice this across a seam
@@ -773,10 +772,12 @@ def _build_mosaic(
         t3 = time.perf_counter()
         _write_cog(tiled, output, options.compress.upper())
         preview_path = _write_preview(output, Path(preview)) if preview else None
-        sources.finish(source_path(output), [c.name for c in placed.cams], SOURCE_KINDS)
+        sources.finish(source_path(output), [c.name for c in placed.cams])
         times["cog"] = time.perf_counter() - t3
     t4 = time.perf_counter()
-    _, n_regions = write_seamlines(source_path(output), placed.cams, placed.gsds, seamlines_path(output))
+    _, n_regions = write_seamlines(
+        source_path(output), placed.cams, placed.gsds, placed.taken_at, seamlines_path(output)
+    )
     totals["seamline_photos"] = float(n_regions)
     times["seamlines"] = time.perf_counter() - t4
     return plan, totals, used, preview_path
@@ -901,6 +902,7 @@ class _Placed:
     boxes: tuple[tuple[float, float, float, float], ...]  # ground bounding box of each footprint
     gsds: tuple[float, ...]  # GSD at the image centre, metres
     skipped: tuple[tuple[str, str], ...]
+    taken_at: tuple[str, ...] = ()  # each photo's capture time (ISO 8601, "" when unknown)
 
 
 MIN_AXIS_BELOW_HORIZON_DEG = 20.0
@@ -959,15 +961,21 @@ OTHER_FLIGHT_SHARE = 0.1
 
 
 def _without_other_flights(placed: _Placed, fb: Feedback) -> _Placed:
-    """``placed`` less the photos of a small other flight (by the cameras' clocks)."""
+    """``placed`` with each photo's capture time (read once, for the flights here and the
+    seamlines' table), less the photos of a small other flight (by the cameras' clocks)."""
     from geoortho.photos.metadata import photo_seconds, read_photo
 
-    seconds = []
+    taken_at, seconds = [], []
     for cam in placed.cams:
         try:
-            seconds.append(photo_seconds(read_photo(cam.file)))
+            photo = read_photo(cam.file)
         except (InputError, ValueError, OSError):  # no file (a planned camera), no EXIF: no time
+            taken_at.append("")
             seconds.append(math.nan)
+            continue
+        taken_at.append(photo.taken_at)
+        seconds.append(photo_seconds(photo))
+    placed = replace(placed, taken_at=tuple(taken_at))
     t = np.array(seconds)
     timed = np.flatnonzero(np.isfinite(t))
     if len(timed) < 3:
@@ -975,28 +983,27 @@ def _without_other_flights(placed: _Placed, fb: Feedback) -> _Placed:
     order = timed[np.argsort(t[timed], kind="stable")]
     flights = np.split(order, np.flatnonzero(np.diff(t[order]) > FLIGHT_GAP_S) + 1)
     main = max(flights, key=len)
-    out = set()
     why: dict[int, str] = {}
     for flight in flights:
         if flight is main or len(flight) >= max(OTHER_FLIGHT_SHARE * len(timed), 2):
             continue
         hours = (float(np.median(t[flight])) - float(np.median(t[main]))) / 3600.0
         for i in flight:
-            out.add(int(i))
             why[int(i)] = (
                 f"taken {abs(hours):,.1f} h {'before' if hours < 0 else 'after'} the {len(main)} photos of the "
                 "survey's flight: another flight over the site, left out of the mosaic and its seams"
             )
-    if not out:
+    if not why:
         return placed
-    for i in sorted(out):
+    for i in sorted(why):
         fb.warning(f"skipped {placed.cams[i].name}: {why[i]}")
-    keep = [i for i in range(len(placed.cams)) if i not in out]
+    keep = [i for i in range(len(placed.cams)) if i not in why]
     return _Placed(
         tuple(placed.cams[i] for i in keep),
         tuple(placed.boxes[i] for i in keep),
         tuple(placed.gsds[i] for i in keep),
-        (*placed.skipped, *((placed.cams[i].name, why[i]) for i in sorted(out))),
+        (*placed.skipped, *((placed.cams[i].name, why[i]) for i in sorted(why))),
+        tuple(taken_at[i] for i in keep),
     )
 
 

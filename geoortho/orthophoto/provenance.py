@@ -3,7 +3,7 @@
 ``<name>_source.tif`` (beside the orthophoto, a COG): band 1 ``photo``, the photo each pixel was
 drawn from (1-based, 0: none), named in a raster attribute table (GDAL's ``.aux.xml``, which QGIS
 shows in the layer's attribute table and legend); band 2 ``how``, how it was drawn
-(:data:`geoortho.orthophoto.mosaic.SOURCE_KINDS`).
+(:data:`SOURCE_KINDS`).
 
 ``<name>_seamlines.gpkg``: one polygon per photo region of the mosaic (the regions a seam bounds),
 with the photo's name, GSD, view angle from the vertical, capture time, and the area it gives; a
@@ -24,7 +24,26 @@ import numpy as np
 from geoortho.core.camera import PosedCamera
 from geoortho.core.outputs import atomic_path
 
-__all__ = ["SEAMLINE_CELLS", "SourceWriter", "seamlines_path", "write_seamlines"]
+__all__ = [
+    "INPAINTED",
+    "NONE",
+    "OCCLUDED",
+    "SEAMLINE_CELLS",
+    "SEEN",
+    "SOURCE_KINDS",
+    "SourceWriter",
+    "seamlines_path",
+    "write_seamlines",
+]
+
+#: Band 2 (``how``): how each pixel was drawn.
+NONE, SEEN, OCCLUDED, INPAINTED = 0, 1, 2, 3
+SOURCE_KINDS = {
+    NONE: "no data",
+    SEEN: "seen by its photo (line of sight on the DSM)",
+    OCCLUDED: "seen by no photo (occluded): drawn from the photo that has it in frame most directly",
+    INPAINTED: "inpainted (a hole no photo's frame held)",
+}
 
 #: The seamlines are traced on the source raster read at most this many cells (its overviews).
 SEAMLINE_CELLS = 4_000_000
@@ -53,17 +72,16 @@ class SourceWriter:
     def close(self) -> None:
         self.ds.close()
 
-    def finish(self, target: Path, names: Sequence[str], kinds: dict[int, str]) -> Path:
+    def finish(self, target: Path, names: Sequence[str]) -> Path:
         """The COG at ``target`` (nearest overviews: a photo number is no average) with its table."""
+        import rasterio
         from rasterio.shutil import copy as rio_copy
 
         self.close()
-        import rasterio
-
         with rasterio.open(self.tiled, "r+") as ds:
             ds.set_band_description(1, "photo")
             ds.set_band_description(2, "how")
-            ds.update_tags(2, **{f"how_{k}": v for k, v in kinds.items()})
+            ds.update_tags(2, **{f"how_{k}": v for k, v in SOURCE_KINDS.items()})
         with atomic_path(target) as tmp:
             rio_copy(
                 self.tiled, tmp, driver="COG", compress="DEFLATE", blocksize=512, overview_resampling="nearest",
@@ -94,21 +112,13 @@ def _view_angle_deg(cam: PosedCamera) -> float:
     return float(math.degrees(math.acos(min(1.0, max(-1.0, -axis_z)))))
 
 
-def _taken_at(cam: PosedCamera) -> str:
-    from geoortho.photos.metadata import read_photo
-
-    try:
-        return read_photo(cam.file).taken_at
-    except Exception:  # a photo without EXIF has no time: the polygon still names it
-        return ""
-
-
 def write_seamlines(
-    source: Path, cams: Sequence[PosedCamera], gsds_m: Sequence[float], target: Path
+    source: Path, cams: Sequence[PosedCamera], gsds_m: Sequence[float], taken_at: Sequence[str], target: Path
 ) -> tuple[Path, int]:
     """One polygon per photo region of ``source`` (band 1) in a GeoPackage at ``target``: the
-    photo's name, GSD (cm), view angle (deg), capture time, the share of pixels drawn from it that
-    no photo saw (occluded), and its area (m²). Returns the file and how many photos it holds."""
+    photo's name, GSD (cm), view angle (deg), capture time (``taken_at``, ISO 8601, "" when
+    unknown), the share of pixels drawn from it that no photo saw (occluded), and its area (m²).
+    Returns the file and how many photos it holds."""
     import geopandas as gpd
     import rasterio
     import shapely
@@ -127,7 +137,7 @@ def write_seamlines(
         by_photo.setdefault(int(value), []).append(shapely.geometry.shape(geom))
     cell_m2 = abs(transform.a * transform.e)
     counts = np.bincount(photo.ravel(), minlength=len(cams) + 1)
-    occluded = np.bincount(photo.ravel(), weights=(how == 2).ravel(), minlength=len(cams) + 1)
+    occluded = np.bincount(photo.ravel(), weights=(how == OCCLUDED).ravel(), minlength=len(cams) + 1)
     rows = []
     for value in sorted(by_photo):
         cam = cams[value - 1]
@@ -137,7 +147,7 @@ def write_seamlines(
                 "photo_index": value,
                 "gsd_cm": round(100.0 * float(gsds_m[value - 1]), 3),
                 "view_angle_deg": round(_view_angle_deg(cam), 2),
-                "taken_at": _taken_at(cam),
+                "taken_at": taken_at[value - 1],
                 "area_m2": round(float(counts[value]) * cell_m2, 2),
                 "occluded_share": round(float(occluded[value]) / max(float(counts[value]), 1.0), 4),
                 "geometry": shapely.union_all(by_photo[value]),
