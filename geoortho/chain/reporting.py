@@ -932,6 +932,9 @@ def _ortho_sources_map(ctx: _Context, o: dict[str, Any]) -> str:
     from matplotlib.patches import Patch
     from rasterio.enums import Resampling
 
+    from geoortho.elevation.coverage import MEASURED
+    from geoortho.orthophoto.provenance import INPAINTED, OCCLUDED
+
     with rasterio.open(src) as ds:
         scale = max(1.0, max(ds.width, ds.height) / _MAX_RASTER_PX)
         shape = (max(1, round(ds.height / scale)), max(1, round(ds.width / scale)))
@@ -946,19 +949,21 @@ def _ortho_sources_map(ctx: _Context, o: dict[str, Any]) -> str:
         grey = data.astype(float).mean(axis=0) / 255.0
         ax.imshow(np.dstack([grey, grey, grey, valid * 0.6]), extent=o_extent, interpolation="bilinear")
     legend = []
+
+    def tint(
+        mask: np.ndarray, rgb: tuple[float, float, float], alpha: float, where: tuple[float, ...], label: str
+    ) -> None:
+        if mask.any():
+            ax.imshow(np.dstack([*(np.full(mask.shape, c) for c in rgb), mask * alpha]), extent=where,
+                      interpolation="nearest")  # fmt: skip
+        legend.append(Patch(color=(*rgb, max(alpha, 0.5)), label=label))
+
     dsm_source = ctx.path("dem", "dsm_source")
     if dsm_source is not None:
         d, d_valid, d_extent, _ = _read_raster(dsm_source, [1])
-        interpolated = d_valid & (np.rint(d[0]) > 1)
-        ax.imshow(np.dstack([np.zeros_like(d[0]), 0.35 + 0 * d[0], np.ones_like(d[0]), interpolated * 0.35]),
-                  extent=d_extent, interpolation="nearest")  # fmt: skip
-        legend.append(Patch(color=(0.0, 0.35, 1.0, 0.5), label="on an interpolated DSM"))
-    for code, colour, label in ((2, (0.9, 0.0, 0.9), "seen by no photo (occluded)"), (3, (1.0, 0.1, 0.0), "inpainted")):
-        m = how == code
-        if m.any():
-            ax.imshow(np.dstack([np.full(m.shape, colour[0]), np.full(m.shape, colour[1]), np.full(m.shape, colour[2]),
-                                 m * 1.0]), extent=extent, interpolation="nearest")  # fmt: skip
-        legend.append(Patch(color=colour, label=label))
+        tint(d_valid & (np.rint(d[0]) != MEASURED), (0.0, 0.35, 1.0), 0.35, d_extent, "on an interpolated DSM")
+    tint(how == OCCLUDED, (0.9, 0.0, 0.9), 1.0, extent, "seen by no photo (occluded)")
+    tint(how == INPAINTED, (1.0, 0.1, 0.0), 1.0, extent, "inpainted")
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(extent[2], extent[3])
     ax.set_aspect("equal")
