@@ -236,11 +236,12 @@ def _block_min(z: np.ndarray, f: int) -> np.ndarray:
     return np.where(np.isfinite(low), low, np.nan)
 
 
-def despiked(dsm: np.ndarray) -> np.ndarray:
+def despiked(dsm: np.ndarray, hole_value: float | None = None) -> np.ndarray:
     """The DSM's 5 x 5 median (OpenCV), NaN where it has no value: its own speckle (a real meadow's
-    tufts and mismatches, single cells metres up) seeds no object."""
+    tufts and mismatches, single cells metres up) seeds no object. Its holes enter the median as
+    ``hole_value`` (default: the DSM's median height)."""
     ok = np.isfinite(dsm)
-    fill = float(np.nanmedian(dsm[ok])) if ok.any() else 0.0
+    fill = hole_value if hole_value is not None else (float(np.nanmedian(dsm[ok])) if ok.any() else 0.0)
     return np.where(ok, cv2.medianBlur(np.where(ok, dsm, fill).astype(np.float32), 5), np.nan)
 
 
@@ -323,7 +324,7 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
     # the ground is never above the surface: a fill bridged under brush from a rise beside it stood
     # up to a metre over toledo's DSM (1.5 % of its cells 0.2 m over); within the noise it may be
     ok = np.isfinite(dsm) & valid
-    surface = cv2.medianBlur(np.where(ok, dsm, np.nanmax(z)).astype(np.float32), 5).astype(np.float64)
+    surface = despiked(dsm, hole_value=float(np.nanmax(z))).astype(np.float64)  # holes: no lower bound
     z = np.where(ok, np.minimum(z, surface + 2.0 * noise), z)
     dist_m = np.asarray(ndimage.distance_transform_edt(~ground)) * cell_m
     no_ground = objects & valid & (dist_m > BRIDGE_M)
