@@ -237,7 +237,7 @@ def _plan(
                 if stat is not None:
                     pairs.append(stat)
         if seams == "graphcut":
-            band = _band(view, labels, full, kernel, _parallax(cams[i], surface, ctr, view.win, relief))
+            band = _band(view, labels, full, kernel, _parallax(cams[i], ctr, view.win, relief))
             if band is not None:
                 bands.append(band)
         active.append(view)
@@ -337,9 +337,16 @@ RELIEF_MIN_M = 0.5
 PARALLAX_DN_PER_M = 40.0
 
 
-def _relief(surface: Surface, ctr: Affine, full: Window) -> np.ndarray | None:
-    """Height above the ground (the DSM opened) on the coarse grid, 0 under ``RELIEF_MIN_M``;
-    None on flat ground."""
+@dataclass(frozen=True, eq=False)
+class _Relief:
+    """The coarse grid's relief: height above the ground (0 under ``RELIEF_MIN_M``) and the DSM."""
+
+    height: np.ndarray  # float32
+    z: np.ndarray  # float64, the DSM's height at each coarse cell's centre
+
+
+def _relief(surface: Surface, ctr: Affine, full: Window) -> _Relief | None:
+    """Height above the ground (the DSM opened) on the coarse grid; None on flat ground."""
     if isinstance(surface, FlatSurface):
         return None
     _, _, z = window_xyz(ctr, full, surface)
@@ -349,26 +356,30 @@ def _relief(surface: Surface, ctr: Affine, full: Window) -> np.ndarray | None:
     z32 = np.where(have, z, np.nanmin(z)).astype(np.float32)
     k = max(3, int(round(RELIEF_WINDOW_M / ctr.a)) | 1)
     ground = cv2.morphologyEx(z32, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
-    relief = np.where(have, z32 - ground, 0.0).astype(np.float32)
-    relief[relief < RELIEF_MIN_M] = 0.0
-    return relief
+    height = np.where(have, z32 - ground, 0.0).astype(np.float32)
+    height[height < RELIEF_MIN_M] = 0.0
+    return _Relief(height, z)
 
 
-def _parallax(
-    cam: PosedCamera, surface: Surface, ctr: Affine, win: Window, relief: np.ndarray | None
-) -> np.ndarray | None:
+def _parallax(cam: PosedCamera, ctr: Affine, win: Window, relief: _Relief | None) -> np.ndarray | None:
     """Where relief stands, how far this photo displaces it (relief x its line of sight's tangent,
     x and y, metres) over the photo's coarse window: two photos disagree on a roof by the
-    difference of theirs, which the graph cut then pays to cross."""
+    difference of theirs, which the graph cut then pays to cross. Worked out on the relief's cells
+    only, from the DSM heights the relief was found on (the surface is not sampled again)."""
     if relief is None:
         return None
-    h = relief[slices_in(win, Window(0, 0, relief.shape[1], relief.shape[0]))]
-    if not h.any():
+    sl = slices_in(win, Window(0, 0, relief.height.shape[1], relief.height.shape[0]))
+    h = relief.height[sl]
+    rows, cols = np.nonzero(h)
+    if not len(rows):
         return None
-    x, y, z = window_xyz(ctr, win, surface)
+    x, y = ctr * (cols + win.col_off + 0.5, rows + win.row_off + 0.5)
     cx, cy, cz = cam.pose.center
-    dz = np.maximum(cz - np.where(np.isfinite(z), z, cz - 1.0), 1e-3)
-    return np.stack([h * (x - cx) / dz, h * (y - cy) / dz], axis=-1).astype(np.float32)
+    dz = np.maximum(cz - relief.z[sl][rows, cols], 1e-3)
+    out = np.zeros((*h.shape, 2), np.float32)
+    out[rows, cols, 0] = h[rows, cols] * (x - cx) / dz
+    out[rows, cols, 1] = h[rows, cols] * (y - cy) / dz
+    return out
 
 
 def _band(
