@@ -58,8 +58,8 @@ def fill_beside_objects(
 
     The gaps are filled a group at a time (those within two ``MARGIN_M`` of each other), each group in
     its window: a fill over the whole grid held 120 bytes a cell (0.7 GB on the demo survey's), fixed
-    tiles left a seam where a gap crossed their edge, and a window a gap took 420 windows (20 s) on
-    a survey with a wood."""
+    tiles left a seam where a gap crossed their edge, and a window for each gap made 420 windows
+    (20 s) on a survey with a wood."""
     have = np.isfinite(z)
     known = measured & have
     object_known = known & objects
