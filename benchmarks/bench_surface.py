@@ -8,6 +8,8 @@ Printed per survey, against the truth (``geoortho.synthetic.scoring``):
 
 * DTM RMSE, its |dZ| 95th percentile within 3 m of any object, its open-ground roughness beyond
   the truth's (the DTM less its 1 m median, RMS) in GSD;
+* the DTM's RMSE where it claims ground, and where its source raster says it is a guess (under an
+  object with no ground seen) with that share;
 * DSM |dZ| 95th percentile within 3 m of objects, its open-ground bias in GSD;
 * as dem measures itself: roughness, the step at the photos' footprint edges, the share under
   objects with no ground seen;
@@ -126,6 +128,8 @@ def main() -> int:
         print(f"== {name} (GSD {100 * gsd:.2f} cm)")
         print(f"  DTM RMSE {s.dtm_rmse_m:.3f} m | p95 near objects {s.dtm_p95_near_objects_m:.3f} m | "
               f"roughness excess {s.dtm_roughness_excess_gsd:.2f} GSD")  # fmt: skip
+        print(f"  DTM where it claims ground: RMSE {s.dtm_rmse_claimed_m:.3f} m | where its source says a guess "
+              f"(code 4): {100 * s.dtm_guess_share:.1f} % of cells, RMSE {s.dtm_guess_rmse_m:.3f} m")  # fmt: skip
         print(
             f"  DSM p95 near objects {s.dsm_p95_near_objects_m:.2f} m | open-ground bias {s.dsm_bias_open_gsd:+.2f} GSD"
         )

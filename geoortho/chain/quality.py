@@ -87,8 +87,9 @@ THRESHOLDS: dict[str, Threshold] = {
         5.0,
         25.0,
         False,
-        "under a wood or a hall wider than 20 m the DTM is bridged from its edge: a guess; a quarter of the "
-        "survey guessed is not a terrain model",
+        "under a wood or a hall the DTM is bridged from its edge, as far as the ground's own relief says a "
+        "fill stays within 0.1 m (2-10 m); beyond that it is a guess; a quarter of the survey guessed is not a "
+        "terrain model",
     ),
     "footprint_step": Threshold(
         "DTM step at the photos' footprint edges (RMS over the edges)",

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["block_sums", "fill_gaps_by_windows", "fill_harmonic", "fill_smooth", "gap_mask"]
+__all__ = ["block_means", "block_sums", "fill_gaps_by_windows", "fill_harmonic", "fill_smooth", "gap_mask"]
 
 OVERRELAX = 1.7  # measured best of 1.0-1.85 on a ramp through a 40-cell hole
 
@@ -72,6 +72,14 @@ def block_sums(z: np.ndarray, known: np.ndarray, f: int) -> tuple[np.ndarray, np
     zs[:h, :w] = np.where(known, z, 0.0)
     ks[:h, :w] = known
     return zs.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3)), ks.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3))
+
+
+def block_means(z: np.ndarray, known: np.ndarray, f: int, min_share: float = 0.5) -> np.ndarray:
+    """The mean of the ``known`` cells of each f x f block of ``z`` where at least ``min_share``
+    of the block is known, NaN elsewhere: a block that is mostly gap is no sample of the surface
+    (its edge stays where the grid's is)."""
+    total, n = block_sums(z, known, f)
+    return np.where(n >= min_share * f * f, total / np.maximum(n, 1), np.nan)
 
 
 def _fill_inputs(

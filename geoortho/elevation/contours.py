@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from affine import Affine
 
-from geoortho.core.gapfill import block_sums
+from geoortho.core.gapfill import block_means
 from geoortho.core.outputs import write_vector
 
 __all__ = ["ContourResult", "contour_interval_m", "write_contours"]
@@ -47,12 +47,7 @@ def contour_interval_m(vertical_rmse_m: float, relief_m: float) -> float:
 
 
 def _block_mean(z: np.ndarray, f: int) -> np.ndarray:
-    if f <= 1:
-        return z
-    s, n = block_sums(z, np.isfinite(z), f)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        # a block counts when most of it has values (its edge stays where the DTM's is)
-        return np.where(n >= 0.5 * f * f, s / np.maximum(n, 1), np.nan)
+    return z if f <= 1 else block_means(z, np.isfinite(z), f)
 
 
 def write_contours(

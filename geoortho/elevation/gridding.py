@@ -120,7 +120,8 @@ class DemResult:
         ground islands taken out).
     dtm_under_object_share : float
         With ``sfm``: share of the DTM over the ground >= 2 photos saw that lies under an object
-        farther than 10 m from any ground seen (source code 4: a guess).
+        farther from any ground seen than a fill can bridge there (2-10 m, judged on the ground's
+        own relief around it; source code 4: a guess).
     dtm_roughness_m : float
         With ``sfm``: the DTM less its 1 m median, RMS, on open ground (metres).
     footprint_step_m : float
@@ -1144,7 +1145,8 @@ def _complete_dtm(
         )
     note = (
         f"DTM: ground measured {dtm_done.share(MEASURED):.1%}, interpolated {dtm_done.share(INTERPOLATED):.1%}, "
-        f"under an object with no ground seen {dtm_done.share(UNDER_OBJECT):.1%}, "
+        f"under an object with no ground seen {dtm_done.share(UNDER_OBJECT):.1%} (bridged up to "
+        f"{clean.bridge_m:g} m from the ground, the median over the objects, as the ground's relief allows), "
         f"fallback plane {dtm_done.share(FALLBACK):.1%} of its cells; {clean.n_rim:,} cells of rims and "
         f"objects and {clean.n_islands:,} of stray ground islands taken out; open-ground roughness "
         f"{100 * rough:.1f} cm RMS (less its 1 m median), step at {n_edges} photo footprint edges "

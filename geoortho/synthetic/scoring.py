@@ -4,6 +4,8 @@ The truth is resampled onto the product's grid (bilinear), and the cells scored 
 survey's true footprints cover at least twice (the ground the product must cover). Objects are
 where the true DSM stands more than ``OBJECT_M`` above the true DTM; "near objects" is every
 cell within ``NEAR_M`` of one, on either side of its edge; open ground is farther than that.
+Where the DTM's source raster lies beside it, the DTM is also scored apart where it says it is a
+guess (code 4, under an object with no ground seen) and where it does not.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 from scipy import ndimage
 
 from geoortho.elevation.artefacts import roughness_m
-from geoortho.elevation.coverage import seen_count
+from geoortho.elevation.coverage import UNDER_OBJECT, seen_count
 
 __all__ = ["SurfaceScores", "score_surfaces"]
 
@@ -40,6 +42,9 @@ class SurfaceScores:
     dsm_p95_near_objects_m: float
     dsm_bias_open_gsd: float  # median DSM - truth on open ground, in GSD
     dsm_rmse_open_m: float
+    dtm_rmse_claimed_m: float = math.nan  # the DTM where its source does not call it a guess
+    dtm_guess_share: float = math.nan  # of the scored cells, those its source calls a guess (code 4)
+    dtm_guess_rmse_m: float = math.nan
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -105,7 +110,17 @@ def score_surfaces(truth: Path, dsm: Path, dtm: Path) -> SurfaceScores:
     rough = roughness_m(z_dtm, open_ground & np.isfinite(z_dtm), cell)
     rough_truth = roughness_m(true_dtm, open_ground & np.isfinite(z_dtm), cell)
     excess = math.sqrt(max(rough**2 - rough_truth**2, 0.0)) / gsd_m if math.isfinite(rough) else math.nan
+    guess = np.zeros(z_dtm.shape, bool)
+    src_path = Path(dtm).with_name(Path(dtm).stem + "_source.tif")
+    if src_path.is_file():
+        import rasterio
+
+        with rasterio.open(src_path) as ds:
+            guess = ds.read(1) == UNDER_OBJECT if ds.shape == z_dtm.shape else guess
     return SurfaceScores(
+        dtm_rmse_claimed_m=_rms(d_dtm[have_t & ~guess]),
+        dtm_guess_share=float((have_t & guess).sum() / max(1, int(have_t.sum()))),
+        dtm_guess_rmse_m=_rms(d_dtm[have_t & guess]),
         gsd_m=gsd_m,
         dtm_rmse_m=_rms(d_dtm[have_t]),
         dtm_p95_near_objects_m=_p95(d_dtm[have_t & near]),
