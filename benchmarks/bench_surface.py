@@ -58,15 +58,15 @@ def _prepare(work: Path, name: str) -> Path:
     return d
 
 
-def _dem(d: Path, out: Path, tree: str | None) -> tuple[float, float, dict[str, object]]:
-    """dem --sfm in a fresh process: wall seconds, its peak MB, its JSON result. ``tree``: run the
-    package of that checkout (the editable install's finder, a meta path hook that would find this
-    checkout's whatever PYTHONPATH says, is taken out in that process)."""
-    out.mkdir(parents=True, exist_ok=True)
+def geoortho_timed(args: list[str], tree: str | None) -> tuple[float, float, dict[str, object]]:
+    """``python -m geoortho ARGS --json`` in a fresh process: wall seconds, peak MB (the process or
+    its largest worker, whichever is higher), its JSON result. ``tree``: run the package of that
+    checkout (the editable install's finder, a meta path hook that would find this checkout's
+    whatever PYTHONPATH says, is taken out in that process)."""
     boot = (
         "import atexit, resource, runpy, sys; "
-        "atexit.register(lambda: print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
-        "file=sys.stderr)); "
+        "atexit.register(lambda: print('PEAK_KB', max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
+        "resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss), file=sys.stderr)); "
         + (
             "sys.meta_path[:] = [f for f in sys.meta_path if not type(f).__module__.startswith('__editable__')]; "
             f"sys.path.insert(0, {tree!r}); "
@@ -75,10 +75,9 @@ def _dem(d: Path, out: Path, tree: str | None) -> tuple[float, float, dict[str, 
         )
         + "sys.argv[0] = 'geoortho'; runpy.run_module('geoortho', run_name='__main__', alter_sys=True)"
     )
-    cmd = [sys.executable, "-c", boot, "dem", "--points", str(d / "dense.laz"), "--output", str(out / "dsm.tif"),
-           "--dtm", str(out / "dtm.tif"), "--sfm", str(d / "sfm"), "--method", "idw", "--json"]  # fmt: skip
     t = time.perf_counter()
-    got = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=tree or None)
+    got = subprocess.run([sys.executable, "-c", boot, *args, "--json"], check=True, capture_output=True, text=True,
+                         cwd=tree or None)  # fmt: skip
     seconds = time.perf_counter() - t
     peak_kb = [float(line.split()[1]) for line in got.stderr.splitlines() if line.startswith("PEAK_KB")]
     try:
@@ -86,6 +85,14 @@ def _dem(d: Path, out: Path, tree: str | None) -> tuple[float, float, dict[str, 
     except ValueError:
         result = {}
     return seconds, (peak_kb[-1] / 1024 if peak_kb else float("nan")), result
+
+
+def _dem(d: Path, out: Path, tree: str | None) -> tuple[float, float, dict[str, object]]:
+    """dem --sfm in a fresh process (:func:`geoortho_timed`)."""
+    out.mkdir(parents=True, exist_ok=True)
+    args = ["dem", "--points", str(d / "dense.laz"), "--output", str(out / "dsm.tif"), "--dtm",
+            str(out / "dtm.tif"), "--sfm", str(d / "sfm"), "--method", "idw"]  # fmt: skip
+    return geoortho_timed(args, tree)
 
 
 def _worktree(ref: str, into: Path) -> Path:

@@ -344,3 +344,29 @@ def geoortho_dem(points, dsm, dtm, sfm):
     import geoortho
 
     return geoortho.dem(points, dsm, dtm=dtm, sfm=sfm, method="idw", resolution_m=0.5)
+
+
+def test_a_crown_top_called_ground_inside_a_wood_goes_a_courtyard_stays():
+    rng = np.random.default_rng(11)
+    shape = (500, 500)
+    truth = _terrain(shape, bank=False)
+    wood = _building(shape, (250, 150), (100, 100))  # 20 m across
+    hall = _building(shape, (250, 390), (80, 80))  # 16 m across, round a courtyard 6 m across
+    yard = _building(shape, (250, 390), (30, 30))
+    top = _building(shape, (250, 150), (30, 30))  # a smooth crown top 6 m across, 7 m up
+    objects = (wood | hall) & ~yard
+    dsm = np.where(wood, truth + 7.0 + rng.normal(0, 0.3, shape), truth)
+    dsm = np.where(hall & ~yard, truth + 6.0, dsm)
+    dtm, measured, _, _ = _photogrammetric_dtm(truth, objects, rng)
+    # the filter's DTM kept the crown top (a plateau wider than its window) and the courtyard
+    dtm[top] = truth[top] + 7.0 + rng.normal(0, 0.01, (int(top.sum()),))
+    measured = measured | top
+    dsm[top] = dtm[top]
+    clean = bare_earth(dsm, dtm, measured, CELL_M)
+    assert not clean.ground[top].any()
+    # the DTM under the wood stays with the ground round it, not pinned 7 m up
+    # (without the rule: 3 % of the top kept as ground, the DTM 7.0 m up there; with it 0.11 m)
+    assert np.abs(clean.z - truth)[wood].max() < 0.5, np.abs(clean.z - truth)[wood].max()
+    # the courtyard's middle stays ground (the ring a rim leaves round it is taken out, as beside any wall)
+    assert clean.ground[yard].mean() > 0.2
+    assert np.percentile(np.abs(clean.z - truth)[yard], 95) < 0.05

@@ -22,7 +22,7 @@ from scipy import ndimage
 from geoortho.elevation.artefacts import roughness_m
 from geoortho.elevation.coverage import UNDER_OBJECT, seen_count
 
-__all__ = ["SurfaceScores", "score_surfaces"]
+__all__ = ["OrthoScores", "SurfaceScores", "score_ortho", "score_surfaces"]
 
 OBJECT_M = 0.2
 NEAR_M = 3.0
@@ -131,4 +131,143 @@ def score_surfaces(truth: Path, dsm: Path, dtm: Path) -> SurfaceScores:
         dsm_p95_near_objects_m=_p95(d_dsm[have_s & near]),
         dsm_bias_open_gsd=float(np.median(d_dsm[have_s & ~near])) / gsd_m if (have_s & ~near).any() else math.nan,
         dsm_rmse_open_m=_rms(d_dsm[have_s & ~near]),
+    )
+
+
+#: An object this high (m) with a roof's colour is a building for the roof-edge measure.
+BUILDING_M = 2.0
+#: Roof edges are measured this far (m) either side of the true outline, in pieces this long (m).
+EDGE_BAND_M = 1.0
+EDGE_PIECE_M = 0.5
+
+
+@dataclass(frozen=True)
+class OrthoScores:
+    """An orthophoto against the survey's true orthophoto (issue 75's measures)."""
+
+    gsd_m: float
+    ssim_open: float  # structural similarity on open ground (grey, the ortho's gain and offset fitted)
+    ssim_near_objects: float  # the same within NEAR_M of an object, objects included
+    roof_edge_error_gsd: float  # median |offset| of the roof edges from the true outlines, in GSD
+    roof_edge_error_truth_gsd: float  # the same measure on the true orthophoto: its own floor
+    roof_edge_pieces: int  # outline pieces measured
+    holes_inside_m2: float  # transparent area enclosed by the mosaic that the photos saw twice
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+def _ortho_on_grid(path: Path, transform: Any, crs: Any, shape: tuple[int, int]) -> np.ndarray:
+    """The true orthophoto's three bands on another grid (bilinear), float 0..255."""
+    import rasterio
+    from rasterio.warp import Resampling, reproject
+
+    out = np.full((3, *shape), np.nan, np.float32)
+    with rasterio.open(path) as src:
+        for b in range(3):
+            reproject(
+                rasterio.band(src, b + 1), out[b], dst_transform=transform, dst_crs=crs,
+                resampling=Resampling.bilinear, src_nodata=None, dst_nodata=np.nan,
+            )  # fmt: skip
+    return out
+
+
+def _enclosed(empty: np.ndarray) -> np.ndarray:
+    """The ``empty`` cells that do not reach the raster's border through empty cells."""
+    labels, _ = ndimage.label(empty)
+    border = np.unique(np.r_[labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+    return empty & ~np.isin(labels, border[border > 0])
+
+
+def _grey(rgb: np.ndarray) -> np.ndarray:
+    return (0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]).astype(np.float64)
+
+
+def _edge_offsets_m(grey: np.ndarray, valid: np.ndarray, buildings: np.ndarray, cell_m: float) -> np.ndarray:
+    """Per piece of the buildings' true outline (``EDGE_PIECE_M`` long), how far (m, + outward)
+    from it ``grey``'s edge lies: the piece's mean gradient profile across the outline (cells
+    binned by their distance from it, within ``EDGE_BAND_M``), its peak refined to a fraction of a
+    cell by a parabola through the peak and its neighbours. The outline's cells are the roof's
+    last, so the true edge lies half a cell out."""
+    import cv2
+
+    smooth = cv2.GaussianBlur(np.where(valid, grey, 0.0).astype(np.float32), (0, 0), 1.0)
+    grad = np.hypot(cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1))
+    outline = buildings & ~ndimage.binary_erosion(buildings)
+    if not outline.any():
+        return np.zeros(0)
+    dist, (ri, ci) = ndimage.distance_transform_edt(~outline, return_indices=True)
+    reach = int(round(EDGE_BAND_M / cell_m))
+    step = np.rint(np.where(buildings, -dist, dist)).astype(np.int64)  # cells from the outline, + outward
+    # the band's cells, and none whose smoothing read past the ortho's edge
+    band = (np.abs(step) <= reach) & ndimage.binary_erosion(valid, iterations=3)
+    k = max(1, int(round(EDGE_PIECE_M / cell_m)))
+    _, piece = np.unique(ri[band] // k * (buildings.shape[1] // k + 1) + ci[band] // k, return_inverse=True)
+    n_pieces = int(piece.max()) + 1 if piece.size else 0
+    if not n_pieces:
+        return np.zeros(0)
+    width = 2 * reach + 1
+    slot = piece * width + (step[band] + reach)
+    n = np.bincount(slot, minlength=n_pieces * width).reshape(n_pieces, width)
+    g = np.bincount(slot, grad[band], minlength=n_pieces * width).reshape(n_pieces, width)
+    profile = np.where(n > 0, g / np.maximum(n, 1), 0.0)
+    peak = np.argmax(profile, axis=1)
+    inner = (peak > 0) & (peak < width - 1) & (n.min(axis=1) > 0)
+    j = peak[inner]
+    rows = np.nonzero(inner)[0]
+    lo, mid, hi = profile[rows, j - 1], profile[rows, j], profile[rows, j + 1]
+    curve = lo - 2.0 * mid + hi
+    delta = np.where(curve < 0, 0.5 * (lo - hi) / np.where(curve < 0, curve, -1.0), 0.0)
+    return ((j - reach + np.clip(delta, -0.5, 0.5)) - 0.5) * cell_m
+
+
+def score_ortho(truth: Path, ortho: Path) -> OrthoScores:
+    """Score the orthophoto ``ortho`` (RGB + alpha) against the survey's ``truth`` folder."""
+    import rasterio
+    from skimage.metrics import structural_similarity
+
+    truth = Path(truth)
+    info = json.loads((truth / "survey.json").read_text())
+    gsd_m = float(info["gsd_cm_at_home_height"]) / 100.0
+    with rasterio.open(ortho) as ds:
+        rgb = ds.read([1, 2, 3]).astype(np.float32)
+        alpha = ds.read(4) if ds.count >= 4 else ds.dataset_mask()
+        t, crs = ds.transform, ds.crs
+    shape = alpha.shape
+    cell = abs(t.a)
+    have = alpha > 0
+    true_rgb = _ortho_on_grid(truth / "ortho.tif", t, crs, shape)
+    true_dsm = _on_grid(truth / "dsm.tif", t, crs, shape)
+    true_dtm = _on_grid(truth / "dtm.tif", t, crs, shape)
+    seen = _seen_twice(truth, t, shape)
+    height = true_dsm - true_dtm
+    objects = height > OBJECT_M
+    near = np.asarray(ndimage.distance_transform_edt(~objects)) * cell <= NEAR_M
+    ok = have & seen & np.isfinite(true_rgb).all(axis=0) & np.isfinite(height)
+    grey, true_grey = _grey(rgb), _grey(np.nan_to_num(true_rgb))
+    # the photos' exposure and vignetting are not the scene's colours: one gain and offset, fitted
+    a, b = np.polyfit(grey[ok & ~near], true_grey[ok & ~near], 1) if (ok & ~near).sum() > 100 else (1.0, 0.0)
+    fitted = np.where(have, a * grey + b, true_grey)
+    _, ssim_map = structural_similarity(
+        fitted, true_grey, data_range=255.0, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, full=True
+    )
+    # buildings: objects standing BUILDING_M high that are not the trees' green; their outline where
+    # the scene's colour turns from ground to roof (0.25 m up its wall)
+    labels, n = ndimage.label(objects)
+    buildings = np.zeros(shape, bool)
+    for i, sl in enumerate(ndimage.find_objects(labels), 1):
+        m = labels[sl] == i
+        r, g, bl = (float(np.mean(np.nan_to_num(true_rgb[c][sl][m]))) for c in range(3))
+        if np.nanmax(height[sl][m]) > BUILDING_M and not (g > 1.25 * r and g > 1.25 * bl):
+            buildings[sl] |= m
+    ours = _edge_offsets_m(fitted, ok, buildings, cell)
+    floor = _edge_offsets_m(true_grey, ok, buildings, cell)
+    return OrthoScores(
+        gsd_m=gsd_m,
+        ssim_open=float(np.mean(ssim_map[ok & ~near])) if (ok & ~near).any() else math.nan,
+        ssim_near_objects=float(np.mean(ssim_map[ok & near])) if (ok & near).any() else math.nan,
+        roof_edge_error_gsd=float(np.median(np.abs(ours))) / gsd_m if ours.size else math.nan,
+        roof_edge_error_truth_gsd=float(np.median(np.abs(floor))) / gsd_m if floor.size else math.nan,
+        roof_edge_pieces=int(ours.size),
+        holes_inside_m2=float((_enclosed(~have) & seen).sum()) * cell * cell,
     )
