@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 from affine import Affine
 from rasterio.windows import Window
+from scipy import ndimage
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.surface import FlatSurface, Surface
@@ -222,9 +223,14 @@ def _plan(
     active: list[_View] = []
     new_failures: dict[int, str] = {}
     held_max = 0
+    votes = _Votes(ctr.a, cshape) if seams == "graphcut" and ctr.a <= TRANSIENT_MAX_CELL_M else None
     for k, i in enumerate(sorted(wins, key=lambda j: (span(wins[j])[0], j))):
         fb.check_canceled()
         start = span(wins[i])[0]
+        if votes is not None:
+            for v in active:
+                if span(v.win)[1] <= start:
+                    votes.retire(v)
         active = [v for v in active if span(v.win)[1] > start]  # no later photo can overlap these
         try:
             view = _coarse_view(i, cams[i], surface, vis[i], ctr, wins[i], gsd_m[i])
@@ -236,6 +242,8 @@ def _plan(
                 stat = _pair_stat(other, view) if other.index < view.index else _pair_stat(view, other)
                 if stat is not None:
                     pairs.append(stat)
+        if votes is not None:
+            votes.add(view, active)
         if seams == "graphcut":
             band = _band(view, labels, full, kernel, _parallax(cams[i], ctr, view.win, relief))
             if band is not None:
@@ -252,8 +260,142 @@ def _plan(
     if seams == "graphcut" and len(wins) > 1:
         # in photo order, as OpenCV cuts pairs one after another: the same seams whatever the sweep
         labels = _graph_cut(sorted(bands, key=lambda b: b.index), labels, cshape, gains)
+    if votes is not None:
+        for v in active:
+            votes.retire(v)
+        votes.decide()
+        labels = _without_transients(labels, votes, cams, surface, vis, ctr, wins)
     fb.progress(1.0)
     return SeamPlan(ctr, labels, gains, tuple(skipped), notes, held_max)
+
+
+#: Two photos disagree on a coarse cell where their colours (the pair's mean ratio taken out)
+#: differ by more than this (RGB distance, DN)...
+TRANSIENT_DN = 40.0
+#: ... and a photo that disagrees there with at least this many others, and with half or more of
+#: those that see the cell, shows what they do not: a car or a person that has moved on, a wall's
+#: face the others do not see. It gives the cell up to one that agrees (a moved car: once or not at
+#: all, never twice or cut in half by a seam).
+TRANSIENT_MIN_OTHERS = 2
+#: ... of at least this many others that see the cell: at the survey's edge, where two or three
+#: photos meet at their frames' edges, vignetting and the view's angle decide more than content.
+TRANSIENT_MIN_SEEN = 3
+#: A photo's patch of such cells larger than this (m²) is no mover (a bus is 30 m²): the photos
+#: disagree there as a whole (toledo at 0.3 m: 19,300 m² of the survey in patches up to 3,200 m²,
+#: the seams' visible pixels 1285 -> 5138) and the seams stay as the cut left them.
+TRANSIENT_MAX_M2 = 50.0
+#: The coarse cells must be this fine (m) to tell a mover from the photos' other differences: a car
+#: then spans eight cells or more. (Toledo at 0.3 m, cells of 2.4 m: the patches found were single
+#: cells of shrubs and frames' edges, a car one cell too; the seams' visible pixels 6148 -> 7110.)
+TRANSIENT_MAX_CELL_M = 1.0
+
+
+class _Votes:
+    """Per photo, on its coarse window: how many others see each cell and how many disagree; and
+    over the coarse grid, how many pairs disagree on each cell."""
+
+    def __init__(self, cell_m: float, cshape: tuple[int, int]) -> None:
+        self.cell_m2 = cell_m * cell_m
+        self.full = Window(0, 0, cshape[1], cshape[0])
+        self.pairs_against = np.zeros(cshape, np.uint16)
+        self.seen: dict[int, np.ndarray] = {}
+        self.against: dict[int, np.ndarray] = {}
+        self.pending: dict[int, tuple[Window, np.ndarray, np.ndarray]] = {}
+        self.transient: dict[int, tuple[Window, np.ndarray]] = {}
+        self.agrees: dict[int, tuple[Window, np.ndarray]] = {}  # cells where a photo disagrees with a minority
+
+    def add(self, view: _View, others: Sequence[_View]) -> None:
+        self.seen[view.index] = np.zeros(view.valid.shape, np.uint16)
+        self.against[view.index] = np.zeros(view.valid.shape, np.uint16)
+        for other in others:
+            inter = intersect(other.win, view.win)
+            if inter is None:
+                continue
+            sa, sb = slices_in(inter, other.win), slices_in(inter, view.win)
+            both = other.valid[sa] & view.valid[sb]
+            if int(both.sum()) < 4:
+                continue
+            ia, ib = other.image[sa].astype(np.float32), view.image[sb].astype(np.float32)
+            ratio = ib[both].mean(axis=0) / np.maximum(ia[both].mean(axis=0), 1.0)
+            off = both & (np.linalg.norm(ia * ratio - ib, axis=2) > TRANSIENT_DN)
+            self.pairs_against[slices_in(inter, self.full)] += off
+            for idx, sl in ((other.index, sa), (view.index, sb)):
+                self.seen[idx][sl] += both
+                self.against[idx][sl] += off
+
+    def retire(self, view: _View) -> None:
+        seen, against = self.seen.pop(view.index, None), self.against.pop(view.index, None)
+        if seen is None or against is None:
+            return
+        self.agrees[view.index] = (view.win, (seen >= 1) & (2 * against < seen))
+        odd = (against >= TRANSIENT_MIN_OTHERS) & (2 * against >= seen) & (seen >= TRANSIENT_MIN_SEEN)
+        if odd.any():
+            labels, _ = ndimage.label(odd, structure=np.ones((3, 3), bool))
+            small = np.bincount(labels.ravel()) * self.cell_m2 <= TRANSIENT_MAX_M2
+            small[0] = False
+            odd = small[labels]
+        if odd.any():
+            self.pending[view.index] = (view.win, odd, against)
+
+    def decide(self) -> None:
+        """The odd cells of each photo where fewer pairs of the other photos disagree among
+        themselves than disagree with it: one photo against a consensus (or two, a car seen at two
+        places by two), not a view-dependent look (a field bright towards the sun, shrubs'
+        parallax: there the others disagree among themselves as much)."""
+        for i, (win, odd, against) in self.pending.items():
+            others_against = self.pairs_against[slices_in(win, self.full)].astype(np.int32) - against
+            odd = odd & (others_against < against)
+            if odd.any():  # a cell's worth round it: the coarse cell a car's edge shares
+                grown = cv2.dilate(odd.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+                self.transient[i] = (win, grown)
+        self.pending.clear()
+
+
+def _without_transients(
+    labels: np.ndarray,
+    votes: _Votes,
+    cams: Sequence[PosedCamera],
+    surface: Surface,
+    vis: Sequence[VisibilityGrid | None],
+    ctr: Affine,
+    wins: dict[int, Window],
+) -> np.ndarray:
+    """``labels`` with each cell whose owner shows something there that the others do not given
+    to the photo that sees it best among those that agree with the rest there (kept where none
+    does: where every photo differs, as round a tree's crown, the cut's seams stand)."""
+    full = Window(0, 0, labels.shape[1], labels.shape[0])
+    out = labels.copy()
+    for i, (win, odd) in sorted(votes.transient.items()):
+        sl = slices_in(win, full)
+        take = (out[sl] == i) & odd
+        if not take.any():
+            continue
+        rr, cc = np.nonzero(take)
+        box = Window(
+            win.col_off + int(cc.min()), win.row_off + int(rr.min()), int(cc.max() - cc.min()) + 1,
+            int(rr.max() - rr.min()) + 1,
+        )  # fmt: skip
+        want = np.zeros((box.height, box.width), bool)
+        want[rr - int(rr.min()), cc - int(cc.min())] = True
+        best = np.full(want.shape, np.inf, np.float32)
+        owner = np.full(want.shape, -1, np.int16)
+        for j, wj in wins.items():
+            inter = intersect(wj, box) if j != i and j in votes.agrees else None
+            if inter is None:
+                continue
+            awin, agrees = votes.agrees[j]
+            a_inter = intersect(awin, inter)
+            if a_inter is None:
+                continue
+            ok = np.zeros((inter.height, inter.width), bool)
+            ok[slices_in(a_inter, inter)] = agrees[slices_in(a_inter, awin)]
+            cost = _coarse_projection(cams[j], surface, vis[j], ctr, inter).cost
+            sub = slices_in(inter, box)
+            keep_best(best, owner, sub, np.where(want[sub] & ok, cost, np.inf).astype(np.float32), j)
+        moved = want & (owner >= 0)
+        region = out[slices_in(box, full)]
+        region[moved] = owner[moved]
+    return out
 
 
 def _first_split(

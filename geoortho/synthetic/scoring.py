@@ -22,7 +22,7 @@ from scipy import ndimage
 from geoortho.elevation.artefacts import roughness_m
 from geoortho.elevation.coverage import UNDER_OBJECT, seen_count
 
-__all__ = ["OrthoScores", "SurfaceScores", "score_ortho", "score_surfaces"]
+__all__ = ["GhostScores", "OrthoScores", "SurfaceScores", "score_movers", "score_ortho", "score_surfaces"]
 
 OBJECT_M = 0.2
 NEAR_M = 3.0
@@ -271,3 +271,83 @@ def score_ortho(truth: Path, ortho: Path) -> OrthoScores:
         roof_edge_pieces=int(ours.size),
         holes_inside_m2=float((_enclosed(~have) & seen).sum()) * cell * cell,
     )
+
+
+#: A difference from the truth is a mover's where its colour is this far off (0..255, RGB distance,
+#: after a 1-pixel smoothing) ...
+MOVER_DIFF_DN = 45.0
+#: ... over at least this share of the mover's top (less: noise); a whole one covers GHOST_WHOLE of it.
+GHOST_MIN_SHARE, GHOST_WHOLE = 0.2, 0.6
+
+
+@dataclass(frozen=True)
+class GhostScores:
+    """Moving cars and people in an orthophoto against the static truth: where each one's track
+    runs, the car-shaped differences found (issue 75: "0 ghosts", a mover once and whole or not
+    at all)."""
+
+    movers: int
+    whole: int  # appearances whole (a mover may appear once)
+    ghosts: int  # partial appearances, and appearances beyond a mover's first
+    per_mover: tuple[tuple[str, int, int], ...]  # (kind, whole, partial)
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def score_movers(truth: Path, ortho: Path, kinds: tuple[str, ...] = ("car", "person")) -> GhostScores:
+    """Count the appearances of the survey's movers (``survey.json``'s movers) in ``ortho``."""
+    import cv2
+    import rasterio
+
+    truth = Path(truth)
+    movers = [m for m in json.loads((truth / "survey.json").read_text()).get("movers", []) if m["kind"] in kinds]
+    with rasterio.open(ortho) as ds:
+        rgb = ds.read([1, 2, 3]).astype(np.float32)
+        alpha = ds.read(4) if ds.count >= 4 else ds.dataset_mask()
+        t, crs = ds.transform, ds.crs
+    true_rgb = _ortho_on_grid(truth / "ortho.tif", t, crs, alpha.shape)
+    ok = (alpha > 0) & np.isfinite(true_rgb).all(axis=0)
+    fitted = np.empty_like(rgb)
+    for c in range(3):  # the photos' exposure is not the scene's colour: a gain and offset per band
+        a, b = np.polyfit(rgb[c][ok][::50], true_rgb[c][ok][::50], 1) if ok.sum() > 1000 else (1.0, 0.0)
+        fitted[c] = a * rgb[c] + b
+    diff = np.sqrt(np.sum((fitted - np.nan_to_num(true_rgb)) ** 2, axis=0))
+    diff = cv2.GaussianBlur(np.where(ok, diff, 0.0).astype(np.float32), (0, 0), 1.0)
+    cell = abs(t.a)
+    per: list[tuple[str, int, int]] = []
+    for m in movers:
+        h = math.radians(m["heading_deg"])
+        fwd = np.array([math.sin(h), math.cos(h)])
+        reach = m["length_m"] / 2 + 1.0
+        ends = np.array([[m["x0"], m["y0"]], [m["x0"], m["y0"]] + m["track_m"] * fwd]) + [
+            [*(-reach * fwd)],
+            [*(reach * fwd)],
+        ]
+        half_w = m["width_m"] / 2 + 1.0
+        xs, ys = ends[:, 0], ends[:, 1]
+        c0, r0 = ~t * (xs.min() - half_w, ys.max() + half_w)
+        c1, r1 = ~t * (xs.max() + half_w, ys.min() - half_w)
+        r0, c0 = max(0, int(r0)), max(0, int(c0))
+        r1, c1 = min(alpha.shape[0], int(math.ceil(r1))), min(alpha.shape[1], int(math.ceil(c1)))
+        if r1 <= r0 or c1 <= c0:
+            per.append((m["kind"], 0, 0))
+            continue
+        cc, rr = np.meshgrid(np.arange(c0, c1) + 0.5, np.arange(r0, r1) + 0.5)
+        px, py = t.c + cc * t.a, t.f + rr * t.e
+        # distance from the track's segment (its ends widened by half a mover and a metre)
+        seg = ends[1] - ends[0]
+        u = np.clip(((px - ends[0, 0]) * seg[0] + (py - ends[0, 1]) * seg[1]) / float(seg @ seg), 0.0, 1.0)
+        dist = np.hypot(px - (ends[0, 0] + u * seg[0]), py - (ends[0, 1] + u * seg[1]))
+        corridor = dist <= half_w
+        found = (diff[r0:r1, c0:c1] > MOVER_DIFF_DN) & corridor
+        found = cv2.morphologyEx(found.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
+        labels, n = ndimage.label(found & corridor)
+        top_m2 = m["length_m"] * m["width_m"]
+        areas = np.bincount(labels.ravel())[1:] * cell * cell
+        whole = int(sum(max(1, round(a / top_m2)) for a in areas if a >= GHOST_WHOLE * top_m2))
+        partial = int(sum(1 for a in areas if GHOST_MIN_SHARE * top_m2 <= a < GHOST_WHOLE * top_m2))
+        per.append((m["kind"], whole, partial))
+    whole = sum(w for _, w, _ in per)
+    ghosts = sum(p + max(0, w - 1) for _, w, p in per)
+    return GhostScores(movers=len(movers), whole=whole, ghosts=ghosts, per_mover=tuple(per))

@@ -54,6 +54,7 @@ from geoortho.gcp.markers import (
 )
 from geoortho.gcp.targets import motion_kernel, spread_path
 from geoortho.synthetic.cover import CANOPY_STYLES, add_canopy, add_car_park, add_hall, add_hedge, leaf_texture
+from geoortho.synthetic.movers import Mover, draw_movers, place_movers
 
 __all__ = ["PRESETS", "PATHOLOGIES", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
 
@@ -218,6 +219,10 @@ PATHOLOGIES: dict[str, str] = {
     "breaklines": f"a bank {BANK_M[0]:g} m high across the scene (45 deg for an even seed, 30 for an odd one) and a "
     f"road cutting {CUTTING_M[1]:g} m wide, {CUTTING_M[0]:g} m deep with 45 deg sides: the ground's own sharp edges; "
     "survey.json: cover.breaklines",
+    "moving-cars": "four cars (4.4 x 1.8 x 1.45 m, 4 m/s) and two people (1.7 m, 1.4 m/s) going to and fro along "
+    "30 m tracks on open ground while the drone flies: each photo shows them where they were then, drawn as a car "
+    "with a windscreen (even seed) or a box with a roof stripe (odd); the truth is the static scene without them; "
+    "survey.json: movers",
     "dropped-photo": "one photo in the middle of the flight that no SfM can register: smeared by a motion blur of "
     "a tenth of its width, or blown out (25x over-exposed), as the seed draws; survey.json names it "
     "(dropped_photo: image, how)",
@@ -274,6 +279,7 @@ class Scene:
     canopy: np.ndarray | None = None  # (rows, cols) bool on the DSM grid: a wood's crowns, leaf-textured
     canopy_style: str = "pattern"  # how the leaves are drawn (cover.CANOPY_STYLES)
     cover: dict[str, dict[str, Any]] = field(default_factory=dict)  # canopy/cars: where they are
+    movers: tuple[Mover, ...] = ()  # moving cars and people (not in the truth's rasters)
 
     @property
     def surface(self) -> GridSurface:
@@ -1182,6 +1188,10 @@ def render_photo(
     rgb[good] = scene.color(pts[good, 0], pts[good, 1], pts[good, 2])
     img = rgb.reshape(h, w, 3)
     grid_pts = pts.reshape(h, w, 3)
+    if scene.movers:
+        depth = np.where(good, (pts - pose.center) @ pose.rotation[:, 2], np.nan).reshape(h, w)
+        ground = GridSurface(scene.dtm, scene.transform, scene.crs).elevation
+        draw_movers(img, list(scene.movers), _seconds_of_day(shot), intr, pose, ground, depth)
     markers = _marker_truth_and_antialias(
         scene, shot, intr, pose, img, lambda y0, y1, x0, x1: grid_pts[y0 : y1 + 1, x0 : x1 + 1]
     )
@@ -1219,6 +1229,14 @@ def render_photo(
     if path is not None:
         _write_jpeg(path, _to_bytes(img), shot, intr)
     return {"image": shot.name, "markers": markers, "blur_px": shot.blur_px, "blur_deg": blur_deg}
+
+
+def _seconds_of_day(shot: Shot) -> float:
+    """The shot's exposure time, seconds after its day's midnight (0 without a time)."""
+    if not shot.time:
+        return 0.0
+    stamp = dt.datetime.strptime(shot.time, "%Y:%m:%d %H:%M:%S")
+    return stamp.hour * 3600.0 + stamp.minute * 60.0 + stamp.second + int(shot.subsec or 0) / 1000.0
 
 
 def _to_bytes(img: np.ndarray) -> np.ndarray:
@@ -1798,6 +1816,13 @@ def _scene(
         )
     if "water" in pathologies:
         scene.water = _place_water(scene)
+    if "moving-cars" in pathologies:
+        scene.movers = tuple(
+            place_movers(
+                scene.dsm, scene.dtm, scene.transform, scene.flight_box, [(m.x, m.y) for m in scene.markers],
+                np.random.default_rng([seed, 23]), "car" if seed % 2 == 0 else "box",
+            )
+        )  # fmt: skip
     return scene
 
 
@@ -2093,6 +2118,7 @@ def _write_survey_json(
             "pathologies": {k: PATHOLOGIES[k] for k in pathologies},
             **({"water": dict(zip(("x", "y", "radius_m"), scene.water))} if scene.water is not None else {}),
             **({"cover": scene.cover} if scene.cover else {}),
+            **({"movers": [m.record() for m in scene.movers]} if scene.movers else {}),
             **(
                 {"mount_tilt": {"deg": MOUNT_TILT_DEG, "azimuth_deg": MOUNT_TILT_AZIMUTH_DEG}}
                 if "no-attitude" in pathologies
