@@ -102,21 +102,28 @@ def _worktree(ref: str, into: Path) -> Path:
     return into
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def bench_options(doc: str, stage: str) -> tuple[argparse.Namespace, Path, str | None]:
+    """The benchmarks' shared options: the cached surveys' folder (made), and the baseline
+    checkout to time ``stage`` against (a git worktree, made once), None without one."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "geoortho_bench_surface")
     ap.add_argument("--surveys", default="demo,scenes,breaklines", help=f"comma-separated, of {', '.join(SURVEYS)}")
-    ap.add_argument("--baseline", default="", help="git ref of the code to time dem against (empty: none)")
+    ap.add_argument("--baseline", default="", help=f"git ref of the code to time {stage} against (empty: none)")
     args = ap.parse_args()
-    from geoortho.synthetic.scoring import score_surfaces
-
-    work = args.work
+    work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     base_tree = None
     if args.baseline:
         base_tree = work / f"baseline-{args.baseline}"
         if not base_tree.exists():
             _worktree(args.baseline, base_tree)
+    return args, work, str(base_tree) if base_tree is not None else None
+
+
+def main() -> int:
+    from geoortho.synthetic.scoring import score_surfaces
+
+    args, work, base_tree = bench_options(__doc__ or "", "dem")
     rows = []
     for name in [n.strip() for n in args.surveys.split(",") if n.strip()]:
         d = _prepare(work, name)
@@ -126,7 +133,7 @@ def main() -> int:
         for k in ("dtm_roughness_m", "footprint_step_m", "dtm_under_object_share"):
             row[f"self_{k}"] = result.get(k)
         if base_tree is not None:
-            b_seconds, b_peak, _ = _dem(d, d / "dem_baseline", str(base_tree))
+            b_seconds, b_peak, _ = _dem(d, d / "dem_baseline", base_tree)
             b = score_surfaces(d / "survey" / "truth", d / "dem_baseline" / "dsm.tif", d / "dem_baseline" / "dtm.tif")
             row.update({"baseline_dem_s": b_seconds, "baseline_peak_mb": b_peak, "time_ratio": seconds / b_seconds,
                         "baseline": b.as_dict()})  # fmt: skip

@@ -19,14 +19,12 @@ worktree made here). Printed per survey, against the truth (``geoortho.synthetic
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_surface import SURVEYS, _dem, _prepare, _worktree, geoortho_timed  # noqa: E402
+from bench_surface import _dem, _prepare, bench_options, geoortho_timed  # noqa: E402
 
 
 def _ortho(d: Path, out: Path, tree: str | None) -> tuple[float, float, dict[str, object]]:
@@ -39,17 +37,7 @@ def _ortho(d: Path, out: Path, tree: str | None) -> tuple[float, float, dict[str
 def main() -> int:
     from geoortho.synthetic.scoring import score_ortho
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "geoortho_bench_surface")
-    ap.add_argument("--surveys", default="demo,scenes,breaklines", help=f"comma-separated, of {', '.join(SURVEYS)}")
-    ap.add_argument("--baseline", default="", help="git ref of the code to time ortho against (empty: none)")
-    args = ap.parse_args()
-    work = args.work.resolve()
-    base_tree = None
-    if args.baseline:
-        base_tree = work / f"baseline-{args.baseline}"
-        if not base_tree.exists():
-            _worktree(args.baseline, base_tree)
+    args, work, base_tree = bench_options(__doc__ or "", "ortho")
     rows = []
     for name in [n.strip() for n in args.surveys.split(",") if n.strip()]:
         d = _prepare(work, name)
@@ -60,7 +48,7 @@ def main() -> int:
         row = {"survey": name, **s.as_dict(), "ortho_s": seconds, "ortho_peak_mb": peak,
                "seam_step_dn": result.get("seam_mismatch_balanced")}  # fmt: skip
         if base_tree is not None:
-            b_seconds, b_peak, _ = _ortho(d, d / "ortho_baseline", str(base_tree))
+            b_seconds, b_peak, _ = _ortho(d, d / "ortho_baseline", base_tree)
             b = score_ortho(d / "survey" / "truth", d / "ortho_baseline" / "ortho.tif")
             row.update({"baseline_ortho_s": b_seconds, "baseline_peak_mb": b_peak, "time_ratio": seconds / b_seconds,
                         "baseline": b.as_dict()})  # fmt: skip
