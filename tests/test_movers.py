@@ -45,7 +45,7 @@ def test_a_mover_is_drawn_where_it_is_at_the_photo_s_time_two_ways():
 
 @pytest.fixture(scope="module")
 def moving(tmp_path_factory):
-    s = synth(tmp_path_factory.mktemp("moving") / "survey", preset="small", seed=5, pathology="moving-cars")
+    s = synth(tmp_path_factory.mktemp("moving") / "survey", preset="small", seed=4, pathology="moving-cars")
     c = json.loads((s.truth / "survey.json").read_text())
     intr = Intrinsics(*(c["camera"][k] for k in ("width_px", "height_px", "focal_px", "cx_px", "cy_px")),
                       tuple(c["camera"]["distortion"]))  # fmt: skip
@@ -63,14 +63,15 @@ def moving(tmp_path_factory):
 
 def test_moved_cars_leave_no_ghost_and_no_half_car(moving, tmp_path, monkeypatch):
     s, cams, info = moving
-    assert {m["kind"] for m in info["movers"]} == {"car", "person"} and info["movers"][0]["style"] == "box"
+    assert {m["kind"] for m in info["movers"]} == {"car", "person"} and info["movers"][0]["style"] == "car"
     surf = read_surface(s.truth / "dsm.tif")
     out = mosaic(cams, surf, surf.crs, tmp_path / "o.tif", 0.05, MosaicOptions(workers=1))
     got = score_movers(s.truth, out.output)
     assert got.ghosts == 0, got
     assert all(whole <= 1 for _, whole, _ in got.per_mover), got
-    # without photos giving up what only they show, the same mosaic has ghosts (measured: a half car
-    # cut by a seam, two people twice: 3; and 7 whole appearances of 6 movers)
+    # without photos giving up what only they show, the same mosaic has ghosts (measured: a faint
+    # car and a person twice: 2; with the cells given up but the blend reading the movers past the
+    # seams: 3 faint cars)
     monkeypatch.setattr(seams_module, "TRANSIENT_MIN_OTHERS", 10**6)
     plain = mosaic(cams, surf, surf.crs, tmp_path / "plain.tif", 0.05, MosaicOptions(workers=1))
     assert score_movers(s.truth, plain.output).ghosts >= 1
