@@ -50,17 +50,22 @@ class SurfaceScores:
         return asdict(self)
 
 
-def _on_grid(path: Path, transform: Any, crs: Any, shape: tuple[int, int]) -> np.ndarray:
+def _band_on_grid(path: Path, transform: Any, crs: Any, shape: tuple[int, int], band: int = 1) -> np.ndarray:
+    """One band of a raster resampled (bilinear) onto another grid, float32, NaN where it has none."""
     import rasterio
     from rasterio.warp import Resampling, reproject
 
     out = np.full(shape, np.nan, np.float32)
     with rasterio.open(path) as src:
         reproject(
-            rasterio.band(src, 1), out, dst_transform=transform, dst_crs=crs,
+            rasterio.band(src, band), out, dst_transform=transform, dst_crs=crs,
             resampling=Resampling.bilinear, dst_nodata=np.nan,
         )  # fmt: skip
-    return out.astype(np.float64)
+    return out
+
+
+def _on_grid(path: Path, transform: Any, crs: Any, shape: tuple[int, int]) -> np.ndarray:
+    return _band_on_grid(path, transform, crs, shape).astype(np.float64)
 
 
 def _read(path: Path) -> tuple[np.ndarray, Any, Any]:
@@ -157,19 +162,17 @@ class OrthoScores:
         return asdict(self)
 
 
-def _ortho_on_grid(path: Path, transform: Any, crs: Any, shape: tuple[int, int]) -> np.ndarray:
-    """The true orthophoto's three bands on another grid (bilinear), float 0..255."""
+def _ortho_and_truth(truth: Path, ortho: Path) -> tuple[np.ndarray, np.ndarray, Any, Any, np.ndarray]:
+    """An orthophoto's RGB (float32) and alpha, its transform and CRS, and the true orthophoto's
+    three bands on its grid (bilinear, float32 0..255, NaN where the truth has none)."""
     import rasterio
-    from rasterio.warp import Resampling, reproject
 
-    out = np.full((3, *shape), np.nan, np.float32)
-    with rasterio.open(path) as src:
-        for b in range(3):
-            reproject(
-                rasterio.band(src, b + 1), out[b], dst_transform=transform, dst_crs=crs,
-                resampling=Resampling.bilinear, src_nodata=None, dst_nodata=np.nan,
-            )  # fmt: skip
-    return out
+    with rasterio.open(ortho) as ds:
+        rgb = ds.read([1, 2, 3]).astype(np.float32)
+        alpha = ds.read(4) if ds.count >= 4 else ds.dataset_mask()
+        t, crs = ds.transform, ds.crs
+    true_rgb = np.stack([_band_on_grid(truth / "ortho.tif", t, crs, alpha.shape, b) for b in (1, 2, 3)])
+    return rgb, alpha, t, crs, true_rgb
 
 
 def _enclosed(empty: np.ndarray) -> np.ndarray:
@@ -223,20 +226,15 @@ def _edge_offsets_m(grey: np.ndarray, valid: np.ndarray, buildings: np.ndarray, 
 
 def score_ortho(truth: Path, ortho: Path) -> OrthoScores:
     """Score the orthophoto ``ortho`` (RGB + alpha) against the survey's ``truth`` folder."""
-    import rasterio
     from skimage.metrics import structural_similarity
 
     truth = Path(truth)
     info = json.loads((truth / "survey.json").read_text())
     gsd_m = float(info["gsd_cm_at_home_height"]) / 100.0
-    with rasterio.open(ortho) as ds:
-        rgb = ds.read([1, 2, 3]).astype(np.float32)
-        alpha = ds.read(4) if ds.count >= 4 else ds.dataset_mask()
-        t, crs = ds.transform, ds.crs
+    rgb, alpha, t, crs, true_rgb = _ortho_and_truth(truth, Path(ortho))
     shape = alpha.shape
     cell = abs(t.a)
     have = alpha > 0
-    true_rgb = _ortho_on_grid(truth / "ortho.tif", t, crs, shape)
     true_dsm = _on_grid(truth / "dsm.tif", t, crs, shape)
     true_dtm = _on_grid(truth / "dtm.tif", t, crs, shape)
     seen = _seen_twice(truth, t, shape)
@@ -298,15 +296,10 @@ class GhostScores:
 def score_movers(truth: Path, ortho: Path, kinds: tuple[str, ...] = ("car", "person")) -> GhostScores:
     """Count the appearances of the survey's movers (``survey.json``'s movers) in ``ortho``."""
     import cv2
-    import rasterio
 
     truth = Path(truth)
     movers = [m for m in json.loads((truth / "survey.json").read_text()).get("movers", []) if m["kind"] in kinds]
-    with rasterio.open(ortho) as ds:
-        rgb = ds.read([1, 2, 3]).astype(np.float32)
-        alpha = ds.read(4) if ds.count >= 4 else ds.dataset_mask()
-        t, crs = ds.transform, ds.crs
-    true_rgb = _ortho_on_grid(truth / "ortho.tif", t, crs, alpha.shape)
+    rgb, alpha, t, _, true_rgb = _ortho_and_truth(truth, Path(ortho))
     ok = (alpha > 0) & np.isfinite(true_rgb).all(axis=0)
     fitted = np.empty_like(rgb)
     for c in range(3):  # the photos' exposure is not the scene's colour: a gain and offset per band
