@@ -274,7 +274,7 @@ def _plan(
         for v in active:
             votes.retire(v)
         votes.decide()
-        moved = _without_transients(labels, votes, cams, surface, vis, ctr, wins)
+        moved = _without_transients(labels, votes)
         share = float((moved != labels).sum()) / max(1, int((labels >= 0).sum()))
         if share <= TRANSIENT_MAX_SHARE:
             labels = moved
@@ -332,7 +332,9 @@ class _Votes:
         self.against: dict[int, np.ndarray] = {}
         self.pending: dict[int, tuple[Window, np.ndarray, np.ndarray]] = {}
         self.transient: dict[int, tuple[Window, np.ndarray]] = {}
-        self.agrees: dict[int, tuple[Window, np.ndarray]] = {}  # cells where a photo disagrees with a minority
+        # each photo's preference cost where it may take another's cells (it disagrees there with a
+        # minority of the others), inf elsewhere: kept from its view, not projected again
+        self.offers: dict[int, tuple[Window, np.ndarray]] = {}
 
     def add(self, view: _View, others: Sequence[_View]) -> None:
         self.seen[view.index] = np.zeros(view.valid.shape, np.uint16)
@@ -357,7 +359,7 @@ class _Votes:
         seen, against = self.seen.pop(view.index, None), self.against.pop(view.index, None)
         if seen is None or against is None:
             return
-        self.agrees[view.index] = (view.win, (seen >= 1) & (2 * against < seen))
+        self.offers[view.index] = (view.win, np.where((seen >= 1) & (2 * against < seen), view.cost, np.inf))
         odd = (against >= TRANSIENT_MIN_OTHERS) & (2 * against >= seen) & (seen >= TRANSIENT_MIN_SEEN)
         if odd.any():
             labels, _ = ndimage.label(odd, structure=np.ones((3, 3), bool))
@@ -381,15 +383,7 @@ class _Votes:
         self.pending.clear()
 
 
-def _without_transients(
-    labels: np.ndarray,
-    votes: _Votes,
-    cams: Sequence[PosedCamera],
-    surface: Surface,
-    vis: Sequence[VisibilityGrid | None],
-    ctr: Affine,
-    wins: dict[int, Window],
-) -> np.ndarray:
+def _without_transients(labels: np.ndarray, votes: _Votes) -> np.ndarray:
     """``labels`` with each cell whose owner shows something there that the others do not given
     to the photo that sees it best among those that agree with the rest there (kept where none
     does: where every photo differs, as round a tree's crown, the cut's seams stand)."""
@@ -409,19 +403,12 @@ def _without_transients(
         want[rr - int(rr.min()), cc - int(cc.min())] = True
         best = np.full(want.shape, np.inf, np.float32)
         owner = np.full(want.shape, -1, np.int16)
-        for j, wj in wins.items():
-            inter = intersect(wj, box) if j != i and j in votes.agrees else None
+        for j, (wj, offer) in votes.offers.items():
+            inter = intersect(wj, box) if j != i else None
             if inter is None:
                 continue
-            awin, agrees = votes.agrees[j]
-            a_inter = intersect(awin, inter)
-            if a_inter is None:
-                continue
-            ok = np.zeros((inter.height, inter.width), bool)
-            ok[slices_in(a_inter, inter)] = agrees[slices_in(a_inter, awin)]
-            cost = _coarse_projection(cams[j], surface, vis[j], ctr, inter).cost
             sub = slices_in(inter, box)
-            keep_best(best, owner, sub, np.where(want[sub] & ok, cost, np.inf).astype(np.float32), j)
+            keep_best(best, owner, sub, np.where(want[sub], offer[slices_in(inter, wj)], np.inf).astype(np.float32), j)
         moved = want & (owner >= 0)
         region = out[slices_in(box, full)]
         region[moved] = owner[moved]
