@@ -642,6 +642,82 @@ def make_hostile_round3(survey: Path, folder: Path) -> None:
     (folder / "gcp" / "degrees_row.txt").write_text("\n".join([*rows, "GCP99 38.7476 -9.1887 100.0"]) + "\n")
 
 
+def make_hostile_round4(survey: Path, folder: Path) -> None:
+    """Issue 76's inputs: positions files that cannot be right, stage options that name a photo as an
+    output or cannot be read, a positions file inside sfm's output named like its report, a DSM's
+    source codes given as heights."""
+    import rasterio
+
+    poses = json.loads((survey / "truth" / "poses.json").read_text())
+    crs = json.loads((survey / "truth" / "survey.json").read_text())["crs"]
+    zone = int(crs.split(":")[1])
+
+    def csv(name: str, head: str, dy: float = 0.0, twice: bool = False) -> None:
+        rows = [f"{p['image']},{p['x']:.3f},{p['y'] + dy:.3f},{p['z']:.3f}" for p in poses]
+        if twice:
+            rows.insert(1, rows[0])
+        (folder / name).write_text("\n".join([head, "image,easting,northing,z", *rows]) + "\n")
+
+    csv("positions_55km.csv", f"# {crs}", dy=55_000.0)
+    csv("positions_wrong_zone.csv", f"# EPSG:{zone + 1}")
+    csv("positions_twice.csv", f"# {crs}", twice=True)
+    (folder / "week_overflow.pos").write_text("% header\n99999999999999 1.0 38.7 -9.1 100 1 10 0.01 0.01 0.02\n")
+    (folder / "sfm_out").mkdir()
+    (folder / "sfm_out" / "report.json").write_text("image,lat,lon,height\n")
+    photo = survey / "images" / "DJI_0001.JPG"
+    (folder / "options_classified_photo.json").write_text(json.dumps({"dem": {"classified": str(photo)}}))
+    (folder / "options_deep.json").write_text("[" * 200_000 + "]" * 200_000)
+    (folder / "options_folder").mkdir()
+    with rasterio.open(survey / "truth" / "dsm.tif") as ds:
+        prof = dict(ds.profile, dtype="uint8", nodata=0, driver="GTiff")
+        codes = (ds.read(1) > 0).astype("uint8")
+    with rasterio.open(folder / "dsm_source.tif", "w", **prof) as dst:
+        dst.write(codes, 1)
+        dst.set_band_description(1, "0 no data, 1 measured, 2 interpolated, 3 fallback plane")
+
+
+SFM = ("sfm", "--images", "{s}/images", "--output", "{o}/sfm")
+RUN = ("run", "--images", "{s}/images", "--output", "{o}/p")
+
+CASES_ROUND4 = [
+    # nothing destroyed
+    Case(
+        "run/stage-option-output-over-a-photo",
+        (*RUN, "--stage-options", "{h}/options_classified_photo.json"),
+        2,
+        r"dem\.classified \(a stage option\).* a file of the input folder",
+    ),
+    Case(
+        "sfm/positions-named-like-its-report",
+        ("sfm", "--images", "{s}/images", "--output", "{h}/sfm_out", "--positions", "{h}/sfm_out/report.json"),
+        2,
+        "lies in the output folder",
+    ),
+    # never silently wrong
+    Case("sfm/positions-55-km-away", (*SFM, "--positions", "{h}/positions_55km.csv"), 2, r"55\.\d km from the photos"),
+    Case(
+        "sfm/positions-crs-of-another-zone",
+        (*SFM, "--positions", "{h}/positions_wrong_zone.csv"),
+        2,
+        "km from the photos' own GPS .*a wrong CRS",
+    ),
+    Case("sfm/positions-a-photo-twice", (*SFM, "--positions", "{h}/positions_twice.csv"), 2, "has a position on line"),
+    Case(
+        "ortho/dsm-source-codes",
+        ("ortho", "--images", "{s}/images", "--output", "{o}/o.tif", "--dsm", "{h}/dsm_source.tif"),
+        2,
+        "source codes",
+    ),
+    # one clear line, never a traceback
+    Case("sfm/rtklib-week-overflow", (*SFM, "--positions", "{h}/week_overflow.pos"), 2, "line 2: not an RTKLIB"),
+    Case("run/stage-options-nested-deep", (*RUN, "--stage-options", "{h}/options_deep.json"), 2, "nested too deeply"),
+    # messages that send the user the right way
+    Case("run/stage-options-missing", (*RUN, "--stage-options", "{h}/no_such.json"), 2, "no such file"),
+    Case("run/stage-options-a-folder", (*RUN, "--stage-options", "{h}/options_folder"), 2, "a folder"),
+]
+CASES = [*CASES, *CASES_ROUND4]
+
+
 def run_case(case: Case, survey: Path, hostile: Path, out: Path, quiet: bool = True) -> Outcome:
     out.mkdir(parents=True, exist_ok=True)
     fill = {"s": str(survey), "h": str(hostile), "o": str(out)}
@@ -688,6 +764,7 @@ def hostile(tiny_survey, tmp_path_factory):
     folder = tmp_path_factory.mktemp("hostile")
     make_hostile(tiny_survey.output, folder)
     make_hostile_round3(tiny_survey.output, folder)
+    make_hostile_round4(tiny_survey.output, folder)
     return folder
 
 
@@ -862,3 +939,41 @@ def _counts() -> None:
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).parent))
     _counts()
+
+
+@pytest.mark.parametrize("delay_s", [0.8, 1.2, 1.6, 2.0, 2.4, 3.0])
+def test_sigterm_to_the_process_group_as_ortho_starts_its_pool_ends_the_run(tiny_survey, tmp_path, delay_s):
+    """Issue 76: a batch scheduler's SIGTERM to the process group just as ortho started its worker
+    pool hung the run for ever (2 of 4 tries): the main process blocked writing to a worker that
+    died while starting. At every moment of the start it ends: "canceled" and exit 130 (or done,
+    when the signal came after the end), no process left in the group, no partial product."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    out = tmp_path / "o.tif"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "geoortho", "ortho", "--images", str(tiny_survey.images), "--output", str(out),
+         "--workers", "2", "--resolution-m", "0.05"],
+        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, start_new_session=True,
+    )  # fmt: skip
+    time.sleep(delay_s)
+    os.killpg(p.pid, signal.SIGTERM)
+    try:
+        _, err = p.communicate(timeout=90)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        pytest.fail(f"ortho did not end within 90 s of SIGTERM sent {delay_s} s after its start")
+    assert p.returncode in (0, 130), err
+    if p.returncode == 130:
+        assert "canceled" in err.strip().splitlines()[-1] and not out.exists()
+    deadline = time.monotonic() + 10
+    while True:  # the workers go with the run
+        try:
+            os.killpg(p.pid, 0)
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline, "a process of the run is left"
+        time.sleep(0.1)
+    assert not list(tmp_path.glob(".*tmp*"))

@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -497,6 +498,62 @@ def test_two_runs_on_one_project_do_not_both_run(first_run, tiny_survey, checkpo
     assert runs[-1]["stages"]["ortho"] == "ran"
 
 
+def test_an_output_given_in_a_stage_option_or_an_input_in_an_output_folder_destroys_nothing(
+    first_run, tiny_survey, checkpoint, tmp_path
+):
+    """The output rule holds whatever carried the path: a stage option naming a photo as dem's
+    classified cloud (the photo was replaced by a point cloud, exit 0), one naming the GCP file,
+    and a positions file inside sfm's output folder named like its report."""
+    project = _copy(first_run, tmp_path)
+    photo = sorted(tiny_survey.images.glob("*.JPG"))[0]
+    inputs = [photo, tiny_survey.gcp_file]
+    before = {p: p.read_bytes() for p in inputs}
+    for target in inputs:
+        options = json.dumps({**FAST, "dem": {**FAST.get("dem", {}), "classified": str(target)}})
+        r = _geoortho("run", *_cli(tiny_survey, project, checkpoint, options), "--rerun-from", "dem")
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and "dem.classified (a stage option)" in lines[0], r.stderr
+        assert "destroy" in lines[0] or "input folder" in lines[0], lines[0]
+    assert all(p.read_bytes() == data for p, data in before.items())
+    out = tmp_path / "sfm"
+    out.mkdir()
+    positions = out / "report.json"
+    positions.write_text("image,lat,lon,height\n")
+    r = _geoortho("sfm", "--images", tiny_survey.images, "--output", out, "--positions", positions)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "lies in the output folder" in lines[0], r.stderr
+    assert positions.read_text() == "image,lat,lon,height\n"
+
+
+@pytest.mark.parametrize("kind", ["symlink", "folder"])
+def test_a_lock_that_is_no_plain_file_is_refused_and_a_run_leaves_no_lock(
+    first_run, tiny_survey, checkpoint, tmp_path, kind
+):
+    """A .run.lock that is a symlink would truncate its target; a folder ended in an
+    IsADirectoryError. Both are refused with one line, nothing touched; a run that ends removes
+    its lock."""
+    project = _copy(first_run, tmp_path)
+    lock = project / ".run.lock"
+    target = tmp_path / "precious.txt"
+    target.write_text("do not truncate me")
+    if kind == "symlink":
+        lock.symlink_to(target)
+    else:
+        lock.mkdir()
+    args = _cli(tiny_survey, project, checkpoint, json.dumps(FAST), "--rerun-from", "report")
+    r = _geoortho("run", *args)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and ".run.lock is a link or a folder" in lines[0], r.stderr
+    assert target.read_text() == "do not truncate me"
+    if kind == "symlink":
+        lock.unlink()
+    else:
+        lock.rmdir()
+    r = _geoortho("run", *args)
+    assert r.returncode == 0, r.stderr
+    assert not lock.exists() and not lock.is_symlink()
+
+
 @pytest.mark.parametrize("unit", ["feet-under-metres", "feet-crs"])
 def test_ortho_on_a_dsm_in_feet_is_converted_and_said(first_run, tiny_survey, tmp_path, unit):
     """A DSM whose heights are feet, under a CRS in metres (found from the SfM points: a scale of
@@ -534,6 +591,98 @@ def test_ortho_on_a_dsm_in_feet_is_converted_and_said(first_run, tiny_survey, tm
                   dst_crs=a.crs, resampling=Resampling.bilinear)  # fmt: skip
         ok = (a.read_masks(1) > 0) & (want > 0)
         assert np.corrcoef(got[ok], want[ok])[0, 1] > 0.85  # 0.908 on the metre DSM; 0.37 before
+
+
+@pytest.mark.parametrize("case", ["millimetres", "undeclared-fill", "source-codes", "another-place"])
+def test_ortho_never_moves_a_dsm_that_is_not_this_surface(first_run, tiny_survey, tmp_path, case):
+    """A DSM in millimetres, one 2 km above the site or the source codes of a DSM are refused in one
+    line, never "corrected" (moved by 114 km, the orthophoto 6.8 km wide); a DSM with an
+    undeclared -9999 fill is read with the fill as no data, and said."""
+    import numpy as np
+    import rasterio
+
+    with rasterio.open(tiny_survey.dsm) as ds:
+        z, prof = ds.read(1), ds.profile
+    nodata = prof["nodata"]
+    good = z != nodata
+    out = tmp_path / f"{case}.tif"
+    prof2 = dict(prof, driver="GTiff", dtype="float32")
+    if case == "millimetres":
+        data = np.where(good, z * 1000.0, nodata)
+    elif case == "another-place":
+        data = np.where(good, z + 2000.0, nodata)
+    elif case == "undeclared-fill":
+        data = np.where(good, z, -9999.0)
+        data[: data.shape[0] // 3] = -9999.0
+        prof2["nodata"] = None
+    else:
+        data = np.where(good, 1, 0).astype(np.uint8)
+        prof2.update(dtype="uint8", nodata=0)
+    with rasterio.open(out, "w", **prof2) as dst:
+        dst.write(data.astype(prof2["dtype"]), 1)
+        if case == "source-codes":
+            dst.set_band_description(1, "0 no data, 1 measured, 2 interpolated, 3 fallback plane")
+    before = out.read_bytes()
+    product = tmp_path / "o.tif"
+    r = _geoortho("ortho", "--images", tiny_survey.images, "--output", product, "--sfm", first_run.output / "sfm",
+                  "--dsm", out, "--resolution-m", "0.1")  # fmt: skip
+    lines = r.stderr.strip().splitlines()
+    assert out.read_bytes() == before
+    if case == "undeclared-fill":
+        assert r.returncode == 0, r.stderr
+        assert "a fill value its nodata does not declare" in r.stderr
+        with rasterio.open(product) as o:
+            assert o.width * o.res[0] < 200  # the site's size, not kilometres
+        return
+    assert r.returncode == 2 and len(lines) == 1 and "unexpected" not in r.stderr, r.stderr
+    why = "source codes" if case == "source-codes" else "not the surface the photos saw"
+    assert why in lines[0], lines[0]
+    assert not product.exists() and not list(tmp_path.glob("o.tif*"))
+
+
+@pytest.mark.parametrize("damage", ["reports-missing", "not-utf8", "not-json", "share-over-100", "true-as-number"])
+def test_a_missing_or_damaged_stage_report_is_never_green(first_run, tmp_path, damage):
+    """report was GREEN with every stage report deleted, crashed on one that is not JSON or not UTF-8,
+    and graded a share over 100 % or a JSON true as a measure."""
+    project = _copy(first_run, tmp_path)
+    ledger = _ledger(project)
+    reports = [Path(str(r["outputs"]["report"]).replace("PROJECT", str(project))) for n, r in ledger["stages"].items()
+               if n in ("sfm", "dense", "ortho") and r.get("outputs", {}).get("report")]  # fmt: skip
+    assert len(reports) == 3
+    ortho_report = next(p for p in reports if "ortho" in p.parts[-2])
+    if damage == "reports-missing":
+        for p in reports:
+            p.unlink()
+    elif damage == "not-utf8":
+        ortho_report.write_bytes(b"\xff\xfe{\x00")
+    elif damage == "not-json":
+        ortho_report.write_text("{ not json")
+    else:
+        data = json.loads(ortho_report.read_text())
+        data["share_of_seen_2"] = 5.0 if damage == "share-over-100" else True
+        ortho_report.write_text(json.dumps(data))
+    r = _geoortho("report", "--project", project, "--quiet")
+    assert r.returncode == 0 and "unexpected" not in r.stderr, r.stderr
+    quality = json.loads((project / "quality.json").read_text())
+    assert quality["verdict"] == "red", quality["verdict"]
+    coverage = next(c for c in quality["checks"] if c["item"] == "ortho_coverage")
+    assert coverage["state"] == "red"
+    if damage in ("share-over-100",):
+        assert "impossible" in coverage["detail"]
+
+
+def test_a_ledger_with_wrong_typed_fields_is_refused_in_one_line(first_run, tiny_survey, checkpoint, tmp_path):
+    project = _copy(first_run, tmp_path)
+    ledger = _ledger(project)
+    ledger["stages"]["dem"]["seconds"] = "fast"
+    (project / LEDGER_NAME).write_text(json.dumps(ledger))
+    for command in (
+        ["report", "--project", project],
+        ["run", *_cli(tiny_survey, project, checkpoint, json.dumps(FAST))],
+    ):
+        r = _geoortho(*command)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and "'seconds' is a str" in lines[0], r.stderr
 
 
 def test_report_never_overwrites_what_the_project_holds_or_was_made_from(first_run, tiny_survey, tmp_path):

@@ -219,3 +219,173 @@ def test_a_consumer_gps_that_lags_the_exposures_is_found_and_undone(small_survey
     d = np.array([[c.x - truth[c.image]["x"], c.y - truth[c.image]["y"]] for c in cams.itertuples() if c.registered])
     # measured: 0.24 m per axis (1.57 m with the fixes as they were)
     assert np.sqrt((d**2).mean()) < 0.6
+
+
+# -- positions files that disagree with the photos, state another datum, or are malformed (issue 76) --
+
+
+def _pos_lines(pf, photos, fmt="deg", header_height="WGS84/ellipsoidal", sigma="0.0100   0.0100   0.0200"):
+    """An RTKLIB event file (one epoch a photo) of ``pf``'s positions, in degrees or in RTKPOST's
+    degrees-minutes-seconds."""
+    import datetime as dt
+
+    def dms(v):
+        a = abs(v)
+        d, m = int(a), int((a - int(a)) * 60)
+        s = (a - d - m / 60) * 3600
+        return f"{'-' if v < 0 else ''}{d} {m:02d} {s:08.5f}"
+
+    cols = "latitude(d'\")   longitude(d'\")" if fmt == "dms" else "latitude(deg) longitude(deg)"
+    lines = [
+        f"% (lat/lon/height={header_height},Q=1:fix,2:float)",
+        f"%  GPST  {cols}  height(m)   Q  ns   sdn(m)   sde(m)   sdu(m)",
+    ]
+    for p in sorted(photos, key=lambda p: p.taken_at):
+        q = pf.by_image[p.image]
+        t = dt.datetime.fromtimestamp(pf.photo_times_s[p.image], dt.timezone.utc)
+        ll = (
+            f"{dms(q.latitude_deg)} {dms(q.longitude_deg)}"
+            if fmt == "dms"
+            else f"{q.latitude_deg:.9f} {q.longitude_deg:.9f}"
+        )
+        lines.append(f"{t:%Y/%m/%d %H:%M:%S}.{t.microsecond // 1000:03d} {ll} {q.height_m:.4f} 1 12 {sigma}")
+    return "\n".join(lines) + "\n"
+
+
+def test_rtkpost_degrees_minutes_seconds_and_geoid_heights_are_read_as_they_are_meant(ppk, tmp_path):
+    """RTKPOST's ddd mm ss output is the same place as its degrees; its 'geodetic' heights are above
+    the geoid (EGM96 here), turned ellipsoidal; a deviation of zero is "not stated", as in a CSV."""
+    from geoortho.core.crs import geoid_undulation_m
+
+    s, photos = ppk
+    pf = read_positions(s.truth / "trajectory.pos", photos)
+    (tmp_path / "dms.pos").write_text(_pos_lines(pf, photos, "dms"))
+    dms = read_positions(tmp_path / "dms.pos", photos)
+    for name, q in pf.by_image.items():
+        assert dms.by_image[name].latitude_deg == pytest.approx(q.latitude_deg, abs=1e-8)
+        assert dms.by_image[name].longitude_deg == pytest.approx(q.longitude_deg, abs=1e-8)
+    assert dms.gps_distance_m < 5.0
+    (tmp_path / "geoid.pos").write_text(_pos_lines(pf, photos, header_height="WGS84/geodetic", sigma="0 0 -1"))
+    geo = read_positions(tmp_path / "geoid.pos", photos)
+    name, q = next(iter(pf.by_image.items()))
+    n = float(geoid_undulation_m(q.longitude_deg, q.latitude_deg))
+    assert abs(n) > 40  # Lisbon: the datum matters by tens of metres
+    assert geo.by_image[name].height_m == pytest.approx(q.height_m + n, abs=0.01)
+    assert "geodetic" in geo.heights
+    assert (geo.by_image[name].sigma_h_m, geo.by_image[name].sigma_v_m) == (0.02, 0.03)  # the fixed class's
+
+
+def _csv_of(pf, names, crs="", header="image,lat,lon,height", move_deg=0.0):
+    rows = ([f"# {crs}"] if crs else []) + [header]
+    for n in names:
+        q = pf.by_image[n]
+        rows.append(f"{n},{q.latitude_deg + move_deg:.9f},{q.longitude_deg:.9f},{q.height_m:.3f}")
+    return "\n".join(rows) + "\n"
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("another-site", r"lie 55\.\d km from the photos' own GPS"),
+        ("wrong-crs", r"km from the photos' own GPS .* a wrong CRS"),
+        ("twice", r"line 3: .* has a position on line 2 too"),
+        ("absurd-height", r"height 1e\+06 m is no camera's height"),
+        ("week-overflow", r"line 3: not an RTKLIB solution line"),
+    ],
+)
+def test_a_positions_file_that_cannot_be_right_is_refused_naming_why(ppk, tmp_path, case, message):
+    s, photos = ppk
+    pf = read_positions(s.truth / "trajectory.pos", photos)
+    names = sorted(pf.by_image)
+    truth = json.loads((s.truth / "survey.json").read_text())
+    path = tmp_path / ("bad.pos" if case == "week-overflow" else "bad.csv")
+    if case == "another-site":  # half a degree of latitude away
+        path.write_text(_csv_of(pf, names, move_deg=0.5))
+    elif case == "wrong-crs":  # the easting/northing of the photos' zone, labelled with the next zone
+        t = _truth(s)
+        zone = int(truth["crs"].split(":")[1])
+        rows = [f"# EPSG:{zone + 1}", "name,easting,northing,z"] + [
+            f"{n},{t[n]['x']:.3f},{t[n]['y']:.3f},{t[n]['z']:.3f}" for n in names
+        ]
+        path.write_text("\n".join(rows) + "\n")
+    elif case == "twice":
+        path.write_text(_csv_of(pf, [names[0], names[0], *names[1:]]))
+    elif case == "absurd-height":
+        path.write_text(_csv_of(pf, names).replace(f"{pf.by_image[names[2]].height_m:.3f}", "1000000", 1))
+    else:
+        path.write_text("% header\n% more\n99999999999999 1.0 38.7 -9.1 100 1 10 0.01 0.01 0.02\n")
+    with pytest.raises(InputError, match=message):
+        read_positions(path, photos)
+    if case == "another-site":  # the CLI: exit 2, one line naming the file, the file untouched
+        before = path.read_bytes()
+        done = subprocess.run(
+            [sys.executable, "-m", "geoortho", "sfm", "--images", str(s.images), "--output", str(tmp_path / "sfm"),
+             "--positions", str(path)],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(lines) == 1 and "bad.csv" in lines[0] and "55." in lines[0], done.stderr
+        assert path.read_bytes() == before and not (tmp_path / "sfm" / "report.json").exists()
+
+
+def test_csv_heights_said_to_be_orthometric_or_in_a_compound_crs_are_turned_ellipsoidal(ppk, tmp_path):
+    from geoortho.core.crs import geoid_undulation_m
+
+    s, photos = ppk
+    pf = read_positions(s.truth / "trajectory.pos", photos)
+    names = sorted(pf.by_image)
+    q = pf.by_image[names[0]]
+    n = float(geoid_undulation_m(q.longitude_deg, q.latitude_deg))
+    # the heights written are orthometric (ellipsoidal less N), and the file says so in three ways
+    ortho = {k: v for k, v in pf.by_image.items()}
+    lines = _csv_of(pf, names).splitlines()
+    shifted = [lines[0]] + [",".join([*row.split(",")[:3], f"{float(row.split(',')[3]) - n:.3f}"]) for row in lines[1:]]
+    for text in (
+        "# heights: orthometric (EGM96)\n" + "\n".join(shifted),
+        "\n".join([shifted[0].replace("height", "h_msl"), *shifted[1:]]),
+        "# EPSG:4326+5773\n" + "\n".join([shifted[0].replace("lat,lon", "lat,lon"), *shifted[1:]]),
+    ):
+        (tmp_path / "o.csv").write_text(text + "\n")
+        got = read_positions(tmp_path / "o.csv", photos)
+        assert got.by_image[names[0]].height_m == pytest.approx(ortho[names[0]].height_m, abs=0.02), text[:40]
+        assert "ellipsoidal" in got.heights and "as read" not in got.heights
+    (tmp_path / "e.csv").write_text(_csv_of(pf, names))
+    plain = read_positions(tmp_path / "e.csv", photos)
+    assert "as read" in plain.heights  # said: taken as ellipsoidal
+    assert any("heights ellipsoidal (WGS 84) as read" in note for note in plain.notes())
+
+
+def test_an_mrk_one_event_short_names_the_photo_that_has_none(ppk, tmp_path):
+    """An event missing in the middle of the flight: the photos after it are not shifted onto
+    their neighbours' positions; the photo named is the one whose event is missing."""
+    s, photos = ppk
+    pf = read_positions(s.truth / "trajectory.pos", photos)
+    ordered = sorted(photos, key=lambda p: p.taken_at)
+    missing = ordered[len(ordered) // 2].image
+    lines = []
+    for k, p in enumerate((p for p in ordered if p.image != missing), 1):
+        q = pf.by_image[p.image]
+        lines.append(
+            f"{k}\t{295413.65 + 2 * k:.6f}\t[2058]\t    22,N\t    -4,E\t   188,V\t{q.latitude_deg:.8f},Lat\t"
+            f"{q.longitude_deg:.8f},Lon\t{q.height_m:.3f},Ellh\t0.012725, 0.011567, 0.028096\t50,Q"
+        )
+    (tmp_path / "Timestamp.MRK").write_text("\n".join(lines) + "\n")
+    got = read_positions(tmp_path / "Timestamp.MRK", photos)
+    assert got.photos_without == (missing,)
+    for name, q in got.by_image.items():
+        assert q.latitude_deg == pytest.approx(pf.by_image[name].latitude_deg, abs=1e-7)
+    assert not got.far_from_gps
+
+
+def test_a_csv_of_a_million_rows_keeps_the_photos_and_counts_the_rest(ppk, tmp_path):
+    s, photos = ppk
+    pf = read_positions(s.truth / "trajectory.pos", photos)
+    names = sorted(pf.by_image)
+    text = _csv_of(pf, names)
+    q = pf.by_image[names[0]]
+    extra = "".join(f"OTHER_{k}.JPG,{q.latitude_deg:.9f},{q.longitude_deg:.9f},100\n" for k in range(1_000_000))
+    (tmp_path / "big.csv").write_text(text + extra)
+    got = read_positions(tmp_path / "big.csv", photos)
+    assert len(got.by_image) == len(names)
+    assert got.n_lines_without == 1_000_000 and len(got.lines_without) == 20
+    assert any("1,000,000 position(s)" in note for note in got.notes())

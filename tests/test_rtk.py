@@ -147,6 +147,50 @@ def test_dji_factory_calibration_tags_are_read():
 
 
 @pytest.mark.parametrize(
+    "distortion",
+    ["nan,0.01,0,0,-0.02", "-0.11,inf,0,0,-0.02", "-0.11,0.01,0,0,NaN", "25.0,0,0,0,0", "-3.0,0,0,0,0", "0,0,0.4,0,0"],
+)
+def test_a_dewarp_data_no_lens_has_is_ignored_and_said(distortion):
+    """NaN or inf in DewarpData stopped sfm with an assertion from COLMAP; an absurd distortion (the
+    corner moved by half the frame, a folded lens, a tangential term of 0.4) was used and the
+    failure blamed on overlap. Each is dropped with a warning; the focal length and centre stay."""
+    from geoortho.photos.metadata import factory_calibration
+
+    tags = {
+        "drone-dji:CalibratedFocalLength": "3666.666504",
+        "drone-dji:CalibratedOpticalCenterX": "2736.000000",
+        "drone-dji:CalibratedOpticalCenterY": "1824.000000",
+        "drone-dji:DewarpData": f"2022-06-08;3713.29,3713.29,7.02,-8.72,{distortion}",
+    }
+    f, cx, cy, dist, _, warning = factory_calibration(tags, 5472, 3648)
+    assert (f, cx, cy, dist) == (3666.666504, 2736.0, 1824.0, ())
+    assert "is no lens's: ignored" in warning
+
+
+def test_two_factory_calibrations_of_one_model_are_two_camera_bodies(small_survey):
+    """Two drones of one model in one flight carry two calibrations: each is its own body (the first
+    photo's was taken for both)."""
+    import dataclasses
+
+    from geoortho.photos.metadata import read_photos
+    from geoortho.reconstruction.sparse import _bodies
+
+    photos = read_photos(small_survey.images).photos
+    half = len(photos) // 2
+    mixed = [
+        dataclasses.replace(
+            p, factory_focal_px=3000.0 if i < half else 3100.0, factory_cx_px=960.0, factory_cy_px=640.0
+        )
+        for i, p in enumerate(photos)
+    ]
+    bodies = _bodies(mixed)
+    assert sorted(len(b.photos) for b in bodies) == sorted([half, len(photos) - half])
+    assert {b.photos[0].factory_focal_px for b in bodies} == {3000.0, 3100.0}
+    assert all("factory calibration f=" in b.label for b in bodies)
+    assert len(_bodies(photos)) == 1
+
+
+@pytest.mark.parametrize(
     ("pathology", "within_pct", "caught"),
     [
         # EXIF's focal length 12 % long, the factory calibration right: the calibration is used

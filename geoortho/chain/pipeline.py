@@ -31,7 +31,14 @@ from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.gcp.io import read_gcp_file
 from geoortho.photos.heights import GpsAltitude
 from geoortho.photos.metadata import list_images
-from geoortho.processing.registry import check_in_context, convert_value, get_algorithm, run_algorithm
+from geoortho.processing.registry import (
+    check_in_context,
+    convert_value,
+    get_algorithm,
+    refuse_writing_into,
+    run_algorithm,
+    same_file,
+)
 
 __all__ = [
     "STAGES",
@@ -386,6 +393,20 @@ def ledger_problem(data: Any) -> str:
     bad = [k for k, v in (data.get("stages") or {}).items() if not isinstance(v, dict)]
     if bad:
         return f"stage '{bad[0]}' is not an object"
+    fields: dict[str, tuple[type, ...]] = {
+        "status": (str,), "fingerprint": (str,), "outputs": (dict,), "values": (dict,), "inputs": (dict,),
+        "seconds": (int, float), "started": (int, float), "warnings": (list,), "products": (dict,),
+        "versions": (dict,),
+    }  # fmt: skip
+    for name, record in (data.get("stages") or {}).items():
+        for key, allowed in fields.items():
+            value = record.get(key)
+            if value is not None and (not isinstance(value, allowed) or isinstance(value, bool)):
+                return f"stage '{name}': '{key}' is a {type(value).__name__}"
+    if any(not isinstance(r, dict) for r in data.get("runs") or []):
+        return "a run record is not an object"
+    if not isinstance(data.get("problems", []), list) or not isinstance(data.get("current_run", {}), dict):
+        return "'problems' or 'current_run' is of the wrong type"
     return ""
 
 
@@ -561,18 +582,36 @@ LOCK_NAME = ".run.lock"
 @contextlib.contextmanager
 def _project_lock(root: Path) -> Iterator[None]:
     """One run at a time on a project: a second would redo the same stages and lose a run record.
-    An advisory lock the system drops with its process (a killed run leaves none behind)."""
+    An advisory lock the system drops with its process (a killed run leaves none behind); the file
+    is removed when the run ends. Never through a link: a lock that is a symlink would truncate
+    what it points to."""
     import fcntl
 
-    with open(root / LOCK_NAME, "a+") as f:
+    path = root / LOCK_NAME
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError:
+            raise InputError(f"{LOCK_NAME} is a link or a folder, not a run's lock: remove it", path=root) from None
+        f = os.fdopen(fd, "r+")
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             f.seek(0)
-            pid = f.read().strip() or "?"
+            pid = f.read(32).strip() or "?"
+            f.close()
             raise InputError(
                 f"another run is working on this project (process {pid}): wait for it", path=root
             ) from None
+        # a run that ended between our open and our lock removed the file we hold: take the new one
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path, follow_symlinks=False))
+        except OSError:
+            same = False
+        if same:
+            break
+        f.close()
+    with f:
         f.seek(0)
         f.truncate()
         f.write(str(os.getpid()))
@@ -580,6 +619,8 @@ def _project_lock(root: Path) -> Iterator[None]:
         try:
             yield
         finally:
+            with contextlib.suppress(OSError):
+                path.unlink()
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
@@ -857,6 +898,47 @@ def _check_given(project: Project) -> None:
         raise InputError("no such positions file", path=project.positions)
 
 
+def check_run_paths(project: Project) -> None:
+    """Every file a stage of the run will write, chained or given in a stage option, checked before
+    the first stage against every file the run reads (given, or in a stage option) and against the
+    photos' folder: a stage option naming a photo as the classified cloud replaced the photo with a
+    point cloud, with exit 0. Paths are compared through links and ``..``."""
+    from geoortho.processing.spec import PATH_TYPES
+
+    reads: list[tuple[str, Path]] = [
+        (name, Path(path))
+        for name, path in (
+            ("gcp_file", project.gcp_file), ("gcp_list", project.gcp_list), ("points", project.points),
+            ("dsm", project.dsm), ("positions", project.positions),
+        )
+        if path is not None
+    ]  # fmt: skip
+    writes: list[tuple[str, Path]] = []
+    for stage in STAGES:
+        if not stage.applies(project):
+            continue
+        params = {p.name: p for p in get_algorithm(stage.name).params}
+        chained = {k: v for k, v in stage.values(project, {}).items() if v is not None}
+        own = project.options.get(stage.name, {})
+        for key, value in {**chained, **own}.items():
+            p = params.get(key)
+            if p is None or p.type not in PATH_TYPES or value is None:
+                continue
+            where = f"{stage.name}.{key}" + (" (a stage option)" if key in own else "")
+            if p.output:
+                writes.append((where, Path(value).absolute()))
+            elif key in own and p.type != "folder":
+                reads.append((where, Path(value).absolute()))
+    for i, (out_name, out_path) in enumerate(writes):
+        for in_name, in_path in reads:
+            if same_file(out_path, in_path):
+                raise InputError(f"{out_name} {out_path} is also the input {in_name}: writing it would destroy it")
+        for other_name, other_path in writes[:i]:
+            if same_file(out_path, other_path):
+                raise InputError(f"{out_name} {out_path} is also {other_name}'s output; give another path")
+        refuse_writing_into(out_name, out_path, "images", project.images)
+
+
 def check_project_folder(output: Path, force: bool = False) -> None:
     """Refuse a folder that holds something other than a geoortho project (no run.json), unless
     ``force``: a mistyped --output must not mix products into, or overwrite, someone's files."""
@@ -882,17 +964,27 @@ def parse_stage_options(text: str, stages: Sequence[Stage] = STAGES) -> dict[str
     if not text:
         return {}
     path = Path(text)
-    is_file = False
+    # JSON text starts with a bracket, a quote or a digit; anything else names a file
+    is_file = text.lstrip()[:1] not in set('{["0123456789-')
+    if is_file:
+        try:
+            if path.is_dir():
+                raise InputError("stage options: a folder, not a JSON file or JSON text", path=path)
+            if not path.is_file():
+                raise InputError("stage options: no such file (give JSON text or a JSON file)", path=path)
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as e:
+            raise InputError(
+                f"stage options: cannot be read ({getattr(e, 'strerror', None) or e})", path=path
+            ) from None
     try:
-        # JSON text starts with a bracket, a quote or a digit; a file name longer than the system
-        # allows is no file either
-        is_file = text.lstrip()[:1] not in set('{["0123456789-') and path.is_file()
-    except OSError:
-        pass
-    try:
-        raw = json.loads(path.read_text() if is_file else text)
-    except (ValueError, OSError) as e:
+        raw = json.loads(text)
+    except ValueError as e:
         raise InputError(f"stage options: not JSON ({e})", path=path if is_file else None) from None
+    except RecursionError:
+        raise InputError(
+            "stage options: nested too deeply to be stage options", path=path if is_file else None
+        ) from None
     if not isinstance(raw, dict) or not all(isinstance(v, dict) for v in raw.values()):
         raise InputError('stage options: give {"stage": {"option": value, ...}, ...}')
     by_name = {s.name: s for s in stages}
@@ -1061,6 +1153,7 @@ def run(
     if project.checkpoints and project.gcp_file is None and project.gcp_list is None:
         raise InputError("checkpoints are named but no GCP file is given (--gcp-file or --gcp-list)")
     _check_given(project)
+    check_run_paths(project)
     results = run_stages(project, rerun_from=rerun_from, feedback=fb, force=force)
     by_name = {r.name: r for r in results}
     ran = [r.name for r in results if r.status == "ran"]

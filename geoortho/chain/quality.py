@@ -244,25 +244,37 @@ def _fmt(v: float, unit: str) -> str:
     return f"{v:.1f} {unit}"
 
 
+#: Items every finished run measures: one missing means its stage's report is missing or damaged,
+#: and a missing measurement is never green.
+REQUIRED = ("ortho_coverage", "dsm_measured", "photos_registered", "photos_in_ortho")
+
+
 def _check(item: str, value: float, detail: str = "") -> Check:
     t = THRESHOLDS[item]
     green, red = t.limits()
     shown = _fmt(value, t.unit) if math.isfinite(value) else "–"
+    if math.isfinite(value) and (value < 0 or (t.unit == "%" and value > 100.0 + 1e-6)):
+        # a share over 100 % or a negative size: the stage report is damaged, not a measurement
+        return Check(item, t.label, "red", math.nan, shown, green, red, "impossible value: the stage report is damaged")
+    if not math.isfinite(value) and item in REQUIRED:
+        why = "not measured: its stage's report is missing or damaged"
+        return Check(item, t.label, "red", value, shown, green, red, f"{why}; {detail}" if detail else why)
     return Check(item, t.label, t.grade(value), value, shown, green, red, detail)
 
 
 def _share(n: Any, of: Any) -> float:
-    try:
-        return 100.0 * float(n) / float(of) if float(of) > 0 else math.nan
-    except (TypeError, ValueError):
-        return math.nan
+    n_, of_ = as_number(n), as_number(of)
+    return 100.0 * n_ / of_ if of_ > 0 else math.nan
 
 
 def as_number(v: Any) -> float:
-    """A measured value as a float; NaN (not measured) for anything that is not a number."""
+    """A measured value as a float; NaN (not measured) for anything that is not a number (JSON's
+    true and false included: no measure is a yes)."""
+    if isinstance(v, bool):
+        return math.nan
     try:
         return float(v)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return math.nan
 
 

@@ -135,9 +135,13 @@ def _refuse_project_inputs(out: Path, project: Path, ledger: dict[str, Any]) -> 
 def _grade(ctx: _Context) -> None:
     """The quality check of what the stages measured (see geoortho.chain.quality)."""
 
-    ctx.checks = assess(
-        ctx.sfm_report(), ctx.dense_report(), ctx.done("dem"), ctx.ortho_report(), ctx.done("footprints")
-    )
+    try:
+        ctx.checks = assess(
+            ctx.sfm_report(), ctx.dense_report(), ctx.done("dem"), ctx.ortho_report(), ctx.done("footprints")
+        )
+    except (TypeError, AttributeError, ValueError, KeyError) as e:  # a hand-edited or damaged stage report
+        ctx.problem("report", f"the stage reports hold values of the wrong type ({type(e).__name__}: {e})")
+        ctx.checks = assess(None, None, None, None, None)
     ctx.verdict = verdict(ctx.checks, failed=bool(ctx.problems))
 
 
@@ -201,7 +205,14 @@ class _Context:
         if path is None or not path.is_file():
             return None
         if path not in self._json:
-            self._json[path] = json.loads(path.read_text())
+            try:
+                self._json[path] = json.loads(path.read_text(encoding="utf-8"))
+            except (ValueError, UnicodeDecodeError, RecursionError, OSError) as e:
+                # said, and the items it measures are missing (red), not the report's end
+                self.problem(
+                    "report", f"{path.name} cannot be read as a stage report ({' '.join(str(e).split())[:120]})"
+                )
+                self._json[path] = None
         return self._json[path]
 
     def sfm_report(self) -> dict[str, Any] | None:

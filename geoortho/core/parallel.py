@@ -191,7 +191,7 @@ def process_pool(
     if hasattr(pool, "_safe_to_dynamically_spawn_children"):
         pool._safe_to_dynamically_spawn_children = False
     try:  # a Ctrl-C held while the workers start is raised as they are: the pool is shut down then too
-        with _workers_skip_main(), _children_block_sigint(), _children_share_cores(n_procs):
+        with _workers_skip_main(), _children_block_signals(), _children_share_cores(n_procs):
             for _ in range(n_procs):
                 # start the workers now (they import while the caller prepares)
                 pool.submit(os.getpid)
@@ -271,22 +271,26 @@ def _children_share_cores(n_procs: int) -> Iterator[None]:
 
 
 @contextmanager
-def _children_block_sigint() -> Iterator[None]:
-    """Workers started in this block never see SIGINT: it is blocked here while they are started,
-    and a blocked signal stays blocked through fork and exec. Ctrl-C reaches the whole process
-    group; the caller alone must answer it (one "canceled" line, the pool shut down), not every
-    worker with a traceback. Blocked, not ignored: a Ctrl-C while the workers start waits and is
-    answered right after, not lost."""
+def _children_block_signals() -> Iterator[None]:
+    """Workers started in this block never see SIGINT or SIGTERM: both are blocked here while they
+    are started, and a blocked signal stays blocked through fork and exec. Ctrl-C and a batch
+    scheduler's SIGTERM reach the whole process group; the caller alone must answer them (one
+    "canceled" line, the pool's workers killed), not every worker with a traceback. And a worker
+    killed by SIGTERM while it starts hung the caller for ever: the caller writes the worker's
+    start-up data into a pipe whose reading end it still holds itself until the write is done, so
+    with the worker dead the write never ends (2 of 4 tries of SIGTERM as ortho started its pool).
+    Blocked, not ignored: a signal while the workers start waits and is answered right after."""
     import signal
 
     if not hasattr(signal, "pthread_sigmask"):
         yield
         return
-    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    blocked = {signal.SIGINT, signal.SIGTERM}
+    signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)
 
 
 def _die_with_parent() -> None:

@@ -118,6 +118,7 @@ class GridSurface(Surface):
     extend: bool = False
     decimated: bool = False  # read coarser than the raster (read_surface's max_cells)
     height_unit: str = "metre"  # what the raster's heights were read as (converted to metres)
+    undeclared_fill: tuple[float, int] | None = None  # a fill value read as no data, and its cells
 
     def __post_init__(self) -> None:
         g = np.ascontiguousarray(self.grid, dtype=np.float32)
@@ -470,12 +471,26 @@ def read_surface(
                 out_crs = src_crs
     except RasterioIOError as e:
         raise InputError(f"cannot read elevation raster: {e}", path=path) from None
+    grid, fill = _without_fill(grid)
     if to_m != 1.0:
         grid = grid * np.float32(to_m)
     try:
-        return GridSurface(grid, transform, out_crs, extend, decimated, unit_name)
+        return GridSurface(grid, transform, out_crs, extend, decimated, unit_name, fill)
     except ValueError as e:
         raise InputError(str(e), path=path) from None
+
+
+#: Fill values elevation rasters carry without declaring them as nodata (no height is one).
+FILL_VALUES = (-9999.0, -99999.0, -32767.0, -32768.0, -3.4028234663852886e38)
+
+
+def _without_fill(grid: np.ndarray) -> tuple[np.ndarray, tuple[float, int] | None]:
+    """The grid with an undeclared fill value (or any height beyond 1e20 m) as NaN, and which."""
+    fill = np.isin(grid, np.asarray(FILL_VALUES, np.float32)) | (np.abs(grid) > 1e20)
+    if not fill.any():
+        return grid, None
+    value = float(grid[fill][0])
+    return np.where(fill, np.float32(np.nan), grid), (value, int(fill.sum()))
 
 
 def height_unit(crs: CRS) -> tuple[str, float]:
@@ -498,3 +513,7 @@ def refuse_image(ds: Any, path: Any) -> None:
     if ds.count >= 3 or any(c in colour for c in ds.colorinterp):
         bands = ", ".join(c.name for c in ds.colorinterp)
         raise InputError(f"an image ({ds.count} bands: {bands}), not an elevation raster: give a DSM", path=path)
+    # a product's source codes (dsm_source.tif: 0 no data, 1 measured, ...) are no heights
+    described = " ".join(d or "" for d in ds.descriptions).lower()
+    if "measured" in described and "interpolated" in described:
+        raise InputError("a raster of source codes (measured, interpolated ...), not heights: give the DSM", path=path)

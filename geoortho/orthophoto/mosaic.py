@@ -1292,7 +1292,10 @@ def ortho(
             notes.append(note)
             fb.warning(note)
     elif isinstance(surface, GridSurface) and pts is not None and len(pts):
-        surface, measured_offset = _check_dsm_against_points(surface, pts, dsm_offset, max_dsm_offset_m, notes, fb)
+        flown_m = float(np.median([c.pose.center[2] for c in cams]) - np.median(pts[:, 2])) if len(cams) else math.nan
+        surface, measured_offset = _check_dsm_against_points(
+            surface, pts, dsm_offset, max_dsm_offset_m, notes, fb, flown_m
+        )
     if len(cams) == 0:
         raise InputError("no registered photo to rectify", path=sfm or images)
     options = MosaicOptions(
@@ -1326,12 +1329,29 @@ def _given_surface(
     return None
 
 
+#: A DSM whose heights spread about the SfM points' by more than this share of the flight height
+#: (robust sigma), or this many metres at least, is not the same surface: no offset is applied.
+MAX_DSM_SPREAD_SHARE = 0.05
+MIN_DSM_SPREAD_M = 2.0
+
+
 def _check_dsm_against_points(
-    surface: GridSurface, pts: np.ndarray, how: str, max_offset_m: float, notes: list[str], fb: Feedback
+    surface: GridSurface,
+    pts: np.ndarray,
+    how: str,
+    max_offset_m: float,
+    notes: list[str],
+    fb: Feedback,
+    flown_m: float = math.nan,
 ) -> tuple[GridSurface, float]:
     """Measure the DSM's vertical offset from the SfM points (median of point − DSM over the points
     inside it; the sparse points lie on the surface, roofs and trees included). Beyond
-    ``max_offset_m``: move the DSM onto the points (correct), refuse, or only say it (ignore)."""
+    ``max_offset_m``: move the DSM onto the points (correct), refuse, or only say it (ignore).
+
+    An offset is a datum's, a few tens of metres: one larger than half the cameras' height over
+    the points (``flown_m``), or heights that spread about the points more than a DSM of the same
+    surface does, say another unit, an undeclared fill or another place. Such a DSM is refused
+    whatever ``how`` says: moved, it made a 50 m site's orthophoto 6.8 km wide."""
     z = surface.grid
     c, r = surface.colrow(pts[:, 0], pts[:, 1])
 
@@ -1358,6 +1378,17 @@ def _check_dsm_against_points(
         notes.append(text)
         fb.info(text)
         return surface, -offset
+    limit_m = max(MIN_DSM_SPREAD_M, MAX_DSM_SPREAD_SHARE * flown_m) if math.isfinite(flown_m) else MIN_DSM_SPREAD_M
+    if (math.isfinite(flown_m) and abs(offset) > 0.5 * flown_m) or spread > limit_m:
+        why = (
+            f"more than half the flight height over the points ({flown_m:.0f} m)"
+            if math.isfinite(flown_m) and abs(offset) > 0.5 * flown_m
+            else f"its heights spread about them beyond {limit_m:.1f} m"
+        )
+        raise InputError(
+            f"{text}: {why}: not the surface the photos saw (another unit, an undeclared fill value or another "
+            "place?); give the DSM of this site in metres, or none"
+        )
     if how == "refuse":
         raise InputError(f"{text}: another vertical datum? give a DSM in the SfM's datum, or dsm_offset correct")
     if how == "ignore":
@@ -1408,6 +1439,12 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
     """The DSM in the output CRS, its small nodata holes filled (reported)."""
 
     surf = read_surface(path, crs, extend=True)
+    if surf.undeclared_fill is not None:
+        notes.append(
+            f"DSM: {surf.undeclared_fill[1]:,} cells hold {surf.undeclared_fill[0]:g}, a fill value its nodata does "
+            "not declare: read as no data"
+        )
+        fb.warning(notes[-1])
     if surf.height_unit != "metre":
         notes.append(f"DSM: its CRS gives its heights in {surf.height_unit}: converted to metres")
         fb.info(notes[-1])

@@ -144,6 +144,7 @@ def factory_calibration(
     dewarped = _xmp_float(tags, "drone-dji:DewarpFlag") == 1.0
     distortion: tuple[float, ...] = ()
     raw = tags.get("drone-dji:DewarpData", "")
+    distortion_warning = ""
     if raw:
         try:
             values = [float(v) for v in raw.split(";")[-1].split(",")]
@@ -151,6 +152,13 @@ def factory_calibration(
                 distortion = tuple(values[4:9])
         except ValueError:
             distortion = ()
+    if distortion and math.isfinite(f) and not _plausible_distortion(distortion, f, width_px, height_px):
+        # NaN stopped COLMAP with an assertion; an absurd one was blamed on overlap or texture
+        distortion_warning = (
+            f"DewarpData distortion ({', '.join(f'{v:.4g}' for v in distortion)}) is no lens's: ignored, the "
+            "distortion is estimated"
+        )
+        distortion = ()
     if not math.isfinite(f):
         return math.nan, math.nan, math.nan, (), dewarped, ""
     size = max(width_px, height_px)
@@ -164,7 +172,27 @@ def factory_calibration(
         return math.nan, math.nan, math.nan, (), dewarped, warning
     if not centre_given:
         cx, cy = width_px / 2.0, height_px / 2.0
-    return f, cx, cy, (() if dewarped else distortion), dewarped, ""
+    return f, cx, cy, (() if dewarped else distortion), dewarped, distortion_warning
+
+
+#: A lens's radial distortion moves the frame's corner by at most this share of its radius (a
+#: drone's rectilinear lens: a few percent; a fisheye is not calibrated this way).
+MAX_CORNER_DISTORTION = 0.3
+MAX_TANGENTIAL = 0.05
+
+
+def _plausible_distortion(k: tuple[float, ...], f_px: float, width_px: int, height_px: int) -> bool:
+    """Finite Brown coefficients (k1, k2, p1, p2, k3) that move the frame's corner by less than
+    ``MAX_CORNER_DISTORTION`` of its radius, monotonic out to it, with small tangential terms."""
+    if not all(math.isfinite(v) for v in k) or len(k) < 5:
+        return False
+    k1, k2, p1, p2, k3 = k[:5]
+    r_corner = math.hypot(width_px, height_px) / 2.0 / f_px
+    radii = [r_corner * t for t in (0.25, 0.5, 0.75, 1.0)]
+    scaled = [r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6) for r in radii]
+    monotonic = all(b > a for a, b in zip([0.0, *scaled], scaled))
+    corner = abs(scaled[-1] / r_corner - 1.0)
+    return monotonic and corner <= MAX_CORNER_DISTORTION and max(abs(p1), abs(p2)) <= MAX_TANGENTIAL
 
 
 def position_accuracy(tags: dict[str, str]) -> tuple[float, float, str, str]:
@@ -191,12 +219,22 @@ def position_accuracy(tags: dict[str, str]) -> tuple[float, float, str, str]:
                 f"RtkFlag {int(flag)} (fixed) with RtkStdLon/Lat {h:g} m: a fixed solution is centimetres; "
                 "the stated deviation is used"
             )
-        return (h if math.isfinite(h) else dh), (v if math.isfinite(v) else dv), fix, warning
+        return floor_sigma(h if math.isfinite(h) else dh), floor_sigma(v if math.isfinite(v) else dv), fix, warning
     xy = _xmp_float(tags, "Camera:GPSXYAccuracy")
     z = _xmp_float(tags, "Camera:GPSZAccuracy")
     if math.isfinite(xy) and xy > 0:
-        return xy, (z if math.isfinite(z) and z > 0 else 2.0 * xy), "stated", ""
+        return floor_sigma(xy), floor_sigma(z if math.isfinite(z) and z > 0 else 2.0 * xy), "stated", ""
     return math.nan, math.nan, "consumer", ""
+
+
+#: No GNSS position is known better than this (m, 1 sigma): a deviation stated tighter (a micrometre)
+#: made the priors rigid, and sfm then blamed the GPS for the block's own noise.
+MIN_SIGMA_M = 0.005
+
+
+def floor_sigma(sigma_m: float) -> float:
+    """A stated deviation, at least ``MIN_SIGMA_M`` (NaN stays NaN: not stated)."""
+    return max(sigma_m, MIN_SIGMA_M) if math.isfinite(sigma_m) else sigma_m
 
 
 @dataclass(frozen=True)

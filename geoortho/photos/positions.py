@@ -16,8 +16,19 @@ Three formats, told apart by their content:
   (m) and the RTK flag (50 fixed, 34 float, 16 single). Matched to the photos by their order.
 * **CSV**: a header row naming the columns: the image, x/easting/longitude, y/northing/latitude,
   z/height, and optionally sigma_h and sigma_v (1 sigma, m) and crs. A ``# EPSG:25829`` comment
-  line (or a crs column) names the CRS; latitude/longitude columns are read as WGS 84 with
-  ellipsoidal heights.
+  line (or a crs column) names the CRS; latitude/longitude columns are read as WGS 84.
+
+Heights are ellipsoidal (WGS 84) unless the file says otherwise: an RTKLIB header's
+``height=.../geodetic`` (RTKPOST's geoid heights), a CSV's compound CRS (``EPSG:32629+5773``), its
+``# heights: orthometric`` line or a column named for sea level (``h_msl``, ``orthometric``). Those
+are taken above the EGM96 geoid and turned into ellipsoidal heights. A height no camera flies at
+is refused.
+
+Every file is checked against the photos' own GPS: when its positions lie farther from it than a
+consumer receiver errs (``MAX_GPS_DISTANCE_M``, the median over the photos), it is another site's
+file, a wrong CRS or a wrong order, and it is refused with the distance. A DJI MRK with more or
+fewer events than photos is aligned to them by their own GPS, so the photo left without one is
+the one that has none.
 
 A photo with no position in the file keeps its own, and is named; so are lines that match no photo.
 """
@@ -26,19 +37,19 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
-import io
 import math
 import os
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
 from geoortho.core.crs import WGS84, transformer
 from geoortho.errors import InputError
-from geoortho.photos.metadata import DEFAULT_SIGMA_M, RTK_FLAGS, Photo, photo_seconds
+from geoortho.photos.metadata import DEFAULT_SIGMA_M, RTK_FLAGS, Photo, floor_sigma, photo_seconds
 
 __all__ = ["Position", "PositionFile", "Trajectory", "apply_positions", "read_positions"]
 
@@ -53,6 +64,10 @@ EVENT_MATCH_S = 0.5
 MAX_CLOCK_OFFSET_S = 15 * 3600.0
 #: A photo's own GPS lies within this (m) of its post-processed position (consumer GNSS at worst).
 MAX_GPS_DISTANCE_M = 30.0
+#: Ellipsoidal heights a camera can have (m): below the Dead Sea's shore, above any drone's ceiling.
+HEIGHT_RANGE_M = (-500.0, 9000.0)
+#: Lines of a positions file named in the notes and the report (the rest are counted).
+MAX_NAMED_LINES = 20
 GPS_WEEK_EPOCH = dt.datetime(1980, 1, 6, tzinfo=dt.timezone.utc)
 
 
@@ -77,6 +92,7 @@ class Trajectory:
     sigma_h: np.ndarray
     sigma_v: np.ndarray
     fix: tuple[str, ...]
+    heights: str = "ellipsoidal"  # as the header stated them (converted to ellipsoidal when not)
 
     def at(self, t: float) -> Position | None:
         """The position interpolated at ``t`` (None outside the epochs or in a gap)."""
@@ -131,9 +147,27 @@ class PositionFile:
     offset_found: bool = False  # found from the photos' own GPS, not given
     trajectory: Trajectory | None = field(default=None, compare=False)
     photo_times_s: dict[str, float] = field(default_factory=dict, compare=False)
+    heights: str = "ellipsoidal"  # the file's heights as stated: "ellipsoidal" or what was converted
+    n_lines_without: int = -1  # lines matching no photo, all of them (only the first are named)
+    gps_distance_m: float = math.nan  # median horizontal distance to the photos' own GPS
+    far_from_gps: tuple[str, ...] = ()  # photos farther than MAX_GPS_DISTANCE_M from their own GPS
 
     def notes(self) -> list[str]:
-        out = [f"positions of {len(self.by_image)} photos from {self.path.name} ({self.source})"]
+        out = [
+            f"positions of {len(self.by_image)} photos from {self.path.name} ({self.source}); heights {self.heights}"
+        ]
+        if math.isfinite(self.gps_distance_m):
+            out.append(
+                f"{self.path.name}: {self.gps_distance_m:.1f} m from the photos' own GPS (median; refused beyond "
+                f"{MAX_GPS_DISTANCE_M:g} m)"
+            )
+        if self.far_from_gps:
+            out.append(
+                f"{len(self.far_from_gps)} photo(s) lie more than {MAX_GPS_DISTANCE_M:g} m from their own GPS in "
+                f"{self.path.name} (a wrong line?): "
+                + ", ".join(self.far_from_gps[:8])
+                + ("…" if len(self.far_from_gps) > 8 else "")
+            )
         if self.time_offset_s is not None:
             how = "found from the photos' own GPS" if self.offset_found else "as given"
             out.append(f"{self.path.name}: time offset {self.time_offset_s:+.3f} s (file time − camera clock; {how})")
@@ -144,10 +178,11 @@ class PositionFile:
                 + ("…" if len(self.photos_without) > 8 else "")
             )
         if self.lines_without:
+            n = max(self.n_lines_without, len(self.lines_without))
             out.append(
-                f"{len(self.lines_without)} position(s) in {self.path.name} match no photo: "
+                f"{n:,} position(s) in {self.path.name} match no photo: "
                 + ", ".join(self.lines_without[:8])
-                + ("…" if len(self.lines_without) > 8 else "")
+                + ("…" if n > 8 else "")
             )
         return out
 
@@ -155,7 +190,8 @@ class PositionFile:
         """The trajectory read again at each photo's time moved by ``lag_s``."""
         if self.trajectory is None or self.time_offset_s is None:
             return self
-        return _match_trajectory(self.path, self.trajectory, photos, self.time_offset_s + lag_s, self.offset_found)
+        moved = _match_trajectory(self.path, self.trajectory, photos, self.time_offset_s + lag_s, self.offset_found)
+        return _checked(moved, photos)
 
 
 def read_positions(
@@ -177,10 +213,53 @@ def read_positions(
         offset, found = (
             (time_offset_s, False) if time_offset_s is not None else (_find_offset(path, traj, photos), True)
         )
-        return _match_trajectory(path, traj, photos, offset, found)
+        return _checked(_match_trajectory(path, traj, photos, offset, found), photos)
     if path.suffix.lower() == ".mrk" or re.match(r"\s*\d+\s+\d+\.\d+\s+\[\d+\]", lines[0]):
-        return _read_mrk(path, lines, photos)
-    return _read_csv(path, text, photos)
+        return _checked(_read_mrk(path, lines, photos), photos)
+    return _checked(_read_csv(path, text, photos), photos)
+
+
+def _distances_m(pairs: Sequence[tuple[float, float, float, float]]) -> np.ndarray:
+    """Geodesic distances (m) of (lat1, lon1, lat2, lon2) pairs on the WGS 84 ellipsoid."""
+    from pyproj import Geod
+
+    if not pairs:
+        return np.zeros(0)
+    a = np.asarray(pairs, float)
+    _, _, d = Geod(ellps="WGS84").inv(a[:, 1], a[:, 0], a[:, 3], a[:, 2])
+    return np.asarray(d, float)
+
+
+def _checked(pf: PositionFile, photos: Sequence[Photo]) -> PositionFile:
+    """The file's heights within what a camera can have, and its positions where the photos' own GPS
+    says they were taken: refused, naming the distance, when they lie farther off than a consumer
+    receiver errs (a wrong CRS line, another site's file)."""
+    lo, hi = HEIGHT_RANGE_M
+    for name, q in pf.by_image.items():
+        if not (lo <= q.height_m <= hi):
+            raise InputError(
+                f"{name}: height {q.height_m:.6g} m is no camera's height (ellipsoidal, {lo:g} to {hi:g} m): "
+                "another unit or column?",
+                path=pf.path,
+            )
+    own = {p.image: p for p in photos if p.has_gps}
+    names = [n for n in pf.by_image if n in own]
+    if not names:
+        return pf
+    q_of = pf.by_image
+    d = _distances_m(
+        [(own[n].latitude_deg, own[n].longitude_deg, q_of[n].latitude_deg, q_of[n].longitude_deg) for n in names]
+    )
+    median = float(np.median(d))
+    if median > MAX_GPS_DISTANCE_M:
+        where = f"{median / 1000:,.1f} km" if median >= 10_000 else f"{median:,.0f} m"
+        raise InputError(
+            f"its positions lie {where} from the photos' own GPS (median of {len(names)} photos; a consumer "
+            f"receiver is within {MAX_GPS_DISTANCE_M:g} m): a wrong CRS, another site's file or another order",
+            path=pf.path,
+        )
+    far = tuple(n for n, x in zip(names, d) if x > MAX_GPS_DISTANCE_M)
+    return replace(pf, gps_distance_m=median, far_from_gps=far)
 
 
 def apply_positions(photos: Sequence[Photo], positions: PositionFile) -> list[Photo]:
@@ -198,8 +277,8 @@ def apply_positions(photos: Sequence[Photo], positions: PositionFile) -> list[Ph
                 longitude_deg=q.longitude_deg,
                 absolute_altitude_m=q.height_m,
                 gps_altitude_m=q.height_m,
-                gps_sigma_h_m=q.sigma_h_m,
-                gps_sigma_v_m=q.sigma_v_m,
+                gps_sigma_h_m=floor_sigma(q.sigma_h_m),
+                gps_sigma_v_m=floor_sigma(q.sigma_v_m),
                 gps_fix=q.fix,
             )
         )
@@ -210,7 +289,14 @@ def apply_positions(photos: Sequence[Photo], positions: PositionFile) -> list[Ph
 
 
 def _read_rtklib(path: Path, lines: list[str]) -> Trajectory:
+    """RTKPOST's solution: latitude and longitude in degrees or in degrees, minutes and seconds (its
+    ``ddd mm ss`` output), heights ellipsoidal or geodetic (above the geoid; turned ellipsoidal)."""
     rows: list[tuple[float, float, float, float, int, float, float]] = []
+    header = "\n".join(line for line in lines[:60] if line.startswith("%")).lower()
+    dms = "d'\"" in header or "(dms)" in header
+    m = re.search(r"height\s*=\s*([^,)\s]+)", header)
+    datum = m.group(1) if m else "wgs84/ellipsoidal"
+    geodetic = "geodetic" in datum or "geoid" in datum or "msl" in datum
     for n, line in enumerate(lines, 1):
         s = line.strip()
         if not s or s.startswith("%"):
@@ -224,20 +310,59 @@ def _read_rtklib(path: Path, lines: list[str]) -> Trajectory:
                 t = when.replace(tzinfo=dt.timezone.utc).timestamp()
             else:  # GPS week, seconds of week
                 t = (GPS_WEEK_EPOCH + dt.timedelta(weeks=int(parts[0]), seconds=float(parts[1]))).timestamp()
-            lat, lon, h = float(parts[2]), float(parts[3]), float(parts[4])
-            q = int(parts[5])
-            sdn, sde, sdu = float(parts[7]), float(parts[8]), float(parts[9])
-        except (IndexError, ValueError):
+            if dms or (len(parts) >= 13 and _looks_dms(parts)):
+                lat, lon, rest = _dms(parts[2:5]), _dms(parts[5:8]), parts[8:]
+            else:
+                lat, lon, rest = float(parts[2]), float(parts[3]), parts[4:]
+            h = float(rest[0])
+            q = int(rest[1])
+            sdn, sde, sdu = float(rest[3]), float(rest[4]), float(rest[5])
+        except (IndexError, ValueError, OverflowError):
             raise InputError(f"line {n}: not an RTKLIB solution line ({s[:60]!r})", path=path) from None
-        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-            raise InputError(f"line {n}: latitude {lat:g}, longitude {lon:g} out of range", path=path)
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and math.isfinite(h) and math.isfinite(t)):
+            raise InputError(f"line {n}: latitude {lat:g}, longitude {lon:g}, height {h:g} out of range", path=path)
         rows.append((t, lat, lon, h, q, max(sdn, sde), sdu))
     if not rows:
         raise InputError("holds no solution line", path=path)
     a = np.array(sorted(rows), dtype=float)
-    return Trajectory(
-        a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 5], a[:, 6], tuple(RTKLIB_Q.get(int(q), "single") for q in a[:, 4])
-    )
+    fix = tuple(RTKLIB_Q.get(int(q), "single") for q in a[:, 4])
+    # a deviation of zero or less (or none) is not stated: the fix class's, as in the other formats
+    sh, sv = a[:, 5].copy(), a[:, 6].copy()
+    for k, f in enumerate(fix):
+        dh, dv = DEFAULT_SIGMA_M.get(f, DEFAULT_SIGMA_M["single"])
+        sh[k] = sh[k] if math.isfinite(sh[k]) and sh[k] > 0 else dh
+        sv[k] = sv[k] if math.isfinite(sv[k]) and sv[k] > 0 else dv
+    height_m = a[:, 3]
+    heights = "ellipsoidal"
+    if geodetic:
+        from geoortho.core.crs import geoid_undulation_m
+
+        height_m = height_m + np.asarray(geoid_undulation_m(a[:, 2], a[:, 1]), float)
+        heights = f"geodetic in the header ({datum}): EGM96 geoid heights turned ellipsoidal"
+    return Trajectory(a[:, 0], a[:, 1], a[:, 2], height_m, sh, sv, fix, heights)
+
+
+def _looks_dms(parts: list[str]) -> bool:
+    """Degrees, minutes and seconds: whole degrees and whole minutes below 60 before the seconds."""
+    try:
+        return (
+            re.fullmatch(r"-?\d+", parts[2]) is not None
+            and re.fullmatch(r"\d+", parts[3]) is not None
+            and int(parts[3]) < 60
+            and re.fullmatch(r"-?\d+", parts[5]) is not None
+            and 0 <= float(parts[4]) < 60
+        )
+    except (IndexError, ValueError):
+        return False
+
+
+def _dms(parts: list[str]) -> float:
+    """``ddd mm ss.sss`` (the sign on the degrees, "-0" too) as decimal degrees."""
+    d, m, sec = float(parts[0]), float(parts[1]), float(parts[2])
+    if not (0 <= m < 60 and 0 <= sec < 60):
+        raise ValueError("minutes or seconds out of range")
+    value = abs(d) + m / 60.0 + sec / 3600.0
+    return -value if parts[0].strip().startswith("-") else value
 
 
 def _local_xy(lat: np.ndarray, lon: np.ndarray, lat0: float, lon0: float) -> np.ndarray:
@@ -329,7 +454,10 @@ def _match_trajectory(
             f"no photo's time falls within its times (offset {offset:+.1f} s): a file from another flight?", path=path
         )
     unused = [f"event {k + 1}" for k in range(len(traj.t_s)) if k not in used] if traj.is_events else []
-    return PositionFile(path, "RTKLIB .pos", by_image, tuple(without), tuple(unused), offset, found, traj, times)
+    return PositionFile(
+        path, "RTKLIB .pos", by_image, tuple(without), tuple(unused[:MAX_NAMED_LINES]), offset, found, traj, times,
+        heights=traj.heights, n_lines_without=len(unused),
+    )  # fmt: skip
 
 
 # -- DJI Timestamp.MRK ------------------------------------------------------------------------------
@@ -356,16 +484,62 @@ def _read_mrk(path: Path, lines: list[str], photos: Sequence[Photo]) -> Position
         dh, dv = DEFAULT_SIGMA_M.get(fix, DEFAULT_SIGMA_M["single"])
         if stds is not None:
             sn, se, su = (float(v) for v in stds.groups())
-            dh, dv = max(sn, se), su
+            # a deviation of zero is not stated (a RANSAC on zero weights asserts): the fix class's
+            dh = max(sn, se) if max(sn, se) > 0 else dh
+            dv = su if su > 0 else dv
         events.append((index, Position(lat, lon, h, dh, dv, fix)))
     if not events:
         raise InputError("holds no event line", path=path)
     ordered = sorted(photos, key=lambda p: (photo_seconds(p) if math.isfinite(photo_seconds(p)) else 0.0, p.image))
     events.sort(key=lambda e: e[0])
-    by_image = {p.image: q for p, (_, q) in zip(ordered, events)}
-    without = tuple(p.image for p in ordered[len(events) :])
-    extra = tuple(f"event {i}" for i, _ in events[len(ordered) :])
-    return PositionFile(path, "DJI MRK", by_image, without, extra)
+    pairs = _align_events(ordered, [q for _, q in events])
+    by_image = {ordered[i].image: events[j][1] for i, j in pairs}
+    used_p, used_e = {i for i, _ in pairs}, {j for _, j in pairs}
+    without = tuple(p.image for i, p in enumerate(ordered) if i not in used_p)
+    extra = [f"event {events[j][0]}" for j in range(len(events)) if j not in used_e]
+    return PositionFile(path, "DJI MRK", by_image, without, tuple(extra[:MAX_NAMED_LINES]), n_lines_without=len(extra))
+
+
+def _align_events(photos: Sequence[Photo], events: Sequence[Position]) -> list[tuple[int, int]]:
+    """(photo, event) index pairs, both in shooting order. With as many events as photos, one to one.
+    Otherwise (an event missing, a photo deleted), aligned on the photos' own GPS where they have it:
+    the alignment that keeps the order and costs least, a pair costing its distance (capped) and a
+    photo or an event left alone ``MAX_GPS_DISTANCE_M``; without GPS, in order from the first."""
+    m, n = len(photos), len(events)
+    located = sum(p.has_gps for p in photos)
+    if m == n or located < 3:
+        return [(i, i) for i in range(min(m, n))]
+    gap = MAX_GPS_DISTANCE_M
+    band = abs(m - n) + 2
+    idx = [(i, j) for i in range(m) for j in range(max(0, i - band), min(n, i + band + 1)) if photos[i].has_gps]
+    d = _distances_m(
+        [
+            (photos[i].latitude_deg, photos[i].longitude_deg, events[j].latitude_deg, events[j].longitude_deg)
+            for i, j in idx
+        ]
+    )
+    cost = {ij: min(float(x), gap * 2.0) for ij, x in zip(idx, d)}
+    # edit-distance table: best[i, j] aligns the first i photos with the first j events, in a band
+    # as wide as the counts differ (and two more): a few events missing, not a shuffled file
+    best = np.full((m + 1, n + 1), np.inf)
+    best[: band + 1, 0] = np.arange(min(m, band) + 1) * gap
+    best[0, : band + 1] = np.arange(min(n, band) + 1) * gap
+    for i in range(1, m + 1):
+        for j in range(max(1, i - band), min(n, i + band) + 1):
+            best[i, j] = min(
+                best[i - 1, j - 1] + cost.get((i - 1, j - 1), gap * 2.0), best[i - 1, j] + gap, best[i, j - 1] + gap
+            )
+    pairs: list[tuple[int, int]] = []
+    i, j = m, n
+    while i > 0 and j > 0:
+        if best[i, j] == best[i - 1, j - 1] + cost.get((i - 1, j - 1), gap * 2.0):
+            pairs.append((i - 1, j - 1))
+            i, j = i - 1, j - 1
+        elif best[i, j] == best[i - 1, j] + gap:
+            i -= 1
+        else:
+            j -= 1
+    return pairs[::-1]
 
 
 # -- CSV ---------------------------------------------------------------------------------------------
@@ -374,70 +548,121 @@ _COLUMNS = {
     "image": ("image", "name", "file", "filename", "photo", "label", "image_name"),
     "x": ("x", "easting", "east", "e", "lon", "long", "longitude"),
     "y": ("y", "northing", "north", "n", "lat", "latitude"),
-    "z": ("z", "height", "h", "alt", "altitude", "ellh", "elevation", "height_m", "z_m", "altitude_m"),
+    "z": (
+        "z",
+        "height",
+        "h",
+        "alt",
+        "altitude",
+        "ellh",
+        "elevation",
+        "height_m",
+        "z_m",
+        "altitude_m",
+        "h_ell",
+        "ellipsoidal_height",
+        "h_msl",
+        "height_msl",
+        "msl",
+        "amsl",
+        "alt_msl",
+        "altitude_msl",
+        "orthometric",
+        "orthometric_height",
+        "h_orth",
+        "elevation_msl",
+    ),  # fmt: skip
     "sigma_h": ("sigma_h", "sigma_h_m", "sh", "std_h", "stdh", "accuracy_h", "xy_accuracy", "horizontal_accuracy"),
     "sigma_v": ("sigma_v", "sigma_v_m", "sv", "std_v", "stdv", "accuracy_v", "z_accuracy", "vertical_accuracy"),
     "crs": ("crs", "epsg", "srs"),
 }
 
 
+#: CSV height columns named for the geoid (sea level), and ``# heights: ...`` words that say so.
+_ORTHOMETRIC_COLUMNS = ("h_msl", "height_msl", "msl", "amsl", "alt_msl", "altitude_msl", "orthometric",
+                        "orthometric_height", "h_orth", "elevation_msl")  # fmt: skip
+_ORTHOMETRIC_WORDS = ("orthometric", "msl", "sea level", "geoid", "egm96", "egm2008", "amsl")
+
+
 def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
-    crs_text, body = _csv_lines(text)
+    crs_text, heights_said, body = _csv_lines(text)
     if not body:
         raise InputError("has no header row", path=path)
     try:
         dialect = csv.Sniffer().sniff(body[0][1], delimiters=",;\t")
     except csv.Error:
         dialect = csv.excel
-    rows = list(csv.reader(io.StringIO("\n".join(line for _, line in body)), dialect))
-    header = [h.strip().lower() for h in rows[0]]
-    col = _csv_columns(path, header, body[0][0])
+    numbers = [n for n, _ in body]
+    # read as a stream: a file of a million rows keeps the rows that match photos, and counts the rest
+    rows = csv.reader((line for _, line in body), dialect)
+    header = [h.strip().lower() for h in next(rows)]
+    col = _csv_columns(path, header, numbers[0])
     lonlat = header[col["x"]] in ("lon", "long", "longitude") or header[col["y"]] in ("lat", "latitude")
+    orthometric = header[col["z"]] in _ORTHOMETRIC_COLUMNS or heights_said == "orthometric"
     by_name = {p.image.lower(): p for p in photos} | {Path(p.image).stem.lower(): p for p in photos}
     by_image: dict[str, Position] = {}
+    line_of: dict[str, int] = {}
     lines_without: list[str] = []
+    n_without = 0
     to_ll_cache: dict[str, object] = {}
-    for (n, _), row in zip(body[1:], rows[1:]):
+    stated_crs: set[str] = set()
+    for n, row in zip(numbers[1:], rows):
         if not any(c.strip() for c in row):
             continue
         if len(row) <= max(col.values()):
             raise InputError(f"line {n}: {len(row)} columns, the header has {len(header)}", path=path)
+        name = row[col["image"]].strip()
+        p = by_name.get(name.lower()) or by_name.get(Path(name).stem.lower())
+        if p is None:
+            n_without += 1
+            if len(lines_without) < MAX_NAMED_LINES:
+                lines_without.append(f"{name[:80]} (line {n})")
+            continue
+        if p.image in line_of:
+            raise InputError(f"line {n}: {p.image} has a position on line {line_of[p.image]} too: keep one", path=path)
+        line_of[p.image] = n
         number = _csv_number(path, n, row, header, col)
         x, y, z = number("x"), number("y"), number("z")
         sh = number("sigma_h") if "sigma_h" in col and row[col["sigma_h"]].strip() else math.nan
         sv = number("sigma_v") if "sigma_v" in col and row[col["sigma_v"]].strip() else math.nan
         row_crs = row[col["crs"]].strip() if "crs" in col else ""
-        lon, lat = _csv_lonlat(path, n, x, y, row_crs or crs_text or ("EPSG:4326" if lonlat else ""), to_ll_cache)
-        name = row[col["image"]].strip()
-        p = by_name.get(name.lower()) or by_name.get(Path(name).stem.lower())
-        if p is None:
-            lines_without.append(f"{name} (line {n})")
-            continue
+        crs_of_row = row_crs or crs_text or ("EPSG:4326" if lonlat else "")
+        lon, lat, z_ell, vertical = _csv_position(path, n, x, y, z, crs_of_row, orthometric, to_ll_cache)
+        stated_crs.add(vertical)
         stated = math.isfinite(sh) and sh > 0
         by_image[p.image] = Position(
-            float(lat), float(lon), z, sh if stated else math.nan,
+            float(lat), float(lon), z_ell, sh if stated else math.nan,
             (sv if math.isfinite(sv) and sv > 0 else 2.0 * sh) if stated else math.nan,
             "stated" if stated else "consumer",
         )  # fmt: skip
     if not by_image:
         raise InputError("no line matches a photo by its image name", path=path)
     without = tuple(p.image for p in photos if p.image not in by_image)
-    return PositionFile(path, "CSV", by_image, without, tuple(lines_without))
+    heights = "; ".join(sorted(stated_crs))
+    return PositionFile(
+        path, "CSV", by_image, without, tuple(lines_without), heights=heights, n_lines_without=n_without
+    )
 
 
-def _csv_lines(text: str) -> tuple[str, list[tuple[int, str]]]:
-    """The CRS a comment line names ('' if none), and the other non-blank lines with their numbers."""
-    crs_text = ""
+def _csv_lines(text: str) -> tuple[str, str, list[tuple[int, str]]]:
+    """The CRS a comment line names ('' if none), what a ``# heights:`` line says of the heights
+    ('orthometric', 'ellipsoidal' or ''), and the other non-blank lines with their numbers."""
+    crs_text = heights = ""
     body: list[tuple[int, str]] = []
     for n, line in enumerate(text.splitlines(), 1):
         if line.lstrip().startswith("#"):
-            m = re.search(r"(EPSG:\d+|crs\s*[:=]\s*\S+)", line, re.IGNORECASE)
+            m = re.search(r"(EPSG:\d+(?:\+\d+)?|crs\s*[:=]\s*\S+)", line, re.IGNORECASE)
             if m and not crs_text:
                 crs_text = re.sub(r"^crs\s*[:=]\s*", "", m.group(1), flags=re.IGNORECASE)
+            said = re.search(r"heights?\s*[:=]\s*(.+)", line, re.IGNORECASE)
+            if said and not heights:
+                words = said.group(1).lower()
+                heights = "orthometric" if any(w in words for w in _ORTHOMETRIC_WORDS) else (
+                    "ellipsoidal" if "ellips" in words else "")  # fmt: skip
             continue
         if line.strip():
             body.append((n, line))
-    return crs_text, body
+    return crs_text, heights, body
 
 
 def _csv_columns(path: Path, header: list[str], line: int) -> dict[str, int]:
@@ -470,8 +695,12 @@ def _csv_number(path: Path, n: int, row: list[str], header: list[str], col: dict
     return number
 
 
-def _csv_lonlat(path: Path, n: int, x: float, y: float, crs_text: str, cache: dict[str, object]) -> tuple[float, float]:
-    """Line ``n``'s (x, y) in ``crs_text`` as WGS 84 longitude and latitude (degrees)."""
+def _csv_position(
+    path: Path, n: int, x: float, y: float, z: float, crs_text: str, orthometric: bool, cache: dict[str, object]
+) -> tuple[float, float, float, str]:
+    """Line ``n``'s (x, y, z) in ``crs_text`` as WGS 84 longitude, latitude (degrees) and ellipsoidal
+    height (m), and how its heights were read. A compound CRS's vertical datum (``+5773``) is
+    applied by PROJ; ``orthometric`` (said by the file) puts the heights on the EGM96 geoid."""
     from pyproj import CRS
     from pyproj.exceptions import CRSError
 
@@ -482,10 +711,30 @@ def _csv_lonlat(path: Path, n: int, x: float, y: float, crs_text: str, cache: di
         )
     if crs_text not in cache:
         try:
-            cache[crs_text] = transformer(CRS.from_user_input(crs_text), WGS84)
+            crs = CRS.from_user_input(crs_text)
+            vertical = next((c for c in crs.sub_crs_list if c.is_vertical), None) if crs.is_compound else None
+            if vertical is not None:
+                to = transformer(crs, CRS("EPSG:4979"))
+                cache[crs_text] = (to, True, f"{vertical.name} in the CRS ({crs_text}), turned ellipsoidal")
+            else:
+                cache[crs_text] = (transformer(crs, WGS84), False, "")
         except CRSError:
             raise InputError(f"line {n}: unknown CRS {crs_text!r}", path=path) from None
-    lon, lat = cache[crs_text].transform(x, y)  # type: ignore[attr-defined]
+    to, three_d, said = cast("tuple[Any, bool, str]", cache[crs_text])
+    if three_d:
+        lon, lat, h = to.transform(x, y, z)
+    else:
+        lon, lat = to.transform(x, y)
+        h = z
     if not (math.isfinite(lat) and math.isfinite(lon) and abs(lat) <= 90 and abs(lon) <= 180):
         raise InputError(f"line {n}: ({x:g}, {y:g}) is no position in {crs_text}", path=path)
-    return float(lon), float(lat)
+    if not math.isfinite(h):
+        raise InputError(f"line {n}: height {z:g} cannot be turned ellipsoidal in {crs_text}", path=path)
+    if not three_d and orthometric:
+        from geoortho.core.crs import geoid_undulation_m
+
+        h = z + float(geoid_undulation_m(lon, lat))
+        said = "orthometric as the file says (EGM96 geoid), turned ellipsoidal"
+    elif not three_d:
+        said = "ellipsoidal (WGS 84) as read; say '# heights: orthometric' for heights above sea level"
+    return float(lon), float(lat), float(h), said

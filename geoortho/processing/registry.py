@@ -176,7 +176,7 @@ def check_in_context(algorithm_id: str, name: str, value: Any) -> None:
         )
 
 
-def _same_file(a: Path, b: Path) -> bool:
+def same_file(a: Path, b: Path) -> bool:
     """The same file, through symlinks and ``..`` too (an output need not exist yet)."""
     try:
         if a.exists() and b.exists():
@@ -202,17 +202,27 @@ def _refuse_overwriting_inputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
     ]
     for i, (out_p, out_path) in enumerate(outputs):
         for in_p, in_path in inputs:
-            if (in_p.type != "folder" or out_p.type != "folder") and _same_file(out_path, in_path):
+            if (in_p.type != "folder" or out_p.type != "folder") and same_file(out_path, in_path):
                 raise ParameterError(
                     out_p.name,
                     f"{out_path} is also the input {in_p.name}: writing it would destroy it; give another path",
                 )
         for other_p, other_path in outputs[:i]:
-            if _same_file(out_path, other_path):
+            if same_file(out_path, other_path):
                 raise ParameterError(out_p.name, f"{out_path} is also the output {other_p.name}; give another path")
         for in_p, in_path in inputs:  # after the inputs themselves: the message names the input file
             if in_p.type == "folder" and out_p.type != "folder":
                 refuse_writing_into(out_p.name, out_path, in_p.name, in_path)
+            # a file read from the folder the products are written into may be one of them (a positions
+            # file called report.json in sfm's output): read, then overwritten. run checks its own
+            # products one by one (pipeline.check_run_paths): a project holds what it was made from.
+            elif in_p.type != "folder" and out_p.type == "folder" and alg.id != "run":
+                if _inside(in_path, out_path) is not None:
+                    raise ParameterError(
+                        in_p.name,
+                        f"{in_path} lies in the output folder {out_path}, where {alg.id} writes its products: "
+                        "move it out, or give another output",
+                    )
 
 
 #: Output files that may replace their own earlier copy inside an input folder: the report of a

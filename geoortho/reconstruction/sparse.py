@@ -150,19 +150,44 @@ class _Body:
 
     key: tuple[str, str, int, int, float]
     photos: tuple[Photo, ...]
+    calibration: str = ""  # the factory calibration, named when bodies of one model differ by it
 
     @property
     def label(self) -> str:
         make, model, w, h, f = self.key
-        return f"{make} {model} {w}x{h}" + (f" f={f:g} mm" if math.isfinite(f) else "")
+        return (
+            f"{make} {model} {w}x{h}"
+            + (f" f={f:g} mm" if math.isfinite(f) else "")
+            + (f" ({self.calibration})" if self.calibration else "")
+        )
+
+
+def _factory_key(p: Photo) -> tuple[float, float, float]:
+    if not math.isfinite(p.factory_focal_px):
+        return (math.nan, math.nan, math.nan)
+    return (round(p.factory_focal_px, 1), round(p.factory_cx_px, 1), round(p.factory_cy_px, 1))
 
 
 def _bodies(photos: Sequence[Photo]) -> list[_Body]:
+    """The photos grouped by camera; two drones of one model carry two factory calibrations, and
+    each is its own body (the first photo's calibration was taken for both)."""
     groups: dict[tuple[str, str, int, int, float], list[Photo]] = {}
     for p in photos:
         f = round(p.focal_mm, 2) if math.isfinite(p.focal_mm) else math.nan
         groups.setdefault((p.make, p.model, p.width_px, p.height_px, f), []).append(p)
-    return [_Body(k, tuple(v)) for k, v in groups.items()]
+    out = []
+    for k, v in groups.items():
+        by_cal: dict[str, list[Photo]] = {}
+        for p in v:
+            by_cal.setdefault(repr(_factory_key(p)), []).append(p)
+        if len(by_cal) == 1:
+            out.append(_Body(k, tuple(v)))
+            continue
+        for ps in by_cal.values():
+            fk = _factory_key(ps[0])
+            said = f"factory calibration f={fk[0]:g} px" if math.isfinite(fk[0]) else "no factory calibration"
+            out.append(_Body(k, tuple(ps), said))
+    return out
 
 
 def _camera_params(body: _Body, model: str) -> str:
@@ -277,9 +302,11 @@ def _rtk_heights(photos: Sequence[Photo], centres: np.ndarray, notes: list[str])
 
 
 def _image_names(photos: Sequence[Photo]) -> tuple[Path, dict[Path, str]]:
-    """The photos' common folder and each photo's COLMAP image name (its path relative to that)."""
+    """The photos' common folder and each photo's COLMAP image name (its path relative to that).
+    A photo that is a link keeps its own name (its folder resolved, not the link): a folder of links
+    picks photos for a run, and the link's target may lie anywhere."""
     root = Path(os.path.commonpath([str(p.path.parent.resolve()) for p in photos]))
-    return root, {p.path: str(p.path.resolve().relative_to(root)) for p in photos}
+    return root, {p.path: str((p.path.parent.resolve() / p.path.name).relative_to(root)) for p in photos}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1280,6 +1307,10 @@ def _positions_report(positions: Any, lag: Any) -> dict[str, Any]:
         "photos": len(positions.by_image),
         "photos_without": list(positions.photos_without),
         "lines_without": list(positions.lines_without),
+        "n_lines_without": max(positions.n_lines_without, len(positions.lines_without)),
+        "heights": positions.heights,
+        "gps_distance_m": positions.gps_distance_m if math.isfinite(positions.gps_distance_m) else None,
+        "far_from_gps": list(positions.far_from_gps),
         "time_offset_s": positions.time_offset_s,
         "time_offset_found": positions.offset_found,
         "time_lag": lag,
