@@ -662,10 +662,32 @@ def make_hostile_round4(survey: Path, folder: Path) -> None:
     csv("positions_wrong_zone.csv", f"# EPSG:{zone + 1}")
     csv("positions_twice.csv", f"# {crs}", twice=True)
     (folder / "week_overflow.pos").write_text("% header\n99999999999999 1.0 38.7 -9.1 100 1 10 0.01 0.01 0.02\n")
+
+    def aoi(name: str, *rings: list[list[float]]) -> None:
+        geo = {"type": "MultiPolygon", "coordinates": [[r] for r in rings]}
+        fc = {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, "geometry": geo}]}
+        (folder / f"aoi_{name}.geojson").write_text(json.dumps(fc))
+
+    def square(lon: float, lat: float, d: float = 0.0015) -> list[list[float]]:
+        return [[lon, lat], [lon + d, lat], [lon + d, lat + d], [lon, lat + d], [lon, lat]]
+
+    aoi("two_sites", square(-9.19, 38.747), square(-9.09, 38.747))  # 8.7 km apart
+    aoi("antimeridian", [[179.9985, -17.0], [-179.9985, -17.0], [-179.9985, -16.9985], [179.9985, -16.9985],
+                         [179.9985, -17.0]])  # fmt: skip
+    far = [ln.split() for ln in (survey / "truth" / "gcp_wgs84.txt").read_text().splitlines()[1:] if ln.strip()]
+    (folder / "gcp_far.txt").write_text(
+        "EPSG:4979\n" + "".join(f"{n} {float(lat) + 20:.9f} {lon} {h}\n" for n, lat, lon, h in far)
+    )
+    (folder / "linked").mkdir()
+    for photo_path in sorted((survey / "images").glob("*.JPG")):
+        (folder / "linked" / photo_path.name).symlink_to(photo_path)
     (folder / "sfm_out").mkdir()
     (folder / "sfm_out" / "report.json").write_text("image,lat,lon,height\n")
     photo = survey / "images" / "DJI_0001.JPG"
     (folder / "options_classified_photo.json").write_text(json.dumps({"dem": {"classified": str(photo)}}))
+    (folder / "options_positions.json").write_text(
+        json.dumps({"sfm": {"positions": str(folder / "positions_twice.csv")}})
+    )
     (folder / "options_deep.json").write_text("[" * 200_000 + "]" * 200_000)
     (folder / "options_folder").mkdir()
     with rasterio.open(survey / "truth" / "dsm.tif") as ds:
@@ -693,6 +715,12 @@ CASES_ROUND4 = [
         2,
         "lies in the output folder",
     ),
+    Case(
+        "sfm/a-folder-of-linked-photos",
+        ("sfm", "--images", "{h}/linked", "--output", "{o}/sfm", "--max-image-size", "640"),
+        0,
+        outputs=("{o}/sfm/report.json",),
+    ),
     # never silently wrong
     Case("sfm/positions-55-km-away", (*SFM, "--positions", "{h}/positions_55km.csv"), 2, r"55\.\d km from the photos"),
     Case(
@@ -708,6 +736,36 @@ CASES_ROUND4 = [
         2,
         "source codes",
     ),
+    Case(
+        "plan/two-sites-8-km-apart",
+        (*PLAN, "--aoi", "{h}/aoi_two_sites.geojson", "--output", "{o}/p"),
+        2,
+        r"2 sites 8\.\d km apart .*plan each site on its own",
+    ),  # fmt: skip
+    Case(
+        "plan/gcps-2000-km-away",
+        (*PLAN, "--aoi", "{h}/aoi_good.geojson", "--output", "{o}/p", "--gcps", "{h}/gcp_far.txt"),
+        2,
+        r"GCPs lie [\d,]+\.\d km or more from the area flown",
+    ),  # fmt: skip
+    Case(
+        "plan-check/gcps-2000-km-away",
+        ("plan-check", "--gcp-file", "{h}/gcp_far.txt", "--output", "{o}/c", "--images", "{s}/images"),
+        2,
+        r"GCPs lie [\d,]+\.\d km or more from the area flown",
+    ),  # fmt: skip
+    Case(
+        "run/a-checkpoint-not-in-the-gcp-file",
+        (*RUN, "--gcp-file", "{s}/truth/gcp_utm.txt", "--checkpoints", "GCP_NOPE"),
+        2,
+        "checkpoint GCP_NOPE not in the GCP file",
+    ),  # fmt: skip
+    Case(
+        "run/positions-twice",
+        (*RUN, "--positions", "{h}/positions_55km.csv", "--stage-options", "{h}/options_positions.json"),
+        2,
+        "sfm.positions is also given to the run itself",
+    ),  # fmt: skip
     # one clear line, never a traceback
     Case("sfm/rtklib-week-overflow", (*SFM, "--positions", "{h}/week_overflow.pos"), 2, "line 2: not an RTKLIB"),
     Case("run/stage-options-nested-deep", (*RUN, "--stage-options", "{h}/options_deep.json"), 2, "nested too deeply"),
@@ -977,3 +1035,16 @@ def test_sigterm_to_the_process_group_as_ortho_starts_its_pool_ends_the_run(tiny
         assert time.monotonic() < deadline, "a process of the run is left"
         time.sleep(0.1)
     assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_an_aoi_across_the_antimeridian_is_planned_in_its_own_utm_zone(hostile, tmp_path):
+    """Issue 76: an AOI from 179.9985 E to 179.9985 W was planned in the UTM zone of its naive centre,
+    177 degrees away; it is 320 m wide, in zone 60 or 1."""
+    import geoortho
+
+    r = geoortho.plan(hostile / "aoi_antimeridian.geojson", tmp_path / "p", camera="DJI FC6310", gsd_cm=2.0)
+    assert r.crs in ("EPSG:32760", "EPSG:32701"), r.crs
+    import geopandas as gpd
+
+    area = gpd.read_file(tmp_path / "p" / "plan.gpkg", layer="aoi").to_crs(r.crs).area.sum()
+    assert 0.9 * 320 * 166 < area < 1.1 * 320 * 166, area

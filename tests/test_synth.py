@@ -362,3 +362,16 @@ def test_a_survey_without_pixels_has_the_same_tags_and_truth(tmp_path, tiny_surv
     with pytest.raises(InputError, match="without --no-pixels"):
         synth(tmp_path / "blurred", preset="tiny", seed=3, blur_px=5.0, pixels=False)
     assert not (tmp_path / "blurred").exists()
+
+
+def test_synth_help_names_every_pathology():
+    """Issue 76: synth --help listed 13 of its 21 pathologies; every one it builds is named."""
+    import subprocess
+    import sys
+
+    from geoortho.synthetic.survey import PATHOLOGIES
+
+    out = subprocess.run([sys.executable, "-m", "geoortho", "synth", "--help"], capture_output=True, text=True).stdout
+    flat = " ".join(out.split()).replace("- ", "-")  # argparse wraps at hyphens
+    missing = [name for name in PATHOLOGIES if name not in flat]
+    assert not missing, missing

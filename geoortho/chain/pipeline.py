@@ -893,9 +893,34 @@ def _check_given(project: Project) -> None:
         check_las_header(project.points)
     for gcps in (project.gcp_file, project.gcp_list):
         if gcps is not None:
-            read_gcp_file(gcps)
+            names = read_gcp_file(gcps).by_name()
+            wanted = [c.strip() for c in project.checkpoints.split(",") if c.strip()]
+            unknown = [c for c in wanted if c.lower() not in ("all", "none") and c not in names]
+            if unknown:
+                raise InputError(
+                    f"checkpoint{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} not in the GCP file (it "
+                    f"names {', '.join(sorted(names)[:12])}{'…' if len(names) > 12 else ''})",
+                    path=gcps,
+                )
     if project.positions is not None and not project.positions.is_file():
         raise InputError("no such positions file", path=project.positions)
+
+
+def check_stage_options(project: Project, fb: Feedback) -> None:
+    """Stage options that would do nothing or override what the run was given: options of a stage
+    that does not run (dense beside a given cloud) are said, not taken silently (an options file
+    kept for every run may hold them); an option the run already sets from its own (sfm's positions
+    beside --positions; the stage option used to win, silently) is refused. The others the run sets
+    are refused by :func:`parse_stage_options`."""
+    for stage in STAGES:
+        own = project.options.get(stage.name) or {}
+        if own and not stage.applies(project):
+            fb.warning(
+                f"run: stage options for {stage.name} ({', '.join(sorted(own))}) do nothing: the stage does not "
+                "run in this project"
+            )
+    if project.positions is not None and "positions" in (project.options.get("sfm") or {}):
+        raise InputError("stage options: sfm.positions is also given to the run itself (--positions): give it once")
 
 
 def check_run_paths(project: Project) -> None:
@@ -1153,6 +1178,7 @@ def run(
     if project.checkpoints and project.gcp_file is None and project.gcp_list is None:
         raise InputError("checkpoints are named but no GCP file is given (--gcp-file or --gcp-list)")
     _check_given(project)
+    check_stage_options(project, fb)
     check_run_paths(project)
     results = run_stages(project, rerun_from=rerun_from, feedback=fb, force=force)
     by_name = {r.name: r for r in results}

@@ -937,6 +937,12 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
             f"({src_crs.name}) says so: projected numbers? give the file its real CRS",
             path=path,
         )
+    if src_crs.is_geographic and np.ptp(xy[:, 0]) > 180.0:
+        # across the antimeridian: 179.9 and -179.9 are 0.2 degrees apart, not 359.8 (the centre's UTM
+        # zone was otherwise 177 degrees away); longitudes unwrapped past 180, as PROJ takes them
+        polys = [shapely.transform(g, lambda c: np.c_[np.where(c[:, 0] < 0, c[:, 0] + 360.0, c[:, 0]), c[:, 1]])
+                 for g in polys]  # fmt: skip
+        notes.append("the AOI crosses the antimeridian: its longitudes read as one area across 180 degrees")
     geom = shapely.union_all(polys)
     if not geom.is_valid:
         reason = shapely.is_valid_reason(geom)
@@ -957,14 +963,35 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
         work = src
     else:  # the UTM zone of the AOI's centre, also when the AOI crosses a zone edge
         c = _reproject(geom, src, WGS84).centroid
-        work = utm_crs_for(float(c.x), float(c.y))
+        work = utm_crs_for((float(c.x) + 180.0) % 360.0 - 180.0, float(c.y))
     geom = _reproject(geom, src, work)
     if geom.area < 1.0:
         raise InputError(f"the AOI is {geom.area:.2f} m²: too small to plan", path=path)
+    _refuse_parts_apart(geom, path)
 
     if abs(horizontal_unit_m(work) - 1.0) > 1e-9:
         raise InputError(f"plan in a CRS in metres: {crs_to_text(work)} is not (give --crs)")
     return geom, work, notes
+
+
+#: Parts of an AOI farther apart than this (m) are separate flights: lines across the gap were
+#: flown (two fields 8.7 km apart: 2,440 photos, 93 minutes).
+MAX_PART_GAP_M = 1000.0
+
+
+def _refuse_parts_apart(geom: Any, path: Path) -> None:
+    """An AOI of parts that lie apart is refused, naming the gap: plan each part on its own."""
+    if len(shapely.get_parts(geom)) < 2:
+        return
+    # parts within the gap of each other are one site: grown by half of it, they join
+    sites = list(shapely.get_parts(shapely.union_all(shapely.buffer(shapely.get_parts(geom), MAX_PART_GAP_M / 2))))
+    if len(sites) > 1:
+        gap = min(float(a.distance(b)) for i, a in enumerate(sites) for b in sites[i + 1 :]) + MAX_PART_GAP_M
+        raise InputError(
+            f"the AOI has {len(sites)} sites {gap / 1000:,.1f} km apart or more: one flight would cross the gap "
+            f"(over {MAX_PART_GAP_M / 1000:g} km); plan each site on its own",
+            path=path,
+        )
 
 
 #: A plan's metres are the ground's: a CRS whose scale at the AOI is further from 1 than this
@@ -1238,18 +1265,36 @@ def line_overlaps(polys: list[Any], line: list[int], max_pairs: int = 1500) -> t
 # GCPs
 
 
+#: A GCP farther than this (m) from the area flown is seen by no photo: all of them so far is another
+#: site's file or another CRS (refused, with the distance); some, a wrong line (said).
+FAR_GCP_M = 2000.0
+
+
 def _given_gcps(
-    path: str, gcp_crs: str | None, crs: CRS, surface: Surface, camera_z_min: float
+    path: str, gcp_crs: str | None, crs: CRS, surface: Surface, camera_z_min: float, site: Any = None
 ) -> tuple[list[tuple[str, float, float, float]], list[str]]:
     """A GCP file's points in ``crs``: name, x, y and the height to use, with what was assumed.
     Heights that are placeholders (all equal), missing, or at or above the cameras are taken from
-    the ground model instead: a GCP above the photos would be seen by none of them."""
+    the ground model instead: a GCP above the photos would be seen by none of them. ``site`` (a
+    geometry in ``crs``: the AOI, or the cameras' hull) is where they must be."""
     gs = read_gcp_file(path, gcp_crs)
     t = transformer(gs.crs, crs)
     x, y = (np.asarray(v, float) for v in t.transform([p.x for p in gs.points], [p.y for p in gs.points]))
+    notes = []
+    if site is not None and len(x):
+        far_m = np.where(np.isfinite(x) & np.isfinite(y), shapely.distance(site, shapely.points(np.c_[x, y])), np.inf)
+        if far_m.min() > FAR_GCP_M:
+            near = float(far_m.min())
+            raise InputError(
+                f"its GCPs lie {near / 1000:,.1f} km or more from the area flown (in {gs.crs.name}): another site's "
+                "file, or another CRS (give --gcp-crs)",
+                path=Path(path),
+            )
+        far = [f"{p.name} ({d / 1000:,.1f} km)" for p, d in zip(gs.points, far_m) if d > FAR_GCP_M]
+        if far:
+            notes.append(f"GCPs far from the area flown, seen by no photo (a wrong line?): {', '.join(far[:8])}")
     z = np.array([p.z for p in gs.points], float)
     ground = surface.elevation(x, y)
-    notes = []
     if heights_are_placeholders(z):
         notes.append(f"all GCP heights are {z[0]:g}: taken as placeholders; heights from the ground model")
         z = ground.copy()
@@ -1275,7 +1320,7 @@ def _gcp_positions(
     each lies inside the flown block, the rest inside, spread by farthest-point sampling."""
     text = gcps.strip()
     if text and not text.isdigit():
-        pts, notes = _given_gcps(text, gcp_crs, crs, surface, camera_z_min)
+        pts, notes = _given_gcps(text, gcp_crs, crs, surface, camera_z_min, site=area)
         rows = []
         for name, x, y, z in pts:
             mid = marker_id_of(name)
@@ -1746,7 +1791,8 @@ def check_plan(
     if flown.need < 1:
         raise InputError("--required-photos must be at least 1")
     lowest = min(float(c[:, 2].min()) for _, c, _ in flown.groups)
-    pts, notes = _given_gcps(str(gcp_file), gcp_crs, flown.crs, flown.surface, lowest)
+    hull = shapely.MultiPoint(np.vstack([c[:, :2] for _, c, _ in flown.groups])).convex_hull
+    pts, notes = _given_gcps(str(gcp_file), gcp_crs, flown.crs, flown.surface, lowest, site=hull)
     for note in notes:
         fb.warning(note)
     rows = _gcp_counts(pts, flown, margin, min_photos)

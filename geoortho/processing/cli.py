@@ -10,6 +10,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import signal
 import sys
 import warnings
@@ -59,6 +60,8 @@ class _Parser(argparse.ArgumentParser):
     """Bad usage: one line on stderr and exit 2 (no usage dump)."""
 
     def error(self, message: str) -> NoReturn:
+        # a value of hundreds of digits (or a pasted page) is cut: the line stays one line to read
+        message = re.sub(r"\S{60,}", lambda m: f"{m.group(0)[:24]}…({len(m.group(0))} characters)", message)
         sys.stderr.write(f"{self.prog}: error: {message}\n")
         sys.exit(2)
 

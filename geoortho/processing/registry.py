@@ -40,9 +40,9 @@ def _number(p: Param, v: Any) -> float:
     try:
         x = float(v)
     except (TypeError, ValueError):
-        raise ParameterError(p.name, f"expected a number, got {v!r}") from None
+        raise ParameterError(p.name, f"expected a number, got {_shown(v)}") from None
     if not math.isfinite(x):
-        raise ParameterError(p.name, f"expected a finite number, got {v!r}")
+        raise ParameterError(p.name, f"expected a finite number, got {_shown(v)}")
     _check_range(p, x)
     return x
 
@@ -52,26 +52,36 @@ def _integer(p: Param, v: Any) -> int:
         raise ParameterError(p.name, f"expected an integer, got {v!r}")
     try:
         x = int(v) if not isinstance(v, float) or v.is_integer() else None
-    except (TypeError, ValueError):
+    except (TypeError, ValueError):  # 3.11 refuses to read an integer of over 4,300 digits: ValueError
         x = None
     if x is None:
-        raise ParameterError(p.name, f"expected an integer, got {v!r}")
+        raise ParameterError(p.name, f"expected an integer, got {_shown(v)}")
     _check_range(p, x)
     return x
 
 
+def _shown(v: Any) -> str:
+    """A value as a message shows it: a number of hundreds of digits, or a page of text, is cut."""
+    text = repr(v) if isinstance(v, str) else str(v)
+    return text if len(text) <= 40 else f"{text[:20]}…{text[-8:]} ({len(text)} characters)"
+
+
 def _check_range(p: Param, x: float) -> None:
     unit = f" {p.unit}" if p.unit else ""
+    try:
+        shown = f"{float(x):g}"
+    except OverflowError:  # an integer past any float
+        shown = f"a number of {len(str(abs(int(x))))} digits"
     if p.minimum is not None and x < p.minimum:
-        raise ParameterError(p.name, f"{x:g}{unit} is below the minimum {p.minimum:g}{unit}")
+        raise ParameterError(p.name, f"{shown}{unit} is below the minimum {p.minimum:g}{unit}")
     if p.maximum is not None and x > p.maximum:
-        raise ParameterError(p.name, f"{x:g}{unit} is above the maximum {p.maximum:g}{unit}")
+        raise ParameterError(p.name, f"{shown}{unit} is above the maximum {p.maximum:g}{unit}")
 
 
 def _enum(p: Param, v: Any) -> str:
     s = str(v)
     if s not in p.choices:
-        raise ParameterError(p.name, f"{s!r} is not one of {', '.join(p.choices)}")
+        raise ParameterError(p.name, f"{_shown(s)} is not one of {', '.join(p.choices)}")
     return s
 
 
@@ -87,7 +97,7 @@ def _bool(p: Param, v: Any) -> bool:
         return True
     if s in _FALSE:
         return False
-    raise ParameterError(p.name, f"expected true or false, got {v!r}")
+    raise ParameterError(p.name, f"expected true or false, got {_shown(v)}")
 
 
 def _crs(p: Param, v: Any) -> Any:

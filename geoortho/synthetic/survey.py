@@ -1676,10 +1676,11 @@ def synth(
     workers : int
         Processes for rendering; 0 uses every core.
     pathology : str
-        Comma-separated consumer-drone pathologies to build in: no-relative-altitude,
-        ellipsoidal-gps, altitude-drift, wrong-focal, dsm-datum, partial-dsm,
-        exposure-steps, free-heading, water, no-attitude, slope, wrong-flight-height,
-        poor-gps (truth/survey.json says what each did).
+        Comma-separated pathologies to build in: no-relative-altitude, ellipsoidal-gps,
+        altitude-drift, wrong-focal, dsm-datum, partial-dsm, exposure-steps, free-heading,
+        water, no-attitude, slope, wrong-flight-height, poor-gps, canopy, cars, rtk, ppk,
+        factory-calibration, wrong-calibration, gps-lag, wide-wood, hall, hedge, breaklines,
+        moving-cars, dropped-photo (truth/survey.json says what each did).
     plan : Path
         Fly this plan (a ``plan`` output folder or its plan.gpkg) instead of the preset's
         flight, over the preset's scene: the round trip that checks a plan. The plan's camera
