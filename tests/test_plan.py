@@ -359,3 +359,24 @@ def test_double_grid_oblique_and_speed(tmp_path):
     agl = json.loads(oblique.summary.read_text())["altitude_m"]
     assert np.median(ahead) > 0.4 * agl * math.tan(math.radians(30))
     assert json.loads(oblique.summary.read_text())["gsd_cm"]["median"] == pytest.approx(2.0, rel=0.03)
+
+
+def test_a_plan_canceled_while_it_is_written_leaves_no_half_plan(tmp_path, monkeypatch):
+    """Issue 76: a cancel while plan wrote its files left plan.gpkg and overlap.tif without the KML,
+    the Litchi mission or the summary; now nothing of it is left to be flown."""
+    import geoortho.planning.plan as planning
+
+    aoi = _aoi(tmp_path / "aoi.gpkg", shapely.box(E0, N0, E0 + 120, N0 + 80))
+
+    def canceled(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(planning, "_write_kml", canceled)
+    with pytest.raises(KeyboardInterrupt):
+        geoortho.plan(aoi, tmp_path / "plan", camera="DJI FC6310", gsd_cm=2.0)
+    left = sorted(p.name for p in (tmp_path / "plan").iterdir()) if (tmp_path / "plan").exists() else []
+    assert not [n for n in left if n in planning.PLAN_PRODUCTS], left
+    monkeypatch.undo()
+    r = geoortho.plan(aoi, tmp_path / "plan", camera="DJI FC6310", gsd_cm=2.0)
+    assert all((tmp_path / "plan" / n).exists() for n in ("plan.gpkg", "plan.kml", "litchi.csv", "summary.json"))
+    assert r.n_photos > 0

@@ -902,8 +902,15 @@ def _check_given(project: Project) -> None:
                     f"names {', '.join(sorted(names)[:12])}{'…' if len(names) > 12 else ''})",
                     path=gcps,
                 )
-    if project.positions is not None and not project.positions.is_file():
-        raise InputError("no such positions file", path=project.positions)
+    if project.positions is not None:
+        if not project.positions.is_file():
+            raise InputError("no such positions file", path=project.positions)
+        # read now against the photos (minutes before sfm would: another site's file, a wrong CRS)
+        from geoortho.photos.metadata import read_photos
+        from geoortho.photos.positions import read_positions
+
+        offset = (project.options.get("sfm") or {}).get("positions_time_offset_s")
+        read_positions(project.positions, read_photos(project.images).photos, time_offset_s=offset)
 
 
 def check_stage_options(project: Project, fb: Feedback) -> None:
@@ -1177,9 +1184,9 @@ def run(
         raise InputError("give --gcp-file (markers to find) or --gcp-list (observations made), not both")
     if project.checkpoints and project.gcp_file is None and project.gcp_list is None:
         raise InputError("checkpoints are named but no GCP file is given (--gcp-file or --gcp-list)")
-    _check_given(project)
     check_stage_options(project, fb)
     check_run_paths(project)
+    _check_given(project)
     results = run_stages(project, rerun_from=rerun_from, feedback=fb, force=force)
     by_name = {r.name: r for r in results}
     ran = [r.name for r in results if r.status == "ran"]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures as cf
+import contextlib
 import contextvars
 import functools
 import itertools
@@ -206,12 +207,28 @@ def process_pool(
 
 
 def _kill_workers(pool: cf.ProcessPoolExecutor) -> None:
-    """SIGKILL every worker of ``pool`` (the executor then shuts down without waiting for them)."""
-    for proc in list(getattr(pool, "_processes", {}).values()):
+    """SIGKILL every worker of ``pool`` (the executor then shuts down without waiting for them).
+
+    A worker killed while it wrote a result leaves half a message in the results pipe, and the
+    executor's thread that reads it waits for the rest for ever: this process holds a writing end
+    of that pipe too (the executor's queue object), so no end of file comes, and shutting the pool
+    down hung (1 of 14 SIGTERMs as ortho's tiles came back). This process never writes results:
+    its end is closed once the workers are dead, and the reader gets its end of file."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for proc in procs:
         try:
             proc.kill()
         except (OSError, ValueError, AttributeError):
             pass
+    for proc in procs:
+        try:
+            proc.join(timeout=5.0)
+        except (OSError, ValueError, AssertionError, AttributeError):
+            pass
+    writer = getattr(getattr(pool, "_result_queue", None), "_writer", None)
+    if writer is not None:
+        with contextlib.suppress(OSError):
+            writer.close()
 
 
 _spawn_lock = threading.Lock()

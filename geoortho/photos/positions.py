@@ -418,7 +418,8 @@ def _find_offset(path: Path, traj: Trajectory, photos: Sequence[Photo]) -> float
     spread = float(np.median(np.abs(np.array(candidates) - offset)))
     if spread > 2.0:
         raise InputError(
-            f"the photos match its times inconsistently (the offsets spread {spread:.1f} s): another flight's file?",
+            f"the photos match its times inconsistently (the offsets spread {spread:.1f} s): photos of more than one "
+            "flight, a camera clock that jumped, or another flight's file",
             path=path,
         )
     return offset
@@ -450,9 +451,8 @@ def _match_trajectory(
         else:
             by_image[p.image] = q
     if not by_image:
-        raise InputError(
-            f"no photo's time falls within its times (offset {offset:+.1f} s): a file from another flight?", path=path
-        )
+        why = "a file from another flight?" if found else "is the time offset given right (file time − camera clock)?"
+        raise InputError(f"no photo's time falls within its times (offset {offset:+.1f} s): {why}", path=path)
     unused = [f"event {k + 1}" for k in range(len(traj.t_s)) if k not in used] if traj.is_events else []
     return PositionFile(
         path, "RTKLIB .pos", by_image, tuple(without), tuple(unused[:MAX_NAMED_LINES]), offset, found, traj, times,

@@ -413,9 +413,15 @@ def plan(
     flight = _fly(Path(aoi), site, o, warnings_, s_grid, s_foot)
     control = _gcp_sightings(site, flight, o, warnings_)
     s_gcp.progress(1.0)
-    files = _write(Path(output), site, flight, control, o, warnings_, s_write)
-    summary = _summary(site, flight, control, files, o, warnings_, time.perf_counter() - t0)
-    summary_path = write_json(Path(output) / "summary.json", summary)
+    try:
+        files = _write(Path(output), site, flight, control, o, warnings_, s_write)
+        summary = _summary(site, flight, control, files, o, warnings_, time.perf_counter() - t0)
+        summary_path = write_json(Path(output) / "summary.json", summary)
+    except BaseException:
+        # canceled or failed while writing: no half a plan (a KML without its summary, sheets without
+        # the plan) is left to be flown
+        _remove_plan(Path(output))
+        raise
     s_write.progress(1.0)
     for w in warnings_:
         fb.warning(w)
@@ -692,6 +698,21 @@ def _gcp_sightings(site: _Site, flight: _Flight, o: PlanOptions, warnings_: list
     if few:
         warnings_.append(f"GCPs not surely seen in 3 planned photos: {', '.join(few)}")
     return _Control(rows, marker_m, laid_m, n_cells, module_px, worst_gsd_m)
+
+
+#: What ``plan`` writes into its folder (removed together when it is canceled while writing).
+PLAN_PRODUCTS = ("plan.gpkg", "overlap.tif", "plan.kml", "litchi.csv", "summary.json", "markers")
+
+
+def _remove_plan(output: Path) -> None:
+    import shutil
+
+    for name in PLAN_PRODUCTS:
+        path = output / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.exists() or path.is_symlink():
+            path.unlink(missing_ok=True)
 
 
 @dataclass(frozen=True)

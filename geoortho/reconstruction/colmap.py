@@ -23,7 +23,13 @@ def load_pycolmap() -> Any:
         raise
 
     reclaim_signal_handlers()
-    # COLMAP logs every image and iteration at INFO; geoortho's feedback says what matters.
+    # COLMAP logs every image and iteration at INFO, and its warnings reached stderr between
+    # geoortho's own lines (under --quiet too); geoortho's feedback says what matters. Never to log
+    # files: glog leaves one per run in the temp folder.
     if os.environ.get("GEOORTHO_COLMAP_LOG") is None:
-        pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
+        pycolmap.logging.minloglevel = int(pycolmap.logging.ERROR)
+        pycolmap.logging.stderrthreshold = int(pycolmap.logging.FATAL)
+    for level in (pycolmap.logging.INFO, pycolmap.logging.WARNING, pycolmap.logging.ERROR):
+        pycolmap.logging.set_log_destination(level, "")
+    pycolmap.logging.logtostderr = os.environ.get("GEOORTHO_COLMAP_LOG") is not None
     return pycolmap

@@ -1223,8 +1223,9 @@ def sfm(
         intrinsics = _intrinsics_report(mapped, geo.gcp_obs_used, notes)
         if geo.gps_sim is None and not any(s.triangulated is not None for s in geo.states) and not local_frame:
             raise InputError(
-                "the model could not be georeferenced (GPS did not fit, GCPs not triangulated); "
-                "use local_frame to keep it anyway",
+                "the model could not be georeferenced (GPS did not fit, GCPs not triangulated)"
+                + _why_positions_did_not_fit(inputs)
+                + "; use local_frame to keep it anyway",
                 path=images,
             )
         t0 = time.perf_counter()
@@ -1297,6 +1298,22 @@ def _georeference(
     notes += geo.notes
     timer.add("georeferencing", t0)
     return inputs, lag, geo
+
+
+def _why_positions_did_not_fit(inputs: _Inputs) -> str:
+    """What most likely kept the positions off the block's geometry, when it can be told: the
+    positions file that replaced the photos' own, deviations stated tighter than any receiver, or
+    the maker's factory calibration the block started from."""
+    causes = []
+    if inputs.positions is not None:
+        causes.append(f"the positions of {inputs.positions.path.name} (they replaced the photos' own)")
+    sigmas = [h for h, _ in inputs.priors.sigmas.values() if math.isfinite(h)]
+    if sigmas and float(np.median(sigmas)) <= 0.01:
+        causes.append(f"deviations stated at {1000 * float(np.median(sigmas)):.0f} mm, tighter than the block fits")
+    factory = [b.label for b in inputs.bodies if math.isfinite(b.photos[0].factory_focal_px)]
+    if factory:
+        causes.append(f"the factory calibration of {factory[0]} (a wrong one bends the block)")
+    return f": check {'; or '.join(causes)}" if causes else ""
 
 
 def _positions_report(positions: Any, lag: Any) -> dict[str, Any]:
