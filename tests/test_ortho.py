@@ -277,7 +277,14 @@ def test_seam_pass_streams_photos_and_loses_no_overlap(small_survey):
     from geoortho.feedback import as_feedback
     from geoortho.orthophoto.mosaic import _place
     from geoortho.orthophoto.rectify import bounds_window
-    from geoortho.orthophoto.seams import _coarse_view, _pair_stat, plan_seams, solve_gains
+    from geoortho.orthophoto.seams import (
+        _coarse_view,
+        _falloff_blocks,
+        _pair_stat,
+        _without_falloff,
+        plan_seams,
+        solve_gains,
+    )
 
     surf = read_surface(small_survey.dsm)
     placed = _place(_true_cameras(small_survey), surf, as_feedback(None))
@@ -303,6 +310,14 @@ def test_seam_pass_streams_photos_and_loses_no_overlap(small_survey):
     assert plan.views_held_max == crossing < n  # not the survey: photos stream through
     rows = [s for a in range(len(views)) for b in range(a + 1, len(views)) if (s := _pair_stat(views[a], views[b]))]
     assert len(rows) > n
+    # the lens's falloff, measured on the overlaps, is the renderer's (1 - 0.25 rho: 6.25 % half-way
+    # out, 25 % at the corners), and the gains are solved with it taken out
+    by_index = {v.index: v for v in views}
+    blocks = {(r[0], r[1]): _falloff_blocks(by_index[r[0]], by_index[r[1]]) for r in rows}
+    assert plan.falloff is not None
+    assert plan.falloff.loss_at(0.25) == pytest.approx(0.0625, abs=0.01)
+    assert plan.falloff.loss_at(1.0) == pytest.approx(0.25, abs=0.02)
+    rows = _without_falloff(rows, blocks, plan.falloff)
     held = solve_gains(rows, n, exposure=[math.nan] * n)
     np.testing.assert_allclose(plan.gains, held.gains, rtol=1e-6)
     assert not np.allclose(plan.gains, 1.0)

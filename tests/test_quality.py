@@ -115,9 +115,33 @@ def test_placeholder_heights_grade_the_horizontal_residual_and_say_so():
     assert check.state == "red" and abs(check.value - 48.5) < 1e-9 and "horizontal" in check.detail
 
 
-def test_a_stage_not_run_is_not_measured_and_does_not_count():
+def test_a_stage_not_run_is_not_measured_and_a_missing_measurement_is_never_green():
+    """An item a stage that did not run would measure (no GCPs, no dense stage) does not count; one
+    every finished run measures (coverage, photos registered) missing is red: its report is
+    missing or damaged (issue 76: report was GREEN with every stage report deleted)."""
+    from geoortho.chain.quality import REQUIRED
+
     checks = assess(None, None, None, None, None)
-    assert {c.state for c in checks} == {"not measured"} and verdict(checks) == "green"
+    assert {c.state for c in checks if c.item not in REQUIRED} == {"not measured"}
+    assert {c.state for c in checks if c.item in REQUIRED} == {"red"} and verdict(checks) == "red"
+    # measured, the required items grade as their values say
+    sfm, *rest = _clean()
+    assert all(c.state != "red" for c in assess(sfm, *rest) if c.item in REQUIRED)
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("share_of_seen_2", 1.7), ("share_of_seen_2", True), ("holes_inside_m2", -3.0), ("seam_mismatch_balanced", "5")],
+)
+def test_an_impossible_or_wrong_typed_value_is_never_graded_as_a_measure(key, value):
+    """A share over 100 %, a negative area, a JSON true taken as 1, a number given as text: the
+    stage report is damaged, and no item is green on it."""
+    sfm, dense, dem, ortho, fp = _clean()
+    ortho = {**ortho, key: value}
+    item = {"share_of_seen_2": "ortho_coverage", "holes_inside_m2": "ortho_holes",
+            "seam_mismatch_balanced": "seam_mismatch"}[key]  # fmt: skip
+    check = next(c for c in assess(sfm, dense, dem, ortho, fp) if c.item == item)
+    assert check.state != "green", check
 
 
 @pytest.mark.parametrize("crs", ["EPSG:4979", "EPSG:3763", "EPSG:32629"])

@@ -269,8 +269,8 @@ def _share(n: Any, of: Any) -> float:
 
 def as_number(v: Any) -> float:
     """A measured value as a float; NaN (not measured) for anything that is not a number (JSON's
-    true and false included: no measure is a yes)."""
-    if isinstance(v, bool):
+    true and false, and numbers written as text, included)."""
+    if isinstance(v, (bool, str, bytes)):  # a number written as text is no report's: damaged
         return math.nan
     try:
         return float(v)

@@ -7,6 +7,7 @@ the photo metadata, surface from a DSM or flat ground.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import tempfile
@@ -33,6 +34,7 @@ from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_count
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.orthophoto.cameras import cameras_from_metadata
+from geoortho.orthophoto.falloff import falloff_gain, frame_rho
 from geoortho.orthophoto.provenance import (
     INPAINTED,
     NONE,
@@ -495,8 +497,13 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, np.ndarray, dict[str,
         need = (cv2.dilate(own, kernel) if kernel is not None else own).astype(bool) & usable
         rr, cc = np.nonzero(need)
         r0, r1, c0, c1 = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
-        img = _photo(ctx.cams[int(i)].file)
-        bgr = remap_bgr(img, p.map_x[r0:r1, c0:c1], p.map_y[r0:r1, c0:c1], ctx.interpolation).astype(np.float32)
+        cam = ctx.cams[int(i)]
+        img = _photo(cam.file)
+        mx, my = p.map_x[r0:r1, c0:c1], p.map_y[r0:r1, c0:c1]
+        bgr = remap_bgr(img, mx, my, ctx.interpolation).astype(np.float32)
+        lift = falloff_gain(frame_rho(mx, my, cam.intrinsics.width_px, cam.intrinsics.height_px), ctx.plan.falloff)
+        if lift is not None:  # the lens's falloff out, as the gains were solved for
+            bgr *= lift[..., None]
         psl = (slice(sl[0].start + r0, sl[0].start + r1), slice(sl[1].start + c0, sl[1].start + c1))
         patches[int(i)] = _Patch(psl, bgr, need[r0:r1, c0:c1])
 
@@ -689,9 +696,40 @@ def mosaic(
     the COG and the report."""
     fb = as_feedback(feedback)
     options.check()
+    output = Path(output)
+    started = time.time()
+    try:
+        return _mosaic(cams, surface, crs, output, resolution_m, options, preview, poses, notes, skipped, dsm_source,
+                       dsm_offset_m, fb)  # fmt: skip
+    except BaseException:
+        # canceled or failed after some products were written (the COG, then its source raster,
+        # seamlines and report): none of this run's is left, as if it had not started
+        report = output.with_name(output.stem + "_report.json")
+        shown = Path(preview) if preview is not None else None
+        for path in (output, source_path(output), seamlines_path(output), report, shown):
+            with contextlib.suppress(OSError):
+                if path is not None and path.is_file() and path.stat().st_mtime >= started - 1.0:
+                    path.unlink()
+        raise
+
+
+def _mosaic(
+    cams: Sequence[PosedCamera],
+    surface: Surface,
+    crs: CRS,
+    output: Path,
+    resolution_m: float | None,
+    options: MosaicOptions,
+    preview: str | os.PathLike[str] | None,
+    poses: str,
+    notes: Sequence[str],
+    skipped: Sequence[tuple[str, str]],
+    dsm_source: str | os.PathLike[str] | None,
+    dsm_offset_m: float,
+    fb: Feedback,
+) -> OrthoResult:
     times: dict[str, float] = {}
     t0 = time.perf_counter()
-    output = Path(output)
     notes = list(notes)
     skipped = list(skipped)
     st_vis, st_plan, st_tiles, st_write = split(fb, [2, 2, 10, 1])

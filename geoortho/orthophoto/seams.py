@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal, get_args
 
 import cv2
@@ -28,6 +28,7 @@ from geoortho.core.camera import PosedCamera
 from geoortho.core.surface import FlatSurface, Surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
+from geoortho.orthophoto.falloff import Falloff, estimate_falloff, falloff_gain, frame_rho
 from geoortho.orthophoto.rectify import (
     Projection,
     VisibilityGrid,
@@ -60,6 +61,7 @@ class SeamPlan:
     notes: tuple[str, ...] = ()
     views_held_max: int = 0  # coarse views held at once while streaming (the survey's count if not streamed)
     movers: np.ndarray | None = None  # bool (rows, cols): where a photo showed what the others did not
+    falloff: Falloff | None = None  # the lens's falloff, taken out of every photo's pixels
 
     def labels_for(self, out_transform: Affine, win: Window) -> np.ndarray:
         """The coarse labels read (nearest) at the centres of an output window's pixels."""
@@ -123,6 +125,7 @@ class _View:
     image: np.ndarray  # uint8 (rows, cols, 3)
     valid: np.ndarray  # bool
     cost: np.ndarray  # float32, inf where not valid
+    rho: np.ndarray | None = None  # float32: squared radius in the frame over the half-diagonal's
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,6 +138,7 @@ class _Band:
     image: np.ndarray  # uint8 (rows, cols, 3)
     cost: np.ndarray  # float32
     parallax: np.ndarray | None = None  # float32 (rows, cols, 2): relief x the line of sight's tangent, metres
+    rho: np.ndarray | None = None  # float32: squared radius in the frame (the falloff's)
 
 
 def _coarse_projection(
@@ -163,7 +167,8 @@ def _coarse_view(
         )
     sampled = remap_bgr(img, proj.map_x, proj.map_y, cv2.INTER_AREA if reduction > 1 else cv2.INTER_LINEAR, reduction)
     sampled[~proj.valid] = 0
-    return _View(i, win, sampled, proj.valid, proj.cost)
+    rho = frame_rho(proj.map_x, proj.map_y, cam.intrinsics.width_px, cam.intrinsics.height_px)
+    return _View(i, win, sampled, proj.valid, proj.cost, rho)
 
 
 def plan_seams(
@@ -229,6 +234,7 @@ def _plan(
         return (w.row_off, w.row_off + w.height) if along_rows else (w.col_off, w.col_off + w.width)
 
     pairs: list[tuple[int, int, float, np.ndarray]] = []
+    blocks: dict[tuple[int, int], np.ndarray | None] = {}
     bands: list[_Band] = []
     active: list[_View] = []
     new_failures: dict[int, str] = {}
@@ -249,9 +255,11 @@ def _plan(
             continue
         if balance != "none":
             for other in active:
-                stat = _pair_stat(other, view) if other.index < view.index else _pair_stat(view, other)
+                first, second = (other, view) if other.index < view.index else (view, other)
+                stat = _pair_stat(first, second)
                 if stat is not None:
                     pairs.append(stat)
+                    blocks[(first.index, second.index)] = _falloff_blocks(first, second)
         if votes is not None:
             votes.add(view, active)
         if seams == "graphcut":
@@ -264,7 +272,14 @@ def _plan(
     if new_failures:
         return new_failures
 
+    falloff = estimate_falloff([b for b in blocks.values() if b is not None]) if balance != "none" else None
+    if falloff is not None:
+        pairs = _without_falloff(pairs, blocks, falloff)
+        bands = [_band_without_falloff(b, falloff) for b in bands]
     gains, notes = _gains(pairs, cams, balance, fb)
+    if falloff is not None:
+        notes = (falloff.note(), *notes)
+        fb.info(falloff.note())
     fb.progress(0.75)
 
     if seams == "graphcut" and len(wins) > 1:
@@ -290,7 +305,7 @@ def _plan(
         movers = np.zeros(cshape, bool)
         for win, odd in votes.transient.values():
             movers[slices_in(win, full)] |= odd
-    return SeamPlan(ctr, labels, gains, tuple(skipped), notes, held_max, movers)
+    return SeamPlan(ctr, labels, gains, tuple(skipped), notes, held_max, movers, falloff)
 
 
 #: Two photos disagree on a coarse cell where their colours (the pair's mean ratio taken out)
@@ -463,14 +478,16 @@ def _gains(
     return sol.gains, notes
 
 
-def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int, float, np.ndarray] | None:
-    """(a, b, weight, log mean colour of a − of b) over the cells both photos see unclipped."""
+def _overlap(
+    va: _View, vb: _View
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[slice, slice], tuple[slice, slice]] | None:
+    """Both views' pixels over their windows' intersection and where both see the ground
+    unclipped (a saturated pixel says nothing about exposure)."""
     inter = intersect(va.win, vb.win)
     if inter is None:
         return None
     sa, sb = slices_in(inter, va.win), slices_in(inter, vb.win)
     ia, ib = va.image[sa], vb.image[sb]
-    # both see it, neither is clipped (a saturated pixel says nothing about exposure)
     both = (
         va.valid[sa]
         & vb.valid[sb]
@@ -479,12 +496,54 @@ def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int
         & (ia.min(axis=2) > 3)
         & (ib.min(axis=2) > 3)
     )
+    return ia, ib, both, sa, sb
+
+
+def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int, float, np.ndarray] | None:
+    """(a, b, weight, log mean colour of a − of b) over the cells both photos see unclipped."""
+    seen = _overlap(va, vb)
+    if seen is None:
+        return None
+    ia, ib, both, _, _ = seen
     k = int(both.sum())
     if k < min_overlap_px:
         return None
     ma = ia[both].astype(np.float64).mean(axis=0)
     mb = ib[both].astype(np.float64).mean(axis=0)
     return (va.index, vb.index, math.sqrt(k), np.log(ma) - np.log(mb))
+
+
+#: An overlap is cut into this many blocks a side for the falloff: each block one point of it.
+FALLOFF_BLOCKS = 6
+#: A block needs this many cells both photos see.
+FALLOFF_MIN_PX = 30
+
+
+def _falloff_blocks(va: _View, vb: _View) -> np.ndarray | None:
+    """The overlap's blocks for :func:`geoortho.orthophoto.falloff.estimate_falloff`: per block,
+    weight, log mean grey of a − of b, and the mean ``rho`` in each photo."""
+    seen = _overlap(va, vb)
+    if seen is None or va.rho is None or vb.rho is None:
+        return None
+    ia, ib, both, sa, sb = seen
+    if int(both.sum()) < FALLOFF_MIN_PX * 3:
+        return None
+    ga = ia.astype(np.float32).mean(axis=2)
+    gb = ib.astype(np.float32).mean(axis=2)
+    ra, rb = va.rho[sa], vb.rho[sb]
+    rr, cc = np.nonzero(both)
+    r_edges = np.linspace(rr.min(), rr.max() + 1, FALLOFF_BLOCKS + 1).astype(int)
+    c_edges = np.linspace(cc.min(), cc.max() + 1, FALLOFF_BLOCKS + 1).astype(int)
+    out = []
+    for r0, r1 in zip(r_edges[:-1], r_edges[1:]):
+        for c0, c1 in zip(c_edges[:-1], c_edges[1:]):
+            m = both[r0:r1, c0:c1]
+            k = int(m.sum())
+            if k < FALLOFF_MIN_PX:
+                continue
+            d = math.log(float(ga[r0:r1, c0:c1][m].mean())) - math.log(float(gb[r0:r1, c0:c1][m].mean()))
+            out.append((math.sqrt(k), d, float(ra[r0:r1, c0:c1][m].mean()), float(rb[r0:r1, c0:c1][m].mean())))
+    return np.array(out, np.float64) if out else None
 
 
 #: The ground under objects is the DSM opened by a square this wide (metres, on the coarse grid);
@@ -558,7 +617,35 @@ def _band(
         view.image[y : y + h, x : x + w].copy(),
         view.cost[y : y + h, x : x + w].copy(),
         parallax[y : y + h, x : x + w].copy() if parallax is not None else None,
+        view.rho[y : y + h, x : x + w].copy() if view.rho is not None else None,
     )
+
+
+def _band_without_falloff(band: _Band, falloff: Falloff) -> _Band:
+    """The band's pixels with the lens's falloff taken out (the graph cut compares them)."""
+    gain = falloff_gain(band.rho, falloff) if band.rho is not None else None
+    if gain is None:
+        return band
+    image = np.clip(band.image.astype(np.float32) * gain[..., None] + 0.5, 0, 255).astype(np.uint8)
+    return replace(band, image=image)
+
+
+def _without_falloff(
+    pairs: list[tuple[int, int, float, np.ndarray]], blocks: dict[tuple[int, int], np.ndarray | None], falloff: Falloff
+) -> list[tuple[int, int, float, np.ndarray]]:
+    """The overlaps' log colour ratios with the falloff's part taken out (its mean over each
+    overlap's blocks, in each photo)."""
+    out = []
+    for a, b, w, d in pairs:
+        bl = blocks.get((a, b))
+        if bl is None:
+            out.append((a, b, w, d))
+            continue
+        wt = bl[:, 0] / bl[:, 0].sum()
+        ra, rb = bl[:, 2], bl[:, 3]
+        part = (wt * (falloff.c1 * (ra - rb) + falloff.c2 * (ra * ra - rb * rb))).sum()
+        out.append((a, b, w, d - float(part)))
+    return out
 
 
 @dataclass(frozen=True)

@@ -319,7 +319,7 @@ def run_algorithm(
         if client is not None:
             fb.info(f"per-photo and per-tile work on the Dask cluster at {client.scheduler.address}")
         result = alg.function(**kwargs, feedback=fb)
-    fb.progress(1.0)
+    fb.set_progress(1.0)  # the work is done: a cancel that comes now has nothing left to stop
     return outputs_of(alg, result)
 
 
