@@ -773,6 +773,12 @@ CASES_ROUND4 = [
         "sfm.positions is also given to the run itself",
     ),  # fmt: skip
     # one clear line, never a traceback
+    Case(
+        "plan/a-camera-name-of-300-characters",
+        (*PLAN[:1], "--camera", "A" * 300, "--gsd-cm", "2", "--aoi", "{h}/aoi_good.geojson", "--output", "{o}/p"),
+        2,
+        r"unknown camera 'A+… \(300 characters\)",
+    ),  # fmt: skip
     Case("sfm/rtklib-week-overflow", (*SFM, "--positions", "{h}/week_overflow.pos"), 2, "line 2: not an RTKLIB"),
     Case("run/stage-options-nested-deep", (*RUN, "--stage-options", "{h}/options_deep.json"), 2, "nested too deeply"),
     # messages that send the user the right way

@@ -37,10 +37,11 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import itertools
 import math
 import os
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, cast
@@ -200,13 +201,18 @@ def read_positions(
     """Read a positions file and match it to ``photos`` (see the module's text for the formats)."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig", errors="replace")
+        with open(path, encoding="utf-8-sig", errors="replace") as f:
+            head = [line.rstrip("\r\n") for line in itertools.islice(f, 60)]
     except OSError as e:
         raise InputError(f"cannot be read ({e.strerror or e})", path=path) from None
-    lines = text.splitlines()
-    if not any(line.strip() for line in lines):
+    if not any(line.strip() for line in head) and not path.read_text(errors="replace").strip():
         raise InputError("is empty", path=path)
-    if any(line.startswith("%") for line in lines[:40]) or path.suffix.lower() == ".pos":
+    rtklib = any(line.startswith("%") for line in head[:40]) or path.suffix.lower() == ".pos"
+    mrk = path.suffix.lower() == ".mrk" or bool(head and re.match(r"\s*\d+\s+\d+\.\d+\s+\[\d+\]", head[0]))
+    if not (rtklib or mrk):  # a CSV is read as a stream: one of a million rows is not held whole
+        return _checked(_read_csv(path, photos), photos)
+    lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
+    if rtklib:
         traj = _read_rtklib(path, lines)
         if traj.is_events and time_offset_s is None and not any(p.has_gps for p in photos):
             raise InputError("camera events and photos without GPS: give the time offset", path=path)
@@ -214,9 +220,7 @@ def read_positions(
             (time_offset_s, False) if time_offset_s is not None else (_find_offset(path, traj, photos), True)
         )
         return _checked(_match_trajectory(path, traj, photos, offset, found), photos)
-    if path.suffix.lower() == ".mrk" or re.match(r"\s*\d+\s+\d+\.\d+\s+\[\d+\]", lines[0]):
-        return _checked(_read_mrk(path, lines, photos), photos)
-    return _checked(_read_csv(path, text, photos), photos)
+    return _checked(_read_mrk(path, lines, photos), photos)
 
 
 def _distances_m(pairs: Sequence[tuple[float, float, float, float]]) -> np.ndarray:
@@ -584,21 +588,30 @@ _ORTHOMETRIC_COLUMNS = ("h_msl", "height_msl", "msl", "amsl", "alt_msl", "altitu
 _ORTHOMETRIC_WORDS = ("orthometric", "msl", "sea level", "geoid", "egm96", "egm2008", "amsl")
 
 
-def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
-    crs_text, heights_said, body = _csv_lines(text)
-    if not body:
+def _read_csv(path: Path, photos: Sequence[Photo]) -> PositionFile:
+    with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
+        return _read_csv_stream(path, f, photos)
+
+
+def _read_csv_stream(path: Path, f: Iterable[str], photos: Sequence[Photo]) -> PositionFile:
+    said: dict[str, str] = {"crs": "", "heights": ""}
+    at = [0]  # the number of the line the reader took last
+    body = _csv_lines(f, said, at)
+    first = next(body, None)
+    if first is None:
         raise InputError("has no header row", path=path)
     try:
-        dialect = csv.Sniffer().sniff(body[0][1], delimiters=",;\t")
+        dialect: Any = csv.Sniffer().sniff(first, delimiters=",;\t")
     except csv.Error:
         dialect = csv.excel
-    numbers = [n for n, _ in body]
     # read as a stream: a file of a million rows keeps the rows that match photos, and counts the rest
-    rows = csv.reader((line for _, line in body), dialect)
+    rows = csv.reader(itertools.chain([first], body), dialect)
     header = [h.strip().lower() for h in next(rows)]
-    col = _csv_columns(path, header, numbers[0])
+    header_line = at[0]
+    col = _csv_columns(path, header, header_line)
     lonlat = header[col["x"]] in ("lon", "long", "longitude") or header[col["y"]] in ("lat", "latitude")
-    orthometric = header[col["z"]] in _ORTHOMETRIC_COLUMNS or heights_said == "orthometric"
+    crs_text = said["crs"]
+    orthometric = header[col["z"]] in _ORTHOMETRIC_COLUMNS or said["heights"] == "orthometric"
     by_name = {p.image.lower(): p for p in photos} | {Path(p.image).stem.lower(): p for p in photos}
     by_image: dict[str, Position] = {}
     line_of: dict[str, int] = {}
@@ -606,7 +619,9 @@ def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
     n_without = 0
     to_ll_cache: dict[str, object] = {}
     stated_crs: set[str] = set()
-    for n, row in zip(numbers[1:], rows):
+    for row in rows:
+        n = at[0]
+        crs_text = said["crs"] or crs_text  # a comment line may come after the header too
         if not any(c.strip() for c in row):
             continue
         if len(row) <= max(col.values()):
@@ -644,25 +659,25 @@ def _read_csv(path: Path, text: str, photos: Sequence[Photo]) -> PositionFile:
     )
 
 
-def _csv_lines(text: str) -> tuple[str, str, list[tuple[int, str]]]:
-    """The CRS a comment line names ('' if none), what a ``# heights:`` line says of the heights
-    ('orthometric', 'ellipsoidal' or ''), and the other non-blank lines with their numbers."""
-    crs_text = heights = ""
-    body: list[tuple[int, str]] = []
-    for n, line in enumerate(text.splitlines(), 1):
+def _csv_lines(f: Iterable[str], said: dict[str, str], at: list[int]) -> Iterator[str]:
+    """The file's non-blank lines that are no comment, one at a time (``at[0]``: the last one's
+    number); ``said`` takes the CRS a comment line names ('crs') and what a ``# heights:`` line
+    says of the heights ('heights': 'orthometric' or 'ellipsoidal')."""
+    for n, raw in enumerate(f, 1):
+        line = raw.rstrip("\r\n")
         if line.lstrip().startswith("#"):
             m = re.search(r"(EPSG:\d+(?:\+\d+)?|crs\s*[:=]\s*\S+)", line, re.IGNORECASE)
-            if m and not crs_text:
-                crs_text = re.sub(r"^crs\s*[:=]\s*", "", m.group(1), flags=re.IGNORECASE)
-            said = re.search(r"heights?\s*[:=]\s*(.+)", line, re.IGNORECASE)
-            if said and not heights:
-                words = said.group(1).lower()
-                heights = "orthometric" if any(w in words for w in _ORTHOMETRIC_WORDS) else (
+            if m and not said["crs"]:
+                said["crs"] = re.sub(r"^crs\s*[:=]\s*", "", m.group(1), flags=re.IGNORECASE)
+            told = re.search(r"heights?\s*[:=]\s*(.+)", line, re.IGNORECASE)
+            if told and not said["heights"]:
+                words = told.group(1).lower()
+                said["heights"] = "orthometric" if any(w in words for w in _ORTHOMETRIC_WORDS) else (
                     "ellipsoidal" if "ellips" in words else "")  # fmt: skip
             continue
         if line.strip():
-            body.append((n, line))
-    return crs_text, heights, body
+            at[0] = n
+            yield line
 
 
 def _csv_columns(path: Path, header: list[str], line: int) -> dict[str, int]:

@@ -115,7 +115,11 @@ def resolve_camera(
 ) -> CameraSpec:
     """The camera from a model name, a sample photo, or explicit values (which override either)."""
     base: CameraSpec | None = None
-    if camera and Path(camera).is_file():
+    try:
+        a_photo = bool(camera) and Path(camera).is_file()
+    except OSError:  # a name longer than a file name can be is a model name
+        a_photo = False
+    if a_photo:
         p = read_photo(camera)
         if not (math.isfinite(p.focal_mm) and math.isfinite(p.sensor_width_mm)):
             raise InputError("the photo gives no focal length or sensor width: give --sensor-width-mm", path=camera)
@@ -140,8 +144,9 @@ def resolve_camera(
                 if close
                 else f"known: {', '.join(sorted({c.name for c in CAMERAS.values()}))}"
             )
+            named = camera if len(camera) <= 60 else f"{camera[:40]}… ({len(camera)} characters)"
             raise InputError(
-                f"unknown camera {camera!r} ({hint}); or give a sample photo, or --sensor-width-mm, "
+                f"unknown camera {named!r} ({hint}); or give a sample photo, or --sensor-width-mm, "
                 "--focal-mm, --image-width-px and --image-height-px"
             )
     explicit = (sensor_width_mm, focal_mm, image_width_px, image_height_px)
