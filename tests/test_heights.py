@@ -358,7 +358,7 @@ def test_sfm_wrong_exif_focal_held_reported_then_fixed_by_gcps(tmp_path_factory,
     # the free-focal probe leaves COLMAP's log level as geoortho set it (pycolmap.bundle_adjustment
     # reset it to INFO: every sfm after it printed COLMAP's lines to stderr)
     free = _probe_free_focal(pycolmap.Reconstruction(str(r0.output / "model")))
-    assert free and pycolmap.logging.minloglevel == int(pycolmap.logging.WARNING)
+    assert free and pycolmap.logging.minloglevel == int(pycolmap.logging.ERROR)
     r = sfm(survey.images, d / "gcp", gcp_list=_gcp_list(survey, d), **SFM_FAST)
     rep = json.loads(r.report.read_text())
     true_px = _info(survey)["camera"]["focal_px"]

@@ -1371,6 +1371,9 @@ def _given_surface(
 #: (robust sigma), or this many metres at least, is not the same surface: no offset is applied.
 MAX_DSM_SPREAD_SHARE = 0.05
 MIN_DSM_SPREAD_M = 2.0
+#: No two vertical datums differ by more than this (m): the geoid lies within -106..+85 m of the
+#: ellipsoid. A larger offset is another unit, a fill value or another place.
+MAX_DATUM_OFFSET_M = 150.0
 
 
 def _check_dsm_against_points(
@@ -1386,9 +1389,10 @@ def _check_dsm_against_points(
     inside it; the sparse points lie on the surface, roofs and trees included). Beyond
     ``max_offset_m``: move the DSM onto the points (correct), refuse, or only say it (ignore).
 
-    An offset is a datum's, a few tens of metres: one larger than half the cameras' height over
-    the points (``flown_m``), or heights that spread about the points more than a DSM of the same
-    surface does, say another unit, an undeclared fill or another place. Such a DSM is refused
+    An offset is a datum's, tens of metres at most: one larger than ``MAX_DATUM_OFFSET_M``, or
+    heights that spread about the points more than a DSM of the same surface does (a share of the
+    cameras' height over the points, ``flown_m``), say another unit, an undeclared fill or another
+    place. Such a DSM is refused
     whatever ``how`` says: moved, it made a 50 m site's orthophoto 6.8 km wide."""
     z = surface.grid
     c, r = surface.colrow(pts[:, 0], pts[:, 1])
@@ -1417,10 +1421,10 @@ def _check_dsm_against_points(
         fb.info(text)
         return surface, -offset
     limit_m = max(MIN_DSM_SPREAD_M, MAX_DSM_SPREAD_SHARE * flown_m) if math.isfinite(flown_m) else MIN_DSM_SPREAD_M
-    if (math.isfinite(flown_m) and abs(offset) > 0.5 * flown_m) or spread > limit_m:
+    if abs(offset) > MAX_DATUM_OFFSET_M or spread > limit_m:
         why = (
-            f"more than half the flight height over the points ({flown_m:.0f} m)"
-            if math.isfinite(flown_m) and abs(offset) > 0.5 * flown_m
+            f"more than any two vertical datums differ ({MAX_DATUM_OFFSET_M:.0f} m)"
+            if abs(offset) > MAX_DATUM_OFFSET_M
             else f"its heights spread about them beyond {limit_m:.1f} m"
         )
         raise InputError(
