@@ -887,7 +887,7 @@ def test_each_bad_photo_is_skipped_with_its_reason_by_every_command(command, tin
         ["ortho", "--images", "{h}/photos", "--output", "{o}/o.tif"],
         ["footprints", "--images", "{h}/photos", "--output", "{o}/fp.shp"],
         ["dem", "--points", "{h}/outliers.laz", "--output", "{o}/d.tif", "--dtm", "{o}/t.tif"],
-        ["sfm", "--images", "{h}/photos", "--output", "{o}/sfm", "--max-image-size", "640"],  # COLMAP's own log
+        ["sfm", "--images", "{s}/images", "--output", "{o}/sfm", "--max-image-size", "640"],  # COLMAP's own log
     ],
     ids=lambda a: a[0],
 )
