@@ -506,3 +506,47 @@ def test_a_photo_of_another_flight_is_named_and_left_out(tiny_survey, tmp_path):
     assert "another flight" in reasons.get(stray.name, ""), r.skipped
     assert len(r.skipped) == 1  # the survey's own photos are all used
     assert stray.name not in set(gpd.read_file(r.seamlines, layer="seamlines")["photo"])
+
+
+@pytest.mark.parametrize(
+    ("profile", "expect"),
+    [
+        ("cos4", True),  # the natural cos^4 law over a 50 degree diagonal field (32 % at the corners)
+        ("flat-then-drop", True),  # toledo's shape: flat to half-way, a drop at the corners
+        ("none", False),  # no falloff: nothing applied
+        ("brighter-outwards", False),  # content, not a lens: refused
+    ],
+)
+def test_the_falloff_fit_finds_each_lens_profile_and_refuses_what_no_lens_does(profile, expect):
+    """The falloff estimator on overlaps drawn from several profiles (not the renderer's one): each
+    overlap's blocks at random radii in both photos, a random exposure ratio per overlap, noise and
+    a tenth of the blocks disagreeing as parallax or a moved car would."""
+    import math
+
+    from geoortho.orthophoto.falloff import estimate_falloff
+
+    half_diag = math.tan(math.radians(25.0))
+
+    def log_v(rho):
+        if profile == "cos4":
+            return 4.0 * np.log(np.cos(np.arctan(np.sqrt(rho) * half_diag)))
+        if profile == "flat-then-drop":
+            return -0.14 * rho**2
+        if profile == "brighter-outwards":
+            return 0.1 * rho
+        return 0.0 * rho
+
+    rng = np.random.default_rng(7)
+    pairs = []
+    for _ in range(60):
+        ra, rb = rng.uniform(0, 1, 36), rng.uniform(0, 1, 36)
+        d = log_v(ra) - log_v(rb) + rng.normal(0, 0.3) + rng.normal(0, 0.01, 36)
+        d[rng.random(36) < 0.1] += rng.normal(0, 0.3, 1)
+        pairs.append(np.c_[rng.uniform(5, 10, 36), d, ra, rb])
+    f = estimate_falloff(pairs)
+    if not expect:
+        assert f is None
+        return
+    assert f is not None
+    for rho in (0.25, 0.5, 1.0):
+        assert f.loss_at(rho) == pytest.approx(1.0 - math.exp(float(log_v(np.array(rho)))), abs=0.015), rho
