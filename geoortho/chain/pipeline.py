@@ -35,9 +35,8 @@ from geoortho.processing.registry import (
     check_in_context,
     convert_value,
     get_algorithm,
-    refuse_writing_into,
+    refuse_overwrites,
     run_algorithm,
-    same_file,
 )
 
 __all__ = [
@@ -932,20 +931,22 @@ def check_stage_options(project: Project, fb: Feedback) -> None:
 
 def check_run_paths(project: Project) -> None:
     """Every file a stage of the run will write, chained or given in a stage option, checked before
-    the first stage against every file the run reads (given, or in a stage option) and against the
-    photos' folder: a stage option naming a photo as the classified cloud replaced the photo with a
-    point cloud, with exit 0. Paths are compared through links and ``..``."""
+    the first stage (:func:`~geoortho.processing.registry.refuse_overwrites`) against every file the
+    run reads (given, or in a stage option) and against the photos' folder: a stage option naming a
+    photo as the classified cloud replaced the photo with a point cloud, with exit 0. Paths are
+    compared through links and ``..``."""
     from geoortho.processing.spec import PATH_TYPES
 
-    reads: list[tuple[str, Path]] = [
-        (name, Path(path))
+    reads: list[tuple[str, Path, bool]] = [
+        (name, Path(path), False)
         for name, path in (
             ("gcp_file", project.gcp_file), ("gcp_list", project.gcp_list), ("points", project.points),
             ("dsm", project.dsm), ("positions", project.positions),
         )
         if path is not None
     ]  # fmt: skip
-    writes: list[tuple[str, Path]] = []
+    reads.append(("images", project.images, True))
+    writes: list[tuple[str, Path, bool]] = []
     for stage in STAGES:
         if not stage.applies(project):
             continue
@@ -958,17 +959,10 @@ def check_run_paths(project: Project) -> None:
                 continue
             where = f"{stage.name}.{key}" + (" (a stage option)" if key in own else "")
             if p.output:
-                writes.append((where, Path(value).absolute()))
+                writes.append((where, Path(value).absolute(), p.type == "folder"))
             elif key in own and p.type != "folder":
-                reads.append((where, Path(value).absolute()))
-    for i, (out_name, out_path) in enumerate(writes):
-        for in_name, in_path in reads:
-            if same_file(out_path, in_path):
-                raise InputError(f"{out_name} {out_path} is also the input {in_name}: writing it would destroy it")
-        for other_name, other_path in writes[:i]:
-            if same_file(out_path, other_path):
-                raise InputError(f"{out_name} {out_path} is also {other_name}'s output; give another path")
-        refuse_writing_into(out_name, out_path, "images", project.images)
+                reads.append((where, Path(value).absolute(), False))
+    refuse_overwrites(writes, reads)
 
 
 def check_project_folder(output: Path, force: bool = False) -> None:

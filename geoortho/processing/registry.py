@@ -10,7 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from geoortho.errors import ParameterError
+from geoortho.errors import ParameterError, shortened
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.processing.algorithms import ALGORITHMS
 from geoortho.processing.spec import PARAM_TYPES, PATH_TYPES, Algorithm, Param
@@ -61,9 +61,8 @@ def _integer(p: Param, v: Any) -> int:
 
 
 def _shown(v: Any) -> str:
-    """A value as a message shows it: a number of hundreds of digits, or a page of text, is cut."""
-    text = repr(v) if isinstance(v, str) else str(v)
-    return text if len(text) <= 40 else f"{text[:20]}…{text[-8:]} ({len(text)} characters)"
+    """A value as a message shows it (:func:`~geoortho.errors.shortened`)."""
+    return shortened(repr(v) if isinstance(v, str) else str(v))
 
 
 def _check_range(p: Param, x: float) -> None:
@@ -197,42 +196,46 @@ def same_file(a: Path, b: Path) -> bool:
 
 
 def _refuse_overwriting_inputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
-    """An output that is an input file (or another output) would destroy it: refused before any
-    work. Folders given as outputs are checked against input files only (a project folder may hold
-    the photos' folder beside it)."""
-    inputs = [
-        (p, Path(kwargs[p.name]))
-        for p in alg.params
-        if p.type in PATH_TYPES and not p.output and kwargs.get(p.name) is not None
-    ]
-    outputs = [
-        (p, Path(kwargs[p.name]))
-        for p in alg.params
-        if p.type in PATH_TYPES and p.output and kwargs.get(p.name) is not None
-    ]
-    for i, (out_p, out_path) in enumerate(outputs):
-        for in_p, in_path in inputs:
-            if (in_p.type != "folder" or out_p.type != "folder") and same_file(out_path, in_path):
+    """An algorithm's path parameters through :func:`refuse_overwrites`. run checks its products
+    one by one (pipeline.check_run_paths): a project holds what it was made from."""
+
+    def named(output: bool) -> list[tuple[str, Path, bool]]:
+        return [
+            (p.name, Path(kwargs[p.name]), p.type == "folder")
+            for p in alg.params
+            if p.type in PATH_TYPES and p.output == output and kwargs.get(p.name) is not None
+        ]
+
+    refuse_overwrites(named(True), named(False), writer=alg.id if alg.id != "run" else "")
+
+
+def refuse_overwrites(
+    writes: list[tuple[str, Path, bool]], reads: list[tuple[str, Path, bool]], writer: str = ""
+) -> None:
+    """Outputs (name, path, is a folder) that would destroy an input (name, path, is a folder):
+    refused before any work. An output that is an input file or another output; a file written
+    into an input folder (:func:`refuse_writing_into`); and, when ``writer`` (the algorithm) is
+    given, an input file inside an output folder (a positions file called report.json in sfm's
+    output: read, then overwritten). Folders given as outputs are checked against input files
+    only (a project folder may hold the photos' folder beside it)."""
+    for i, (out_name, out_path, out_dir) in enumerate(writes):
+        for in_name, in_path, in_dir in reads:
+            if (not in_dir or not out_dir) and same_file(out_path, in_path):
                 raise ParameterError(
-                    out_p.name,
-                    f"{out_path} is also the input {in_p.name}: writing it would destroy it; give another path",
+                    out_name, f"{out_path} is also the input {in_name}: writing it would destroy it; give another path"
                 )
-        for other_p, other_path in outputs[:i]:
+        for other_name, other_path, _ in writes[:i]:
             if same_file(out_path, other_path):
-                raise ParameterError(out_p.name, f"{out_path} is also the output {other_p.name}; give another path")
-        for in_p, in_path in inputs:  # after the inputs themselves: the message names the input file
-            if in_p.type == "folder" and out_p.type != "folder":
-                refuse_writing_into(out_p.name, out_path, in_p.name, in_path)
-            # a file read from the folder the products are written into may be one of them (a positions
-            # file called report.json in sfm's output): read, then overwritten. run checks its own
-            # products one by one (pipeline.check_run_paths): a project holds what it was made from.
-            elif in_p.type != "folder" and out_p.type == "folder" and alg.id != "run":
-                if _inside(in_path, out_path) is not None:
-                    raise ParameterError(
-                        in_p.name,
-                        f"{in_path} lies in the output folder {out_path}, where {alg.id} writes its products: "
-                        "move it out, or give another output",
-                    )
+                raise ParameterError(out_name, f"{out_path} is also the output {other_name}; give another path")
+        for in_name, in_path, in_dir in reads:  # after the inputs themselves: the message names the input file
+            if in_dir and not out_dir:
+                refuse_writing_into(out_name, out_path, in_name, in_path)
+            elif writer and not in_dir and out_dir and _inside(in_path, out_path) is not None:
+                raise ParameterError(
+                    in_name,
+                    f"{in_path} lies in the output folder {out_path}, where {writer} writes its products: "
+                    "move it out, or give another output",
+                )
 
 
 #: Output files that may replace their own earlier copy inside an input folder: the report of a
