@@ -548,6 +548,12 @@ def _align_events(photos: Sequence[Photo], events: Sequence[Position]) -> list[t
 
 # -- CSV ---------------------------------------------------------------------------------------------
 
+#: CSV height columns named for the geoid (sea level), and ``# heights: ...`` words that say so.
+_ORTHOMETRIC_COLUMNS = ("h_msl", "height_msl", "msl", "amsl", "alt_msl", "altitude_msl", "orthometric",
+                        "orthometric_height", "h_orth", "elevation_msl")  # fmt: skip
+_ORTHOMETRIC_WORDS = ("orthometric", "msl", "sea level", "geoid", "egm96", "egm2008", "amsl")
+
+
 _COLUMNS = {
     "image": ("image", "name", "file", "filename", "photo", "label", "image_name"),
     "x": ("x", "easting", "east", "e", "lon", "long", "longitude"),
@@ -565,27 +571,12 @@ _COLUMNS = {
         "altitude_m",
         "h_ell",
         "ellipsoidal_height",
-        "h_msl",
-        "height_msl",
-        "msl",
-        "amsl",
-        "alt_msl",
-        "altitude_msl",
-        "orthometric",
-        "orthometric_height",
-        "h_orth",
-        "elevation_msl",
+        *_ORTHOMETRIC_COLUMNS,
     ),  # fmt: skip
     "sigma_h": ("sigma_h", "sigma_h_m", "sh", "std_h", "stdh", "accuracy_h", "xy_accuracy", "horizontal_accuracy"),
     "sigma_v": ("sigma_v", "sigma_v_m", "sv", "std_v", "stdv", "accuracy_v", "z_accuracy", "vertical_accuracy"),
     "crs": ("crs", "epsg", "srs"),
 }
-
-
-#: CSV height columns named for the geoid (sea level), and ``# heights: ...`` words that say so.
-_ORTHOMETRIC_COLUMNS = ("h_msl", "height_msl", "msl", "amsl", "alt_msl", "altitude_msl", "orthometric",
-                        "orthometric_height", "h_orth", "elevation_msl")  # fmt: skip
-_ORTHOMETRIC_WORDS = ("orthometric", "msl", "sea level", "geoid", "egm96", "egm2008", "amsl")
 
 
 def _read_csv(path: Path, photos: Sequence[Photo]) -> PositionFile:
