@@ -213,17 +213,12 @@ def _kill_workers(pool: cf.ProcessPoolExecutor) -> None:
     executor's thread that reads it waits for the rest for ever: this process holds a writing end
     of that pipe too (the executor's queue object), so no end of file comes, and shutting the pool
     down hung (1 of 14 SIGTERMs as ortho's tiles came back). This process never writes results:
-    its end is closed once the workers are dead, and the reader gets its end of file."""
+    its end is closed, and the reader gets its end of file as the killed workers' ends close."""
     procs = list((getattr(pool, "_processes", None) or {}).values())
     for proc in procs:
         try:
             proc.kill()
         except (OSError, ValueError, AttributeError):
-            pass
-    for proc in procs:
-        try:
-            proc.join(timeout=5.0)
-        except (OSError, ValueError, AssertionError, AttributeError):
             pass
     writer = getattr(getattr(pool, "_result_queue", None), "_writer", None)
     if writer is not None:
