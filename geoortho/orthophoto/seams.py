@@ -255,10 +255,11 @@ def _plan(
         if balance != "none":
             for other in active:
                 first, second = (other, view) if other.index < view.index else (view, other)
-                stat = _pair_stat(first, second)
+                seen = _overlap(first, second)  # one overlap for the gains and the falloff
+                stat = _pair_stat(first, second, seen=seen) if seen is not None else None
                 if stat is not None:
                     pairs.append(stat)
-                    blocks[(first.index, second.index)] = _falloff_blocks(first, second)
+                    blocks[(first.index, second.index)] = _falloff_blocks(first, second, seen)
         if votes is not None:
             votes.add(view, active)
         if seams == "graphcut":
@@ -478,9 +479,12 @@ def _gains(
     return sol.gains, notes
 
 
-def _overlap(
-    va: _View, vb: _View
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[slice, slice], tuple[slice, slice]] | None:
+#: Both views' pixels over their windows' intersection, where both see the ground unclipped, and
+#: the intersection's slices in each.
+_Overlap = tuple[np.ndarray, np.ndarray, np.ndarray, tuple[slice, slice], tuple[slice, slice]]
+
+
+def _overlap(va: _View, vb: _View) -> _Overlap | None:
     """Both views' pixels over their windows' intersection and where both see the ground
     unclipped (a saturated pixel says nothing about exposure)."""
     inter = intersect(va.win, vb.win)
@@ -499,9 +503,12 @@ def _overlap(
     return ia, ib, both, sa, sb
 
 
-def _pair_stat(va: _View, vb: _View, min_overlap_px: int = 50) -> tuple[int, int, float, np.ndarray] | None:
-    """(a, b, weight, log mean colour of a − of b) over the cells both photos see unclipped."""
-    seen = _overlap(va, vb)
+def _pair_stat(
+    va: _View, vb: _View, min_overlap_px: int = 50, seen: _Overlap | None = None
+) -> tuple[int, int, float, np.ndarray] | None:
+    """(a, b, weight, log mean colour of a − of b) over the cells both photos see unclipped
+    (``seen``: their :func:`_overlap`, when the caller has it)."""
+    seen = seen if seen is not None else _overlap(va, vb)
     if seen is None:
         return None
     ia, ib, both, _, _ = seen
@@ -519,10 +526,11 @@ FALLOFF_BLOCKS = 6
 FALLOFF_MIN_PX = 30
 
 
-def _falloff_blocks(va: _View, vb: _View) -> np.ndarray | None:
+def _falloff_blocks(va: _View, vb: _View, seen: _Overlap | None = None) -> np.ndarray | None:
     """The overlap's blocks for :func:`geoortho.orthophoto.falloff.estimate_falloff`: per block,
-    weight, log mean grey of a − of b, and the mean ``rho`` in each photo."""
-    seen = _overlap(va, vb)
+    weight, log mean grey of a − of b, and the mean ``rho`` in each photo (``seen``: their
+    :func:`_overlap`, when the caller has it)."""
+    seen = seen if seen is not None else _overlap(va, vb)
     if seen is None or va.rho is None or vb.rho is None:
         return None
     ia, ib, both, sa, sb = seen
