@@ -18,6 +18,7 @@ __all__ = [
     "WorkerError",
     "GeoorthoWarning",
     "interrupted",
+    "shortened",
 ]
 
 
@@ -94,3 +95,11 @@ def interrupted(exc: BaseException) -> bool:
         seen.add(id(cur))
         cur = cur.__cause__ or cur.__context__
     return False
+
+
+def shortened(text: str, limit: int = 40) -> str:
+    """``text`` as a one-line message shows it: past ``limit`` characters (a number of hundreds of
+    digits, a pasted page, a 300-character name), its head and tail with its length."""
+    if len(text) <= limit:
+        return text
+    return f"{text[: limit // 2]}…{text[-8:]} ({len(text)} characters)"

@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any, NoReturn
 
-from geoortho.errors import CanceledError, GeoorthoError, InputError, interrupted
+from geoortho.errors import CanceledError, GeoorthoError, InputError, interrupted, shortened
 from geoortho.feedback import Feedback, JsonLinesFeedback, TerminalFeedback
 from geoortho.processing.registry import describe_json, list_algorithms, run_algorithm
 from geoortho.processing.spec import PARAM_TYPES, Algorithm, Param
@@ -61,7 +61,7 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         # a value of hundreds of digits (or a pasted page) is cut: the line stays one line to read
-        message = re.sub(r"\S{60,}", lambda m: f"{m.group(0)[:24]}…({len(m.group(0))} characters)", message)
+        message = re.sub(r"\S{60,}", lambda m: shortened(m.group(0)), message)
         sys.stderr.write(f"{self.prog}: error: {message}\n")
         sys.exit(2)
 
