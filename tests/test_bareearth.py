@@ -13,7 +13,7 @@ from scipy import ndimage
 
 from geoortho.core.gapfill import fill_harmonic, fill_smooth
 from geoortho.elevation.artefacts import footprint_step_m, roughness_m
-from geoortho.elevation.bareearth import BRIDGE_M, BRIDGE_TOLERANCE_M, bare_earth
+from geoortho.elevation.bareearth import BRIDGE_M, BRIDGE_TOLERANCE_M, bare_earth, follow_breaklines
 from geoortho.elevation.contours import contour_interval_m, write_contours
 from geoortho.elevation.ground import bilinear
 
@@ -150,6 +150,46 @@ def test_a_thin_plate_follows_the_ground_s_bend_and_has_no_cone():
     kink_h = h[100, 100] - 2 * h[100, 101] + h[100, 102]
     kink_t = t[100, 100] - 2 * t[100, 101] + t[100, 102]
     assert kink_h > 0.03 and abs(kink_t) < 0.005, (kink_h, kink_t)
+
+
+@pytest.mark.parametrize("angle_deg", [35.0, 120.0])
+def test_a_bank_under_a_roof_is_carried_across_it_not_rounded(angle_deg):
+    """A bank 1.5 m high crossing under a roof 9 m across, at two angles: filled along the bank,
+    the step stays a step under the roof; a thin plate alone rounds it (0.3 m and more)."""
+    rng = np.random.default_rng(int(angle_deg))
+    shape = (360, 360)
+    rows, cols = np.indices(shape)
+    x, y = cols * CELL_M, rows * CELL_M
+    a = np.radians(angle_deg)
+    across = (x - 18.0) * np.cos(a) + (y - 18.0) * np.sin(a)  # metres across the bank, 0 mid-roof
+    truth = 100.0 + 0.02 * x - 0.01 * y + np.clip(across + 0.75, 0.0, 1.5)
+    roof = _building(shape, (180, 180), (45, 45))
+    dsm = np.where(roof, truth + 7.0, truth) + rng.normal(0.0, 0.01, shape)
+    dtm, measured, _, _ = _photogrammetric_dtm(truth, roof, rng)
+    dsm = np.maximum(dsm, dtm)
+    clean = bare_earth(dsm, dtm, measured, CELL_M)
+    err = np.abs(clean.z - truth)
+    plate = fill_smooth(np.where(clean.ground, truth, np.nan), clean.ground, roof)
+    assert np.percentile(np.abs(plate - truth)[roof], 95) > 0.3
+    assert np.percentile(err[roof], 95) < 0.1, np.percentile(err[roof], 95)
+    # the step is where it was: across the bank's line under the roof's middle
+    mid = roof & (np.abs(across) < 2.0)
+    assert np.abs(clean.z - truth)[mid].max() < 0.25
+
+
+def test_no_breakline_leaves_the_thin_plate_alone():
+    """Rolling ground round a gap (no straight steep ground entering and leaving it): unchanged."""
+    rows, cols = np.indices((300, 300))
+    hill = 3.0 * np.exp(-((rows - 150.0) ** 2 + (cols - 150.0) ** 2) / (2 * 60.0**2))
+    known = np.ones(hill.shape, bool)
+    known[120:180, 110:190] = False
+    filled = fill_smooth(np.where(known, hill, np.nan), known)
+    again = follow_breaklines(filled, known, ~known, CELL_M)
+    assert np.array_equal(again, filled)
+    # a bank entering from one side only (it ends under the gap): unchanged too
+    bank = np.clip((cols - 150.0) * CELL_M, 0.0, 1.5) * (rows < 150)
+    filled = fill_smooth(np.where(known, bank, np.nan), known)
+    assert np.array_equal(follow_breaklines(filled, known, ~known, CELL_M), filled)
 
 
 def test_the_step_at_a_footprint_edge_is_measured_and_a_plane_has_none():
