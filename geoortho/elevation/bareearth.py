@@ -483,7 +483,7 @@ def _along_breakline(
     num = cv2.GaussianBlur(np.where(ground, z - ref, 0.0), (0, 0), sigma)
     den = cv2.GaussianBlur(have, (0, 0), sigma)
     smooth = num / np.maximum(den, 1e-6)
-    gy, gx = np.gradient(smooth, cell_m)
+    gy, gx = (np.asarray(g, np.float64) for g in np.gradient(smooth, cell_m))
     steep = ring & (np.hypot(gx, gy) > BREAK_SLOPE) & (np.asarray(ndimage.distance_transform_edt(ground)) > 2 * sigma)
     if int(steep.sum()) * cell_m * cell_m < BREAK_MIN_M2:
         return None
