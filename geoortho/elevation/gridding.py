@@ -994,6 +994,15 @@ def _write_products(
     )
 
 
+def _on_grid(points: np.ndarray | None, transform: Any) -> np.ndarray | None:
+    """World points (x, y, z) as (row, col, z) of a grid (fractional cells)."""
+    if points is None or not len(points):
+        return None
+    p = np.asarray(points, np.float64)
+    col, row = ~transform * (p[:, 0], p[:, 1])
+    return np.c_[row, col, p[:, 2]]
+
+
 def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sfm: Path, fb: Feedback) -> DemResult:
     """The DSM and DTM just written, carried over the ground at least two of the SfM's registered
     photos saw, with a source raster beside each (see :mod:`geoortho.elevation.coverage`)."""
@@ -1044,7 +1053,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         )
         notes.append(note)
         # the DSM's gaps beside and under the objects the DTM found, each filled from its own side
-        dsm_z, n_walls = fill_beside_objects(done.z, measured, objects, new_t.a)
+        dsm_z, n_walls = fill_beside_objects(done.z, measured, objects, new_t.a, _on_grid(tie_points, new_t))
         done = replace(done, z=dsm_z)
         notes.append(f"DSM: {n_walls:,} filled cells beside and under objects filled again from their own side")
         warning = dtm_fields.pop("notes_extra", "")
