@@ -16,9 +16,27 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["block_means", "block_sums", "fill_gaps_by_windows", "fill_harmonic", "fill_smooth", "gap_mask"]
+__all__ = [
+    "block_means",
+    "block_sums",
+    "distance_cells",
+    "fill_gaps_by_windows",
+    "fill_harmonic",
+    "fill_smooth",
+    "gap_mask",
+]
 
 OVERRELAX = 1.7  # measured best of 1.0-1.85 on a ramp through a 40-cell hole
+
+
+def distance_cells(inside: np.ndarray) -> np.ndarray:
+    """The Euclidean distance (cells, float32) of each ``inside`` cell to the nearest cell that is
+    not, 0 on those; infinite when every cell is inside. OpenCV's exact transform: scipy's took 7 of
+    the demo's 66 s in ``dem`` (98 calls), and agrees to 1e-5 cells."""
+    inside = np.asarray(inside, bool)
+    if inside.all():
+        return np.full(inside.shape, np.inf, np.float32)
+    return np.asarray(cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32)
 
 
 def gap_mask(
@@ -46,9 +64,9 @@ def gap_mask(
     for edge, strip in zip(beyond, strips):
         if edge is not None:
             k[strip] = edge
-    near = ndimage.distance_transform_edt(~k) <= max_gap_cells
+    near = distance_cells(~k) <= max_gap_cells
     # (an array with no zero has no distances: scipy then measures from a corner beyond it)
-    closed = ndimage.distance_transform_edt(near) > max_gap_cells if not near.all() else near
+    closed = distance_cells(near) > max_gap_cells if not near.all() else near
     return np.asarray(closed[top : top + h, left : left + w] & ~known)
 
 

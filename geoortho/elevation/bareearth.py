@@ -46,7 +46,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from geoortho.core.gapfill import block_means, block_sums, fill_harmonic, fill_smooth
+from geoortho.core.gapfill import block_means, block_sums, distance_cells, fill_harmonic, fill_smooth
 
 __all__ = [
     "BRIDGE_M",
@@ -307,7 +307,7 @@ def object_mask(
         seeds = big[labels]
     if not seeds.any():
         return np.zeros(dsm.shape, bool)
-    reach = np.asarray(ndimage.distance_transform_edt(~seeds)) * cell_m <= RIM_REACH_M
+    reach = distance_cells(~seeds) * cell_m <= RIM_REACH_M
     # hysteresis on the reachable cells: the seeds' own height, the rest at most the seed threshold
     level = np.where(seeds, np.maximum(above, seed_m + 1.0), np.where(reach, np.minimum(above, seed_m), 0.0))
     found = np.asarray(apply_hysteresis_threshold(level, grow_m, seed_m), bool)
@@ -341,7 +341,7 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
         near_envelope = dtm - envelope <= max(RIM_TOLERANCE_M, 4 * noise)
     # a rim lies beside an object: elsewhere the envelope only undercuts the ground's own edges (a
     # bank's brow, by up to 0.4 m at 45 deg), and the ground stands
-    beside = np.asarray(ndimage.distance_transform_edt(~objects)) * cell_m <= RIM_REACH_M
+    beside = distance_cells(~objects) * cell_m <= RIM_REACH_M
     ground = measured & ~objects & (near_envelope | ~beside)
     n_rim = int(measured.sum() - ground.sum())
     ground, n_islands = _drop_islands(dtm, ground, objects, cell_m, max(RIM_TOLERANCE_M, 4 * noise))
@@ -353,7 +353,7 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
         return _no_ground_seen(dtm, valid, cell_m, noise)
     # the fill rests on the ground a little way off each object: the ring just beside it holds
     # what is left of the rim, and a thin plate carries a ring's slope far into the gap
-    off_objects = np.asarray(ndimage.distance_transform_edt(~objects)) * cell_m > FILL_CLEARANCE_M
+    off_objects = distance_cells(~objects) * cell_m > FILL_CLEARANCE_M
     kept = ground & off_objects
     z = fill_smooth(dtm, kept, valid & ~kept)
     z = follow_breaklines(z, kept, valid & ~kept, cell_m)
@@ -363,7 +363,7 @@ def bare_earth(dsm: np.ndarray, dtm: np.ndarray, measured: np.ndarray, cell_m: f
     ok = np.isfinite(dsm) & valid
     surface = despiked(dsm, hole_value=float(np.nanmax(z))).astype(np.float64)  # holes: no lower bound
     z = np.where(ok, np.minimum(z, surface + 2.0 * noise), z)
-    dist_m = np.asarray(ndimage.distance_transform_edt(~ground)) * cell_m
+    dist_m = distance_cells(~ground) * cell_m
     bridge_m = bridgeable_m(dtm, ground, cell_m)
     no_ground = objects & valid & (dist_m > bridge_m)
     under = objects & valid
@@ -472,7 +472,7 @@ def _along_breakline(
 ) -> np.ndarray | None:
     """The ``gap`` cells of a window interpolated along the breakline crossing it (NaN where the
     line meets no ground), or None when no breakline crosses it."""
-    ring = ground & (np.asarray(ndimage.distance_transform_edt(~gap)) <= ring_px)
+    ring = ground & (distance_cells(~gap) <= ring_px)
     if int(ring.sum()) * cell_m * cell_m < BREAK_MIN_M2:
         return None
     sigma = max(0.5, BREAK_SMOOTH_M / cell_m)
@@ -484,7 +484,7 @@ def _along_breakline(
     den = cv2.GaussianBlur(have, (0, 0), sigma)
     smooth = num / np.maximum(den, 1e-6)
     gy, gx = (np.asarray(g, np.float64) for g in np.gradient(smooth, cell_m))
-    steep = ring & (np.hypot(gx, gy) > BREAK_SLOPE) & (np.asarray(ndimage.distance_transform_edt(ground)) > 2 * sigma)
+    steep = ring & (np.hypot(gx, gy) > BREAK_SLOPE) & (distance_cells(ground) > 2 * sigma)
     if int(steep.sum()) * cell_m * cell_m < BREAK_MIN_M2:
         return None
     jxx, jyy, jxy = (float(np.sum(a[steep])) for a in (gx * gx, gy * gy, gx * gy))

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from affine import Affine
 
-from geoortho.core.gapfill import block_sums, fill_gaps_by_windows, fill_harmonic
+from geoortho.core.gapfill import block_sums, distance_cells, fill_gaps_by_windows, fill_harmonic
 from geoortho.photos.footprint import compute_footprints
 
 __all__ = [
@@ -190,9 +190,8 @@ def complete_grid(
 
     # the coarse answer at the fine cells' centres (block centres at (f - 1) / 2)
     up = cv2.resize(coarse.astype(np.float32), (wp, hp), interpolation=cv2.INTER_LINEAR)[:h, :w]
-    from scipy import ndimage
 
-    near = ndimage.distance_transform_edt(~known) <= 2 * f + 1
+    near = distance_cells(~known) <= 2 * f + 1
     far = need & ~near
     work = out.copy()
     work[far] = up[far]

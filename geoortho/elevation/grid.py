@@ -110,32 +110,42 @@ class Accumulator:
         ok = r >= 0
         r, c, x, y, z = r[ok], c[ok], x[ok], y[ok], z[ok]
         idx = r * g.cols + c
-        n = g.rows * g.cols
         if self.method == "max":
             np.maximum.at(self.a, idx, z)
         elif self.method == "min":
             np.minimum.at(self.a, idx, z)
         elif self.method == "count":
             assert self.count is not None
-            self.count += np.bincount(idx, minlength=n)
+            _add_counts(self.count, idx)
         elif self.method == "mean":
             assert self.w is not None
-            self.a += np.bincount(idx, z, minlength=n)
-            self.w += np.bincount(idx, minlength=n)
+            _add_counts(self.a, idx, z)
+            _add_counts(self.w, idx)
         else:  # idw: each point feeds the cells whose centre lies within cell·√2 (PDAL's default radius)
             assert self.w is not None
-            radius = g.cell * math.sqrt(2.0)
+            # the point's place in its cell (cells), and its squared distance to each of the nine
+            # centres about it: the sums over each offset cost less than centres in metres did
+            fx = (x - g.x0) / g.cell - (c + g.col0) - 0.5
+            fy = (g.y0 - y) / g.cell - (r + g.row0) - 0.5
+            ks, ws, wzs = [], [], []
+            floor = 1e-6  # (1e-3 of a cell)², as PDAL's weight keeps a point on a centre finite
             for dr in (-1, 0, 1):
                 for dc in (-1, 0, 1):
-                    rr, cc = r + dr, c + dc
-                    inside = (rr >= 0) & (rr < g.rows) & (cc >= 0) & (cc < g.cols)
-                    cx, cy = g.centres(rr, cc)
-                    d = np.hypot(x - cx, y - cy)
-                    use = inside & (d <= radius)
-                    wgt = 1.0 / np.maximum(d[use], 1e-3 * g.cell) ** 2
-                    k = rr[use] * g.cols + cc[use]
-                    self.a += np.bincount(k, wgt * z[use], minlength=n)
-                    self.w += np.bincount(k, wgt, minlength=n)
+                    d2 = (fx - dc) ** 2 + (fy - dr) ** 2
+                    use = d2 <= 2.0  # within cell·√2
+                    if dr:
+                        use &= (r + dr >= 0) & (r + dr < g.rows)
+                    if dc:
+                        use &= (c + dc >= 0) & (c + dc < g.cols)
+                    wgt = 1.0 / (np.maximum(d2[use], floor) * g.cell * g.cell)
+                    ks.append(idx[use] + (dr * g.cols + dc))
+                    ws.append(wgt)
+                    wzs.append(wgt * z[use])
+            # one sum a chunk over the cells it touches: nine over the whole grid took 10 of the
+            # demo's 66 s
+            k = np.concatenate(ks)
+            _add_counts(self.a, k, np.concatenate(wzs))
+            _add_counts(self.w, k, np.concatenate(ws))
 
     def result(self) -> np.ndarray:
         """The grid (rows, cols), NaN where no point fell."""
@@ -150,6 +160,14 @@ class Accumulator:
             with np.errstate(invalid="ignore", divide="ignore"):
                 out = np.where(self.w > 0, self.a / self.w, np.nan)
         return out.reshape(self.grid.rows, self.grid.cols)
+
+
+def _add_counts(total: np.ndarray, idx: np.ndarray, weights: np.ndarray | None = None) -> None:
+    """``total[idx] += weights`` (1 each when None), summed over the span of cells ``idx`` touches."""
+    if not len(idx):
+        return
+    lo, hi = int(idx.min()), int(idx.max()) + 1
+    total[lo:hi] += np.bincount(idx - lo, weights, minlength=hi - lo)
 
 
 def grid_points(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: Grid, method: Method = "max") -> np.ndarray:

@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from geoortho.core.gapfill import fill_harmonic, fill_smooth
+from geoortho.core.gapfill import distance_cells, fill_harmonic, fill_smooth
 
 __all__ = ["ENCLOSED_M", "MARGIN_M", "OBJECT_SIDE_RATIO", "REACH_M", "WHOLE_GAP_M2", "fill_beside_objects"]
 
@@ -87,7 +87,7 @@ def fill_beside_objects(
     object_known = known & objects
     if not object_known.any() or not (known & ~objects).any():
         return z, 0
-    to_object = np.asarray(ndimage.distance_transform_edt(~object_known), np.float32)
+    to_object = distance_cells(~object_known)
     filled = have & ~known
     reached = filled & (to_object * cell_m <= REACH_M)
     del to_object
@@ -103,7 +103,7 @@ def fill_beside_objects(
     del gaps
     # the gaps are filled a group at a time: those within two margins of each other share a window
     margin = int(np.ceil(MARGIN_M / cell_m))
-    groups, _ = ndimage.label(ndimage.distance_transform_edt(~cells) <= margin)
+    groups, _ = ndimage.label(distance_cells(~cells) <= margin)
     out = np.array(z, np.float32, copy=True)
     pts = _points_in_cells(tie_points, cells)
     for i, box in enumerate(ndimage.find_objects(groups), start=1):
@@ -149,14 +149,14 @@ def _fill_window(
     out = np.array(z, np.float32, copy=True)
     if not object_known.any() or not ground_known.any():
         return out
-    to_object = np.asarray(ndimage.distance_transform_edt(~object_known), np.float32)
-    to_ground = np.asarray(ndimage.distance_transform_edt(~ground_known), np.float32)
+    to_object = distance_cells(~object_known)
+    to_ground = distance_cells(~ground_known)
     # inside the object's outline: its measured cells closed by a disc (two distance transforms); past
     # a straight wall nothing is, so hidden ground there stays ground up to the wall
     # (padded: past the grid's edge is not the object)
     pad = int(np.ceil(ENCLOSED_M / cell_m)) + 1
     grown = np.pad(to_object * cell_m <= ENCLOSED_M, pad, constant_values=False)
-    enclosed = (np.asarray(ndimage.distance_transform_edt(grown)) * cell_m > ENCLOSED_M)[pad:-pad, pad:-pad]
+    enclosed = (distance_cells(grown) * cell_m > ENCLOSED_M)[pad:-pad, pad:-pad]
     object_side = cells & objects & ((enclosed & (to_object * OBJECT_SIDE_RATIO < to_ground)) | (to_object <= 1.0))
     # anchored on the ground's measured cells (and the fill of gaps not touched, off the objects)
     anchors = (np.isfinite(z) & ~objects & ~known & ~cells) | ground_known
