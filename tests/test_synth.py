@@ -236,6 +236,30 @@ def test_deterministic_for_a_seed(tmp_path, tiny_survey):
     assert np.array_equal(a, b)
 
 
+@pytest.mark.parametrize("style", ["cos4", "flat-drop"])
+def test_the_lens_falloff_is_drawn_as_its_style_says(tmp_path, tiny_survey, style):
+    """The same survey drawn with another vignetting: photo by photo, ring by ring out from the
+    centre, the brightness over the default's is the ratio of the two profiles (to JPEG's rounding)."""
+    from geoortho.errors import InputError
+    from geoortho.synthetic.survey import synth, vignetting
+
+    other = synth(tmp_path / style, preset="tiny", seed=3, workers=1, vignetting_style=style)
+    assert json.loads((other.truth / "survey.json").read_text())["degradations"]["vignetting_style"] == style
+    name = sorted(p.name for p in tiny_survey.images.iterdir())[1]
+    a = cv2.imread(str(tiny_survey.images / name)).astype(float).mean(axis=2)
+    b = cv2.imread(str(other.images / name)).astype(float).mean(axis=2)
+    h, w = a.shape
+    yy, xx = np.indices(a.shape)
+    rho = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
+    unclipped = (a > 30) & (a < 225) & (b < 225)
+    for lo in np.arange(0.0, 0.9, 0.1):
+        ring = unclipped & (rho >= lo) & (rho < lo + 0.1)
+        want = float(vignetting(np.array(lo + 0.05), style) / vignetting(np.array(lo + 0.05)))
+        assert b[ring].sum() / a[ring].sum() == pytest.approx(want, abs=0.005), lo
+    with pytest.raises(InputError, match="vignetting_style"):
+        synth(tmp_path / "bad", preset="tiny", seed=3, vignetting_style="fisheye")
+
+
 def test_hard_preset_has_its_defects(hard_survey):
     from PIL import Image
 

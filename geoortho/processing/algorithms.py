@@ -60,6 +60,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("glare_style", "enum", advanced=True),
             Param("blur_style", "enum", advanced=True),
             Param("noise_style", "enum", advanced=True),
+            Param("vignetting_style", "enum", advanced=True),
             Param("pixels", "bool", advanced=True),
         ),
         outputs=(

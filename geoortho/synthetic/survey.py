@@ -131,6 +131,12 @@ BlurStyle = Literal["exact", "line", "shake"]
 #: noise that grows with the light, bright pixels noisier than dark (shot); or the blotches an
 #: in-camera denoiser and demosaicing leave, each a couple of pixels across and coloured (grain).
 NoiseStyle = Literal["even", "shot", "grain"]
+#: How the lens's light falloff (vignetting) is drawn, over rho (the squared radius over the
+#: half-diagonal's): 1 - 0.25 rho, 25 % at the corners (quadratic); the cos^4 law of a lens whose
+#: diagonal field is 50 degrees, 32 % at the corners (cos4); or flat to half-way and dropping at
+#: the corners, 13 % there, as on toledo's DJI photos (flat-drop). The falloff estimate must hold on
+#: the family, not on one renderer's curve.
+VignettingStyle = Literal["quadratic", "cos4", "flat-drop"]
 #: The noise's spread (1.0 = white): even everywhere; shot's photon term (per unit of light) and
 #: read term, so white gets about 5 grey levels and black 1.5; grain's, once smoothed.
 EVEN_NOISE = 0.008
@@ -1133,12 +1139,12 @@ def _init_worker(scene: Scene) -> None:
     cv2.setNumThreads(1)
 
 
-def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float, str, str, str, bool]) -> dict[str, Any]:
-    shot, intr, hard, seed, path, glare, glare_style, blur_style, noise_style, pixels = args
+def _render_task(args: tuple[Shot, Intrinsics, bool, int, str, float, str, str, str, bool, str]) -> dict[str, Any]:
+    shot, intr, hard, seed, path, glare, glare_style, blur_style, noise_style, pixels, vignetting_style = args
     assert _SCENE is not None
     return render_photo(
         _SCENE, shot, intr, hard=hard, seed=seed, path=Path(path), glare=glare, glare_style=glare_style,
-        blur_style=blur_style, noise_style=noise_style, pixels=pixels,
+        blur_style=blur_style, noise_style=noise_style, pixels=pixels, vignetting_style=vignetting_style,
     )  # fmt: skip
 
 
@@ -1155,6 +1161,7 @@ def render_photo(
     blur_style: str = "exact",
     noise_style: str = "even",
     pixels: bool = True,
+    vignetting_style: str = "quadratic",
 ) -> dict[str, Any]:
     """Render one photo (and write it when ``path`` is given); return its marker truth.
 
@@ -1198,7 +1205,7 @@ def render_photo(
 
     # Camera effects: vignetting, exposure, glare, blur, noise.
     r2 = ((uu - intr.cx_px) ** 2 + (vv - intr.cy_px) ** 2) / (intr.cx_px**2 + intr.cy_px**2)
-    img = img * (1.0 - 0.25 * r2)[..., None].astype(np.float32) * shot.exposure_gain
+    img = img * vignetting(r2, vignetting_style)[..., None].astype(np.float32) * shot.exposure_gain
     # effects asked for by option draw from their own stream: the rest of the photo stays as without them
     opt = np.random.default_rng([seed, 1])
     for m in markers:
@@ -1229,6 +1236,17 @@ def render_photo(
     if path is not None:
         _write_jpeg(path, _to_bytes(img), shot, intr)
     return {"image": shot.name, "markers": markers, "blur_px": shot.blur_px, "blur_deg": blur_deg}
+
+
+def vignetting(rho: np.ndarray, style: str = "quadratic") -> np.ndarray:
+    """The share of the centre's light a photo keeps at ``rho`` (the squared radius over the
+    half-diagonal's), as ``style`` draws it (:data:`VignettingStyle`)."""
+    rho = np.asarray(rho, np.float64)
+    if style == "cos4":
+        return np.asarray(np.cos(np.arctan(np.sqrt(rho) * math.tan(math.radians(25.0)))) ** 4)
+    if style == "flat-drop":
+        return np.asarray(np.exp(-0.14 * rho**2))
+    return 1.0 - 0.25 * rho
 
 
 def _seconds_of_day(shot: Shot) -> float:
@@ -1644,6 +1662,7 @@ def synth(
     blur_style: BlurStyle = "exact",
     noise_style: NoiseStyle = "even",
     pixels: bool = True,
+    vignetting_style: VignettingStyle = "quadratic",
     *,
     feedback: Feedback | None = None,
 ) -> SynthResult:
@@ -1706,6 +1725,10 @@ def synth(
         How the sensor's noise is drawn: even (the same on every pixel, about 2 grey levels), shot
         (growing with the light: about 5 grey levels on white, 1.5 on black) or grain (blotches a
         couple of pixels across, each colour its own, as an in-camera denoiser leaves).
+    vignetting_style : str
+        How the lens's light falloff is drawn: quadratic (1 - 0.25 of the squared radius over the
+        half-diagonal's: 25 % darker at the corners), cos4 (the cos^4 law of a 50 degree diagonal
+        field: 32 %) or flat-drop (flat to half-way, 13 % at the corners, as DJI photos show).
     maker : str
         Whose metadata tags the photos carry: dji (drone-dji:), autel (drone:), parrot
         (drone-parrot: and Camera:), skydio (drone-skydio: structs), pix4d (Camera:, as MicaSense
@@ -1724,7 +1747,9 @@ def synth(
     fb = as_feedback(feedback)
     # every option checked before an earlier survey in the folder is cleared
     _check_options(preset, latitude_deg, longitude_deg, target, dictionary, glare, blur_px, maker)
-    _check_styles(glare_style=glare_style, blur_style=blur_style, noise_style=noise_style)
+    _check_styles(
+        glare_style=glare_style, blur_style=blur_style, noise_style=noise_style, vignetting_style=vignetting_style
+    )
     if not pixels and (blur_px or glare or PRESETS[preset].hard):
         raise InputError("blur, glare and the hard preset are drawn on the pixels: give them without --no-pixels")
     pathologies = parse_pathologies(pathology)
@@ -1753,7 +1778,7 @@ def synth(
 
     tasks = [
         (s, intr, p.hard, seed * 100003 + i, str(images_dir / s.name), glare, glare_style, blur_style)
-        + (noise_style, pixels)
+        + (noise_style, pixels, vignetting_style)
         for i, s in enumerate(shots)
     ]
     results: list[dict[str, Any]] = map_ordered(
@@ -1767,8 +1792,9 @@ def synth(
             "blur_px": blur_px,
             "blur_style": blur_style,
             "noise_style": noise_style,
+            "vignetting_style": vignetting_style,
         }
-        if glare or blur_px or noise_style != "even"
+        if glare or blur_px or noise_style != "even" or vignetting_style != "quadratic"
         else None
     )
     _write_truth(
@@ -1873,7 +1899,12 @@ def _check_options(
 
 def _check_styles(**styles: str) -> None:
     """Each degradation's style is one of its kind's (an unknown one would be drawn as the default)."""
-    kinds = {"glare_style": GlareStyle, "blur_style": BlurStyle, "noise_style": NoiseStyle}
+    kinds = {
+        "glare_style": GlareStyle,
+        "blur_style": BlurStyle,
+        "noise_style": NoiseStyle,
+        "vignetting_style": VignettingStyle,
+    }
     for name, style in styles.items():
         if style not in get_args(kinds[name]):
             raise InputError(f"unknown {name} {style!r}; choose one of {', '.join(get_args(kinds[name]))}")
