@@ -131,9 +131,13 @@ BREAK_SMOOTH_M = 0.3
 #: coherent in direction (1: all one way; a hill's flanks round a gap: near 0)...
 BREAK_RING_M = 5.0
 BREAK_COHERENCE = 0.8
-#: ... and straight: the line from where the steep ground enters the gap to where it leaves is
-#: within this of the gradients' direction.
+#: ... and straight: its direction is sought within this of the gradients' (in steps of half a
+#: degree) as the one along which the ground's profile across it agrees on the gap's two sides.
 BREAK_TURN_DEG = 15.0
+#: ... and its profile across, where the ground enters the gap, is the profile where it leaves
+#: within this (RMS, the mean difference taken out), over at least this much of the profile
+BREAK_PROFILE_M = 0.15
+BREAK_PROFILE_SEEN_M = 2.0
 #: ... on at least this much ground (a bank 1.5 m high is a strip 1.5 m wide), for gaps this large.
 BREAK_MIN_M2 = 1.0
 BREAK_GAP_M2 = 2.0
@@ -439,8 +443,11 @@ def follow_breaklines(z: np.ndarray, ground: np.ndarray, gaps: np.ndarray, cell_
     low on the other (the synthetic breaklines survey: 0.51 m RMS under trees on its banks, 0.26 m
     on the cells filled beside them). A breakline is straight at a gap's scale: each gap cell is
     the linear interpolation between the ground on either side of it along the breakline's
-    direction, found as the steep ground's dominant gradient (a structure tensor) round the gap;
-    only where that steep ground lies on both sides of the gap, coherent in direction. Elsewhere,
+    direction: near the steep ground's dominant gradient (a structure tensor) round the gap, the
+    one along which the ground's profile across the breakline is the same where it enters the gap
+    and where it leaves (on the breaklines survey within 0.5 deg of the drawn bank's, where the
+    gradients alone were up to 7 deg off); only where that steep ground lies on both sides of the
+    gap, coherent in direction, and the two profiles agree. Elsewhere,
     and where the line finds no ground within ``BREAK_SPAN_M`` on a side, the thin plate stands."""
     # gaps joined by a thin strip (a survey's edge, filled along it) are judged each on its own:
     # the strips are opened away and keep the thin plate
@@ -504,15 +511,55 @@ def _along_breakline(
     before, after = level & (a_steep < a_gap.min()), level & (a_steep > a_gap.max())
     if not (before.any() and after.any()):
         return None
-    # the direction again, from where the steep ground enters and leaves: the gradients' is a few
-    # degrees off a bank's (its ends, noise), a metre and more across a gap 20 m long
-    sr, sc = np.nonzero(steep)
-    dx = float(sc[after].mean() - sc[before].mean())
-    dy = float(sr[after].mean() - sr[before].mean())
-    norm = math.hypot(dx, dy)
-    if norm <= 0 or abs(dx * ux + dy * uy) / norm < math.cos(math.radians(BREAK_TURN_DEG)):
+    # the direction again: the one along which the ground's profile across the breakline where it
+    # enters the gap is the profile where it leaves (the gradients' direction is a few degrees off
+    # a bank's, a metre and more across a gap 20 m long)
+    best = _matching_direction(z, ring, gap, theta, cell_m)
+    if best is None:
         return None  # the ground entering and leaving is no one straight breakline
-    return _interpolate_along(z, ground, gap, dx / norm, dy / norm, cell_m)
+    return _interpolate_along(z, ground, gap, -math.sin(best), math.cos(best), cell_m)
+
+
+def _matching_direction(z: np.ndarray, ring: np.ndarray, gap: np.ndarray, theta: float, cell_m: float) -> float | None:
+    """The gradient direction (radians) within BREAK_TURN_DEG of ``theta`` along whose
+    perpendicular the ``ring`` ground's profile across the gap, on the gap's two sides, agrees best
+    (less a straight line across: the ground's slope along the breakline); None when the best
+    still disagrees by more than BREAK_PROFILE_M (RMS, a straight line across taken out), or too
+    little of the profile is seen."""
+    rr, cc = np.nonzero(ring)
+    zr = z[rr, cc]
+    gr, gc = np.nonzero(gap)
+    step = max(1, len(gr) // 20000)
+    gr, gc = gr[::step], gc[::step]
+    bin_px = 2.0
+    best, best_cost = None, math.inf
+    for dtheta in np.radians(np.arange(-BREAK_TURN_DEG, BREAK_TURN_DEG + 0.01, 0.5)):
+        t = theta + float(dtheta)
+        ux, uy = -math.sin(t), math.cos(t)
+        a, q = cc * ux + rr * uy, -cc * uy + rr * ux
+        a_gap, q_gap = gc * ux + gr * uy, -gc * uy + gr * ux
+        q0, q1 = float(q_gap.min()), float(q_gap.max())
+        level = (q >= q0) & (q <= q1)
+        sides = [level & (a < a_gap.min()), level & (a > a_gap.max())]
+        n_bins = int((q1 - q0) / bin_px) + 1
+        means = []
+        for side in sides:
+            k = ((q[side] - q0) / bin_px).astype(np.int64)
+            n = np.bincount(k, minlength=n_bins)
+            total = np.bincount(k, zr[side], minlength=n_bins)
+            means.append(np.where(n >= 3, total / np.maximum(n, 1), np.nan))
+        d = means[1] - means[0]
+        seen = np.isfinite(d)
+        if int(seen.sum()) * bin_px * cell_m < BREAK_PROFILE_SEEN_M:
+            continue
+        # less a straight line across: the ground's slope along the breakline, and its bend (the
+        # two sides 10-20 m apart on rolling ground tilt differently)
+        x = np.flatnonzero(seen).astype(np.float64)
+        fit = np.polyval(np.polyfit(x, d[seen], 1), x)
+        cost = float(np.sqrt(np.mean((d[seen] - fit) ** 2)))
+        if cost < best_cost:
+            best, best_cost = t, cost
+    return best if best_cost <= BREAK_PROFILE_M else None
 
 
 def _interpolate_along(
