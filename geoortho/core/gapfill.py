@@ -65,8 +65,7 @@ def gap_mask(
         if edge is not None:
             k[strip] = edge
     near = distance_cells(~k) <= max_gap_cells
-    # (an array with no zero has no distances: scipy then measures from a corner beyond it)
-    closed = distance_cells(near) > max_gap_cells if not near.all() else near
+    closed = distance_cells(near) > max_gap_cells
     return np.asarray(closed[top : top + h, left : left + w] & ~known)
 
 

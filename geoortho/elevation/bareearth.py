@@ -135,7 +135,7 @@ BREAK_COHERENCE = 0.8
 #: degree) as the one along which the ground's profile across it agrees on the gap's two sides.
 BREAK_TURN_DEG = 15.0
 #: ... and its profile across, where the ground enters the gap, is the profile where it leaves
-#: within this (RMS, the mean difference taken out), over at least this much of the profile
+#: within this (RMS, a straight line across taken out), over at least this much of the profile
 BREAK_PROFILE_M = 0.15
 BREAK_PROFILE_SEEN_M = 2.0
 #: ... on at least this much ground (a bank 1.5 m high is a strip 1.5 m wide), for gaps this large.
@@ -499,14 +499,12 @@ def _along_breakline(
     if coherence < BREAK_COHERENCE:
         return None
     theta = 0.5 * math.atan2(2 * jxy, jxx - jyy)  # the gradient's direction, (x: columns, y: rows)
-    ux, uy = -math.sin(theta), math.cos(theta)  # along the breakline
-    rows, cols = np.indices(z.shape)
-    along = cols * ux + rows * uy
-    across = -cols * uy + rows * ux
     # the breakline passes through the gap: steep ground on both sides of it along the line, level
     # with it across
-    a_gap, q_gap = along[gap], across[gap]
-    a_steep, q_steep = along[steep], across[steep]
+    gr, gc = np.nonzero(gap)
+    sr, sc = np.nonzero(steep)
+    a_gap, q_gap = _line_frame(gr, gc, theta)
+    a_steep, q_steep = _line_frame(sr, sc, theta)
     level = (q_steep >= q_gap.min()) & (q_steep <= q_gap.max())
     before, after = level & (a_steep < a_gap.min()), level & (a_steep > a_gap.max())
     if not (before.any() and after.any()):
@@ -535,9 +533,8 @@ def _matching_direction(z: np.ndarray, ring: np.ndarray, gap: np.ndarray, theta:
     best, best_cost = None, math.inf
     for dtheta in np.radians(np.arange(-BREAK_TURN_DEG, BREAK_TURN_DEG + 0.01, 0.5)):
         t = theta + float(dtheta)
-        ux, uy = -math.sin(t), math.cos(t)
-        a, q = cc * ux + rr * uy, -cc * uy + rr * ux
-        a_gap, q_gap = gc * ux + gr * uy, -gc * uy + gr * ux
+        a, q = _line_frame(rr, cc, t)
+        a_gap, q_gap = _line_frame(gr, gc, t)
         q0, q1 = float(q_gap.min()), float(q_gap.max())
         level = (q >= q0) & (q <= q1)
         sides = [level & (a < a_gap.min()), level & (a > a_gap.max())]
@@ -560,6 +557,13 @@ def _matching_direction(z: np.ndarray, ring: np.ndarray, gap: np.ndarray, theta:
         if cost < best_cost:
             best, best_cost = t, cost
     return best if best_cost <= BREAK_PROFILE_M else None
+
+
+def _line_frame(rows: np.ndarray, cols: np.ndarray, theta: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cells' coordinates (cells) along a breakline whose gradient points at ``theta`` (radians,
+    x: columns, y: rows) and across it."""
+    ux, uy = -math.sin(theta), math.cos(theta)
+    return cols * ux + rows * uy, -cols * uy + rows * ux
 
 
 def _interpolate_along(

@@ -65,13 +65,6 @@ class Grid:
         r[out] = -1
         return r, c
 
-    def centres(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """x, y of the centres of cells (rows, cols)."""
-        return (
-            self.x0 + (cols + self.col0 + 0.5) * self.cell,
-            self.y0 - (rows + self.row0 + 0.5) * self.cell,
-        )
-
     @property
     def left(self) -> float:
         return self.x0 + self.col0 * self.cell

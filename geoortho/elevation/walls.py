@@ -33,6 +33,7 @@ of one filled again would meet the rest with a step.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -197,8 +198,6 @@ def _voted(
     given to the side they vote for (see the module); the tie points (row, col, z) that voted for
     the object where it won (None: none); and where the surface stands GROUND_BAND_M over the
     ground's fill."""
-    import cv2
-
     on_object = fill_smooth(np.where(object_known, z, np.nan), object_known, under)
     on_ground = fill_harmonic(np.where(anchors, z, np.nan), anchors, under | object_known)
     with np.errstate(invalid="ignore"):
