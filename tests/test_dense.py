@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 
 import laspy
@@ -55,7 +56,9 @@ def test_dense_dsm_and_dtm_against_the_truth(dense_small, small_survey):
     assert r.n_depth_maps == report["depth_maps"] >= 0.9 * small_survey.n_photos
     assert report["points_written"] == r.n_points > 0 and r.crs == small_survey.crs
     assert set(report["views"]) <= {p.name for p in small_survey.images.iterdir()}
-    assert all(1 <= len(v) <= 3 for v in report["views"].values())
+    # three pairs each, and the pairs added where ground seen twice had no depth map planned
+    assert all(1 <= len(v) <= 3 + len(report["extra_pairs"].get(k, [])) for k, v in report["views"].items())
+    assert report["planned_cover"]["seen_twice_after"] >= report["planned_cover"]["seen_twice_before"]
     assert report["seconds"]["depth_maps"] > 0 and report["peak_memory_mb"]["main"] > 0
     with laspy.open(r.output) as f:
         assert f.header.parse_crs().to_epsg() == int(small_survey.crs.split(":")[1])
@@ -213,6 +216,44 @@ def test_a_pair_that_cannot_be_searched_is_skipped_not_fatal():
     close = _View("c", None, K, np.zeros(5), (1024, 768), down, np.array([20.0, 0.0, 100.0]))
     got = _pair(a, close, img, img, (95.0, 105.0)) or _pair(close, a, img, img, (95.0, 105.0))
     assert got is not None  # a searchable pair still gives points
+
+
+def test_ground_seen_by_two_photos_at_a_strips_end_gets_a_pair_that_measures_it():
+    """Breaklines survey: each reference's best pairs were the photo beside it and the next strip's,
+    which see its outer half once; at a strip's end, ground three photos saw had no depth map and
+    its DSM and DTM were extrapolated (two thirds of the DTM's squared error). The plan adds the
+    candidate that sees it, and only where no other depth map measures that ground."""
+    import geoortho.reconstruction.dense as D
+
+    K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])  # 128 x 96 m at 100 m
+    down = np.diag([1.0, -1.0, -1.0])
+
+    def view(name, x, y):
+        return D._View(name, None, K, np.zeros(5), (1024, 768), down, np.array([x, y, 100.0]))
+
+    ref, s30, s60 = view("ref", 0, 0), view("s30", 30, 0), view("s60", 60, 0)  # the strip ends at ref
+    c0, c30, c60 = view("c0", 0, 70), view("c30", 30, 70), view("c60", 60, 70)  # the next strip
+
+    def job(v, candidates, wanted):
+        ranges = tuple((95.0 + i, 105.0) for i in range(len(candidates)))  # told apart after reordering
+        n = len(candidates)
+        nearby = tuple(o for o in (ref, s30, s60, c0, c30, c60) if o is not v)
+        return D._Job(v, candidates, ranges, (-math.inf,) * n, 2, 0.003, 0.125, wanted, nearby)
+
+    alone = job(ref, (s30, c0, c30, c60, s60), 3)
+    cover = D._pairs_for_unmeasured_ground([alone], 16 * 0.125)
+    # ref's ground from x -4 to 64 m south of the next strip is seen by s30 and s60: only s60 adds it
+    assert cover.extra == {"ref": ["s60"]}
+    got = cover.jobs[0]
+    assert got.wanted == 4 and [v.name for v in got.neighbours] == ["s30", "c0", "c30", "s60", "c60"]
+    assert got.depth_ranges[3:] == ((99.0, 105.0), (98.0, 105.0))  # each candidate keeps its own
+    assert cover.share_before < 0.75 and cover.share_after > 0.99
+
+    # the same ground measured by s60's own depth map (paired with s30 and ref): nothing to add
+    beside = job(s60, (s30, ref), 2)
+    cover = D._pairs_for_unmeasured_ground([alone, beside], 16 * 0.125)
+    assert "ref" not in cover.extra and cover.jobs[0].wanted == 3
+    assert cover.share_before == cover.share_after
 
 
 def test_fusion_spilled_to_tiles_on_disk_equals_the_cloud_held_whole(tmp_path):
