@@ -49,7 +49,7 @@ def roughness_m(
         return math.nan
     step = max(1, len(rows) // max_samples)
     rows, cols = rows[::step], cols[::step]
-    padded = np.pad(np.where(valid, z, 0.0).astype(np.float32, copy=False), half)
+    padded = np.pad(np.where(valid, z, 0.0), half)
     view = np.lib.stride_tricks.sliding_window_view(padded, (size, size))
     # the windows are copied out a few thousand at a time: all 40,000 at once at a 5 cm cell were
     # 140 MB, the dem's peak
