@@ -442,10 +442,41 @@ def test_each_pixel_names_the_photo_that_sees_it_and_the_seamlines_tile_the_mosa
     assert r.holes_inside_m2 == 0.0
 
 
+def test_hidden_ground_is_drawn_from_the_ground_round_it_not_from_what_hides_it():
+    """Moving-cars survey, seed 5: ground north of a roof at the survey's edge is hidden from every
+    photo. Drawn from the photo that had it in frame most directly, it showed the roof: the roof ran
+    on 0.6-0.8 m past its wall, a second edge beside it. Drawn from the ground round it, the roof ends
+    at its wall; the roof itself, what lies beyond the mosaic and the seen ground are untouched."""
+    from geoortho.orthophoto.mosaic import _ground_behind
+
+    rng = np.random.default_rng(3)
+    bgr = np.zeros((120, 160, 3), np.uint8)
+    z = np.full((120, 160), 100.0)
+    ground = np.array([60, 160, 120], float)  # BGR: a green field with texture
+    bgr[:] = np.clip(ground + rng.normal(0, 12, (120, 160, 3)), 0, 255).astype(np.uint8)
+    roof = (slice(40, 120), slice(60, 160))
+    bgr[roof] = (90, 100, 110)  # a grey-brown roof 6 m up
+    z[roof] = 106.0
+    hidden = np.zeros((120, 160), bool)
+    hidden[24:40, 10:160] = True  # the strip north of its wall no photo sees...
+    bgr[hidden] = (90, 100, 110)  # ...drawn from a photo that sees the roof there
+    labelled = np.ones((120, 160), bool)
+    labelled[:, :8] = False  # beyond the mosaic: black, never a source
+    bgr[~labelled] = 0
+    before = bgr.copy()
+    _ground_behind(bgr, hidden, labelled, z)
+    got = bgr[hidden].astype(float)
+    assert np.abs(got.mean(axis=0) - ground).max() < 8  # the field's colour, not the roof's
+    assert got.std(axis=0).max() < 12  # softened, no streaks of single pixels
+    assert (bgr[~hidden] == before[~hidden]).all()
+    _ground_behind(bgr, np.zeros_like(hidden), labelled, z)  # nothing hidden: nothing done
+    assert (bgr[~hidden] == before[~hidden]).all()
+
+
 def test_a_wrong_spike_in_the_dsm_leaves_no_hole_and_is_marked(tiny_survey, tmp_path):
     """Issue 75's bad input: a DSM with a 20 m spike under a roof hides the ground round it from every
-    photo. The orthophoto stays whole (each hidden pixel from the photo that has it in frame most
-    directly) and the source raster marks those pixels."""
+    photo. The orthophoto stays whole (each hidden pixel drawn from the ground round it) and the
+    source raster marks those pixels."""
     from geoortho.orthophoto.provenance import OCCLUDED
 
     with rasterio.open(tiny_survey.dsm) as src:

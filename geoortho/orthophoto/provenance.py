@@ -41,7 +41,8 @@ NONE, SEEN, OCCLUDED, INPAINTED = 0, 1, 2, 3
 SOURCE_KINDS = {
     NONE: "no data",
     SEEN: "seen by its photo (line of sight on the DSM)",
-    OCCLUDED: "seen by no photo (occluded): drawn from the photo that has it in frame most directly",
+    OCCLUDED: "seen by no photo (occluded): hidden ground from the seen ground round it, the rest from the photo "
+    "that has it in frame most directly",
     INPAINTED: "inpainted (a hole no photo's frame held)",
 }
 
