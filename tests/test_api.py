@@ -49,7 +49,7 @@ for _name in geoortho.__all__:
 """
 
 _EPILOGUE = r"""
-demo = geoortho.demo(Path("demo"), preset="tiny", seed=5)
+demo = geoortho.demo(Path("demo"), preset="tiny", seed=5, surface="lidar")  # run with dense: test_pipeline
 photos = geoortho.read_photos(survey.images)
 geoortho.read_photo(photos.photos[0].path)
 geoortho.read_gcp_file(survey.gcp_file)

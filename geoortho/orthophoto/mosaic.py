@@ -469,29 +469,41 @@ def _ground_behind(bgr: np.ndarray, hidden: np.ndarray, labelled: np.ndarray, z:
     ran on past its wall by the strip's width, a second edge beside it."""
     if not hidden.any():
         return
-    from scipy import ndimage
-
-    reach = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _OCCLUDER_REACH_PX + 1,) * 2)
+    # worked on the hidden cells' box and its reach only
+    rr, cc = np.nonzero(hidden)
+    m = 2 * _OCCLUDER_REACH_PX + 8
+    box = (
+        slice(max(0, int(rr.min()) - m), int(rr.max()) + m + 1),
+        slice(max(0, int(cc.min()) - m), int(cc.max()) + m + 1),
+    )
+    img, hid, lab, zz = bgr[box], hidden[box], labelled[box], z[box]
+    reach = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * _OCCLUDER_REACH_PX + 1,) * 2)
     # only the hidden ground: a roof's own edge cells hidden behind its rim keep their view
     # (breaklines survey: redrawn as ground, 5 % of the roof edges moved 0.5 m in)
-    low = cv2.erode(np.where(np.isfinite(z), z, np.inf).astype(np.float32), reach)
+    low = cv2.erode(np.where(np.isfinite(zz), zz, np.inf).astype(np.float32), reach)
     with np.errstate(invalid="ignore"):
-        hidden = hidden & (z <= low + _OCCLUDER_M)
-    if not hidden.any():
+        hid = hid & (zz <= low + _OCCLUDER_M)
+    if not hid.any():
         return
-    _, (ri, ci) = ndimage.distance_transform_edt(~hidden, return_indices=True)
-    near = cv2.dilate(hidden.astype(np.uint8), reach) > 0
+    near = cv2.dilate(hid.astype(np.uint8), reach) > 0
     with np.errstate(invalid="ignore"):
-        above = near & ~(z <= z[ri, ci] + _OCCLUDER_M)
-    source = labelled & ~hidden & ~above
+        above = near & ~(zz <= _nearest(hid, zz) + _OCCLUDER_M)
+    source = lab & ~hid & ~above
     if not source.any():
         return
-    _, (rs, cs) = ndimage.distance_transform_edt(~source, return_indices=True)
-    weight = hidden.astype(np.float32)
-    carried = bgr[rs, cs].astype(np.float32) * weight[..., None]
+    weight = hid.astype(np.float32)
+    carried = _nearest(source, img.astype(np.float32)) * weight[..., None]
     soft = cv2.GaussianBlur(carried, (0, 0), _HIDDEN_SOFTEN_PX)
     norm = cv2.GaussianBlur(weight, (0, 0), _HIDDEN_SOFTEN_PX)
-    bgr[hidden] = np.clip(soft[hidden] / np.maximum(norm[hidden], 1e-6)[:, None] + 0.5, 0, 255).astype(np.uint8)
+    img[hid] = np.clip(soft[hid] / np.maximum(norm[hid], 1e-6)[:, None] + 0.5, 0, 255).astype(np.uint8)
+
+
+def _nearest(at: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Each pixel's value of ``values`` at the nearest pixel of ``at`` (OpenCV's distance transform,
+    its 5 x 5 mask: within half a pixel of the exact nearest)."""
+    _, label = cv2.distanceTransformWithLabels((~at).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    rows, cols = np.nonzero(at)  # the labels number the zero pixels in this order, from 1
+    return np.asarray(values[rows[label - 1], cols[label - 1]])
 
 
 def _render_tile(win: Window) -> tuple[Window, np.ndarray, np.ndarray, dict[str, float]]:
