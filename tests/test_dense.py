@@ -241,18 +241,18 @@ def test_ground_seen_by_two_photos_at_a_strips_end_gets_a_pair_that_measures_it(
         return D._Job(v, candidates, ranges, (-math.inf,) * n, 2, 0.003, 0.125, wanted, nearby)
 
     alone = job(ref, (s30, c0, c30, c60, s60), 3)
-    cover = D._pairs_for_unmeasured_ground([alone], 16 * 0.125)
+    jobs, cover = D._pairs_for_unmeasured_ground([alone], 16 * 0.125)
     # ref's ground from x -4 to 64 m south of the next strip is seen by s30 and s60: only s60 adds it
     assert cover.extra == {"ref": ["s60"]}
-    got = cover.jobs[0]
+    got = jobs[0]
     assert got.wanted == 4 and [v.name for v in got.neighbours] == ["s30", "c0", "c30", "s60", "c60"]
     assert got.depth_ranges[3:] == ((99.0, 105.0), (98.0, 105.0))  # each candidate keeps its own
     assert cover.share_before < 0.75 and cover.share_after > 0.99
 
     # the same ground measured by s60's own depth map (paired with s30 and ref): nothing to add
     beside = job(s60, (s30, ref), 2)
-    cover = D._pairs_for_unmeasured_ground([alone, beside], 16 * 0.125)
-    assert "ref" not in cover.extra and cover.jobs[0].wanted == 3
+    jobs, cover = D._pairs_for_unmeasured_ground([alone, beside], 16 * 0.125)
+    assert "ref" not in cover.extra and jobs[0].wanted == 3
     assert cover.share_before == cover.share_after
 
 

@@ -132,12 +132,12 @@ class Accumulator:
             # one sum a chunk over the cells it touches (nine over the whole grid took 10 of the
             # demo's 66 s), into arrays of the exact size: lists of the nine pieces and their
             # concatenation held twice as much, the dem's peak (demo: 300 MB a chunk)
-            m = int(sum(int(u.sum()) for u in uses))
+            counts = [int(u.sum()) for u in uses]
+            m = sum(counts)
             k, wgt, wz = np.empty(m, np.int64), np.empty(m), np.empty(m)
             floor = 1e-6  # (1e-3 of a cell)², as PDAL's weight keeps a point on a centre finite
             at = 0
-            for (dr, dc), use in zip(offsets, uses):
-                n = int(use.sum())
+            for (dr, dc), use, n in zip(offsets, uses, counts):
                 part = slice(at, at + n)
                 d2 = (fx[use] - dc) ** 2 + (fy[use] - dr) ** 2
                 wgt[part] = 1.0 / (np.maximum(d2, floor) * g.cell * g.cell)

@@ -566,9 +566,9 @@ def _render_tile(win: Window) -> tuple[Window, np.ndarray, np.ndarray, dict[str,
     labelled = lab >= 0
     out = _blended(ctx.blend, lab, labelled, patches, gains, shape, ctx.plan.movers_for(ctx.transform, pw))
     stats = _seam_stats(lab, patches, gains, out, core)
+    _ground_behind(out, occluded_px, labelled, z)  # (occluded pixels are labelled: drawn from a photo)
     # transparent pixels the rendered ones enclose are holes too: a sliver between two frames' edges
     # (the demo: 3, 0.1 m², at the mosaic's edge) is no photo's, but a map has no slit in it
-    _ground_behind(out, occluded_px & labelled, labelled, z)
     holes = coverage & ~labelled | _enclosed(~labelled)
     filled = _fill_holes(out, holes, ctx.max_hole_px)
     alpha = labelled | filled

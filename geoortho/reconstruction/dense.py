@@ -267,17 +267,16 @@ def _planned_work(
         for i, nbrs, rngs, floors in pairs
     ]  # fmt: skip
     planned = {j.ref.name for j in jobs}
-    cover = _pairs_for_unmeasured_ground(jobs, _COVER_STEP_PX * voxel) if jobs else None
-    if cover is not None:
-        jobs = cover.jobs
+    cover = None
+    if jobs:
+        jobs, cover = _pairs_for_unmeasured_ground(jobs, _COVER_STEP_PX * voxel)
     return _Work(jobs, [v.name for v in views if v.name not in planned], origin, scale, voxel, cover)
 
 
 @dataclass(frozen=True)
 class _Cover:
-    """The jobs with the pairs added where ground seen by two photos had no depth map planned."""
+    """The pairs added where ground seen by two photos had no depth map planned."""
 
-    jobs: list[_Job]
     extra: dict[str, list[str]]  # reference -> the candidates it now matches besides its best
     share_before: float  # of the ground seen by two photos, the share a depth map was planned on
     share_after: float
@@ -286,7 +285,7 @@ class _Cover:
         return {"seen_twice_before": round(self.share_before, 4), "seen_twice_after": round(self.share_after, 4)}
 
 
-def _pairs_for_unmeasured_ground(jobs: list[_Job], cell_m: float) -> _Cover:
+def _pairs_for_unmeasured_ground(jobs: list[_Job], cell_m: float) -> tuple[list[_Job], _Cover]:
     """Each job's candidates reordered so that its ``wanted`` first ones take in, greedily, the
     ground seen by two photos that no other depth map would measure (see ``_MIN_EXTRA_GAIN``).
     Ground is a grid of ``cell_m`` on the plane each reference sees at its pairs' median depth;
@@ -295,8 +294,7 @@ def _pairs_for_unmeasured_ground(jobs: list[_Job], cell_m: float) -> _Cover:
     samples = []
     for job in jobs:
         depth = float(np.median([0.5 * (lo + hi) for lo, hi in job.depth_ranges]))
-        w, h = job.ref.size
-        cols, rows = np.meshgrid(np.arange(step // 2, w, step), np.arange(step // 2, h, step))
+        cols, rows = _sample_grid(job.ref, step)
         world = _ground_at(job.ref, cols.ravel(), rows.ravel(), depth)
         others = np.sum([_in_view(v, world) for v in job.nearby or job.neighbours], axis=0)
         sees = np.array([_in_view(v, world) for v in job.neighbours])
@@ -304,23 +302,22 @@ def _pairs_for_unmeasured_ground(jobs: list[_Job], cell_m: float) -> _Cover:
         samples.append((others, np.clip(others, 1, job.min_views), sees, cell))
     lo = np.min([c.min(axis=0) for *_, c in samples], axis=0)
     hi = np.max([c.max(axis=0) for *_, c in samples], axis=0)
+    at = [(cell - lo).T for *_, cell in samples]  # each sample's place in the ground grid
     measured = np.zeros(tuple(hi - lo + 1), bool)
     seen_twice = np.zeros_like(measured)
     order = [list(range(len(j.neighbours))) for j in jobs]
     wanted = [j.wanted for j in jobs]
-    for (others, need, sees, cell), o, n in zip(samples, order, wanted):
-        ix, iy = (cell - lo).T
+    for (others, need, sees, _), (ix, iy), o, n in zip(samples, at, order, wanted):
         seen_twice[ix[others >= 1], iy[others >= 1]] = True
         ok = sees[o[:n]].sum(axis=0) >= need
         measured[ix[ok], iy[ok]] = True
     before = float(measured[seen_twice].mean()) if seen_twice.any() else 1.0
     extra: dict[str, list[str]] = {}
     for _ in range(_MAX_EXTRA_PAIRS):
-        for i, ((others, need, sees, cell), job) in enumerate(zip(samples, jobs)):
+        for i, ((others, need, sees, _), (ix, iy), job) in enumerate(zip(samples, at, jobs)):
             o, n = order[i], wanted[i]
             if n >= len(o):
                 continue
-            ix, iy = (cell - lo).T
             have = sees[o[:n]].sum(axis=0)
             open_ = (others >= 1) & (have < need) & ~measured[ix, iy]
             gains = [int((open_ & (have + sees[k] >= need)).sum()) for k in o[n:]]
@@ -343,7 +340,7 @@ def _pairs_for_unmeasured_ground(jobs: list[_Job], cell_m: float) -> _Cover:
         )
         for job, o, n in zip(jobs, order, wanted)
     ]
-    return _Cover(out, extra, before, after)
+    return out, _Cover(extra, before, after)
 
 
 @dataclass
@@ -848,7 +845,7 @@ def _partners_seeing(ref: _View, partners: Sequence[_View], depth: np.ndarray, s
     """How many of ``partners`` see each pixel of ``ref`` (flat, row-major) at ``depth`` (flat;
     NaN: the median depth measured), on a grid of ``step_px`` carried to every pixel."""
     w, h = ref.size
-    cols, rows = np.meshgrid(np.arange(step_px // 2, w, step_px), np.arange(step_px // 2, h, step_px))
+    cols, rows = _sample_grid(ref, step_px)
     d = depth.reshape(h, w)[rows, cols]
     d = np.where(np.isfinite(d), d, np.nanmedian(depth) if np.isfinite(depth).any() else 1.0)
     world = _ground_at(ref, cols.ravel(), rows.ravel(), d.ravel())
@@ -861,6 +858,13 @@ def _partners_seeing(ref: _View, partners: Sequence[_View], depth: np.ndarray, s
     r = np.minimum(np.arange(h) // step_px, n_rows - 1)
     c = np.minimum(np.arange(w) // step_px, n_cols - 1)
     return coarse[r][:, c].ravel()
+
+
+def _sample_grid(ref: _View, step_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Columns and rows (2-D) of ``ref``'s pixels every ``step_px``, each its step's centre."""
+    w, h = ref.size
+    cols, rows = np.meshgrid(np.arange(step_px // 2, w, step_px), np.arange(step_px // 2, h, step_px))
+    return cols, rows
 
 
 def _ground_at(ref: _View, cols: np.ndarray, rows: np.ndarray, depth: np.ndarray | float) -> np.ndarray:
