@@ -55,8 +55,9 @@ def main() -> int:
         rows.append(row)
         print(f"== {name} (GSD {100 * s.gsd_m:.2f} cm)")
         print(f"  SSIM open ground {s.ssim_open:.3f} | within 3 m of objects {s.ssim_near_objects:.3f}")
-        print(f"  roof edges {s.roof_edge_error_gsd:.2f} GSD (median of {s.roof_edge_pieces} pieces; the true "
-              f"ortho's own {s.roof_edge_error_truth_gsd:.2f}) | holes {s.holes_inside_m2:.2f} m2 | seam step "
+        print(f"  roof edges {s.roof_edge_error_gsd:.2f} GSD (median of the {s.roof_edge_pieces} pieces the true "
+              f"ortho shows its edge on; {s.roof_edge_error_all_gsd:.2f} over every piece, the true ortho's own "
+              f"{s.roof_edge_error_truth_gsd:.2f}) | holes {s.holes_inside_m2:.2f} m2 | seam step "
               f"{row['seam_step_dn']} DN")  # fmt: skip
         line = f"  ortho {seconds:.1f} s, peak {peak:.0f} MB"
         if base_tree is not None:

@@ -8,8 +8,8 @@ progress.
 
 from __future__ import annotations
 
-import json
 import logging
+import os
 import sys
 import threading
 import time
@@ -174,7 +174,13 @@ class TerminalFeedback(Feedback):
         self._stage_started = self._heartbeat = 0.0
 
     def _shown(self) -> bool:
-        return not self._quiet and bool(getattr(self._stream, "isatty", lambda: False)())
+        if self._quiet or not getattr(self._stream, "isatty", lambda: False)():
+            return False
+        # a terminal with no width (a CI log, `script`) draws no bar: it gets the heartbeat lines
+        try:
+            return os.get_terminal_size(self._stream.fileno()).columns > 0
+        except (OSError, ValueError, AttributeError):
+            return False
 
     def _new_bar(self, description: str, position: int) -> Any:
         from tqdm import tqdm
@@ -260,7 +266,9 @@ class JsonLinesFeedback(Feedback):
         self._last = -1.0
 
     def _emit(self, obj: dict[str, object]) -> None:
-        self._stream.write(json.dumps(obj) + "\n")
+        from geoortho.core.outputs import json_text  # (numpy: not at the CLI's start-up)
+
+        self._stream.write(json_text(obj) + "\n")
         self._stream.flush()
 
     def set_progress(self, fraction: float) -> None:

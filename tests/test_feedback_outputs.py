@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import RecordingFeedback
 
-from geoortho.core.outputs import atomic_path, write_cog
+from geoortho.core.outputs import atomic_path, write_cog, write_json
 from geoortho.errors import CanceledError, InputError
 from geoortho.feedback import JsonLinesFeedback, split, track
 
@@ -135,3 +135,18 @@ def test_without_a_terminal_each_stage_is_a_line_and_a_long_one_a_heartbeat(monk
     q.stage("sfm", 3, 7, 0.2, 0.5)
     q.progress(0.45)
     assert quiet.getvalue() == ""
+
+
+def test_json_written_is_strict_not_measured_is_null(tmp_path):
+    value = {"rmse_m": float("nan"), "max": np.float32(np.inf), "n": np.int64(3), "xy": np.array([1.5, np.nan]),
+             "path": tmp_path, "ok": np.bool_(True)}  # fmt: skip
+    path = write_json(tmp_path / "q.json", value)
+
+    def refuse(name):
+        raise ValueError(name)
+
+    got = json.loads(path.read_text(), parse_constant=refuse)
+    assert got == {"rmse_m": None, "max": None, "n": 3, "xy": [1.5, None], "path": str(tmp_path), "ok": True}
+    with pytest.raises(TypeError):
+        write_json(tmp_path / "bad.json", {"x": object()})
+    assert not (tmp_path / "bad.json").exists()

@@ -581,3 +581,36 @@ def test_the_falloff_fit_finds_each_lens_profile_and_refuses_what_no_lens_does(p
     assert f is not None
     for rho in (0.25, 0.5, 1.0):
         assert f.loss_at(rho) == pytest.approx(1.0 - math.exp(float(log_v(np.array(rho)))), abs=0.015), rho
+
+
+def test_holes_are_counted_on_the_full_mask_not_on_its_decimated_read(tmp_path):
+    """A mosaic too big for one read is measured every f pixels: a one-pixel inlet of its outer edge
+    reads as shut there, and the transparent bay behind it as a hole. Each hole found so is measured
+    again on the full mask: the bay is no hole, a true hole keeps its area."""
+    import math
+
+    from affine import Affine
+    from rasterio.enums import Resampling
+
+    from geoortho.orthophoto.mosaic import COVERAGE_CELLS, _holes_inside
+
+    side = int(math.sqrt(COVERAGE_CELLS)) + 1000
+    alpha = np.full((side, side), 255, np.uint8)
+    alpha[100:200, 0:2] = 0  # the outer edge's own transparent strip ...
+    for row in (117, 168):  # ... two inlets one pixel wide from it, on rows of either parity (a
+        alpha[row, 2:301] = 0  # decimated read skips one of them) ...
+        alpha[row - 10 : row + 10, 300:340] = 0  # ... each with a bay behind it
+    alpha[1000:1010, 1000:1020] = 0  # a hole: 200 px
+    path = tmp_path / "mask.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=side, height=side, count=1, dtype="uint8",
+                       crs="EPSG:32630", transform=Affine(0.1, 0, 0, 0, -0.1, 0), tiled=True) as ds:  # fmt: skip
+        ds.write(alpha, 1)
+        ds.write_mask(alpha)
+    f = max(1, math.ceil(math.sqrt(side * side / COVERAGE_CELLS)))
+    with rasterio.open(path) as ds:
+        shape = (side // f, side // f)
+        read = ds.read_masks(1, out_shape=shape, resampling=Resampling.nearest) > 0
+    cell_m2 = 0.01 * f * f
+    assert f >= 2 and _holes_inside(read, cell_m2)["holes_inside_n"] == 2  # the bay reads as a hole
+    got = _holes_inside(read, cell_m2, path, f)
+    assert got["holes_inside_n"] == 1 and got["holes_inside_m2"] == pytest.approx(200 * 0.01)

@@ -90,6 +90,18 @@ def test_first_run_makes_every_product_and_records_how(first_run, checkpoint):
     assert not list(project.rglob(".*.tmp-*")), "a temporary file was left behind"
 
 
+def _no_constant(name):
+    raise ValueError(f"{name} is not JSON")
+
+
+def test_every_json_the_project_holds_is_strict_json(first_run):
+    """Not measured is null: Python's json writes bare NaN, which JavaScript's JSON.parse refuses."""
+    found = sorted(first_run.output.rglob("*.json"))
+    assert {"run.json", "quality.json", "report.json"} <= {p.name for p in found}
+    for path in found:
+        json.loads(path.read_text(), parse_constant=_no_constant)
+
+
 def test_report_numbers_are_the_stages_own(first_run):
     page = first_run.report.read_text()
     project = first_run.output
@@ -737,3 +749,33 @@ def test_ctrl_c_or_sigterm_to_the_group_is_one_line_and_exit_130(
         assert time.monotonic() < deadline, "a worker outlived its command by 10 s"
         time.sleep(0.1)
     assert not out.exists() and not list(tmp_path.glob(".*.tmp*"))
+
+
+def test_a_console_with_no_width_gets_progress_lines(tiny_survey, checkpoint, tmp_path):
+    """A pseudo-terminal of zero columns (a CI log, `script`) is no place for a bar: tqdm draws
+    nothing there, so the stage lines a log gets are printed instead."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    main_fd, sub_fd = pty.openpty()
+    fcntl.ioctl(sub_fd, termios.TIOCSWINSZ, struct.pack("HHHH", 0, 0, 0, 0))
+    args = [a for a in _cli(tiny_survey, tmp_path / "p", checkpoint, json.dumps(FAST)) if a != "--quiet"]
+    proc = subprocess.Popen([sys.executable, "-m", "geoortho", "run", *args], stderr=sub_fd, stdout=sub_fd)
+    os.close(sub_fd)
+    seen, deadline = b"", time.monotonic() + 30
+    try:
+        while b"[1/" not in seen and time.monotonic() < deadline:
+            import select
+
+            if select.select([main_fd], [], [], 1.0)[0]:
+                try:
+                    seen += os.read(main_fd, 4096)
+                except OSError:
+                    break
+    finally:
+        proc.kill()
+        proc.wait()
+        os.close(main_fd)
+    assert re.search(rb"\[1/\d\] gcp-find: started", seen), seen[-500:]

@@ -253,8 +253,9 @@ def test_a_failed_submodel_is_reported_and_the_rest_merged(sfm_with_gcps, small_
 
     monkeypatch.setattr(rc, "sfm", flaky)
     fb = RecordingFeedback()
+    # the failure's bookkeeping is under test, not accuracy: small images keep the one submodel quick
     r = real(small_survey.images, tmp_path / "s", gcp_list=whole.output.parent / "gcp_list.txt", split=20, feedback=fb,
-             **FAST)  # fmt: skip
+             max_image_size=640, max_features=2048)  # fmt: skip
     rep = json.loads(r.report.read_text())
     assert any("submodel 0" in w and "failed" in w for w in fb.warnings)
     lost = {n: why for n, why in rep["unregistered"].items() if "submodel 0 failed" in why}

@@ -30,6 +30,8 @@ __all__ = [
     "write_vector",
     "write_text",
     "write_json",
+    "json_text",
+    "strict",
     "VECTOR_DRIVERS",
 ]
 
@@ -127,17 +129,33 @@ def write_text(target: str | os.PathLike[str], text: str) -> Path:
 
 
 def write_json(target: str | os.PathLike[str], obj: Any) -> Path:
-    return write_text(target, json.dumps(obj, indent=2, default=_json_default) + "\n")
+    return write_text(target, json_text(obj, indent=2) + "\n")
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+def json_text(obj: Any, indent: int | None = None, sort_keys: bool = False) -> str:
+    """``obj`` as strict JSON (RFC 8259): what was not measured (NaN) or has no bound (infinity) is
+    ``null``, numpy values are plain numbers and lists, paths are strings. Python's own ``json``
+    writes bare ``NaN``, which JavaScript's ``JSON.parse`` and other strict readers refuse."""
+    return json.dumps(strict(obj), indent=indent, sort_keys=sort_keys, allow_nan=False)
+
+
+def strict(obj: Any) -> Any:
+    """``obj`` with every non-finite float as None, numpy values as Python's, paths as strings."""
+    if isinstance(obj, dict):
+        return {str(k) if isinstance(k, Path) else k: strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return strict(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, (str, int, bool)) or obj is None:
+        return obj
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def write_cog(

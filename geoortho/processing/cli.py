@@ -7,7 +7,6 @@ Exit codes: 0 done, 1 unexpected failure, 2 bad input (one line on stderr),
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import re
@@ -237,8 +236,10 @@ def _main(argv: Sequence[str] | None) -> int:
         """The last stderr line: plain text, or one JSON object under --progress-json."""
         feedback.close()
         if args.progress_json:
+            from geoortho.core.outputs import json_text
+
             line = f"{prog}: {message}"
-            sys.stderr.write(json.dumps({"type": kind, "message": line, "exit_code": code}) + "\n")
+            sys.stderr.write(json_text({"type": kind, "message": line, "exit_code": code}) + "\n")
         else:
             sys.stderr.write(f"{prog}: {message}\n")
         return code
@@ -264,7 +265,9 @@ def _main(argv: Sequence[str] | None) -> int:
         return fail("error", f"unexpected error: {type(e).__name__}: {_one_line(e)} (run with --debug for details)", 1)
     feedback.close()
     if args.json:
-        print(json.dumps(outputs, indent=2))
+        from geoortho.core.outputs import json_text
+
+        print(json_text(outputs, indent=2))
     elif not args.quiet:
         for k, v in outputs.items():
             if not isinstance(v, (dict, list)):
