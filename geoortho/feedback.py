@@ -179,8 +179,8 @@ class TerminalFeedback(Feedback):
         # a terminal with no width (a CI log, `script`) draws no bar: it gets the heartbeat lines
         try:
             return os.get_terminal_size(self._stream.fileno()).columns > 0
-        except (OSError, ValueError, AttributeError):
-            return False
+        except (OSError, ValueError, AttributeError):  # a terminal whose size cannot be asked
+            return True
 
     def _new_bar(self, description: str, position: int) -> Any:
         from tqdm import tqdm

@@ -393,7 +393,7 @@ CASES = [
         "gcp-find/output=gcp-file",
         ("gcp-find", "--images", "{s}/images", "--gcp-file", "{h}/gcp/swapped.txt", "--output", "{h}/gcp/swapped.txt"),
         2,
-        "gcp_file",
+        "--gcp-file",
     ),
     Case(
         "ortho/output=dsm",
@@ -449,7 +449,7 @@ CASES = [
             "0.05",
         ),
         2,
-        r"smrf_cell_m: .* give \S+ m or coarser",
+        r"--smrf-cell-m: .* give \S+ m or coarser",
     ),
     Case(
         "dem/smrf-window-1e6",

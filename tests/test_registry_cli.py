@@ -124,7 +124,9 @@ def test_bad_value_exits_2_naming_the_option(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "seed" in lines[0] and "minimum" in lines[0]
     r = cli("synth", "--output", str(tmp_path / "s"), "--marker-size-m", "big")
-    assert r.returncode == 2 and "marker_size_m" in r.stderr and "number" in r.stderr
+    assert (
+        r.returncode == 2 and "--marker-size-m" in r.stderr and "marker_size_m" not in r.stderr and "number" in r.stderr
+    )
 
 
 def test_missing_required_option_exits_2():
@@ -173,7 +175,7 @@ def test_json_outputs_have_no_nan():
         (["dem", "--points", "{d}/in.laz", "--output", "{d}/in.laz"], "points"),
         (["dem", "--points", "{d}/in.laz", "--output", "{d}/dsm.tif", "--dtm", "{d}/dsm.tif"], "output dsm"),
         (["dem", "--points", "{d}/in.laz", "--output", "{d}/dsm.tif", "--hillshade", "{d}/link.laz"], "points"),
-        (["gcp-find", "--images", "{d}", "--gcp-file", "{d}/g.txt", "--output", "{d}/./g.txt"], "gcp_file"),
+        (["gcp-find", "--images", "{d}", "--gcp-file", "{d}/g.txt", "--output", "{d}/./g.txt"], "gcp-file"),
         (["ortho", "--images", "{d}", "--dsm", "{d}/d.tif", "--output", "{d}/d.tif"], "dsm"),
         (["footprints", "--images", "{d}", "--output", "{d}/fp.gpkg", "--overlap", "{d}/fp.gpkg"], "output output"),
     ],
@@ -355,3 +357,32 @@ def test_a_ctrl_c_caught_inside_an_exec_still_exits_130(tmp_path, capsys, monkey
         assert mark.value == 0
     finally:
         mark.value = 0  # this test process itself runs under `python -m pytest`
+
+
+@pytest.mark.parametrize("alg", list_algorithms(), ids=lambda a: a.id)
+def test_help_is_for_people(alg, capsys):
+    """One options heading, no reStructuredText, each option by its flag (not its Python name),
+    no module path, no empty default, a long choice list once."""
+    import re
+
+    with pytest.raises(SystemExit):
+        main([alg.id, "--help"])
+    text = capsys.readouterr().out
+    assert text.count("options:") == 1 and "required" in text or not any(p.required for p in alg.params)
+    assert "``" not in text and not re.search(r":(mod|func|class|meth):`", text)
+    assert "(default: )" not in text and "default: ;" not in text
+    assert not re.search(r"\bgeoortho\.[a-z]", text), re.search(r".{30}\bgeoortho\.[a-z].{20}", text)
+    python_names = {p.name for p in alg.params if "_" in p.name}
+    for name in python_names:
+        assert not re.search(rf"(?<![\w./-]){name}(?![\w]|\.\w)", text), name
+    flat = " ".join(text.split())
+    for p in alg.params:
+        if p.type == "enum" and len(p.choices) > 8:  # a long list: once, in its help, not in the usage too
+            assert "{" + ",".join(p.choices) + "}" not in text and flat.count(", ".join(p.choices)) == 1, p.name
+
+
+def test_an_error_names_the_option_by_its_flag(tmp_path):
+    r = cli("dem", "--points", str(tmp_path / "x.laz"), "--output", str(tmp_path / "d.tif"))
+    assert r.returncode == 2 and "error: --points: no such file" in r.stderr, r.stderr
+    r = cli("dem", "--points", __file__, "--output", str(tmp_path / "d.tif"), "--resolution-m", "-1")
+    assert r.returncode == 2 and "--resolution-m" in r.stderr and "resolution_m" not in r.stderr, r.stderr

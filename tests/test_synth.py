@@ -399,3 +399,26 @@ def test_synth_help_names_every_pathology():
     flat = " ".join(out.split()).replace("- ", "-")  # argparse wraps at hyphens
     missing = [name for name in PATHOLOGIES if name not in flat]
     assert not missing, missing
+
+
+def test_a_complete_survey_of_the_same_preset_and_seed_is_found_again(tmp_path, tiny_survey):
+    """What lets a second `demo` keep its survey: found when complete, of this preset and seed and
+    renderer; not when a photo is newer than the truth's last file (drawing stopped part-way)."""
+    import os
+    import shutil
+
+    from geoortho.synthetic.survey import existing_survey
+
+    found = existing_survey(tiny_survey.output, "tiny", 3)
+    assert found is not None and dataclasses.asdict(found) == dataclasses.asdict(tiny_survey)
+    assert existing_survey(tiny_survey.output, "tiny", 4) is None
+    assert existing_survey(tiny_survey.output, "small", 3) is None
+    copy = Path(shutil.copytree(tiny_survey.output, tmp_path / "survey"))
+    assert existing_survey(copy, "tiny", 3) is not None
+    photo = sorted((copy / "images").iterdir())[0]
+    later = (copy / "truth" / "points.laz").stat().st_mtime + 5
+    os.utime(photo, (later, later))
+    assert existing_survey(copy, "tiny", 3) is None
+    photo.unlink()
+    (copy / "truth" / "points.laz").touch()
+    assert existing_survey(copy, "tiny", 3) is None  # a photo short of the poses

@@ -11,7 +11,7 @@ from geoortho.chain.pipeline import run
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.gcp.io import read_gcp_file
 from geoortho.planning.plan import check_plan, plan
-from geoortho.synthetic.survey import synth
+from geoortho.synthetic.survey import existing_survey, synth
 
 if TYPE_CHECKING:
     from geoortho.synthetic.survey import SynthResult
@@ -53,7 +53,8 @@ def demo(
     (``OUTPUT/plan/check``). The chain: footprints, GCP finding,
     SfM (every third GCP held out as a checkpoint), the dense cloud, DSM/DTM, the orthophoto and
     the report, in ``OUTPUT/project``; the survey and its truth are in ``OUTPUT/survey``. Run it
-    again on the same folder and only what changed is re-done.
+    again on the same folder and only what changed is re-done: the survey too is kept when it is
+    complete and of the same preset and seed.
 
     Parameters
     ----------
@@ -70,10 +71,19 @@ def demo(
 
     fb = as_feedback(feedback)
     output = Path(output)
-    synth_step, plan_step, run_step = split(fb, [1, 0.1, 4])
-    survey = synth(output / "survey", preset=preset, seed=seed, feedback=synth_step)
+    weights = (1.0, 0.1, 4.0)
+    synth_step, plan_step, run_step = split(fb, weights)
+    starts = [sum(weights[:i]) / sum(weights) for i in range(3)]
+    fb.stage("survey", 1, 3, starts[0], starts[1] - starts[0])
+    survey = existing_survey(output / "survey", preset, seed)
+    if survey is not None:
+        fb.info(f"demo: the {preset} survey of seed {seed} in {survey.output} is complete: not drawn again")
+    else:
+        survey = synth(output / "survey", preset=preset, seed=seed, feedback=synth_step)
     names = sorted(read_gcp_file(survey.gcp_file).by_name())
+    fb.stage("plan and check", 2, 3, starts[1], starts[2] - starts[1])
     planned = _plan_and_check(survey, output / "plan", plan_step)
+    fb.stage("run", 3, 3, starts[2], 1.0 - starts[2])
     result = run(
         survey.images,
         output / "project",

@@ -1121,7 +1121,7 @@ def run(
     takeoff_elevation_m : float
         Ground elevation of the take-off point, in the vertical datum of the ground
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
-        photos by geoortho.heights (absolute − relative altitude, checked against the
+        photos (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
     flight_height_m : float
         Flight height above the take-off ground, for photos whose altitudes give none: used to

@@ -315,7 +315,7 @@ def gcp_find(
     output : Path
         gcp_list.txt to write.
     dictionary : str
-        Marker dictionary (OpenCV name: ArUco DICT_4X4_50 … or AprilTag DICT_APRILTAG_36h11 …).
+        Marker dictionary (OpenCV name: ArUco DICT_4X4_50 … or AprilTag DICT_APRILTAG_36H11 …).
     margin : float
         Reject detections whose centre is closer to the photo border than this, percent of its size.
     dsm : Path
@@ -323,7 +323,7 @@ def gcp_find(
     takeoff_elevation_m : float
         Ground elevation of the take-off point, in the vertical datum of the ground
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
-        photos by geoortho.heights (absolute − relative altitude, checked against the
+        photos (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
     gcp_crs : str
         CRS of the GCP file when it does not say.

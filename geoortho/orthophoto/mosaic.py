@@ -1340,7 +1340,7 @@ def ortho(
     takeoff_elevation_m : float
         Ground elevation of the take-off point, in the vertical datum of the ground
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
-        photos by geoortho.heights (absolute − relative altitude, checked against the
+        photos (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
     seams : str
         graphcut (seams moved onto low-difference paths) or voronoi (best-seeing photo).

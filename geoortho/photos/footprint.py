@@ -353,7 +353,7 @@ def footprints(
     takeoff_elevation_m : float
         Ground elevation of the take-off point, in the vertical datum of the ground
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
-        photos by geoortho.heights (absolute − relative altitude, checked against the
+        photos (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
     crs : str
         CRS of the output (EPSG code, WKT, PROJ string). Default: the photos'

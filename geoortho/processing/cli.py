@@ -47,7 +47,10 @@ ARGPARSE_OPTIONS: dict[str, Callable[[Param], dict[str, Any]]] = {
     "pointcloud": _metavar("POINTS"),
     "number": _number_opts,
     "integer": _metavar("N"),
-    "enum": lambda p: {"choices": list(p.choices), "metavar": "{" + ",".join(p.choices) + "}"},
+    "enum": lambda p: {
+        "choices": list(p.choices),
+        "metavar": "NAME" if len(p.choices) > _CHOICES_INLINE else "{" + ",".join(p.choices) + "}",
+    },
     "bool": lambda p: {"action": argparse.BooleanOptionalAction},
     "crs": _metavar("CRS"),
     "string": _metavar("TEXT"),
@@ -65,8 +68,29 @@ class _Parser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def _option_help(p: Param) -> str:
-    bits = [p.help.rstrip(".") if p.help else p.name]
+#: An enum with more choices than this lists them once, in its help, not in the usage line too.
+_CHOICES_INLINE = 8
+
+
+def for_people(text: str, params: Sequence[Param] = ()) -> str:
+    """Help or error text as a person reads it on a command line: no reStructuredText markup, and
+    each option named by its flag (``max_gap_m`` is ``--max-gap-m``) where it is one of
+    ``params``; the QGIS face keeps its own parameter names."""
+    flags = {p.name: p.cli_flag for p in params}
+
+    def literal(m: re.Match[str]) -> str:
+        return flags.get(m.group(1), m.group(1))
+
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", lambda m: m.group(1).rsplit(".", 1)[-1], text)
+    text = re.sub(r"``([^`]+)``", literal, text)
+    for name in sorted((n for n in flags if "_" in n), key=len, reverse=True):
+        # a Python name, not a file's (gcp_list.txt) nor part of a longer name
+        text = re.sub(rf"(?<![\w./-]){re.escape(name)}(?![\w]|\.\w)", flags[name], text)
+    return text
+
+
+def _option_help(p: Param, params: Sequence[Param] = ()) -> str:
+    bits = [for_people(p.help.rstrip("."), params) if p.help else p.cli_flag]
     extra = []
     if p.unit:
         extra.append(f"unit: {p.unit}")
@@ -74,9 +98,11 @@ def _option_help(p: Param) -> str:
         lo = "" if p.minimum is None else f"{p.minimum:g}"
         hi = "" if p.maximum is None else f"{p.maximum:g}"
         extra.append(f"range: {lo}..{hi}")
+    if p.type == "enum" and len(p.choices) > _CHOICES_INLINE:
+        extra.append("one of: " + ", ".join(p.choices))
     if p.required:
         extra.append("required")
-    elif p.default is not None and p.type != "bool":
+    elif p.default not in (None, "") and p.type != "bool":
         extra.append(f"default: {p.default}")
     elif p.type == "bool":
         extra.append(f"default: {'on' if p.default else 'off'}")
@@ -108,13 +134,15 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 def _add_algorithm(sub: Any, alg: Algorithm) -> None:
     p = sub.add_parser(
         alg.id,
-        help=alg.short_help,
-        description=alg.help,
+        help=for_people(alg.short_help, alg.params),
+        description=for_people(alg.help, alg.params),
         prog=f"{PROG} {alg.id}",
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        add_help=False,  # -h goes under the one "options" heading, not a second one of its own
     )
     req = p.add_argument_group("required")
     opt = p.add_argument_group("options")
+    opt.add_argument("-h", "--help", action="help", help="show this help message and exit")
     for param in alg.params:
         group = req if param.required else opt
         kwargs = ARGPARSE_OPTIONS[param.type](param)
@@ -124,7 +152,7 @@ def _add_algorithm(sub: Any, alg: Algorithm) -> None:
             dest=param.name,
             default=None,
             required=param.required,
-            help=_option_help(param),
+            help=_option_help(param, alg.params),
             **kwargs,
         )
     _add_common(p)
@@ -152,7 +180,7 @@ def _describe_text() -> str:
     for a in list_algorithms():
         lines.append(f"{a.id}: {a.title} [{a.group}]")
         for p in a.params:
-            lines.append(f"  {p.cli_flag} ({p.type}) {_option_help(p)}")
+            lines.append(f"  {p.cli_flag} ({p.type}) {_option_help(p, a.params)}")
     return "\n".join(lines)
 
 
@@ -248,7 +276,11 @@ def _main(argv: Sequence[str] | None) -> int:
         with _signals_cancel(feedback):
             outputs = run_algorithm(alg, values, feedback, scheduler=args.scheduler)
     except InputError as e:
-        return fail("error", f"error: {_one_line(e)}", 2)
+        message = _one_line(e)
+        named = re.match(r"(\w+): ", message)  # an error about one option leads with its name
+        if named and any(p.name == named.group(1) for p in alg.params):
+            message = next(p.cli_flag for p in alg.params if p.name == named.group(1)) + message[named.end() - 2 :]
+        return fail("error", f"error: {for_people(message, alg.params)}", 2)
     except (CanceledError, KeyboardInterrupt):
         return fail("canceled", "canceled", 130)
     except GeoorthoError as e:

@@ -1154,7 +1154,7 @@ def sfm(
     takeoff_elevation_m : float
         Ground elevation of the take-off point, in the vertical datum of the ground
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
-        photos by geoortho.heights (absolute − relative altitude, checked against the
+        photos (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
     gps_sigma_m : float
         Horizontal standard deviation of the photos' GPS positions (vertical: twice that).

@@ -2108,6 +2108,45 @@ def _write_gcp_files(truth: Path, scene: Scene) -> None:
     write_text(truth / "gcp_wgs84.csv", "\n".join(csv_lines) + "\n")
 
 
+def renderer_digest() -> str:
+    """A digest of the synthetic renderer's source: a survey written by other code is drawn again."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def existing_survey(output: Path, preset: str, seed: int) -> SynthResult | None:
+    """The survey ``synth(output, preset=preset, seed=seed)`` wrote earlier, complete and drawn by
+    this renderer with no pathology; None when there is none. Complete: its point cloud, the last
+    file written, is newer than every photo and there is a photo for every pose."""
+    output = Path(output)
+    truth, images = output / "truth", output / "images"
+    try:
+        info = json.loads((truth / "survey.json").read_text())
+        poses = json.loads((truth / "poses.json").read_text())
+        photos = sorted(images.glob("*.JPG"))
+        points_time = (truth / "points.laz").stat().st_mtime
+        newest_photo = max(f.stat().st_mtime for f in photos) if photos else math.inf
+    except (OSError, ValueError):
+        return None
+    same = (
+        info.get("preset", {}).get("name") == preset
+        and info.get("seed") == seed
+        and not info.get("pathologies")
+        and info.get("renderer") == renderer_digest()
+    )
+    files = [truth / n for n in ("gcp_utm.txt", "dsm.tif", "dtm.tif", "ortho.tif")]
+    if not same or len(photos) != len(poses) or newest_photo > points_time or not all(f.is_file() for f in files):
+        return None
+    return SynthResult(
+        output=output, images=images, truth=truth, gcp_file=files[0], dsm=files[1], dtm=files[2], ortho=files[3],
+        points=truth / "points.laz", n_photos=len(photos), crs=info["crs"],
+    )  # fmt: skip
+
+
 def _write_survey_json(
     truth: Path,
     scene: Scene,
@@ -2173,6 +2212,7 @@ def _write_survey_json(
                 else {}
             ),
             "flight_height_m": p.altitude_m,
+            "renderer": renderer_digest(),
             "geoid_undulation_m": undulation_m,
             "home": {"x": scene.home[0], "y": scene.home[1], "ground_z": scene.home[2]},
             "flight_box": list(scene.flight_box),
