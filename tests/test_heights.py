@@ -197,7 +197,8 @@ def test_no_relative_altitude_cli_refuses_in_one_line(no_rel, tmp_path):
     )
     assert p.returncode == 2
     lines = [x for x in p.stderr.splitlines() if x.strip()]
-    assert len(lines) == 1 and "flight_height_m" in lines[0] and "GPS altitude" in lines[0]
+    assert len(lines) == 1 and "--flight-height-m" in lines[0] and "GPS altitude" in lines[0]
+    assert "flight_height_m" not in lines[0]  # the command line names its options by their flags
 
 
 def test_drifting_altitude_refused_unless_flight_height_given(drift, clean_shortfall, tmp_path):

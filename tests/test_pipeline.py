@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, run
+from geoortho.chain.pipeline import LEDGER_NAME, LOCK_NAME, REPORT_NAME, run
 from geoortho.errors import CanceledError, InputError
 from geoortho.feedback import Feedback
 
@@ -88,6 +88,7 @@ def test_first_run_makes_every_product_and_records_how(first_run, checkpoint):
     assert len(sfm["inputs"]["images"]) == 64  # a content hash
     assert ledger["runs"][-1]["overhead_seconds"] < 0.05 * ledger["runs"][-1]["seconds"]
     assert not list(project.rglob(".*.tmp-*")), "a temporary file was left behind"
+    assert not (project / LOCK_NAME).exists(), "the run's lock was left behind"
 
 
 def _no_constant(name):
@@ -208,6 +209,7 @@ def test_a_run_killed_in_ortho_resumes_at_ortho(first_run, tiny_survey, checkpoi
     assert r.stages == {**dict.fromkeys(CHAIN[:-2], "reused"), "ortho": "ran", "report": "ran"}
     assert _last_run(project) == r.stages
     assert not list(project.rglob(".*.tmp-*")), "the killed run's temporary file was kept"
+    assert not (project / LOCK_NAME).exists(), "the killed run's lock outlived the run after it"
     import rasterio
 
     with rasterio.open(r.ortho) as src:
@@ -243,7 +245,7 @@ def test_a_failing_stage_keeps_earlier_products_and_the_report_says_which(
         "ortho": "not run",
         "report": "ran",
     }
-    assert (project / "sfm" / "report.json").is_file()
+    assert (project / "sfm" / "report.json").is_file() and not (project / LOCK_NAME).exists()
     page = (project / REPORT_NAME).read_text()
     assert 'class="banner problem"' in page and "<b>dem</b>: stage failed" in page
 

@@ -404,6 +404,52 @@ def test_qgis_process_without_interpreter_says_how_to_set_it(plugin_env, tiny, t
 # --- every algorithm once, on tiny -------------------------------------------------
 
 
+def _opens_as_a_styled_project(project: Path, tmp_path: Path) -> None:
+    """The run's project.qgz in QGIS: every product a valid layer in the survey's CRS, the source
+    rasters paletted with their legend, the DEMs coloured over their hillshades; a raster dragged in
+    alone takes its default style; the visible layers render the orthophoto where it is."""
+    from qgis.core import QgsMapRendererParallelJob, QgsMapSettings, QgsProject, QgsRasterLayer
+    from qgis.PyQt.QtCore import QSize
+    from qgis.PyQt.QtGui import QColor
+
+    qp = QgsProject()  # a project of its own: the instance stays as the other tests use it
+    assert qp.read(str(project / "project.qgz")), qp.error()
+    layers = {layer.name(): layer for layer in qp.mapLayers().values()}
+    assert all(layer.isValid() for layer in layers.values()), [n for n, x in layers.items() if not x.isValid()]
+    expected = {"orthophoto", "DSM", "DTM", "DSM hillshade", "footprints",
+                "cameras (SfM)", "orthophoto: how each pixel was drawn", "overlap (photos a point)"}  # fmt: skip
+    assert expected <= set(layers), sorted(layers)
+    ortho = layers["orthophoto"]
+    assert qp.crs().isValid() and qp.crs() == ortho.crs()
+    for name in {"dsm source", "dtm source"} & set(layers):  # (a lidar cloud's DEMs have no source raster)
+        legend = {c.label for c in layers[name].renderer().classes()}
+        assert layers[name].renderer().type() == "paletted" and {"measured", "interpolated"} <= legend, legend
+    how = layers["orthophoto: how each pixel was drawn"].renderer()
+    assert how.type() == "paletted" and any(c.label.startswith("seen by its photo") for c in how.classes())
+    assert layers["DSM"].renderer().type() == "singlebandpseudocolor"
+    assert layers["DSM hillshade"].renderer().type() == "hillshade"
+    alone = QgsRasterLayer(str(project / "ortho" / "ortho_source.tif"), "alone")
+    assert alone.renderer().type() == "paletted" and alone.renderer().inputBand() == 2
+    shown = [n.layer() for n in qp.layerTreeRoot().findLayers() if n.isVisible()]
+    assert ortho in shown and layers["DSM"] not in shown
+    settings = QgsMapSettings()
+    settings.setLayers(shown)
+    settings.setDestinationCrs(qp.crs())
+    settings.setExtent(ortho.extent())
+    settings.setOutputSize(QSize(400, 300))
+    settings.setBackgroundColor(QColor(255, 255, 255))
+    job = QgsMapRendererParallelJob(settings)
+    job.start()
+    job.waitForFinished()
+    image = job.renderedImage()
+    image.save(str(tmp_path / "project.png"))
+    centre = QColor(image.pixel(200, 150))
+    corners_white = sum(
+        QColor(image.pixel(x, y)).name() == "#ffffff" for x in range(0, 400, 20) for y in range(0, 300, 20)
+    )
+    assert centre.name() != "#ffffff" and corners_white < 0.5 * 20 * 15, (centre.name(), corners_white)
+
+
 def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path):
     """synth, footprints (above), gcp-find, dem, sfm, dense, ortho and demo, each once through Processing."""
     from qgis.core import QgsRasterLayer
@@ -543,6 +589,7 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     )
     assert Path(r["REPORT"]).is_file() and r["STAGES"]["dense"] == "skipped" and r["STAGES"]["ortho"] == "ran"
     assert QgsRasterLayer(r["ORTHO"], "ortho").isValid() and QgsRasterLayer(r["DTM"], "dtm").isValid()
+    _opens_as_a_styled_project(project, tmp_path)
     ran.add("run")
     r = _run("report", {"PROJECT": str(project), "OUTPUT": str(tmp_path / "again.html")})
     assert r["N_SECTIONS"] >= 10 and "Quality report" in Path(r["OUTPUT"]).read_text()

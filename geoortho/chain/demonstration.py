@@ -109,6 +109,8 @@ def demo(
     for k, v in products.items():
         fb.info(f"{k}: {v}")
     fb.info(f"demo: the quality report is {result.report}")
+    if "qgis_project" in products:
+        fb.info(f"demo: open {products['qgis_project']} in QGIS for every product, styled")
     return DemoResult(output, products)
 
 
@@ -177,6 +179,7 @@ PRODUCTS = {
     "ortho_source": "ortho/ortho_source.tif",
     "ortho_seamlines": "ortho/ortho_seamlines.gpkg",
     "ledger": "run.json",
+    "qgis_project": "project.qgz",
 }
 
 

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, STAGES, from_ledger, ledger_problem
+from geoortho.chain.qgis_project import write_qgis_project
 from geoortho.chain.quality import as_number, assess, verdict
 from geoortho.core.crs import transformer
 from geoortho.core.outputs import write_json, write_text
@@ -109,6 +110,12 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
     quality = project / "quality.json"
     write_json(quality, {"verdict": ctx.verdict, "checks": [asdict(c) for c in ctx.checks], "problems": ctx.problems})
     write_text(out, page)
+    try:  # the products as one styled QGIS project: a convenience, never the report's failure
+        qgz = write_qgis_project(project)
+        if qgz is not None:
+            fb.info(f"report: the products as a QGIS project: {qgz}")
+    except Exception as e:  # noqa: BLE001
+        fb.warning(f"report: no QGIS project written ({type(e).__name__}: {e})")
     level = {"green": fb.info, "amber": fb.warning, "red": fb.warning}[ctx.verdict]
     level(f"report: quality {ctx.verdict.upper()}" + "".join(f"; {c.label}: {c.shown}" for c in _flagged(ctx)))
     fb.progress(1.0)

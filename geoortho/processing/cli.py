@@ -278,6 +278,8 @@ def _main(argv: Sequence[str] | None) -> int:
     except InputError as e:
         message = _one_line(e)
         named = re.match(r"(\w+): ", message)  # an error about one option leads with its name
+        if args.progress_json:  # the QGIS face's line: it names its parameters its own way
+            return fail("error", f"error: {message}", 2)
         if named and any(p.name == named.group(1) for p in alg.params):
             message = next(p.cli_flag for p in alg.params if p.name == named.group(1)) + message[named.end() - 2 :]
         return fail("error", f"error: {for_people(message, alg.params)}", 2)
