@@ -781,3 +781,41 @@ def test_a_console_with_no_width_gets_progress_lines(tiny_survey, checkpoint, tm
         proc.wait()
         os.close(main_fd)
     assert re.search(rb"\[1/\d\] gcp-find: started", seen), seen[-500:]
+
+
+def test_every_map_in_the_report_has_its_furniture(first_run, tmp_path, monkeypatch):
+    """A scale bar, a north arrow and axis titles with the unit and the CRS on every map."""
+    import geoortho.chain.reporting as reporting
+
+    furnished = []
+    real = reporting._furnish
+
+    def spy(ax, crs, unit="m"):
+        real(ax, crs, unit)
+        furnished.append(ax)
+
+    monkeypatch.setattr(reporting, "_furnish", spy)
+    reporting.report(first_run.output, tmp_path / "again.html")
+    # the map, the overlap, the residual vectors, the DSM and the DTM, the orthophoto's sources
+    assert len(furnished) >= 6, len(furnished)
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    crs = json.loads((first_run.output / "ortho" / "ortho_report.json").read_text())["crs"]
+    for ax in furnished:
+        assert any(isinstance(a, AnchoredSizeBar) for a in ax.artists), ax.get_title()
+        assert any(t.get_text() == "N" for t in ax.texts), ax.get_title()
+        assert crs in ax.get_xlabel() and "(m" in ax.get_ylabel(), ax.get_xlabel()
+    assert [reporting._nice_length(t) for t in (0.7, 13.0, 47.0, 180.0)] == [0.5, 10.0, 20.0, 100.0]
+    # the GCPs and their residual vectors as layers (for the QGIS project): the SfM report's own figures
+    import geopandas as gpd
+    import numpy as np
+
+    sfm = json.loads((first_run.output / "sfm" / "report.json").read_text())
+    gcps = gpd.read_file(first_run.output / reporting.RESIDUALS_NAME, layer="gcps").set_index("name")
+    lines = gpd.read_file(first_run.output / reporting.RESIDUALS_NAME, layer="residuals")
+    assert len(gcps) == len(lines) == len([r for r in sfm["gcps"] if r.get("dx_m") is not None]) > 0
+    for r in sfm["gcps"]:
+        if r.get("dx_m") is not None:
+            assert gcps.loc[r["name"], "dx_m"] == pytest.approx(r["dx_m"]) and gcps.loc[r["name"], "role"] == r["role"]
+    drawn = lines.length / lines["exaggeration"]
+    assert np.allclose(drawn, lines["horizontal_m"], rtol=0.02), (drawn, lines["horizontal_m"])

@@ -286,3 +286,27 @@ def test_no_attitude_and_untrusted_heights_level_on_the_camera_plane(tmp_path):
     assert 2.0 < report["model_tilt_deg"] < 6.0  # the nadir prior's residual: the mount's tilt
     assert report["camera_plane_tilt_deg"] < 0.1
     assert any("nadir assumed was" in n for n in report["notes"])
+
+
+def test_colmap_s_rows_move_the_bar_while_it_works(tmp_path, monkeypatch):
+    """COLMAP's feature extraction and matching take no callback: the rows it writes to its
+    database move the bar, so that a minute of matching does not read as hung."""
+    import sqlite3
+    import time
+
+    import geoortho.reconstruction.sparse as sp
+
+    monkeypatch.setattr(sp, "PROGRESS_POLL_S", 0.02)
+    db = tmp_path / "database.db"
+    con = sqlite3.connect(db)
+    con.execute("CREATE TABLE keypoints (image_id INTEGER)")
+    con.commit()
+    fb = RecordingFeedback()
+    with sp._rows_as_progress(db, "keypoints", 4, fb, 0.0, 0.3):
+        for i in range(4):
+            con.execute("INSERT INTO keypoints VALUES (?)", (i,))
+            con.commit()
+            time.sleep(0.15)
+    assert fb.values and fb.values == sorted(fb.values) and fb.values[-1] == pytest.approx(0.3)
+    assert len({round(v, 3) for v in fb.values}) >= 3  # it moved with the rows, not once at the end
+    assert sp._pairs_expected("exhaustive", 10) == 45 and sp._pairs_expected("spatial", 100) == 800

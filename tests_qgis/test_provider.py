@@ -417,7 +417,8 @@ def _opens_as_a_styled_project(project: Path, tmp_path: Path) -> None:
     layers = {layer.name(): layer for layer in qp.mapLayers().values()}
     assert all(layer.isValid() for layer in layers.values()), [n for n, x in layers.items() if not x.isValid()]
     expected = {"orthophoto", "DSM", "DTM", "DSM hillshade", "footprints",
-                "cameras (SfM)", "orthophoto: how each pixel was drawn", "overlap (photos a point)"}  # fmt: skip
+                "cameras (SfM)", "orthophoto: how each pixel was drawn", "overlap (photos a point)",
+                "GCPs and checkpoints", "GCP residuals (exaggerated)"}  # fmt: skip
     assert expected <= set(layers), sorted(layers)
     ortho = layers["orthophoto"]
     assert qp.crs().isValid() and qp.crs() == ortho.crs()

@@ -70,7 +70,7 @@ def demo(
     """
 
     fb = as_feedback(feedback)
-    output = Path(output)
+    output = Path(output).absolute()  # every path it prints the same way
     weights = (1.0, 0.1, 4.0)
     synth_step, plan_step, run_step = split(fb, weights)
     starts = [sum(weights[:i]) / sum(weights) for i in range(3)]

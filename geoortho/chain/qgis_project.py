@@ -74,6 +74,8 @@ def _groups(project: Path) -> list[tuple[str, list[_Layer]]]:
     """The products found, grouped, top of the layer tree first."""
     survey: list[_Layer] = []
     for path, layer, geom, name, renderer in (
+        (project / "gcp_residuals.gpkg", "residuals", "Line", "GCP residuals (exaggerated)", _line("#d7191c", 0.6)),
+        (project / "gcp_residuals.gpkg", "gcps", "Point", "GCPs and checkpoints", _marker("#ff7f00", "triangle", 3.5)),
         (project / "sfm" / "cameras.gpkg", "cameras", "Point", "cameras (SfM)", _marker("#e41a1c", "circle", 1.8)),
         (
             project / "gcp-find" / "detections.gpkg",

@@ -27,7 +27,7 @@ from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, STAGES, from_ledge
 from geoortho.chain.qgis_project import write_qgis_project
 from geoortho.chain.quality import as_number, assess, verdict
 from geoortho.core.crs import transformer
-from geoortho.core.outputs import write_json, write_text
+from geoortho.core.outputs import write_json, write_text, write_vector
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.gcp.io import read_gcp_file
@@ -65,6 +65,11 @@ class ReportResult:
     n_problems: int
     verdict: str = "green"
     quality: Path | None = None
+
+
+#: The version of quality.json's layout (README, "quality.json"): raised when a field changes meaning
+#: or goes; a new field does not raise it.
+QUALITY_VERSION = 1
 
 
 def report(project: Path, output: Path | None = None, *, feedback: Feedback | None = None) -> ReportResult:
@@ -108,9 +113,11 @@ def report(project: Path, output: Path | None = None, *, feedback: Feedback | No
             sections.append(f'<section id="{_anchor(title)}"><h2>{html.escape(title)}</h2>\n{body}\n</section>')
     page = _page(ctx, sections)
     quality = project / "quality.json"
-    write_json(quality, {"verdict": ctx.verdict, "checks": [asdict(c) for c in ctx.checks], "problems": ctx.problems})
+    graded = {"verdict": ctx.verdict, "checks": [asdict(c) for c in ctx.checks], "problems": ctx.problems}
+    write_json(quality, {"version": QUALITY_VERSION, **graded})
     write_text(out, page)
     try:  # the products as one styled QGIS project: a convenience, never the report's failure
+        _write_residual_layers(ctx, project)
         qgz = write_qgis_project(project)
         if qgz is not None:
             fb.info(f"report: the products as a QGIS project: {qgz}")
@@ -415,6 +422,47 @@ def _flight_time(taken: list[str]) -> str:
     return f"{first}–{last[11:]}" if first[:10] == last[:10] else f"{first} – {last}"
 
 
+def _crs_label(ctx: _Context) -> str:
+    return str((ctx.done("ortho") or {}).get("crs") or (ctx.sfm_report() or {}).get("crs") or "")
+
+
+def _unit_symbol(unit: str | None) -> str:
+    u = (unit or "metre").lower()
+    return "ft" if "foot" in u or "feet" in u else ("m" if u.startswith("met") or u == "m" else u)
+
+
+def _nice_length(target: float) -> float:
+    """The longest 1, 2 or 5 times a power of ten not over ``target``: a scale bar's length."""
+    if not target > 0:
+        return 1.0
+    power = 10.0 ** np.floor(np.log10(target))
+    return float(max(f * power for f in (1.0, 2.0, 5.0) if f * power <= target))
+
+
+def _furnish(ax: Any, crs: str, unit: str = "m") -> None:
+    """A map's furniture: a scale bar (lower left), a north arrow (the grid's north: the map's
+    up; upper left), and axis titles with the unit and the CRS."""
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    x0, x1 = ax.get_xlim()
+    y0, y1 = ax.get_ylim()
+    length = _nice_length(abs(x1 - x0) / 5.0)
+    bar = AnchoredSizeBar(
+        ax.transData, length, f"{length:g} {unit}", "lower left", pad=0.4, borderpad=0.6, sep=3,
+        frameon=True, size_vertical=abs(y1 - y0) / 150.0, fontproperties={"size": 7},
+    )  # fmt: skip
+    bar.patch.set_alpha(0.8)
+    ax.add_artist(bar)
+    arrow = {"arrowstyle": "-|>", "color": "k", "lw": 1.2}
+    ax.annotate(
+        "N", xy=(0.05, 0.95), xytext=(0.05, 0.82), xycoords="axes fraction", textcoords="axes fraction",
+        ha="center", va="center", fontsize=9, fontweight="bold", arrowprops=arrow,
+    )  # fmt: skip
+    where = f", {crs}" if crs else ""
+    ax.set_xlabel(f"easting ({unit}{where})", fontsize=8)
+    ax.set_ylabel(f"northing ({unit})", fontsize=8)
+
+
 def _map_figure(extent: tuple[float, ...], width_in: float = 7.5) -> Any:
     """A figure whose height follows the map's aspect (no band of white above a wide map)."""
     aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9)
@@ -464,10 +512,9 @@ def _map(ctx: _Context) -> str:
     ax.plot([], [], color="#1f77b4", lw=0.8, label=f"photo footprint ({len(fp)})")
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
-    ax.set_xlabel("easting")
-    ax.set_ylabel("northing")
     ax.ticklabel_format(useOffset=False, style="plain")
     ax.tick_params(labelsize=7)
+    _furnish(ax, _crs_label(ctx))
     note = "" if has_ortho else _missing("No orthophoto to draw under the footprints.")
     return _png(fig, "footprints and camera positions over the orthophoto") + note
 
@@ -509,6 +556,7 @@ def _position_accuracy(ctx: _Context) -> str:
         ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
         ax.ticklabel_format(useOffset=False, style="plain")
         ax.tick_params(labelsize=7)
+        _furnish(ax, _crs_label(ctx))
         parts.append(_png(fig, "camera positions by accuracy class"))
     rows = []
     for fix, c in sorted(acc["classes"].items(), key=lambda kv: -kv[1]["photos"]):
@@ -586,6 +634,48 @@ def _gcp_positions(ctx: _Context) -> list[tuple[str, float, float, float]]:
     return [(n, float(x), float(y), g.z) for (n, g), x, y in zip(points, xs, ys)]
 
 
+#: Where the report writes the GCPs and their residual vectors as layers, for the QGIS project.
+RESIDUALS_NAME = "gcp_residuals.gpkg"
+
+
+def _write_residual_layers(ctx: _Context, project: Path) -> Path | None:
+    """The GCPs and checkpoints at their surveyed places with their residuals (``gcps``), and each
+    horizontal residual as a line drawn ``exaggeration`` times its length (``residuals``): the
+    longest 12 % of the GCPs' spread, as the report's plot draws them."""
+    sfm = ctx.sfm_report() or {}
+    where = {n: (x, y) for n, x, y, _ in _gcp_positions(ctx)}
+    res = [r for r in sfm.get("gcps", []) if r.get("name") in where and r.get("dx_m") is not None]
+    crs = _crs_label(ctx)
+    target = project / RESIDUALS_NAME
+    if not res or not crs:
+        target.unlink(missing_ok=True)
+        return None
+    import geopandas as gpd
+    import shapely
+
+    xy = np.array([where[r["name"]] for r in res], float)
+    d = np.array([[r["dx_m"], r["dy_m"]] for r in res], float)
+    span = max(float(np.ptp(xy[:, 0])), float(np.ptp(xy[:, 1])), 1.0)
+    scale = 0.12 * span / max(float(np.nanmax(np.hypot(d[:, 0], d[:, 1]))), 1e-6)
+    fields = {
+        "name": [r["name"] for r in res],
+        "role": [r.get("role", "") for r in res],
+        "dx_m": d[:, 0],
+        "dy_m": d[:, 1],
+        "dz_m": [r.get("dz_m") for r in res],
+        "horizontal_m": np.hypot(d[:, 0], d[:, 1]),
+        "photos": [r.get("observations") for r in res],
+    }
+    points = gpd.GeoDataFrame(fields, geometry=shapely.points(xy), crs=crs)
+    lines = gpd.GeoDataFrame(
+        {**fields, "exaggeration": np.full(len(res), round(scale, 1))},
+        geometry=shapely.linestrings(np.stack([xy, xy + d * scale], axis=1)),
+        crs=crs,
+    )
+    write_vector(target, {"gcps": points, "residuals": lines})
+    return target
+
+
 def _overlap(ctx: _Context) -> str:
     path = ctx.path("footprints", "overlap")
     if path is None:
@@ -607,6 +697,7 @@ def _overlap(ctx: _Context) -> str:
     ax.set_aspect("equal")
     ax.ticklabel_format(useOffset=False, style="plain")
     ax.tick_params(labelsize=7)
+    _furnish(ax, _crs_label(ctx))
     covered = count > 0
     rows = []
     for n in (1, 2, 3, 5, 9):
@@ -756,6 +847,7 @@ def _residual_plot(ctx: _Context, sfm: dict[str, Any]) -> str:
     ax.ticklabel_format(useOffset=False, style="plain")
     ax.tick_params(labelsize=7)
     ax.legend(loc="lower right", fontsize=8)
+    _furnish(ax, _crs_label(ctx))
     return "<h3>Residual vectors</h3>" + _png(fig, "GCP and checkpoint residual vectors")
 
 
@@ -861,6 +953,7 @@ def _elevation(ctx: _Context) -> str:
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
+        _furnish(ax, _crs_label(ctx), _unit_symbol(unit))
     parts.append(_png(fig, "DSM and DTM hillshades"))
     dense = ctx.dense_report()
     pairs: list[tuple[str, Any]] = [
@@ -988,6 +1081,7 @@ def _ortho_sources_map(ctx: _Context, o: dict[str, Any]) -> str:
     ax.set_xticks([])
     ax.set_yticks([])
     ax.legend(handles=legend, fontsize=8, loc="lower right")
+    _furnish(ax, _crs_label(ctx))
     ax.set_title("Where the orthophoto is not plainly seen on a measured surface", fontsize=10)
     return _png(fig, "orthophoto sources map")
 

@@ -1580,13 +1580,19 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
         rows, cols = np.nonzero(rest)
         grid = np.array(grid, np.float32, copy=True)
         grid[rows, cols] = surf.nearest_elevation(cols.astype(float), rows.astype(float))
-        area = float(rest.sum()) * surf.cell_m**2
-        notes.append(
-            f"DSM: {area:,.0f} m² of its grid without a value (holes wider than "
-            f"{max(4.0, 10.0 / surf.cell_m) * surf.cell_m:.0f} m, or beyond its edge) rendered on the ground "
-            "plane near them"
-        )
-        fb.warning(notes[-1])
+        from scipy.ndimage import binary_fill_holes
+
+        # holes inside the DSM's data apart from the grid's margin beyond it: the dem stage said how
+        # much of the ground the photos saw has a value, and a margin is no hole in that
+        holes = rest & binary_fill_holes(~rest)
+        wide = max(4.0, 10.0 / surf.cell_m) * surf.cell_m
+        said = []
+        if holes.any():
+            said.append(f"{float(holes.sum()) * surf.cell_m**2:,.0f} m² of holes wider than {wide:.0f} m in it")
+        if (rest & ~holes).any():
+            said.append(f"{float((rest & ~holes).sum()) * surf.cell_m**2:,.0f} m² of its grid beyond its data")
+        notes.append(f"DSM: {' and '.join(said)} rendered on the ground plane near them")
+        (fb.warning if holes.any() else fb.info)(notes[-1])
     if n_filled or rest.any():
         surf = GridSurface(grid, surf.transform, surf.crs, extend=True)
     return surf

@@ -31,12 +31,14 @@ coloured), ``cameras.gpkg`` (camera centres, orientation, residuals),
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
 import tempfile
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, get_args
@@ -319,6 +321,48 @@ class _Timer:
 
     def add(self, stage: str, t0: float) -> None:
         self.stages[stage] = self.stages.get(stage, 0.0) + time.perf_counter() - t0
+
+
+#: How often COLMAP's database is read for the progress of its features and matching (s).
+PROGRESS_POLL_S = 1.0
+
+
+@contextlib.contextmanager
+def _rows_as_progress(db: Path, table: str, total: int, fb: Feedback, start: float, end: float) -> Iterator[None]:
+    """While COLMAP fills ``table`` of its database ``db`` (a row a photo's features, a row a
+    pair's matches), the bar moves from ``start`` to ``end`` with the rows written, read once a
+    second: COLMAP's calls take no callback, and a bar that stood a minute read as hung (issue 77:
+    61 s and 45 s on the demo's features and matching)."""
+    import sqlite3
+
+    stop = threading.Event()
+
+    def poll() -> None:
+        while not stop.wait(PROGRESS_POLL_S):
+            try:
+                with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.2)) as con:
+                    n = int(con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
+            except sqlite3.Error:  # COLMAP writing: the next second
+                continue
+            try:
+                fb.set_progress(start + (end - start) * min(1.0, n / max(total, 1)))
+            except Exception:  # noqa: BLE001 (a display that failed: the work goes on)
+                return
+
+    watcher = threading.Thread(target=poll, name=f"colmap-{table}", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        watcher.join()
+
+
+def _pairs_expected(how: str, n_photos: int) -> int:
+    """About how many pairs a matcher matches: every pair, or each photo's nearest neighbours."""
+    if how.startswith("exhaustive"):
+        return n_photos * (n_photos - 1) // 2
+    return n_photos * min(SPATIAL_MAX_NEIGHBOURS, max(n_photos - 1, 1)) // 2
 
 
 def _import_and_extract(
@@ -1794,9 +1838,10 @@ def _reconstruct(
     load_pycolmap().Database.open(db).close()
     t0 = time.perf_counter()
     fb.info("features ...")
-    _import_and_extract(
-        db, inputs.root, inputs.names, list(inputs.bodies), camera_model, max_image_size, max_features, workers
-    )
+    with _rows_as_progress(db, "keypoints", len(photos), fb, 0.0, 0.3):
+        _import_and_extract(
+            db, inputs.root, inputs.names, list(inputs.bodies), camera_model, max_image_size, max_features, workers
+        )
     timer.add("features", t0)
     fb.set_progress(0.3)
     fb.check_canceled()
@@ -1804,7 +1849,10 @@ def _reconstruct(
     sigma_v = 2.0 * gps_sigma_m if priors.vertical_trusted else 1.0e3
     n_priors = _write_priors(db, priors, gps_sigma_m, sigma_v) if priors.positions else 0
     t0 = time.perf_counter()
-    how = _match(db, matching, photos, priors, workers)
+    auto = "spatial" if len(photos) > EXHAUSTIVE_MAX_PHOTOS else "exhaustive"  # (as _match decides)
+    expected = _pairs_expected(auto if matching == "auto" else matching, len(photos))
+    with _rows_as_progress(db, "matches", expected, fb, 0.3, 0.55):
+        how = _match(db, matching, photos, priors, workers)
     timer.add("matching", t0)
     fb.info(f"matching: {how}")
     fb.set_progress(0.55)
