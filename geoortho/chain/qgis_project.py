@@ -2,9 +2,9 @@
 
 ``project.qgz`` (QGIS's own zipped ``.qgs`` XML, paths relative to it) holds every product of a
 run as a layer, grouped and in a sensible order: the survey's vectors over the orthophoto, the
-DSM and DTM coloured over their hillshades, the source rasters paletted with a legend. Each style
-is also written where QGIS looks for a layer's default: ``<name>.qml`` beside a raster and the
-``layer_styles`` table inside a GeoPackage, so a product dragged into QGIS alone looks the same.
+DSM and DTM coloured over their hillshades, the source rasters paletted with a legend. Each
+raster's style is also written where QGIS looks for a layer's default, ``<name>.qml`` beside it,
+so a raster dragged into QGIS alone looks the same (the GeoPackages' styles are the project's only).
 No QGIS is needed to write them: the XML is QGIS's documented project and style format.
 """
 
@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from geoortho.core.outputs import atomic_path, write_text
+from geoortho.elevation.coverage import FALLBACK, INTERPOLATED, MEASURED, SOURCE_NAMES, UNDER_OBJECT
+from geoortho.orthophoto.provenance import INPAINTED, OCCLUDED, SEEN, SOURCE_KINDS
 
 __all__ = ["PROJECT_NAME", "write_qgis_project"]
 
@@ -26,9 +28,9 @@ PROJECT_NAME = "project.qgz"
 #: The QGIS version whose format is written (3.40 LTR reads it, and so do later releases).
 QGIS_VERSION = "3.40.0-Bratislava"
 
-#: Colours of the DEM source codes (elevation.coverage), the orthophoto's "how" codes.
-_SOURCE_COLOURS = {1: "#1a9641", 2: "#fdae61", 3: "#d7191c", 4: "#7b3294"}
-_HOW_COLOURS = {1: "#1a9641", 2: "#7b3294", 3: "#d7191c"}
+#: Colours of the DEM source codes and of the orthophoto's "how" codes (band 2 of its source raster).
+_SOURCE_COLOURS = {MEASURED: "#1a9641", INTERPOLATED: "#fdae61", FALLBACK: "#d7191c", UNDER_OBJECT: "#7b3294"}
+_HOW_COLOURS = {SEEN: "#1a9641", OCCLUDED: "#7b3294", INPAINTED: "#d7191c"}
 #: Elevation colours, low to high (a terrain ramp).
 _TERRAIN = ("#2b83ba", "#abdda4", "#ffffbf", "#fdae61", "#d7191c")
 
@@ -97,7 +99,11 @@ def _groups(project: Path) -> list[tuple[str, list[_Layer]]]:
         ortho.insert(
             0,
             _Layer(
-                "orthophoto: how each pixel was drawn", p, "raster", pipe=_paletted(p, 2, _HOW_COLOURS), visible=False
+                "orthophoto: how each pixel was drawn",
+                p,
+                "raster",
+                pipe=_paletted(2, _HOW_COLOURS, SOURCE_KINDS),
+                visible=False,
             ),
         )
     surfaces: list[_Layer] = []
@@ -123,7 +129,9 @@ def _groups(project: Path) -> list[tuple[str, list[_Layer]]]:
     for name in ("dsm_source", "dtm_source"):
         if (p := project / "dem" / f"{name}.tif").is_file():
             surfaces.append(
-                _Layer(name.replace("_", " "), p, "raster", pipe=_paletted(p, 1, _SOURCE_COLOURS), visible=False)
+                _Layer(
+                    name.replace("_", " "), p, "raster", pipe=_paletted(1, _SOURCE_COLOURS, SOURCE_NAMES), visible=False
+                )
             )
     if (p := project / "footprints" / "overlap.tif").is_file():
         surfaces.append(_Layer("overlap (photos a point)", p, "raster", pipe=_overlap(p), visible=False))
@@ -155,32 +163,12 @@ def _rgba() -> ET.Element:
     )
 
 
-def _band_codes(path: Path, band: int) -> dict[int, str]:
-    """A source raster's codes and their meanings, as its own metadata gives them: the band's
-    ``how_<code>`` tags, or a description "0 no data, 1 measured, ...")."""
-    import re
-
-    import rasterio
-
-    with rasterio.open(path) as ds:
-        tags = ds.tags(band)
-        description = ds.descriptions[band - 1] or ""
-    codes = {int(k.split("_")[1]): v for k, v in tags.items() if re.fullmatch(r"\w+_\d+", k)}
-    if not codes:
-        codes = {
-            int(m.group(1)): m.group(2).strip()
-            for m in re.finditer(r"(\d+) ([^\d,][^,]*(?:, [^\d][^,]*)*)", description)
-        }
-    return {c: label for c, label in codes.items() if c > 0}
-
-
-def _paletted(path: Path, band: int, colours: dict[int, str]) -> ET.Element:
-    codes = _band_codes(path, band)
+def _paletted(band: int, colours: dict[int, str], labels: dict[int, str]) -> ET.Element:
+    """A band of codes drawn in ``colours``, each code's meaning (the table the raster was written
+    from) its legend entry."""
     palette = _el("colorPalette")
-    for code, label in sorted(codes.items()):
-        palette.append(
-            _el("paletteEntry", {"value": code, "color": colours.get(code, "#999999"), "alpha": 255, "label": label})
-        )
+    for code, colour in sorted(colours.items()):
+        palette.append(_el("paletteEntry", {"value": code, "color": colour, "alpha": 255, "label": labels[code]}))
     return _pipe(_el("rasterrenderer", {"type": "paletted", "band": band, "opacity": 1, "alphaBand": -1}, palette))
 
 

@@ -372,7 +372,7 @@ def _summary(ctx: _Context) -> str:
                 "; ".join(sorted(set(fp["vertical_datum"].astype(str)))) if "vertical_datum" in fp else "–",
             ),
         ]
-    crs = (ctx.done("ortho") or {}).get("crs") or sfm.get("crs")
+    crs = _crs_label(ctx)
     pairs.append(("CRS", crs or "–"))
     if sfm:
         pairs += [
@@ -423,6 +423,7 @@ def _flight_time(taken: list[str]) -> str:
 
 
 def _crs_label(ctx: _Context) -> str:
+    """The products' CRS: the orthophoto's, else the SfM's ("" when neither says)."""
     return str((ctx.done("ortho") or {}).get("crs") or (ctx.sfm_report() or {}).get("crs") or "")
 
 
@@ -626,7 +627,7 @@ def _gcp_positions(ctx: _Context) -> list[tuple[str, float, float, float]]:
     gcps = read_gcp_file(path)
     points = list(gcps.by_name().items())
     # the products' CRS, whatever CRS the GCP list is in (EPSG:4326 lon/lat drew at (0, 0) of UTM axes)
-    target = (ctx.done("ortho") or {}).get("crs") or (ctx.sfm_report() or {}).get("crs")
+    target = _crs_label(ctx)
     if not points or not target:
         return [(n, g.x, g.y, g.z) for n, g in points]
     to = transformer(gcps.crs, CRS.from_user_input(target))
@@ -638,13 +639,39 @@ def _gcp_positions(ctx: _Context) -> list[tuple[str, float, float, float]]:
 RESIDUALS_NAME = "gcp_residuals.gpkg"
 
 
-def _write_residual_layers(ctx: _Context, project: Path) -> Path | None:
-    """The GCPs and checkpoints at their surveyed places with their residuals (``gcps``), and each
-    horizontal residual as a line drawn ``exaggeration`` times its length (``residuals``): the
-    longest 12 % of the GCPs' spread, as the report's plot draws them."""
-    sfm = ctx.sfm_report() or {}
+@dataclass(frozen=True)
+class _Residuals:
+    """The SfM report's GCP residuals that have a surveyed place, as the report's plot and the QGIS
+    project's layer both draw them."""
+
+    records: list[dict[str, Any]]
+    xy: np.ndarray  # (n, 2) their surveyed places, in the products' CRS
+    d: np.ndarray  # (n, 2) their horizontal residuals (m)
+    span_m: float  # the GCPs' spread
+    longest_m: float  # the longest horizontal residual
+
+    @property
+    def scale(self) -> float:
+        """The arrows' exaggeration: the longest is 12 % of the GCPs' spread."""
+        return 0.12 * self.span_m / self.longest_m
+
+
+def _residuals(ctx: _Context, sfm: dict[str, Any]) -> _Residuals:
     where = {n: (x, y) for n, x, y, _ in _gcp_positions(ctx)}
     res = [r for r in sfm.get("gcps", []) if r.get("name") in where and r.get("dx_m") is not None]
+    xy = np.array([where[r["name"]] for r in res], float).reshape(-1, 2)
+    d = np.array([[r["dx_m"], r["dy_m"]] for r in res], float).reshape(-1, 2)
+    span = max(float(np.ptp(xy[:, 0])), float(np.ptp(xy[:, 1])), 1.0) if res else 1.0
+    longest = max(float(np.nanmax(np.hypot(d[:, 0], d[:, 1]))), 1e-6) if res else 1e-6
+    return _Residuals(res, xy, d, span, longest)
+
+
+def _write_residual_layers(ctx: _Context, project: Path) -> Path | None:
+    """The GCPs and checkpoints at their surveyed places with their residuals (``gcps``), and each
+    horizontal residual as a line drawn ``exaggeration`` times its length (``residuals``), as the
+    report's plot draws them."""
+    found = _residuals(ctx, ctx.sfm_report() or {})
+    res, xy, d = found.records, found.xy, found.d
     crs = _crs_label(ctx)
     target = project / RESIDUALS_NAME
     if not res or not crs:
@@ -653,10 +680,6 @@ def _write_residual_layers(ctx: _Context, project: Path) -> Path | None:
     import geopandas as gpd
     import shapely
 
-    xy = np.array([where[r["name"]] for r in res], float)
-    d = np.array([[r["dx_m"], r["dy_m"]] for r in res], float)
-    span = max(float(np.ptp(xy[:, 0])), float(np.ptp(xy[:, 1])), 1.0)
-    scale = 0.12 * span / max(float(np.nanmax(np.hypot(d[:, 0], d[:, 1]))), 1e-6)
     fields = {
         "name": [r["name"] for r in res],
         "role": [r.get("role", "") for r in res],
@@ -668,8 +691,8 @@ def _write_residual_layers(ctx: _Context, project: Path) -> Path | None:
     }
     points = gpd.GeoDataFrame(fields, geometry=shapely.points(xy), crs=crs)
     lines = gpd.GeoDataFrame(
-        {**fields, "exaggeration": np.full(len(res), round(scale, 1))},
-        geometry=shapely.linestrings(np.stack([xy, xy + d * scale], axis=1)),
+        {**fields, "exaggeration": np.full(len(res), round(found.scale, 1))},
+        geometry=shapely.linestrings(np.stack([xy, xy + d * found.scale], axis=1)),
         crs=crs,
     )
     write_vector(target, {"gcps": points, "residuals": lines})
@@ -787,18 +810,12 @@ def _gcps(ctx: _Context) -> str:
 
 
 def _residual_plot(ctx: _Context, sfm: dict[str, Any]) -> str:
-    where = {n: (x, y) for n, x, y, _ in _gcp_positions(ctx)}
-    res = [r for r in sfm.get("gcps", []) if r.get("name") in where and r.get("dx_m") is not None]
+    found = _residuals(ctx, sfm)
+    res, scale, span, longest = found.records, found.scale, found.span_m, found.longest_m
     if not res:
         return ""
-    xs = np.array([where[r["name"]][0] for r in res])
-    ys = np.array([where[r["name"]][1] for r in res])
-    dx = np.array([r["dx_m"] for r in res], dtype=float)
-    dy = np.array([r["dy_m"] for r in res], dtype=float)
+    (xs, ys), (dx, dy) = found.xy.T, found.d.T
     dz = np.array([r["dz_m"] if r.get("dz_m") is not None else np.nan for r in res], dtype=float)
-    span = max(float(np.ptp(xs)), float(np.ptp(ys)), 1.0)
-    longest = max(float(np.nanmax(np.hypot(dx, dy))), 1e-6)
-    scale = 0.12 * span / longest  # the longest arrow is 12 % of the map
     fig = _figure(7.0, 5.5)
     ax = fig.add_subplot()
     _ortho_background(ax, ctx)

@@ -270,7 +270,10 @@ def _holes_inside(alpha: np.ndarray, cell_m2: float, ortho: Path | None = None, 
     labels, n = ndimage.label(holes, structure=np.ones((3, 3), bool))
     sizes = (np.bincount(labels.ravel())[1:] * cell_m2) if n else np.zeros(0)
     if n and ortho is not None and f > 1:
-        sizes = np.array([_hole_at_full_resolution(ortho, box, f) for box in ndimage.find_objects(labels)])
+        import rasterio
+
+        with rasterio.open(ortho) as ds:
+            sizes = np.array([_hole_at_full_resolution(ds, box, f) for box in ndimage.find_objects(labels)])
         sizes = sizes[sizes > 0]
         n = len(sizes)
     return {
@@ -280,21 +283,16 @@ def _holes_inside(alpha: np.ndarray, cell_m2: float, ortho: Path | None = None, 
     }
 
 
-def _hole_at_full_resolution(ortho: Path, box: tuple[slice, slice], f: int) -> float:
-    """The area (m²) of the transparent pixels round a hole of the decimated mask (its ``box``)
-    that the full mask encloses: none of them reaches the window's edge (two decimated cells out)."""
-    import rasterio
+def _hole_at_full_resolution(ds: Any, box: tuple[slice, slice], f: int) -> float:
+    """The area (m²) of the transparent pixels round a hole of the decimated mask (its ``box``) that
+    the orthophoto ``ds``'s full mask encloses: none of them reaches the window's edge (two
+    decimated cells out)."""
     from rasterio.windows import Window
-    from scipy import ndimage
 
-    with rasterio.open(ortho) as ds:
-        r0, c0 = max(0, (box[0].start - 2) * f), max(0, (box[1].start - 2) * f)
-        r1, c1 = min(ds.height, (box[0].stop + 2) * f), min(ds.width, (box[1].stop + 2) * f)
-        empty = ds.read_masks(1, window=Window(c0, r0, c1 - c0, r1 - r0)) == 0
-        px_m2 = abs(ds.transform.a * ds.transform.e)
-    labels, _ = ndimage.label(empty)
-    edge = np.unique(np.r_[labels[0], labels[-1], labels[:, 0], labels[:, -1]])
-    return float((empty & ~np.isin(labels, edge)).sum()) * px_m2
+    r0, c0 = max(0, (box[0].start - 2) * f), max(0, (box[1].start - 2) * f)
+    r1, c1 = min(ds.height, (box[0].stop + 2) * f), min(ds.width, (box[1].stop + 2) * f)
+    empty = ds.read_masks(1, window=Window(c0, r0, c1 - c0, r1 - r0)) == 0
+    return float(_enclosed(empty).sum()) * abs(ds.transform.a * ds.transform.e)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1580,11 +1578,9 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
         rows, cols = np.nonzero(rest)
         grid = np.array(grid, np.float32, copy=True)
         grid[rows, cols] = surf.nearest_elevation(cols.astype(float), rows.astype(float))
-        from scipy.ndimage import binary_fill_holes
-
         # holes inside the DSM's data apart from the grid's margin beyond it: the dem stage said how
         # much of the ground the photos saw has a value, and a margin is no hole in that
-        holes = rest & binary_fill_holes(~rest)
+        holes = _enclosed(rest)
         wide = max(4.0, 10.0 / surf.cell_m) * surf.cell_m
         said = []
         if holes.any():

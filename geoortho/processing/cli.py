@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any, NoReturn
 
-from geoortho.errors import CanceledError, GeoorthoError, InputError, interrupted, shortened
+from geoortho.errors import CanceledError, GeoorthoError, InputError, ParameterError, interrupted, shortened
 from geoortho.feedback import Feedback, JsonLinesFeedback, TerminalFeedback
 from geoortho.processing.registry import describe_json, list_algorithms, run_algorithm
 from geoortho.processing.spec import PARAM_TYPES, Algorithm, Param
@@ -87,6 +87,15 @@ def for_people(text: str, params: Sequence[Param] = ()) -> str:
         # a Python name, not a file's (gcp_list.txt) nor part of a longer name
         text = re.sub(rf"(?<![\w./-]){re.escape(name)}(?![\w]|\.\w)", flags[name], text)
     return text
+
+
+def _error_for_people(error: InputError, message: str, params: Sequence[Param]) -> str:
+    """An error's line on the command line: the option a ParameterError is about leads by its flag
+    (``points: no such file`` is ``--points: no such file``), every other by :func:`for_people`."""
+    if isinstance(error, ParameterError) and message.startswith(f"{error.name}: "):
+        flag = next((p.cli_flag for p in params if p.name == error.name), error.name)
+        message = flag + message[len(error.name) :]
+    return for_people(message, params)
 
 
 def _option_help(p: Param, params: Sequence[Param] = ()) -> str:
@@ -277,12 +286,9 @@ def _main(argv: Sequence[str] | None) -> int:
             outputs = run_algorithm(alg, values, feedback, scheduler=args.scheduler)
     except InputError as e:
         message = _one_line(e)
-        named = re.match(r"(\w+): ", message)  # an error about one option leads with its name
-        if args.progress_json:  # the QGIS face's line: it names its parameters its own way
-            return fail("error", f"error: {message}", 2)
-        if named and any(p.name == named.group(1) for p in alg.params):
-            message = next(p.cli_flag for p in alg.params if p.name == named.group(1)) + message[named.end() - 2 :]
-        return fail("error", f"error: {for_people(message, alg.params)}", 2)
+        if not args.progress_json:  # (the QGIS face's line: it names its parameters its own way)
+            message = _error_for_people(e, message, alg.params)
+        return fail("error", f"error: {message}", 2)
     except (CanceledError, KeyboardInterrupt):
         return fail("canceled", "canceled", 130)
     except GeoorthoError as e:

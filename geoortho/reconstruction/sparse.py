@@ -360,7 +360,7 @@ def _rows_as_progress(db: Path, table: str, total: int, fb: Feedback, start: flo
 
 def _pairs_expected(how: str, n_photos: int) -> int:
     """About how many pairs a matcher matches: every pair, or each photo's nearest neighbours."""
-    if how.startswith("exhaustive"):
+    if how == "exhaustive":
         return n_photos * (n_photos - 1) // 2
     return n_photos * min(SPATIAL_MAX_NEIGHBOURS, max(n_photos - 1, 1)) // 2
 
@@ -444,13 +444,19 @@ def _spatial_distance_m(photos: Sequence[Photo], priors: _Priors) -> float:
     return 8.0 * float(np.median(d.min(axis=1)))
 
 
+def _matcher(how: str, photos: Sequence[Photo], priors: _Priors) -> str:
+    """The matcher ``how`` names; for "auto", spatial on a large block with GPS, else exhaustive."""
+    if how != "auto":
+        return how
+    enough_gps = len(priors.positions) >= 0.8 * len(photos)
+    return "spatial" if enough_gps and len(photos) > EXHAUSTIVE_MAX_PHOTOS else "exhaustive"
+
+
 def _match(db: Path, how: str, photos: Sequence[Photo], priors: _Priors, workers: int) -> str:
+    """Match with the matcher ``how`` (spatial, sequential or exhaustive: see :func:`_matcher`)."""
     pc = load_pycolmap()
     mo = pc.FeatureMatchingOptions()
     mo.num_threads = workers or -1
-    if how == "auto":
-        enough_gps = len(priors.positions) >= 0.8 * len(photos)
-        how = "spatial" if enough_gps and len(photos) > EXHAUSTIVE_MAX_PHOTOS else "exhaustive"
     if how == "spatial":
         if not priors.positions:
             raise InputError("spatial matching needs GPS positions; use exhaustive or sequential")
@@ -1849,10 +1855,9 @@ def _reconstruct(
     sigma_v = 2.0 * gps_sigma_m if priors.vertical_trusted else 1.0e3
     n_priors = _write_priors(db, priors, gps_sigma_m, sigma_v) if priors.positions else 0
     t0 = time.perf_counter()
-    auto = "spatial" if len(photos) > EXHAUSTIVE_MAX_PHOTOS else "exhaustive"  # (as _match decides)
-    expected = _pairs_expected(auto if matching == "auto" else matching, len(photos))
-    with _rows_as_progress(db, "matches", expected, fb, 0.3, 0.55):
-        how = _match(db, matching, photos, priors, workers)
+    matcher = _matcher(matching, photos, priors)
+    with _rows_as_progress(db, "matches", _pairs_expected(matcher, len(photos)), fb, 0.3, 0.55):
+        how = _match(db, matcher, photos, priors, workers)
     timer.add("matching", t0)
     fb.info(f"matching: {how}")
     fb.set_progress(0.55)
