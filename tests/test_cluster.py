@@ -127,7 +127,8 @@ def test_dense_depth_maps_on_the_cluster_are_the_local_run(cluster, sfm_with_gcp
         with distributed.get_task_stream(client) as ts:
             on = dense(r_sfm.output, small_survey.images, tmp_path / "dask.laz", **args)
         n_tasks = len(ts.data)
-    assert n_tasks >= len(list(small_survey.images.glob("*.JPG")))  # a depth map a photo
+    # a depth map a registered photo (the SfM may leave one of the 35 out; its own test counts them)
+    assert n_tasks >= on.n_photos == local.n_photos >= 0.9 * len(list(small_survey.images.glob("*.JPG")))
     assert local.n_points == on.n_points > 100_000
     a, b = laspy.read(tmp_path / "local.laz"), laspy.read(tmp_path / "dask.laz")
     for dim in ("X", "Y", "Z", "red", "green", "blue"):
