@@ -279,6 +279,28 @@ def test_some_nan_points_are_skipped_with_a_warning(tmp_path):
     assert r.n_points == 1998 and any("2 points" in w and "index 5" in w for w in fb.warnings)
 
 
+def test_a_cloud_s_heights_datum_reaches_its_dems_and_a_2d_one_claims_none(tmp_path):
+    """A LAS in a compound CRS (lidar delivered in EPSG:xxxx+vvvv) gives DEMs in it; a cloud in a
+    2D CRS gives 2D DEMs and says the datum is not stated (issue 77)."""
+    import laspy
+    import rasterio
+    from pyproj import CRS
+
+    from geoortho.core.pointcloud import write_las
+
+    rng = np.random.default_rng(2)
+    xyz = np.c_[rng.uniform(0, 30, 6000) + 5e5, rng.uniform(0, 30, 6000) + 4.3e6, rng.uniform(0, 1, 6000)]
+    for crs, heights in (("EPSG:32629+5773", [32629, 5773]), ("EPSG:32629", None)):
+        las = write_las(tmp_path / f"{heights is None}.laz", xyz, crs)
+        assert CRS(laspy.read(las).header.parse_crs()) == CRS(crs)
+        r = dem(las, tmp_path / f"{heights is None}.tif", resolution_m=1.0)
+        with rasterio.open(r.dsm) as ds:
+            got = CRS(ds.crs.to_wkt())
+        assert r.crs == "EPSG:32629" and (r.vertical_crs == "EPSG:5773") == (heights is not None)
+        assert [c.to_epsg() for c in got.sub_crs_list] == heights if heights else got.to_epsg() == 32629
+        assert any("heights' datum: " + ("EGM96 height" if heights else "not stated") in n for n in r.notes)
+
+
 def test_cli_dem_and_bad_parameter(tmp_path):
     path = real_data("pdal_las") / "4_6_crop.las"
     r = subprocess.run(

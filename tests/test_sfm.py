@@ -310,3 +310,34 @@ def test_colmap_s_rows_move_the_bar_while_it_works(tmp_path, monkeypatch):
     assert fb.values and fb.values == sorted(fb.values) and fb.values[-1] == pytest.approx(0.3)
     assert len({round(v, 3) for v in fb.values}) >= 3  # it moved with the rows, not once at the end
     assert sp._pairs_expected("exhaustive", 10) == 45 and sp._pairs_expected("spatial", 100) == 800
+
+
+def test_the_heights_datum_is_carried_where_known_and_said_where_not(gps_only, with_gcps, tiny_survey, tmp_path):
+    """The DEMs carry the datum of their heights when the SfM learnt it (issue 77): a --crs with
+    a vertical part reaches the sparse and DEM headers as a compound CRS (which QGIS shows); GCPs
+    in a horizontal CRS, or GPS alone, say where the datum would come from."""
+    import rasterio
+    from pyproj import CRS
+
+    from geoortho.core.surface import read_surface
+    from geoortho.elevation.gridding import dem
+
+    for r, why in ((gps_only[0], "GNSS heights"), (with_gcps[0], "names no vertical datum")):
+        rep = json.loads(r.report.read_text())
+        assert rep["vertical_crs"] is None and why in rep["vertical_crs_from"], rep["vertical_crs_from"]
+        assert CRS(laspy.read(r.points).header.parse_crs()).to_epsg() == 32629  # 2D: nothing claimed
+    r = sfm(tiny_survey.images, tmp_path / "sfm", crs="EPSG:32629+5773", max_image_size=640, max_features=2048)
+    rep = json.loads(r.report.read_text())
+    assert r.crs == rep["crs"] == "EPSG:32629"  # the map grid stays horizontal everywhere
+    assert rep["vertical_crs"] == "EPSG:5773" and "--crs" in rep["vertical_crs_from"]
+    header = CRS(laspy.read(r.points).header.parse_crs())
+    assert header.is_compound and header.sub_crs_list[1].to_epsg() == 5773
+    d = dem(r.points, tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", resolution_m=0.5)
+    assert d.vertical_crs == "EPSG:5773" and d.crs == "EPSG:32629"
+    for tif in (d.dsm, d.dtm):
+        with rasterio.open(tif) as ds:
+            crs = CRS(ds.crs.to_wkt())
+        assert crs.is_compound and [c.to_epsg() for c in crs.sub_crs_list] == [32629, 5773], tif
+    surface = read_surface(d.dsm, CRS.from_epsg(32629))  # read in the map grid: not warped
+    with rasterio.open(d.dsm) as ds:
+        assert surface.transform == ds.transform and surface.crs.to_epsg() == 32629

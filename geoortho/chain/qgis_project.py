@@ -308,7 +308,14 @@ def _crs_and_extent(layers: list[_Layer]) -> tuple[str, str, tuple[float, float,
             with rasterio.open(layer.path) as ds:
                 boxes.append(tuple(ds.bounds))
                 if not crs_wkt and ds.crs:
-                    crs_wkt, authid = ds.crs.to_wkt(), ds.crs.to_string()
+                    from pyproj import CRS
+
+                    from geoortho.core.crs import horizontal_of
+
+                    # the map's: a DEM's heights' datum is its layer's own
+                    horizontal = horizontal_of(CRS.from_user_input(ds.crs.to_wkt()))
+                    code = horizontal.to_epsg()
+                    crs_wkt, authid = horizontal.to_wkt(), (f"EPSG:{code}" if code else ds.crs.to_string())
         else:
             info = pyogrio.read_info(layer.path, layer=layer.layer, force_total_bounds=True)
             if info.get("total_bounds") is not None and info.get("features"):
@@ -336,6 +343,24 @@ def _layer_id(layer: _Layer, index: int) -> str:
     return f"{layer.name.replace(' ', '_').replace(':', '')}_{index:02d}"
 
 
+def _own_crs(layer: _Layer) -> tuple[str, str] | None:
+    """A raster's own CRS where it says more than the map's (a DEM's heights' datum), else None."""
+    if layer.kind != "raster":
+        return None
+    import rasterio
+    from pyproj import CRS
+
+    with rasterio.open(layer.path) as ds:
+        if ds.crs is None:
+            return None
+        crs = CRS.from_user_input(ds.crs.to_wkt())
+    if not (crs.is_compound or len(crs.axis_info) == 3):
+        return None
+    from geoortho.core.crs import crs_to_text
+
+    return crs.to_wkt(), crs_to_text(crs)
+
+
 def _map_layer(layer: _Layer, lid: str, project: Path, crs_wkt: str, authid: str) -> ET.Element:
     attrs = {"type": layer.kind, "hasScaleBasedVisibilityFlag": 0}
     if layer.kind == "vector":
@@ -346,7 +371,7 @@ def _map_layer(layer: _Layer, lid: str, project: Path, crs_wkt: str, authid: str
         _el("id", text=lid),
         _el("datasource", text=_source(layer, project)),
         _el("layername", text=layer.name),
-        _el("srs", None, _srs(crs_wkt, authid)),
+        _el("srs", None, _srs(*(_own_crs(layer) or (crs_wkt, authid)))),
     )
     if layer.kind == "vector":
         e.append(_el("provider", {"encoding": "UTF-8"}, text="ogr"))

@@ -26,7 +26,7 @@ import numpy as np
 from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, STAGES, from_ledger, ledger_problem
 from geoortho.chain.qgis_project import write_qgis_project
 from geoortho.chain.quality import as_number, assess, verdict
-from geoortho.core.crs import transformer
+from geoortho.core.crs import heights_from_text, heights_label, transformer
 from geoortho.core.outputs import write_json, write_text, write_vector
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback
@@ -397,6 +397,10 @@ def _summary(ctx: _Context) -> str:
         pairs.append(
             ("DSM / DTM", f"cells of {d.get('resolution'):g} ({d.get('units', '')}), {d.get('n_points'):,} points")
         )
+        heights = heights_from_text(d.get("vertical_crs"))
+        why = sfm.get("vertical_crs_from") if sfm else None
+        said = heights_label(heights) + ((", from " if heights is not None else ": ") + why if why else "")
+        pairs.append(("Heights' datum of the DEMs", said))
     return _kv(pairs)
 
 

@@ -21,6 +21,13 @@ __all__ = [
     "utm_crs_for",
     "transformer",
     "crs_to_text",
+    "horizontal_of",
+    "heights_of",
+    "with_heights",
+    "heights_label",
+    "heights_to_text",
+    "heights_from_text",
+    "ELLIPSOIDAL",
     "horizontal_unit_m",
     "geoid_undulation_m",
     "grid_north",
@@ -83,15 +90,94 @@ def transformer(src: CRS, dst: CRS) -> Transformer:
 
 
 def crs_to_text(crs: CRS) -> str:
-    """``EPSG:xxxx`` when the CRS has a code, else a PROJ string (ODM's gcp_list header)."""
+    """``EPSG:xxxx`` when the CRS has a code (``EPSG:h+v`` for a compound one whose parts have
+    codes), else a PROJ string (ODM's gcp_list header)."""
     code = crs.to_epsg()
     if code is not None:
         return f"EPSG:{code}"
+    if crs.is_compound and len(crs.sub_crs_list) == 2:
+        codes = [c.to_epsg() for c in crs.sub_crs_list]
+        if None not in codes:
+            return f"EPSG:{codes[0]}+{codes[1]}"
     import warnings
 
     with warnings.catch_warnings():  # PROJ strings drop datum details; ODM reads nothing else
         warnings.simplefilter("ignore", UserWarning)
         return crs.to_proj4()
+
+
+#: The heights' datum of a CRS whose heights are above the ellipsoid (a 3D CRS: EPSG has no
+#: vertical CRS for them).
+ELLIPSOIDAL = "ellipsoidal"
+
+
+def horizontal_of(crs: CRS) -> CRS:
+    """The horizontal CRS of a compound or 3D one (the CRS itself when it is 2D): every map-grid
+    computation runs in it; the heights' datum rides beside it (:func:`heights_of`)."""
+    if crs.is_compound:
+        return crs.sub_crs_list[0]
+    if len(crs.axis_info) == 3:
+        return crs.to_2d()
+    return crs
+
+
+def heights_of(crs: CRS | None) -> CRS | str | None:
+    """The datum of a CRS's heights: its vertical CRS (compound), :data:`ELLIPSOIDAL` (3D), or None
+    when the CRS does not say."""
+    if crs is None:
+        return None
+    if crs.is_compound:
+        return next((c for c in crs.sub_crs_list if c.is_vertical), None)
+    if len(crs.axis_info) == 3 and "ellipsoidal" in (crs.axis_info[2].name or "").lower():
+        return ELLIPSOIDAL
+    return None
+
+
+def with_heights(crs: CRS, heights: CRS | str | None) -> CRS:
+    """``crs`` (horizontal) with its heights' datum: compound with a vertical CRS, 3D for
+    :data:`ELLIPSOIDAL`, as is for None. A GeoTIFF or LAS header written with it carries the
+    heights' datum, which QGIS and PDAL read.
+
+    >>> crs_to_text(with_heights(CRS.from_epsg(32629), CRS.from_epsg(5773)))
+    'EPSG:32629+5773'
+    """
+    crs = horizontal_of(crs)
+    if heights is None:
+        return crs
+    if isinstance(heights, str):
+        if heights == ELLIPSOIDAL:
+            return crs.to_3d()
+        heights = parse_crs(heights)
+    if not heights.is_vertical:
+        raise ValueError(f"{heights.name} is not a vertical CRS")
+    parts = [crs.to_json_dict(), heights.to_json_dict()]
+    return CRS.from_json_dict({"type": "CompoundCRS", "name": f"{crs.name} + {heights.name}", "components": parts})
+
+
+def heights_label(heights: CRS | str | None) -> str:
+    """The heights' datum in words: ``EGM96 height (EPSG:5773)``, ``ellipsoidal (WGS 84)``, or
+    ``not stated``."""
+    if heights is None:
+        return "not stated"
+    if isinstance(heights, str):
+        return "ellipsoidal height" if heights == ELLIPSOIDAL else heights
+    code = heights.to_epsg()
+    return f"{heights.name}" + (f" (EPSG:{code})" if code else "")
+
+
+def heights_to_text(heights: CRS | str | None) -> str | None:
+    """The heights' datum for a JSON report: ``EPSG:5773``, ``ellipsoidal``, a WKT, or None."""
+    if heights is None or isinstance(heights, str):
+        return heights
+    code = heights.to_epsg()
+    return f"EPSG:{code}" if code else heights.to_wkt()
+
+
+def heights_from_text(text: str | None) -> CRS | str | None:
+    """The inverse of :func:`heights_to_text`."""
+    if not text:
+        return None
+    return ELLIPSOIDAL if text == ELLIPSOIDAL else parse_crs(text)
 
 
 def horizontal_unit_m(crs: CRS) -> float:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
-from geoortho.core.crs import horizontal_unit_m, parse_crs, transformer
+from geoortho.core.crs import heights_label, heights_of, horizontal_of, horizontal_unit_m, parse_crs, transformer
 from geoortho.core.outputs import atomic_path
 from geoortho.errors import InputError
 
@@ -63,6 +63,14 @@ class PointSource:
     _array: np.ndarray | None = None
     _classes: np.ndarray | None = None
     _reproject_from: CRS | None = None  # the file's CRS when the points are read into ``crs``
+    heights: CRS | str | None = None  # the heights' datum (``crs`` is horizontal), None: not stated
+
+    @property
+    def crs_with_heights(self) -> CRS:
+        """``crs`` with the heights' datum, for a product of heights (a DEM) to carry."""
+        from geoortho.core.crs import with_heights
+
+        return with_heights(self.crs, self.heights)
 
     @property
     def file_crs(self) -> CRS:
@@ -155,7 +163,7 @@ def reprojected(src: PointSource, crs: str | CRS) -> PointSource:
     Refused when the points lie outside their own CRS's area: that CRS is then wrong (the old
     meaning of dem's --crs was to override it; --points-crs does that now), and reprojecting
     from it would write garbage."""
-    target = parse_crs(crs)
+    target = horizontal_of(parse_crs(crs))  # heights are not moved between datums: the points' stays
     if target == src.crs:
         return src
     if not target.is_projected:
@@ -236,7 +244,10 @@ def write_las_parts(
     header.offsets = np.floor(np.asarray(lowest, float) + base)
     header.scales = [0.001, 0.001, 0.001]
     if crs is not None:
-        header.add_crs(parse_crs(crs))
+        c = parse_crs(crs)
+        # GeoTIFF keys (read by every LAS reader) for a CRS with one EPSG code; a compound or 3D
+        # CRS (the heights' datum) has none, and goes as the LAS 1.4 WKT record
+        header.add_crs(c, keep_compatibility=c.to_epsg() is not None)
     with atomic_path(path) as tmp:
         with laspy.open(str(tmp), mode="w", header=header) as writer:
             for xyz, rgb, classification in parts:
@@ -436,7 +447,11 @@ def _open_las(path: Path, override: CRS | None, default: CRS | None = None) -> P
         notes.append(f"heights in {v_name} (GeoTIFF VerticalUnits key)")
     else:
         notes.append(f"heights in {v_name}, as the horizontal units (no vertical unit stated)")
-    return PointSource(path, crs, count, (*mins, *maxs), h_name, h_m, v_name, v_m, True, notes)
+    heights = heights_of(crs)
+    notes.append(f"heights' datum: {heights_label(heights)}" + ("" if heights else " in the LAS header's CRS"))
+    return PointSource(
+        path, horizontal_of(crs), count, (*mins, *maxs), h_name, h_m, v_name, v_m, True, notes, heights=heights
+    )
 
 
 def _open_ply(path: Path, override: CRS | None) -> PointSource:
@@ -477,7 +492,7 @@ def _from_array(
     v_name, v_m = v if v is not None else (h_name, h_m)
     return PointSource(
         path,
-        crs,
+        horizontal_of(crs),
         len(a),
         (*mins, *maxs),
         h_name,
@@ -488,4 +503,5 @@ def _from_array(
         notes or [f"CRS given: {crs.name}"],
         _array=a[:, :3],
         _classes=None if classification is None else np.asarray(classification, np.uint8),
+        heights=heights_of(crs),
     )

@@ -12,6 +12,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
+from geoortho.core.crs import horizontal_of
 from geoortho.errors import InputError
 
 __all__ = ["Surface", "FlatSurface", "GridSurface", "RayHits", "read_surface", "sample_grid"]
@@ -460,6 +461,8 @@ def read_surface(
             refuse_image(src, path)
             src_crs = CRS.from_user_input(src.crs)
             unit_name, to_m = height_unit(src_crs)
+            # the map grid alone: a DEM's heights' datum (compound or 3D CRS) is no reason to warp it
+            src_crs, crs = horizontal_of(src_crs), (horizontal_of(crs) if crs is not None else None)
             if crs is not None and not src_crs.equals(crs):
                 with WarpedVRT(
                     src, crs=crs.to_wkt(), resampling=Resampling.bilinear, src_nodata=src.nodata, nodata=float("nan")

@@ -61,7 +61,7 @@ def write_contours(
 
     f = max(1, int(math.ceil(math.sqrt(z.size / MAX_CELLS))))
     zz = _block_mean(np.asarray(z, np.float64), f)
-    t = transform * Affine.scale(f)
+    t = transform @ Affine.scale(f)
     valid = np.isfinite(zz)
     lines: list[Any] = []
     levels: list[float] = []

@@ -23,7 +23,7 @@ from typing import Any, Literal, get_args
 import numpy as np
 from affine import Affine
 
-from geoortho.core.crs import crs_to_text, parse_crs
+from geoortho.core.crs import crs_to_text, heights_to_text, horizontal_of, parse_crs
 from geoortho.core.gapfill import fill_harmonic, gap_mask
 from geoortho.core.outputs import atomic_path, atomic_paths, cog_options, write_cog
 from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
@@ -134,6 +134,9 @@ class DemResult:
         Contour lines of the DTM (GeoPackage), when asked for.
     contour_interval_m : float
         Their interval.
+    vertical_crs : str
+        The heights' datum the DEMs carry (``EPSG:5773``, ``ellipsoidal``), None when the points
+        did not state it.
     """
 
     dsm: Path
@@ -160,6 +163,7 @@ class DemResult:
     ground_noise_m: float = math.nan
     contours: Path | None = None
     contour_interval_m: float = math.nan
+    vertical_crs: str | None = None
 
 
 def _auto_resolution_m(src: PointSource) -> float:
@@ -480,7 +484,7 @@ def _open_source(
     src = open_points(points, points_crs, default_crs=crs)
     if why_method:
         src.notes.append(why_method)
-    if crs is not None and parse_crs(crs) != src.crs:
+    if crs is not None and horizontal_of(parse_crs(crs)) != src.crs:
         if engine == "pdal":
             raise ParameterError("engine", "reprojection (--crs) runs on the native engine only")
         src = reprojected(src, crs)
@@ -580,6 +584,7 @@ def _dem_tiled(
         tiles.n_used,
         tiles.n_ground,
         tuple(notes),
+        vertical_crs=heights_to_text(src.heights),
     )
 
 
@@ -968,8 +973,9 @@ def _write_products(
 
     def write(path: Path, z: np.ndarray, name: str, units: str) -> Path:
         return write_cog(
-            path, with_nodata(z), transform=grid.transform, crs=src.crs, nodata=NODATA, band_names=(name,), units=units
-        )
+            path, with_nodata(z), transform=grid.transform, crs=src.crs_with_heights, nodata=NODATA,
+            band_names=(name,), units=units,
+        )  # fmt: skip
 
     dsm_path = write(output, dsm_grid, "dsm", unit_tag)
     dtm_path = None
@@ -994,6 +1000,7 @@ def _write_products(
         first.n_used,
         n_ground,
         tuple(notes),
+        vertical_crs=heights_to_text(src.heights),
     )
 
 
@@ -1052,7 +1059,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     dtm_fields: dict[str, Any] = {}
     if result.dtm is not None:
         dtm_source, dtm_grid, objects, note, dtm_fields = _complete_dtm(
-            result.dtm, done, z, measured, target, new_t, crs, unit, polys
+            result.dtm, done, z, measured, target, new_t, src.crs_with_heights, unit, polys
         )
         notes.append(note)
         # the DSM's gaps beside and under the objects the DTM found, each filled from its own side
@@ -1063,7 +1070,10 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         if warning:
             notes.append(warning)
             fb.warning(f"dem: {warning}")
-    write_cog(result.dsm, with_nodata(done.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dsm",), units=unit)
+    write_cog(
+        result.dsm, with_nodata(done.z), transform=new_t, crs=src.crs_with_heights, nodata=NODATA,
+        band_names=("dsm",), units=unit,
+    )  # fmt: skip
     if result.hillshade is not None:
         write_hillshade(result.hillshade, dtm_grid if dtm_grid is not None else done.z, new_t.a, 1.0)
     for n in notes:
@@ -1102,7 +1112,7 @@ def _over_the_footprints(
     rows = np.flatnonzero((target | np.isfinite(z)).any(axis=1))
     cols = np.flatnonzero((target | np.isfinite(z)).any(axis=0))
     sl = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
-    new_t = new_t * Affine.translation(int(cols[0]), int(rows[0]))
+    new_t = new_t @ Affine.translation(int(cols[0]), int(rows[0]))
     return z[sl], target[sl], new_t
 
 
@@ -1134,8 +1144,8 @@ def _complete_dtm(
     source[clean.no_ground & (source > 0)] = UNDER_OBJECT
     dtm_done = replace(dtm_done, z=clean.z, source=source)
     write_cog(path, with_nodata(clean.z), transform=new_t, crs=crs, nodata=NODATA, band_names=("dtm",), units=unit)
-    dtm_source = write_cog(
-        source_path(path), source, transform=new_t, crs=crs, nodata=0, band_names=(SOURCE_DESCRIPTION,)
+    dtm_source = write_cog(  # codes, not heights: the map grid alone
+        source_path(path), source, transform=new_t, crs=horizontal_of(crs), nodata=0, band_names=(SOURCE_DESCRIPTION,)
     )
     # open ground: ground kept, off every object, the DSM on it
     with np.errstate(invalid="ignore"):
@@ -1373,7 +1383,7 @@ def _run_pdal(
                     target,
                     with_nodata(z),
                     transform=grid.transform,
-                    crs=src.crs,
+                    crs=src.crs_with_heights,
                     nodata=NODATA,
                     band_names=(name,),
                     units=_unit_tag(src.vertical_unit),
@@ -1382,7 +1392,7 @@ def _run_pdal(
     fb.info("engine: PDAL")
     return DemResult(
         outs[0], outs[1] if dtm is not None else None, None, None, grid.cell, crs_to_text(src.crs),
-        src.describe_units(), src.count, n_ground, tuple(src.notes),
+        src.describe_units(), src.count, n_ground, tuple(src.notes), vertical_crs=heights_to_text(src.heights),
     )  # fmt: skip
 
 

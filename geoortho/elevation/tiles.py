@@ -271,7 +271,7 @@ def _tile_profile(src: Any, grid: Any) -> dict[str, Any]:
         height=grid.rows,
         count=1,
         dtype="float32",
-        crs=src.crs,
+        crs=src.crs_with_heights,
         transform=grid.transform,
         nodata=NODATA,
         tiled=True,

@@ -222,7 +222,7 @@ def measure_coverage(
         f = max(1, math.ceil(math.sqrt(ds.width * ds.height / COVERAGE_CELLS)))
         shape = (max(1, ds.height // f), max(1, ds.width // f))
         alpha = ds.read_masks(1, out_shape=shape, resampling=Resampling.nearest) > 0
-        t = ds.transform * Affine.scale(ds.width / shape[1], ds.height / shape[0])
+        t = ds.transform @ Affine.scale(ds.width / shape[1], ds.height / shape[0])
     cell_m2 = abs(t.a * t.e)
     seen = seen_count(footprint_polygons(cams, surface), t, shape)
     out = {

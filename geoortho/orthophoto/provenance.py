@@ -131,7 +131,7 @@ def write_seamlines(
         h, w = max(1, round(ds.height / scale)), max(1, round(ds.width / scale))
         photo = ds.read(1, out_shape=(h, w), resampling=Resampling.nearest)
         how = ds.read(2, out_shape=(h, w), resampling=Resampling.nearest)
-        transform = ds.transform * ds.transform.scale(ds.width / w, ds.height / h)
+        transform = ds.transform @ ds.transform.scale(ds.width / w, ds.height / h)
         crs = ds.crs
     by_photo: dict[int, list[Any]] = {}
     for geom, value in shapes(photo.astype(np.int32), mask=photo > 0, transform=transform, connectivity=8):

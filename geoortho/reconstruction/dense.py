@@ -163,9 +163,9 @@ def dense(
     """
     # here, not at the top: the depth-map workers import this module and need none of these
     # (pycolmap, laspy, the DEM tiles: 0.3 -> 0.9 s a worker; pyproj alone 70 ms)
-    from geoortho.core.crs import crs_to_text
+    from geoortho.core.crs import crs_to_text, heights_to_text, with_heights
     from geoortho.elevation.tiles import work_folder
-    from geoortho.reconstruction.model import cameras_from_sfm
+    from geoortho.reconstruction.model import cameras_from_sfm, model_heights
 
     fb = as_feedback(feedback)
     clock = time.perf_counter()
@@ -194,7 +194,9 @@ def dense(
         seconds["depth_maps"] = _lap(clock) - seconds["plan"]
         peak_before_write_mb = _peak_memory_mb()["main"]
         t_write = time.perf_counter()
-        n_written, fallback = _write_cloud(output, fusion, pts, work.origin, crs, notes, fb)
+        heights, _ = model_heights(sfm)  # the cloud's header says its heights' datum where the SfM knew it
+        cloud_crs = with_heights(crs, heights) if crs is not None else None
+        n_written, fallback = _write_cloud(output, fusion, pts, work.origin, cloud_crs, notes, fb)
         seconds["fusion"] = fusion.seconds  # merges, spills and (spilled) the tiles' merges
         seconds["write"] = time.perf_counter() - t_write  # a spilled cloud's tiles merged included
     s_write.progress(1.0)
@@ -207,6 +209,7 @@ def dense(
         {
             "output": str(output),
             "crs": crs_text or None,
+            "vertical_crs": heights_to_text(heights) if crs is not None else None,
             "photos": len(cams),
             **maps.as_report(),
             **work.as_report(),

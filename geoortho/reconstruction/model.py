@@ -12,7 +12,7 @@ import numpy as np
 from pyproj import CRS
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera
-from geoortho.core.crs import parse_crs, transformer
+from geoortho.core.crs import heights_from_text, parse_crs, transformer
 from geoortho.errors import InputError
 from geoortho.reconstruction.colmap import load_pycolmap
 
@@ -135,6 +135,18 @@ def cameras_from_sfm(
         x, y, z = move.transform(pts[:, 0], pts[:, 1], pts[:, 2])
         pts = np.c_[x, y, z]
     return cams, out_crs, pts, skipped
+
+
+def model_heights(sfm_dir: str | os.PathLike[str]) -> tuple[CRS | str | None, str]:
+    """The datum of an ``sfm`` output's heights (a vertical CRS, ``"ellipsoidal"``, or None: not
+    known) and where the SfM learnt it (an older model that did not record it: None)."""
+    sfm_dir = Path(sfm_dir)
+    model = sfm_dir / "model" if (sfm_dir / "model").is_dir() else sfm_dir
+    try:
+        geo = json.loads((model / "georeference.json").read_text())
+    except (OSError, ValueError):
+        return None, "no georeference.json"
+    return heights_from_text(geo.get("vertical_crs")), str(geo.get("vertical_crs_from") or "not recorded by the SfM")
 
 
 def _moved(tr: Any, centre: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -46,7 +46,20 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from geoortho.core.camera import rotation_from_ypr, ypr_from_rotation
-from geoortho.core.crs import WGS84, crs_to_text, geoid_undulation_m, parse_crs, transformer, utm_crs_for
+from geoortho.core.crs import (
+    ELLIPSOIDAL,
+    WGS84,
+    crs_to_text,
+    geoid_undulation_m,
+    heights_label,
+    heights_of,
+    heights_to_text,
+    horizontal_of,
+    parse_crs,
+    transformer,
+    utm_crs_for,
+    with_heights,
+)
 from geoortho.core.outputs import temp_prefix, write_json, write_vector
 from geoortho.core.parallel import map_ordered
 from geoortho.core.pointcloud import write_las
@@ -1279,7 +1292,7 @@ def sfm(
                 path=images,
             )
         t0 = time.perf_counter()
-        n_points = _write_model(output, work, db, mapped, inputs, notes)
+        n_points = _write_model(output, work, db, mapped, inputs, geo, notes)
         timer.add("outputs", t0)
         figures = _figures(mapped.rec, inputs, geo)
         _write_report(output, inputs, mapped, geo, figures, intrinsics, mapper, lag, sub_stats, timer, t_start, notes)
@@ -1409,6 +1422,7 @@ class _Inputs:
     positions: PositionFile | None = None  # a positions file's, applied to the photos
     photos_as_read: tuple[Photo, ...] = ()  # before the positions file (a time lag reads it again)
     takeoff_elevation_m: float | None = None
+    heights_given: Any = None  # the heights' datum --crs states (its vertical part), or None
 
     @property
     def crs_text(self) -> str:
@@ -1520,6 +1534,7 @@ def _read_inputs(
         position_file,
         as_read,
         takeoff_elevation_m,
+        heights_of(parse_crs(crs)) if crs is not None else None,
     )
 
 
@@ -2172,19 +2187,52 @@ def _gcp_effect(rec: Any, sim: Any) -> dict[str, Any]:
     }
 
 
-def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _Inputs, notes: list[str]) -> int:
+def _heights_datum(inputs: _Inputs, geo: _Georeference) -> tuple[Any, str]:
+    """The datum of the model's heights (a vertical CRS, :data:`ELLIPSOIDAL`, or None: not
+    known) and where it was learnt. The model takes its heights from the GCPs when they control
+    them, else from the photos' positions."""
+    if inputs.out_crs is None:
+        return None, "a local frame"
+    gcps = inputs.gcps
+    if gcps is not None and geo.heights_usable and "GCP" in geo.how and any(s.role == "control" for s in geo.states):
+        stated = heights_of(gcps.crs)
+        if stated is not None:
+            return stated, f"the GCP file's CRS ({gcps.crs.name})"
+        if inputs.heights_given is not None:
+            return inputs.heights_given, "--crs (the GCP heights taken to be in it)"
+        return None, (
+            f"the GCP file's CRS ({gcps.crs.name}) names no vertical datum: give the GCPs' CRS with "
+            "their heights' datum, e.g. EPSG:32629+5773 (EGM96), or --crs so"
+        )
+    if inputs.heights_given is not None:
+        return inputs.heights_given, "--crs (the positions' heights taken to be in it, as given)"
+    if inputs.positions is not None and inputs.priors.vertical_trusted:
+        return ELLIPSOIDAL, f"the positions file {inputs.positions.path.name} (heights above the WGS 84 ellipsoid)"
+    return None, (
+        "the photos' GNSS heights, whose datum the tags do not state: give GCPs in a compound CRS "
+        "(e.g. EPSG:32629+5773), or --crs with a vertical part"
+    )
+
+
+def _write_model(
+    output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _Inputs, geo: _Georeference, notes: list[str]
+) -> int:
     """The COLMAP model (+ georeference.json), the database, points.laz and cameras.gpkg; the points written."""
     rec, priors = mapped.rec, inputs.priors
     model_dir = output / "model"
     tmp_model = work / "model"
     tmp_model.mkdir()
     rec.write(tmp_model)
+    heights, heights_from = _heights_datum(inputs, geo)
+    notes.append(f"heights' datum: {heights_label(heights)}, from {heights_from}")
     write_json(
         tmp_model / "georeference.json",
         {
             "crs": inputs.crs_text,
+            "vertical_crs": heights_to_text(heights),
+            "vertical_crs_from": heights_from,
             "offset": priors.offset.tolist(),
-            "note": "model coordinates + offset = coordinates in crs",
+            "note": "model coordinates + offset = coordinates in crs; heights in vertical_crs (null: not known)",
         },
     )
     if model_dir.exists():
@@ -2195,7 +2243,7 @@ def _write_model(output: Path, work: Path, db: Path, mapped: _Mapped, inputs: _I
     if inputs.out_crs is None:
         notes.append("no CRS: points.laz and cameras.gpkg are not written (local frame only)")
         return 0
-    n_points = _write_points(output / "points.laz", rec, priors.offset, inputs.out_crs)
+    n_points = _write_points(output / "points.laz", rec, priors.offset, with_heights(inputs.out_crs, heights))
     _write_cameras(
         output / "cameras.gpkg",
         rec,
@@ -2252,6 +2300,8 @@ def _report(
         "mean_track_length": float(rec.compute_mean_track_length()),
         "gsd_cm": _gsd_m(rec) * 100.0,
         "crs": inputs.crs_text,
+        "vertical_crs": heights_to_text(_heights_datum(inputs, geo)[0]),
+        "vertical_crs_from": _heights_datum(inputs, geo)[1],
         "offset": inputs.priors.offset.tolist(),
         "heights": inputs.priors.heights,
         "vertical_gps_trusted": inputs.priors.vertical_trusted,
@@ -2513,13 +2563,15 @@ def _gps_fit_spread(model_xy: np.ndarray, gps_xy: np.ndarray) -> dict[str, Any]:
 
 
 def _output_crs(crs: str | None, photos: Sequence[Photo], gcps: GcpSet | None) -> Any:
+    """The model's map grid: horizontal (a compound CRS's vertical part is the heights' datum,
+    :func:`_heights_datum`)."""
     if crs is not None:
         c = parse_crs(crs)
         if not c.is_projected:
             raise InputError(f"the output CRS must be projected (metres or feet), not {c.name}")
-        return c
+        return horizontal_of(c)
     if gcps is not None and gcps.crs.is_projected:
-        return gcps.crs
+        return horizontal_of(gcps.crs)
     if any(p.has_gps for p in photos):
         return working_crs([p for p in photos if p.has_gps])
     if gcps is not None:
