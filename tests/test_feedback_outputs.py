@@ -82,17 +82,23 @@ def test_every_offered_vector_format_is_whole_under_its_final_name(tmp_path, ext
     import shapely
 
     from geoortho.core.outputs import write_vector
+    from geoortho.core.styles import product_styles
 
     g = gpd.GeoDataFrame(
         {"image": ["a", "b"]}, geometry=[shapely.box(0, 0, 1, 1), shapely.box(1, 1, 2, 3)], crs="EPSG:32629"
     )
-    p = write_vector(tmp_path / f"fp{ext}", {"footprints": g, "cameras": g})
+    styles = product_styles("footprints", "cameras")
+    p = write_vector(tmp_path / f"fp{ext}", {"footprints": g, "cameras": g}, styles=styles)
     back = gpd.read_file(p, layer=0).sort_values("image")
     back = back.set_crs("EPSG:32629") if back.crs is None else back.to_crs("EPSG:32629")  # CSV: no CRS; KML: lon/lat
     assert list(back["image"]) == ["a", "b"] and back.geometry.area.round(3).tolist() == [1.0, 2.0]
     assert not [x.name for x in tmp_path.iterdir() if ".tmp-" in x.name]
     names = pyogrio.list_layers(p)[:, 0].tolist()
     assert names[0] in ("footprints", "fp")
+    if ext == ".gpkg":  # each layer's QGIS style as its default, where QGIS reads it (issue 77)
+        rows = pyogrio.read_dataframe(p, layer="layer_styles")
+        assert dict(zip(rows["f_table_name"], rows["styleQML"])) == styles and rows["useAsDefault"].all()
+        assert "#377eb8"[1:] not in styles["cameras"] and "55,126,184" in styles["footprints"]
 
 
 def test_a_dead_runs_temporaries_are_removed_at_the_next_start_a_live_runs_kept(tiny_survey, tmp_path):

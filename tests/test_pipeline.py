@@ -117,6 +117,9 @@ def test_report_numbers_are_the_stages_own(first_run):
     checkpoint = sfm["checkpoint_accuracy"]
     assert checkpoint["n"] == 1 and f"{100 * checkpoint['rmse_3d_m']:.1f} cm" in page
     assert f"{100 * ortho['resolution_m']:.2f} cm" in page and f"{dense['points_written']:,}" in page
+    # one quantity, one figure (issue 77): the area >= 2 photos saw, as the dem and the ortho state it
+    dem = json.loads((project / "run.json").read_text())["stages"]["dem"]["outputs"]
+    assert dem["seen_m2"] == pytest.approx(ortho["seen_2_m2"], abs=0.5), (dem["seen_m2"], ortho["seen_2_m2"])
     assert "no problem found" in page and 'class="banner problem"' not in page
     # the clean survey is green on every item it measured, and the page says what quality.json does
     quality = json.loads((project / "quality.json").read_text())

@@ -148,6 +148,8 @@ def test_footprints_through_processing_run(provider, tiny, tmp_path):
     assert layer.crs().authid() == cli["crs"]
     assert layer.featureCount() == cli["n_photos"] == results["N_PHOTOS"]
     assert all(f.geometry().isGeosValid() for f in layer.getFeatures())
+    # its default style, from the GeoPackage's layer_styles (issue 77): the project's outline
+    assert layer.renderer().symbol().symbolLayer(0).strokeColor().name() == "#377eb8"
     assert results["MEDIAN_GSD_CM"] == pytest.approx(cli["median_gsd_cm"])
     _same_footprints(out, tmp_path / "cli.gpkg")
 
@@ -408,7 +410,7 @@ def _opens_as_a_styled_project(project: Path, tmp_path: Path) -> None:
     """The run's project.qgz in QGIS: every product a valid layer in the survey's CRS, the source
     rasters paletted with their legend, the DEMs coloured over their hillshades; a raster dragged in
     alone takes its default style; the visible layers render the orthophoto where it is."""
-    from qgis.core import QgsMapRendererParallelJob, QgsMapSettings, QgsProject, QgsRasterLayer
+    from qgis.core import QgsMapRendererParallelJob, QgsMapSettings, QgsProject, QgsRasterLayer, QgsVectorLayer
     from qgis.PyQt.QtCore import QSize
     from qgis.PyQt.QtGui import QColor
 
@@ -431,6 +433,12 @@ def _opens_as_a_styled_project(project: Path, tmp_path: Path) -> None:
     assert layers["DSM hillshade"].renderer().type() == "hillshade"
     alone = QgsRasterLayer(str(project / "ortho" / "ortho_source.tif"), "alone")
     assert alone.renderer().type() == "paletted" and alone.renderer().inputBand() == 2
+    for gpkg, name, colour in (
+        ("sfm/cameras.gpkg", "cameras", "#e41a1c"),
+        ("gcp_residuals.gpkg", "residuals", "#d7191c"),
+    ):
+        vector = QgsVectorLayer(f"{project / gpkg}|layername={name}", "alone", "ogr")  # its GeoPackage's style
+        assert vector.isValid() and vector.renderer().symbol().color().name() == colour, (gpkg, name)
     shown = [n.layer() for n in qp.layerTreeRoot().findLayers() if n.isVisible()]
     assert ortho in shown and layers["DSM"] not in shown
     settings = QgsMapSettings()
@@ -498,6 +506,7 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     for name in ("dsm.tif", "dtm.tif"):
         layer = QgsRasterLayer(str(tmp_path / name), name)
         assert layer.isValid() and layer.crs().authid() == r["CRS"]
+        assert layer.renderer().type() == "singlebandpseudocolor"  # its .qml, written by the dem
     geoortho_cli(
         "dem",
         "--points",

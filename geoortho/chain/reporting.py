@@ -28,6 +28,7 @@ from geoortho.chain.qgis_project import write_qgis_project
 from geoortho.chain.quality import as_number, assess, verdict
 from geoortho.core.crs import heights_from_text, heights_label, transformer
 from geoortho.core.outputs import write_json, write_text, write_vector
+from geoortho.core.styles import product_styles
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.gcp.io import read_gcp_file
@@ -699,7 +700,7 @@ def _write_residual_layers(ctx: _Context, project: Path) -> Path | None:
         geometry=shapely.linestrings(np.stack([xy, xy + d * found.scale], axis=1)),
         crs=crs,
     )
-    write_vector(target, {"gcps": points, "residuals": lines})
+    write_vector(target, {"gcps": points, "residuals": lines}, styles=product_styles("gcps", "residuals"))
     return target
 
 

@@ -28,6 +28,7 @@ __all__ = [
     "remove_stale_temporaries",
     "write_cog",
     "write_vector",
+    "write_layer_styles",
     "write_text",
     "write_json",
     "json_text",
@@ -242,11 +243,43 @@ VECTOR_DRIVERS = {
 }
 
 
-def write_vector(target: str | os.PathLike[str], layers: dict[str, Any]) -> Path:
+def write_layer_styles(gpkg: str | os.PathLike[str], styles: dict[str, str]) -> None:
+    """Each layer's style (layer name → QGIS style document) as its default, in the GeoPackage's
+    ``layer_styles`` table, where QGIS looks when the layer is opened alone (the table QGIS itself
+    writes with "Save as default")."""
+    import datetime
+
+    import pandas as pd
+    import pyogrio
+
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.000Z")
+    rows = [
+        {
+            "f_table_catalog": "",
+            "f_table_schema": "",
+            "f_table_name": name,
+            "f_geometry_column": "geom",
+            "styleName": name,
+            "styleQML": qml,
+            "styleSLD": "",
+            "useAsDefault": True,
+            "description": "geoortho's style of this product",
+            "owner": "",
+            "ui": "",
+            "update_time": now,
+        }
+        for name, qml in styles.items()
+    ]
+    exists = "layer_styles" in {str(n) for n, _ in pyogrio.list_layers(gpkg)}
+    pyogrio.write_dataframe(pd.DataFrame(rows), gpkg, layer="layer_styles", driver="GPKG", append=exists)
+
+
+def write_vector(target: str | os.PathLike[str], layers: dict[str, Any], styles: dict[str, str] | None = None) -> Path:
     """Write one or more GeoDataFrames (layer name → frame) atomically.
 
     The format follows the extension; several layers need a multi-layer format
-    (GeoPackage).
+    (GeoPackage). ``styles`` (layer name → QGIS style document) go into a GeoPackage as the layers'
+    default styles (:func:`write_layer_styles`); other formats have no place for them.
     """
     target = Path(target)
     driver = VECTOR_DRIVERS.get(target.suffix.lower())
@@ -271,4 +304,6 @@ def write_vector(target: str | os.PathLike[str], layers: dict[str, Any]) -> Path
                 # per field by geopandas and by pyogrio, to stderr, it is noise
                 warnings.filterwarnings("ignore", message=".*(Column names longer|laundered field name)")
                 frame.to_file(tmp, **kwargs)
+        if styles and driver == "GPKG":
+            write_layer_styles(tmp, {k: v for k, v in styles.items() if k in layers})
     return target

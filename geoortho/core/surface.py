@@ -487,6 +487,34 @@ def read_surface(
 FILL_VALUES = (-9999.0, -99999.0, -32767.0, -32768.0, -3.4028234663852886e38)
 
 
+@dataclass(frozen=True)
+class Holed:
+    """A DSM made whole to cast rays on (:func:`whole_surface`), and what was done to it."""
+
+    surface: GridSurface
+    n_interpolated: int  # small nodata gaps inside the data, interpolated
+    on_ground: np.ndarray  # bool: wider holes and the grid beyond the data, at the ground near them
+
+
+def whole_surface(surf: GridSurface, max_gap_m: float = 10.0) -> Holed:
+    """``surf`` with no cell empty, for footprints and rays: gaps up to ``max_gap_m`` (at least 4
+    cells) interpolated from round them, wider holes and the grid beyond the data at the ground's
+    height near them (:meth:`GridSurface.nearest_elevation`): a hole is ground the photos saw.
+    The ortho renders on it, and the dem casts the footprints it states areas by on it, so both
+    state the same figures."""
+    from geoortho.core.gapfill import fill_gaps_by_windows
+
+    grid, n_filled = fill_gaps_by_windows(surf.grid, max_gap_cells=max(4.0, max_gap_m / surf.cell_m))
+    rest = ~np.isfinite(grid)
+    if rest.any():
+        rows, cols = np.nonzero(rest)
+        grid = np.array(grid, np.float32, copy=True)
+        grid[rows, cols] = surf.nearest_elevation(cols.astype(float), rows.astype(float))
+    if n_filled or rest.any():
+        surf = GridSurface(grid, surf.transform, surf.crs, extend=True)
+    return Holed(surf, n_filled, rest)
+
+
 def _without_fill(grid: np.ndarray) -> tuple[np.ndarray, tuple[float, int] | None]:
     """The grid with an undeclared fill value (or any height beyond 1e20 m) as NaN, and which."""
     fill = np.isin(grid, np.asarray(FILL_VALUES, np.float32)) | (np.abs(grid) > 1e20)

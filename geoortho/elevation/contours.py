@@ -18,6 +18,7 @@ from affine import Affine
 
 from geoortho.core.gapfill import block_means
 from geoortho.core.outputs import write_vector
+from geoortho.core.styles import product_styles
 
 __all__ = ["ContourResult", "contour_interval_m", "write_contours"]
 
@@ -79,5 +80,5 @@ def write_contours(
                 levels.append(round(level, 6))
     index = [round(lv / interval_m) % INDEX_EVERY == 0 for lv in levels]
     frame = gpd.GeoDataFrame({"elevation_m": levels, "index": index}, geometry=lines, crs=crs)
-    write_vector(path, {"contours": frame})
+    write_vector(path, {"contours": frame}, styles=product_styles("contours"))
     return ContourResult(Path(path), interval_m, len(lines), why)

@@ -33,6 +33,8 @@ __all__ = [
     "complete_grid",
     "extended_grid",
     "footprint_polygons",
+    "seen_area_m2",
+    "source_style",
     "seen_count",
     "source_path",
 ]
@@ -45,6 +47,17 @@ SOURCE_NAMES = {
     FALLBACK: "fallback plane",
     UNDER_OBJECT: "under an object, no ground seen",
 }
+#: The codes' colours in QGIS (the source rasters' default style).
+SOURCE_COLOURS = {MEASURED: "#1a9641", INTERPOLATED: "#fdae61", FALLBACK: "#d7191c", UNDER_OBJECT: "#7b3294"}
+
+
+def source_style() -> Any:
+    """A source raster's QGIS style: its codes paletted, each with its meaning as its legend."""
+    from geoortho.core.styles import paletted
+
+    return paletted(1, SOURCE_COLOURS, SOURCE_NAMES)
+
+
 #: The band raster's description, as QGIS shows it (4: the DTM only, under a wide object).
 SOURCE_DESCRIPTION = "0 no data, 1 measured, 2 interpolated, 3 fallback plane, 4 under an object, no ground seen"
 #: The harmonic fill is solved on a grid of at most this many cells (~120 bytes a cell), then
@@ -80,6 +93,24 @@ def footprint_polygons(cams: Sequence[Any], surface: Any, max_range_m: float | N
         poly = shapely.make_valid(shapely.Polygon(ring))
         out.append(poly)
     return out
+
+
+def seen_area_m2(polygons: Sequence[Any], at_least: int = 2) -> float:
+    """The area (square CRS units) of the ground inside ``at_least`` (1 or 2) of the footprints,
+    from the polygons themselves: one figure, whatever grid a product is on (the dem and the
+    ortho state it, and must state the same)."""
+    import shapely
+
+    polys = np.asarray([p for p in polygons if not p.is_empty], dtype=object)
+    if not len(polys):
+        return 0.0
+    if at_least == 1:
+        return float(shapely.union_all(polys).area)
+    if at_least != 2:
+        raise ValueError(f"at_least must be 1 or 2, not {at_least}")
+    a, b = shapely.STRtree(polys).query(polys, predicate="intersects")
+    pair = a < b
+    return float(shapely.union_all(shapely.intersection(polys[a[pair]], polys[b[pair]])).area)
 
 
 def seen_count(polygons: Sequence[Any], transform: Affine, shape: tuple[int, int]) -> np.ndarray:

@@ -27,7 +27,8 @@ from geoortho.core.crs import crs_to_text, heights_to_text, horizontal_of, parse
 from geoortho.core.gapfill import fill_harmonic, gap_mask
 from geoortho.core.outputs import atomic_path, atomic_paths, cog_options, write_cog
 from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
-from geoortho.core.surface import GridSurface
+from geoortho.core.styles import terrain, write_raster_style
+from geoortho.core.surface import GridSurface, whole_surface
 from geoortho.elevation import tiles as dem_tiles
 from geoortho.elevation.artefacts import footprint_step_m, roughness_m
 from geoortho.elevation.bareearth import bare_earth, ground_noise_m
@@ -42,8 +43,10 @@ from geoortho.elevation.coverage import (
     complete_grid,
     extended_grid,
     footprint_polygons,
+    seen_area_m2,
     seen_count,
     source_path,
+    source_style,
 )
 from geoortho.elevation.grid import (
     GROUND,
@@ -378,7 +381,7 @@ def dem(
     if want_ground and ground_method == "smrf":
         params = _check_smrf(src, params, fb)
     if engine == "pdal":
-        return _run_pdal(src, plan.grid, output, dtm, chosen, ground_method, max_gap_m, params, fb)
+        return _with_styles(_run_pdal(src, plan.grid, output, dtm, chosen, ground_method, max_gap_m, params, fb))
 
     if tiles_allowed and float(plan.grid.rows) * plan.grid.cols > _whole_grid_max_cells():
         tiled = _dem_tiled(
@@ -386,7 +389,7 @@ def dem(
             max_gap_m, smooth_px, s_pass1, s_write, fb,
         )  # fmt: skip
         tiled = tiled if sfm is None else complete_to_photos(tiled, src, scan.keep, Path(sfm), fb)
-        return _with_contours(tiled, contours, contour_interval_m, sfm, fb)
+        return _with_styles(_with_contours(tiled, contours, contour_interval_m, sfm, fb))
     ground = GROUND_FILTERS[ground_method](src, params) if want_ground else None
     dtm_acc = Accumulator(plan.grid, "idw") if dtm is not None else None
     first = _first_pass(src, plan.grid, chosen, ground, dtm_acc, scan.keep, s_pass1, fb)
@@ -414,8 +417,20 @@ def dem(
     del first, dtm_acc, ground
     if sfm is not None:
         result = complete_to_photos(result, src, scan.keep, Path(sfm), fb)
-    result = _with_contours(result, contours, contour_interval_m, sfm, fb)
+    result = _with_styles(_with_contours(result, contours, contour_interval_m, sfm, fb))
     s_write.progress(1.0)
+    return result
+
+
+def _with_styles(result: DemResult) -> DemResult:
+    """Each raster's QGIS style beside it as its default (``.qml``): the DEMs coloured by
+    height, the source rasters paletted with their codes' meanings."""
+    for path in (result.dsm, result.dtm):
+        if path is not None:
+            write_raster_style(path, terrain(path))
+    for path in (result.dsm_source, result.dtm_source):
+        if path is not None:
+            write_raster_style(path, source_style())
     return result
 
 
@@ -1040,7 +1055,6 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     cell_m2 = abs(new_t.a * new_t.e)
     have = done.source > 0
     shares = {code: done.share(code) for code in (MEASURED, INTERPOLATED, FALLBACK)}
-    seen_m2 = float(target.sum()) * cell_m2
     covered = float((have & target).sum()) / max(int(target.sum()), 1)
     crs = src.crs
     unit = _unit_tag(src.vertical_unit)
@@ -1048,11 +1062,7 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
     dsm_source = write_cog(
         source_path(result.dsm), done.source, transform=new_t, crs=crs, nodata=0, band_names=(SOURCE_DESCRIPTION,)
     )
-    notes = [
-        f"DSM carried over the {seen_m2:,.0f} m² seen by >= 2 of {len(cams)} registered photos "
-        f"({covered:.1%} of it has a value): measured {shares[MEASURED]:.1%}, interpolated "
-        f"{shares[INTERPOLATED]:.1%}, fallback plane {shares[FALLBACK]:.1%} of its cells ({dsm_source.name})"
-    ]
+    notes = []
     if done.fallback_plane is not None:
         notes.append("nothing was measured under the photos: the DSM is a plane through the SfM tie points")
     dtm_source = dtm_grid = None
@@ -1074,6 +1084,15 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         result.dsm, with_nodata(done.z), transform=new_t, crs=src.crs_with_heights, nodata=NODATA,
         band_names=("dsm",), units=unit,
     )  # fmt: skip
+    # the area itself from the footprints cast on the DSM written (the ortho on it states the same
+    # figure), not a count of this grid's cells
+    seen_m2 = seen_area_m2(footprint_polygons(cams, whole_surface(GridSurface(done.z, new_t, extend=True)).surface))
+    notes.insert(
+        0,
+        f"DSM carried over the {seen_m2:,.0f} m² seen by >= 2 of {len(cams)} registered photos "
+        f"({covered:.1%} of it has a value): measured {shares[MEASURED]:.1%}, interpolated "
+        f"{shares[INTERPOLATED]:.1%}, fallback plane {shares[FALLBACK]:.1%} of its cells ({dsm_source.name})",
+    )
     if result.hillshade is not None:
         write_hillshade(result.hillshade, dtm_grid if dtm_grid is not None else done.z, new_t.a, 1.0)
     for n in notes:

@@ -54,6 +54,7 @@ from geoortho.core.camera import in_frame, pixel_rays
 from geoortho.core.crs import crs_to_text, parse_crs, transformer
 from geoortho.core.outputs import atomic_path, write_text, write_vector
 from geoortho.core.parallel import map_ordered, process_pool
+from geoortho.core.styles import product_styles
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
@@ -1237,7 +1238,7 @@ def write_detections(path: Path, observations: list[Observation], gcps: GcpSet) 
         return write_text(path, buf.getvalue())
     geoms = [shapely.Point(by_name[o.gcp].x, by_name[o.gcp].y) if o.gcp in by_name else None for o in observations]
     gdf = gpd.GeoDataFrame(rows, geometry=geoms, crs=gcps.crs)
-    return write_vector(path, {"detections": gdf})
+    return write_vector(path, {"detections": gdf}, styles=product_styles("detections"))
 
 
 def write_review(

@@ -26,11 +26,10 @@ from rasterio.windows import Window
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.crs import crs_to_text, horizontal_unit_m
-from geoortho.core.gapfill import fill_gaps_by_windows
 from geoortho.core.outputs import atomic_path, temp_prefix, write_json
 from geoortho.core.parallel import imap_ordered, map_ordered
-from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface, sample_grid
-from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_count, source_path
+from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface, sample_grid, whole_surface
+from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_area_m2, seen_count, source_path
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.orthophoto.cameras import cameras_from_metadata
@@ -224,11 +223,13 @@ def measure_coverage(
         alpha = ds.read_masks(1, out_shape=shape, resampling=Resampling.nearest) > 0
         t = ds.transform @ Affine.scale(ds.width / shape[1], ds.height / shape[0])
     cell_m2 = abs(t.a * t.e)
-    seen = seen_count(footprint_polygons(cams, surface), t, shape)
+    polys = footprint_polygons(cams, surface)
+    seen = seen_count(polys, t, shape)
     out = {
         "area_m2": float(alpha.sum()) * cell_m2,
-        "seen_1_m2": float((seen >= 1).sum()) * cell_m2,
-        "seen_2_m2": float((seen >= 2).sum()) * cell_m2,
+        # the areas from the footprints themselves: the dem on the same DSM states the same figures
+        "seen_1_m2": seen_area_m2(polys, 1),
+        "seen_2_m2": seen_area_m2(polys, 2),
         "share_of_seen_1": float((alpha & (seen >= 1)).sum()) / max(int((seen >= 1).sum()), 1),
         "share_of_seen_2": float((alpha & (seen >= 2)).sum()) / max(int((seen >= 2).sum()), 1),
         "on_interpolated_m2": 0.0,
@@ -1567,17 +1568,14 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
     if surf.height_unit != "metre":
         notes.append(f"DSM: its CRS gives its heights in {surf.height_unit}: converted to metres")
         fb.info(notes[-1])
-    grid, n_filled = fill_gaps_by_windows(surf.grid, max_gap_cells=max(4.0, 10.0 / surf.cell_m))
-    if n_filled:
-        notes.append(f"DSM: {n_filled} nodata cells inside the data filled by interpolation")
+    whole = whole_surface(surf)
+    if whole.n_interpolated:
+        notes.append(f"DSM: {whole.n_interpolated} nodata cells inside the data filled by interpolation")
         fb.warning(notes[-1])
     # Wider holes take the ground plane the DSM is continued by beyond its edge: a hole is ground the
     # photos saw (water, canopy the matcher missed), never a reason to leave the mosaic empty there.
-    rest = ~np.isfinite(grid)
+    rest = whole.on_ground
     if rest.any():
-        rows, cols = np.nonzero(rest)
-        grid = np.array(grid, np.float32, copy=True)
-        grid[rows, cols] = surf.nearest_elevation(cols.astype(float), rows.astype(float))
         # holes inside the DSM's data apart from the grid's margin beyond it: the dem stage said how
         # much of the ground the photos saw has a value, and a margin is no hole in that
         holes = _enclosed(rest)
@@ -1589,6 +1587,4 @@ def _read_dsm(path: Path, crs: CRS, fb: Feedback, notes: list[str]) -> GridSurfa
             said.append(f"{float((rest & ~holes).sum()) * surf.cell_m**2:,.0f} m² of its grid beyond its data")
         notes.append(f"DSM: {' and '.join(said)} rendered on the ground plane near them")
         (fb.warning if holes.any() else fb.info)(notes[-1])
-    if n_filled or rest.any():
-        surf = GridSurface(grid, surf.transform, surf.crs, extend=True)
-    return surf
+    return whole.surface

@@ -22,7 +22,8 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from geoortho.core.camera import PosedCamera
-from geoortho.core.outputs import atomic_path
+from geoortho.core.outputs import atomic_path, write_layer_styles
+from geoortho.core.styles import product_styles, write_raster_style
 
 __all__ = [
     "INPAINTED",
@@ -34,6 +35,7 @@ __all__ = [
     "SourceWriter",
     "seamlines_path",
     "write_seamlines",
+    "how_style",
 ]
 
 #: Band 2 (``how``): how each pixel was drawn.
@@ -45,6 +47,17 @@ SOURCE_KINDS = {
     "that has it in frame most directly",
     INPAINTED: "inpainted (a hole no photo's frame held)",
 }
+
+#: The ``how`` codes' colours in QGIS (the source raster's default style).
+HOW_COLOURS = {SEEN: "#1a9641", OCCLUDED: "#7b3294", INPAINTED: "#d7191c"}
+
+
+def how_style() -> Any:
+    """The source raster's QGIS style: band 2 (how) paletted, each code with its meaning."""
+    from geoortho.core.styles import paletted
+
+    return paletted(2, HOW_COLOURS, SOURCE_KINDS)
+
 
 #: The seamlines are traced on the source raster read at most this many cells (its overviews).
 SEAMLINE_CELLS = 4_000_000
@@ -89,6 +102,7 @@ class SourceWriter:
                 BIGTIFF="IF_SAFER",
             )  # fmt: skip
         _write_attribute_table(target, names)
+        write_raster_style(target, how_style())
         return target
 
 
@@ -161,4 +175,5 @@ def write_seamlines(
     )
     with atomic_path(target) as tmp:
         frame.to_file(tmp, layer="seamlines", driver="GPKG")
+        write_layer_styles(tmp, product_styles("seamlines"))
     return target, len(rows)

@@ -29,6 +29,8 @@ from pyproj import CRS
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr, undistort_pixels, ypr_from_rotation
 from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
 from geoortho.core.outputs import write_cog, write_vector
+from geoortho.core.styles import overlap as overlap_style
+from geoortho.core.styles import product_styles, write_raster_style
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split, warn_grouped
@@ -446,7 +448,7 @@ def _write_layers(
     overlap_path = write_overlap(overlap, fp.geometry.values, work, cell_m) if overlap is not None else None
     if out_crs is not None and not out_crs.equals(work):
         fp, cam_layer = fp.to_crs(out_crs), cam_layer.to_crs(out_crs)
-    write_vector(output, {"footprints": fp, "cameras": cam_layer})
+    write_vector(output, {"footprints": fp, "cameras": cam_layer}, styles=product_styles("footprints", "cameras"))
     return overlap_path
 
 
@@ -796,4 +798,6 @@ def write_overlap(path: str | os.PathLike[str], polygons: Sequence[Any], crs: CR
         dtype="uint16",
         fill=0,
     )
-    return write_cog(path, count, transform=transform, crs=crs, nodata=0)
+    out = write_cog(path, count, transform=transform, crs=crs, nodata=0)
+    write_raster_style(out, overlap_style(out))
+    return out

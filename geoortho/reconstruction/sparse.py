@@ -63,6 +63,7 @@ from geoortho.core.crs import (
 from geoortho.core.outputs import temp_prefix, write_json, write_vector
 from geoortho.core.parallel import map_ordered
 from geoortho.core.pointcloud import write_las
+from geoortho.core.styles import product_styles
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.gcp.io import GcpSet, heights_are_placeholders, read_gcp_file
@@ -1118,7 +1119,7 @@ def _write_cameras(
             geoms.append(None)
         rows.append(row)
     gdf = gpd.GeoDataFrame(rows, geometry=geoms, crs=crs)
-    write_vector(path, {"cameras": gdf})
+    write_vector(path, {"cameras": gdf}, styles=product_styles("cameras"))
 
 
 def _why_unregistered(db: Path, names: list[str], registered: set[str], elsewhere: set[str]) -> dict[str, str]:
