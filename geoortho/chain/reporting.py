@@ -464,6 +464,13 @@ def _furnish(ax: Any, crs: str, unit: str = "m") -> None:
         "N", xy=(0.05, 0.95), xytext=(0.05, 0.82), xycoords="axes fraction", textcoords="axes fraction",
         ha="center", va="center", fontsize=9, fontweight="bold", arrowprops=arrow,
     )  # fmt: skip
+    from matplotlib.ticker import MaxNLocator
+
+    # the map's coordinates, whole and few (a UTM easting's offset notation reads as nothing)
+    ax.xaxis.set_major_locator(MaxNLocator(4))
+    ax.yaxis.set_major_locator(MaxNLocator(4))
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.tick_params(labelsize=7)
     where = f", {crs}" if crs else ""
     ax.set_xlabel(f"easting ({unit}{where})", fontsize=8)
     ax.set_ylabel(f"northing ({unit})", fontsize=8)
@@ -518,8 +525,6 @@ def _map(ctx: _Context) -> str:
     ax.plot([], [], color="#1f77b4", lw=0.8, label=f"photo footprint ({len(fp)})")
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
-    ax.ticklabel_format(useOffset=False, style="plain")
-    ax.tick_params(labelsize=7)
     _furnish(ax, _crs_label(ctx))
     note = "" if has_ortho else _missing("No orthophoto to draw under the footprints.")
     return _png(fig, "footprints and camera positions over the orthophoto") + note
@@ -560,8 +565,6 @@ def _position_accuracy(ctx: _Context) -> str:
                 )  # fmt: skip
         ax.set_aspect("equal")
         ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
-        ax.ticklabel_format(useOffset=False, style="plain")
-        ax.tick_params(labelsize=7)
         _furnish(ax, _crs_label(ctx))
         parts.append(_png(fig, "camera positions by accuracy class"))
     rows = []
@@ -723,8 +726,6 @@ def _overlap(ctx: _Context) -> str:
     cbar.ax.set_yticklabels(["0", "1", "2", "3–4", "5–8", f"9+ (max {top})"])
     cbar.set_label("photos covering the ground")
     ax.set_aspect("equal")
-    ax.ticklabel_format(useOffset=False, style="plain")
-    ax.tick_params(labelsize=7)
     _furnish(ax, _crs_label(ctx))
     covered = count > 0
     rows = []
@@ -866,8 +867,6 @@ def _residual_plot(ctx: _Context, sfm: dict[str, Any]) -> str:
     pad = 0.1 * span
     ax.set_xlim(xs.min() - pad, xs.max() + pad)
     ax.set_ylim(ys.min() - pad, ys.max() + pad)
-    ax.ticklabel_format(useOffset=False, style="plain")
-    ax.tick_params(labelsize=7)
     ax.legend(loc="lower right", fontsize=8)
     _furnish(ax, _crs_label(ctx))
     return "<h3>Residual vectors</h3>" + _png(fig, "GCP and checkpoint residual vectors")
@@ -973,8 +972,6 @@ def _elevation(ctx: _Context) -> str:
         cbar.set_label(f"elevation ({unit or 'CRS units'})")
         ax.set_title(label, fontsize=10)
         ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
         _furnish(ax, _crs_label(ctx), _unit_symbol(unit))
     parts.append(_png(fig, "DSM and DTM hillshades"))
     dense = ctx.dense_report()
@@ -1100,8 +1097,6 @@ def _ortho_sources_map(ctx: _Context, o: dict[str, Any]) -> str:
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(extent[2], extent[3])
     ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
     ax.legend(handles=legend, fontsize=8, loc="lower right")
     _furnish(ax, _crs_label(ctx))
     ax.set_title("Where the orthophoto is not plainly seen on a measured surface", fontsize=10)
