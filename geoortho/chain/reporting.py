@@ -621,7 +621,7 @@ def _sfm_cameras(ctx: _Context) -> Any:
         return None
     import geopandas as gpd
 
-    return gpd.read_file(path)
+    return gpd.read_file(path, layer="cameras")
 
 
 def _gcp_positions(ctx: _Context) -> list[tuple[str, float, float, float]]:

@@ -14,6 +14,7 @@ import re
 import tempfile
 import warnings
 from collections.abc import Iterator
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -245,33 +246,32 @@ VECTOR_DRIVERS = {
 
 def write_layer_styles(gpkg: str | os.PathLike[str], styles: dict[str, str]) -> None:
     """Each layer's style (layer name → QGIS style document) as its default, in the GeoPackage's
-    ``layer_styles`` table, where QGIS looks when the layer is opened alone (the table QGIS itself
-    writes with "Save as default")."""
-    import datetime
+    ``layer_styles`` table, where QGIS looks when the layer is opened alone (the table, columns
+    and registration QGIS itself writes with "Save as default"). Plain SQLite: the file is a
+    GeoPackage already written, and its styles need no GDAL."""
+    import sqlite3
 
-    import pandas as pd
-    import pyogrio
-
-    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.000Z")
-    rows = [
-        {
-            "f_table_catalog": "",
-            "f_table_schema": "",
-            "f_table_name": name,
-            "f_geometry_column": "geom",
-            "styleName": name,
-            "styleQML": qml,
-            "styleSLD": "",
-            "useAsDefault": True,
-            "description": "geoortho's style of this product",
-            "owner": "",
-            "ui": "",
-            "update_time": now,
-        }
-        for name, qml in styles.items()
-    ]
-    exists = "layer_styles" in {str(n) for n, _ in pyogrio.list_layers(gpkg)}
-    pyogrio.write_dataframe(pd.DataFrame(rows), gpkg, layer="layer_styles", driver="GPKG", append=exists)
+    with closing(sqlite3.connect(os.fspath(gpkg))) as con, con:
+        con.execute(
+            "CREATE TABLE IF NOT EXISTS layer_styles (id INTEGER PRIMARY KEY AUTOINCREMENT, "
+            "f_table_catalog TEXT(256), f_table_schema TEXT(256), f_table_name TEXT(256), "
+            "f_geometry_column TEXT(256), styleName TEXT(30), styleQML TEXT, styleSLD TEXT, "
+            "useAsDefault BOOLEAN, description TEXT, owner TEXT(30), ui TEXT(30), "
+            "update_time DATETIME DEFAULT (strftime('%Y-%m-%dT%H:%M:%fZ','now')))"
+        )
+        con.execute(
+            "INSERT OR IGNORE INTO gpkg_contents (table_name, data_type, identifier, last_change) "
+            "VALUES ('layer_styles', 'attributes', 'layer_styles', strftime('%Y-%m-%dT%H:%M:%fZ','now'))"
+        )
+        geometry = dict(con.execute("SELECT table_name, column_name FROM gpkg_geometry_columns").fetchall())
+        for name, qml in styles.items():
+            con.execute("DELETE FROM layer_styles WHERE f_table_name = ? AND styleName = ?", (name, name))
+            con.execute(
+                "INSERT INTO layer_styles (f_table_catalog, f_table_schema, f_table_name, f_geometry_column, "
+                "styleName, styleQML, styleSLD, useAsDefault, description, owner, ui) "
+                "VALUES ('', '', ?, ?, ?, ?, '', 1, ?, '', '')",
+                (name, geometry.get(name, "geom"), name, qml, "geoortho's style of this product"),
+            )
 
 
 def write_vector(target: str | os.PathLike[str], layers: dict[str, Any], styles: dict[str, str] | None = None) -> Path:
