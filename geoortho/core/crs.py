@@ -155,7 +155,7 @@ def with_heights(crs: CRS, heights: CRS | str | None) -> CRS:
 
 
 def heights_label(heights: CRS | str | None) -> str:
-    """The heights' datum in words: ``EGM96 height (EPSG:5773)``, ``ellipsoidal (WGS 84)``, or
+    """The heights' datum in words: ``EGM96 height (EPSG:5773)``, ``ellipsoidal height``, or
     ``not stated``."""
     if heights is None:
         return "not stated"

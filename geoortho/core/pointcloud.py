@@ -25,7 +25,15 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
-from geoortho.core.crs import heights_label, heights_of, horizontal_of, horizontal_unit_m, parse_crs, transformer
+from geoortho.core.crs import (
+    heights_label,
+    heights_of,
+    horizontal_of,
+    horizontal_unit_m,
+    parse_crs,
+    transformer,
+    with_heights,
+)
 from geoortho.core.outputs import atomic_path
 from geoortho.errors import InputError
 
@@ -68,8 +76,6 @@ class PointSource:
     @property
     def crs_with_heights(self) -> CRS:
         """``crs`` with the heights' datum, for a product of heights (a DEM) to carry."""
-        from geoortho.core.crs import with_heights
-
         return with_heights(self.crs, self.heights)
 
     @property

@@ -21,6 +21,7 @@ import numpy as np
 from affine import Affine
 
 from geoortho.core.gapfill import block_sums, distance_cells, fill_gaps_by_windows, fill_harmonic
+from geoortho.core.styles import paletted
 from geoortho.photos.footprint import compute_footprints
 
 __all__ = [
@@ -53,8 +54,6 @@ SOURCE_COLOURS = {MEASURED: "#1a9641", INTERPOLATED: "#fdae61", FALLBACK: "#d719
 
 def source_style() -> Any:
     """A source raster's QGIS style: its codes paletted, each with its meaning as its legend."""
-    from geoortho.core.styles import paletted
-
     return paletted(1, SOURCE_COLOURS, SOURCE_NAMES)
 
 

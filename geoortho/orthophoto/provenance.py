@@ -22,8 +22,8 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from geoortho.core.camera import PosedCamera
-from geoortho.core.outputs import atomic_path, write_layer_styles
-from geoortho.core.styles import product_styles, write_raster_style
+from geoortho.core.outputs import atomic_path, write_vector
+from geoortho.core.styles import paletted, product_styles, write_raster_style
 
 __all__ = [
     "INPAINTED",
@@ -54,8 +54,6 @@ HOW_COLOURS = {SEEN: "#1a9641", OCCLUDED: "#7b3294", INPAINTED: "#d7191c"}
 
 def how_style() -> Any:
     """The source raster's QGIS style: band 2 (how) paletted, each code with its meaning."""
-    from geoortho.core.styles import paletted
-
     return paletted(2, HOW_COLOURS, SOURCE_KINDS)
 
 
@@ -173,7 +171,5 @@ def write_seamlines(
         if rows
         else gpd.GeoDataFrame({"photo": [], "geometry": []}, geometry="geometry", crs=crs)
     )
-    with atomic_path(target) as tmp:
-        frame.to_file(tmp, layer="seamlines", driver="GPKG")
-        write_layer_styles(tmp, product_styles("seamlines"))
+    write_vector(target, {"seamlines": frame}, styles=product_styles("seamlines"))
     return target, len(rows)

@@ -87,9 +87,7 @@ def cameras_from_sfm(
     """
     pycolmap = load_pycolmap()
 
-    sfm_dir = Path(sfm_dir)
-    model = sfm_dir / "model" if (sfm_dir / "model").is_dir() else sfm_dir
-    geo_path = model / "georeference.json"
+    model, geo_path = _model_paths(sfm_dir)
     if not geo_path.is_file():
         raise InputError("no model/georeference.json: not an sfm output folder", path=sfm_dir)
     try:
@@ -137,13 +135,19 @@ def cameras_from_sfm(
     return cams, out_crs, pts, skipped
 
 
+def _model_paths(sfm_dir: str | os.PathLike[str]) -> tuple[Path, Path]:
+    """An ``sfm`` output's COLMAP model folder (the folder itself when given the model) and its
+    ``georeference.json``."""
+    sfm_dir = Path(sfm_dir)
+    model = sfm_dir / "model" if (sfm_dir / "model").is_dir() else sfm_dir
+    return model, model / "georeference.json"
+
+
 def model_heights(sfm_dir: str | os.PathLike[str]) -> tuple[CRS | str | None, str]:
     """The datum of an ``sfm`` output's heights (a vertical CRS, ``"ellipsoidal"``, or None: not
     known) and where the SfM learnt it (an older model that did not record it: None)."""
-    sfm_dir = Path(sfm_dir)
-    model = sfm_dir / "model" if (sfm_dir / "model").is_dir() else sfm_dir
     try:
-        geo = json.loads((model / "georeference.json").read_text())
+        geo = json.loads(_model_paths(sfm_dir)[1].read_text())
     except (OSError, ValueError):
         return None, "no georeference.json"
     return heights_from_text(geo.get("vertical_crs")), str(geo.get("vertical_crs_from") or "not recorded by the SfM")

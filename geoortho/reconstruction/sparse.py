@@ -1360,8 +1360,10 @@ def _georeference(
         mapped.rec, inputs, mapped.registered, geo, fb, refine_distortion=not mapped.distortion_held
     )
     notes += geo.notes
+    heights, heights_from = _heights_datum(inputs, geo)
+    notes.append(f"heights' datum: {heights_label(heights)}, from {heights_from}")
     timer.add("georeferencing", t0)
-    return inputs, lag, geo
+    return inputs, lag, replace(geo, heights=heights, heights_from=heights_from)
 
 
 def _why_positions_did_not_fit(inputs: _Inputs) -> str:
@@ -1971,6 +1973,8 @@ class _Georeference:
     gcp_obs_used: int = 0  # GCP observations held fixed in the bundle adjustment
     notes: tuple[str, ...] = ()
     gcp_vs_gps: dict[str, Any] | None = None  # what the GCPs changed of the GPS georeference
+    heights: Any = None  # the datum of the model's heights (:func:`_heights_datum`), None: not known
+    heights_from: str = ""  # where it was learnt, or what to give
 
 
 def _georeference_by_gps(rec: Any, inputs: _Inputs, gps_sigma_m: float) -> _Georeference:
@@ -2224,14 +2228,12 @@ def _write_model(
     tmp_model = work / "model"
     tmp_model.mkdir()
     rec.write(tmp_model)
-    heights, heights_from = _heights_datum(inputs, geo)
-    notes.append(f"heights' datum: {heights_label(heights)}, from {heights_from}")
     write_json(
         tmp_model / "georeference.json",
         {
             "crs": inputs.crs_text,
-            "vertical_crs": heights_to_text(heights),
-            "vertical_crs_from": heights_from,
+            "vertical_crs": heights_to_text(geo.heights),
+            "vertical_crs_from": geo.heights_from,
             "offset": priors.offset.tolist(),
             "note": "model coordinates + offset = coordinates in crs; heights in vertical_crs (null: not known)",
         },
@@ -2244,7 +2246,7 @@ def _write_model(
     if inputs.out_crs is None:
         notes.append("no CRS: points.laz and cameras.gpkg are not written (local frame only)")
         return 0
-    n_points = _write_points(output / "points.laz", rec, priors.offset, with_heights(inputs.out_crs, heights))
+    n_points = _write_points(output / "points.laz", rec, priors.offset, with_heights(inputs.out_crs, geo.heights))
     _write_cameras(
         output / "cameras.gpkg",
         rec,
@@ -2301,8 +2303,8 @@ def _report(
         "mean_track_length": float(rec.compute_mean_track_length()),
         "gsd_cm": _gsd_m(rec) * 100.0,
         "crs": inputs.crs_text,
-        "vertical_crs": heights_to_text(_heights_datum(inputs, geo)[0]),
-        "vertical_crs_from": _heights_datum(inputs, geo)[1],
+        "vertical_crs": heights_to_text(geo.heights),
+        "vertical_crs_from": geo.heights_from,
         "offset": inputs.priors.offset.tolist(),
         "heights": inputs.priors.heights,
         "vertical_gps_trusted": inputs.priors.vertical_trusted,
