@@ -1361,7 +1361,9 @@ def _georeference(
     )
     notes += geo.notes
     heights, heights_from = _heights_datum(inputs, geo)
-    notes.append(f"heights' datum: {heights_label(heights)}, from {heights_from}")
+    notes.append(
+        f"heights' datum: {heights_label(heights)}" + (", from " if heights is not None else ": ") + heights_from
+    )
     timer.add("georeferencing", t0)
     return inputs, lag, replace(geo, heights=heights, heights_from=heights_from)
 
@@ -2198,6 +2200,7 @@ def _heights_datum(inputs: _Inputs, geo: _Georeference) -> tuple[Any, str]:
     them, else from the photos' positions."""
     if inputs.out_crs is None:
         return None, "a local frame"
+    example = f"e.g. {crs_to_text(inputs.out_crs)}+5773 for EGM96 heights"  # this survey's own grid
     gcps = inputs.gcps
     if gcps is not None and geo.heights_usable and "GCP" in geo.how and any(s.role == "control" for s in geo.states):
         stated = heights_of(gcps.crs)
@@ -2207,7 +2210,7 @@ def _heights_datum(inputs: _Inputs, geo: _Georeference) -> tuple[Any, str]:
             return inputs.heights_given, "--crs (the GCP heights taken to be in it)"
         return None, (
             f"the GCP file's CRS ({gcps.crs.name}) names no vertical datum: give the GCPs' CRS with "
-            "their heights' datum, e.g. EPSG:32629+5773 (EGM96), or --crs so"
+            f"their heights' datum ({example}), or --crs so"
         )
     if inputs.heights_given is not None:
         return inputs.heights_given, "--crs (the positions' heights taken to be in it, as given)"
@@ -2215,7 +2218,7 @@ def _heights_datum(inputs: _Inputs, geo: _Georeference) -> tuple[Any, str]:
         return ELLIPSOIDAL, f"the positions file {inputs.positions.path.name} (heights above the WGS 84 ellipsoid)"
     return None, (
         "the photos' GNSS heights, whose datum the tags do not state: give GCPs in a compound CRS "
-        "(e.g. EPSG:32629+5773), or --crs with a vertical part"
+        f"({example}), or --crs with a vertical part"
     )
 
 
