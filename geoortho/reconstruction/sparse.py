@@ -354,7 +354,11 @@ def _rows_as_progress(db: Path, table: str, total: int, fb: Feedback, start: flo
     def poll() -> None:
         while not stop.wait(PROGRESS_POLL_S):
             try:
-                with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.2)) as con:
+                # immutable: no lock at all. A reader's shared lock made COLMAP's writer meet
+                # SQLITE_BUSY, which its checks turn into an abort (a worker lost now and then).
+                # A count read mid-write may be off or fail: it only moves a bar.
+                uri = f"file:{db}?mode=ro&immutable=1"
+                with contextlib.closing(sqlite3.connect(uri, uri=True, timeout=0.2)) as con:
                     n = int(con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
             except sqlite3.Error:  # COLMAP writing: the next second
                 continue
