@@ -140,6 +140,16 @@ def compare_mappers(images: Path, max_image_size: int, max_features: int) -> Non
             for r in rows.values()
         )
     )
+    # where incremental mapping spent its time (the report's profile; the global mapper has none)
+    for key, label in (
+        ("tracks_per_photo_median", "tracks per photo (median)"),
+        ("points", "3D points"),
+        ("registration_steps", "registration steps"),
+        ("median_step_s", "median step s"),
+        ("adjustment_steps", "whole-model adjustments"),
+        ("adjustment_s", "in those adjustments s"),
+    ):
+        print(f"{label:<26}" + "".join(f"{r[2].get('mapping_profile', {}).get(key, '-'):>14}" for r in rows.values()))
     inc, glo = rows["incremental"][0], rows["global"][0]
     print(
         f"global / incremental wall time: {glo / inc:.2f}; per photo {inc / n:.1f} s vs {glo / n:.1f} s; "

@@ -78,6 +78,12 @@ def test_gps_only_registers_and_places_cameras(gps_only, small_survey):
     assert rep["gps"]["n"] == r.n_registered and rep["gps"]["ce90_m"] < 1.0
     assert rep["offset"][0] % 100 == 0 and rep["offset"][1] % 100 == 0
     assert json.loads((r.model / "georeference.json").read_text())["crs"] == rep["crs"]
+    # where mapping spent its time: every photo but the initial pair joined in a step of its own,
+    # and the whole-model adjustments fit inside the mapping's time
+    prof = rep["mapping_profile"]
+    assert prof["registration_steps"] >= r.n_registered - 2, prof
+    assert prof["points"] > 0 and 0 < prof["tracks_per_photo_median"] <= prof["tracks_per_photo_max"]
+    assert 0 <= prof["adjustment_s"] < rep["seconds"]["mapping"], prof
 
 
 def test_sparse_points_lie_on_the_true_dsm(gps_only, small_survey):
