@@ -62,8 +62,9 @@ def make_survey(folder: Path, n_photos: int, image_px: int, seed: int = 0) -> tu
 
 def checkpoints(gcp_file: Path) -> list[str]:
     """Every fourth GCP of the survey's file, held out of the adjustment and measured."""
-    names = [ln.split()[0] for ln in gcp_file.read_text().splitlines()[1:] if ln.strip()]
-    return names[::4]
+    from geoortho.gcp.io import read_gcp_file
+
+    return [p.name for p in read_gcp_file(gcp_file).points][::4]
 
 
 def against_truth(report: dict, cameras_gpkg: Path, poses_json: Path) -> str:

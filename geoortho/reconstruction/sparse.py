@@ -1307,8 +1307,9 @@ def sfm(
     max_image_size : int
         Photos are downscaled to this larger side for feature extraction (px).
     max_features : int
-        SIFT keypoints kept per photo (COLMAP gives a keypoint with two orientations two
-        features: toledo kept 12,000 features for 8,192).
+        SIFT features per photo, at least: COLMAP keeps whole scale levels until it has this
+        many keypoints, and gives a keypoint with two orientations two features (toledo, 8,192
+        asked: about 10,000 keypoints, 12,000 features).
     camera_model : str
         COLMAP camera model, one per camera body.
     takeoff_elevation_m : float
