@@ -147,7 +147,7 @@ def compare_mappers(images: Path, max_image_size: int, max_features: int) -> Non
         ("registration_steps", "registration steps"),
         ("median_step_s", "median step s"),
         ("adjustment_steps", "whole-model adjustments"),
-        ("adjustment_s", "in those adjustments s"),
+        ("adjustment_s", "adjustments beyond a step s"),
     ):
         print(f"{label:<26}" + "".join(f"{r[2].get('mapping_profile', {}).get(key, '-'):>14}" for r in rows.values()))
     inc, glo = rows["incremental"][0], rows["global"][0]
