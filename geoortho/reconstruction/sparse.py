@@ -868,14 +868,25 @@ def _thinned(rec: Any, per_photo: int) -> Any:
     return out
 
 
+#: The adjustments after mapping stop when an iteration changes the cost by less than this share
+#: (Ceres' own default; COLMAP sets none, so each ran to its iteration cap or a gradient test on
+#: blocks the mapper had already converged). Measured, whole sfm on the same features and matches:
+#: the medium survey (88 photos) 237 -> 162 s, its GCP adjustment 67 -> 8 iterations (73 -> 15 s),
+#: the held block 28 -> 6, cameras 0.17 cm (h) from the truth both ways, GCP RMSE 0.84 mm both
+#: ways; toledo 121 -> 72 s, a 101-iteration adjustment 14, the GCP RMSE the same to 1e-11 m.
+BA_FUNCTION_TOLERANCE = 1e-6
+
+
 def _ba_options(
     *, refine_focal: bool = True, refine_distortion: bool = True, robust: bool = False, iterations: int | None = None
 ) -> Any:
     """COLMAP's bundle-adjustment options, quiet: what each adjustment here refines, a soft-L1 loss
-    when ``robust``, and an iteration cap when given (Ceres' 100 otherwise)."""
+    when ``robust``, an iteration cap when given (Ceres' 100 otherwise), and a stop once an
+    iteration changes the cost by less than BA_FUNCTION_TOLERANCE (see there)."""
     pc = load_pycolmap()
     opts = pc.BundleAdjustmentOptions()
     opts.print_summary = False
+    opts.ceres.solver_options.function_tolerance = BA_FUNCTION_TOLERANCE
     opts.refine_focal_length = refine_focal
     opts.refine_extra_params = refine_distortion
     if robust:
