@@ -584,3 +584,35 @@ def test_auto_method_is_idw_for_a_cloud_from_photos_and_max_for_lidar(tmp_path):
     assert high - 10 > 0.04 and abs(mean - 10) < 0.01  # max of ~6 points: 1.3 sigma high; idw: on the surface
     explicit = dem(ply, tmp_path / "max.tif", crs="EPSG:32629", resolution_m=0.5, method="max")
     assert not any("method auto" in n for n in explicit.notes)
+
+
+def test_the_compiled_fills_and_sums_are_the_numpy_paths(monkeypatch):
+    """The gap fill's sweeps and the distance-weighted gridding, compiled, give what their numpy
+    paths give: the same cells, the same heights to rounding (sums in another order)."""
+    from geoortho.core import gapfill
+    from geoortho.core import kernels as loader
+    from geoortho.elevation import grid as gridding
+
+    rng = np.random.default_rng(7)
+    h, w = 300, 420  # over COMPILED_MIN_CELLS
+    yy, xx = np.mgrid[0:h, 0:w]
+    z = 0.02 * xx - 0.01 * yy + np.sin(xx / 17.0)
+    known = rng.random((h, w)) > 0.4
+    known[60:200, 100:300] = False  # a gap the pyramid must cross
+    known[:, :3] = False  # and the border
+    x, y = rng.uniform(0.0, 40.0, (2, gridding.COMPILED_MIN_POINTS + 7))
+    pz = np.sin(x) + y / 10.0
+    g = gridding.Grid.covering(0.0, 0.0, 40.0, 40.0, 0.3)
+    got = {}
+    for switch in ("1", "0"):
+        monkeypatch.setenv(loader.ENV_SWITCH, switch)
+        got[switch] = (gapfill.fill_harmonic(z, known), gridding.grid_points(x, y, pz, g, "idw"))
+    assert loader.compiled(gapfill._sor_sweeps) is None  # switched off: the numpy paths ran
+    monkeypatch.setenv(loader.ENV_SWITCH, "1")
+    if loader.compiled(gapfill._sor_sweeps) is None:
+        pytest.skip("numba is not importable here: only the numpy paths")
+    for a, b in zip(got["1"], got["0"]):
+        assert np.array_equal(np.isnan(a), np.isnan(b))
+        assert np.nanmax(np.abs(a - b)) < 1e-9
+    filled = got["0"][0][~known]
+    assert np.isfinite(filled).all() and np.nanstd(filled) > 0.1  # a real fill, not a constant

@@ -579,11 +579,13 @@ def test_coded_render_by_table_equals_the_reflectance():
 
 def _numpy_or_compiled(monkeypatch, switch):
     """Kernels switched on ("1", loaded at once) or off ("0") for what follows."""
+    from geoortho.core import kernels as loader
     from geoortho.gcp import kernels
 
     monkeypatch.setenv(kernels.ENV_SWITCH, switch)
     monkeypatch.setattr(kernels, "_numpy_calls", kernels.WARM_CALLS)
     kernels._compiled.cache_clear()
+    loader._compiled.cache_clear()
     monkeypatch.setattr(kernels, "_compiled", kernels._compiled)
 
 

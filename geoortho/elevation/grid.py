@@ -13,6 +13,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
+from geoortho.core.kernels import compiled
 from geoortho.core.pointcloud import Chunk
 from geoortho.errors import ParameterError
 
@@ -116,6 +117,10 @@ class Accumulator:
             _add_counts(self.w, idx)
         else:  # idw: each point feeds the cells whose centre lies within cell·√2 (PDAL's default radius)
             assert self.w is not None
+            kernel = compiled(_idw_sums) if len(idx) >= COMPILED_MIN_POINTS else None
+            if kernel is not None:
+                kernel(self.a, self.w, x, y, z, r, c, g.x0, g.y0, g.cell, g.row0, g.col0, g.rows, g.cols)
+                return
             # the point's place in its cell (cells), and its squared distance to each of the nine
             # centres about it: the sums over each offset cost less than centres in metres did
             fx = (x - g.x0) / g.cell - (c + g.col0) - 0.5
@@ -163,6 +168,49 @@ class Accumulator:
         return out.reshape(self.grid.rows, self.grid.cols)
 
 
+#: Chunks of at least this many points are gridded by the compiled loop (a point's nine cells in
+#: one visit; the numpy path makes nine masks and sums): the demo survey's dem 17 s -> 1 s in its
+#: distance-weighted sums. Fewer stay in numpy: a process that grids little never loads numba.
+COMPILED_MIN_POINTS = 100_000
+
+
+def _idw_sums(
+    a: np.ndarray,
+    w: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    r: np.ndarray,
+    c: np.ndarray,
+    x0: float,
+    y0: float,
+    cell: float,
+    row0: int,
+    col0: int,
+    rows: int,
+    cols: int,
+) -> None:
+    """The numpy path's weighted sums, point by point, into ``a`` (weight x height) and ``w``
+    (weights), with the same arithmetic (compiled: see :func:`geoortho.core.kernels.compiled`)."""
+    floor = 1e-6
+    for k in range(x.size):
+        fx = (x[k] - x0) / cell - (c[k] + col0) - 0.5
+        fy = (y0 - y[k]) / cell - (r[k] + row0) - 0.5
+        for dr in range(-1, 2):
+            rr = r[k] + dr
+            if rr < 0 or rr >= rows:
+                continue
+            for dc in range(-1, 2):
+                cc = c[k] + dc
+                if cc < 0 or cc >= cols:
+                    continue
+                d2 = (fx - dc) ** 2 + (fy - dr) ** 2
+                if d2 <= 2.0:
+                    wgt = 1.0 / (max(d2, floor) * cell * cell)
+                    a[rr * cols + cc] += wgt * z[k]
+                    w[rr * cols + cc] += wgt
+
+
 def _add_counts(total: np.ndarray, idx: np.ndarray, weights: np.ndarray | None = None) -> None:
     """``total[idx] += weights`` (1 each when None), summed over the span of cells ``idx`` touches."""
     if not len(idx):
@@ -197,3 +245,10 @@ def finite_points(ch: Chunk, keep: Box | None = None) -> tuple[Chunk, np.ndarray
 def with_nodata(grid: np.ndarray) -> np.ndarray:
     """NaN cells as NODATA, float32: a raster as written."""
     return np.where(np.isfinite(grid), grid, NODATA).astype(np.float32)
+
+
+def warm() -> None:
+    """Compile the gridding loop into numba's cache (``make`` runs it ahead)."""
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0.0, 10.0, (2, COMPILED_MIN_POINTS))
+    grid_points(x, y, np.ones_like(x), Grid.covering(0.0, 0.0, 10.0, 10.0, 0.5), "idw")

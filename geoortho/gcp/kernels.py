@@ -15,15 +15,16 @@ user-wide folder), so a fresh process loads it rather than compiling. Compiling 
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from functools import cache
 from typing import Any
 
 import numpy as np
 
+from geoortho.core import kernels as kernel_loader
+
 #: Set to 0 to keep the numpy paths (a check of the kernels, or a platform numba fails on).
-ENV_SWITCH = "GEOORTHO_COMPILED"
+ENV_SWITCH = kernel_loader.ENV_SWITCH
 
 
 #: Calls for a kernel answered "the numpy way" before the compiled kernels are loaded: a degraded
@@ -46,16 +47,7 @@ def compiled(name: str, calls: int = 1) -> Callable[..., Any] | None:
 
 @cache
 def _compiled(name: str) -> Callable[..., Any] | None:
-    if os.environ.get(ENV_SWITCH, "1") == "0":
-        return None
-    try:
-        from numba import njit
-    except (ImportError, OSError):  # none in this environment (a QGIS install's own Python), or its
-        return None  # LLVM fails to load: the numpy paths
-    try:
-        return njit(cache=True, nogil=True)(globals()[name])
-    except RuntimeError:  # no folder to cache in: compiling in every process would cost 6 s each
-        return None
+    return kernel_loader.compiled(globals()[name])
 
 
 def warm() -> None:
