@@ -8,7 +8,7 @@ their own and not counted: this is the coordinating process's growth). Printed: 
 size, then per stage the exponent b of time ∝ photos^b fitted over the sizes (target: b ≲ 1.1,
 every stage about linear) and the memory growth from the smallest size to the largest (target:
 flat for the per-photo and per-tile stages). For sfm, the same per step (features, matching,
-mapping, georeferencing) from its report, where incremental mapping spent its time, and the
+mapping, the lens test, georeferencing) from its report, where incremental mapping spent its time, and the
 cameras and checkpoints (every fourth GCP held out) against the truth, in GSD.
 
 The first figure is the render rate of the survey itself (photos per minute and megapixels per
@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from bench_sfm import OURS, _child
 
-SFM_STEPS = ("features", "matching", "mapping", "georeferencing")
+SFM_STEPS = ("features", "matching", "mapping", "lens_distortion_test", "georeferencing")
 STAGES = ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho")
 #: 4x4 markers as the presets' DICT_4X4_50, with ids enough for the GCPs and decoys of a wide survey
 DICTIONARY = "DICT_4X4_250"
