@@ -90,13 +90,28 @@ def test_a_marker_size_given_wrong_is_measured_said_and_fitted_right(degraded, t
     assert s["precision"] == 1.0 and s["recall"] >= 0.9, s
 
 
+@pytest.fixture(scope="module")
+def target_survey(tmp_path_factory):
+    """The tiny survey (seed 5) with uncoded targets of one kind, drawn once per kind for the file's
+    tests (they only read it)."""
+    made = {}
+
+    def survey(target):
+        if target not in made:
+            folder = tmp_path_factory.mktemp(f"targets_{target}") / "s"
+            made[target] = synth(folder, preset="tiny", seed=5, target=target, workers=os.cpu_count() or 1)
+        return made[target]
+
+    return survey
+
+
 @pytest.mark.parametrize(
     "target, min_recall, max_error_px",
     # measured (tiny, seed 5): recall 0.79 / 1.0 / 1.0; mean error 0.05 / 0.10 / 0.23 px
     [("checkerboard", 0.75, 0.1), ("cross", 0.95, 0.2), ("circle", 0.95, 0.3)],
 )
-def test_targets_without_a_code(tmp_path, target, min_recall, max_error_px):
-    survey = synth(tmp_path / "s", preset="tiny", seed=5, target=target, workers=os.cpu_count() or 1)
+def test_targets_without_a_code(target_survey, tmp_path, target, min_recall, max_error_px):
+    survey = target_survey(target)
     out = tmp_path / "gcp_list.txt"
     gcp_find(survey.images, survey.gcp_file, out, target=target, detections=tmp_path / "det.csv")
     s = _score(survey, out)
@@ -118,9 +133,9 @@ def test_wrong_target_accepts_nothing_and_says_why(degraded, tmp_path):
     assert any(r["reason"] for r in rows)
 
 
-def test_targets_closer_than_the_uncertainty_are_ambiguous(tmp_path):
+def test_targets_closer_than_the_uncertainty_are_ambiguous(target_survey, tmp_path):
     """Two GCPs 1.5 m apart with a 5 m stated GPS uncertainty: a cross could be either."""
-    survey = synth(tmp_path / "s", preset="tiny", seed=5, target="cross", workers=os.cpu_count() or 1)
+    survey = target_survey("cross")
     lines = survey.gcp_file.read_text().splitlines()
     name, x, y, z = lines[1].split()
     moved = lines + [f"GCP98 {float(x) + 1.5:.4f} {y} {z}"]

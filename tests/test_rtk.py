@@ -102,10 +102,10 @@ def test_an_rtk_block_without_gcps_is_georeferenced_to_centimetres(rtk_tiny):
     assert all(n in notes for n in rtk["float"] + rtk["lost_fix"])
 
 
-def test_a_block_of_rtk_and_consumer_photos_weighs_each_by_its_own(tmp_path):
+def test_a_block_of_rtk_and_consumer_photos_weighs_each_by_its_own(rtk_tiny, tmp_path):
     """The same flight written twice (same seed: the same pixels and poses), once by an RTK
     receiver and once by a consumer GPS; every other photo taken from each."""
-    rtk = geoortho.synth(tmp_path / "rtk", preset="tiny", seed=2, pathology="rtk")
+    rtk = rtk_tiny[0]
     consumer = geoortho.synth(tmp_path / "consumer", preset="tiny", seed=2)
     mixed = tmp_path / "mixed"
     mixed.mkdir()
