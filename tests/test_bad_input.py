@@ -772,6 +772,12 @@ CASES_ROUND4 = [
         2,
         "sfm.positions is also given to the run itself",
     ),  # fmt: skip
+    Case(
+        "run/split-twice",
+        (*RUN, "--split", "20", "--stage-options", '{{"sfm": {{"split": 10}}}}'),
+        2,
+        "sfm.split is also given to the run itself",
+    ),  # fmt: skip
     # one clear line, never a traceback
     Case(
         "plan/a-camera-name-of-300-characters",

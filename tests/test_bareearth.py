@@ -205,6 +205,13 @@ def test_the_step_at_a_footprint_edge_is_measured_and_a_plane_has_none():
     assert n == n2 == 4
     assert abs(flat) < 1e-6 and abs(stepped - 0.05) < 0.005, (flat, stepped)
     assert roughness_m(plane, grid, 0.1) < 1e-6
+    # a line of nodata just past the east edge, beside the cells the samples fall nearest to: the
+    # cell the bilinear sample also weighs is in it and the edge must not count (its nodata read as
+    # 0 made a 3.5 m step of the small survey's clean west edge, the quality check's red)
+    gap = np.where(cols == 302, np.nan, plane)
+    wider = shapely.box(1010.0, 1965.0, 1030.04, 1985.0)  # its east samples 0.4 cell short of the gap
+    at_edge, n3 = footprint_step_m(gap, transform, [wider], grid & np.isfinite(gap))
+    assert abs(at_edge) < 1e-6 and n3 == 3, (at_edge, n3)
     noisy = plane + np.random.default_rng(1).normal(0.0, 0.01, plane.shape)
     assert 0.008 < roughness_m(noisy, grid, 0.1) < 0.012
 

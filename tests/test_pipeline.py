@@ -290,6 +290,21 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, tiny_survey, capsys):
     assert (tmp_path / "thesis.docx").read_text() == "mine" and not (tmp_path / LEDGER_NAME).exists()
 
 
+def test_split_reaches_the_sfm_stage_only_when_asked():
+    """run --split is sfm's split-merge (issue 78); a project run without it keeps its ledger's
+    sfm values, so an earlier project resumes as it was."""
+    from dataclasses import replace
+
+    from geoortho.chain.pipeline import STAGES, Project
+
+    sfm = next(s for s in STAGES if s.name == "sfm")
+    one_block = Project(images=Path("/photos"), output=Path("/project"))
+    assert not {"split", "split_overlap_m"} & set(sfm.values(one_block, {}))
+    values = sfm.values(replace(one_block, split=100, split_overlap_m=40.0), {})
+    assert values["split"] == 100 and values["split_overlap_m"] == 40.0
+    assert "split_overlap_m" not in sfm.values(replace(one_block, split=100), {})  # sfm's own default
+
+
 def test_stage_options_are_the_stages_own_parameters(tmp_path):
     from geoortho.chain.pipeline import parse_stage_options
 

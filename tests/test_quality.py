@@ -38,7 +38,10 @@ def _clean():
         "share_of_seen_2": 0.995, "n_photos": 50, "n_used": 50, "dsm_offset_m": 0.02, "seam_mismatch_balanced": 4,
         "holes_inside_m2": 0.0, "holes_inside_n": 0,
     }  # fmt: skip
-    fp = {"altitude_m": 60.0, "altitude_metadata_m": 61.0, "height_check": ""}
+    fp = {
+        "altitude_m": 60.0, "altitude_metadata_m": 61.0, "height_check": "",
+        "n_left_out": 0, "area_left_out_m2": 0.0, "area_seen_m2": 1e4,
+    }  # fmt: skip
     return sfm, dense, dem, ortho, fp
 
 
@@ -71,6 +74,9 @@ def test_a_clean_run_is_green_on_every_item():
         (lambda s, d, m, o, f: o.update(holes_inside_m2=0.4, holes_inside_n=1), "ortho_holes", "amber"),
         (lambda s, d, m, o, f: s.update(registered=44, unregistered=["A.JPG"]), "photos_registered", "red"),
         (lambda s, d, m, o, f: d.update(depth_maps=37, photos=75), "depth_maps", "red"),
+        # a failed submodel's ground (issue 78), a photo lost at a turn
+        (lambda s, d, m, o, f: f.update(n_left_out=12, area_left_out_m2=800.0), "ground_left_out", "red"),
+        (lambda s, d, m, o, f: f.update(n_left_out=1, area_left_out_m2=250.0), "ground_left_out", "amber"),
         (lambda s, d, m, o, f: s["gcp_accuracy"].update(rmse_3d_m=0.97), "gcp_rmse", "red"),
         (lambda s, d, m, o, f: s["gcp_accuracy"].update(rmse_3d_m=0.05), "gcp_rmse", "amber"),
         (lambda s, d, m, o, f: s["intrinsics"][0].update(focal_drift_pct=12), "focal_drift", "red"),
@@ -298,3 +304,15 @@ def test_a_dropped_photo_is_red_and_named_with_its_cause(tmp_path, seed):
     assert report["registered"] == report["photos"] - 1
     check = checks["photos_registered"]
     assert check.state == "red" and dropped["image"] in check.detail and "few features" in check.detail
+
+
+def test_a_failed_submodel_is_named_with_the_ground_it_leaves_out():
+    """A split run's failed submodel: its photos are not registered, their ground is in no product,
+    and the check says which submodel and how much, whatever share of the photos it held."""
+    sfm, dense, dem, ortho, fp = _clean()
+    sfm.update(registered=49, unregistered={"A.JPG": "submodel 3 failed: no model could be built"})
+    fp.update(n_left_out=1, area_left_out_m2=900.0, area_seen_m2=1.2e4)
+    (check,) = [c for c in assess(sfm, dense, dem, ortho, fp) if c.item == "ground_left_out"]
+    assert check.state == "red" and check.value == pytest.approx(7.5)
+    assert check.detail.startswith("submodel 3 failed") and "900 m² of 12,000 m²" in check.detail
+    assert "left_out" in check.detail

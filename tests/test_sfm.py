@@ -269,6 +269,50 @@ def test_a_failed_submodel_is_reported_and_the_rest_merged(sfm_with_gcps, small_
     assert 1 <= len(lost) <= 20 and r.n_registered == r.n_photos - len(rep["unregistered"])
     assert r.n_registered >= 15 and [s["submodel"] for s in rep["submodels"]] == [1]
 
+    # its ground is never a silent hole: the photos left out get footprints from their own GPS and
+    # attitude, against the true ones, and the ground only they saw is measured
+    import shapely
+
+    from geoortho.photos.footprint import footprints
+
+    fp = footprints(small_survey.images, tmp_path / "fp.gpkg", sfm=r.output)
+    left = gpd.read_file(fp.output, layer="left_out").set_index("image")
+    true = gpd.read_file(small_survey.truth / "footprints.gpkg").set_index("image")
+    assert set(left.index) == set(rep["unregistered"]) and fp.n_left_out == len(lost)
+    assert all("submodel 0 failed" in why for why in left.why)
+    overlap = [
+        shapely.intersection(g, true.geometry[n]).area / shapely.union(g, true.geometry[n]).area
+        for n, g in left.geometry.items()
+    ]
+    assert min(overlap) > 0.8, overlap
+    assert 0.1 * fp.area_seen_m2 < fp.area_left_out_m2 < 0.6 * fp.area_seen_m2, (fp.area_left_out_m2, fp.area_seen_m2)
+
+    # Run again: the submodel made is reused (it must not be made again), the failed one alone is made
+    made = []
+
+    def once(images, output, **kw):
+        made.append(output.name)
+        assert output.name != "submodel_01", "a finished submodel was made again"
+        return real(images, output, **kw)
+
+    monkeypatch.setattr(rc, "sfm", once)
+    fb = RecordingFeedback()
+    again = real(small_survey.images, tmp_path / "s", gcp_list=whole.output.parent / "gcp_list.txt", split=20,
+                 feedback=fb, max_image_size=640, max_features=2048)  # fmt: skip
+    rep = json.loads(again.report.read_text())
+    assert made == ["submodel_00"] and any("1 of 2 submodels reused" in i for i in fb.infos), fb.infos
+    assert sorted((s["submodel"], s["reused"]) for s in rep["submodels"]) == [(0, False), (1, True)]
+    assert again.n_registered >= 0.9 * again.n_photos > r.n_registered
+    assert not any("failed" in why for why in rep["unregistered"].values())
+    # a record is for the photos and options that made it: others, and it is made again
+    from geoortho.reconstruction.splitmerge import finished
+
+    sub = tmp_path / "s" / "submodels" / "submodel_01"
+    key = json.loads((sub / "submodel.json").read_text())["key"]
+    assert finished(sub, 1, key) is not None and key["files"]["gcp_list"]
+    assert finished(sub, 1, {**key, "options": {**key["options"], "max_features": "4096"}}) is None
+    assert finished(sub, 1, {**key, "photos": key["photos"][1:]}) is None
+
 
 def test_no_attitude_and_untrusted_heights_level_on_the_camera_plane(tmp_path):
     """A compact camera on a mount tilted 3.5 deg, no pitch or roll in its metadata, GPS heights

@@ -80,6 +80,8 @@ class Project:
     workers: int = 0
     options: dict[str, dict[str, Any]] = field(default_factory=dict)  # stage -> its own options
     positions: Path | None = None  # PPK/surveyed camera positions for the SfM
+    split: int = 0  # split-merge SfM: submodels of at most this many photos (0: one block)
+    split_overlap_m: float | None = None  # the submodels' overlap (None: sfm's default)
 
     def folder(self, stage: str) -> Path:
         return self.output / stage
@@ -158,6 +160,9 @@ STAGES: tuple[Stage, ...] = (
             "takeoff_elevation_m": p.takeoff_elevation_m,
             "workers": p.workers,
             **({"positions": p.positions} if p.positions is not None else {}),
+            # only when splitting: a one-block project's ledger (and so its resume) is unchanged
+            **({"split": p.split} if p.split else {}),
+            **({"split_overlap_m": p.split_overlap_m} if p.split and p.split_overlap_m is not None else {}),
         },
         ("images", "gcp_list", "positions"),
         weight=6,
@@ -925,8 +930,14 @@ def check_stage_options(project: Project, fb: Feedback) -> None:
                 f"run: stage options for {stage.name} ({', '.join(sorted(own))}) do nothing: the stage does not "
                 "run in this project"
             )
-    if project.positions is not None and "positions" in (project.options.get("sfm") or {}):
+    sfm_options = project.options.get("sfm") or {}
+    if project.positions is not None and "positions" in sfm_options:
         raise InputError("stage options: sfm.positions is also given to the run itself (--positions): give it once")
+    for name in ("split", "split_overlap_m"):
+        if name in sfm_options and project.split:
+            raise InputError(f"stage options: sfm.{name} is also given to the run itself (--split): give it once")
+    if project.split_overlap_m is not None and not project.split:
+        fb.warning("run: --split-overlap-m does nothing without --split (the SfM runs as one block)")
 
 
 def check_run_paths(project: Project) -> None:
@@ -1085,6 +1096,8 @@ def run(
     force: bool = False,
     workers: int = 0,
     positions: Path | None = None,
+    split: int = 0,
+    split_overlap_m: float | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> RunResult:
@@ -1145,6 +1158,14 @@ def run(
         Post-processed (PPK) or surveyed camera positions for the SfM (see sfm): an RTKLIB .pos,
         a DJI Timestamp.MRK or a CSV. With RTK/PPK-grade positions the GCPs are checkpoints
         unless checkpoints says otherwise ('none': they control the block).
+    split : int
+        Split-merge for large surveys (see sfm): the SfM reconstructs submodels of at most this
+        many photos, by position (as tasks on the Dask cluster when one is given), and merges them
+        into one model, from which the dense cloud, DSM, DTM and orthophoto are made whole (0 = one
+        block). A submodel that fails is named and its photos' ground is shown as left out; a run
+        killed mid-way reuses the submodels already made.
+    split_overlap_m : float
+        Each submodel also takes its neighbours' photos within this distance (m; default: sfm's 30).
     """
     fb = as_feedback(feedback)
     t0 = time.perf_counter()
@@ -1173,6 +1194,8 @@ def run(
         workers=workers,
         options=options,
         positions=given(positions),
+        split=int(split or 0),
+        split_overlap_m=split_overlap_m,
     )
     if project.gcp_file is not None and project.gcp_list is not None:
         raise InputError("give --gcp-file (markers to find) or --gcp-list (observations made), not both")

@@ -108,6 +108,15 @@ THRESHOLDS: dict[str, Threshold] = {
         True,
         "a mapping flight loses at most a photo or two (take-off, a turn); more is a gap in the block",
     ),
+    "ground_left_out": Threshold(
+        "Ground seen only by photos the SfM left out",
+        "%",
+        1.0,
+        5.0,
+        False,
+        "a photo lost at a turn costs a sliver; a failed submodel or a lost strip leaves ground the photos saw "
+        "out of every product, and the map must not end there silently (issue 78)",
+    ),
     "photos_in_ortho": Threshold(
         "Registered photos used in the orthophoto",
         "%",
@@ -291,6 +300,7 @@ def assess(
         *_coverage_checks(dem, ortho),
         *_terrain_checks(sfm, dem),
         *_photo_checks(sfm, dense, ortho),
+        _left_out_check(sfm, fp),
         *_control_checks(sfm),
         *_gps_checks(sfm),
         *_surface_checks(sfm, ortho, fp),
@@ -419,6 +429,24 @@ def _gps_checks(sfm: dict[str, Any]) -> list[Check]:
             else "",
         ),
     ]
+
+
+def _left_out_check(sfm: dict[str, Any], fp: dict[str, Any]) -> Check:
+    """The ground that only the photos the SfM did not place saw (footprints from their GPS), as a
+    share of all the ground seen; the submodels that failed named."""
+    area, seen = as_number(fp.get("area_left_out_m2", math.nan)), as_number(fp.get("area_seen_m2", math.nan))
+    dropped = sfm.get("unregistered")
+    reasons = [str(why) for why in dropped.values()] if isinstance(dropped, dict) else []
+    failed = sorted({why.split(":")[0] for why in reasons if why.startswith("submodel ")})
+    detail = ""
+    if math.isfinite(area) and area > 0:
+        detail = (
+            f"{area:,.0f} m² of {seen:,.0f} m², seen by {int(as_number(fp.get('n_left_out', 0)) or 0)} photos "
+            "left out (footprints layer left_out)"
+        )
+    if failed:
+        detail = "; ".join([", ".join(failed) + " failed", *([detail] if detail else [])])
+    return _check("ground_left_out", _share(area, seen) if seen > 0 else math.nan, detail)
 
 
 def _surface_checks(sfm: dict[str, Any], ortho: dict[str, Any], fp: dict[str, Any]) -> list[Check]:

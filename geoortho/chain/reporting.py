@@ -250,6 +250,18 @@ class _Context:
 
         return gpd.read_file(path, layer="footprints")
 
+    def left_out(self) -> Any:
+        """The footprints of the photos the SfM left out (from their GPS), or None."""
+        path = self.path("footprints", "output")
+        if path is None:
+            return None
+        import geopandas as gpd
+        import pyogrio
+
+        if "left_out" not in {str(name) for name, _ in pyogrio.list_layers(path)}:
+            return None
+        return gpd.read_file(path, layer="left_out")
+
     def values(self, stage: str) -> dict[str, Any]:
         return dict(self.stages.get(stage, {}).get("values", {}))
 
@@ -486,10 +498,22 @@ def _map(ctx: _Context) -> str:
     fp = ctx.footprints()
     if fp is None:
         return _missing("No footprints (the footprints stage did not finish).")
-    fig = _map_figure(tuple(fp.total_bounds[[0, 2, 1, 3]]))
+    left = ctx.left_out()
+    bounds = (
+        fp.total_bounds
+        if left is None or left.empty
+        else np.r_[
+            np.minimum(fp.total_bounds[:2], left.total_bounds[:2]),
+            np.maximum(fp.total_bounds[2:], left.total_bounds[2:]),
+        ]
+    )
+    fig = _map_figure(tuple(bounds[[0, 2, 1, 3]]))
     ax = fig.add_subplot()
     has_ortho = _ortho_background(ax, ctx)
     fp.boundary.plot(ax=ax, color="#1f77b4", linewidth=0.6, alpha=0.7, zorder=2)
+    if left is not None and not left.empty:  # ground the products lack: drawn, never a silent hole
+        left.plot(ax=ax, facecolor="#d62728", edgecolor="#d62728", alpha=0.25, linewidth=0.8, zorder=3)
+        ax.fill([], [], color="#d62728", alpha=0.4, label=f"footprint of a photo left out ({len(left)})")
     cams = _sfm_cameras(ctx)
     if cams is not None:
         reg = cams["registered"].astype(bool)

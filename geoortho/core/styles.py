@@ -228,6 +228,7 @@ def vector_qml(renderer: ET.Element) -> str:
 #: Each product's vector layer (by its layer name) as the project and its GeoPackage draw it.
 _VECTOR_LOOKS: dict[str, Callable[[], ET.Element]] = {
     "footprints": lambda: outline("#377eb8", 0.3),
+    "left_out": lambda: outline("#e41a1c", 0.6),  # photos the SfM did not place: ground the products lack
     "seamlines": lambda: outline("#ff7f00", 0.4),
     "cameras": lambda: marker("#e41a1c", "circle", 1.8),
     "detections": lambda: marker("#ffff33", "cross2", 3.0),
@@ -238,7 +239,7 @@ _VECTOR_LOOKS: dict[str, Callable[[], ET.Element]] = {
 
 
 def product_renderer(layer: str) -> ET.Element:
-    """The renderer of a product's vector layer, by the layer's name (``footprints``, ``cameras``,
+    """The renderer of a product's vector layer, by the layer's name (``footprints``, ``left_out``, ``cameras``,
     ``detections``, ``seamlines``, ``contours``, ``gcps``, ``residuals``)."""
     return _VECTOR_LOOKS[layer]()
 

@@ -103,9 +103,12 @@ def _edge_step(
         col, row = inv * (sx, sy)  # type: ignore[operator]
         col, row = np.asarray(col) - 0.5, np.asarray(row) - 0.5
         inside = (col >= 0) & (row >= 0) & (col <= z.shape[1] - 1) & (row <= z.shape[0] - 1)
-        ci = np.clip(np.round(col).astype(np.int64), 0, z.shape[1] - 1)
-        ri = np.clip(np.round(row).astype(np.int64), 0, z.shape[0] - 1)
-        good &= inside & ok[ri, ci]
+        # every cell the bilinear sample weighs: one beyond the surface's edge (its nodata read as 0)
+        # made a 3.5 m step of a clean edge of the small survey, the quality check's red
+        c0 = np.clip(np.floor(col).astype(np.int64), 0, z.shape[1] - 1)
+        r0 = np.clip(np.floor(row).astype(np.int64), 0, z.shape[0] - 1)
+        c1, r1 = np.minimum(c0 + 1, z.shape[1] - 1), np.minimum(r0 + 1, z.shape[0] - 1)
+        good &= inside & ok[r0, c0] & ok[r0, c1] & ok[r1, c0] & ok[r1, c1]
         vals.append(bilinear(z, col, row))
     if int(good.sum()) < MIN_EDGE_SAMPLES:
         return None

@@ -300,6 +300,14 @@ class FootprintResult:
     height_check : str
         With ``sfm``: the heights given or assumed that disagree with the measured ones (over
         10 %, or 2 m for an elevation), in words; empty when they agree.
+    n_left_out : int
+        With ``sfm``: photos the SfM did not register (a failed submodel, a lost strip), whose
+        footprints from their own GPS and attitude are the layer ``left_out``.
+    area_left_out_m2 : float
+        The ground only those photos saw (no registered photo's footprint covers it), m²: the
+        products cannot show it.
+    area_seen_m2 : float
+        The ground every photo saw together, m² (registered and left out).
     """
 
     output: Path
@@ -314,6 +322,9 @@ class FootprintResult:
     altitude_m: float = math.nan
     altitude_metadata_m: float = math.nan
     height_check: str = ""
+    n_left_out: int = 0
+    area_left_out_m2: float = 0.0
+    area_seen_m2: float = math.nan
 
 
 def footprints(
@@ -441,14 +452,22 @@ def footprints(
 
 
 def _write_layers(
-    output: Path, fp: Any, cam_layer: Any, work: CRS, out_crs: CRS | None, overlap: Path | None, cell_m: float
+    output: Path,
+    fp: Any,
+    cam_layer: Any,
+    work: CRS,
+    out_crs: CRS | None,
+    overlap: Path | None,
+    cell_m: float,
+    extra: dict[str, Any] | None = None,
 ) -> Path | None:
-    """The overlap raster (in the working CRS), then both layers in the output CRS; the overlap's path."""
+    """The overlap raster (in the working CRS), then the layers in the output CRS; the overlap's path."""
 
     overlap_path = write_overlap(overlap, fp.geometry.values, work, cell_m) if overlap is not None else None
+    layers = {"footprints": fp, "cameras": cam_layer, **(extra or {})}
     if out_crs is not None and not out_crs.equals(work):
-        fp, cam_layer = fp.to_crs(out_crs), cam_layer.to_crs(out_crs)
-    write_vector(output, {"footprints": fp, "cameras": cam_layer}, styles=product_styles("footprints", "cameras"))
+        layers = {name: layer.to_crs(out_crs) for name, layer in layers.items()}
+    write_vector(output, layers, styles=product_styles(*layers))
     return overlap_path
 
 
@@ -517,7 +536,9 @@ def _footprints_from_sfm(
     )
     fp, cam_layer = _footprint_layers(cams, table, heights, ground, work)
     fp["altitude_metadata_m"] = check.per_photo_m
-    overlap_path = _write_layers(output, fp, cam_layer, work, out_crs, overlap, overlap_cell_m)
+    left = _left_out([by_name[n] for n in unregistered], sfm, cams, table, work, max_range_m, fb)
+    extra = {"left_out": left.layer} if left.layer is not None else {}
+    overlap_path = _write_layers(output, fp, cam_layer, work, out_crs, overlap, overlap_cell_m, extra)
     s_write.progress(1.0)
     median_gsd = float(np.nanmedian(table.gsd_cm))
     fb.info(
@@ -537,7 +558,94 @@ def _footprints_from_sfm(
         altitude_m=altitude_m,
         altitude_metadata_m=check.altitude_m,
         height_check=check.problem,
+        n_left_out=len(unregistered),
+        area_left_out_m2=left.area_m2,
+        area_seen_m2=left.seen_m2,
     )
+
+
+@dataclass(frozen=True)
+class _LeftOut:
+    layer: Any  # GeoDataFrame of the left-out photos' footprints (None: none left out)
+    area_m2: float  # ground only they saw
+    seen_m2: float  # ground all the photos saw
+
+
+def _left_out(
+    photos: Sequence[Photo],
+    sfm: Path,
+    cams: Sequence[PhotoCamera],
+    table: FootprintTable,
+    work: CRS,
+    max_range_m: float,
+    fb: Feedback,
+) -> _LeftOut:
+    """Where the photos the SfM left out looked, from their own GPS and attitude at the measured
+    flight's height above the measured ground (the median of the registered cameras': their own
+    heights may be in another datum), and the ground that only they saw: never a silent hole."""
+    import json
+
+    import geopandas as gpd
+    import shapely
+
+    registered = shapely.union_all(shapely.make_valid(shapely.polygons(table.rings)))
+    seen_m2 = float(registered.area)
+    placeable = [p for p in photos if math.isfinite(p.latitude_deg) and math.isfinite(p.longitude_deg)]
+    if not placeable:
+        return _LeftOut(None, 0.0, seen_m2)
+    height_m = _median(table.altitude_m)
+    ground_m = _median(np.array([c.pose.center[2] for c in cams]) - table.altitude_m)
+    if not (math.isfinite(height_m) and math.isfinite(ground_m)):
+        return _LeftOut(None, 0.0, seen_m2)
+    to_xy = transformer(WGS84, work)
+    lon = np.array([p.longitude_deg for p in placeable], float)
+    lat = np.array([p.latitude_deg for p in placeable], float)
+    x, y = to_xy.transform(lon, lat)
+    convergence, scale = grid_north(work, lon, lat)
+    placed = [
+        PhotoCamera.of(
+            p,
+            Pose(
+                np.array([x[i], y[i], ground_m + height_m]),
+                rotation_from_ypr(p.yaw_deg + convergence[i], p.pitch_deg, p.roll_deg),
+            ),
+            "GPS and attitude of the photo, at the SfM's median height",
+            float(convergence[i]),
+            float(scale[i]),
+        )
+        for i, p in enumerate(placeable)
+    ]
+    theirs = compute_footprints(placed, FlatSurface(ground_m), max_range_m=max_range_m)
+    polys = shapely.make_valid(shapely.polygons(theirs.rings))
+    only_theirs = shapely.difference(polys, registered)
+    try:
+        why = json.loads((Path(sfm) / "report.json").read_text()).get("unregistered") or {}
+    except (OSError, ValueError):
+        why = {}
+    layer = gpd.GeoDataFrame(
+        {
+            "image": [p.image for p in placeable],
+            "why": [
+                str(why.get(p.image, "not registered by the SfM")) if isinstance(why, dict) else "" for p in placeable
+            ],
+            "area_m2": shapely.area(polys),
+            "area_only_here_m2": shapely.area(only_theirs),
+            "placed_by": ["GPS and attitude of the photo, at the SfM's median height above the ground"]
+            * len(placeable),
+        },
+        geometry=polys,
+        crs=work,
+    )
+    union = shapely.union_all(polys)
+    area_m2 = float(shapely.difference(union, registered).area)
+    seen_m2 = float(shapely.union(union, registered).area)
+    if area_m2 > 0.0:
+        fb.warning(
+            f"{len(placeable)} photos left out by the SfM saw {area_m2:,.0f} m² that no registered photo saw "
+            f"({100 * area_m2 / seen_m2:.1f} % of the ground seen): the products do not show it (footprints "
+            "layer left_out)"
+        )
+    return _LeftOut(layer, area_m2, seen_m2)
 
 
 @dataclass(frozen=True)

@@ -108,6 +108,9 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("altitude_m", "number"),
             Output("altitude_metadata_m", "number"),
             Output("height_check", "string"),
+            Output("n_left_out", "integer"),
+            Output("area_left_out_m2", "number"),
+            Output("area_seen_m2", "number"),
         ),
     ),
     Algorithm(
@@ -335,6 +338,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("force", "bool", advanced=True),
             WORKERS,
             POSITIONS,
+            Param("split", "integer", minimum=0, advanced=True),
+            Param("split_overlap_m", "number", unit="m", minimum=0.0, advanced=True),
         ),
         outputs=(
             Output("output", "folder"),

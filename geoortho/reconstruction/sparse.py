@@ -72,7 +72,7 @@ from geoortho.photos.heights import absolute_altitude, check_altitudes
 from geoortho.photos.metadata import Photo, list_images, photo_seconds, read_photos
 from geoortho.photos.positions import PositionFile, apply_positions, read_positions
 from geoortho.reconstruction.colmap import load_pycolmap
-from geoortho.reconstruction.splitmerge import merge, partition, run_submodel
+from geoortho.reconstruction.splitmerge import finished, merge, partition, run_submodel, submodel_key
 
 __all__ = ["SfmResult", "sfm", "MATCHING", "MAPPERS", "CAMERA_MODELS", "ce90", "le90"]
 
@@ -1381,7 +1381,7 @@ def sfm(
                 mapper=mapper, positions=positions,
                 positions_time_offset_s=None if inputs.positions is None else inputs.positions.time_offset_s,
             )  # fmt: skip
-            mapped, sub_stats = _split_reconstruct(inputs, work, split, split_overlap_m, sub_kwargs, timer, fb)
+            mapped, sub_stats = _split_reconstruct(inputs, output, split, split_overlap_m, sub_kwargs, timer, fb)
         else:
             mapped = _reconstruct(
                 inputs, db, work, matching, mapper, camera_model, max_image_size, max_features, gps_sigma_m, seed,
@@ -1405,6 +1405,8 @@ def sfm(
         timer.add("outputs", t0)
         figures = _figures(mapped.rec, inputs, geo)
         _write_report(output, inputs, mapped, geo, figures, intrinsics, mapper, lag, sub_stats, timer, t_start, notes)
+        if not sub_stats:  # one block now: an earlier split's submodels describe another model
+            shutil.rmtree(output / "submodels", ignore_errors=True)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     _announce(notes, mapped, inputs, geo, figures, n_points, fb)
@@ -2044,7 +2046,7 @@ def _reconstruct(
 
 def _split_reconstruct(
     inputs: _Inputs,
-    work: Path,
+    output: Path,
     split: int,
     overlap_m: float,
     sub_kwargs: dict[str, Any],
@@ -2052,7 +2054,8 @@ def _split_reconstruct(
     fb: Feedback,
 ) -> tuple[_Mapped, list[dict[str, Any]]]:
     """Split-merge (:mod:`geoortho.reconstruction.splitmerge`): submodels by position, each reconstructed by
-    :func:`sfm`, merged into one model for the georeferencing that follows."""
+    :func:`sfm` into ``output/submodels`` (kept: a rerun reuses the ones finished), merged into one
+    model for the georeferencing that follows."""
 
     if split < 3 or overlap_m < 0:
         raise InputError(f"split {split}: submodels need at least 3 photos, and an overlap of 0 m or more")
@@ -2069,17 +2072,36 @@ def _split_reconstruct(
         + " photos"
     )
     t0 = time.perf_counter()
-    tasks = [
-        (k, [str(path_of[n]) for n in g], work / f"submodel_{k:02d}", sub_kwargs, sfm) for k, g in enumerate(groups)
-    ]
-    subs = map_ordered(run_submodel, tasks, workers=1, feedback=fb)
+    folder = output / "submodels"
+    for stale in folder.glob("submodel_*"):  # of an earlier split into more submodels
+        if stale.is_dir() and not (stale.name[9:].isdigit() and int(stale.name[9:]) < len(groups)):
+            shutil.rmtree(stale, ignore_errors=True)
+    done: dict[int, Any] = {}
+    tasks, keys = [], {}
+    for k, g in enumerate(groups):
+        paths = [str(path_of[n]) for n in g]
+        keys[k] = submodel_key(paths, sub_kwargs)
+        sub_output = folder / f"submodel_{k:02d}"
+        if (earlier := finished(sub_output, k, keys[k])) is not None:
+            done[k] = earlier
+        else:
+            tasks.append((k, paths, sub_output, sub_kwargs, sfm, keys[k]))
+    if done:
+        fb.info(
+            f"split-merge: {len(done)} of {len(groups)} submodels reused from an earlier run "
+            f"({', '.join(str(k) for k in sorted(done))}); {len(tasks)} to make"
+        )
+    for s in map_ordered(run_submodel, tasks, workers=1, feedback=fb):
+        done[s.index] = s
+    subs = [done[k] for k in sorted(done)]
     timer.add("submodels", t0)
     for s in subs:
         if not s.ok:
             fb.warning(f"submodel {s.index} ({len(s.photos)} photos) failed: {s.message}")
     t0 = time.perf_counter()
     home_of = dict(zip(names, home))
-    rec, left_out, stats, came_from = merge(subs, home_of, inputs.priors.offset, fb)
+    body_of = {inputs.names[p.path]: b.label for b in _bodies(inputs.photos) for p in b.photos}
+    rec, left_out, stats, came_from = merge(subs, home_of, inputs.priors.offset, fb, body_of)
     for n in path_of:
         if n not in home_of:
             left_out.setdefault(n, "no GPS position: split-merge cannot place it in a submodel")

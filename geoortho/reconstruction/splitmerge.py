@@ -11,7 +11,10 @@ reconstruct each (on other nodes when there are some), align them and merge. Her
 2. **Reconstruct** each submodel with :func:`geoortho.reconstruction.sparse.sfm` on its photos (GPS
    and the GCPs it sees georeference it on its own), as a task of :mod:`geoortho.core.parallel`:
    on the Dask cluster when there is one, else one after the other (pycolmap uses every core).
-   A submodel that fails is reported with its photos; the others are merged.
+   A submodel that fails is reported with its photos; the others are merged. Each submodel's
+   output is kept (``OUTPUT/submodels/submodel_KK``) with a record of what made it
+   (:func:`finished`): an sfm killed mid-way, rerun, reuses the submodels already made and redoes
+   the others alone.
 3. **Align**: a submodel without GCP control is put on its already merged neighbours by a
    similarity fitted to the camera centres of the photos they share (≥ 3), when they share
    enough; GCP-controlled submodels are in the CRS already.
@@ -36,7 +39,10 @@ from geoortho.errors import GeoorthoError
 from geoortho.feedback import Feedback
 from geoortho.reconstruction.colmap import load_pycolmap
 
-__all__ = ["partition", "Submodel"]
+__all__ = ["partition", "Submodel", "finished", "record"]
+
+#: The record a finished submodel leaves beside its products (:func:`record`).
+RECORD_NAME = "submodel.json"
 
 
 def partition(names: Sequence[str], xy: np.ndarray, size: int, overlap_m: float) -> tuple[list[list[str]], list[int]]:
@@ -81,22 +87,25 @@ class Submodel:
     gcp_rmse_m: float = math.nan
     checkpoint_rmse_m: float = math.nan
     seconds: float = 0.0
+    reused: bool = False  # made by an earlier, interrupted run (:func:`finished`)
 
 
-def run_submodel(args: tuple[int, list[str], Path, dict[str, Any], Callable[..., Any]]) -> Submodel:
+def run_submodel(args: tuple[int, list[str], Path, dict[str, Any], Callable[..., Any], dict[str, Any]]) -> Submodel:
     """A task: reconstruct one submodel (on a pool or cluster worker, or here) with ``sfm``, the
     reconstruction function the task carries (passed by the caller: split-merge knows nothing of
-    how a block is reconstructed, and the two modules do not import each other)."""
+    how a block is reconstructed, and the two modules do not import each other). A submodel that
+    succeeds leaves its record (:func:`record`) as soon as it is made, wherever it ran: a run
+    killed while others were still working finds it."""
     import time
 
-    k, paths, output, kwargs, sfm = args
+    k, paths, output, kwargs, sfm, key = args
     t = time.perf_counter()
     names = tuple(Path(p).name for p in paths)
     try:
         r = sfm([Path(p) for p in paths], output, **kwargs)
     except GeoorthoError as e:
         return Submodel(k, names, output, False, " ".join(str(e).split()), seconds=time.perf_counter() - t)
-    return Submodel(
+    sub = Submodel(
         k,
         names,
         output,
@@ -107,12 +116,92 @@ def run_submodel(args: tuple[int, list[str], Path, dict[str, Any], Callable[...,
         r.checkpoint_rmse_m,
         time.perf_counter() - t,
     )
+    record(sub, key)
+    return sub
+
+
+def submodel_key(paths: Sequence[str], kwargs: dict[str, Any]) -> dict[str, Any]:
+    """What makes a submodel: its photos (name, size, time written), its options, the files they
+    name (GCP observations, positions: by content) and the geoortho version."""
+    import hashlib
+    import os
+
+    from geoortho.version import __version__
+
+    def stat(path: str) -> list[Any]:
+        st = os.stat(path)
+        return [Path(path).name, st.st_size, st.st_mtime_ns]
+
+    files = {}
+    for name, value in sorted(kwargs.items()):
+        if isinstance(value, Path) or (name in ("gcp_list", "positions") and value):
+            files[name] = hashlib.sha256(Path(value).read_bytes()).hexdigest()
+    return {
+        "photos": [stat(p) for p in paths],
+        "options": {k: str(v) for k, v in sorted(kwargs.items())},
+        "files": files,
+        "geoortho": __version__,
+    }
+
+
+def finished(output: Path, index: int, key: dict[str, Any]) -> Submodel | None:
+    """The submodel made earlier in ``output`` from the same photos and options, if it finished
+    (its record is written after its products); None: it is to be made."""
+    path = output / RECORD_NAME
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(saved, dict) or saved.get("key") != json.loads(json.dumps(key)):
+        return None
+    r = saved.get("result") or {}
+    if not (output / "model" / "georeference.json").is_file():
+        return None
+    return Submodel(
+        index,
+        tuple(r.get("photos") or ()),
+        output,
+        True,
+        str(r.get("message", "")),
+        int(r.get("n_registered", 0)),
+        _number(r.get("gcp_rmse_m")),
+        _number(r.get("checkpoint_rmse_m")),
+        float(r.get("seconds", 0.0)),
+        reused=True,
+    )
+
+
+def _number(value: Any) -> float:
+    return float(value) if isinstance(value, (int, float)) else math.nan
+
+
+def record(sub: Submodel, key: dict[str, Any]) -> None:
+    """A finished submodel's record: what made it, and how it went (a failed one leaves none,
+    so that a rerun makes it again)."""
+    from geoortho.core.outputs import write_json
+
+    result = {
+        "photos": list(sub.photos),
+        "message": sub.message,
+        "n_registered": sub.n_registered,
+        "gcp_rmse_m": sub.gcp_rmse_m if math.isfinite(sub.gcp_rmse_m) else None,
+        "checkpoint_rmse_m": sub.checkpoint_rmse_m if math.isfinite(sub.checkpoint_rmse_m) else None,
+        "seconds": round(sub.seconds, 2),
+    }
+    write_json(sub.output / RECORD_NAME, {"key": key, "result": result})
 
 
 def merge(
-    subs: Sequence[Submodel], home: dict[str, int], offset: np.ndarray, fb: Feedback
+    subs: Sequence[Submodel],
+    home: dict[str, int],
+    offset: np.ndarray,
+    fb: Feedback,
+    body_of: dict[str, Any] | None = None,
 ) -> tuple[Any, dict[str, str], list[dict[str, Any]], dict[str, int]]:
-    """One reconstruction in the frame ``CRS − offset`` from the submodels that succeeded.
+    """One reconstruction in the frame ``CRS − offset`` from the submodels that succeeded, with one
+    camera per camera body (``body_of``: image name -> its body; the first submodel's calibration
+    of it, as the GCP-controlled ones come first): every submodel calibrated the same lens, and the
+    adjustments that follow refine it once, not once per submodel.
 
     Returns it, the photos not in it (with why), per-submodel statistics (shared photos and
     how far their centres disagree with the merged ones), and the submodel each photo in it
@@ -127,11 +216,12 @@ def merge(
     owner = _owners(ok, home)
     recs: list[tuple[Any, dict[int, int]]] = []  # each submodel, in the merged frame, and its photos' ids
     keypoints: dict[int, np.ndarray] = {}  # merged image -> its keypoints
+    cameras: dict[Any, int] = {}  # camera body (or submodel and camera) -> merged camera id
     for s in ok:
         rec, centres, shared, aligned = _in_merged_frame(s, offset, placed)
         gaps = [float(np.linalg.norm(centres[n] - placed[n])) for n in shared]
         stats.append(_submodel_stats(s, shared, gaps, aligned))
-        image_ids = _add_own_photos(merged, rec, s.index, owner, placed, centres)
+        image_ids = _add_own_photos(merged, rec, s.index, owner, placed, centres, cameras, body_of or {})
         recs.append((rec, image_ids))
         for i, new_id in image_ids.items():
             keypoints[new_id] = np.array([p.xy for p in rec.image(i).points2D])
@@ -197,31 +287,40 @@ def _submodel_stats(s: Submodel, shared: list[str], gaps: list[float], aligned: 
         "gcp_rmse_m": None if not math.isfinite(s.gcp_rmse_m) else round(s.gcp_rmse_m, 4),
         "checkpoint_rmse_m": None if not math.isfinite(s.checkpoint_rmse_m) else round(s.checkpoint_rmse_m, 4),
         "seconds": round(s.seconds, 1),
+        "reused": s.reused,
     }
 
 
 def _add_own_photos(
-    merged: Any, rec: Any, index: int, owner: dict[str, int], placed: dict[str, np.ndarray], centres: dict[str, Any]
+    merged: Any,
+    rec: Any,
+    index: int,
+    owner: dict[str, int],
+    placed: dict[str, np.ndarray],
+    centres: dict[str, Any],
+    cameras: dict[Any, int],
+    body_of: dict[str, Any],
 ) -> dict[int, int]:
-    """The submodel's photos it owns (not placed yet) added to ``merged`` with their cameras; its
-    image ids -> the merged ones."""
+    """The submodel's photos it owns (not placed yet) added to ``merged``, on the merged camera of
+    their body (added from this submodel's calibration when it is the first to bring the body);
+    its image ids -> the merged ones."""
     pycolmap = load_pycolmap()
-    cam_ids: dict[int, int] = {}
     image_ids: dict[int, int] = {}
     for i in sorted(rec.reg_image_ids()):
         im = rec.image(i)
         if owner.get(im.name) != index or im.name in placed:
             continue
-        if im.camera_id not in cam_ids:
+        body = body_of.get(im.name, (index, im.camera_id))
+        if body not in cameras:
             c = rec.camera(im.camera_id)
-            cam_ids[im.camera_id] = merged.num_cameras() + 1
+            cameras[body] = merged.num_cameras() + 1
             cam = pycolmap.Camera(
-                model=c.model, width=c.width, height=c.height, params=c.params, camera_id=cam_ids[im.camera_id]
+                model=c.model, width=c.width, height=c.height, params=c.params, camera_id=cameras[body]
             )
             merged.add_camera_with_trivial_rig(cam)
         points = pycolmap.Point2DList([pycolmap.Point2D(p.xy) for p in im.points2D])
         image_ids[i] = merged.num_images() + 1
-        new = pycolmap.Image(name=im.name, points2D=points, camera_id=cam_ids[im.camera_id], image_id=image_ids[i])
+        new = pycolmap.Image(name=im.name, points2D=points, camera_id=cameras[body], image_id=image_ids[i])
         merged.add_image_with_trivial_frame(new, im.cam_from_world())
         placed[im.name] = centres[im.name]
     return image_ids
