@@ -66,9 +66,8 @@ def main() -> int:
 
     counts = [int(x) for x in args.workers.split(",")]
     stages = [s for s in args.stages.split(",") if s]
-    print(
-        f"machine: {os.cpu_count()} cores, {platform.processor() or platform.machine()}, Python {platform.python_version()}"
-    )
+    cpu = platform.processor() or platform.machine()
+    print(f"machine: {os.cpu_count()} cores, {cpu}, Python {platform.python_version()}")
     with tempfile.TemporaryDirectory() as d:
         survey = args.survey
         if survey is None:
