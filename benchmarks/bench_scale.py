@@ -60,6 +60,23 @@ def make_survey(folder: Path, n_photos: int, image_px: int, seed: int = 0) -> tu
     return folder, r.n_photos
 
 
+def stage_argv(
+    survey: Path, out: Path, sfm_options: list[str], ortho_dsm: Path, dictionary: str | None = None
+) -> dict[str, list[str]]:
+    """Each stage's ``geoortho`` arguments on a synth survey, chained through ``out``."""
+    img, gcp = survey / "images", survey / "truth" / "gcp_utm.txt"
+    argv = {
+        "footprints": ["footprints", "--images", img, "--output", out / "fp.gpkg", "--dsm", survey / "truth/dsm.tif"],
+        "gcp-find": ["gcp-find", "--images", img, "--gcp-file", gcp, "--output", out / "gcp_list.txt"]
+        + (["--dictionary", dictionary] if dictionary else []),
+        "sfm": ["sfm", "--images", img, "--output", out / "sfm", "--gcp-list", out / "gcp_list.txt", *sfm_options],
+        "dense": ["dense", "--sfm", out / "sfm", "--images", img, "--output", out / "dense.laz"],
+        "dem": ["dem", "--points", out / "dense.laz", "--output", out / "dsm.tif", "--dtm", out / "dtm.tif"],
+        "ortho": ["ortho", "--images", img, "--output", out / "ortho.tif", "--sfm", out / "sfm", "--dsm", ortho_dsm],
+    }
+    return {stage: [str(a) for a in args] for stage, args in argv.items()}
+
+
 def checkpoints(gcp_file: Path) -> list[str]:
     """Every fourth GCP of the survey's file, held out of the adjustment and measured."""
     from geoortho.gcp.io import read_gcp_file
@@ -125,31 +142,14 @@ def main() -> int:
                 flush=True,
             )
             sizes.append(n)
-            img, gcp, out = s / "images", s / "truth" / "gcp_utm.txt", s / "out"
-            argv = {
-                "footprints": [
-                    "footprints",
-                    "--images",
-                    img,
-                    "--output",
-                    out / "fp.gpkg",
-                    "--dsm",
-                    s / "truth/dsm.tif",
-                ],
-                "gcp-find": ["gcp-find", "--images", img, "--gcp-file", gcp, "--output", out / "gcp_list.txt"]
-                + ["--dictionary", DICTIONARY],
-                "sfm": ["sfm", "--images", img, "--output", out / "sfm", "--gcp-list", out / "gcp_list.txt"]
-                + ["--checkpoints", ",".join(checkpoints(gcp))]
-                + ["--max-image-size", str(args.image_px), "--matching", "spatial"]
-                + (["--split", str(args.split)] if n > args.split else []),
-                "dense": ["dense", "--sfm", out / "sfm", "--images", img, "--output", out / "dense.laz"],
-                "dem": ["dem", "--points", out / "dense.laz", "--output", out / "dsm.tif", "--dtm", out / "dtm.tif"],
-                "ortho": ["ortho", "--images", img, "--output", out / "ortho.tif", "--sfm", out / "sfm"]
-                + ["--dsm", out / "dsm.tif"],
-            }
+            gcp, out = s / "truth" / "gcp_utm.txt", s / "out"
+            sfm_options = ["--checkpoints", ",".join(checkpoints(gcp))]
+            sfm_options += ["--max-image-size", str(args.image_px), "--matching", "spatial"]
+            sfm_options += ["--split", str(args.split)] if n > args.split else []
+            argv = stage_argv(s, out, sfm_options, out / "dsm.tif", DICTIONARY)
             out.mkdir(parents=True, exist_ok=True)
             for st in stages:
-                dt, mb = run([str(a) for a in argv[st]] + ["--quiet"], args.scheduler)
+                dt, mb = run([*argv[st], "--quiet"], args.scheduler)
                 table[st][n] = (dt, mb)
                 print(f"  {st:10s} {n:5d} photos: {dt:7.1f} s  {mb:7.0f} MB  ({n / dt:.2f} photos/s)", flush=True)
                 if st == "sfm":

@@ -23,33 +23,10 @@ import sys
 import tempfile
 from pathlib import Path
 
+from bench_scale import stage_argv
 from bench_sfm import OURS, _child
 
 STAGES = ("gcp-find", "sfm", "dense", "footprints", "ortho")
-
-
-def argv_of(stage: str, survey: Path, out: Path, split: int) -> list[str]:
-    img, gcp = survey / "images", survey / "truth" / "gcp_utm.txt"
-    return [
-        str(a)
-        for a in {
-            "gcp-find": ["gcp-find", "--images", img, "--gcp-file", gcp, "--output", out / "gcp_list.txt"],
-            "sfm": ["sfm", "--images", img, "--output", out / "sfm", "--gcp-list", out / "gcp_list.txt"]
-            + ["--max-image-size", "1024", "--max-features", "4096", "--split", split],
-            "dense": ["dense", "--sfm", out / "sfm", "--images", img, "--output", out / "dense.laz"],
-            "footprints": [
-                "footprints",
-                "--images",
-                img,
-                "--output",
-                out / "fp.gpkg",
-                "--dsm",
-                survey / "truth/dsm.tif",
-            ],
-            "ortho": ["ortho", "--images", img, "--output", out / "ortho.tif", "--sfm", out / "sfm"]
-            + ["--dsm", survey / "truth/dsm.tif"],
-        }[stage]
-    ]
 
 
 def main() -> int:
@@ -83,9 +60,11 @@ def main() -> int:
                     client.wait_for_workers(k, timeout=120)
                     out = Path(d) / f"w{k}"
                     out.mkdir()
+                    sfm_options = ["--max-image-size", "1024", "--max-features", "4096", "--split", str(args.split)]
+                    argvs = stage_argv(survey, out, sfm_options, survey / "truth" / "dsm.tif")
                     for st in stages:
                         argv = [
-                            *argv_of(st, survey, out, args.split),
+                            *argvs[st],
                             "--scheduler",
                             cluster.scheduler_address,
                             "--quiet",
