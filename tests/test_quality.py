@@ -316,3 +316,7 @@ def test_a_failed_submodel_is_named_with_the_ground_it_leaves_out():
     assert check.state == "red" and check.value == pytest.approx(7.5)
     assert check.detail.startswith("submodel 3 failed") and "900 m² of 12,000 m²" in check.detail
     assert "left_out" in check.detail
+    # a damaged footprints record without the count still says the area, and grades it
+    del fp["n_left_out"]
+    (check,) = [c for c in assess(sfm, dense, dem, ortho, fp) if c.item == "ground_left_out"]
+    assert check.state == "red" and "900 m² of 12,000 m², seen by photos left out" in check.detail

@@ -440,8 +440,9 @@ def _left_out_check(sfm: dict[str, Any], fp: dict[str, Any]) -> Check:
     failed = sorted({why.split(":")[0] for why in reasons if why.startswith("submodel ")})
     detail = ""
     if math.isfinite(area) and area > 0:
+        n = as_number(fp.get("n_left_out"))
         detail = (
-            f"{area:,.0f} m² of {seen:,.0f} m², seen by {int(as_number(fp.get('n_left_out', 0)) or 0)} photos "
+            f"{area:,.0f} m² of {seen:,.0f} m², seen by {f'{n:.0f} ' if math.isfinite(n) else ''}photos "
             "left out (footprints layer left_out)"
         )
     if failed:

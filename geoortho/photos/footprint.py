@@ -155,11 +155,7 @@ def photo_cameras(
     """Place every photo in ``crs``: position from GPS, height from :func:`geoortho.photos.heights.resolve_heights`,
     rotation from the attitude. Returns the cameras and the flight's height model (its ``surface``
     is the ground used: ``surface``, or flat ground at the take-off)."""
-    to_xy = transformer(WGS84, crs)
-    lon = np.array([p.longitude_deg for p in photos], float)
-    lat = np.array([p.latitude_deg for p in photos], float)
-    x, y = to_xy.transform(lon, lat)
-    xy = np.c_[x, y]
+    lon, lat, xy = _grid_positions(photos, crs)
     heights = resolve_heights(
         photos,
         xy,
@@ -171,22 +167,43 @@ def photo_cameras(
         gnss_takeoff=gnss_takeoff,
         ground_label=ground_label,
     )
+    return _posed(photos, crs, lon, lat, xy, heights.z_m, heights.sources), heights
+
+
+def _grid_positions(photos: Sequence[Photo], crs: CRS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The photos' GPS longitudes, latitudes and positions in ``crs`` ((N, 2))."""
+    lon = np.array([p.longitude_deg for p in photos], float)
+    lat = np.array([p.latitude_deg for p in photos], float)
+    x, y = transformer(WGS84, crs).transform(lon, lat)
+    return lon, lat, np.c_[x, y]
+
+
+def _posed(
+    photos: Sequence[Photo],
+    crs: CRS,
+    lon: np.ndarray,
+    lat: np.ndarray,
+    xy: np.ndarray,
+    z_m: np.ndarray,
+    sources: Sequence[str],
+) -> list[PhotoCamera]:
+    """The photos as cameras at ``xy`` and ``z_m``, turned by their recorded attitude."""
     # Yaw is from true north; the CRS's grid north differs by the meridian convergence (1.9° at
     # a UTM zone edge at 40° N, 0.7° between UTM 29N and PT-TM06 in Lisbon).
     convergence, scale = grid_north(crs, lon, lat)
-    cams = []
-    for i, p in enumerate(photos):
-        rot = rotation_from_ypr(p.yaw_deg + convergence[i], p.pitch_deg, p.roll_deg)
-        cams.append(
-            PhotoCamera.of(
-                p,
-                Pose(np.array([x[i], y[i], heights.z_m[i]]), rot),
-                heights.sources[i],
-                float(convergence[i]),
-                float(scale[i]),
-            )
+    return [
+        PhotoCamera.of(
+            p,
+            Pose(
+                np.array([xy[i, 0], xy[i, 1], z_m[i]]),
+                rotation_from_ypr(p.yaw_deg + convergence[i], p.pitch_deg, p.roll_deg),
+            ),
+            sources[i],
+            float(convergence[i]),
+            float(scale[i]),
         )
-    return cams, heights
+        for i, p in enumerate(photos)
+    ]
 
 
 @dataclass(frozen=True)
@@ -536,7 +553,7 @@ def _footprints_from_sfm(
     )
     fp, cam_layer = _footprint_layers(cams, table, heights, ground, work)
     fp["altitude_metadata_m"] = check.per_photo_m
-    left = _left_out([by_name[n] for n in unregistered], sfm, cams, table, work, max_range_m, fb)
+    left = _left_out([by_name[n] for n in unregistered], sfm, cams, table, fp.geometry.values, work, max_range_m, fb)
     extra = {"left_out": left.layer} if left.layer is not None else {}
     overlap_path = _write_layers(output, fp, cam_layer, work, out_crs, overlap, overlap_cell_m, extra)
     s_write.progress(1.0)
@@ -576,6 +593,7 @@ def _left_out(
     sfm: Path,
     cams: Sequence[PhotoCamera],
     table: FootprintTable,
+    polygons: Any,
     work: CRS,
     max_range_m: float,
     fb: Feedback,
@@ -588,7 +606,7 @@ def _left_out(
     import geopandas as gpd
     import shapely
 
-    registered = shapely.union_all(shapely.make_valid(shapely.polygons(table.rings)))
+    registered = shapely.union_all(polygons)  # the registered photos' footprints (``table``'s rings)
     seen_m2 = float(registered.area)
     placeable = [p for p in photos if math.isfinite(p.latitude_deg) and math.isfinite(p.longitude_deg)]
     if not placeable:
@@ -597,24 +615,10 @@ def _left_out(
     ground_m = _median(np.array([c.pose.center[2] for c in cams]) - table.altitude_m)
     if not (math.isfinite(height_m) and math.isfinite(ground_m)):
         return _LeftOut(None, 0.0, seen_m2)
-    to_xy = transformer(WGS84, work)
-    lon = np.array([p.longitude_deg for p in placeable], float)
-    lat = np.array([p.latitude_deg for p in placeable], float)
-    x, y = to_xy.transform(lon, lat)
-    convergence, scale = grid_north(work, lon, lat)
-    placed = [
-        PhotoCamera.of(
-            p,
-            Pose(
-                np.array([x[i], y[i], ground_m + height_m]),
-                rotation_from_ypr(p.yaw_deg + convergence[i], p.pitch_deg, p.roll_deg),
-            ),
-            "GPS and attitude of the photo, at the SfM's median height",
-            float(convergence[i]),
-            float(scale[i]),
-        )
-        for i, p in enumerate(placeable)
-    ]
+    lon, lat, xy = _grid_positions(placeable, work)
+    n = len(placeable)
+    source = "GPS and attitude of the photo, at the SfM's median height above the ground"
+    placed = _posed(placeable, work, lon, lat, xy, np.full(n, ground_m + height_m), [source] * n)
     theirs = compute_footprints(placed, FlatSurface(ground_m), max_range_m=max_range_m)
     polys = shapely.make_valid(shapely.polygons(theirs.rings))
     only_theirs = shapely.difference(polys, registered)
@@ -630,8 +634,7 @@ def _left_out(
             ],
             "area_m2": shapely.area(polys),
             "area_only_here_m2": shapely.area(only_theirs),
-            "placed_by": ["GPS and attitude of the photo, at the SfM's median height above the ground"]
-            * len(placeable),
+            "placed_by": [c.height_source for c in placed],
         },
         geometry=polys,
         crs=work,

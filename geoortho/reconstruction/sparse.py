@@ -2073,15 +2073,14 @@ def _split_reconstruct(
     )
     t0 = time.perf_counter()
     folder = output / "submodels"
-    for stale in folder.glob("submodel_*"):  # of an earlier split into more submodels
-        if stale.is_dir() and not (stale.name[9:].isdigit() and int(stale.name[9:]) < len(groups)):
-            shutil.rmtree(stale, ignore_errors=True)
+    outputs = [folder / f"submodel_{k:02d}" for k in range(len(groups))]
+    for stale in set(folder.glob("submodel_*")) - set(outputs):  # of an earlier split into more submodels
+        shutil.rmtree(stale, ignore_errors=True)
     done: dict[int, Any] = {}
     tasks, keys = [], {}
-    for k, g in enumerate(groups):
+    for k, (g, sub_output) in enumerate(zip(groups, outputs)):
         paths = [str(path_of[n]) for n in g]
         keys[k] = submodel_key(paths, sub_kwargs)
-        sub_output = folder / f"submodel_{k:02d}"
         if (earlier := finished(sub_output, k, keys[k])) is not None:
             done[k] = earlier
         else:

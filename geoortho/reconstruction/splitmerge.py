@@ -132,10 +132,11 @@ def submodel_key(paths: Sequence[str], kwargs: dict[str, Any]) -> dict[str, Any]
         st = os.stat(path)
         return [Path(path).name, st.st_size, st.st_mtime_ns]
 
-    files = {}
-    for name, value in sorted(kwargs.items()):
-        if isinstance(value, Path) or (name in ("gcp_list", "positions") and value):
-            files[name] = hashlib.sha256(Path(value).read_bytes()).hexdigest()
+    files = {
+        name: hashlib.sha256(Path(kwargs[name]).read_bytes()).hexdigest()
+        for name in ("gcp_list", "positions")
+        if kwargs.get(name)
+    }
     return {
         "photos": [stat(p) for p in paths],
         "options": {k: str(v) for k, v in sorted(kwargs.items())},
