@@ -779,6 +779,42 @@ def test_ctrl_c_or_sigterm_to_the_group_is_one_line_and_exit_130(
     assert not out.exists() and not list(tmp_path.glob(".*.tmp*"))
 
 
+# A SIGTERM at the worst moment: pycolmap's extension has just run its initialisation (glog's
+# failure handler is now on SIGTERM) and geoortho has not yet put Python's handler back.
+_SIGTERM_INSIDE_PYCOLMAP_IMPORT = r"""
+import importlib.abc, importlib.machinery, os, signal, sys
+
+class SigtermAfterColmapInit(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name != "pycolmap._core":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        run = spec.loader.exec_module
+        def exec_module(module):
+            run(module)
+            os.kill(os.getpid(), signal.SIGTERM)
+        spec.loader.exec_module = exec_module
+        return spec
+
+sys.meta_path.insert(0, SigtermAfterColmapInit())
+from geoortho.processing.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_sigterm_while_pycolmap_loads_is_a_cancel_not_a_crash(first_run, tiny_survey, tmp_path):
+    """glog's handler caught a SIGTERM that came inside pycolmap's import: a 30-line C++ dump
+    and death by the signal (CI, once in the suite; 8 of 40 SIGTERMs sent at random moments)."""
+    out = tmp_path / "d.laz"
+    argv = ["dense", "--sfm", str(first_run.output / "sfm"), "--images", str(tiny_survey.images),
+            "--output", str(out), "--quiet"]  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", _SIGTERM_INSIDE_PYCOLMAP_IMPORT, *argv], capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 130 and proc.stderr.strip() == "geoortho dense: canceled", proc.stderr[-800:]
+    assert not out.exists() and not list(tmp_path.glob(".*.tmp*"))
+
+
 def test_a_console_with_no_width_gets_progress_lines(tiny_survey, checkpoint, tmp_path):
     """A pseudo-terminal of zero columns (a CI log, `script`) is no place for a bar: tqdm draws
     nothing there, so the stage lines a log gets are printed instead."""

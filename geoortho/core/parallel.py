@@ -149,8 +149,13 @@ def _imap_on(
             ) from e
         raise
     finally:
-        for f_ in pending:
-            f_.cancel()
+        # A local pool cancels what has not started in its own thread, at shutdown. Cancelled from
+        # here, a future can still sit in that thread's table when the workers are killed, and the
+        # pool's teardown then raised InvalidStateError in its thread, a traceback after "canceled"
+        # (CPython gh-107219, not fixed in 3.11).
+        if not isinstance(executor, cf.ProcessPoolExecutor):
+            for f_ in pending:
+                f_.cancel()
 
 
 @contextmanager
@@ -202,6 +207,7 @@ def process_pool(
         # away, and waiting for it is not an answer (an orthophoto tile at 1 cm ran past 120 s).
         # Done: the workers are idle, and ending them spares the caller their interpreters' teardown
         # (0.2 s with numba and OpenCV loaded: 5 % of gcp-find on a degraded flight).
+        pool.shutdown(wait=False, cancel_futures=True)  # what has not started: cancelled by the pool's thread
         _kill_workers(pool)
         pool.shutdown(cancel_futures=True)
 
@@ -291,17 +297,33 @@ def _children_block_signals() -> Iterator[None]:
     killed by SIGTERM while it starts hung the caller for ever: the caller writes the worker's
     start-up data into a pipe whose reading end it still holds itself until the write is done, so
     with the worker dead the write never ends (2 of 4 tries of SIGTERM as ortho started its pool).
-    Blocked, not ignored: a signal while the workers start waits and is answered right after."""
+    Blocked, not ignored: a signal while the workers start waits and is answered right after.
+
+    The mask is this thread's: another thread (OpenCV's pool, started since) can still take the
+    signal, and Python then runs the handler here, in the middle of writing a worker's start-up
+    data, which the worker read cut short (a traceback after "canceled"). So the handlers only note
+    the signal while the workers start, and it is raised again after."""
     import signal
 
     if not hasattr(signal, "pthread_sigmask"):
         yield
         return
     blocked = {signal.SIGINT, signal.SIGTERM}
+    noted: list[int] = []
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in blocked:
+            handler = signal.getsignal(sig)
+            if callable(handler):  # a Python handler; SIG_IGN and SIG_DFL act in C, never mid-write
+                previous[sig] = signal.signal(sig, lambda signum, frame: noted.append(signum))
     signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
     try:
         yield
     finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        for number in dict.fromkeys(noted):
+            signal.raise_signal(number)  # held by the mask until the line below
         signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)
 
 

@@ -4,6 +4,9 @@ model takes it from here)."""
 from __future__ import annotations
 
 import os
+import signal
+import sys
+import threading
 from typing import Any
 
 from geoortho.errors import interrupted
@@ -15,14 +18,22 @@ __all__ = ["load_pycolmap"]
 def load_pycolmap() -> Any:
     """pycolmap as every geoortho caller needs it: Python's SIGTERM handler taken back from glog,
     COLMAP's INFO logging off."""
+    # glog puts its failure handler on SIGTERM part-way through the import: a SIGTERM inside that
+    # window killed the process with a C++ dump (4 of 30 tries). Held until Python's handler is back,
+    # the signal then reaches it as at any other moment.
+    held = threading.current_thread() is threading.main_thread() and "pycolmap" not in sys.modules
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM}) if held else None
     try:
-        import pycolmap
-    except RuntimeError as e:
-        if interrupted(e):  # a Ctrl-C during the C++ backend's start-up, wrapped twice on its way
-            raise KeyboardInterrupt from None
-        raise
-
-    reclaim_signal_handlers()
+        try:
+            import pycolmap
+        except RuntimeError as e:
+            if interrupted(e):  # a Ctrl-C during the C++ backend's start-up, wrapped twice on its way
+                raise KeyboardInterrupt from None
+            raise
+        reclaim_signal_handlers()
+    finally:
+        if before is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, before)
     # COLMAP logs every image and iteration at INFO, and its warnings reached stderr between
     # geoortho's own lines (under --quiet too); geoortho's feedback says what matters. Never to log
     # files: glog leaves one per run in the temp folder.
