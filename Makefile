@@ -24,9 +24,10 @@ $(STAMP): pyproject.toml tools/make_venv.sh
 # The package's bytecode, written ahead: an editable install has none, and where
 # PYTHONDONTWRITEBYTECODE is set every command and every pool worker would compile
 # geoortho from source at start-up (gcp-find on 35 photos: 12 % of its wall time).
-# And the compiled kernels (numba's cache: the target fits', the gap fills' and the gridding's): 8 s once.
+# And the compiled kernels (numba's cache: the target fits', the gap fills', the gridding's and the
+# orthophoto's line-of-sight march): 10 s once.
 BYTECODE = $(PY) -m compileall -q geoortho && $(PY) -c "$(WARM)"
-WARM = import geoortho.gcp.kernels as a, geoortho.core.gapfill as b, geoortho.elevation.grid as c; [m.warm() for m in (a, b, c)]
+WARM = import geoortho.gcp.kernels as a, geoortho.core.gapfill as b, geoortho.elevation.grid as c, geoortho.orthophoto.rectify as d; [m.warm() for m in (a, b, c, d)]
 
 demo: $(STAMP)
 	@$(BYTECODE)

@@ -79,22 +79,44 @@ def _ring_errors(ortho_path, survey):
     return share_off_beside_objects(ortho_path, survey.ortho, survey.dsm, survey.dtm)
 
 
-def test_visibility_march_skipping_clear_blocks_is_the_plain_march(small_survey, tmp_path):
-    """The march jumps over DSM blocks a ray clears (rectify.BlockTops); the grids must be the
-    plain cell-by-cell march's, bit for bit, with real occlusion in them (buildings, trees)."""
-    from geoortho.orthophoto.rectify import block_tops, visibility_grid
+@pytest.mark.parametrize("extend", [False, True], ids=["holes", "holes-extended"])
+def test_visibility_march_skipping_clear_blocks_and_compiled_is_the_plain_march(
+    small_survey, tmp_path, monkeypatch, extend
+):
+    """The march jumps over DSM blocks a ray clears (rectify.BlockTops), and runs compiled (numba)
+    where it can: every grid must be the plain numpy cell-by-cell march's, bit for bit, with real
+    occlusion in them (buildings, trees), on a DSM with holes (rays through them: no data, or the
+    ground continued under them) and past its edge."""
+    import dataclasses
+
+    from geoortho.core import kernels
+    from geoortho.orthophoto import rectify
 
     surf = read_surface(small_survey.dsm)
-    tops = block_tops(surf)
+    grid = surf.grid.copy()
+    rng = np.random.default_rng(0)
+    grid[rng.random(grid.shape) < 0.01] = np.nan
+    grid[grid.shape[0] // 3 : grid.shape[0] // 3 + 80, :] = np.nan  # a band across the block
+    surf = dataclasses.replace(surf, grid=grid, extend=extend)
+    tops = rectify.block_tops(surf)
+    monkeypatch.setattr(rectify, "COMPILED_MIN_RAYS", 0)
     hidden = 0
     for i, cam in enumerate(_true_cameras(small_survey)[::7]):
         x, y = cam.pose.center[:2]
         box = (x - 40.0, y - 30.0, x + 40.0, y + 30.0)
-        plain = visibility_grid(cam, surf, box, tmp_path / f"plain_{i}.npy")
-        fast = visibility_grid(cam, surf, box, tmp_path / f"fast_{i}.npy", tops=tops)
-        a, b = np.load(plain.path), np.load(fast.path)
-        assert np.array_equal(a, b), (cam.name, int((a != b).sum()))
-        hidden += int((a == 0).sum())
+        grids = {}
+        for compiled in ("0", "1"):
+            monkeypatch.setenv(kernels.ENV_SWITCH, compiled)
+            for skip in (False, True):
+                path = tmp_path / f"{i}_{compiled}_{skip}.npy"
+                grids[compiled, skip] = np.load(
+                    rectify.visibility_grid(cam, surf, box, path, tops=tops if skip else ()).path
+                )
+        plain = grids["0", False]
+        for key, other in grids.items():
+            assert np.array_equal(plain, other), (cam.name, key, int((plain != other).sum()))
+        hidden += int((plain == 0).sum())
+    assert kernels.compiled(rectify._march_rays) is not None  # numba is here: both paths were taken
     assert hidden > 1000  # the grids do hide cells: the comparison is not of empty grids
 
 

@@ -171,13 +171,14 @@ class GridSurface(Surface):
         from the nearest data, an opening that removes buildings and trees up to ~15 m across,
         then a mean of the same size), so the plane that continues a DSM past its edge is at the
         ground's height there, not at the roof or tree top that happens to stand on the edge."""
-        base, f = self._ground_base()
+        base, f = self.ground_base()
         nr, nc = self.grid.shape
         ci = np.clip(np.rint(cols), 0, nc - 1).astype(np.intp) // f
         ri = np.clip(np.rint(rows), 0, nr - 1).astype(np.intp) // f
         return np.asarray(base[ri, ci], dtype=float)
 
-    def _ground_base(self) -> tuple[np.ndarray, int]:
+    def ground_base(self) -> tuple[np.ndarray, int]:
+        """The smooth ground :meth:`nearest_elevation` reads, and its cells' side in grid cells."""
         cached: tuple[np.ndarray, int] | None = getattr(self, "_base", None)
         if cached is not None:
             return cached

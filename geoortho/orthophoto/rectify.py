@@ -27,6 +27,7 @@ from rasterio.errors import WindowError
 from rasterio.windows import Window, intersection
 
 from geoortho.core.camera import PosedCamera
+from geoortho.core.kernels import compiled
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, sample_grid
 
 __all__ = [
@@ -191,6 +192,18 @@ def visibility_grid(
     fx, fy, fz = x.ravel(), y.ravel(), z.ravel()
     fux, fuy, frise, freach = ux.ravel(), uy.ravel(), rise.ravel(), reach.ravel()
     occluded = np.zeros(z.size, bool)
+    kernel = compiled(_march_rays) if idx.size >= COMPILED_MIN_RAYS else None
+    if kernel is not None:
+        rays = np.stack([fx[idx], fy[idx], fz[idx], fux[idx], fuy[idx], frise[idx], freach[idx]])
+        base, base_f = surface.ground_base() if surface.extend else (np.zeros((1, 1)), 1)
+        flat, levels = _packed_tops(tops)
+        blocked_rays = np.zeros(idx.size, np.bool_)
+        grid = np.ascontiguousarray(surface.grid, np.float32)
+        geo = np.array([tr.a, tr.c, tr.e, tr.f, step, tolerance_m])
+        base64 = np.ascontiguousarray(base, np.float64)
+        kernel(rays, grid, geo, flat, levels, surface.extend, base64, base_f, blocked_rays)
+        occluded[idx[blocked_rays]] = True
+        idx = idx[:0]
     k = np.ones(idx.size, np.int64)  # each ray's next sample, k steps from its cell
     while idx.size:
         t = k * step
@@ -214,6 +227,100 @@ def visibility_grid(
     vis = vis & ~occluded.reshape(z.shape)
     np.save(path, vis.astype(np.uint8))
     return VisibilityGrid(Path(path), Affine(tr.a, 0, tr.c + c0 * tr.a, 0, tr.e, tr.f + r0 * tr.e))
+
+
+#: Photos with at least this many rays to march take the compiled loop (one pass a ray, stopping
+#: where it is blocked; the numpy path samples every live ray at each step). Below, a process that
+#: marches only small windows never loads numba (0.4 s a worker).
+COMPILED_MIN_RAYS = 100_000
+
+
+def _packed_tops(tops: Sequence[BlockTops]) -> tuple[np.ndarray, np.ndarray]:
+    """The skip levels as one float32 buffer, and per level (offset, rows, cols, block)."""
+    flat = np.concatenate([t.top.ravel() for t in tops]) if tops else np.zeros(1, np.float32)
+    levels = np.zeros((len(tops), 4), np.int64)
+    offset = 0
+    for i, t in enumerate(tops):
+        levels[i] = (offset, t.top.shape[0], t.top.shape[1], t.block)
+        offset += t.top.size
+    return np.ascontiguousarray(flat, np.float32), levels
+
+
+def _march_rays(
+    rays: np.ndarray,
+    grid: np.ndarray,
+    geo: np.ndarray,
+    tops: np.ndarray,
+    levels: np.ndarray,
+    extend: bool,
+    base: np.ndarray,
+    base_f: int,
+    blocked: np.ndarray,
+) -> None:
+    """:func:`visibility_grid`'s march, a ray at a time (compiled: see
+    :func:`geoortho.core.kernels.compiled`). ``rays`` rows: x, y, z, ux, uy, rise, reach; ``geo``:
+    the DSM's a, c, e, f, the step and the tolerance. The DSM is read as ``sample_grid`` reads it
+    (OpenCV 5's remap: float32 weights, two lerps along the row and one across, each a fused
+    multiply-add; no data where any of the four cells is off the grid or none), so the two paths
+    agree to the bit; with ``extend``, continued by the ground ``base`` as ``GridSurface`` is."""
+    a, c, e, f, step, tolerance = geo[0], geo[1], geo[2], geo[3], geo[4], geo[5]
+    nr, nc = grid.shape
+    for i in range(rays.shape[1]):
+        x, y, z, ux, uy, rise, reach = (
+            rays[0, i], rays[1, i], rays[2, i], rays[3, i], rays[4, i], rays[5, i], rays[6, i],
+        )  # fmt: skip
+        k = 1
+        while True:
+            t = k * step
+            px, py = x + ux * t, y + uy * t
+            ceiling = z + rise * t + tolerance
+            jump = 0.0
+            cf, rf = (px - c) / a, (py - f) / e
+            for lv in range(levels.shape[0]):
+                if jump > 0:
+                    break
+                offset, rows, cols, b = levels[lv, 0], levels[lv, 1], levels[lv, 2], levels[lv, 3]
+                bc, br = math.floor(cf / b), math.floor(rf / b)
+                if bc < 0 or bc >= cols or br < 0 or br >= rows or not (tops[offset + br * cols + bc] <= ceiling):
+                    continue
+                dc, dr = ux / a, uy / e
+                ec = ((bc + 1) * b - cf) / dc if dc > 0 else ((bc * b - cf) / dc if dc < 0 else math.inf)
+                er = ((br + 1) * b - rf) / dr if dr > 0 else ((br * b - rf) / dr if dr < 0 else math.inf)
+                jump = max(min(ec, er), 0.0)
+            if jump <= 0:
+                col, row = np.float32(cf - 0.5), np.float32(rf - 0.5)
+                ic, ir = math.floor(col), math.floor(row)
+                height = math.nan
+                if 0 <= ic and ic + 1 < nc and 0 <= ir and ir + 1 < nr:
+                    wc, wr = float(col - np.float32(ic)), float(row - np.float32(ir))
+                    # a float32 fused multiply-add: the product of two float32 is exact in float64
+                    g00, g01, g10, g11 = grid[ir, ic], grid[ir, ic + 1], grid[ir + 1, ic], grid[ir + 1, ic + 1]
+                    top = np.float32(float(g01 - g00) * wc + float(g00))
+                    bottom = np.float32(float(g11 - g10) * wc + float(g10))
+                    height = float(np.float32(float(bottom - top) * wr + float(top)))
+                if extend and math.isnan(height):
+                    bi = min(max(round(rf - 0.5), 0), nr - 1) // base_f
+                    bj = min(max(round(cf - 0.5), 0), nc - 1) // base_f
+                    height = base[bi, bj]
+                if height > ceiling:
+                    blocked[i] = True
+                    break
+                k += 1
+            else:
+                k = max(k + 1, math.ceil((t + jump) / step))
+            if not reach > (k - 1) * step + step * 0.5:
+                break
+
+
+def warm() -> None:
+    """Compile the march into numba's cache (``make`` runs it ahead, so no command pays for it)."""
+    kernel = compiled(_march_rays)
+    if kernel is None:
+        return
+    rays = np.array([[0.5], [0.5], [0.0], [1.0], [0.0], [0.1], [4.0]])
+    flat, levels = _packed_tops(())
+    geo = np.array([1.0, 0.0, -1.0, 8.0, 1.0, 0.05])
+    kernel(rays, np.zeros((8, 8), np.float32), geo, flat, levels, False, np.zeros((1, 1)), 1, np.zeros(1, np.bool_))
 
 
 def window_xyz(transform: Affine, win: Window, surface: Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
