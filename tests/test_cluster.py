@@ -369,6 +369,15 @@ def test_split_merge_submodels_on_the_cluster_make_one_model(split_on_cluster, s
     assert r.n_registered >= 0.95 * r.n_photos and rep["models"] == 2 and "split-merge" in rep["matching"]
     # one camera body, one camera: the submodels' calibrations of it are one after the merge
     assert len(rep["intrinsics"]) == 1, rep["intrinsics"]
+    # its lens distortion decided as both submodels did, not tested again on the merged block; and
+    # as the whole block decided (the synthetic lens has none: held at zero)
+    folders = [r.report.parent / "submodels" / f"submodel_{s['submodel']:02d}" for s in subs]
+    sub_held = {
+        json.loads((f / "report.json").read_text())["intrinsics"][0]["distortion"]["held_at_zero"] for f in folders
+    }
+    whole_held = json.loads(whole.report.read_text())["intrinsics"][0]["distortion"]["held_at_zero"]
+    assert sub_held == {whole_held} == {rep["intrinsics"][0]["distortion"]["held_at_zero"]}, (sub_held, whole_held)
+    assert any("2 submodels each decided" in n for n in rep["notes"]), rep["notes"]
     # one model: every photo once, one georeference, GCP-controlled
     cams = gpd.read_file(r.cameras)
     assert cams.image.is_unique and len(cams) == r.n_photos

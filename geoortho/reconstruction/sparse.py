@@ -32,6 +32,7 @@ coloured), ``cameras.gpkg`` (camera centres, orientation, residuals),
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import shutil
@@ -793,6 +794,16 @@ def _hold_unsupported_distortion(mapped: _Mapped, notes: list[str]) -> _Mapped:
     cams = [cid for cid, cam in rec.cameras.items() if len(cam.extra_params_idxs())]
     if not cams or rec.num_reg_images() < 3:
         return mapped
+    # split-merge: the submodels tested each lens on blocks of the same flight; where they agree,
+    # the merged block (the test's time grows with photos^1.45) takes their answer
+    decided = {cid: mapped.distortion_decided[cid] for cid in cams if cid in mapped.distortion_decided}
+    for cid, (held_there, _, n_subs) in sorted(decided.items()):
+        decided_by = f"its {n_subs} submodels each decided" if n_subs > 1 else "its submodel decided"
+        notes.append(
+            f"camera {cid}: lens distortion {'held at zero' if held_there else 'refined'} as {decided_by} "
+            "(not tested again on the merged block)"
+        )
+    cams = [cid for cid in cams if cid not in decided]
     gauge = pc.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD
     trial = DISTORTION_TRIAL_ITERATIONS
 
@@ -807,18 +818,22 @@ def _hold_unsupported_distortion(mapped: _Mapped, notes: list[str]) -> _Mapped:
 
     # The trials compare two adjustments of the same points: a sample of them, spread over every
     # photo's frame (where distortion shows), tells the same (see TRIAL_POINTS_PER_PHOTO).
-    sample = _thinned(rec, TRIAL_POINTS_PER_PHOTO)
-    refined_px = _mean_reprojection_px(_adjusted_copy(sample, _ba_options(iterations=trial), gauge))
-    test: dict[int, tuple[float, float]] = {}
-    for cid in cams:
-        held_copy = _adjusted_copy(zeroed(sample, [cid]), _ba_options(refine_distortion=False, iterations=trial), gauge)
-        test[cid] = (refined_px, _mean_reprojection_px(held_copy))
-    held = frozenset(cid for cid, (a, b) in test.items() if b <= a * (1.0 + DISTORTION_SUPPORT_PCT / 100.0))
+    test: dict[int, tuple[float, float]] = {cid: figures for cid, (_, figures, _) in decided.items()}
+    if cams:
+        sample = _thinned(rec, TRIAL_POINTS_PER_PHOTO)
+        refined_px = _mean_reprojection_px(_adjusted_copy(sample, _ba_options(iterations=trial), gauge))
+        for cid in cams:
+            held_copy = _adjusted_copy(
+                zeroed(sample, [cid]), _ba_options(refine_distortion=False, iterations=trial), gauge
+            )
+            test[cid] = (refined_px, _mean_reprojection_px(held_copy))
+    tested = frozenset(cid for cid in cams if test[cid][1] <= test[cid][0] * (1.0 + DISTORTION_SUPPORT_PCT / 100.0))
+    held = tested | frozenset(cid for cid, (held_there, _, _) in decided.items() if held_there)
     if not held:
         return replace(mapped, distortion_test=test)
     opts = _ba_options(refine_focal=not mapped.focal_held, refine_distortion=False)
     block = _adjusted_copy(zeroed(rec, sorted(held)), opts, gauge)
-    for cid in sorted(held):
+    for cid in sorted(tested):
         a, b = test[cid]
         notes.append(
             f"camera {cid}: lens distortion held at zero: the photos do not support it (reprojection "
@@ -1952,6 +1967,9 @@ class _Mapped:
     # adjustment, not per camera: when any is held, the later adjustments hold every camera's at
     # the value the mapping gave it (the others' were refined there already).
     distortion_held: frozenset[int] = frozenset()
+    # split-merge: camera id -> its submodels' tests of its lens distortion, when they all agree
+    # (held at zero or refined); the merged block takes their answer instead of testing again
+    distortion_decided: dict[int, tuple[bool, tuple[float, float], int]] = field(default_factory=dict)
 
 
 def _reconstruct(
@@ -2111,7 +2129,46 @@ def _split_reconstruct(
     focal = {cid: _focal_px(cam) for cid, cam in rec.cameras.items()}
     how = f"split-merge: {len(groups)} submodels of at most {split} photos, {overlap_m:g} m overlap"
     notes = [f"{how}; {sum(s.ok for s in subs)} reconstructed"]
-    return _Mapped(rec, len(groups), registered, left_out, how, False, focal, tuple(notes), came_from), stats
+    decided = _submodels_lens_decisions(rec, [s for s in subs if s.ok])
+    return _Mapped(
+        rec, len(groups), registered, left_out, how, False, focal, tuple(notes), came_from, distortion_decided=decided
+    ), stats
+
+
+def _submodels_lens_decisions(rec: Any, subs: Sequence[Any]) -> dict[int, tuple[bool, tuple[float, float], int]]:
+    """Per camera of the merged model: whether its distortion was held at zero, where every
+    submodel that tested a camera its photos were on decided the same (with the first one's
+    figures, and how many decided), from the submodels' reports. A submodel that did not test
+    (too few photos, or a model without distortion) or that disagrees leaves it to the merged test."""
+    pc = load_pycolmap()
+    merged_camera = {rec.image(i).name: rec.image(i).camera_id for i in rec.reg_image_ids()}
+    votes: dict[int, dict[int, tuple[bool, tuple[float, float]] | None]] = {}
+    for s in subs:
+        try:
+            report = json.loads((s.output / "report.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return {}  # a submodel without its report: none carried, the merged block tested
+        tests = {
+            row["camera_id"]: (
+                bool(row["distortion"]["held_at_zero"]),
+                (row["distortion"]["reprojection_px_refined"], row["distortion"]["reprojection_px_held_at_zero"]),
+            )
+            for row in report.get("intrinsics", [])
+            if "distortion" in row
+        }
+        sub = pc.Reconstruction(str(s.output / "model"))
+        for i in sub.reg_image_ids():
+            im = sub.image(i)
+            if im.name in merged_camera:
+                votes.setdefault(merged_camera[im.name], {})[s.index] = tests.get(im.camera_id)
+    decided = {}
+    for cid, by_sub in votes.items():
+        answers = {v[0] if v is not None else None for v in by_sub.values()}
+        if len(answers) == 1 and None not in answers:
+            first = by_sub[min(by_sub)]
+            assert first is not None
+            decided[cid] = (first[0], first[1], len(by_sub))
+    return decided
 
 
 @dataclass(frozen=True)
