@@ -20,7 +20,7 @@ from typing import Any, NoReturn
 
 from geoortho.errors import CanceledError, GeoorthoError, InputError, ParameterError, interrupted, shortened
 from geoortho.feedback import Feedback, JsonLinesFeedback, TerminalFeedback
-from geoortho.processing.registry import describe_json, list_algorithms, run_algorithm
+from geoortho.processing.registry import convert_values, describe_json, list_algorithms, run_algorithm
 from geoortho.processing.spec import PARAM_TYPES, Algorithm, Param
 from geoortho.version import __version__
 
@@ -259,6 +259,7 @@ def _load_then_release(alg: Algorithm, values: dict[str, Any], before: set[int |
     part-way through pycolmap's import, hands it back before any other thread could run it. A
     SIGTERM in that window was a C++ dump and exit -15 instead of "canceled" (8 of 40 tries)."""
     try:
+        convert_values(alg, values)  # bad input is told before the imports (sfm, a missing folder: 0.23 s, not 0.69)
         alg.function  # noqa: B018 - the import is the point
         if alg.id in _COLMAP_ALWAYS or values.get("sfm"):
             from geoortho.reconstruction.colmap import load_pycolmap

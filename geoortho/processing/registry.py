@@ -16,7 +16,15 @@ from geoortho.processing.algorithms import ALGORITHMS
 from geoortho.processing.spec import PARAM_TYPES, PATH_TYPES, Algorithm, Param
 from geoortho.version import __version__
 
-__all__ = ["CONVERTERS", "convert_value", "get_algorithm", "list_algorithms", "run_algorithm", "describe"]
+__all__ = [
+    "CONVERTERS",
+    "convert_value",
+    "convert_values",
+    "get_algorithm",
+    "list_algorithms",
+    "run_algorithm",
+    "describe",
+]
 
 
 def _path_in(p: Param, v: Any, *, want_dir: bool) -> Path:
