@@ -195,13 +195,12 @@ def visibility_grid(
     kernel = compiled(_march_rays) if idx.size >= COMPILED_MIN_RAYS else None
     if kernel is not None:
         rays = np.stack([fx[idx], fy[idx], fz[idx], fux[idx], fuy[idx], frise[idx], freach[idx]])
-        base, base_f = surface.ground_base() if surface.extend else (np.zeros((1, 1)), 1)
+        ground, ground_f = surface.ground_base() if surface.extend else (np.zeros((1, 1)), 1)
         flat, levels = _packed_tops(tops)
         blocked_rays = np.zeros(idx.size, np.bool_)
-        grid = np.ascontiguousarray(surface.grid, np.float32)
         geo = np.array([tr.a, tr.c, tr.e, tr.f, step, tolerance_m])
-        base64 = np.ascontiguousarray(base, np.float64)
-        kernel(rays, grid, geo, flat, levels, surface.extend, base64, base_f, blocked_rays)
+        # (GridSurface keeps its grid contiguous float32: the kernel's one signature takes it as is)
+        kernel(rays, surface.grid, geo, flat, levels, surface.extend, ground.astype(np.float64), ground_f, blocked_rays)
         occluded[idx[blocked_rays]] = True
         idx = idx[:0]
     k = np.ones(idx.size, np.int64)  # each ray's next sample, k steps from its cell

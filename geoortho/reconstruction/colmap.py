@@ -19,8 +19,10 @@ def load_pycolmap() -> Any:
     """pycolmap as every geoortho caller needs it: Python's SIGTERM handler taken back from glog,
     COLMAP's INFO logging off."""
     # glog puts its failure handler on SIGTERM part-way through the import: a SIGTERM inside that
-    # window killed the process with a C++ dump (4 of 30 tries). Held until Python's handler is back,
-    # the signal then reaches it as at any other moment.
+    # window killed the process with a C++ dump (4 of 30 tries). Held here, in this thread, until
+    # Python's handler is back. That narrows the window for a script; it cannot close it, as native
+    # threads started earlier (OpenBLAS's) may still take the signal (8 of 40). The CLI closes it by
+    # holding the signals from its first line (processing.cli.main), and loads pycolmap there.
     held = threading.current_thread() is threading.main_thread() and "pycolmap" not in sys.modules
     before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM}) if held else None
     try:
