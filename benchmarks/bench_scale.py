@@ -15,8 +15,15 @@ The first figure is the render rate of the survey itself (photos per minute and 
 second on every core, and the minutes 1,000 photos would take at that rate): a large survey is
 only a benchmark input if it renders well within the hour.
 
+With ``--keep DIR`` the surveys and every stage's products stay in DIR and each stage's figures
+are recorded beside them (``DIR/sN/times-*.json``): a later run with the same DIR renders no survey
+again and runs only the stages not yet recorded, so a 1,000-photo survey can be measured a stage at a
+time. The products of a split and an unsplit sfm go to separate folders (``out`` and ``out-splitN``).
+CPU seconds (the child's and its pool workers') are printed beside the wall time: on a busy machine
+they say how much of the wall time was the stage's own.
+
     python benchmarks/bench_scale.py [--photos 100,300,1000] [--image-px 1600] [--split 150]
-        [--stages footprints,gcp-find,sfm,dense,dem,ortho] [--scheduler ADDRESS]
+        [--stages footprints,gcp-find,sfm,dense,dem,ortho] [--scheduler ADDRESS] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -24,14 +31,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import resource
+import shutil
+import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from bench_sfm import OURS, _child
+from bench_sfm import OURS
 
 SFM_STEPS = ("features", "matching", "mapping", "lens_distortion_test", "georeferencing")
 STAGES = ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho")
@@ -39,23 +51,48 @@ STAGES = ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho")
 DICTIONARY = "DICT_4X4_250"
 
 
-def make_survey(folder: Path, n_photos: int, image_px: int, seed: int = 0) -> tuple[Path, int]:
-    """The small scene widened to about ``n_photos`` photos (same altitude and overlaps)."""
+def scale_preset(n_photos: int, image_px: int) -> Any:
+    """The small preset widened until its flight plan holds at least ``n_photos`` photos (same
+    altitude and overlaps; buildings and trees in proportion to the area)."""
+    from types import SimpleNamespace
+
     from geoortho.synthetic import survey as synthetic
 
     base = synthetic.PRESETS["small"]
-    k = math.sqrt(n_photos / 35.0)  # the small preset flies 35 photos over 80 x 60 m
-    name = f"scale{n_photos}"
-    synthetic.PRESETS[name] = replace(
-        base,
-        name=name,
-        area_m=(base.area_m[0] * k, base.area_m[1] * k),
-        image_px=(image_px, round(image_px * 2 / 3)),
-        n_buildings=max(1, round(base.n_buildings * k * k)),
-        n_trees=max(1, round(base.n_trees * k * k)),
-        n_markers=max(4, round(base.n_markers * k)),
-        points_per_m2=4.0,
-    )
+
+    def widened(k: float) -> Any:
+        return replace(
+            base,
+            name=f"scale{n_photos}",
+            area_m=(base.area_m[0] * k, base.area_m[1] * k),
+            image_px=(image_px, round(image_px * 2 / 3)),
+            n_buildings=max(1, round(base.n_buildings * k * k)),
+            n_trees=max(1, round(base.n_trees * k * k)),
+            n_markers=max(4, round(base.n_markers * k)),
+            points_per_m2=4.0,
+        )
+
+    def planned(k: float) -> int:
+        p = widened(k)
+        aw, ah = p.area_m
+        box = SimpleNamespace(flight_box=(-aw / 2, -ah / 2, aw / 2, ah / 2), home=(0.0, 0.0, 0.0))
+        return len(synthetic.plan_flight(p, box, np.random.default_rng(0)))  # type: ignore[arg-type]
+
+    # the photos grow with the area less their edge lines: the smallest widening that holds enough
+    lo, hi = 0.5, 2.0 * math.sqrt(max(n_photos, 1) / 35.0) + 1.0  # the small preset flies 35 photos
+    for _ in range(30):
+        mid = (lo + hi) / 2
+        lo, hi = (lo, mid) if planned(mid) >= n_photos else (mid, hi)
+    return widened(hi)
+
+
+def make_survey(folder: Path, n_photos: int, image_px: int, seed: int = 0) -> tuple[Path, int]:
+    """The small scene widened to at least ``n_photos`` photos (see :func:`scale_preset`)."""
+    from geoortho.synthetic import survey as synthetic
+
+    preset = scale_preset(n_photos, image_px)
+    name = preset.name
+    synthetic.PRESETS[name] = preset
     r = synthetic.synth(folder, preset=name, seed=seed, dictionary=DICTIONARY)  # type: ignore[arg-type]
     return folder, r.n_photos
 
@@ -108,12 +145,77 @@ def against_truth(report: dict, cameras_gpkg: Path, poses_json: Path) -> str:
     )
 
 
-def run(argv: list[str], scheduler: str | None) -> tuple[float, float]:
-    """Seconds and peak MB of one ``python -m geoortho`` run."""
+def _tree_rss_mb(root: int) -> float:
+    """The summed resident memory of ``root`` and every process under it (Linux /proc)."""
+    total, todo = 0.0, [root]
+    while todo:
+        pid = todo.pop()
+        try:
+            total += next(int(x.split()[1]) for x in open(f"/proc/{pid}/status") if x.startswith("VmRSS:")) / 1024
+            for task in Path(f"/proc/{pid}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, StopIteration, ValueError):
+            continue  # the process ended as it was read
+    return total
+
+
+def run(argv: list[str], scheduler: str | None) -> tuple[float, float, float, float]:
+    """Seconds, the main process's peak MB, CPU seconds (with its pool workers) and the peak MB of
+    the whole process tree (sampled each 0.5 s: the main process and its pool workers together) of
+    one ``python -m geoortho`` run."""
     if scheduler:
         argv = [*argv, "--scheduler", scheduler]
-    dt, _, peak_kb = _child(OURS, ["geoortho", *argv])
-    return dt, peak_kb / 1024
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    proc = subprocess.Popen(
+        [sys.executable, "-c", OURS, json.dumps(["geoortho", *argv])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    tree_peak_mb = 0.0
+    done = threading.Event()
+
+    def sample() -> None:
+        nonlocal tree_peak_mb
+        while not done.wait(0.5):
+            tree_peak_mb = max(tree_peak_mb, _tree_rss_mb(proc.pid))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    _, err = proc.communicate()
+    done.set()
+    sampler.join()
+    dt = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode:
+        sys.stderr.write(err[-3000:])
+        raise SystemExit(1)
+    peak_kb = int(err.strip().splitlines()[-1].split()[-1])
+    cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return dt, peak_kb / 1024, cpu_s, max(tree_peak_mb, peak_kb / 1024)
+
+
+def survey_in(folder: Path, want: int, image_px: int) -> int:
+    """The survey of at least ``want`` photos in ``folder``: rendered (and its rate printed), or reused."""
+    made = folder / "truth" / "markers.json"  # written once every photo is rendered
+    n = sum(1 for p in (folder / "images").iterdir() if p.suffix.lower() == ".jpg") if made.is_file() else 0
+    if n >= want:
+        print(f"survey of {n} photos reused from {folder}", flush=True)
+        return n
+    if folder.exists():  # a render cut short, or a smaller survey
+        shutil.rmtree(folder)
+    t = time.perf_counter()
+    _, n = make_survey(folder, want, image_px)
+    dt = time.perf_counter() - t
+    mp = image_px * round(image_px * 2 / 3) / 1e6
+    print(
+        f"survey of {n} photos ({image_px} px wide, {mp:.1f} MP) rendered in {dt:.0f} s: "
+        f"{60 * n / dt:.1f} photos/min, {n * mp / dt:.2f} MP/s; 1,000 photos at this rate: "
+        f"{1000 * dt / n / 60:.0f} min",
+        flush=True,
+    )
+    return n
 
 
 def main() -> int:
@@ -123,35 +225,48 @@ def main() -> int:
     ap.add_argument("--split", type=int, default=150, help="sfm split-merge for surveys above this many photos")
     ap.add_argument("--stages", default=",".join(STAGES))
     ap.add_argument("--scheduler", default=None, help="a Dask scheduler for every stage")
+    ap.add_argument("--keep", default=None, help="keep surveys, products and figures here; rerun only what is missing")
     args = ap.parse_args()
     stages = [s for s in args.stages.split(",") if s]
     table: dict[str, dict[int, tuple[float, float]]] = {s: {} for s in stages}
     sfm_steps: dict[str, dict[int, float]] = {}
     sizes = []
-    with tempfile.TemporaryDirectory() as d:
+    tree_peak: dict[int, float] = {}  # the largest whole-tree memory of any stage, per size
+    with tempfile.TemporaryDirectory() as temporary:
+        d = Path(args.keep) if args.keep else Path(temporary)
         for want in (int(x) for x in args.photos.split(",")):
-            s = Path(d) / f"s{want}"
-            t = time.perf_counter()
-            _, n = make_survey(s, want, args.image_px)
-            dt = time.perf_counter() - t
-            mp = args.image_px * round(args.image_px * 2 / 3) / 1e6
-            print(
-                f"survey of {n} photos ({args.image_px} px wide, {mp:.1f} MP) rendered in {dt:.0f} s: "
-                f"{60 * n / dt:.1f} photos/min, {n * mp / dt:.2f} MP/s; 1,000 photos at this rate: "
-                f"{1000 * dt / n / 60:.0f} min",
-                flush=True,
-            )
+            s = d / f"s{want}"
+            n = survey_in(s, want, args.image_px)
             sizes.append(n)
-            gcp, out = s / "truth" / "gcp_utm.txt", s / "out"
+            gcp = s / "truth" / "gcp_utm.txt"
+            split = n > args.split
+            out = s / (f"out-split{args.split}" if split else "out")
             sfm_options = ["--checkpoints", ",".join(checkpoints(gcp))]
             sfm_options += ["--max-image-size", str(args.image_px), "--matching", "spatial"]
-            sfm_options += ["--split", str(args.split)] if n > args.split else []
+            sfm_options += ["--split", str(args.split)] if split else []
             argv = stage_argv(s, out, sfm_options, out / "dsm.tif", DICTIONARY)
             out.mkdir(parents=True, exist_ok=True)
+            record = out / "times.json"
+            times = json.loads(record.read_text()) if record.is_file() else {}
             for st in stages:
-                dt, mb = run([*argv[st], "--quiet"], args.scheduler)
+                if st in times:
+                    dt, mb, cpu, *tree = times[st]  # (figures recorded before the tree was sampled: none)
+                    tree_mb = tree[0] if tree else mb
+                    note = " (recorded)"
+                else:
+                    dt, mb, cpu, tree_mb = run([*argv[st], "--quiet"], args.scheduler)
+                    times[st] = (dt, mb, cpu, tree_mb)
+                    if args.keep:
+                        record.write_text(json.dumps(times, indent=1))
+                    note = ""
                 table[st][n] = (dt, mb)
-                print(f"  {st:10s} {n:5d} photos: {dt:7.1f} s  {mb:7.0f} MB  ({n / dt:.2f} photos/s)", flush=True)
+                tree_peak[n] = max(tree_peak.get(n, 0.0), tree_mb)
+                print(
+                    f"  {st:10s} {n:5d} photos: {dt:7.1f} s  {mb:7.0f} MB main, {tree_mb:7.0f} MB with workers  "
+                    f"cpu {cpu:7.1f} s  "
+                    f"({n / dt:.2f} photos/s){note}",
+                    flush=True,
+                )
                 if st == "sfm":
                     report = json.loads((out / "sfm" / "report.json").read_text())
                     for step, sec in report["seconds"].items():
@@ -175,6 +290,11 @@ def main() -> int:
         ts = np.array([max(row[n], 1e-3) for n in ns])
         b = float(np.polyfit(np.log(ns), np.log(ts), 1)[0]) if len(ns) >= 2 else math.nan
         print(f"  sfm {step:14s}" + "".join(f"{row[n]:15.1f}s " for n in ns) + f"  {b:8.2f}")
+    print(
+        "peak memory of the largest stage with its workers: "
+        + ", ".join(f"{n} photos {mb / 1024:.2f} GB" for n, mb in sorted(tree_peak.items()))
+        + " (target: <= 8 GB at 1,000 photos)"
+    )
     print("(target: time exponent <= ~1.1 for every stage; memory flat for per-photo and per-tile stages)")
     return 0
 
