@@ -314,7 +314,7 @@ def object_mask(
     reach = distance_cells(~seeds) * cell_m <= RIM_REACH_M
     # hysteresis on the reachable cells: the seeds' own height, the rest at most the seed threshold
     level = np.where(seeds, np.maximum(above, seed_m + 1.0), np.where(reach, np.minimum(above, seed_m), 0.0))
-    found = np.asarray(apply_hysteresis_threshold(level, grow_m, seed_m), bool)
+    found = np.asarray(apply_hysteresis_threshold(level, grow_m, seed_m), dtype=np.bool_)
     return np.asarray(ndimage.binary_dilation(found, structure=np.ones((3, 3), bool)))
 
 

@@ -216,7 +216,7 @@ def _bounds_of(src: PointSource, keep: Box | None, fb: Feedback) -> tuple[int, B
         hi = np.maximum(hi, [a.max() for a in xyz])
         first = (-ch.start) % step
         sample.append(np.c_[ch.x[first::step], ch.y[first::step], ch.z[first::step]])
-    return n, (*lo, *hi), sample  # type: ignore[return-value]
+    return n, (*lo, *hi), sample
 
 
 def _scan_extent(src: PointSource, fb: Feedback) -> _Scan:
@@ -753,7 +753,8 @@ def _auto_window_m(width_m: float, height_m: float, cell_m: float) -> float:
     canopy called ground under the published 18 m window (a real survey: the DTM 6-8 m up)."""
     cells = (width_m / cell_m + 1) * (height_m / cell_m + 1)
     budget_m = cell_m * (3.0 * AUTO_SMRF_S / (OPEN_S_PER_CELL_R2 * cells)) ** (1.0 / 3.0)
-    return max(AUTO_WINDOW_MIN_M, min(AUTO_WINDOW_MAX_M, 0.5 * max(width_m, height_m), budget_m))
+    result: float = max(AUTO_WINDOW_MIN_M, min(AUTO_WINDOW_MAX_M, 0.5 * max(width_m, height_m), budget_m))
+    return result
 
 
 def _check_smrf(src: PointSource, params: SmrfParams, fb: Feedback) -> SmrfParams:
@@ -1025,7 +1026,8 @@ def _on_grid(points: np.ndarray | None, transform: Any) -> np.ndarray | None:
         return None
     p = np.asarray(points, np.float64)
     col, row = ~transform * (p[:, 0], p[:, 1])
-    return np.c_[row, col, p[:, 2]]
+    result: np.ndarray | None = np.c_[row, col, p[:, 2]]
+    return result
 
 
 def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sfm: Path, fb: Feedback) -> DemResult:
@@ -1206,7 +1208,8 @@ def _dtm_support(dsm: Any, dtm: np.ndarray, transform: Any) -> np.ndarray | None
     step = max(1, len(rows) // 20000)
     rows, cols = rows[::step], cols[::step]
     x, y = transform * (cols + 0.5, rows + 0.5)
-    return np.c_[x, y, dsm.z[rows, cols]]
+    result: np.ndarray | None = np.c_[x, y, dsm.z[rows, cols]]
+    return result
 
 
 def _point_cells(src: PointSource, keep: Box | None, transform: Any, shape: tuple[int, int]) -> np.ndarray:

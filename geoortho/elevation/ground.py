@@ -56,7 +56,8 @@ def smrf_surface(
     """
     known = np.isfinite(zmin)
     if not known.any():
-        return zmin.copy()
+        result: np.ndarray = zmin.copy()
+        return result
     z = fill_harmonic(zmin, known)
     # a slope (rise over run) as the rise over one cell, in vertical units
     cell_m = cell * horizontal_m
@@ -100,7 +101,8 @@ def bilinear(grid: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     fc, fr = c - c0, r - r0
     top = grid[r0, c0] * (1 - fc) + grid[r0, c1] * fc
     bottom = grid[r1, c0] * (1 - fc) + grid[r1, c1] * fc
-    return top * (1 - fr) + bottom * fr
+    result: np.ndarray = top * (1 - fr) + bottom * fr
+    return result
 
 
 def ground_mask(
@@ -126,4 +128,5 @@ def ground_mask(
     zs = bilinear(surface, col, row)
     s = bilinear(np.nan_to_num(slope), col, row)
     limit = (params.threshold_m + params.scalar * s) / vertical_m
-    return np.abs(z - zs) <= limit
+    result: np.ndarray = np.abs(z - zs) <= limit
+    return result

@@ -93,9 +93,11 @@ def diagonal_intersection(corners: np.ndarray) -> np.ndarray:
     q, s = c[1], c[3] - c[1]
     denom = r[0] * s[1] - r[1] * s[0]
     if abs(denom) < 1e-12:
-        return c.mean(axis=0)
+        result: np.ndarray = c.mean(axis=0)
+        return result
     t = ((q[0] - p[0]) * s[1] - (q[1] - p[1]) * s[0]) / denom
-    return p + t * r
+    result = p + t * r
+    return result
 
 
 def marker_centre(corners: np.ndarray) -> np.ndarray:
@@ -113,7 +115,8 @@ def marker_centre(corners: np.ndarray) -> np.ndarray:
     diag = diagonal_intersection(c)
     gap = float(np.hypot(*(diag - mean)))
     w = min(1.0, max(0.0, (gap - 0.2) / 0.6))
-    return mean + w * (diag - mean)
+    result: np.ndarray = mean + w * (diag - mean)
+    return result
 
 
 def _detector(
@@ -476,7 +479,8 @@ def fit_similarity(at: np.ndarray, to: np.ndarray) -> tuple[Callable[[np.ndarray
     q, *_ = np.linalg.lstsq(a, b, rcond=None)
 
     def move(p: np.ndarray) -> np.ndarray:
-        return np.c_[q[0] * p[:, 0] - q[1] * p[:, 1] + q[2], q[1] * p[:, 0] + q[0] * p[:, 1] + q[3]]
+        result: np.ndarray = np.c_[q[0] * p[:, 0] - q[1] * p[:, 1] + q[2], q[1] * p[:, 0] + q[0] * p[:, 1] + q[3]]
+        return result
 
     return move, float(np.abs(a @ q - b).max())
 

@@ -339,7 +339,7 @@ def _read_named_csv(lines: list[str], first: int, crs: CRS | None, path: Path) -
         if geographic:
             _check_geographic(name, b, a, path, n)
         points.append(GroundControlPoint(name, a, b, z, n))
-    return _finish(points, crs, path)  # type: ignore[arg-type]
+    return _finish(points, crs, path)
 
 
 def _read_opensfm_json(text: str, path: Path) -> GcpSet:

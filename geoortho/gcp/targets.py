@@ -179,7 +179,8 @@ def _affine(base: np.ndarray, angle_deg: float, scale: float, e1: float, e2: flo
     a = math.radians(angle_deg)
     rot = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
     shape = np.array([[1 + e1, e2], [e2, 1 - e1]])
-    return scale * shape @ base @ rot
+    result: np.ndarray = scale * shape @ base @ rot
+    return result
 
 
 #: A coded table's "on the board" weight: a sample reads white (0 or 1) + _ON × on (0 or 1), so one
@@ -420,7 +421,9 @@ def _alternative_templates(kind: str, u: np.ndarray, v: np.ndarray, bar: float) 
     return np.array(out, np.float64)
 
 
-def _best_alternative(kind: str, rend: _Renderer, fit: tuple, pix: np.ndarray, weight: np.ndarray, bar: float) -> float:
+def _best_alternative(
+    kind: str, rend: _Renderer, fit: tuple[Any, ...], pix: np.ndarray, weight: np.ndarray, bar: float
+) -> float:
     """The best |normalised correlation| of any simpler pattern at the fitted place."""
     sw = weight.sum()
     if sw < 8:
@@ -503,7 +506,8 @@ def spread_path(x: np.ndarray, y: np.ndarray, weight: np.ndarray, size: int) -> 
     kernel = np.zeros((size, size), np.float64)
     for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
         np.add.at(kernel, (y0 + dy, x0 + dx), wgt * weight)
-    return (kernel / kernel.sum()).astype(np.float32)
+    result: np.ndarray = (kernel / kernel.sum()).astype(np.float32)
+    return result
 
 
 #: The Wiener filter's noise-to-signal power (of a spectrum normalised to the kernel's): of 0.003,
@@ -911,7 +915,8 @@ def _cross_band(dx: np.ndarray, dy: np.ndarray, A: np.ndarray, bar: float) -> np
     tarmac) is not part of the target and, textured, only lowers the score of the true one."""
     u, v = _to_marker(dx, dy, A)
     side_px = math.sqrt(abs(np.linalg.det(A)))
-    return np.minimum(np.abs(u), np.abs(v)) <= bar / 2 + max(0.1, 1.5 / side_px)
+    result: np.ndarray = np.minimum(np.abs(u), np.abs(v)) <= bar / 2 + max(0.1, 1.5 / side_px)
+    return result
 
 
 def _parts(kind: str, u: np.ndarray, v: np.ndarray) -> np.ndarray | None:
@@ -1066,7 +1071,8 @@ def _near_disc(shape: tuple[int, int], reach: int, near: tuple[float, float, flo
     """Of a match map (``shape``; a place is its template's corner, ``reach`` px from the centre),
     the places whose centre lies within ``near`` (x, y, radius; crop pixels)."""
     ry, rx = np.mgrid[0 : shape[0], 0 : shape[1]]
-    return np.hypot(rx + reach - near[0], ry + reach - near[1]) <= near[2]
+    result: np.ndarray = np.hypot(rx + reach - near[0], ry + reach - near[1]) <= near[2]
+    return result
 
 
 def _masked_ncc(windows: np.ndarray, t: np.ndarray, m: np.ndarray) -> np.ndarray:
@@ -1133,7 +1139,8 @@ def _code_cells(dx: np.ndarray, dy: np.ndarray, A: np.ndarray, cells: np.ndarray
     """Pixels (offsets from the centre) on a coded marker's code cells, inside its black border."""
     u, v = _to_marker(dx, dy, A)
     lim = 0.5 - 1.0 / (6 if cells is None else cells.shape[0])
-    return (np.abs(u) < lim) & (np.abs(v) < lim)
+    result: np.ndarray = (np.abs(u) < lim) & (np.abs(v) < lim)
+    return result
 
 
 def _quarter_turn(
@@ -1247,10 +1254,12 @@ def _refine(
         kernel = compiled("_glare_exponent")
         if kernel is not None:
             e = kernel(x.ravel().astype(float), y.ravel().astype(float), p[10], p[11], p[6], p[7], path[0], var)
-            return np.exp(e, out=e).mean(axis=1).reshape(x.shape)
+            result: np.ndarray = np.exp(e, out=e).mean(axis=1).reshape(x.shape)
+            return result
         dx = x.ravel()[:, None] - p[10] + p[6] * path
         dy = y.ravel()[:, None] - p[11] - p[7] * path
-        return np.exp(-(dx * dx + dy * dy) / (2 * var)).mean(axis=1).reshape(x.shape)
+        result = np.exp(-(dx * dx + dy * dy) / (2 * var)).mean(axis=1).reshape(x.shape)
+        return result
 
     # A difference step in one parameter moves the model or the glare term, never both (but for
     # the blur's): each term is kept by the parameters it depends on, and a Jacobian's columns for
@@ -1315,10 +1324,12 @@ def _refine(
         looks = models(ps)
         spots = [glare_term(p) for p in ps]
         t, cover = np.array([m[0] for m in looks]), np.array([m[1] for m in looks])
-        return kernel(t, cover, np.array(spots).reshape(len(ps), -1), rim, seen, solved, censor)
+        result: np.ndarray = kernel(t, cover, np.array(spots).reshape(len(ps), -1), rim, seen, solved, censor)
+        return result
 
     def residuals(q: np.ndarray) -> np.ndarray:
-        return residual_rows(q[None])[0]
+        result: np.ndarray = residual_rows(q[None])[0]
+        return result
 
     def batched(fun: Callable[[np.ndarray], np.ndarray], points: Iterable[np.ndarray]) -> np.ndarray:
         # scipy's map for its finite differences, whose fun is the residuals: the points at once
@@ -1423,7 +1434,8 @@ def _converge(
 
     def at(d: np.ndarray) -> np.ndarray:
         # a copy: scipy scales what it is given in place under a robust loss
-        return _kept(last, d.tobytes(), lambda: residual_rows((start + d * unit)[None])[0], 0).copy()
+        result: np.ndarray = _kept(last, d.tobytes(), lambda: residual_rows((start + d * unit)[None])[0], 0).copy()
+        return result
 
     def jac(d: np.ndarray) -> np.ndarray:
         r0 = at(d)
@@ -1440,7 +1452,7 @@ def _converge(
         f_scale=2.0,
         max_nfev=evaluations,  # of the residuals: most fits converge in 20-26
     )
-    p = x0.copy()
+    p: np.ndarray = x0.copy()
     p[free] = start + sol.x * unit
     return p
 
@@ -1482,7 +1494,8 @@ def _along_blur(
     def moved(off: float) -> np.ndarray:
         q = p.copy()
         q[0], q[1] = p[0] + off * ux, p[1] + off * uy
-        return np.clip(q, lo, hi)[free]
+        result: np.ndarray = np.clip(q, lo, hi)[free]
+        return result
 
     def cost(r: np.ndarray) -> float:
         z = (r / 2.0) ** 2  # soft_l1 at f_scale 2, as fitted
@@ -1498,7 +1511,8 @@ def _along_blur(
             best += 0.25 * float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
     out = p.copy()
     out[0], out[1] = p[0] + best * ux, p[1] + best * uy
-    return np.clip(out, lo, hi)
+    result: np.ndarray = np.clip(out, lo, hi)
+    return result
 
 
 def _saddle(crop: np.ndarray, cx: float, cy: float, A: np.ndarray) -> tuple[float, float]:

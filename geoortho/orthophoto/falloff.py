@@ -73,7 +73,8 @@ def falloff_gain(rho: np.ndarray, falloff: Falloff | None) -> np.ndarray | None:
     if falloff is None:
         return None
     r = np.clip(rho, 0.0, 1.5)
-    return np.exp(-(falloff.c1 * r + falloff.c2 * r * r)).astype(np.float32)
+    result: np.ndarray | None = np.exp(-(falloff.c1 * r + falloff.c2 * r * r)).astype(np.float32)
+    return result
 
 
 def estimate_falloff(pairs: list[np.ndarray]) -> Falloff | None:

@@ -293,7 +293,8 @@ def _hole_at_full_resolution(ds: Any, box: tuple[slice, slice], f: int) -> float
     r0, c0 = max(0, (box[0].start - 2) * f), max(0, (box[1].start - 2) * f)
     r1, c1 = min(ds.height, (box[0].stop + 2) * f), min(ds.width, (box[1].stop + 2) * f)
     empty = ds.read_masks(1, window=Window(c0, r0, c1 - c0, r1 - r0)) == 0
-    return float(_enclosed(empty).sum()) * abs(ds.transform.a * ds.transform.e)
+    result: float = float(_enclosed(empty).sum()) * abs(ds.transform.a * ds.transform.e)
+    return result
 
 
 # ---------------------------------------------------------------------------------------------
@@ -452,7 +453,8 @@ def _enclosed(empty: np.ndarray) -> np.ndarray:
     for edge in (comp[0], comp[-1], comp[:, 0], comp[:, -1]):
         outside[np.unique(edge)] = True
     outside[0] = True  # label 0: the rendered pixels
-    return ~outside[comp]
+    result: np.ndarray = ~outside[comp]
+    return result
 
 
 def _fill_holes(bgr: np.ndarray, holes: np.ndarray, max_hole_px: int) -> np.ndarray:
@@ -468,7 +470,7 @@ def _fill_holes(bgr: np.ndarray, holes: np.ndarray, max_hole_px: int) -> np.ndar
     # (a hole with no edge in the tile has the distance transform's huge value: no product of it)
     small = widest <= 0.5 * max_hole_px
     small[0] = False
-    fill = small[comp] & holes
+    fill: np.ndarray = small[comp] & holes
     if fill.any():
         bgr[:] = cv2.inpaint(bgr, fill.astype(np.uint8), 5, cv2.INPAINT_TELEA)
     return fill

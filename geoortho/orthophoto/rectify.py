@@ -360,7 +360,8 @@ def preference_cost(
     half_diag = np.float32(0.5 * math.hypot(intr.width_px, intr.height_px))
     off_vertical = np.sqrt(dx * dx + dy * dy) / dz
     u, v = map_x - np.float32(intr.cx_px), map_y - np.float32(intr.cy_px)
-    return off_vertical + np.float32(0.5) * np.sqrt(u * u + v * v) / half_diag
+    result: np.ndarray = off_vertical + np.float32(0.5) * np.sqrt(u * u + v * v) / half_diag
+    return result
 
 
 def project_grid(

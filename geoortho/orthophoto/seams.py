@@ -404,7 +404,7 @@ def _without_transients(labels: np.ndarray, votes: _Votes) -> np.ndarray:
     to the photo that sees it best among those that agree with the rest there (kept where none
     does: where every photo differs, as round a tree's crown, the cut's seams stand)."""
     full = Window(0, 0, labels.shape[1], labels.shape[0])
-    out = labels.copy()
+    out: np.ndarray = labels.copy()
     for i, (win, odd) in sorted(votes.transient.items()):
         sl = slices_in(win, full)
         take = (out[sl] == i) & odd

@@ -227,7 +227,8 @@ def _render_marker(cells: np.ndarray, module_px: float, angle_deg: float, rng: n
     img = cv2.resize(hi, (size, size), interpolation=cv2.INTER_AREA)
     img = cv2.GaussianBlur(img, (0, 0), 0.6)
     img = img + np.asarray(rng.normal(0, 3.0, img.shape), np.float32)
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    result: np.ndarray = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    return result
 
 
 def default_gcp_count(area_ha: float) -> int:
@@ -1214,7 +1215,7 @@ def _ground_under(
     z = surface.elevation(px.ravel(), py.ravel()).reshape(px.shape)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        out = np.nanmean(z, axis=1)
+        out: np.ndarray = np.nanmean(z, axis=1)
     if not np.isfinite(out).all():
         raise InputError("the DTM does not cover every planned photo: give a DTM that covers the AOI and a margin")
     return out
@@ -1277,7 +1278,8 @@ def line_overlaps(polys: list[Any], line: list[int], max_pairs: int = 1500) -> t
         if len(ia) > max_pairs:  # an even sample: the median of a large block needs no more
             keep = np.linspace(0, len(ia) - 1, max_pairs).round().astype(int)
             ia, ib = ia[keep], ib[keep]
-        return shapely.area(shapely.intersection(polys_a[ia], polys_a[ib])) / areas[ia]
+        result: np.ndarray = shapely.area(shapely.intersection(polys_a[ia], polys_a[ib])) / areas[ia]
+        return result
 
     front, side = share(fa, fb), share(sa, sb)
     # ends of lines overlap less sideways where the AOI narrows: the median is the block's figure
@@ -1897,7 +1899,7 @@ def _photo_cameras(
     fb: Feedback,
 ) -> _Flown:
 
-    ps = photos_with_altitude(images, None, None, fb, fb)  # type: ignore[arg-type]
+    ps = photos_with_altitude(images, None, None, fb, fb)
     crs = working_crs(ps.photos)
     ground = read_surface(dsm, crs, extend=True) if dsm is not None else None
     cams, heights = photo_cameras(ps.photos, crs, ground, takeoff_elevation_m)

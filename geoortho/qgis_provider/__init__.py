@@ -7,8 +7,10 @@ packs this folder as the QGIS plugin ``geoortho_qgis``: its modules import each 
 relatively, as the only package in geoortho that does, because the zip renames it.
 """
 
+from typing import Any
 
-def classFactory(iface):  # noqa: N802 (QGIS's name)
+
+def classFactory(iface: Any) -> Any:  # noqa: N802 (QGIS's name)
     """QGIS plugin entry point."""
     from .plugin import GeoorthoPlugin  # here: QGIS imports this package before its GUI is up
 

@@ -218,7 +218,7 @@ OUTPUT_BUILDERS: dict[str, Callable[[str, str], Any]] = {
 }
 
 
-class GeoorthoAlgorithm(QgsProcessingAlgorithm):
+class GeoorthoAlgorithm(QgsProcessingAlgorithm):  # type: ignore[misc]  # QGIS is not typed here
     """One geoortho algorithm: parameters from its spec, run by geoortho's CLI.
 
     ``settings`` is a callable returning the provider's current settings:
@@ -237,19 +237,23 @@ class GeoorthoAlgorithm(QgsProcessingAlgorithm):
         return GeoorthoAlgorithm(self._spec, self._settings)
 
     def name(self) -> str:
-        return self._spec["id"]
+        result: str = self._spec["id"]
+        return result
 
     def displayName(self) -> str:  # noqa: N802
-        return self._spec["title"]
+        result: str = self._spec["title"]
+        return result
 
     def group(self) -> str:
-        return self._spec["group"]
+        result: str = self._spec["group"]
+        return result
 
     def groupId(self) -> str:  # noqa: N802
         return "".join(c for c in self._spec["group"].lower() if c.isalnum())
 
     def shortDescription(self) -> str:  # noqa: N802
-        return self._spec["short_help"]
+        result: str = self._spec["short_help"]
+        return result
 
     def shortHelpString(self) -> str:  # noqa: N802
         paragraphs = [html.escape(" ".join(block.split())) for block in self._spec["help"].split("\n\n")]

@@ -197,7 +197,8 @@ def load_description(
             if cached.get("interpreter") == key and cached.get("package") == _package_signature(
                 cached["description"]["package_dir"]
             ):
-                return cached["description"]
+                result: dict[str, Any] = cached["description"]
+                return result
         except (OSError, ValueError, KeyError, TypeError):
             pass  # a stale or broken cache is simply rebuilt
     description = _run_describe(interpreter, timeout_s)

@@ -40,7 +40,7 @@ def _processing_config() -> tuple[Any, Any]:
     return ProcessingConfig, Setting
 
 
-class GeoorthoProvider(QgsProcessingProvider):
+class GeoorthoProvider(QgsProcessingProvider):  # type: ignore[misc]  # QGIS is not typed here
     def __init__(self, description: dict[str, Any] | None = None) -> None:
         super().__init__()
         self._given_description = description

@@ -882,7 +882,7 @@ def _in_view(view: _View, world: np.ndarray) -> np.ndarray:
     """Which of ``world``'s points (local frame) fall in ``view``'s frame, in front of it."""
     local = (world - view.C) @ view.R
     w, h = view.size
-    inside = local[:, 2] > 0
+    inside: np.ndarray = local[:, 2] > 0
     # a pinhole test with a wide margin first: OpenCV's projection with distortion is the cost
     # here, and most of the photos near a reference see little or none of its ground
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -619,7 +619,7 @@ def _levelling_rotation(rec: Any, photos_by_name: dict[str, Photo]) -> np.ndarra
     if k < 3:
         return None
     u, _, vt = np.linalg.svd(m)
-    r = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    r: np.ndarray = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     return r
 
 

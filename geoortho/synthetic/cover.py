@@ -165,7 +165,8 @@ def leaf_texture(style: str, x: np.ndarray, y: np.ndarray, noise: np.ndarray) ->
     noise grid thresholded, dark gaps between bright clumps."""
     if style == "pattern":
         w = np.sin(2 * np.pi * x / 0.45) * np.sin(2 * np.pi * y / 0.45) + 0.6 * np.sin(2 * np.pi * (x + y) / 1.3)
-        return (0.85 + 0.28 * w).astype(np.float32)
+        result: np.ndarray = (0.85 + 0.28 * w).astype(np.float32)
+        return result
     n = noise.shape[0]
     fx, fy = np.mod(x / 0.06, n), np.mod(y / 0.06, n)
     v = noise[fy.astype(np.int64) % n, fx.astype(np.int64) % n]

@@ -190,7 +190,8 @@ def _enclosed(empty: np.ndarray) -> np.ndarray:
 
 
 def _grey(rgb: np.ndarray) -> np.ndarray:
-    return (0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]).astype(np.float64)
+    result: np.ndarray = (0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]).astype(np.float64)
+    return result
 
 
 def _edge_offsets_m(grey: np.ndarray, valid: np.ndarray, buildings: np.ndarray, cell_m: float) -> np.ndarray:

@@ -352,7 +352,8 @@ def _wrap_sample(grid: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> np.ndarray
     c = np.mod(fx, n1).astype(np.float32)
     r = np.mod(-fy, n0).astype(np.float32)
     v = sample_grid(grid, c, r)
-    return np.nan_to_num(v)
+    result: np.ndarray = np.nan_to_num(v)
+    return result
 
 
 def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], blur: float) -> np.ndarray:
@@ -1266,13 +1267,15 @@ def sensor_noise(rng: np.random.Generator, style: str, img: np.ndarray) -> np.nd
     white), drawn from ``rng``."""
     if style == "shot":
         sigma = np.sqrt(SHOT_NOISE_PER_LIGHT * np.clip(img, 0.0, None) + READ_NOISE**2)
-        return (rng.standard_normal(img.shape) * sigma).astype(np.float32)
+        result: np.ndarray = (rng.standard_normal(img.shape) * sigma).astype(np.float32)
+        return result
     if style == "grain":
         # white noise smoothed over a couple of pixels, each channel its own (coloured blotches),
         # scaled back to its spread
         raw = rng.standard_normal(img.shape).astype(np.float32)
         smooth = cv2.GaussianBlur(raw, (0, 0), GRAIN_PX, borderType=cv2.BORDER_REFLECT)
-        return smooth * np.float32(GRAIN_NOISE / max(float(smooth.std()), 1e-9))
+        result = smooth * np.float32(GRAIN_NOISE / max(float(smooth.std()), 1e-9))
+        return result
     return rng.normal(0, EVEN_NOISE, img.shape).astype(np.float32)
 
 
@@ -1322,7 +1325,8 @@ def _other_motion_kernel(length_px: float, angle_deg: float, style: str, rng: np
         half = max(1, round(length_px)) / 2
         ends = [(round(r + s * half * math.cos(a)), round(r - s * half * math.sin(a))) for s in (-1, 1)]
         cv2.line(img, ends[0], ends[1], 1.0, 1, cv2.LINE_8)
-        return img / img.sum()
+        result: np.ndarray = img / img.sum()
+        return result
     n = max(8, int(math.ceil(16 * length_px)))
     t = (np.arange(n) + 0.5) / n - 0.5
     bow = float(rng.uniform(-0.2, 0.2)) * length_px
@@ -1357,7 +1361,8 @@ def _marker_truth_and_antialias(
         ca, sa = math.cos(a), math.sin(a)
 
         def world(u: np.ndarray, v: np.ndarray, m: Marker = m, ca: float = ca, sa: float = sa) -> np.ndarray:
-            return np.c_[m.x + u * ca + v * sa, m.y - u * sa + v * ca, np.full(len(u), m.z)]
+            result: np.ndarray = np.c_[m.x + u * ca + v * sa, m.y - u * sa + v * ca, np.full(len(u), m.z)]
+            return result
 
         centre_px, depth = project_points(np.array([[m.x, m.y, m.z]]), intr, pose)
         if not np.isfinite(centre_px).all() or depth[0] <= 0:
