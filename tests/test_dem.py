@@ -354,6 +354,15 @@ def test_unknown_method_is_a_parameter_error(tmp_path):
         dem(np.zeros((5, 3)), tmp_path / "d.tif", crs="EPSG:32629", method="median")
 
 
+@pytest.mark.parametrize("option", [{"resolution_m": -0.1}, {"max_gap_m": -1.0}, {"smooth_px": -2}])
+def test_a_negative_option_is_named_for_itself(tmp_path, option):
+    # it was named resolution_m whichever of the three was negative
+    ((name, value),) = option.items()
+    with pytest.raises(ParameterError, match=rf"^{name}: {name} must not be negative") as e:
+        dem(np.zeros((5, 3)), tmp_path / "d.tif", crs="EPSG:32629", **option)
+    assert e.value.name == name and not (tmp_path / "d.tif").exists()
+
+
 def test_far_outliers_are_dropped_and_the_dsm_is_the_clean_one(tiny_survey, tmp_path):
     """Issue 23 (5): outlier points 100 km away (and one 10 km up) made a 74.5 GiB grid, or with
     the automatic resolution a silent 200 m-cell DSM. Now they are dropped with a warning."""

@@ -642,8 +642,10 @@ def _check_options(
         raise ParameterError(
             "ground_method", f"unknown ground method {ground_method!r}; use one of {', '.join(GROUND_METHODS)}"
         )
-    if (resolution_m or 0.0) < 0 or max_gap_m < 0 or smooth_px < 0:
-        raise ParameterError("resolution_m", "resolution, max gap and smoothing must not be negative")
+    # each negative value is named for itself: the parameter the user must change
+    for name, value in (("resolution_m", resolution_m or 0.0), ("max_gap_m", max_gap_m), ("smooth_px", smooth_px)):
+        if value < 0:
+            raise ParameterError(name, f"{name} must not be negative (given {value})")
     if engine not in ENGINES:
         raise ParameterError("engine", f"unknown engine {engine!r}; use one of {', '.join(ENGINES)}")
 
