@@ -27,7 +27,7 @@ $(STAMP): pyproject.toml tools/make_venv.sh
 # And the compiled kernels (numba's cache: the target fits', the gap fills', the gridding's and the
 # orthophoto's line-of-sight march): 10 s once.
 BYTECODE = $(PY) -m compileall -q geoortho && $(PY) -c "$(WARM)"
-WARM = import geoortho.gcp.kernels as a, geoortho.core.gapfill as b, geoortho.elevation.grid as c, geoortho.orthophoto.rectify as d; [m.warm() for m in (a, b, c, d)]
+WARM = import geoortho.gcp.targets as a, geoortho.core.gapfill as b, geoortho.elevation.grid as c, geoortho.orthophoto.rectify as d; [m.warm() for m in (a, b, c, d)]
 
 demo: $(STAMP)
 	@$(BYTECODE)

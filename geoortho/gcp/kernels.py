@@ -10,12 +10,13 @@ numpy path), not with the package: importing it and loading the cached code take
 130 MiB a process, which a clean survey's few fits would never pay back (a compiled render saves
 about 90 us). The compiled code is cached on disk (numba's own cache, beside this file or in its
 user-wide folder), so a fresh process loads it rather than compiling. Compiling takes 6 s
-(:func:`warm`, which ``make`` runs ahead).
+(:func:`geoortho.gcp.targets.warm`, which ``make`` runs ahead).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import cache
 from typing import Any
 
@@ -50,27 +51,14 @@ def _compiled(name: str) -> Callable[..., Any] | None:
     return kernel_loader.compiled(globals()[name])
 
 
-def warm() -> None:
-    """Compile every kernel into numba's cache, by a small fit that takes each path (a clipped
-    coded marker under glare), so that no command pays for it."""
-    import math
-
-    from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import fit_target
-
+@contextmanager
+def compiled_now() -> Iterator[None]:
+    """Inside, every kernel asked for is the compiled one at once (for warming numba's cache:
+    :func:`geoortho.gcp.targets.warm`)."""
     global _numpy_calls
     calls, _numpy_calls = _numpy_calls, WARM_CALLS
     try:
-        side, cx, cy = 15.0, 40.4, 39.7
-        img = np.full((80, 80), 110.0)
-        a = math.radians(-24.0)
-        A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
-        cells = marker_cells("DICT_4X4_50", 9)
-        paint_target(img, "aruco", cx, cy, A, cells, 240.0, 45.0)
-        yy, xx = np.mgrid[0:80, 0:80]
-        img += 150.0 * np.exp(-((xx - cx - 7.0) ** 2 + (yy - cy + 4.0) ** 2) / 72.0)
-        grey = np.clip(img, 0, 255).astype(np.uint8)
-        fit_target(grey, (10, 10, 71, 71), "aruco", A, cells=cells, dictionary="DICT_4X4_50", marker_id=9)
+        yield
     finally:
         _numpy_calls = calls
 

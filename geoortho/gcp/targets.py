@@ -34,13 +34,14 @@ from typing import Any, NamedTuple, TypeVar
 import cv2
 import numpy as np
 
-from geoortho.gcp.kernels import compiled
+from geoortho.gcp.kernels import compiled, compiled_now
 from geoortho.gcp.markers import (
     CODED,
     CROSS_BAR,
     coded_cells_at,
     get_dictionary,
     marker_cells,
+    paint_target,
     target_half_extent,
     target_reflectance,
 )
@@ -1528,3 +1529,19 @@ def _saddle(crop: np.ndarray, cx: float, cy: float, A: np.ndarray) -> tuple[floa
     if math.hypot(out[0] - cx, out[1] - cy) <= quarter:
         return float(out[0]), float(out[1])
     return cx, cy
+
+
+def warm() -> None:
+    """Compile the fits' kernels into numba's cache, by a small fit that takes each path (a clipped
+    coded marker under glare), so that no command pays for it."""
+    with compiled_now():
+        side, cx, cy = 15.0, 40.4, 39.7
+        img = np.full((80, 80), 110.0)
+        a = math.radians(-24.0)
+        A = side * np.array([[math.cos(a), math.sin(a)], [math.sin(a), -math.cos(a)]])
+        cells = marker_cells("DICT_4X4_50", 9)
+        paint_target(img, "aruco", cx, cy, A, cells, 240.0, 45.0)
+        yy, xx = np.mgrid[0:80, 0:80]
+        img += 150.0 * np.exp(-((xx - cx - 7.0) ** 2 + (yy - cy + 4.0) ** 2) / 72.0)
+        grey = np.clip(img, 0, 255).astype(np.uint8)
+        fit_target(grey, (10, 10, 71, 71), "aruco", A, cells=cells, dictionary="DICT_4X4_50", marker_id=9)
