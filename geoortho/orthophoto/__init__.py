@@ -1,6 +1,9 @@
-"""Orthophoto mosaic: rectify on the DSM, seamlines, colour balance, blending, hole fill, COG."""
+"""Orthophoto mosaic: rectify on the DSM, seamlines, colour balance, blending, hole fill, COG.
 
-from geoortho.orthophoto.cameras import cameras_from_metadata
+Cameras placed from the photo metadata alone (direct georeferencing) are
+:func:`geoortho.photos.footprint.photo_cameras`'s; an ``sfm`` output is read by
+:mod:`geoortho.reconstruction.model`."""
+
 from geoortho.orthophoto.mosaic import MosaicOptions, OrthoResult, mosaic, ortho
 
-__all__ = ["MosaicOptions", "OrthoResult", "cameras_from_metadata", "mosaic", "ortho"]
+__all__ = ["MosaicOptions", "OrthoResult", "mosaic", "ortho"]

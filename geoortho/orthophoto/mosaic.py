@@ -32,7 +32,6 @@ from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surfac
 from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_area_m2, seen_count, source_path
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
-from geoortho.orthophoto.cameras import cameras_from_metadata
 from geoortho.orthophoto.falloff import falloff_gain, frame_rho
 from geoortho.orthophoto.provenance import (
     INPAINTED,
@@ -58,7 +57,7 @@ from geoortho.orthophoto.rectify import (
     window_xyz,
 )
 from geoortho.orthophoto.seams import BALANCE, SEAMS, Balance, SeamMethod, SeamPlan, plan_seams, read_photo_bgr
-from geoortho.photos.footprint import compute_footprints, photos_with_altitude, working_crs
+from geoortho.photos.footprint import compute_footprints, photo_cameras, photos_with_altitude, working_crs
 from geoortho.photos.heights import GpsAltitude
 from geoortho.reconstruction.model import cameras_from_sfm
 
@@ -1400,10 +1399,11 @@ def ortho(
     measured_offset = math.nan
     surface = _given_surface(dsm, ground_elevation_m, default_ground, out_crs, notes, fb)
     if cams is None:
-        cams, heights = cameras_from_metadata(
+        placed, heights = photo_cameras(
             photoset.photos, out_crs, surface, takeoff_elevation_m, flight_height_m=flight_height_m,
             gps_altitude=gps_altitude,
         )  # fmt: skip
+        cams = list(placed)
         surface = heights.surface
         notes.append(f"heights: {heights.method}; vertical datum: {heights.datum}")
         for note in heights.notes:
