@@ -278,7 +278,7 @@ def test_pycolmap_interrupted_while_loading_raises_keyboard_interrupt(monkeypatc
     """The Python API's caller gets the Ctrl-C back as itself, not as a broken install."""
     import builtins
 
-    from geoortho.reconstruction.colmap import load_pycolmap
+    from geoortho.core.colmap import load_pycolmap
 
     real_import = builtins.__import__
 

@@ -26,6 +26,7 @@ import numpy as np
 from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, STAGES, from_ledger, ledger_problem
 from geoortho.chain.qgis_project import write_qgis_project
 from geoortho.chain.quality import as_number, assess, verdict
+from geoortho.core.colmap import load_pycolmap
 from geoortho.core.crs import heights_from_text, heights_label, transformer
 from geoortho.core.outputs import write_json, write_text, write_vector
 from geoortho.core.styles import product_styles
@@ -34,7 +35,6 @@ from geoortho.feedback import Feedback, as_feedback
 from geoortho.gcp.io import read_gcp_file
 from geoortho.photos.metadata import list_images
 from geoortho.processing.registry import refuse_writing_into
-from geoortho.reconstruction.colmap import load_pycolmap
 from geoortho.version import __version__
 
 __all__ = ["ReportResult", "report"]

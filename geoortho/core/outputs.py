@@ -13,7 +13,7 @@ import os
 import re
 import tempfile
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import closing
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,8 @@ __all__ = [
     "json_text",
     "strict",
     "VECTOR_DRIVERS",
+    "work_folder",
+    "append_by_tile",
 ]
 
 
@@ -307,3 +309,23 @@ def write_vector(target: str | os.PathLike[str], layers: dict[str, Any], styles:
         if styles and driver == "GPKG":
             write_layer_styles(tmp, {k: v for k, v in styles.items() if k in layers})
     return target
+
+
+def work_folder(near: Path) -> tempfile.TemporaryDirectory[str]:
+    """A temporary folder for the tile files beside the output (the same disk as the products),
+    named as every geoortho temporary is, so that a killed run's is removed by the next run. The
+    output's folder is made first, as the whole-grid path's writes make it (a new folder ended a
+    tiled dem in an unexpected FileNotFoundError)."""
+    parent = Path(near).absolute().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    return tempfile.TemporaryDirectory(prefix=temp_prefix(Path(near).name), dir=parent)
+
+
+def append_by_tile(rows: np.ndarray, tile: np.ndarray, file_of: Callable[[int], Path]) -> None:
+    """Append each row to the file of its tile (``tile``: an integer per row), one write a tile."""
+    order = np.argsort(tile, kind="stable")
+    tile, rows = tile[order], rows[order]
+    cuts = np.flatnonzero(np.diff(tile)) + 1
+    for part, k in zip(np.split(rows, cuts), tile[np.r_[0, cuts]] if len(tile) else []):
+        with open(file_of(int(k)), "ab") as fh:
+            part.tofile(fh)

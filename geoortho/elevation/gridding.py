@@ -25,8 +25,9 @@ from affine import Affine
 
 from geoortho.core.crs import crs_to_text, heights_to_text, horizontal_of, parse_crs
 from geoortho.core.gapfill import fill_harmonic, gap_mask
-from geoortho.core.outputs import atomic_path, atomic_paths, cog_options, write_cog
+from geoortho.core.outputs import atomic_path, atomic_paths, cog_options, work_folder, write_cog
 from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
+from geoortho.core.sfm_model import cameras_from_sfm
 from geoortho.core.styles import terrain, write_raster_style
 from geoortho.core.surface import GridSurface, whole_surface
 from geoortho.elevation import tiles as dem_tiles
@@ -60,11 +61,10 @@ from geoortho.elevation.grid import (
     with_nodata,
 )
 from geoortho.elevation.ground import SmrfParams, ground_mask, smrf_surface
-from geoortho.elevation.tiles import make_tiled, work_folder
+from geoortho.elevation.tiles import make_tiled
 from geoortho.elevation.walls import fill_beside_objects
 from geoortho.errors import DependencyError, InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
-from geoortho.reconstruction.model import cameras_from_sfm
 
 __all__ = ["DemResult", "dem", "grid_points", "Grid", "METHODS", "NODATA"]
 

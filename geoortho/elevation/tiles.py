@@ -33,7 +33,6 @@ halo, not the grid.
 from __future__ import annotations
 
 import math
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -42,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from geoortho.core.gapfill import block_sums, fill_harmonic, gap_mask
-from geoortho.core.outputs import temp_prefix
+from geoortho.core.outputs import append_by_tile
 from geoortho.core.parallel import imap_ordered
 from geoortho.elevation.grid import GROUND, NODATA, Accumulator, Grid, finite_points, with_nodata
 from geoortho.elevation.ground import SmrfParams, bilinear, ground_mask, smrf_surface
@@ -54,9 +53,7 @@ __all__ = [
     "TILE_CELLS",
     "WHOLE_GRID_MAX_CELLS",
     "TiledGrids",
-    "append_by_tile",
     "make_tiled",
-    "work_folder",
 ]
 
 #: Cells of a tile's side (without its halo).
@@ -517,23 +514,3 @@ def _add(acc: Any, pts: np.ndarray) -> None:
     for i in range(0, len(pts), SLICE_POINTS):
         p = pts[i : i + SLICE_POINTS]
         acc.add(p["x"], p["y"], p["z"])
-
-
-def append_by_tile(rows: np.ndarray, tile: np.ndarray, file_of: Callable[[int], Path]) -> None:
-    """Append each row to the file of its tile (``tile``: an integer per row), one write a tile."""
-    order = np.argsort(tile, kind="stable")
-    tile, rows = tile[order], rows[order]
-    cuts = np.flatnonzero(np.diff(tile)) + 1
-    for part, k in zip(np.split(rows, cuts), tile[np.r_[0, cuts]] if len(tile) else []):
-        with open(file_of(int(k)), "ab") as fh:
-            part.tofile(fh)
-
-
-def work_folder(near: Path) -> tempfile.TemporaryDirectory[str]:
-    """A temporary folder for the tile files beside the output (the same disk as the products),
-    named as every geoortho temporary is, so that a killed run's is removed by the next run. The
-    output's folder is made first, as the whole-grid path's writes make it (a new folder ended a
-    tiled dem in an unexpected FileNotFoundError)."""
-    parent = Path(near).absolute().parent
-    parent.mkdir(parents=True, exist_ok=True)
-    return tempfile.TemporaryDirectory(prefix=temp_prefix(Path(near).name), dir=parent)

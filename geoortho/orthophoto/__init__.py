@@ -2,7 +2,7 @@
 
 Cameras placed from the photo metadata alone (direct georeferencing) are
 :func:`geoortho.photos.footprint.photo_cameras`'s; an ``sfm`` output is read by
-:mod:`geoortho.reconstruction.model`."""
+:mod:`geoortho.core.sfm_model`."""
 
 from geoortho.orthophoto.mosaic import MosaicOptions, OrthoResult, mosaic, ortho
 

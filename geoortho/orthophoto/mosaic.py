@@ -28,6 +28,7 @@ from geoortho.core.camera import PosedCamera
 from geoortho.core.crs import crs_to_text, horizontal_unit_m
 from geoortho.core.outputs import atomic_path, temp_prefix, write_json
 from geoortho.core.parallel import imap_ordered, map_ordered
+from geoortho.core.sfm_model import cameras_from_sfm
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface, sample_grid, whole_surface
 from geoortho.elevation.coverage import MEASURED, footprint_polygons, seen_area_m2, seen_count, source_path
 from geoortho.errors import InputError, ParameterError
@@ -59,7 +60,6 @@ from geoortho.orthophoto.rectify import (
 from geoortho.orthophoto.seams import BALANCE, SEAMS, Balance, SeamMethod, SeamPlan, plan_seams, read_photo_bgr
 from geoortho.photos.footprint import compute_footprints, photo_cameras, photos_with_altitude, working_crs
 from geoortho.photos.heights import GpsAltitude
-from geoortho.reconstruction.model import cameras_from_sfm
 
 DsmOffset = Literal["correct", "refuse", "ignore"]
 DSM_OFFSET: tuple[str, ...] = get_args(DsmOffset)

@@ -29,6 +29,7 @@ from pyproj import CRS
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr, undistort_pixels, ypr_from_rotation
 from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
 from geoortho.core.outputs import write_cog, write_vector
+from geoortho.core.sfm_model import cameras_from_sfm
 from geoortho.core.styles import overlap as overlap_style
 from geoortho.core.styles import product_styles, write_raster_style
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface
@@ -36,7 +37,6 @@ from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split, warn_grouped
 from geoortho.photos.heights import GpsAltitude, HeightModel, resolve_heights
 from geoortho.photos.metadata import Photo, PhotoSet, read_photos
-from geoortho.reconstruction.model import cameras_from_sfm
 
 __all__ = [
     "PhotoCamera",

@@ -262,7 +262,7 @@ def _load_then_release(alg: Algorithm, values: dict[str, Any], before: set[int |
         convert_values(alg, values)  # bad input is told before the imports (sfm, a missing folder: 0.23 s, not 0.69)
         alg.function  # noqa: B018 - the import is the point
         if alg.id in _COLMAP_ALWAYS or values.get("sfm"):
-            from geoortho.reconstruction.colmap import load_pycolmap
+            from geoortho.core.colmap import load_pycolmap
 
             load_pycolmap()
     finally:

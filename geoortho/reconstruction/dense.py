@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from geoortho.core.outputs import write_json
+from geoortho.core.outputs import append_by_tile, work_folder, write_json
 from geoortho.core.parallel import imap_ordered
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, split
@@ -164,8 +164,7 @@ def dense(
     # here, not at the top: the depth-map workers import this module and need none of these
     # (pycolmap, laspy, the DEM tiles: 0.3 -> 0.9 s a worker; pyproj alone 70 ms)
     from geoortho.core.crs import crs_to_text, heights_to_text, with_heights
-    from geoortho.elevation.tiles import work_folder
-    from geoortho.reconstruction.model import cameras_from_sfm, model_heights
+    from geoortho.core.sfm_model import cameras_from_sfm, model_heights
 
     fb = as_feedback(feedback)
     clock = time.perf_counter()
@@ -970,8 +969,6 @@ class _Fusion:
                     self._spill(*part)
 
     def _spill(self, xyz: np.ndarray, rgb: np.ndarray, counts: np.ndarray) -> None:
-        from geoortho.elevation.tiles import append_by_tile  # not in the workers (see dense)
-
         assert self.spill_dir is not None
         spill_dir = self.spill_dir
         t0 = time.perf_counter()

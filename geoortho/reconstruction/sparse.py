@@ -47,6 +47,7 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from geoortho.core.camera import rotation_from_ypr, ypr_from_rotation
+from geoortho.core.colmap import load_pycolmap
 from geoortho.core.crs import (
     ELLIPSOIDAL,
     WGS84,
@@ -72,7 +73,6 @@ from geoortho.photos.footprint import photo_cameras, working_crs
 from geoortho.photos.heights import absolute_altitude, check_altitudes
 from geoortho.photos.metadata import Photo, list_images, photo_seconds, read_photos
 from geoortho.photos.positions import PositionFile, apply_positions, read_positions
-from geoortho.reconstruction.colmap import load_pycolmap
 from geoortho.reconstruction.splitmerge import finished, merge, partition, run_submodel, submodel_key
 
 __all__ = ["SfmResult", "sfm", "MATCHING", "MAPPERS", "CAMERA_MODELS", "ce90", "le90"]

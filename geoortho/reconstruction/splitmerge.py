@@ -35,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
+from geoortho.core.colmap import load_pycolmap
 from geoortho.errors import GeoorthoError
 from geoortho.feedback import Feedback
-from geoortho.reconstruction.colmap import load_pycolmap
 
 __all__ = ["partition", "Submodel", "finished", "record"]
 

@@ -12,9 +12,9 @@ import numpy as np
 from pyproj import CRS
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera
+from geoortho.core.colmap import load_pycolmap
 from geoortho.core.crs import heights_from_text, parse_crs, transformer
 from geoortho.errors import InputError
-from geoortho.reconstruction.colmap import load_pycolmap
 
 __all__ = ["cameras_from_sfm"]
 
