@@ -22,6 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from geoortho.core.gsd import focal_length_px
+
 __all__ = [
     "Intrinsics",
     "Pose",
@@ -80,7 +82,7 @@ class Intrinsics:
         distortion: tuple[float, ...] = (),
     ) -> Intrinsics:
         """Intrinsics from the physical focal length and the sensor width spanned by the image width."""
-        return cls(width_px, height_px, focal_mm / sensor_width_mm * width_px, distortion=distortion)
+        return cls(width_px, height_px, focal_length_px(focal_mm, sensor_width_mm, width_px), distortion=distortion)
 
     @property
     def matrix(self) -> np.ndarray:

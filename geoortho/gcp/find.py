@@ -52,6 +52,7 @@ from pyproj import CRS
 
 from geoortho.core.camera import in_frame, pixel_rays
 from geoortho.core.crs import crs_to_text, parse_crs, transformer
+from geoortho.core.gsd import marker_gsd_m
 from geoortho.core.outputs import atomic_path, write_text, write_vector
 from geoortho.core.parallel import map_ordered, process_pool
 from geoortho.core.styles import product_styles
@@ -219,7 +220,7 @@ def predict_windows(
         # across a nadir photo, growing with obliquity (geometric mean of the two directions)
         above_m = np.maximum(cam.pose.center[2] - xyz[:, 2], 1e-6)
         depth = np.maximum(depth, 1e-9)
-        gsd_m = depth / cam.intrinsics.focal_px * np.sqrt(depth / above_m)
+        gsd_m = marker_gsd_m(depth, cam.intrinsics.focal_px, above_m)
         # a height error moves the prediction by dz · (horizontal / vertical) of the ray
         slope = np.hypot(d[:, 0], d[:, 1]) / np.maximum(np.abs(d[:, 2]), 1e-6)
         err_m = position_uncertainty_m + height_uncertainty_m * slope + rng * tan_att

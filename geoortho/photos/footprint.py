@@ -28,6 +28,7 @@ from pyproj import CRS
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr, undistort_pixels, ypr_from_rotation
 from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
+from geoortho.core.gsd import ray_gsd_m
 from geoortho.core.outputs import write_cog, write_vector
 from geoortho.core.sfm_model import cameras_from_sfm
 from geoortho.core.styles import overlap as overlap_style
@@ -264,7 +265,7 @@ def compute_footprints(
     # range · sqrt(cos³θ / cos i) / f, θ off the optical axis, i the incidence angle.
     cos_inc = np.abs(dirs[..., 2])
     with np.errstate(divide="ignore", invalid="ignore"):
-        gsd_m = rng * np.sqrt(cos_theta**3 / cos_inc) / focal[:, None]
+        gsd_m = ray_gsd_m(rng, cos_theta, cos_inc, focal[:, None])
     gsd_m = np.where(hit, gsd_m, np.nan)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: nothing hit

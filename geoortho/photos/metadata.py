@@ -26,6 +26,7 @@ from warnings import catch_warnings, simplefilter
 import numpy as np
 
 from geoortho.core.camera import Intrinsics
+from geoortho.core.gsd import focal_length_px
 from geoortho.core.parallel import map_ordered
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, warn_grouped
@@ -321,7 +322,7 @@ class Photo:
 
     @property
     def exif_focal_px(self) -> float:
-        return self.focal_mm / self.sensor_width_mm * max(self.width_px, self.height_px)
+        return focal_length_px(self.focal_mm, self.sensor_width_mm, max(self.width_px, self.height_px))
 
     def intrinsics(self) -> Intrinsics:
         """Pinhole intrinsics, principal point at the image centre."""

@@ -42,6 +42,7 @@ from scipy.special import ndtr
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr
 from geoortho.core.crs import WGS84, crs_to_text, grid_north, horizontal_unit_m, parse_crs, transformer, utm_crs_for
+from geoortho.core.gsd import focal_length_px, gsd_at_height_m, height_for_gsd_m, marker_gsd_m
 from geoortho.core.outputs import atomic_path, write_json, write_text, write_vector
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface, sample_grid
 from geoortho.errors import InputError
@@ -94,7 +95,7 @@ class CameraSpec:
 
     @property
     def focal_px(self) -> float:
-        return self.focal_mm / self.sensor_width_mm * self.width_px
+        return focal_length_px(self.focal_mm, self.sensor_width_mm, self.width_px)
 
     def intrinsics(self) -> Intrinsics:
         return Intrinsics(self.width_px, self.height_px, self.focal_px)
@@ -545,11 +546,11 @@ def _layout(aoi: Path, o: PlanOptions, warnings_: list[str]) -> _Site:
     tilt = math.radians(90.0 + o.pitch_deg)  # off nadir
     # Height above the ground for the target GSD at the image centre (slant range r = gsd·f·sqrt(cos i)).
     if o.gsd_cm is not None:
-        agl = o.gsd_cm / 100.0 * intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)
+        agl = height_for_gsd_m(o.gsd_cm / 100.0, intr.focal_px, tilt)
     else:
         agl = float(o.altitude_m)  # type: ignore[arg-type]
     if agl > o.max_altitude_m:
-        best = o.max_altitude_m / (intr.focal_px * math.sqrt(math.cos(tilt)) * math.cos(tilt)) * 100
+        best = gsd_at_height_m(o.max_altitude_m, intr.focal_px, tilt) * 100
         raise InputError(
             f"a GSD of {o.gsd_cm:g} cm needs {agl:.0f} m above the ground with {cam.name}, over the "
             f"{o.max_altitude_m:g} m limit (--max-altitude-m); the best possible is {best:.2f} cm"
@@ -1436,7 +1437,7 @@ def _seen_by(
         x = f * cam[:, 0] / depth + cx
         y = f * cam[:, 1] / depth + cy
         above = np.maximum(centres[:, 2] - xyz[2], 1e-6)
-        gsd = depth / f * np.sqrt(np.maximum(depth, 0) / above)
+        gsd = marker_gsd_m(depth, f, above)
         edge = 0.5 * marker_m / gsd
     mx, my = np.maximum(w * margin_pct / 100, edge), np.maximum(h * margin_pct / 100, edge)
     # signed distance (px) inside the allowed part of the frame; the flown pose wanders from the

@@ -22,6 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from geoortho.core.gsd import depth_gsd_m
 from geoortho.core.outputs import append_by_tile, work_folder, write_json
 from geoortho.core.parallel import imap_ordered
 from geoortho.errors import InputError
@@ -493,7 +494,7 @@ def _plan(cams: list[Any], pts: np.ndarray, neighbours: int, up: bool = True) ->
         if seen[i].sum() < _MIN_SHARED_POINTS:
             continue
         height = float(np.median(depth[i][seen[i]]))
-        gsds.append(height / c.intrinsics.focal_px)
+        gsds.append(depth_gsd_m(height, c.intrinsics.focal_px))
         scored = []
         for j in range(len(cams)):
             shared = seen[i] & seen[j]

@@ -62,6 +62,7 @@ from geoortho.core.crs import (
     utm_crs_for,
     with_heights,
 )
+from geoortho.core.gsd import depth_gsd_m
 from geoortho.core.outputs import temp_prefix, write_json, write_vector
 from geoortho.core.parallel import map_ordered
 from geoortho.core.pointcloud import write_las
@@ -1168,7 +1169,7 @@ def _gsd_m(rec: Any) -> float:
         xyz = np.array([rec.point3D(p.point3D_id).xyz for p in obs[:: max(1, len(obs) // 200)]])
         m = im.cam_from_world().matrix()
         depth = xyz @ m[:, :3].T[:, 2] + m[2, 3]
-        values.append(float(np.median(depth)) / im.camera.mean_focal_length())
+        values.append(depth_gsd_m(float(np.median(depth)), im.camera.mean_focal_length()))
     return float(np.median(values)) if values else math.nan
 
 
