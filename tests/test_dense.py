@@ -342,3 +342,64 @@ def test_a_match_under_the_ground_at_a_tilted_photos_near_side_is_dropped(tmp_pa
     z = fused(0.0)  # the pairs' lowest shared tie point: the ground
     assert z.min() > -0.01 and len(z) > 1000  # the ground kept, the pit gone
     assert (fused(-np.inf) < -14.0).sum() > 100  # without the floor the pit is fused (the test can fail)
+
+
+def _plan_by_every_pair(cams, pts, neighbours, up=True):
+    """The plain planner: a mask of every tie point per photo, every pair tested (what dense did
+    before its plan grew with photos cubed), the oracle for the sparse one."""
+    from geoortho.reconstruction import dense as d
+
+    seen, depth = [], []
+    for c in cams:
+        px, z = c.project(pts)
+        w, h = c.intrinsics.width_px, c.intrinsics.height_px
+        seen.append((z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h))
+        depth.append(z)
+    jobs, gsds = [], []
+    for i, c in enumerate(cams):
+        if seen[i].sum() < d._MIN_SHARED_POINTS:
+            continue
+        height = float(np.median(depth[i][seen[i]]))
+        gsds.append(height / c.intrinsics.focal_px)
+        scored = []
+        for j in range(len(cams)):
+            shared = seen[i] & seen[j]
+            n = int(shared.sum())
+            if j == i or n < d._MIN_SHARED_POINTS:
+                continue
+            ratio = float(np.linalg.norm(cams[i].pose.center - cams[j].pose.center)) / height
+            cos = float(np.clip(cams[i].pose.rotation[:, 2] @ cams[j].pose.rotation[:, 2], -1.0, 1.0))
+            if ratio < d._MIN_BASE_RATIO or math.degrees(math.acos(cos)) > d._MAX_VIEW_ANGLE_DEG:
+                continue
+            lo, hi = np.percentile(depth[i][shared], [1, 99])
+            floor = float(np.percentile(pts[shared, 2], 1)) if up else -math.inf
+            scored.append((n * min(1.0, ratio / 0.25), j, (float(lo), float(hi)), floor))
+        scored.sort(reverse=True)
+        best = scored[: neighbours * d._CANDIDATES_PER_PAIR]
+        if best:
+            jobs.append((i, tuple(b[1] for b in best), tuple(b[2] for b in best), tuple(b[3] for b in best)))
+    return jobs, float(np.median(gsds))
+
+
+@pytest.mark.parametrize("up", [True, False])
+def test_the_pair_plan_is_the_plain_every_pair_plan(up):
+    """dense plans its pairs from each photo's own tie points and a sparse count of the points two
+    photos share: the same neighbours, depth ranges, floors and GSD as testing every pair on a mask
+    of every point (a grid of nadir photos with obliques among them, points on a bumpy ground, some
+    behind a camera, some outside every frame)."""
+    from geoortho.core.camera import Intrinsics, Pose, PosedCamera
+    from geoortho.reconstruction.dense import _plan
+
+    rng = np.random.default_rng(7)
+    intr = Intrinsics.from_sensor(640, 480, 8.8, 13.2)
+    cams = []
+    for k, (x, y) in enumerate((x, y) for x in np.arange(0, 90, 15.0) for y in np.arange(0, 80, 10.0)):
+        pitch = -90.0 if k % 7 else -60.0  # every seventh photo oblique
+        pose = Pose.from_ypr((x, y, 40 + rng.normal(0, 1)), rng.uniform(-180, 180), pitch, rng.normal(0, 2))
+        cams.append(PosedCamera(intr, pose, f"p{k}"))
+    xy = rng.uniform(-40, 130, (60_000, 2))
+    pts = np.c_[xy, 2 * np.sin(xy[:, 0] / 9) + rng.normal(0, 0.3, len(xy))]
+    pts[:500, 2] = 80.0  # above every camera: behind the nadir ones
+    got, want = _plan(cams, pts, 3, up=up), _plan_by_every_pair(cams, pts, 3, up=up)
+    assert len(want[0]) > 0.9 * len(cams) and np.median([len(job[1]) for job in want[0]]) >= 4, want[0]
+    assert got == want

@@ -479,33 +479,48 @@ _Pairs = list[tuple[int, tuple[int, ...], tuple[tuple[float, float], ...], tuple
 def _plan(cams: list[Any], pts: np.ndarray, neighbours: int, up: bool = True) -> tuple[_Pairs, float]:
     """Each photo's best neighbours with the pairs' depth ranges and lowest shared tie point
     (elevation, model frame; -inf where the model has no known ``up``), and the survey's median
-    GSD (model units, metres when georeferenced) at full resolution."""
-    seen, depth = [], []
+    GSD (model units, metres when georeferenced) at full resolution.
+
+    Each photo keeps only the tie points it sees (their indices and depths), and the points two
+    photos share are counted for every pair at once (a sparse product), so that only the pairs that
+    share enough are looked at: a mask of every point for every photo and a test of every pair
+    took 13 GB and minutes on 748 photos (720,000 tie points), growing with the photos cubed."""
+    from scipy import sparse
+
+    seen_idx, seen_depth = [], []
     for c in cams:
         px, d = c.project(pts)
         w, h = c.intrinsics.width_px, c.intrinsics.height_px
-        seen.append((d > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h))
-        depth.append(d)
+        idx = np.flatnonzero((d > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h))
+        seen_idx.append(idx)
+        seen_depth.append(d[idx])
+    counts = np.array([len(i) for i in seen_idx], np.int64)
+    members = np.concatenate(seen_idx) if cams else np.zeros(0, np.int64)
+    visible = sparse.csr_matrix(
+        (np.ones(len(members), np.int32), members, np.r_[0, np.cumsum(counts)]), shape=(len(cams), len(pts))
+    )
+    shared_counts = (visible @ visible.T).tocsr()
     centres = np.array([c.pose.center for c in cams])
     axes = np.array([c.pose.rotation[:, 2] for c in cams])
     jobs: _Pairs = []
     gsds = []
     for i, c in enumerate(cams):
-        if seen[i].sum() < _MIN_SHARED_POINTS:
+        if counts[i] < _MIN_SHARED_POINTS:
             continue
-        height = float(np.median(depth[i][seen[i]]))
+        height = float(np.median(seen_depth[i]))
         gsds.append(depth_gsd_m(height, c.intrinsics.focal_px))
+        row = slice(shared_counts.indptr[i], shared_counts.indptr[i + 1])
+        others, n_others = shared_counts.indices[row], shared_counts.data[row]
         scored = []
-        for j in range(len(cams)):
-            shared = seen[i] & seen[j]
-            n_shared = int(shared.sum())
+        for j, n_shared in sorted(zip(others.tolist(), n_others.tolist())):
             if j == i or n_shared < _MIN_SHARED_POINTS:
                 continue
             ratio = float(np.linalg.norm(centres[i] - centres[j])) / height
             angle = math.degrees(math.acos(float(np.clip(axes[i] @ axes[j], -1.0, 1.0))))
             if ratio < _MIN_BASE_RATIO or angle > _MAX_VIEW_ANGLE_DEG:
                 continue
-            lo, hi = np.percentile(depth[i][shared], [1, 99])
+            shared, in_i, _ = np.intersect1d(seen_idx[i], seen_idx[j], assume_unique=True, return_indices=True)
+            lo, hi = np.percentile(seen_depth[i][in_i], [1, 99])
             floor = float(np.percentile(pts[shared, 2], 1)) if up else -math.inf
             scored.append((n_shared * min(1.0, ratio / 0.25), j, (float(lo), float(hi)), floor))
         scored.sort(reverse=True)
