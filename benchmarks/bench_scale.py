@@ -33,17 +33,15 @@ import json
 import math
 import resource
 import shutil
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_sfm import OURS
+from bench_sfm import OURS, child_with_tree
 
 SFM_STEPS = ("features", "matching", "mapping", "lens_distortion_test", "georeferencing")
 STAGES = ("footprints", "gcp-find", "sfm", "dense", "dem", "ortho")
@@ -145,53 +143,15 @@ def against_truth(report: dict, cameras_gpkg: Path, poses_json: Path) -> str:
     )
 
 
-def _tree_rss_mb(root: int) -> float:
-    """The summed resident memory of ``root`` and every process under it (Linux /proc)."""
-    total, todo = 0.0, [root]
-    while todo:
-        pid = todo.pop()
-        try:
-            total += next(int(x.split()[1]) for x in open(f"/proc/{pid}/status") if x.startswith("VmRSS:")) / 1024
-            for task in Path(f"/proc/{pid}/task").iterdir():
-                todo += [int(c) for c in (task / "children").read_text().split()]
-        except (OSError, StopIteration, ValueError):
-            continue  # the process ended as it was read
-    return total
-
-
 def run(argv: list[str], scheduler: str | None) -> tuple[float, float, float, float]:
     """Seconds, the main process's peak MB, CPU seconds (with its pool workers) and the peak MB of
-    the whole process tree (sampled each 0.5 s: the main process and its pool workers together) of
-    one ``python -m geoortho`` run."""
+    the whole process tree (the main process and its pool workers together, sampled) of one
+    ``python -m geoortho`` run."""
     if scheduler:
         argv = [*argv, "--scheduler", scheduler]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t = time.perf_counter()
-    proc = subprocess.Popen(
-        [sys.executable, "-c", OURS, json.dumps(["geoortho", *argv])],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    tree_peak_mb = 0.0
-    done = threading.Event()
-
-    def sample() -> None:
-        nonlocal tree_peak_mb
-        while not done.wait(0.5):
-            tree_peak_mb = max(tree_peak_mb, _tree_rss_mb(proc.pid))
-
-    sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
-    _, err = proc.communicate()
-    done.set()
-    sampler.join()
-    dt = time.perf_counter() - t
+    dt, _, peak_kb, tree_peak_mb = child_with_tree(OURS, ["geoortho", *argv])
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if proc.returncode:
-        sys.stderr.write(err[-3000:])
-        raise SystemExit(1)
-    peak_kb = int(err.strip().splitlines()[-1].split()[-1])
     cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return dt, peak_kb / 1024, cpu_s, max(tree_peak_mb, peak_kb / 1024)
 

@@ -27,6 +27,7 @@ import json
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -82,15 +83,51 @@ finally:
 """
 
 
-def _child(code: str, args: list) -> tuple[float, str, int]:
+def _tree_rss_mb(root: int) -> float:
+    """The summed resident memory of ``root`` and every process under it (Linux /proc)."""
+    total, todo = 0.0, [root]
+    while todo:
+        pid = todo.pop()
+        try:
+            total += next(int(x.split()[1]) for x in open(f"/proc/{pid}/status") if x.startswith("VmRSS:")) / 1024
+            for task in Path(f"/proc/{pid}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, StopIteration, ValueError):
+            continue  # the process ended as it was read
+    return total
+
+
+def child_with_tree(code: str, args: list) -> tuple[float, str, int, float]:
+    """Run ``code`` in a child: seconds, its stdout, its own peak KB (its last stderr line) and the
+    peak MB of its whole process tree (it and its pool workers, sampled each 0.5 s)."""
     t = time.perf_counter()
-    r = subprocess.run([sys.executable, "-c", code, json.dumps(args)], capture_output=True, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, json.dumps(args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    tree_peak_mb = 0.0
+    done = threading.Event()
+
+    def sample() -> None:
+        nonlocal tree_peak_mb
+        while not done.wait(0.5):
+            tree_peak_mb = max(tree_peak_mb, _tree_rss_mb(proc.pid))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    out, err = proc.communicate()
+    done.set()
+    sampler.join()
     dt = time.perf_counter() - t
-    if r.returncode:
-        sys.stderr.write(r.stderr[-3000:])
+    if proc.returncode:
+        sys.stderr.write(err[-3000:])
         raise SystemExit(1)
-    peak_kb = int(r.stderr.strip().splitlines()[-1].split()[-1])
-    return dt, r.stdout, peak_kb
+    peak_kb = int(err.strip().splitlines()[-1].split()[-1])
+    return dt, out, peak_kb, tree_peak_mb
+
+
+def _child(code: str, args: list) -> tuple[float, str, int]:
+    dt, out, peak_kb, _ = child_with_tree(code, args)
+    return dt, out, peak_kb
 
 
 def compare_mappers(images: Path, max_image_size: int, max_features: int) -> None:

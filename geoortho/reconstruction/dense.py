@@ -163,7 +163,7 @@ def dense(
         Processes for the depth maps (0 = every core).
     """
     # here, not at the top: the depth-map workers import this module and need none of these
-    # (pycolmap, laspy, the DEM tiles: 0.3 -> 0.9 s a worker; pyproj alone 70 ms)
+    # (pycolmap, laspy: 0.3 -> 0.9 s a worker, with the DEM tiles they once took too; pyproj alone 70 ms)
     from geoortho.core.crs import crs_to_text, heights_to_text, with_heights
     from geoortho.core.sfm_model import cameras_from_sfm, model_heights
 
