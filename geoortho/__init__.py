@@ -95,8 +95,8 @@ def _checked(function: Any, ref: str) -> Any:
             from geoortho.errors import InputError  # here: as above
 
             raise InputError(f"{function.__name__}(): {e}") from None
-        check_call(ref, dict(bound.arguments))
-        return function(*args, **kwargs)
+        bound.arguments.update(check_call(ref, dict(bound.arguments)))  # each CRS parsed here, once
+        return function(*bound.args, **bound.kwargs)
 
     return door
 

@@ -234,6 +234,48 @@ def test_the_api_checks_argument_types_at_the_door(call, message):
         call(geoortho)
 
 
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda g: g.sfm("i", "o", crs="EPSG:4326"), "crs: WGS 84 is not projected: sfm needs a map grid"),
+        (lambda g: g.dem("a.laz", "b.tif", crs="EPSG:4978"), "crs: WGS 84 is geocentric"),
+        (lambda g: g.plan("a.gpkg", "o", crs="not a crs"), "crs: "),
+        (lambda g: g.gcp_find("i", "g.txt", "o.txt", gcp_crs="EPSG:5773"), "gcp_crs: EGM96 height is a vertical CRS"),
+    ],
+)
+def test_the_api_parses_and_checks_a_crs_at_the_door(call, message):
+    """A CRS given to the API as text is parsed and held to the command line's rules at the door,
+    before any file is read (the inputs here do not exist): the core never parses one."""
+    with pytest.raises(geoortho.InputError, match=re.escape(message)):
+        call(geoortho)
+
+
+def test_the_core_takes_a_crs_never_a_string():
+    """Every algorithm's CRS parameter is a pyproj CRS in the core function's signature: the faces
+    (CLI, API door, QGIS) parse it once; the core neither parses nor re-checks it."""
+    from pyproj import CRS
+
+    for alg in list_algorithms():
+        hints = typing.get_type_hints(alg.function)
+        for p in alg.params:
+            if p.type == "crs":
+                assert hints[p.name] == CRS | None, (alg.id, p.name, hints[p.name])
+
+
+def test_a_crs_given_as_text_reaches_the_core_parsed(tmp_path):
+    """The door hands the core function the parsed CRS (legacy ODM words included), not the text."""
+    import pyproj
+
+    got = {}
+
+    def footprints(images, output, *args, crs=None, **kwargs):
+        got["crs"] = crs
+
+    door = geoortho._checked(footprints, "geoortho.photos.footprint:footprints")
+    door(tmp_path, tmp_path / "f.gpkg", crs="WGS84 UTM 29N")
+    assert isinstance(got["crs"], pyproj.CRS) and got["crs"].to_epsg() == 32629
+
+
 def _out_of_spec(p):
     """Values the spec rules out for ``p`` (an enum's stranger, a number past its bounds)."""
     if p.type == "enum":

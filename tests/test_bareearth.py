@@ -9,6 +9,7 @@ import pytest
 import rasterio
 import shapely
 from affine import Affine
+from pyproj import CRS
 from scipy import ndimage
 
 from geoortho.core.gapfill import fill_harmonic, fill_smooth
@@ -367,7 +368,7 @@ def test_a_survey_all_canopy_gives_a_stated_fallback_never_the_canopy(small_surv
     crowns = height[k] - 2.5 + 2.5 * np.sqrt(q) + rng.normal(0.0, 0.12, n)  # leaf clumps
     z = ground.elevation(x, y) + crowns
     ok = np.isfinite(z)
-    write_las(tmp_path / "canopy.laz", np.c_[x[ok], y[ok], z[ok]], "EPSG:32629")
+    write_las(tmp_path / "canopy.laz", np.c_[x[ok], y[ok], z[ok]], CRS("EPSG:32629"))
     r_dem = geoortho_dem(tmp_path / "canopy.laz", tmp_path / "dsm.tif", tmp_path / "dtm.tif", r_sfm.output)
     with rasterio.open(r_dem.dtm) as ds:
         dtm = ds.read(1, masked=True).filled(np.nan)

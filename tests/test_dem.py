@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import rasterio
 from conftest import RecordingFeedback, real_data
+from pyproj import CRS
 from rasterio.warp import Resampling, reproject
 from scipy import ndimage
 
@@ -204,7 +205,9 @@ def test_csf_on_a_building_dominated_tile(tmp_path):
     # sample_c: one building covers most of the tile; SMRF's 18 m window cannot remove it, CSF can
     pytest.importorskip("CSF", reason="cloth-simulation-filter is in the dev extra")
     path = real_data("pdal_las") / "sample_c.las"
-    r = dem(path, tmp_path / "dsm.tif", points_crs="EPSG:32610", ground_method="csf", classified=tmp_path / "c.las")
+    r = dem(
+        path, tmp_path / "dsm.tif", points_crs=CRS("EPSG:32610"), ground_method="csf", classified=tmp_path / "c.las"
+    )
     truth = np.asarray(laspy.read(path).classification) == 2
     k, _, _ = _kappa(np.asarray(laspy.read(r.classified).classification) == 2, truth)
     assert k >= 0.95, k  # measured 0.986 (SMRF: 0.008)
@@ -225,8 +228,8 @@ def test_mvk_thin_units_key_wins_over_the_epsg_code(tmp_path):
 
 def test_las_and_laz_give_the_same_dsm(tmp_path):
     d = real_data("pdal_las")
-    a = dem(d / "simple.las", tmp_path / "a.tif", points_crs="EPSG:2992", resolution_m=5.0)
-    b = dem(d / "simple.laz", tmp_path / "b.tif", points_crs="EPSG:2992", resolution_m=5.0)
+    a = dem(d / "simple.las", tmp_path / "a.tif", points_crs=CRS("EPSG:2992"), resolution_m=5.0)
+    b = dem(d / "simple.laz", tmp_path / "b.tif", points_crs=CRS("EPSG:2992"), resolution_m=5.0)
     with rasterio.open(a.dsm) as x, rasterio.open(b.dsm) as y:
         assert np.array_equal(x.read(1), y.read(1))
 
@@ -234,7 +237,7 @@ def test_las_and_laz_give_the_same_dsm(tmp_path):
 def test_array_and_ply_input(tmp_path):
     rng = np.random.default_rng(0)
     xyz = np.c_[rng.uniform(500000, 500050, 5000), rng.uniform(4e6, 4e6 + 50, 5000), np.full(5000, 12.5)]
-    r = dem(_write_ply(tmp_path / "p.ply", xyz), tmp_path / "p.tif", crs="EPSG:32629", resolution_m=2.0)
+    r = dem(_write_ply(tmp_path / "p.ply", xyz), tmp_path / "p.tif", crs=CRS("EPSG:32629"), resolution_m=2.0)
     with rasterio.open(r.dsm) as ds:
         z = ds.read(1, masked=True)
         assert np.allclose(z.compressed(), 12.5)
@@ -266,7 +269,7 @@ def test_bad_input_clear_errors_no_file(tmp_path, case):
             "nan": np.full((10, 3), np.nan),
         }[case]
         with pytest.raises(InputError, match="empty|a line or a spot|finite|too few"):
-            dem(xyz, out, crs="EPSG:32629")
+            dem(xyz, out, crs=CRS("EPSG:32629"))
     assert not out.exists() and not list(tmp_path.glob(".*tmp*"))
 
 
@@ -275,7 +278,7 @@ def test_some_nan_points_are_skipped_with_a_warning(tmp_path):
     xyz = np.c_[rng.uniform(0, 20, 2000), rng.uniform(0, 20, 2000), rng.uniform(0, 1, 2000)]
     xyz[[5, 17], 2] = np.nan
     fb = RecordingFeedback()
-    r = dem(xyz, tmp_path / "d.tif", crs="EPSG:32629", resolution_m=1.0, feedback=fb)
+    r = dem(xyz, tmp_path / "d.tif", crs=CRS("EPSG:32629"), resolution_m=1.0, feedback=fb)
     assert r.n_points == 1998 and any("2 points" in w and "index 5" in w for w in fb.warnings)
 
 
@@ -291,7 +294,7 @@ def test_a_cloud_s_heights_datum_reaches_its_dems_and_a_2d_one_claims_none(tmp_p
     rng = np.random.default_rng(2)
     xyz = np.c_[rng.uniform(0, 30, 6000) + 5e5, rng.uniform(0, 30, 6000) + 4.3e6, rng.uniform(0, 1, 6000)]
     for crs, heights in (("EPSG:32629+5773", [32629, 5773]), ("EPSG:32629", None)):
-        las = write_las(tmp_path / f"{heights is None}.laz", xyz, crs)
+        las = write_las(tmp_path / f"{heights is None}.laz", xyz, CRS(crs))
         assert CRS(laspy.read(las).header.parse_crs()) == CRS(crs)
         r = dem(las, tmp_path / f"{heights is None}.tif", resolution_m=1.0)
         with rasterio.open(r.dsm) as ds:
@@ -351,7 +354,7 @@ def test_pdal_engine_or_clear_reason(tmp_path):
 
 def test_unknown_method_is_a_parameter_error(tmp_path):
     with pytest.raises(ParameterError):
-        dem(np.zeros((5, 3)), tmp_path / "d.tif", crs="EPSG:32629", method="median")
+        dem(np.zeros((5, 3)), tmp_path / "d.tif", crs=CRS("EPSG:32629"), method="median")
 
 
 @pytest.mark.parametrize("option", [{"resolution_m": -0.1}, {"max_gap_m": -1.0}, {"smooth_px": -2}])
@@ -359,7 +362,7 @@ def test_a_negative_option_is_named_for_itself(tmp_path, option):
     # it was named resolution_m whichever of the three was negative
     ((name, value),) = option.items()
     with pytest.raises(ParameterError, match=rf"^{name}: {name} must not be negative") as e:
-        dem(np.zeros((5, 3)), tmp_path / "d.tif", crs="EPSG:32629", **option)
+        dem(np.zeros((5, 3)), tmp_path / "d.tif", crs=CRS("EPSG:32629"), **option)
     assert e.value.name == name and not (tmp_path / "d.tif").exists()
 
 
@@ -394,13 +397,13 @@ def test_many_points_far_apart_are_data_not_outliers():
     rng = np.random.default_rng(0)
     a = np.c_[rng.uniform(0, 50, (10_000, 2)), rng.uniform(0, 2, 10_000)]
     block = a[:900] + [20_000.0, 0.0, 0.0]  # a second block 20 km away: 8 % of the points
-    scan = _scan_extent(open_points(np.vstack([a, block]), "EPSG:32629"), Feedback())
+    scan = _scan_extent(open_points(np.vstack([a, block]), CRS("EPSG:32629")), Feedback())
     assert scan.keep is None and scan.src.bounds[3] > 20_000
     # 18 points in two far groups: too rare for the core, too many (> 0.1 %) to be strays
     strays = np.vstack([a[:9] + [20_000.0, 0.0, 0.0], a[9:18] + [0.0, 20_000.0, 0.0]])
-    scan = _scan_extent(open_points(np.vstack([a, strays]), "EPSG:32629"), Feedback())
+    scan = _scan_extent(open_points(np.vstack([a, strays]), CRS("EPSG:32629")), Feedback())
     assert scan.keep is None and scan.src.bounds[4] > 20_000 and "kept as data" in scan.notes[-1], scan.notes
-    scan = _scan_extent(open_points(np.vstack([a, strays[:9]]), "EPSG:32629"), Feedback())
+    scan = _scan_extent(open_points(np.vstack([a, strays[:9]]), CRS("EPSG:32629")), Feedback())
     assert scan.keep is not None and scan.src.bounds[3] < 51 and "9 far outlier" in scan.notes[-1]
 
 
@@ -452,7 +455,7 @@ def test_points_without_an_area_are_refused(tiny_survey, tmp_path, case):
 
     if case == "line":
         t = np.linspace(0, 30, 500)
-        cloud = write_las(tmp_path / "line.laz", np.c_[483600 + t, 4288780 + 0 * t, 110 + 0 * t], "EPSG:32629")
+        cloud = write_las(tmp_path / "line.laz", np.c_[483600 + t, 4288780 + 0 * t, 110 + 0 * t], CRS("EPSG:32629"))
     else:
         data = bytearray(Path(tiny_survey.points).read_bytes())
         assert laspy.open(tiny_survey.points).header.version.minor >= 2
@@ -515,7 +518,7 @@ def test_gaps_wider_than_a_tiles_halo_are_filled_as_in_the_whole_grid(tmp_path, 
         keep &= np.hypot(x - cx, y - cy) > r
     x, y = x[keep], y[keep]
     xyz = np.c_[x + 483_000, y + 4_288_000, 100 + 0.05 * x + 2 * np.sin(y / 15) + 0.5 * np.cos(x / 9)]
-    kw = dict(points_crs="EPSG:32629", resolution_m=0.25, method="mean")
+    kw = dict(points_crs=CRS("EPSG:32629"), resolution_m=0.25, method="mean")
     dem(xyz, tmp_path / "w.tif", dtm=tmp_path / "w_dtm.tif", **kw)
     monkeypatch.setattr(demtiles, "WHOLE_GRID_MAX_CELLS", 0)
     monkeypatch.setattr(demtiles, "TILE_CELLS", 64)
@@ -557,7 +560,9 @@ def test_output_crs_reprojects_and_points_crs_overrides(tmp_path):
         return 100.0 + 0.05 * (x - 483_000) + 3.0 * np.sin((y - 4_288_000) / 20.0)
 
     xyz = np.c_[x, y, surface(x, y)]
-    r = dem(xyz, tmp_path / "pt.tif", points_crs="EPSG:32629", crs="EPSG:3763", resolution_m=1.0, method="mean")
+    r = dem(
+        xyz, tmp_path / "pt.tif", points_crs=CRS("EPSG:32629"), crs=CRS("EPSG:3763"), resolution_m=1.0, method="mean"
+    )
     with rasterio.open(r.dsm) as src:
         assert CRS(src.crs).to_epsg() == 3763
         z = src.read(1, masked=True)
@@ -570,9 +575,9 @@ def test_output_crs_reprojects_and_points_crs_overrides(tmp_path):
     assert any("reprojected" in n for n in r.notes)
     # The old meaning (--crs naming a wrong CRS of the points) is caught: they lie outside it.
     with pytest.raises(InputError, match="--points-crs"):
-        dem(xyz, tmp_path / "x.tif", points_crs="EPSG:3763", crs="EPSG:32629", resolution_m=1.0)
+        dem(xyz, tmp_path / "x.tif", points_crs=CRS("EPSG:3763"), crs=CRS("EPSG:32629"), resolution_m=1.0)
     # Points without a CRS: --crs alone is theirs, as before.
-    r2 = dem(xyz[:50_000], tmp_path / "same.tif", crs="EPSG:32629", resolution_m=2.0)
+    r2 = dem(xyz[:50_000], tmp_path / "same.tif", crs=CRS("EPSG:32629"), resolution_m=2.0)
     assert "32629" in r2.crs and not any("reprojected" in n for n in r2.notes)
 
 
@@ -584,14 +589,14 @@ def test_auto_method_is_idw_for_a_cloud_from_photos_and_max_for_lidar(tmp_path):
     n = 40_000
     xyz = np.c_[rng.uniform(500000, 500040, n), rng.uniform(4e6, 4e6 + 40, n), 10 + rng.normal(0, 0.05, n)]
     ply = _write_ply(tmp_path / "cloud.ply", xyz)
-    lidar = dem(ply, tmp_path / "lidar.tif", crs="EPSG:32629", resolution_m=0.5)
+    lidar = dem(ply, tmp_path / "lidar.tif", crs=CRS("EPSG:32629"), resolution_m=0.5)
     (tmp_path / "cloud_report.json").write_text(json.dumps({"photos": 3, "depth_maps": 3}))  # dense's
-    photos = dem(ply, tmp_path / "photos.tif", crs="EPSG:32629", resolution_m=0.5)
+    photos = dem(ply, tmp_path / "photos.tif", crs=CRS("EPSG:32629"), resolution_m=0.5)
     assert any("method auto: max" in n for n in lidar.notes) and any("method auto: idw" in n for n in photos.notes)
     with rasterio.open(lidar.dsm) as a, rasterio.open(photos.dsm) as b:
         high, mean = a.read(1, masked=True).mean(), b.read(1, masked=True).mean()
     assert high - 10 > 0.04 and abs(mean - 10) < 0.01  # max of ~6 points: 1.3 sigma high; idw: on the surface
-    explicit = dem(ply, tmp_path / "max.tif", crs="EPSG:32629", resolution_m=0.5, method="max")
+    explicit = dem(ply, tmp_path / "max.tif", crs=CRS("EPSG:32629"), resolution_m=0.5, method="max")
     assert not any("method auto" in n for n in explicit.notes)
 
 

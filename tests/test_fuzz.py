@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from pyproj import CRS
 from realdata import REAL_DATA
 
 from geoortho.errors import InputError
@@ -153,7 +154,7 @@ def test_mutated_las_headers_raise_only_input_errors(which, edits, cut, suffix):
         path = Path(d) / f"cloud{suffix}"
         path.write_bytes(data)
         try:
-            src = open_points(path, "EPSG:32629")
+            src = open_points(path, CRS("EPSG:32629"))
             for _ in src.chunks(200_000):
                 pass
         except InputError:

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import real_data
+from pyproj import CRS
 
 from geoortho.gcp import read_gcp_file
 from geoortho.gcp.detect import diagonal_intersection, marker_centre
@@ -206,7 +207,9 @@ def test_real_findgcp_photos_without_gps_match_upstream(tmp_path):
     folder = real_data("findgcp_aruco")
     out = tmp_path / "gcp_list.txt"
     # a local frame: any projected CRS carries it through unchanged
-    gcp_find(folder / "images", folder / "coords" / "aruco.txt", out, dictionary="DICT_4X4_100", gcp_crs="EPSG:3857")
+    gcp_find(
+        folder / "images", folder / "coords" / "aruco.txt", out, dictionary="DICT_4X4_100", gcp_crs=CRS("EPSG:3857")
+    )
     ours = {(r[5], r[6]): (float(r[3]), float(r[4])) for r in (ln.split() for ln in out.read_text().splitlines()[1:])}
     coords = {p.name: (p.x, p.y, p.z) for p in read_gcp_file(folder / "coords" / "aruco.txt", "EPSG:3857").points}
     name_of = {v: k for k, v in coords.items()}

@@ -169,7 +169,7 @@ def test_footprints_with_true_poses_reproduce_the_truth(tiny_survey):
     # 1.0 but where a border ray grazes a roof edge (our march steps 2 cells, the truth 1)
     assert min(ious) > 0.99 and np.median(ious) > 0.9999
     # nadir GSD at the centre is range / focal
-    assert np.allclose(table.gsd_cm / 100, table.altitude_m / c["focal_px"], rtol=0.05)
+    assert np.allclose(table.gsd_m, table.altitude_m / c["focal_px"], rtol=0.05)
 
 
 def test_footprints_iou_on_dsm(tiny_survey, tmp_path):
@@ -524,7 +524,7 @@ def test_footprints_agree_across_projected_crs(tiny_survey, tmp_path):
     they agree (before: 1.03 % of the area apart between 3763 and UTM 29N, 0.10 % with the rotation alone)."""
     layers = {}
     for crs in ("EPSG:3763", "EPSG:32629", "EPSG:32630"):
-        r = footprints(tiny_survey.images, tmp_path / f"{crs[5:]}.gpkg", crs=crs, ground_elevation_m=0)
+        r = footprints(tiny_survey.images, tmp_path / f"{crs[5:]}.gpkg", crs=CRS(crs), ground_elevation_m=0)
         layers[crs] = gpd.read_file(r.output, layer="footprints").set_index("image")
     ref = layers["EPSG:3763"]
     assert abs(ref["grid_convergence_deg"].mean() - 0.66) < 0.01  # Lisbon: 0.66° in PT-TM06

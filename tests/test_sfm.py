@@ -376,7 +376,7 @@ def test_the_heights_datum_is_carried_where_known_and_said_where_not(gps_only, w
         rep = json.loads(r.report.read_text())
         assert rep["vertical_crs"] is None and why in rep["vertical_crs_from"], rep["vertical_crs_from"]
         assert CRS(laspy.read(r.points).header.parse_crs()).to_epsg() == 32629  # 2D: nothing claimed
-    r = sfm(tiny_survey.images, tmp_path / "sfm", crs="EPSG:32629+5773", max_image_size=640, max_features=2048)
+    r = sfm(tiny_survey.images, tmp_path / "sfm", crs=CRS("EPSG:32629+5773"), max_image_size=640, max_features=2048)
     rep = json.loads(r.report.read_text())
     assert r.crs == rep["crs"] == "EPSG:32629"  # the map grid stays horizontal everywhere
     assert rep["vertical_crs"] == "EPSG:5773" and "--crs" in rep["vertical_crs_from"]

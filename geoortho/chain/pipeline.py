@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from pyproj import CRS
+
 from geoortho.core.outputs import write_json
 from geoortho.core.pointcloud import check_las_header
 from geoortho.core.surface import refuse_image
@@ -1086,7 +1088,7 @@ def run(
     checkpoints: str = "",
     points: Path | None = None,
     dsm: Path | None = None,
-    crs: str | None = None,
+    crs: CRS | None = None,
     takeoff_elevation_m: float | None = None,
     flight_height_m: float | None = None,
     ground_elevation_m: float | None = None,
@@ -1129,7 +1131,7 @@ def run(
         A lidar point cloud: the DSM and DTM are made from it and the dense stage is skipped.
     dsm : Path
         A DSM to use for footprints, GCP prediction and the orthophoto instead of the one made.
-    crs : str
+    crs : CRS
         Output CRS (default: the UTM zone of the photos).
     takeoff_elevation_m : float
         Ground elevation of the take-off point, in the vertical datum of the ground
@@ -1186,7 +1188,7 @@ def run(
         checkpoints=checkpoints or "",
         points=given(points),
         dsm=given(dsm),
-        crs=str(crs) if crs is not None else None,
+        crs=str(crs) if crs is not None else None,  # as the user wrote it (srs): the ledger's text
         takeoff_elevation_m=takeoff_elevation_m,
         flight_height_m=flight_height_m,
         ground_elevation_m=ground_elevation_m,

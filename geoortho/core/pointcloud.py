@@ -30,7 +30,6 @@ from geoortho.core.crs import (
     heights_of,
     horizontal_of,
     horizontal_unit_m,
-    parse_crs,
     transformer,
     with_heights,
 )
@@ -137,18 +136,17 @@ class PointSource:
 
 def open_points(
     source: str | os.PathLike[str] | np.ndarray,
-    crs: str | CRS | None = None,
+    crs: CRS | None = None,
     *,
     classification: np.ndarray | None = None,
-    default_crs: str | CRS | None = None,
+    default_crs: CRS | None = None,
 ) -> PointSource:
     """Open a LAS/LAZ/PLY file or wrap an (N, 3) array (x, y, z in ``crs``).
 
     ``crs`` overrides the file's CRS; ``default_crs`` is taken only when the file has none
     (one of them is required then).
     """
-    override = parse_crs(crs) if crs is not None else None
-    default = parse_crs(default_crs) if default_crs is not None else None
+    override, default = crs, default_crs
     if isinstance(source, np.ndarray):
         return _from_array(source, override or default, classification, None, [])
     path = Path(source)
@@ -162,18 +160,16 @@ def open_points(
     raise InputError(f"unknown point cloud format {ext!r} (use {', '.join(POINT_EXTENSIONS)})", path=path)
 
 
-def reprojected(src: PointSource, crs: str | CRS) -> PointSource:
+def reprojected(src: PointSource, crs: CRS) -> PointSource:
     """The same points in another projected CRS (x, y transformed by pyproj as they are read;
     heights unchanged). The source itself if it already is in ``crs``.
 
     Refused when the points lie outside their own CRS's area: that CRS is then wrong (the old
     meaning of dem's --crs was to override it; --points-crs does that now), and reprojecting
     from it would write garbage."""
-    target = horizontal_of(parse_crs(crs))  # heights are not moved between datums: the points' stays
+    target = horizontal_of(crs)  # heights are not moved between datums: the points' stays
     if target == src.crs:
         return src
-    if not target.is_projected:
-        raise InputError(f"the output CRS {target.name} is not projected: a DEM needs metres or feet")
     xmin, ymin, zmin, xmax, ymax, zmax = src.bounds
     if _inside_area(src.crs, (xmin + xmax) / 2, (ymin + ymax) / 2) is False:
         raise InputError(
@@ -205,7 +201,7 @@ def reprojected(src: PointSource, crs: str | CRS) -> PointSource:
 def write_las(
     path: str | os.PathLike[str],
     xyz: np.ndarray,
-    crs: CRS | str | None,
+    crs: CRS | None,
     *,
     rgb: np.ndarray | None = None,
     classification: np.ndarray | None = None,
@@ -235,7 +231,7 @@ def write_las(
 def write_las_parts(
     path: str | os.PathLike[str],
     parts: Iterable[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]],
-    crs: CRS | str | None,
+    crs: CRS | None,
     *,
     lowest: np.ndarray,
     offset: np.ndarray | None = None,
@@ -250,10 +246,9 @@ def write_las_parts(
     header.offsets = np.floor(np.asarray(lowest, float) + base)
     header.scales = [0.001, 0.001, 0.001]
     if crs is not None:
-        c = parse_crs(crs)
         # GeoTIFF keys (read by every LAS reader) for a CRS with one EPSG code; a compound or 3D
         # CRS (the heights' datum) has none, and goes as the LAS 1.4 WKT record
-        header.add_crs(c, keep_compatibility=c.to_epsg() is not None)
+        header.add_crs(crs, keep_compatibility=crs.to_epsg() is not None)
     with atomic_path(path) as tmp:
         with laspy.open(str(tmp), mode="w", header=header) as writer:
             for xyz, rgb, classification in parts:

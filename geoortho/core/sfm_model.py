@@ -56,7 +56,7 @@ def _find_photo(images: Path, name: str, by_name: dict[str, Path]) -> Path | Non
 def cameras_from_sfm(
     sfm_dir: str | os.PathLike[str],
     images: str | os.PathLike[str] | None,
-    crs: CRS | str | None = None,
+    crs: CRS | None = None,
     *,
     local_frame_ok: Literal[False] = False,
 ) -> tuple[list[PosedCamera], CRS, np.ndarray, list[tuple[str, str]]]: ...
@@ -66,7 +66,7 @@ def cameras_from_sfm(
 def cameras_from_sfm(
     sfm_dir: str | os.PathLike[str],
     images: str | os.PathLike[str] | None,
-    crs: CRS | str | None = None,
+    crs: CRS | None = None,
     *,
     local_frame_ok: bool,
 ) -> tuple[list[PosedCamera], CRS | None, np.ndarray, list[tuple[str, str]]]: ...
@@ -75,7 +75,7 @@ def cameras_from_sfm(
 def cameras_from_sfm(
     sfm_dir: str | os.PathLike[str],
     images: str | os.PathLike[str] | None,
-    crs: CRS | str | None = None,
+    crs: CRS | None = None,
     *,
     local_frame_ok: bool = False,
 ) -> tuple[list[PosedCamera], CRS | None, np.ndarray, list[tuple[str, str]]]:
@@ -101,7 +101,7 @@ def cameras_from_sfm(
         )
     model_crs = parse_crs(geo["crs"]) if geo.get("crs") else None
     offset = np.asarray(geo.get("offset", [0.0, 0.0, 0.0]), float)
-    out_crs = model_crs if crs is None else parse_crs(crs)
+    out_crs = model_crs if crs is None else crs
     move = None
     if model_crs is None and out_crs is not None:
         raise InputError("the SfM model is in a local frame (no CRS): it cannot be moved to a CRS", path=geo_path)

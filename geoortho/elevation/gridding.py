@@ -22,8 +22,9 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 from affine import Affine
+from pyproj import CRS
 
-from geoortho.core.crs import crs_to_text, heights_to_text, horizontal_of, parse_crs
+from geoortho.core.crs import crs_to_text, heights_to_text, horizontal_of
 from geoortho.core.gapfill import fill_harmonic, gap_mask
 from geoortho.core.outputs import atomic_path, atomic_paths, cog_options, work_folder, write_cog
 from geoortho.core.pointcloud import CHUNK_POINTS, Chunk, PointSource, open_points, reprojected
@@ -109,7 +110,8 @@ class DemResult:
         The same for the DTM (measured: the ground filter's surface where the DSM's measured
         cells are ground).
     seen_m2 : float
-        With ``sfm``: ground seen by at least two registered photos (square CRS units).
+        With ``sfm``: ground seen by at least two registered photos, m² (measured only for a cloud in
+        metres).
     dsm_m2 : float
         Area of the DSM with a value.
     measured_share : float
@@ -275,7 +277,7 @@ def dem(
     resolution_m: float | None = None,
     method: DemMethod = "auto",
     ground_method: GroundMethod = "smrf",
-    crs: str | None = None,
+    crs: CRS | None = None,
     max_gap_m: float = 25.0,
     smooth_px: int = 0,
     classified: Path | None = None,
@@ -287,7 +289,7 @@ def dem(
     smrf_scalar: float = SmrfParams.scalar,
     smrf_margin_m: float = SmrfParams.margin_m,
     engine: Engine = "native",
-    points_crs: str | None = None,
+    points_crs: CRS | None = None,
     sfm: Path | None = None,
     contours: Path | None = None,
     contour_interval_m: float = 0.0,
@@ -318,7 +320,7 @@ def dem(
         made from photos (``sfm`` given, or the dense report beside the points), max otherwise.
     ground_method : str
         Ground points for the DTM: smrf (filter), csf (cloth simulation) or classification (the file's class 2).
-    crs : str
+    crs : CRS
         Output CRS (projected): the points are reprojected into it (x, y; heights unchanged)
         before gridding. Default: the points' CRS. For points without a CRS (PLY, arrays),
         it is also taken as theirs.
@@ -346,7 +348,7 @@ def dem(
         Objects found by SMRF are grown by this before the ground is refilled (0 = as published).
     engine : str
         native, or pdal (PDAL's pipeline, when the pdal module is installed).
-    points_crs : str
+    points_crs : CRS
         CRS of the points, when the file has none or states a wrong one (overrides it).
     sfm : Path
         Output folder of the sfm run the photos' cloud came from: the DSM and DTM are then
@@ -491,7 +493,7 @@ def _checkpoint_rmse_z_m(sfm: Path | None) -> float:
 
 
 def _open_source(
-    points: Any, points_crs: str | None, crs: str | None, engine: str, classified: Path | None,
+    points: Any, points_crs: CRS | None, crs: CRS | None, engine: str, classified: Path | None,
     ground_method: str, why_method: str, fb: Feedback,
 ) -> PointSource:  # fmt: skip
     """The points as gridding reads them: reprojected into ``crs`` when it is another, checked,
@@ -499,7 +501,7 @@ def _open_source(
     src = open_points(points, points_crs, default_crs=crs)
     if why_method:
         src.notes.append(why_method)
-    if crs is not None and horizontal_of(parse_crs(crs)) != src.crs:
+    if crs is not None and horizontal_of(crs) != src.crs:
         if engine == "pdal":
             raise ParameterError("engine", "reprojection (--crs) runs on the native engine only")
         src = reprojected(src, crs)

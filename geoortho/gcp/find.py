@@ -51,7 +51,7 @@ import numpy as np
 from pyproj import CRS
 
 from geoortho.core.camera import in_frame, pixel_rays
-from geoortho.core.crs import crs_to_text, parse_crs, transformer
+from geoortho.core.crs import crs_to_text, transformer
 from geoortho.core.gsd import marker_gsd_m
 from geoortho.core.outputs import atomic_path, write_text, write_vector
 from geoortho.core.parallel import map_ordered, process_pool
@@ -286,8 +286,8 @@ def gcp_find(
     margin: float = 0.0,
     dsm: Path | None = None,
     takeoff_elevation_m: float | None = None,
-    gcp_crs: str | None = None,
-    crs: str | None = None,
+    gcp_crs: CRS | None = None,
+    crs: CRS | None = None,
     detections: Path | None = None,
     review: Path | None = None,
     marker_size_m: float = 1.0,
@@ -327,9 +327,9 @@ def gcp_find(
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
         photos (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
-    gcp_crs : str
+    gcp_crs : CRS
         CRS of the GCP file when it does not say.
-    crs : str
+    crs : CRS
         CRS of gcp_list.txt. Default: the GCP file's, or the photos' UTM zone if that is geographic.
     detections : Path
         Also write every candidate, found or not and why (GeoPackage or CSV).
@@ -385,7 +385,7 @@ def gcp_find(
     observations = _judge(results, windows, ids, fb, frames, margin, coded=used in CODED)
     s_detect.progress(1.0)
     # ODM works in a projected CRS: a geographic GCP file is written in the photos' UTM zone.
-    out_crs = parse_crs(crs) if crs else (work if gcps.crs.is_geographic and work is not None else gcps.crs)
+    out_crs = crs if crs is not None else (work if gcps.crs.is_geographic and work is not None else gcps.crs)
     written = write_gcp_list(output, observations, gcps, out_crs)
     det_path = write_detections(detections, observations, gcps) if detections is not None else None
     review_path = (
@@ -414,7 +414,7 @@ def gcp_find(
 
 
 def _gcps_and_targets(
-    gcp_file: Path, gcp_crs: str | None, dictionary: str, target: str
+    gcp_file: Path, gcp_crs: CRS | None, dictionary: str, target: str
 ) -> tuple[Any, dict[str, int], tuple[str, ...]]:
     """The GCP file, each GCP's marker id, and the target kinds ``auto`` tries (none for a named
     target); a bad dictionary or target is refused before the file is read."""

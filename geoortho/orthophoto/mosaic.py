@@ -1086,7 +1086,7 @@ def _place(cams: Sequence[PosedCamera], surface: Surface, fb: Feedback) -> _Plac
         # rays that missed end at the range limit: the box reaches that far
         ring = table.rings[i]
         box = (float(ring[:, 0].min()), float(ring[:, 1].min()), float(ring[:, 0].max()), float(ring[:, 1].max()))
-        sees = heights[i] > 0 and np.isfinite(table.gsd_min_cm[i])  # some ray met the surface
+        sees = heights[i] > 0 and np.isfinite(table.gsd_min_m[i])  # some ray met the surface
         if sees and isinstance(surface, GridSurface) and not surface.extend:
             sx0, sy0, sx1, sy1 = surface.bounds
             sees = not (box[2] <= sx0 or box[0] >= sx1 or box[3] <= sy0 or box[1] >= sy1)
@@ -1096,7 +1096,7 @@ def _place(cams: Sequence[PosedCamera], surface: Surface, fb: Feedback) -> _Plac
             continue
         kept.append(cam)
         boxes.append(box)
-        gsds.append(float(table.gsd_cm[i]) / 100.0)
+        gsds.append(float(table.gsd_m[i]))
     if not kept:
         raise InputError("no photo sees the surface: nothing to mosaic")
     return _Placed(tuple(kept), tuple(boxes), tuple(gsds), tuple(skipped))
@@ -1293,7 +1293,7 @@ def ortho(
     sfm: Path | None = None,
     dsm: Path | None = None,
     resolution_m: float | None = None,
-    crs: str | None = None,
+    crs: CRS | None = None,
     ground_elevation_m: float | None = None,
     takeoff_elevation_m: float | None = None,
     seams: SeamMethod = MosaicOptions.seams,
@@ -1332,7 +1332,7 @@ def ortho(
         Surface model to rectify on (e.g. from the dem algorithm).
     resolution_m : float
         Ground size of an output pixel, metres; default (or 0): the photos' median GSD.
-    crs : str
+    crs : CRS
         Output CRS (projected); default the SfM model's or the photos' UTM zone.
     ground_elevation_m : float
         Flat ground elevation when no DSM is given (default: the SfM points'

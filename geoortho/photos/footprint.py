@@ -27,7 +27,7 @@ import numpy as np
 from pyproj import CRS
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr, undistort_pixels, ypr_from_rotation
-from geoortho.core.crs import WGS84, crs_to_text, grid_north, parse_crs, transformer, utm_crs_for
+from geoortho.core.crs import WGS84, crs_to_text, grid_north, transformer, utm_crs_for
 from geoortho.core.gsd import ray_gsd_m
 from geoortho.core.outputs import write_cog, write_vector
 from geoortho.core.sfm_model import cameras_from_sfm
@@ -129,12 +129,10 @@ def _box_around(x: np.ndarray, y: np.ndarray, reach_m: float) -> tuple[float, fl
     return float(x.min() - reach_m), float(y.min() - reach_m), float(x.max() + reach_m), float(y.max() + reach_m)
 
 
-def working_crs(photos: Sequence[Photo], crs: CRS | str | None = None) -> CRS:
+def working_crs(photos: Sequence[Photo], crs: CRS | None = None) -> CRS:
     """The CRS to compute in: ``crs`` if projected, else the photos' UTM zone."""
-    if crs is not None:
-        c = parse_crs(crs)
-        if c.is_projected:
-            return c
+    if crs is not None and crs.is_projected:
+        return crs
     lonlat = np.array([[p.longitude_deg, p.latitude_deg] for p in photos if p.has_gps])
     if lonlat.size == 0:
         raise InputError("no photo with a GPS position")
@@ -213,9 +211,9 @@ class FootprintTable:
 
     rings: np.ndarray  # (N, M, 2) border vertices in the world CRS
     clipped: np.ndarray  # (N,) some ray met nothing within max range
-    gsd_cm: np.ndarray
-    gsd_min_cm: np.ndarray
-    gsd_max_cm: np.ndarray
+    gsd_m: np.ndarray  # (N,) at the image centre: metres inside; centimetres in the layers users read
+    gsd_min_m: np.ndarray
+    gsd_max_m: np.ndarray
     altitude_m: np.ndarray  # camera above the ground under it
     outside: np.ndarray  # (N,) some ray landed beyond the DSM, on the plane that continues it
 
@@ -277,9 +275,9 @@ def compute_footprints(
     return FootprintTable(
         rings=pts[:, :m, :2],
         clipped=np.asarray(~hit[:, :m].all(axis=1)),
-        gsd_cm=gsd_m[:, m] * 100,
-        gsd_min_cm=gmin * 100,
-        gsd_max_cm=gmax * 100,
+        gsd_m=gsd_m[:, m],
+        gsd_min_m=gmin,
+        gsd_max_m=gmax,
         altitude_m=origins[:, 2] - ground_z,
         outside=np.asarray(
             hits.extended.reshape(n, m + 1).any(axis=1) if hits.extended is not None else np.zeros(n, bool)
@@ -351,7 +349,7 @@ def footprints(
     dsm: Path | None = None,
     ground_elevation_m: float | None = None,
     takeoff_elevation_m: float | None = None,
-    crs: str | None = None,
+    crs: CRS | None = None,
     sensor_width_mm: float | None = None,
     max_range_m: float = 500.0,
     overlap: Path | None = None,
@@ -386,7 +384,7 @@ def footprints(
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
         photos (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
-    crs : str
+    crs : CRS
         CRS of the output (EPSG code, WKT, PROJ string). Default: the photos'
         UTM zone.
     sensor_width_mm : float
@@ -412,16 +410,15 @@ def footprints(
     fb = as_feedback(feedback)
     if dsm is not None and ground_elevation_m is not None and sfm is None:
         raise InputError("give either a DSM or a ground elevation, not both")
-    out_crs = parse_crs(crs) if crs else None
     if sfm is not None:
         given = Heights(flight_height_m, takeoff_elevation_m, ground_elevation_m, gps_altitude)
         return _footprints_from_sfm(
-            images, output, Path(sfm), dsm, given, out_crs, sensor_width_mm, max_range_m, overlap, overlap_cell_m, fb
+            images, output, Path(sfm), dsm, given, crs, sensor_width_mm, max_range_m, overlap, overlap_cell_m, fb
         )
 
     s_read, s_cast, s_write = split(fb, [3, 2, 1])
     photos = photos_with_altitude(images, sensor_width_mm, flight_height_m, s_read, fb)
-    work = working_crs(photos.photos, out_crs)
+    work = working_crs(photos.photos, crs)
     surface: Surface | None = None
     if dsm is not None:
         surface = _dsm_under(dsm, photos.photos, work, takeoff_elevation_m, flight_height_m, gps_altitude, max_range_m)
@@ -447,16 +444,16 @@ def footprints(
             "the nearby ground height of the DSM (column outside_dsm)"
         )
     fp, cam_layer = _footprint_layers(cams, table, heights, ground, work)
-    overlap_path = _write_layers(output, fp, cam_layer, work, out_crs, overlap, overlap_cell_m)
+    overlap_path = _write_layers(output, fp, cam_layer, work, crs, overlap, overlap_cell_m)
     s_write.progress(1.0)
-    median_gsd = float(np.nanmedian(table.gsd_cm))
+    median_gsd = float(np.nanmedian(table.gsd_m * 100))
     fb.info(
         f"{len(cams)} footprints, median GSD {median_gsd:.2f} cm, {int(table.clipped.sum())} clipped; "
         f"{photos.summary()}"
     )
     return FootprintResult(
         Path(output),
-        crs_to_text(out_crs or work),
+        crs_to_text(crs or work),
         len(cams),
         len(photos.skipped),
         median_gsd,
@@ -558,7 +555,7 @@ def _footprints_from_sfm(
     extra = {"left_out": left.layer} if left.layer is not None else {}
     overlap_path = _write_layers(output, fp, cam_layer, work, out_crs, overlap, overlap_cell_m, extra)
     s_write.progress(1.0)
-    median_gsd = float(np.nanmedian(table.gsd_cm))
+    median_gsd = float(np.nanmedian(table.gsd_m * 100))
     fb.info(
         f"{len(cams)} footprints of the SfM cameras on the {ground}, median GSD {median_gsd:.2f} cm, "
         f"{altitude_m:.1f} m above the ground; {photos.summary()}"
@@ -843,9 +840,9 @@ def _footprint_layers(
         polys[bad] = shapely.make_valid(polys[bad])
     records = {
         "image": [c.photo.image for c in cams],
-        "gsd_cm": table.gsd_cm,
-        "gsd_min_cm": table.gsd_min_cm,
-        "gsd_max_cm": table.gsd_max_cm,
+        "gsd_cm": table.gsd_m * 100,
+        "gsd_min_cm": table.gsd_min_m * 100,
+        "gsd_max_cm": table.gsd_max_m * 100,
         "altitude_m": table.altitude_m,
         "pitch_deg": [c.photo.pitch_deg for c in cams],
         "yaw_deg": [c.photo.yaw_deg for c in cams],
@@ -876,7 +873,7 @@ def _footprint_layers(
             "yaw_deg": records["yaw_deg"],
             "pitch_deg": records["pitch_deg"],
             "roll_deg": records["roll_deg"],
-            "gsd_cm": table.gsd_cm,
+            "gsd_cm": records["gsd_cm"],
             "gps_fix": records["gps_fix"],
             "gps_sigma_h_m": records["gps_sigma_h_m"],
             "gps_sigma_v_m": records["gps_sigma_v_m"],

@@ -41,7 +41,7 @@ from rasterio.features import geometry_mask, shapes
 from scipy.special import ndtr
 
 from geoortho.core.camera import Intrinsics, Pose, PosedCamera, rotation_from_ypr
-from geoortho.core.crs import WGS84, crs_to_text, grid_north, horizontal_unit_m, parse_crs, transformer, utm_crs_for
+from geoortho.core.crs import WGS84, crs_to_text, grid_north, horizontal_unit_m, transformer, utm_crs_for
 from geoortho.core.gsd import focal_length_px, gsd_at_height_m, height_for_gsd_m, marker_gsd_m
 from geoortho.core.outputs import atomic_path, write_json, write_text, write_vector
 from geoortho.core.surface import FlatSurface, GridSurface, Surface, read_surface, sample_grid
@@ -327,11 +327,11 @@ def plan(
     min_interval_s: float = 2.0,
     max_altitude_m: float = DEFAULT_MAX_ALTITUDE_M,
     gcps: str = "",
-    gcp_crs: str | None = None,
+    gcp_crs: CRS | None = None,
     marker_dictionary: Dictionary = "DICT_4X4_50",
     marker_size_m: float | None = None,
     margin: float = 0.0,
-    crs: str | None = None,
+    crs: CRS | None = None,
     sensor_width_mm: float | None = None,
     focal_mm: float | None = None,
     image_width_px: int | None = None,
@@ -385,7 +385,7 @@ def plan(
     gcps : str
         Number of GCPs to propose, or a GCP file (positions to check), or empty for
         the default number by area.
-    gcp_crs : str
+    gcp_crs : CRS
         CRS of a GCP file without one.
     marker_dictionary : str
         ArUco/AprilTag dictionary of the markers to print.
@@ -395,7 +395,7 @@ def plan(
     margin : float
         A GCP counts as seen only this far inside the frame, percent of the image side,
         as gcp-find's margin (the marker must be whole in the photo as well).
-    crs : str
+    crs : CRS
         Projected CRS to plan in. Default: the AOI's, or its UTM zone.
     sensor_width_mm : float
         Sensor width (overrides the camera's).
@@ -481,11 +481,11 @@ class PlanOptions:
     min_interval_s: float = 2.0
     max_altitude_m: float = DEFAULT_MAX_ALTITUDE_M
     gcps: str = ""
-    gcp_crs: str | None = None
+    gcp_crs: CRS | None = None
     marker_dictionary: Dictionary = "DICT_4X4_50"
     marker_size_m: float | None = None
     margin: float = 0.0
-    crs: str | None = None
+    crs: CRS | None = None
     sensor_width_mm: float | None = None
     focal_mm: float | None = None
     image_width_px: int | None = None
@@ -687,7 +687,7 @@ def _gcp_sightings(site: _Site, flight: _Flight, o: PlanOptions, warnings_: list
         for g in rows
     ]
     seen = [v for v in at_gcps if math.isfinite(v)]
-    worst_gsd_m = (max(seen) if seen else float(np.nanmax(flight.table.gsd_max_cm))) / 100.0
+    worst_gsd_m = max(seen) / 100.0 if seen else float(np.nanmax(flight.table.gsd_max_m))
     marker_m = _round_up(n_cells * module_px * DETECTION_SAFETY * worst_gsd_m, MIN_MARKER_STEP_M)
     laid_m = marker_m if o.marker_size_m is None else float(o.marker_size_m)
     if laid_m < marker_m:
@@ -763,7 +763,7 @@ def _write(
             "heading_deg": flight.heading_true,
             "grid_heading_deg": flight.grid_heading,
             "pitch_deg": np.full(len(shots), o.pitch_deg),
-            "gsd_cm": flight.table.gsd_cm,
+            "gsd_cm": flight.table.gsd_m * 100,
             "longitude_deg": flight.lonlat[:, 0],
             "latitude_deg": flight.lonlat[:, 1],
         },
@@ -774,9 +774,9 @@ def _write(
         {
             "name": photos_df["name"],
             "line": photos_df["line"],
-            "gsd_cm": flight.table.gsd_cm,
-            "gsd_min_cm": flight.table.gsd_min_cm,
-            "gsd_max_cm": flight.table.gsd_max_cm,
+            "gsd_cm": flight.table.gsd_m * 100,
+            "gsd_min_cm": flight.table.gsd_min_m * 100,
+            "gsd_max_cm": flight.table.gsd_max_m * 100,
             "area_m2": shapely.area(np.asarray(flight.polys)),
             "clipped": flight.table.clipped,
         },
@@ -832,7 +832,7 @@ def _summary(
     """summary.json: the camera, the ground, the flight, the overlaps measured, the GCPs and markers."""
     # One piece: a single literal that reads as the file's schema, top to bottom.
     cam = site.cam
-    gsd = np.asarray(flight.table.gsd_cm, float)
+    gsd = np.asarray(flight.table.gsd_m * 100, float)  # summary.json's fields are in cm
     return {
         "camera": {
             "name": cam.name,
@@ -935,7 +935,7 @@ def _check_options(
         raise InputError("--speed-m-s, --min-interval-s and --max-altitude-m must be positive")
 
 
-def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
+def _read_aoi(path: Path, crs: CRS | None) -> tuple[Any, CRS, list[str]]:
     """The AOI as one valid (multi)polygon in the working CRS, with what was repaired."""
     if not path.exists():
         raise InputError("no such file", path=path)
@@ -982,10 +982,8 @@ def _read_aoi(path: Path, crs: str | None) -> tuple[Any, CRS, list[str]]:
     if geom.is_empty or geom.area <= 0.0:
         raise InputError("the AOI's polygon has no area (its points lie on a line): give an area", path=path)
     src = src_crs
-    if crs is not None:
-        work = parse_crs(crs)
-        if not work.is_projected:
-            raise InputError(f"--crs {crs} is not projected: give a projected CRS (metres)")
+    if crs is not None:  # a map grid: the faces that parse it say so
+        work = crs
         _refuse_untrue_scale(work, _reproject(geom, src, WGS84).centroid)
     elif src.is_projected:
         work = src
@@ -1300,7 +1298,7 @@ FAR_GCP_M = 2000.0
 
 
 def _given_gcps(
-    path: str, gcp_crs: str | None, crs: CRS, surface: Surface, camera_z_min: float, site: Any = None
+    path: str, gcp_crs: CRS | None, crs: CRS, surface: Surface, camera_z_min: float, site: Any = None
 ) -> tuple[list[tuple[str, float, float, float]], list[str]]:
     """A GCP file's points in ``crs``: name, x, y and the height to use, with what was assumed.
     Heights that are placeholders (all equal), missing, or at or above the cameras are taken from
@@ -1337,7 +1335,7 @@ def _given_gcps(
 
 def _gcp_positions(
     gcps: str,
-    gcp_crs: str | None,
+    gcp_crs: CRS | None,
     area: Any,
     crs: CRS,
     surface: Surface,
@@ -1768,7 +1766,7 @@ def check_plan(
     images: Path | None = None,
     dsm: Path | None = None,
     takeoff_elevation_m: float | None = None,
-    gcp_crs: str | None = None,
+    gcp_crs: CRS | None = None,
     min_photos: int = 3,
     required_photos: int | None = None,
     marker_size_m: float | None = None,
@@ -1796,7 +1794,7 @@ def check_plan(
         model (the DSM, the ground elevation or the GCPs). Default: worked out from the
         photos (absolute − relative altitude, checked against the
         ground model; else the ground under the flight), and said.
-    gcp_crs : str
+    gcp_crs : CRS
         CRS of a GCP file without one.
     min_photos : int
         A GCP needs at least this many photos.

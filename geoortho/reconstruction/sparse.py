@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Any, Literal, get_args
 
 import numpy as np
+from pyproj import CRS
 
 from geoortho.core.camera import rotation_from_ypr, ypr_from_rotation
 from geoortho.core.colmap import load_pycolmap
@@ -57,7 +58,6 @@ from geoortho.core.crs import (
     heights_of,
     heights_to_text,
     horizontal_of,
-    parse_crs,
     transformer,
     utm_crs_for,
     with_heights,
@@ -1296,7 +1296,7 @@ def sfm(
     output: Path,
     gcp_list: Path | None = None,
     checkpoints: str = "",
-    crs: str | None = None,
+    crs: CRS | None = None,
     matching: Matching = "auto",
     max_image_size: int = 2048,
     max_features: int = 8192,
@@ -1327,7 +1327,7 @@ def sfm(
         (from ``gcp-find`` or typed in).
     checkpoints : str
         Comma-separated GCP names held out of the adjustment and only measured.
-    crs : str
+    crs : CRS
         Output CRS (projected). Default: the GCP file's if projected, else the photos' UTM zone.
     matching : str
         auto (exhaustive up to 40 photos, else spatial from GPS), exhaustive, spatial or sequential.
@@ -1391,7 +1391,7 @@ def sfm(
         sub_stats: list[dict[str, Any]] = []
         if split and len(inputs.photos) > split:
             sub_kwargs = dict(
-                gcp_list=gcp_list, checkpoints=checkpoints, crs=inputs.crs_text or crs, matching=matching,
+                gcp_list=gcp_list, checkpoints=checkpoints, crs=inputs.out_crs or crs, matching=matching,
                 max_image_size=max_image_size, max_features=max_features, camera_model=camera_model,
                 takeoff_elevation_m=takeoff_elevation_m, gps_sigma_m=gps_sigma_m, seed=seed, workers=workers,
                 mapper=mapper, positions=positions,
@@ -1601,7 +1601,7 @@ def _read_inputs(
     images: Path,
     gcp_list: Path | None,
     checkpoints: str,
-    crs: str | None,
+    crs: CRS | None,
     takeoff_elevation_m: float | None,
     local_frame: bool,
     timer: _Timer,
@@ -1665,7 +1665,7 @@ def _read_inputs(
         position_file,
         as_read,
         takeoff_elevation_m,
-        heights_of(parse_crs(crs)) if crs is not None else None,
+        heights_of(crs) if crs is not None else None,
     )
 
 
@@ -2778,14 +2778,11 @@ def _gps_fit_spread(model_xy: np.ndarray, gps_xy: np.ndarray) -> dict[str, Any]:
     return out
 
 
-def _output_crs(crs: str | None, photos: Sequence[Photo], gcps: GcpSet | None) -> Any:
+def _output_crs(crs: CRS | None, photos: Sequence[Photo], gcps: GcpSet | None) -> CRS | None:
     """The model's map grid: horizontal (a compound CRS's vertical part is the heights' datum,
-    :func:`_heights_datum`)."""
+    :func:`_heights_datum`). A given CRS is a map grid: the faces that parse it say so."""
     if crs is not None:
-        c = parse_crs(crs)
-        if not c.is_projected:
-            raise InputError(f"the output CRS must be projected (metres or feet), not {c.name}")
-        return horizontal_of(c)
+        return horizontal_of(crs)
     if gcps is not None and gcps.crs.is_projected:
         return horizontal_of(gcps.crs)
     if any(p.has_gps for p in photos):
