@@ -347,7 +347,8 @@ def test_sfm_drifting_altitude_levelled_then_on_the_gcps(drift, clean_sfm_rmse, 
 def test_sfm_wrong_exif_focal_held_reported_then_fixed_by_gcps(tmp_path_factory, clean_sfm_rmse):
     import pycolmap  # as it is (geoortho's loader sets the level it checks)
 
-    from geoortho.reconstruction.sparse import _probe_free_focal, sfm
+    from geoortho.reconstruction.sparse import sfm
+    from geoortho.reconstruction.sparse.lens import probe_free_focal
 
     survey = _survey(tmp_path_factory, "wrong_focal", "wrong-focal")
     d = tmp_path_factory.mktemp("wf")
@@ -358,7 +359,7 @@ def test_sfm_wrong_exif_focal_held_reported_then_fixed_by_gcps(tmp_path_factory,
     assert cam0["focal_drift_pct"] == pytest.approx(0.0, abs=0.01) and "free_focal_drift_pct" in cam0
     # the free-focal probe leaves COLMAP's log level as geoortho set it (pycolmap.bundle_adjustment
     # reset it to INFO: every sfm after it printed COLMAP's lines to stderr)
-    free = _probe_free_focal(pycolmap.Reconstruction(str(r0.output / "model")))
+    free = probe_free_focal(pycolmap.Reconstruction(str(r0.output / "model")))
     assert free and pycolmap.logging.minloglevel == int(pycolmap.logging.ERROR)
     r = sfm(survey.images, d / "gcp", gcp_list=_gcp_list(survey, d), **SFM_FAST)
     rep = json.loads(r.report.read_text())

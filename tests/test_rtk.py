@@ -173,7 +173,7 @@ def test_two_factory_calibrations_of_one_model_are_two_camera_bodies(small_surve
     import dataclasses
 
     from geoortho.photos.metadata import read_photos
-    from geoortho.reconstruction.sparse import _bodies
+    from geoortho.reconstruction.sparse.inputs import camera_bodies
 
     photos = read_photos(small_survey.images).photos
     half = len(photos) // 2
@@ -183,11 +183,11 @@ def test_two_factory_calibrations_of_one_model_are_two_camera_bodies(small_surve
         )
         for i, p in enumerate(photos)
     ]
-    bodies = _bodies(mixed)
+    bodies = camera_bodies(mixed)
     assert sorted(len(b.photos) for b in bodies) == sorted([half, len(photos) - half])
     assert {b.photos[0].factory_focal_px for b in bodies} == {3000.0, 3100.0}
     assert all("factory calibration f=" in b.label for b in bodies)
-    assert len(_bodies(photos)) == 1
+    assert len(camera_bodies(photos)) == 1
 
 
 @pytest.mark.parametrize(

@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 import rasterio
 from conftest import RecordingFeedback
+from pyproj import CRS
 
 from geoortho.core.camera import rotation_from_ypr
 from geoortho.errors import InputError
 from geoortho.photos.metadata import read_photos
-from geoortho.reconstruction.sparse import _bodies, ce90, le90, sfm
+from geoortho.reconstruction.sparse import ce90, le90, sfm
+from geoortho.reconstruction.sparse.inputs import camera_bodies
 
 FAST = {"max_image_size": 1024, "max_features": 4096}
 
@@ -177,7 +179,7 @@ def test_camera_bodies_split_by_model_and_size(small_survey, tmp_path):
     for p in src[2:]:
         with Image.open(p) as im:
             im.resize((800, 533)).save(tmp_path / p.name, exif=im.info.get("exif", b""))
-    bodies = _bodies(read_photos(tmp_path, require_gps=False, require_camera=False).photos)
+    bodies = camera_bodies(read_photos(tmp_path, require_gps=False, require_camera=False).photos)
     assert sorted(len(b.photos) for b in bodies) == [2, 2]
 
 
@@ -344,7 +346,7 @@ def test_colmap_s_rows_move_the_bar_while_it_works(tmp_path, monkeypatch):
     import sqlite3
     import time
 
-    import geoortho.reconstruction.sparse as sp
+    import geoortho.reconstruction.sparse.mapping as sp
 
     monkeypatch.setattr(sp, "PROGRESS_POLL_S", 0.02)
     db = tmp_path / "database.db"
@@ -367,7 +369,6 @@ def test_the_heights_datum_is_carried_where_known_and_said_where_not(gps_only, w
     a vertical part reaches the sparse and DEM headers as a compound CRS (which QGIS shows); GCPs
     in a horizontal CRS, or GPS alone, say where the datum would come from."""
     import rasterio
-    from pyproj import CRS
 
     from geoortho.core.surface import read_surface
     from geoortho.elevation.gridding import dem
