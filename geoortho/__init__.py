@@ -30,7 +30,7 @@ _EXPORTS = {
     "report": "geoortho.chain.reporting",
     "demo": "geoortho.chain.demonstration",
     "plan": "geoortho.planning.plan",
-    "check_plan": "geoortho.planning.plan",
+    "check_plan": "geoortho.planning.check",
     # what they return
     "SynthResult": "geoortho.synthetic.survey",
     "FootprintResult": "geoortho.photos.footprint",
@@ -43,7 +43,7 @@ _EXPORTS = {
     "ReportResult": "geoortho.chain.reporting",
     "DemoResult": "geoortho.chain.demonstration",
     "PlanResult": "geoortho.planning.plan",
-    "PlanCheckResult": "geoortho.planning.plan",
+    "PlanCheckResult": "geoortho.planning.check",
     # the building blocks around them
     "run_algorithm": "geoortho.processing.registry",
     "read_photos": "geoortho.photos.metadata",

@@ -17,8 +17,8 @@ from rasterio.transform import from_origin
 
 import geoortho
 from geoortho.errors import InputError
+from geoortho.planning.exports import LITCHI_HEADER
 from geoortho.planning.plan import (
-    LITCHI_HEADER,
     default_gcp_count,
     line_overlaps,
     min_module_px,
@@ -199,7 +199,7 @@ def test_gcp_proposal_spread_and_seen(tmp_path):
 def test_min_module_px_is_what_the_detector_decodes():
     from geoortho.gcp.detect import SearchWindow, detect_in_image
     from geoortho.gcp.markers import marker_cells
-    from geoortho.planning.plan import _render_marker
+    from geoortho.planning.control import _render_marker
 
     m = min_module_px("DICT_4X4_50")
     assert 1.25 <= m <= 4.0  # measured: 2.25 px
@@ -364,7 +364,7 @@ def test_double_grid_oblique_and_speed(tmp_path):
 def test_a_plan_canceled_while_it_is_written_leaves_no_half_plan(tmp_path, monkeypatch):
     """Issue 76: a cancel while plan wrote its files left plan.gpkg and overlap.tif without the KML,
     the Litchi mission or the summary; now nothing of it is left to be flown."""
-    import geoortho.planning.plan as planning
+    import geoortho.planning.exports as planning
 
     aoi = _aoi(tmp_path / "aoi.gpkg", shapely.box(E0, N0, E0 + 120, N0 + 80))
 

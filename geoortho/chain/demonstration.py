@@ -10,7 +10,8 @@ from typing import TYPE_CHECKING, Literal
 from geoortho.chain.pipeline import run
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.gcp.io import read_gcp_file
-from geoortho.planning.plan import check_plan, plan
+from geoortho.planning.check import check_plan
+from geoortho.planning.plan import plan
 from geoortho.synthetic.survey import existing_survey, synth
 
 if TYPE_CHECKING:

@@ -800,7 +800,7 @@ def fly_plan(plan: Path, scene: Scene, rng: np.random.Generator) -> tuple[list[S
     truth/dtm.tif), else its altitude above the take-off over the scene's home point. The camera's
     field of view must be the synthetic camera's; its pixel count may differ (a 12 MP plan renders
     12 MP photos)."""
-    from geoortho.planning.plan import read_plan_photos  # here: 0.9 s (geopandas) in every render worker
+    from geoortho.planning.check import read_plan_photos  # here: 0.9 s (geopandas) in every render worker
 
     photos, summary = read_plan_photos(plan)
     cam = summary.get("camera", {})
