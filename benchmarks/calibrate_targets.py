@@ -51,8 +51,7 @@ def trial(args: tuple[int, str, str, bool]) -> dict:
     seed, kind, role, near = args
     from geoortho.gcp.detect import paint_channel
     from geoortho.gcp.markers import CODED, TARGETS, marker_cells, paint_target, target_half_extent
-    from geoortho.gcp.targets import THRESHOLDS, _affine, estimate_motion_blur, fit_target
-    from geoortho.synthetic.survey import motion_kernel
+    from geoortho.gcp.targets import THRESHOLDS, _affine, estimate_motion_blur, fit_target, motion_kernel
 
     rng = np.random.default_rng(seed)
     photos = real_photos()

@@ -161,7 +161,7 @@ def test_marker_dictionaries_are_opencvs():
 
 
 def test_presets_are_the_literal():
-    from geoortho.synthetic.survey import PRESETS, Preset
+    from geoortho.synthetic.presets import PRESETS, Preset
 
     assert set(typing.get_args(Preset)) == set(PRESETS)
 

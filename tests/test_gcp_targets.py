@@ -183,7 +183,7 @@ def _blurred_marker(
     import numpy as np
 
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.synthetic.survey import motion_kernel
+    from geoortho.gcp.targets import motion_kernel
 
     rng = np.random.default_rng(seed)
     size, cx, cy = 160, 80.3, 79.6
@@ -325,7 +325,7 @@ def test_a_blurred_marker_by_the_edge_predicted_beyond_it_is_fitted(edge_px):
 
     from geoortho.gcp.detect import SearchWindow, detect_in_image
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.synthetic.survey import motion_kernel
+    from geoortho.gcp.targets import motion_kernel
 
     side = 15.0
     a = math.radians(-12.0)
@@ -675,8 +675,7 @@ def test_a_fit_with_glare_and_clipped_paint_ends_where_it_ends_without_the_kerne
     import numpy as np
 
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import fit_target
-    from geoortho.synthetic.survey import motion_kernel
+    from geoortho.gcp.targets import fit_target, motion_kernel
 
     rng = np.random.default_rng(8)
     side, cx, cy = 15.0, 80.4, 79.7
@@ -743,7 +742,7 @@ def test_motion_blur_drawn_another_way_keeps_its_length_and_direction(style):
 
     import numpy as np
 
-    from geoortho.synthetic.survey import _other_motion_kernel
+    from geoortho.synthetic.render import _other_motion_kernel
 
     for length, angle in ((4.0, 0.0), (7.3, 30.0), (10.0, 115.0)):
         k = _other_motion_kernel(length, angle, style, np.random.default_rng(1))
@@ -766,7 +765,7 @@ def test_glare_styles_differ_as_said():
     core saturating; sheen: wide, elongated, never clipping on its own."""
     import numpy as np
 
-    from geoortho.synthetic.survey import _glare
+    from geoortho.synthetic.render import _glare
 
     uu, vv = np.meshgrid(np.arange(200.0), np.arange(200.0))
     side = 15.0
@@ -786,7 +785,8 @@ def test_noise_styles_differ_as_said():
     noisier than dark; grain: blotches (neighbours alike), a spread of its own on every channel."""
     import numpy as np
 
-    from geoortho.synthetic.survey import EVEN_NOISE, GRAIN_NOISE, sensor_noise
+    from geoortho.synthetic.presets import EVEN_NOISE, GRAIN_NOISE
+    from geoortho.synthetic.render import sensor_noise
 
     img = np.zeros((200, 200, 3), np.float32)
     img[:, 100:] = 0.95  # a dark half and a bright half
@@ -842,7 +842,8 @@ def test_ground_carried_from_a_sharp_photo_places_a_marker_in_a_blurred_one(blur
     import numpy as np
 
     from geoortho.gcp.detect import SearchWindow, carried_place
-    from geoortho.synthetic.survey import _other_motion_kernel, motion_kernel
+    from geoortho.gcp.targets import motion_kernel
+    from geoortho.synthetic.render import _other_motion_kernel
 
     rng = np.random.default_rng(5)
     ground = cv2.GaussianBlur(rng.uniform(0, 255, (900, 900)).astype(np.float32), (0, 0), 3.0)
@@ -954,8 +955,7 @@ def test_a_marker_whose_white_paint_clips_is_verified_on_what_the_clip_says(whit
     import numpy as np
 
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import fit_target
-    from geoortho.synthetic.survey import motion_kernel
+    from geoortho.gcp.targets import fit_target, motion_kernel
 
     rng = np.random.default_rng(5)
     side, cx, cy = 15.0, 80.4, 79.7

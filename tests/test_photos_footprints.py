@@ -396,7 +396,7 @@ def _retag(survey, folder, maker: str, absolute: bool = True):
     from PIL import Image
 
     from geoortho.core.camera import Intrinsics
-    from geoortho.synthetic import survey as synthetic
+    from geoortho.synthetic import flight, render
 
     folder.mkdir()
     cam = json.loads((survey.truth / "survey.json").read_text())["camera"]
@@ -405,7 +405,7 @@ def _retag(survey, folder, maker: str, absolute: bool = True):
         if not t["has_xmp"] or t["corrupt"]:
             continue
         rec = t["recorded"]
-        shot = synthetic.Shot(
+        shot = flight.Shot(
             t["image"],
             t["x"],
             t["y"],
@@ -426,7 +426,7 @@ def _retag(survey, folder, maker: str, absolute: bool = True):
             maker=maker,
         )
         with Image.open(survey.images / t["image"]) as im:
-            synthetic._write_jpeg(folder / t["image"], np.asarray(im.convert("RGB")), shot, intr)
+            render._write_jpeg(folder / t["image"], np.asarray(im.convert("RGB")), shot, intr)
     return folder
 
 

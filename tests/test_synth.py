@@ -241,7 +241,8 @@ def test_the_lens_falloff_is_drawn_as_its_style_says(tmp_path, tiny_survey, styl
     """The same survey drawn with another vignetting: photo by photo, ring by ring out from the
     centre, the brightness over the default's is the ratio of the two profiles (to JPEG's rounding)."""
     from geoortho.errors import InputError
-    from geoortho.synthetic.survey import synth, vignetting
+    from geoortho.synthetic.render import vignetting
+    from geoortho.synthetic.survey import synth
 
     other = synth(tmp_path / style, preset="tiny", seed=3, workers=1, vignetting_style=style)
     assert json.loads((other.truth / "survey.json").read_text())["degradations"]["vignetting_style"] == style
@@ -290,14 +291,9 @@ def test_oblique_plan_and_footprints():
     """The oblique preset adds photos at pitch -45..-70 with free yaw; their true footprints reach
     far from the drone on the side it looks at (checked on the plan, to keep the suite fast)."""
     from geoortho.core.camera import Intrinsics
-    from geoortho.synthetic.survey import (
-        FOCAL_MM,
-        PRESETS,
-        SENSOR_WIDTH_MM,
-        build_scene,
-        plan_flight,
-        true_footprint,
-    )
+    from geoortho.synthetic.presets import FOCAL_MM, PRESETS, SENSOR_WIDTH_MM
+    from geoortho.synthetic.survey import build_scene, plan_flight
+    from geoortho.synthetic.truth import true_footprint
 
     p = PRESETS["oblique"]
     rng = np.random.default_rng(5)
@@ -337,7 +333,7 @@ def test_motion_kernel_is_the_blur_it_is_said_to_be(length_px, angle_deg):
 
     import numpy as np
 
-    from geoortho.synthetic.survey import motion_kernel
+    from geoortho.gcp.targets import motion_kernel
 
     k = motion_kernel(length_px, angle_deg).astype(float)
     c = k.shape[0] // 2
@@ -393,7 +389,7 @@ def test_synth_help_names_every_pathology():
     import subprocess
     import sys
 
-    from geoortho.synthetic.survey import PATHOLOGIES
+    from geoortho.synthetic.presets import PATHOLOGIES
 
     out = subprocess.run([sys.executable, "-m", "geoortho", "synth", "--help"], capture_output=True, text=True).stdout
     flat = " ".join(out.split()).replace("- ", "-")  # argparse wraps at hyphens
