@@ -95,7 +95,7 @@ def _checked(function: Any, ref: str) -> Any:
             from geoortho.errors import InputError  # here: as above
 
             raise InputError(f"{function.__name__}(): {e}") from None
-        bound.arguments.update(check_call(ref, dict(bound.arguments)))  # each CRS parsed here, once
+        bound.arguments.update(check_call(ref, bound.arguments))  # each CRS parsed here, once
         return function(*bound.args, **bound.kwargs)
 
     return door

@@ -1188,7 +1188,7 @@ def run(
         checkpoints=checkpoints or "",
         points=given(points),
         dsm=given(dsm),
-        crs=str(crs) if crs is not None else None,  # as the user wrote it (srs): the ledger's text
+        crs=str(crs) if crs is not None else None,  # its srs text: what the ledger has always recorded
         takeoff_elevation_m=takeoff_elevation_m,
         flight_height_m=flight_height_m,
         ground_elevation_m=ground_elevation_m,

@@ -146,17 +146,16 @@ def open_points(
     ``crs`` overrides the file's CRS; ``default_crs`` is taken only when the file has none
     (one of them is required then).
     """
-    override, default = crs, default_crs
     if isinstance(source, np.ndarray):
-        return _from_array(source, override or default, classification, None, [])
+        return _from_array(source, crs or default_crs, classification, None, [])
     path = Path(source)
     if not path.is_file():
         raise InputError("no such file", path=path)
     ext = path.suffix.lower()
     if ext in (".las", ".laz"):
-        return _open_las(path, override, default)
+        return _open_las(path, crs, default_crs)
     if ext == ".ply":
-        return _open_ply(path, override or default)
+        return _open_ply(path, crs or default_crs)
     raise InputError(f"unknown point cloud format {ext!r} (use {', '.join(POINT_EXTENSIONS)})", path=path)
 
 

@@ -442,22 +442,22 @@ def check_call(function_ref: str, bound: dict[str, Any]) -> dict[str, Any]:
     nobody checked taken silently for the default. What depends on more than one value is
     checked by the function itself.
 
-    Returns the arguments as the core function takes them: each CRS parsed (a pyproj ``CRS``
-    from anything a user writes) and held to the same rules as on the command line, here once
-    (the core functions take a ``CRS`` and never parse one)."""
+    Returns the arguments it converted, as the core function takes them: each CRS parsed (a
+    pyproj ``CRS`` from anything a user writes) and held to the same rules as on the command line,
+    here once (the core functions take a ``CRS`` and never parse one)."""
     alg = next((a for a in list_algorithms() if a.function_ref == function_ref), None)
     if alg is None:
-        return bound
+        return {}
     import numpy as np
 
-    checked = dict(bound)
+    converted: dict[str, Any] = {}
     for p in alg.params:
         value = bound.get(p.name)
         if value is None or value is p.default:
             continue
         if p.type == "crs":
-            checked[p.name] = convert_value(p, value)
-            check_in_context(alg.id, p.name, checked[p.name])
+            converted[p.name] = convert_value(p, value)
+            check_in_context(alg.id, p.name, converted[p.name])
             continue
         kinds, said = _PYTHON_TYPES[p.type]
         ok = isinstance(value, kinds) and not (p.type in ("number", "integer") and isinstance(value, bool))
@@ -469,4 +469,4 @@ def check_call(function_ref: str, bound: dict[str, Any]) -> dict[str, Any]:
             _enum(p, value)
         elif p.type in ("number", "integer"):
             _check_range(p, float(value))
-    return checked
+    return converted
