@@ -121,3 +121,31 @@ def test_grid_intersect_misses_outside_and_reports_it():
 def test_grid_surface_rejects_rotated_grids():
     with pytest.raises(ValueError, match="north-up"):
         GridSurface(np.zeros((2, 2)), from_origin(0, 0, 1, -1))
+
+
+def test_mapped_surface_travels_as_its_file_name(tmp_path):
+    """A surface sent to pool workers: mapped from one file, its pickle is its name and caches (not the
+    grid), it rays and heights as the original, and a worker writing into it leaves the file alone."""
+    import pickle
+
+    surf = _box_surface()
+    grid = surf.grid.copy()
+    grid[:5, :5] = np.nan
+    surf = GridSurface(grid, surf.transform, extend=True)
+    mapped = surf.mapped(tmp_path)
+    sent = pickle.dumps(mapped)
+    assert len(sent) + 0.9 * grid.nbytes < len(pickle.dumps(surf))  # the same caches, less the grid
+    got = pickle.loads(sent)
+    assert (got.z_min, got.z_max, got.extend) == (0.0, 10.0, True)
+    assert np.array_equal(got.grid, grid, equal_nan=True)
+    x, y = np.array([1.0, 50.0, 99.0, 150.0]), np.array([99.0, 50.0, 1.0, 50.0])  # one beyond the grid
+    assert np.array_equal(got.elevation(x, y), surf.elevation(x, y))
+    o, d = np.array([20.0, 50.0, 18.0]), np.array([[1.0, 0.0, -0.5]]) / np.sqrt(1.25)
+    assert np.allclose(got.intersect(o, d).points, surf.intersect(o, d).points)
+    got.grid[50, 50] = 99.0  # copy-on-write: the worker's own page
+    assert pickle.loads(sent).grid[50, 50] == grid[50, 50]
+    # the grid without data is refused whether or not it is all NaN from the start
+    with pytest.raises(ValueError, match="no data"):
+        GridSurface(np.full((3, 3), np.nan), surf.transform)
+    with pytest.raises(ValueError, match="no data"):
+        GridSurface(np.zeros((0, 3)), surf.transform)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 from dataclasses import dataclass
 from typing import Any
 
@@ -126,11 +127,32 @@ class GridSurface(Surface):
         object.__setattr__(self, "grid", g)
         if self.transform.b != 0 or self.transform.d != 0 or self.transform.e >= 0:
             raise ValueError("GridSurface needs a north-up grid")
-        finite = g[np.isfinite(g)]
-        if finite.size == 0:
+        # fmin/fmax skip NaN without the copy of the finite cells a mask would make (a DSM's size each)
+        z_min = float(np.fmin.reduce(g, axis=None)) if g.size else math.nan
+        if math.isnan(z_min):
             raise ValueError("the elevation grid has no data")
-        object.__setattr__(self, "_zmin", float(finite.min()))
-        object.__setattr__(self, "_zmax", float(finite.max()))
+        object.__setattr__(self, "_zmin", z_min)
+        object.__setattr__(self, "_zmax", float(np.fmax.reduce(g, axis=None)))
+
+    def mapped(self, folder: str | os.PathLike[str]) -> GridSurface:
+        """This surface with its grid kept in a file in ``folder`` and mapped into memory.
+
+        Sent to pool or cluster workers it travels as the file's name and its small caches (the
+        height range, the ground it is continued by): each worker maps the same pages, which the
+        system holds once for all, where each would otherwise unpickle a copy of its own and make
+        its ground again from the whole grid."""
+        self.ground_base()
+        fd, name = tempfile.mkstemp(prefix="surface_", suffix=".npy", dir=folder)
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, self.grid)
+        return _rebuilt_surface(name, {**self.__dict__, "grid": None})
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        state = dict(self.__dict__)
+        file = state.pop("_file", None)
+        if file is not None:
+            state["grid"] = None  # the workers map the file
+        return _rebuilt_surface, (file, state)
 
     @property
     def z_min(self) -> float:  # type: ignore[override]
@@ -186,10 +208,15 @@ class GridSurface(Surface):
 
         f = max(1, int(round(1.0 / self.cell_m)))
         nr, nc = self.grid.shape
-        g = np.pad(
-            np.where(np.isnan(self.grid), np.inf, self.grid), ((0, (-nr) % f), (0, (-nc) % f)), constant_values=np.inf
-        )
-        c = g.reshape(g.shape[0] // f, f, g.shape[1] // f, f).min(axis=(1, 3))
+        # the block minimum a band of rows at a time: whole-grid temporaries are a DSM's size each
+        band = f * max(1, 4096 // f)
+        c = np.empty((-(-nr // f), -(-nc // f)), np.float32)
+        for r0 in range(0, nr, band):
+            part = self.grid[r0 : r0 + band]
+            g = np.pad(
+                np.where(np.isnan(part), np.inf, part), ((0, (-len(part)) % f), (0, (-nc) % f)), constant_values=np.inf
+            )
+            c[r0 // f : r0 // f + g.shape[0] // f] = g.reshape(g.shape[0] // f, f, g.shape[1] // f, f).min(axis=(1, 3))
         missing = ~np.isfinite(c)
         if missing.any():
             idx = distance_transform_edt(missing, return_distances=False, return_indices=True)
@@ -382,6 +409,17 @@ class GridSurface(Surface):
 
 #: The march packs its rays again when fewer than this share of them are still marching.
 _PACK = 0.7
+
+
+def _rebuilt_surface(file: str | None, state: dict[str, Any]) -> GridSurface:
+    """A :class:`GridSurface` from its fields and caches as they were, its grid mapped from ``file``
+    when it has one (copy-on-write: a kernel gets a writable array, the file stays as it is)."""
+    surface = object.__new__(GridSurface)
+    if file is not None:
+        state = {**state, "grid": np.asarray(np.load(file, mmap_mode="c")), "_file": file}
+    for name, value in state.items():
+        object.__setattr__(surface, name, value)
+    return surface
 
 
 @dataclass(frozen=True)

@@ -891,6 +891,10 @@ def _build_mosaic(
     t0, times = clock
     output.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
+        if isinstance(surface, GridSurface) and os.name == "posix":
+            # the workers map one file of the DSM instead of each holding a copy (posix only: Windows
+            # cannot remove a file still mapped when the folder goes)
+            surface = surface.mapped(work_dir)
         vis = _visibility(placed, surface, options, Path(work_dir), st_vis)
         times["visibility"] = time.perf_counter() - t0
 
