@@ -297,7 +297,7 @@ def test_seam_pass_streams_photos_and_loses_no_overlap(small_survey):
     from affine import Affine
 
     from geoortho.feedback import as_feedback
-    from geoortho.orthophoto.mosaic import _place
+    from geoortho.orthophoto.placing import place_photos
     from geoortho.orthophoto.rectify import bounds_window
     from geoortho.orthophoto.seams import (
         _coarse_view,
@@ -309,7 +309,7 @@ def test_seam_pass_streams_photos_and_loses_no_overlap(small_survey):
     )
 
     surf = read_surface(small_survey.dsm)
-    placed = _place(_true_cameras(small_survey), surf, as_feedback(None))
+    placed = place_photos(_true_cameras(small_survey), surf, as_feedback(None))
     cams, boxes = list(placed.cams), list(placed.boxes)
     n = len(cams)
     res = 0.5
@@ -384,7 +384,7 @@ def test_blending_lowers_the_step_across_seams(tiny_survey, tmp_path):
 def test_holes_up_to_max_hole_px_are_filled_wider_ones_stay_transparent():
     """Issue 26: hole fill by width: a 6 px hole is inpainted (close to the smooth ground around
     it), a 30 px one is left alone, with max_hole_px 10."""
-    from geoortho.orthophoto.mosaic import _fill_holes
+    from geoortho.orthophoto.tile import _fill_holes
 
     yy, xx = np.mgrid[0:120, 0:200].astype(np.float32)
     truth = np.dstack([60 + 0.5 * xx, 80 + 0.4 * yy, 100 + 0.2 * (xx + yy)]).astype(np.uint8)
@@ -405,7 +405,7 @@ def test_a_hole_filling_a_whole_tile_is_left_and_warns_nothing():
     width test overflow (a RuntimeWarning on real data); the hole is wider than any limit."""
     import warnings
 
-    from geoortho.orthophoto.mosaic import _fill_holes
+    from geoortho.orthophoto.tile import _fill_holes
 
     bgr = np.zeros((40, 40, 3), np.uint8)
     with warnings.catch_warnings():
@@ -469,7 +469,7 @@ def test_hidden_ground_is_drawn_from_the_ground_round_it_not_from_what_hides_it(
     photo. Drawn from the photo that had it in frame most directly, it showed the roof: the roof ran
     on 0.6-0.8 m past its wall, a second edge beside it. Drawn from the ground round it, the roof ends
     at its wall; the roof itself, what lies beyond the mosaic and the seen ground are untouched."""
-    from geoortho.orthophoto.mosaic import _ground_behind
+    from geoortho.orthophoto.tile import _ground_behind
 
     rng = np.random.default_rng(3)
     bgr = np.zeros((120, 160, 3), np.uint8)
@@ -614,7 +614,7 @@ def test_holes_are_counted_on_the_full_mask_not_on_its_decimated_read(tmp_path):
     from affine import Affine
     from rasterio.enums import Resampling
 
-    from geoortho.orthophoto.mosaic import COVERAGE_CELLS, _holes_inside
+    from geoortho.orthophoto.coverage import COVERAGE_CELLS, _holes_inside
 
     side = int(math.sqrt(COVERAGE_CELLS)) + 1000
     alpha = np.full((side, side), 255, np.uint8)
