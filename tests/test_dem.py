@@ -391,19 +391,19 @@ def test_far_outliers_are_dropped_and_the_dsm_is_the_clean_one(tiny_survey, tmp_
 
 def test_many_points_far_apart_are_data_not_outliers():
     from geoortho.core.pointcloud import open_points
-    from geoortho.elevation.gridding import _scan_extent
+    from geoortho.elevation.extent import scan_extent
     from geoortho.feedback import Feedback
 
     rng = np.random.default_rng(0)
     a = np.c_[rng.uniform(0, 50, (10_000, 2)), rng.uniform(0, 2, 10_000)]
     block = a[:900] + [20_000.0, 0.0, 0.0]  # a second block 20 km away: 8 % of the points
-    scan = _scan_extent(open_points(np.vstack([a, block]), CRS("EPSG:32629")), Feedback())
+    scan = scan_extent(open_points(np.vstack([a, block]), CRS("EPSG:32629")), Feedback())
     assert scan.keep is None and scan.src.bounds[3] > 20_000
     # 18 points in two far groups: too rare for the core, too many (> 0.1 %) to be strays
     strays = np.vstack([a[:9] + [20_000.0, 0.0, 0.0], a[9:18] + [0.0, 20_000.0, 0.0]])
-    scan = _scan_extent(open_points(np.vstack([a, strays]), CRS("EPSG:32629")), Feedback())
+    scan = scan_extent(open_points(np.vstack([a, strays]), CRS("EPSG:32629")), Feedback())
     assert scan.keep is None and scan.src.bounds[4] > 20_000 and "kept as data" in scan.notes[-1], scan.notes
-    scan = _scan_extent(open_points(np.vstack([a, strays[:9]]), CRS("EPSG:32629")), Feedback())
+    scan = scan_extent(open_points(np.vstack([a, strays[:9]]), CRS("EPSG:32629")), Feedback())
     assert scan.keep is not None and scan.src.bounds[3] < 51 and "9 far outlier" in scan.notes[-1]
 
 

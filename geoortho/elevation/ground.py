@@ -34,7 +34,7 @@ __all__ = ["SmrfParams", "smrf_surface", "ground_mask", "bilinear"]
 class SmrfParams:
     cell_m: float = 1.0
     slope: float = 0.15  # rise over run
-    window_m: float = 0.0  # 0: chosen from the survey's size (gridding._auto_window_m)
+    window_m: float = 0.0  # 0: chosen from the survey's size (gridplan._auto_window_m)
     threshold_m: float = 0.5
     scalar: float = 1.25
     margin_m: float = 1.0  # objects grown by this before refilling (not in Pingel's paper; 0 = as published)
