@@ -49,9 +49,11 @@ def trial(args: tuple[int, str, str, bool]) -> dict:
     ``near``: searched as gcp-find searches a coded marker the photo's other markers place (the
     place known to about a pixel: :func:`geoortho.gcp.detect.local_prediction`)."""
     seed, kind, role, near = args
+    from geoortho.gcp.blur import estimate_motion_blur, motion_kernel
     from geoortho.gcp.detect import paint_channel
+    from geoortho.gcp.look import marker_affine
     from geoortho.gcp.markers import CODED, TARGETS, marker_cells, paint_target, target_half_extent
-    from geoortho.gcp.targets import THRESHOLDS, _affine, estimate_motion_blur, fit_target, motion_kernel
+    from geoortho.gcp.targets import THRESHOLDS, fit_target
 
     rng = np.random.default_rng(seed)
     photos = real_photos()
@@ -78,7 +80,7 @@ def trial(args: tuple[int, str, str, bool]) -> dict:
         white, black = rng.uniform(150, 250), rng.uniform(5, 70)
         if painted == "cross":
             white = rng.uniform(200, 250)  # white paint on the ground
-        A_true = _affine(base, float(rng.uniform(0, 360)), float(1 + rng.normal(0, 0.04)), 0.0, 0.0)
+        A_true = marker_affine(base, float(rng.uniform(0, 360)), float(1 + rng.normal(0, 0.04)), 0.0, 0.0)
         for c in range(3):  # neutral paint: the same level in every channel, over coloured ground
             paint_target(img[:, :, c], painted, cx, cy, A_true, p_cells, white, black)
     blur_px = float(rng.uniform(side / 6, side / 2)) if rng.random() < 0.5 else 0.0

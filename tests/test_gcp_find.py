@@ -327,17 +327,17 @@ def test_apriltag_dictionaries_like_aruco(tmp_path, dictionary):
 def test_id_scores_without_rendering_every_id_equal_the_rendered_ones():
     """The id margin's correlations by dot products equal those of every id rendered (2,320 ids x 4
     turns for AprilTag 36h10: 8 s per fit rendered)."""
+    from geoortho.gcp.look import Renderer, coded_patterns, masked_ncc_score
     from geoortho.gcp.markers import coded_cells_at, marker_cells
-    from geoortho.gcp.targets import _coded_patterns, _ncc, _Renderer
 
     cells = marker_cells("DICT_APRILTAG_25H9", 7)
     ys, xs = np.mgrid[0:40, 0:40]
-    rend = _Renderer("apriltag", cells, xs, ys)
+    rend = Renderer("apriltag", cells, xs, ys)
     rng = np.random.default_rng(0)
     A = np.array([[22.0, 3.0], [-2.0, -21.0]])
     img = rng.uniform(0, 255, xs.size)
     w = rng.uniform(0, 1, xs.size)
-    pats = _coded_patterns("DICT_APRILTAG_25H9")
+    pats = coded_patterns("DICT_APRILTAG_25H9")
     fast = rend.ncc_ids(img, w, 19.3, 20.1, A, 4.0, 30.0, 0.5, pats)
     # every id rendered: a pixel is the mean of its samples, white in the quiet zone, 0 off the board
     u, v = rend.uv(19.3, 20.1, A, 4.0, 30.0, 0.5)
@@ -345,7 +345,7 @@ def test_id_scores_without_rendering_every_id_equal_the_rendered_ones():
     flat = pats.reshape(len(pats), -1).astype(float)
     rendered = np.where(board[None], np.where(inside[None], flat[:, idx], 1.0), 0.0).sum(axis=2)
     rendered /= np.maximum(board.sum(axis=1), 1)[None]
-    plain = [_ncc(img, t, w) for t in rendered]
+    plain = [masked_ncc_score(img, t, w) for t in rendered]
     np.testing.assert_allclose(fast, plain, atol=1e-9)
 
 
@@ -374,7 +374,7 @@ def test_the_wide_window_is_searched_last_and_only_where_the_photo_does_not_plac
     import cv2
 
     from geoortho.gcp import detect
-    from geoortho.gcp.targets import motion_kernel
+    from geoortho.gcp.blur import motion_kernel
 
     def window(gcp: str, marker_id: int, x: float, y: float) -> detect.SearchWindow:
         return detect.SearchWindow(

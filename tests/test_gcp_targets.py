@@ -9,8 +9,9 @@ import os
 import pytest
 from test_gcp_find import _score
 
+from geoortho.gcp.blur import estimate_motion_blur
 from geoortho.gcp.find import gcp_find
-from geoortho.gcp.targets import THRESHOLDS, estimate_motion_blur
+from geoortho.gcp.targets import THRESHOLDS
 from geoortho.synthetic.survey import synth
 
 
@@ -182,8 +183,8 @@ def _blurred_marker(
     import cv2
     import numpy as np
 
+    from geoortho.gcp.blur import motion_kernel
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import motion_kernel
 
     rng = np.random.default_rng(seed)
     size, cx, cy = 160, 80.3, 79.6
@@ -323,9 +324,9 @@ def test_a_blurred_marker_by_the_edge_predicted_beyond_it_is_fitted(edge_px):
     import cv2
     import numpy as np
 
+    from geoortho.gcp.blur import motion_kernel
     from geoortho.gcp.detect import SearchWindow, detect_in_image
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import motion_kernel
 
     side = 15.0
     a = math.radians(-12.0)
@@ -361,8 +362,9 @@ def test_a_12px_target_is_fitted_to_convergence(kind):
     import cv2
     import numpy as np
 
+    from geoortho.gcp.look import marker_affine
     from geoortho.gcp.markers import paint_target
-    from geoortho.gcp.targets import _affine, fit_target
+    from geoortho.gcp.targets import fit_target
 
     for seed in range(4):
         rng = np.random.default_rng(seed)
@@ -370,7 +372,7 @@ def test_a_12px_target_is_fitted_to_convergence(kind):
         cx, cy = 48.0 + rng.uniform(-0.5, 0.5), 47.0 + rng.uniform(-0.5, 0.5)
         base = 12.0 * np.array([[1.0, 0.0], [0.0, -1.0]])  # v up
         angle = 7.0 + 10 * seed
-        paint_target(img, kind, cx, cy, _affine(base, angle, 1.08, 0.0, 0.0), None, 230.0, 25.0)
+        paint_target(img, kind, cx, cy, marker_affine(base, angle, 1.08, 0.0, 0.0), None, 230.0, 25.0)
         img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
         fit = fit_target(img, (16, 16, 81, 81), kind, base, predicted_xy=(cx + 4, cy - 3))
         assert fit is not None and not fit.reason, fit
@@ -388,14 +390,15 @@ def test_a_circle_far_from_the_predicted_size_is_refused():
     import cv2
     import numpy as np
 
+    from geoortho.gcp.look import marker_affine
     from geoortho.gcp.markers import paint_target
-    from geoortho.gcp.targets import SIZE_TOLERANCE, _affine, fit_target
+    from geoortho.gcp.targets import SIZE_TOLERANCE, fit_target
 
     base = 16.0 * np.array([[1.0, 0.0], [0.0, -1.0]])  # v up
     for scale, kept in ((0.8, False), (0.92, True)):
         rng = np.random.default_rng(4)
         img = 90 + cv2.GaussianBlur(rng.normal(0, 60, (112, 112)), (0, 0), 1.5)
-        paint_target(img, "circle", 56.3, 55.6, _affine(base, 0.0, scale, 0.0, 0.0), None, 230.0, 25.0)
+        paint_target(img, "circle", 56.3, 55.6, marker_affine(base, 0.0, scale, 0.0, 0.0), None, 230.0, 25.0)
         img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
         fit = fit_target(img, (14, 14, 99, 99), "circle", base, predicted_xy=(60.0, 52.0))
         assert fit is not None
@@ -486,8 +489,8 @@ def _smeared_marker(seed: int, shape: tuple[int, int], cx: float, cy: float, sid
     import cv2
     import numpy as np
 
+    from geoortho.gcp.blur import motion_kernel
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import motion_kernel
 
     rng = np.random.default_rng(seed)
     img = cv2.GaussianBlur(rng.normal(120, 20, shape), (0, 0), 1.5)
@@ -574,19 +577,19 @@ def test_coded_render_by_table_equals_the_reflectance():
     for sample, as target_reflectance's: any place, turn, scale, blur and defocus."""
     import numpy as np
 
-    from geoortho.gcp import targets
+    from geoortho.gcp import look
     from geoortho.gcp.markers import marker_cells
 
     cells = marker_cells("DICT_4X4_50", 23)
     ys, xs = np.mgrid[0:30, 0:30]
-    rend = targets._Renderer("aruco", cells, xs, ys)
+    rend = look.Renderer("aruco", cells, xs, ys)
     rng = np.random.default_rng(0)
     for _ in range(20):
-        A = targets._affine(np.eye(2) * rng.uniform(8, 20), rng.uniform(0, 360), 1.0, *rng.uniform(-0.1, 0.1, 2))
+        A = look.marker_affine(np.eye(2) * rng.uniform(8, 20), rng.uniform(0, 360), 1.0, *rng.uniform(-0.1, 0.1, 2))
         args = (15 + rng.uniform(-3, 3), 15 + rng.uniform(-3, 3), A, rng.uniform(0, 10), rng.uniform(0, 180), 0.7)
         value, cover = rend.render(*args)
         u, v = rend.uv(*args)
-        r = targets._fit_reflectance("aruco", u, v, cells, targets.CROSS_BAR)
+        r = look._fit_reflectance("aruco", u, v, cells, look.CROSS_BAR)
         ok = np.isfinite(r)
         assert np.allclose(cover, ok.mean(axis=1))
         assert np.allclose(value, np.where(ok, r, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1))
@@ -611,18 +614,18 @@ def test_compiled_coded_render_is_the_numpy_render_to_the_bit(samples, monkeypat
     rendered enough to pay for loading it."""
     import numpy as np
 
-    from geoortho.gcp import kernels, targets
+    from geoortho.gcp import kernels, look
     from geoortho.gcp.markers import marker_cells
 
     cells = marker_cells("DICT_4X4_50", 7)
     ys, xs = np.mgrid[0:41, 0:41]
     rng = np.random.default_rng(3)
     keep = rng.random(xs.size) < 0.5  # a fit renders a scattered subset of its patch
-    rend = targets._Renderer("aruco", cells, xs.ravel()[keep], ys.ravel()[keep], samples=samples)
+    rend = look.Renderer("aruco", cells, xs.ravel()[keep], ys.ravel()[keep], samples=samples)
     base = 14.0 * np.array([[0.96, 0.28], [0.28, -0.96]])
     cases = []
     for _ in range(60):
-        A = targets._affine(base, rng.uniform(-180, 180), rng.uniform(0.7, 1.3), *rng.uniform(-0.2, 0.2, 2))
+        A = look.marker_affine(base, rng.uniform(-180, 180), rng.uniform(0.7, 1.3), *rng.uniform(-0.2, 0.2, 2))
         cases.append((*rng.uniform(8, 32, 2), A, rng.uniform(0, 12), rng.uniform(-180, 180), rng.uniform(0, 2)))
 
     monkeypatch.setattr(kernels, "_numpy_calls", 0)
@@ -674,8 +677,9 @@ def test_a_fit_with_glare_and_clipped_paint_ends_where_it_ends_without_the_kerne
     import cv2
     import numpy as np
 
+    from geoortho.gcp.blur import motion_kernel
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import fit_target, motion_kernel
+    from geoortho.gcp.targets import fit_target
 
     rng = np.random.default_rng(8)
     side, cx, cy = 15.0, 80.4, 79.7
@@ -710,29 +714,29 @@ def test_the_correlation_at_a_known_place_is_opencvs_masked_match_there():
     import cv2
     import numpy as np
 
-    from geoortho.gcp import targets
+    from geoortho.gcp import look, search
     from geoortho.gcp.markers import marker_cells
 
     rng = np.random.default_rng(4)
     cells = marker_cells("DICT_4X4_50", 7)
     size = 35
     ys, xs = np.mgrid[0:size, 0:size]
-    rend = targets._Renderer("aruco", cells, xs, ys)
+    rend = look.Renderer("aruco", cells, xs, ys)
     for _ in range(12):
         crop = cv2.GaussianBlur(rng.normal(120, 30, (48, 48)), (0, 0), 1.5).astype(np.float32)
-        A = targets._affine(14.0 * np.eye(2), rng.uniform(0, 90), rng.uniform(0.9, 1.1), 0.0, 0.0)
+        A = look.marker_affine(14.0 * np.eye(2), rng.uniform(0, 90), rng.uniform(0.9, 1.1), 0.0, 0.0)
         tpl, cover = rend.render(17, 17, A, rng.uniform(0, 8), rng.uniform(0, 180), 0.5)
         t = tpl.reshape(size, size).astype(np.float32)
-        m = ((cover > 0.999) & ~targets._code_cells(xs.ravel() - 17, ys.ravel() - 17, A, cells)).reshape(size, size)
+        m = ((cover > 0.999) & ~search.code_cells_of(xs.ravel() - 17, ys.ravel() - 17, A, cells)).reshape(size, size)
         m = m.astype(np.float32)
         ref = np.nan_to_num(cv2.matchTemplate(crop, t, cv2.TM_CCOEFF_NORMED, mask=m), nan=-1.0)
         places = np.nonzero(rng.random(ref.shape) < 0.5)
         windows = np.lib.stride_tricks.sliding_window_view(crop, (size, size))[places].astype(np.float64)
-        mine = targets._masked_ncc(windows, t, m)
+        mine = search._masked_ncc(windows, t, m)
         assert np.abs(mine - ref[places]).max() < 1e-4  # OpenCV works in float32
         assert np.ptp(ref) > 0.3  # not a flat map
     flat = np.full((1, size, size), 90.0)
-    assert targets._masked_ncc(flat, t, m)[0] == -1.0
+    assert search._masked_ncc(flat, t, m)[0] == -1.0
 
 
 @pytest.mark.parametrize("style", ["line", "shake"])
@@ -841,8 +845,8 @@ def test_ground_carried_from_a_sharp_photo_places_a_marker_in_a_blurred_one(blur
     import cv2
     import numpy as np
 
+    from geoortho.gcp.blur import motion_kernel
     from geoortho.gcp.detect import SearchWindow, carried_place
-    from geoortho.gcp.targets import motion_kernel
     from geoortho.synthetic.render import _other_motion_kernel
 
     rng = np.random.default_rng(5)
@@ -882,12 +886,14 @@ def test_a_markers_turn_on_the_ground_is_read_from_its_corners_in_any_photo(turn
     import numpy as np
 
     from geoortho.gcp.detect import ground_turn
-    from geoortho.gcp.targets import _affine
+    from geoortho.gcp.look import marker_affine
 
     for yaw_deg in (0.0, 71.0, -140.0):  # the photo's heading turns its ground_px, not the marker
         a = np.radians(yaw_deg)
         base = 15.0 * np.array([[np.cos(a), np.sin(a)], [np.sin(a), -np.cos(a)]])  # east, north (y down)
-        corners = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]]) @ _affine(base, turn_deg, 1, 0, 0).T
+        corners = (
+            np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]]) @ marker_affine(base, turn_deg, 1, 0, 0).T
+        )
         got = ground_turn(corners + [300.0, 200.0], tuple(base.ravel()))
         assert abs((got - turn_deg + 45.0) % 90.0 - 45.0) < 1e-6
 
@@ -954,8 +960,9 @@ def test_a_marker_whose_white_paint_clips_is_verified_on_what_the_clip_says(whit
     import cv2
     import numpy as np
 
+    from geoortho.gcp.blur import motion_kernel
     from geoortho.gcp.markers import marker_cells, paint_target
-    from geoortho.gcp.targets import fit_target, motion_kernel
+    from geoortho.gcp.targets import fit_target
 
     rng = np.random.default_rng(5)
     side, cx, cy = 15.0, 80.4, 79.7
@@ -993,12 +1000,14 @@ def test_a_blurred_markers_centre_is_found_along_its_blur(start_along_px):
     import math
 
     from geoortho.gcp.markers import marker_cells
-    from geoortho.gcp.targets import _refine
+    from geoortho.gcp.refine import refine_fit
 
     img, (cx, cy), A = _blurred_marker(7, 16.0, 9.0, seed=2)
     b = math.radians(30.0)  # _blurred_marker's blur direction, anticlockwise from x as seen
     start = (cx + start_along_px * math.cos(b), cy - start_along_px * math.sin(b), 0.0)
-    fit, _ = _refine(img.astype(float), "aruco", A, marker_cells("DICT_4X4_50", 7), start, (9.0, 30.0), converge=True)
+    fit, _ = refine_fit(
+        img.astype(float), "aruco", A, marker_cells("DICT_4X4_50", 7), start, (9.0, 30.0), converge=True
+    )
     assert math.hypot(fit[0] - cx, fit[1] - cy) < 0.35, fit
 
 
@@ -1038,13 +1047,13 @@ def test_a_fit_refused_on_its_id_that_cannot_be_placed_is_not_centred(monkeypatc
     from geoortho.gcp.markers import marker_cells
 
     converged = []
-    refine = targets._refine
+    refine = targets.refine_fit
 
     def counting(*args, **kwargs):
         converged.append(bool(kwargs.get("converge")))
         return refine(*args, **kwargs)
 
-    monkeypatch.setattr(targets, "_refine", counting)
+    monkeypatch.setattr(targets, "refine_fit", counting)
 
     def fit(blur_px: float, near: bool = False) -> targets.Fit | None:
         img, (cx, cy), A = _blurred_marker(3, 14.0, blur_px, seed=0)

@@ -333,7 +333,7 @@ def test_motion_kernel_is_the_blur_it_is_said_to_be(length_px, angle_deg):
 
     import numpy as np
 
-    from geoortho.gcp.targets import motion_kernel
+    from geoortho.gcp.blur import motion_kernel
 
     k = motion_kernel(length_px, angle_deg).astype(float)
     c = k.shape[0] // 2

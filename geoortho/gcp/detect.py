@@ -13,8 +13,10 @@ import cv2
 import numpy as np
 
 from geoortho.core.camera import in_frame
+from geoortho.gcp.blur import deblurred, estimate_motion_blur
 from geoortho.gcp.markers import CODED, get_dictionary, marker_cells, target_half_extent
-from geoortho.gcp.targets import PLACED_ID_MARGIN, SATURATED, deblurred, estimate_motion_blur, fit_target
+from geoortho.gcp.refine import SATURATED
+from geoortho.gcp.targets import PLACED_ID_MARGIN, fit_target
 from geoortho.photos.metadata import decode_photo
 
 __all__ = [
@@ -515,7 +517,7 @@ def _fit_model(
                     break
         return
     x, y, tol = local
-    # the box holds the coarse search's template (targets._coarse) centred anywhere within tol
+    # the box holds the coarse search's template (search.coarse_search) centred anywhere within tol
     base = np.abs(np.array(win.ground_px, float).reshape(2, 2)).sum(axis=1).max()
     reach = base * target_half_extent(target) * 1.2 + blur[0] / 2 + 3
     box = _square(replace(win, x_px=x, y_px=y), tol + reach, w, h)

@@ -82,7 +82,7 @@ def _coded_render(
     ``xs, ys``: the pixels; per row, ``cxs, cys``: the centre, ``sdx, sdy``: the sample offsets
     (pixel area, motion path, defocus), ``inv``: pixel offsets → marker sides (row-major 2 × 2);
     ``table``: the board's cells with a ring around them, flat, each white + ``on`` × on the board;
-    ``origin``: a cell index's offset. :meth:`.targets._Renderer.render`'s numpy path step for step
+    ``origin``: a cell index's offset. :meth:`.look.Renderer.render`'s numpy path step for step
     (its test holds the two equal)."""
     rows, pixels, samples = cxs.shape[0], xs.shape[0], sdx.shape[1]
     value = np.empty((rows, pixels))

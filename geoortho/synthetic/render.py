@@ -16,10 +16,10 @@ import numpy as np
 from geoortho.core.camera import Intrinsics, Pose, pixel_rays, project_points
 from geoortho.core.outputs import atomic_path
 from geoortho.core.surface import GridSurface, RayHits
+from geoortho.gcp.blur import motion_kernel, spread_path
 from geoortho.gcp.markers import (
     target_half_extent,
 )
-from geoortho.gcp.targets import motion_kernel, spread_path
 from geoortho.synthetic.flight import Shot
 from geoortho.synthetic.movers import draw_movers
 from geoortho.synthetic.presets import (
