@@ -113,7 +113,7 @@ def test_the_pilot_reads_by_the_fast_attempt_alone_where_that_measures_the_offse
     ("fast") in twice the pilot photos gives them on a clean survey, so no other attempt runs in
     a window sized for the stated uncertainty (a blurred photo's blur undone there cost a
     degraded flight's pilot four times as much); everything is still found."""
-    from geoortho.gcp import detect, find
+    from geoortho.gcp import detect, pilot
 
     tried: list[str] = []
     run = detect._run
@@ -121,7 +121,7 @@ def test_the_pilot_reads_by_the_fast_attempt_alone_where_that_measures_the_offse
         detect, "_run", lambda gray, attempt, *a, **kw: tried.append(attempt) or run(gray, attempt, *a, **kw)
     )
     before_offset: list[list[str]] = []
-    offset = find._flight_offset
+    offset = pilot._flight_offset
 
     def measured(*a, **kw):
         got = offset(*a, **kw)
@@ -129,7 +129,7 @@ def test_the_pilot_reads_by_the_fast_attempt_alone_where_that_measures_the_offse
             before_offset.append(list(tried))
         return got
 
-    monkeypatch.setattr(find, "_flight_offset", measured)
+    monkeypatch.setattr(pilot, "_flight_offset", measured)
     r = gcp_find(small_survey.images, small_survey.gcp_file, tmp_path / "gcp_list.txt", workers=1)
     assert before_offset and before_offset[0] and set(before_offset[0]) == {"fast"}
     assert set(tried) - {"fast"}  # the other attempts still run, later, in the narrowed windows
@@ -462,7 +462,7 @@ def test_a_photo_is_looked_at_again_for_a_marker_predicted_just_beyond_its_edge(
     from another photo only to a marker predicted in the frame."""
     from types import SimpleNamespace
 
-    from geoortho.gcp import find
+    from geoortho.gcp import pilot
     from geoortho.gcp.detect import Detection, SearchWindow
 
     cam = SimpleNamespace(
@@ -488,8 +488,8 @@ def test_a_photo_is_looked_at_again_for_a_marker_predicted_just_beyond_its_edge(
             asked.extend((Path(item[0]).name, item[3]) for item in items)
             return [(item[0], item[2]) for item in items]
 
-        monkeypatch.setattr(find, "map_ordered", second_looks)
-        find._second_look(
+        monkeypatch.setattr(pilot, "map_ordered", second_looks)
+        pilot.second_look(
             results, windows, SimpleNamespace(cams={"a.JPG": cam, "b.JPG": cam}), "DICT_4X4_50", "aruco", None, 1
         )
         return asked

@@ -61,7 +61,7 @@ def test_verification_finds_blurred_and_glared_markers(degraded, tmp_path):
     t = THRESHOLDS
     assert all(float(r["score"]) >= t["score"] for r in verified)
     # an id margin under the threshold only where the photo's other markers placed the fit and the
-    # GCP's id was decoded in another photo (find._placed)
+    # GCP's id was decoded in another photo (verdicts._placed)
     decoded = {r["gcp"] for r in rows if r["status"] == "detected" and r["method"] == "decoded"}
     for r in verified:
         if float(r["id_margin"]) < t["id_margin"]:
@@ -446,7 +446,7 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
 
     from geoortho.feedback import as_feedback
     from geoortho.gcp.detect import PLACED_ID_MARGIN, Detection, SearchWindow
-    from geoortho.gcp.find import DETECTED, _judge
+    from geoortho.gcp.verdicts import DETECTED, judge_candidates
 
     win = SearchWindow("GCP07", 7, 500.0, 400.0, 60.0, side_px=16.0)
     corners = ((492.0, 393.0), (508.0, 393.0), (508.0, 409.0), (492.0, 409.0))
@@ -460,7 +460,7 @@ def test_an_unreadable_marker_is_placed_only_when_its_id_was_read_in_another_pho
 
     def judged(d: Detection | list[Detection], *others):
         here = ("a/DJI_0001.JPG", d if isinstance(d, list) else [d], "", (7.0, 0.0))
-        obs = _judge([here, *others], windows, {"GCP07": 7}, as_feedback(None), frames, 0)
+        obs = judge_candidates([here, *others], windows, {"GCP07": 7}, as_feedback(None), frames, 0)
         return next(o for o in obs if o.image == "DJI_0001.JPG")
 
     def status(d: Detection | list[Detection], *others) -> str:
