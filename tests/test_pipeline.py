@@ -847,16 +847,17 @@ def test_a_console_with_no_width_gets_progress_lines(tiny_survey, checkpoint, tm
 
 def test_every_map_in_the_report_has_its_furniture(first_run, tmp_path, monkeypatch):
     """A scale bar, a north arrow and axis titles with the unit and the CRS on every map."""
-    import geoortho.chain.reporting as reporting
+    from geoortho.chain import report_accuracy, report_base, report_products, reporting
 
     furnished = []
-    real = reporting._furnish
+    real = report_base.furnish
 
     def spy(ax, crs, unit="m"):
         real(ax, crs, unit)
         furnished.append(ax)
 
-    monkeypatch.setattr(reporting, "_furnish", spy)
+    for drawer in (reporting, report_accuracy, report_products):  # every module that draws a map
+        monkeypatch.setattr(drawer, "furnish", spy)
     reporting.report(first_run.output, tmp_path / "again.html")
     # the map, the overlap, the residual vectors, the DSM and the DTM, the orthophoto's sources
     assert len(furnished) >= 6, len(furnished)
@@ -867,14 +868,14 @@ def test_every_map_in_the_report_has_its_furniture(first_run, tmp_path, monkeypa
         assert any(isinstance(a, AnchoredSizeBar) for a in ax.artists), ax.get_title()
         assert any(t.get_text() == "N" for t in ax.texts), ax.get_title()
         assert crs in ax.get_xlabel() and "(m" in ax.get_ylabel(), ax.get_xlabel()
-    assert [reporting._nice_length(t) for t in (0.7, 13.0, 47.0, 180.0)] == [0.5, 10.0, 20.0, 100.0]
+    assert [report_base._nice_length(t) for t in (0.7, 13.0, 47.0, 180.0)] == [0.5, 10.0, 20.0, 100.0]
     # the GCPs and their residual vectors as layers (for the QGIS project): the SfM report's own figures
     import geopandas as gpd
     import numpy as np
 
     sfm = json.loads((first_run.output / "sfm" / "report.json").read_text())
-    gcps = gpd.read_file(first_run.output / reporting.RESIDUALS_NAME, layer="gcps").set_index("name")
-    lines = gpd.read_file(first_run.output / reporting.RESIDUALS_NAME, layer="residuals")
+    gcps = gpd.read_file(first_run.output / report_accuracy.RESIDUALS_NAME, layer="gcps").set_index("name")
+    lines = gpd.read_file(first_run.output / report_accuracy.RESIDUALS_NAME, layer="residuals")
     assert len(gcps) == len(lines) == len([r for r in sfm["gcps"] if r.get("dx_m") is not None]) > 0
     for r in sfm["gcps"]:
         if r.get("dx_m") is not None:

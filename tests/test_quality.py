@@ -157,7 +157,8 @@ def test_report_plots_gcps_in_the_products_crs_whatever_the_gcp_files(tiny_surve
     import numpy as np
     from pyproj import Transformer
 
-    from geoortho.chain.reporting import _Context, _gcp_positions
+    from geoortho.chain.report_accuracy import gcp_positions
+    from geoortho.chain.report_base import ReportContext
     from geoortho.gcp.io import read_gcp_file
 
     truth = read_gcp_file(tiny_survey.truth / "gcp_utm.txt")
@@ -175,7 +176,7 @@ def test_report_plots_gcps_in_the_products_crs_whatever_the_gcp_files(tiny_surve
             "ortho": {"status": "done", "outputs": {"crs": "EPSG:32629"}},
         }
     }
-    got = {n: (x, y) for n, x, y, _ in _gcp_positions(_Context(tmp_path, ledger))}
+    got = {n: (x, y) for n, x, y, _ in gcp_positions(ReportContext(tmp_path, ledger))}
     for p in truth.points:
         assert np.hypot(got[p.name][0] - p.x, got[p.name][1] - p.y) < 0.01, (crs, p.name)
 
