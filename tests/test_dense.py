@@ -186,7 +186,7 @@ def test_cli_bad_input_exit_2(tmp_path, capsys):
 
 
 def test_run_makes_the_dsm_from_the_dense_cloud_unless_a_lidar_cloud_is_given(tmp_path):
-    from geoortho.chain.pipeline import STAGES, Project
+    from geoortho.chain.stages import STAGES, Project
 
     photos_only = Project(images=tmp_path, output=tmp_path)
     with_lidar = Project(images=tmp_path, output=tmp_path, points=tmp_path / "lidar.laz")

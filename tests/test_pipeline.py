@@ -17,7 +17,10 @@ from pathlib import Path
 
 import pytest
 
-from geoortho.chain.pipeline import LEDGER_NAME, LOCK_NAME, REPORT_NAME, run
+from geoortho.chain.ledger import LEDGER_NAME
+from geoortho.chain.pipeline import run
+from geoortho.chain.run_checks import LOCK_NAME
+from geoortho.chain.stages import REPORT_NAME
 from geoortho.errors import CanceledError, InputError
 from geoortho.feedback import Feedback
 
@@ -300,7 +303,7 @@ def test_split_reaches_the_sfm_stage_only_when_asked():
     sfm values, so an earlier project resumes as it was."""
     from dataclasses import replace
 
-    from geoortho.chain.pipeline import STAGES, Project
+    from geoortho.chain.stages import STAGES, Project
 
     sfm = next(s for s in STAGES if s.name == "sfm")
     one_block = Project(images=Path("/photos"), output=Path("/project"))
@@ -311,7 +314,7 @@ def test_split_reaches_the_sfm_stage_only_when_asked():
 
 
 def test_stage_options_are_the_stages_own_parameters(tmp_path):
-    from geoortho.chain.pipeline import parse_stage_options
+    from geoortho.chain.run_checks import parse_stage_options
 
     assert parse_stage_options('{"sfm": {"max_image_size": 2048}}') == {"sfm": {"max_image_size": 2048}}
     f = tmp_path / "opts.json"

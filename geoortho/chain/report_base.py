@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from geoortho.chain.pipeline import from_ledger
+from geoortho.chain.ledger import from_ledger
 
 _DPI = 110
 MAX_RASTER_PX = 900  # rasters are drawn from their overviews at about this size

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from geoortho.chain.pipeline import LEDGER_NAME, REPORT_NAME, STAGES, from_ledger, ledger_problem
+from geoortho.chain.ledger import LEDGER_NAME, from_ledger, ledger_problem
 from geoortho.chain.qgis_project import write_qgis_project
 from geoortho.chain.quality import assess, verdict
 from geoortho.chain.report_accuracy import (
@@ -57,6 +57,7 @@ from geoortho.chain.report_base import (
     status_html,
 )
 from geoortho.chain.report_products import elevation_section, ortho_section, seams_section
+from geoortho.chain.stages import REPORT_NAME, STAGES
 from geoortho.core.crs import heights_from_text, heights_label
 from geoortho.core.outputs import write_json, write_text
 from geoortho.errors import InputError, ParameterError

@@ -205,7 +205,7 @@ def same_file(a: Path, b: Path) -> bool:
 
 def _refuse_overwriting_inputs(alg: Algorithm, kwargs: dict[str, Any]) -> None:
     """An algorithm's path parameters through :func:`refuse_overwrites`. run checks its products
-    one by one (pipeline.check_run_paths): a project holds what it was made from."""
+    one by one (run_checks.check_run_paths): a project holds what it was made from."""
 
     def named(output: bool) -> list[tuple[str, Path, bool]]:
         return [
