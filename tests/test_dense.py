@@ -203,18 +203,19 @@ def test_run_makes_the_dsm_from_the_dense_cloud_unless_a_lidar_cloud_is_given(tm
 def test_a_pair_that_cannot_be_searched_is_skipped_not_fatal():
     """Toledo (two camera bodies) gave a pair whose smallest disparity was past the canvas; SGBM
     cannot search it and dense died with a broadcast error. Such a pair is skipped."""
-    from geoortho.reconstruction.dense import _pair, _View
+    from geoortho.reconstruction.dense_pairs import View
+    from geoortho.reconstruction.stereo import pair_points
 
     K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])
     down = np.diag([1.0, -1.0, -1.0])  # camera looking down
-    a = _View("a", None, K, np.zeros(5), (1024, 768), down, np.array([0.0, 0.0, 100.0]))
-    b = _View("b", None, K, np.zeros(5), (1024, 768), down, np.array([110.0, 0.0, 100.0]))
+    a = View("a", None, K, np.zeros(5), (1024, 768), down, np.array([0.0, 0.0, 100.0]))
+    b = View("b", None, K, np.zeros(5), (1024, 768), down, np.array([110.0, 0.0, 100.0]))
     img = np.random.default_rng(0).integers(0, 255, (768, 1024, 3), dtype=np.uint8)
     # 110 m base at 100 m: disparities of 840-930 px, a search past the 1024 px canvas
-    assert _pair(a, b, img, img, (95.0, 105.0)) is None and _pair(b, a, img, img, (95.0, 105.0)) is None
-    assert _pair(a, b, img, img, (-5.0, 105.0)) is None  # points behind the camera: a broken pose
-    close = _View("c", None, K, np.zeros(5), (1024, 768), down, np.array([20.0, 0.0, 100.0]))
-    got = _pair(a, close, img, img, (95.0, 105.0)) or _pair(close, a, img, img, (95.0, 105.0))
+    assert pair_points(a, b, img, img, (95.0, 105.0)) is None and pair_points(b, a, img, img, (95.0, 105.0)) is None
+    assert pair_points(a, b, img, img, (-5.0, 105.0)) is None  # points behind the camera: a broken pose
+    close = View("c", None, K, np.zeros(5), (1024, 768), down, np.array([20.0, 0.0, 100.0]))
+    got = pair_points(a, close, img, img, (95.0, 105.0)) or pair_points(close, a, img, img, (95.0, 105.0))
     assert got is not None  # a searchable pair still gives points
 
 
@@ -223,13 +224,13 @@ def test_ground_seen_by_two_photos_at_a_strips_end_gets_a_pair_that_measures_it(
     which see its outer half once; at a strip's end, ground three photos saw had no depth map and
     its DSM and DTM were extrapolated (two thirds of the DTM's squared error). The plan adds the
     candidate that sees it, and only where no other depth map measures that ground."""
-    import geoortho.reconstruction.dense as D
+    import geoortho.reconstruction.dense_pairs as D
 
     K = np.array([[800.0, 0, 511.5], [0, 800.0, 383.5], [0, 0, 1]])  # 128 x 96 m at 100 m
     down = np.diag([1.0, -1.0, -1.0])
 
     def view(name, x, y):
-        return D._View(name, None, K, np.zeros(5), (1024, 768), down, np.array([x, y, 100.0]))
+        return D.View(name, None, K, np.zeros(5), (1024, 768), down, np.array([x, y, 100.0]))
 
     ref, s30, s60 = view("ref", 0, 0), view("s30", 30, 0), view("s60", 60, 0)  # the strip ends at ref
     c0, c30, c60 = view("c0", 0, 70), view("c30", 30, 70), view("c60", 60, 70)  # the next strip
@@ -238,10 +239,10 @@ def test_ground_seen_by_two_photos_at_a_strips_end_gets_a_pair_that_measures_it(
         ranges = tuple((95.0 + i, 105.0) for i in range(len(candidates)))  # told apart after reordering
         n = len(candidates)
         nearby = tuple(o for o in (ref, s30, s60, c0, c30, c60) if o is not v)
-        return D._Job(v, candidates, ranges, (-math.inf,) * n, 2, 0.003, 0.125, wanted, nearby)
+        return D.DepthJob(v, candidates, ranges, (-math.inf,) * n, 2, 0.003, 0.125, wanted, nearby)
 
     alone = job(ref, (s30, c0, c30, c60, s60), 3)
-    jobs, cover = D._pairs_for_unmeasured_ground([alone], 16 * 0.125)
+    jobs, cover = D.pairs_for_unmeasured_ground([alone], 16 * 0.125)
     # ref's ground from x -4 to 64 m south of the next strip is seen by s30 and s60: only s60 adds it
     assert cover.extra == {"ref": ["s60"]}
     got = jobs[0]
@@ -251,7 +252,7 @@ def test_ground_seen_by_two_photos_at_a_strips_end_gets_a_pair_that_measures_it(
 
     # the same ground measured by s60's own depth map (paired with s30 and ref): nothing to add
     beside = job(s60, (s30, ref), 2)
-    jobs, cover = D._pairs_for_unmeasured_ground([alone, beside], 16 * 0.125)
+    jobs, cover = D.pairs_for_unmeasured_ground([alone, beside], 16 * 0.125)
     assert "ref" not in cover.extra and jobs[0].wanted == 3
     assert cover.share_before == cover.share_after
 
@@ -262,7 +263,7 @@ def test_fusion_spilled_to_tiles_on_disk_equals_the_cloud_held_whole(tmp_path):
     voxels, means within float32 rounding), written in tile order."""
     import numpy as np
 
-    from geoortho.reconstruction.dense import _Fusion
+    from geoortho.reconstruction.fusion import Fusion
 
     rng = np.random.default_rng(4)
     voxel = 0.05
@@ -271,8 +272,8 @@ def test_fusion_spilled_to_tiles_on_disk_equals_the_cloud_held_whole(tmp_path):
         n = 40_000
         xyz = np.c_[rng.uniform(-60, 90, n), rng.uniform(-20, 40, n), rng.normal(100, 2, n)].astype(np.float32)
         maps.append((xyz, rng.uniform(0, 255, (n, 3)).astype(np.float32), rng.integers(1, 4, n).astype(np.float32)))
-    whole = _Fusion(voxel, merge_every=50_000)
-    spilled = _Fusion(voxel, merge_every=50_000, max_points=60_000, spill_dir=tmp_path)
+    whole = Fusion(voxel, merge_every=50_000)
+    spilled = Fusion(voxel, merge_every=50_000, max_points=60_000, spill_dir=tmp_path)
     for m in maps:
         whole.add(*m)
         spilled.add(*m)
@@ -300,7 +301,7 @@ def test_a_match_under_the_ground_at_a_tilted_photos_near_side_is_dropped(tmp_pa
     along the axis cannot bound them; the lowest tie point each pair shares does."""
     import cv2
 
-    import geoortho.reconstruction.dense as D
+    from geoortho.reconstruction import dense_pairs, fusion
 
     K = np.array([[400.0, 0, 199.5], [0, 400.0, 149.5], [0, 0, 1]])
     t = np.radians(35.0)  # tilted forward: the photo's top rows see far, its bottom rows near
@@ -308,7 +309,7 @@ def test_a_match_under_the_ground_at_a_tilted_photos_near_side_is_dropped(tmp_pa
     photo = tmp_path / "p.png"
     cv2.imwrite(str(photo), np.random.default_rng(1).integers(0, 255, (300, 400, 3), dtype=np.uint8))
     ref, b, c = (
-        D._View(n, photo, K, np.zeros((5, 1)), (400, 300), tilt, np.array([x, 0.0, 100.0]))
+        dense_pairs.View(n, photo, K, np.zeros((5, 1)), (400, 300), tilt, np.array([x, 0.0, 100.0]))
         for n, x in (
             ("ref", 0.0),
             ("b", 20.0),
@@ -333,11 +334,11 @@ def test_a_match_under_the_ground_at_a_tilted_photos_near_side_is_dropped(tmp_pa
         xyz = np.vstack([ground[~pit], under]).astype(np.float32)
         return xyz, np.full((len(xyz), 3), 128, np.uint8), rng[0]
 
-    monkeypatch.setattr(D, "_pair", pair)
+    monkeypatch.setattr(fusion, "pair_points", pair)
 
     def fused(floor_z):
-        job = D._Job(ref, (b, c), ((lo, hi), (lo, hi)), (floor_z, floor_z), 2, 0.01, 0.5, 2, (b, c))
-        return D._depth_task(job).xyz[:, 2]
+        job = dense_pairs.DepthJob(ref, (b, c), ((lo, hi), (lo, hi)), (floor_z, floor_z), 2, 0.01, 0.5, 2, (b, c))
+        return fusion.depth_task(job).xyz[:, 2]
 
     z = fused(0.0)  # the pairs' lowest shared tie point: the ground
     assert z.min() > -0.01 and len(z) > 1000  # the ground kept, the pit gone
@@ -347,7 +348,7 @@ def test_a_match_under_the_ground_at_a_tilted_photos_near_side_is_dropped(tmp_pa
 def _plan_by_every_pair(cams, pts, neighbours, up=True):
     """The plain planner: a mask of every tie point per photo, every pair tested (what dense did
     before its plan grew with photos cubed), the oracle for the sparse one."""
-    from geoortho.reconstruction import dense as d
+    from geoortho.reconstruction import dense_pairs as d
 
     seen, depth = [], []
     for c in cams:
@@ -357,7 +358,7 @@ def _plan_by_every_pair(cams, pts, neighbours, up=True):
         depth.append(z)
     jobs, gsds = [], []
     for i, c in enumerate(cams):
-        if seen[i].sum() < d._MIN_SHARED_POINTS:
+        if seen[i].sum() < d.MIN_SHARED_POINTS:
             continue
         height = float(np.median(depth[i][seen[i]]))
         gsds.append(height / c.intrinsics.focal_px)
@@ -365,7 +366,7 @@ def _plan_by_every_pair(cams, pts, neighbours, up=True):
         for j in range(len(cams)):
             shared = seen[i] & seen[j]
             n = int(shared.sum())
-            if j == i or n < d._MIN_SHARED_POINTS:
+            if j == i or n < d.MIN_SHARED_POINTS:
                 continue
             ratio = float(np.linalg.norm(cams[i].pose.center - cams[j].pose.center)) / height
             cos = float(np.clip(cams[i].pose.rotation[:, 2] @ cams[j].pose.rotation[:, 2], -1.0, 1.0))
@@ -388,7 +389,7 @@ def test_the_pair_plan_is_the_plain_every_pair_plan(up):
     of every point (a grid of nadir photos with obliques among them, points on a bumpy ground, some
     behind a camera, some outside every frame)."""
     from geoortho.core.camera import Intrinsics, Pose, PosedCamera
-    from geoortho.reconstruction.dense import _plan
+    from geoortho.reconstruction.dense_pairs import plan_pairs
 
     rng = np.random.default_rng(7)
     intr = Intrinsics.from_sensor(640, 480, 8.8, 13.2)
@@ -400,6 +401,6 @@ def test_the_pair_plan_is_the_plain_every_pair_plan(up):
     xy = rng.uniform(-40, 130, (60_000, 2))
     pts = np.c_[xy, 2 * np.sin(xy[:, 0] / 9) + rng.normal(0, 0.3, len(xy))]
     pts[:500, 2] = 80.0  # above every camera: behind the nadir ones
-    got, want = _plan(cams, pts, 3, up=up), _plan_by_every_pair(cams, pts, 3, up=up)
+    got, want = plan_pairs(cams, pts, 3, up=up), _plan_by_every_pair(cams, pts, 3, up=up)
     assert len(want[0]) > 0.9 * len(cams) and np.median([len(job[1]) for job in want[0]]) >= 4, want[0]
     assert got == want
