@@ -140,7 +140,9 @@ class GridSurface(Surface):
         Sent to pool or cluster workers it travels as the file's name and its small caches (the
         height range, the ground it is continued by): each worker maps the same pages, which the
         system holds once for all, where each would otherwise unpickle a copy of its own and make
-        its ground again from the whole grid."""
+        its ground again from the whole grid. A surface mapped already is returned as it is."""
+        if getattr(self, "_file", None) is not None:
+            return self
         self.ground_base()
         fd, name = tempfile.mkstemp(prefix="surface_", suffix=".npy", dir=folder)
         with os.fdopen(fd, "wb") as f:

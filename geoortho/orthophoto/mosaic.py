@@ -765,8 +765,14 @@ def ortho(
         seams=seams, balance=balance, blend=blend, max_hole_px=max_hole_px, compress=compress,
         interpolation=interpolation, tile_px=tile_px, workers=workers,
     )  # fmt: skip
-    return mosaic(
-        cams, surface, out_crs, output, resolution_m, options, preview=preview, poses=poses, notes=notes,
-        skipped=skipped, dsm_source=source_path(dsm) if dsm is not None else None, dsm_offset_m=measured_offset,
-        feedback=fb,
-    )  # fmt: skip
+    Path(output).parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=temp_prefix(Path(output).name), dir=Path(output).parent) as held:
+        if isinstance(surface, GridSurface) and os.name == "posix":
+            # the DSM held once from here on, in a mapped file: this process's own copy goes, and
+            # the workers map the same pages (posix only: see _build_mosaic)
+            surface = surface.mapped(held)
+        return mosaic(
+            cams, surface, out_crs, output, resolution_m, options, preview=preview, poses=poses, notes=notes,
+            skipped=skipped, dsm_source=source_path(dsm) if dsm is not None else None, dsm_offset_m=measured_offset,
+            feedback=fb,
+        )  # fmt: skip
