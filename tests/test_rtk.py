@@ -13,7 +13,8 @@ import pytest
 from conftest import SFM_FAST
 
 import geoortho
-from geoortho.photos.metadata import DEFAULT_SIGMA_M, position_accuracy, read_photo
+from geoortho.photos.metadata import read_photo
+from geoortho.photos.tags import DEFAULT_SIGMA_M, position_accuracy
 
 # --- the tags on their own ----------------------------------------------------------------------
 

@@ -50,7 +50,9 @@ import numpy as np
 
 from geoortho.core.crs import WGS84, transformer
 from geoortho.errors import InputError
-from geoortho.photos.metadata import DEFAULT_SIGMA_M, RTK_FLAGS, Photo, floor_sigma, photo_seconds
+from geoortho.photos.flight_photos import photo_seconds
+from geoortho.photos.photo import Photo
+from geoortho.photos.tags import DEFAULT_SIGMA_M, RTK_FLAGS, floor_sigma
 
 __all__ = ["Position", "PositionFile", "Trajectory", "apply_positions", "read_positions"]
 

@@ -70,7 +70,7 @@ CAMERA_MODEL = "FC6310"
 
 
 # Whose metadata the photos carry (synth's ``maker``): the same attitude and position written
-# with each maker family's tags and conventions (geoortho.photos.metadata._FAMILIES names the documents).
+# with each maker family's tags and conventions (geoortho.photos.tags.ATTITUDE_FAMILIES names the documents).
 Maker = Literal["dji", "autel", "parrot", "skydio", "pix4d", "sensefly", "exif"]
 
 
