@@ -22,13 +22,9 @@ from geoortho.core.outputs import write_json, write_vector
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
-from geoortho.photos.footprint import (
-    compute_footprints,
-    photo_cameras,
-    photos_with_altitude,
-    working_crs,
-    write_overlap,
-)
+from geoortho.photos.footprint import photos_with_altitude
+from geoortho.photos.footprint_layers import write_overlap
+from geoortho.photos.photo_cameras import compute_footprints, photo_cameras, working_crs
 from geoortho.planning.control import given_gcps, seen_by
 
 

@@ -18,9 +18,7 @@ from geoortho.core.crs import WGS84, crs_to_text, transformer
 from geoortho.core.outputs import atomic_path, write_text, write_vector
 from geoortho.feedback import Feedback
 from geoortho.gcp.markers import marker_cells
-from geoortho.photos.footprint import (
-    write_overlap,
-)
+from geoortho.photos.footprint_layers import write_overlap
 from geoortho.planning.control import DETECTION_SAFETY, FLIGHT_ATTITUDE_SIGMA_DEG, FLIGHT_POSITION_SIGMA_M, Control
 from geoortho.planning.flight import Flight, line_overlaps, photo_coverage
 from geoortho.planning.site import PlanOptions, Site
