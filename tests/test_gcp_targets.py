@@ -846,7 +846,8 @@ def test_ground_carried_from_a_sharp_photo_places_a_marker_in_a_blurred_one(blur
     import numpy as np
 
     from geoortho.gcp.blur import motion_kernel
-    from geoortho.gcp.detect import SearchWindow, carried_place
+    from geoortho.gcp.carry import carried_place
+    from geoortho.gcp.detect import SearchWindow
     from geoortho.synthetic.render import _other_motion_kernel
 
     rng = np.random.default_rng(5)

@@ -24,16 +24,15 @@ from geoortho.core.parallel import map_ordered
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, split
+from geoortho.gcp.carry import CarryJob, second_look_task
 from geoortho.gcp.detect import (
     ATTEMPTS,
     PROBED,
-    CarryJob,
     Detection,
     SearchWindow,
     beyond_edge_px,
     detect_task,
     probe_task,
-    second_look_task,
     side_ratio,
 )
 from geoortho.gcp.io import GcpSet
@@ -615,8 +614,8 @@ def second_look(
     workers: int,
 ) -> Results:
     """Coded markers not found in a photo once every photo is searched, fitted again
-    (:func:`.detect.second_look_task`): where the nearest photo that decoded them puts them
-    (:func:`.detect.carried_place`), else in their whole window. A blurred photo often has no
+    (:func:`.carry.second_look_task`): where the nearest photo that decoded them puts them
+    (:func:`.carry.carried_place`), else in their whole window. A blurred photo often has no
     marker of its own found to place the others by; a sharp neighbour has. A marker so carried is
     taken as one placed by its photo's other markers (:func:`_placed`)."""
     donors: dict[str, list[tuple[str, Detection, SearchWindow]]] = {}
