@@ -727,7 +727,7 @@ def test_the_correlation_at_a_known_place_is_opencvs_masked_match_there():
         A = look.marker_affine(14.0 * np.eye(2), rng.uniform(0, 90), rng.uniform(0.9, 1.1), 0.0, 0.0)
         tpl, cover = rend.render(17, 17, A, rng.uniform(0, 8), rng.uniform(0, 180), 0.5)
         t = tpl.reshape(size, size).astype(np.float32)
-        m = ((cover > 0.999) & ~search.code_cells_of(xs.ravel() - 17, ys.ravel() - 17, A, cells)).reshape(size, size)
+        m = ((cover > 0.999) & ~search._code_cells(xs.ravel() - 17, ys.ravel() - 17, A, cells)).reshape(size, size)
         m = m.astype(np.float32)
         ref = np.nan_to_num(cv2.matchTemplate(crop, t, cv2.TM_CCOEFF_NORMED, mask=m), nan=-1.0)
         places = np.nonzero(rng.random(ref.shape) < 0.5)
