@@ -126,6 +126,236 @@ def worst_part_of(
     return worst / gain
 
 
+class TargetFit:
+    """One refinement's least-squares problem: the patch's pixels round the start, which of them
+    are fitted and which censored (clipped), the target's renderer, and the parameters' start,
+    free entries and bounds. The parameters, 13 of them: centre x, y, turn, log scale, shape
+    correction e1, e2, blur as a vector x, y, defocus px, a cross's bar width, and a glare spot's
+    centre x, y and log size; the levels (gain, offset, the ground beyond a coded board, the
+    glare's amplitude) are solved in closed form at each step, never searched."""
+
+    def __init__(
+        self,
+        crop: np.ndarray,
+        kind: str,
+        base: np.ndarray,
+        cells: np.ndarray | None,
+        start: tuple[float, float, float],
+        blur: tuple[float, float],
+        shape: tuple[float, float, float, float],
+        samples: int,
+    ) -> None:
+        self.kind, self.base = kind, base
+        cx0, cy0, angle0 = start
+        half = target_half_extent(kind, cells)
+        reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.15 + blur[0] / 2 + 3))
+        gx0, gx1 = max(0, int(cx0) - reach), min(crop.shape[1], int(cx0) + reach + 1)
+        gy0, gy1 = max(0, int(cy0) - reach), min(crop.shape[0], int(cy0) + reach + 1)
+        self.origin = (gx0, gy0)
+        ys, xs = np.mgrid[gy0:gy1, gx0:gx1]
+        self.xs, self.ys = xs, ys
+        pix = crop[gy0:gy1, gx0:gx1].ravel().astype(np.float64)
+        rend = Renderer(kind, cells, xs, ys)
+        A0 = marker_affine(base, angle0, 1.0, 0.0, 0.0)
+        # A coded marker's board (quiet zone included) stands on ground of its own: a blurred pixel
+        # at the board's rim is partly board, partly ground. The model gives the board's share and
+        # the ground beyond it is one more level, solved with the gain: the rims' ramps, where the
+        # border's edges are, then place the marker along the blur too. On six degraded small
+        # surveys (seeds 11 and 5, three renderings each) a fit 3.0 px off is gone and the mean
+        # centre error falls by 0.01-0.05 px, recall within 2 markers of 90 either way. The other
+        # targets keep the pixels wholly on the model, on which their thresholds were calibrated.
+        self.rim = rim = kind in CODED
+        if rim:
+            _, cover0 = rend.render(cx0, cy0, A0, blur[0], blur[1], 0.7)
+            use = (cover0 > 0.5) & (pix < SATURATED)
+        else:
+            _, cover0 = rend.render(cx0, cy0, A0 * 0.9, 0.0, 0.0, 0.0)
+            use = (cover0 > 0.999) & (pix < SATURATED)
+        if use.sum() < 12:
+            use = (cover0 > 0.5) & ~np.isnan(pix)
+        bx, by = blur[0] * math.cos(math.radians(blur[1])), blur[0] * math.sin(math.radians(blur[1]))
+        self.side = side = float(np.sqrt(abs(np.linalg.det(base))))
+        # A glare spot: an additive bright blob (its saturated core is masked), fitted as one more
+        # term where the patch has saturated pixels, started at their centroid.
+        hot = pix >= SATURATED
+        self.glare = glare = bool(hot.any())
+        gx, gy = (xs.ravel()[hot].mean(), ys.ravel()[hot].mean()) if glare else (cx0, cy0)
+        # blur as a vector (x, y): no wrap-around of its direction for the optimiser
+        scale0, e10, e20, defocus0 = shape
+        x0 = np.array(
+            [cx0, cy0, angle0, math.log(scale0), e10, e20, bx, by, defocus0, CROSS_BAR, gx, gy, math.log(0.25 * side)]
+        )
+        self.free = [i for i in range(13) if (i != 9 or kind == "cross") and (i < 10 or glare)]
+        # Clipped pixels (white paint in sun, glare) are censored: they say the model is at least the
+        # clip there. Scored one-sided, they pull a model that is darker there, never a brighter one.
+        if rim:
+            use = use | ((cover0 > 0.5) & (pix >= SATURATED))
+        self.censor = hot[use] if rim else np.zeros(int(use.sum()), bool)
+        self.solved = ~self.censor  # the rows the levels are solved on
+        self.xf, self.yf = xs.ravel()[use].astype(float), ys.ravel()[use].astype(float)
+        # the fit renders only the pixels it uses (a pixel's value depends on no other): 30-48 % of
+        # the patch's square (median 42 %, the tiny degraded survey's 63 refinements)
+        self.fitted = Renderer(kind, cells, self.xf, self.yf, samples=samples)
+        self.path = subsample_offsets(samples)[2][None, :]  # the motion path's samples (−½…½)
+        # A difference step in one parameter moves the model or the glare term, never both (but for
+        # the blur's): each term is kept by the parameters it depends on, and a Jacobian's columns
+        # for the other term's reuse it (a glare fit's 13 columns: 3 renders and 8 spots saved).
+        self.rendered: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        self.spotted: dict[bytes, np.ndarray] = {}
+        self.no_spot = np.empty(0)
+        self.seen = pix[use]
+        self.seen_solved = self.seen[self.solved]
+        # Motion blur is the photo's (measured from its texture), so the target's stays near it, and
+        # defocus is a pixel or two: a model free to smear itself fits any texture.
+        tol = max(2.5, 0.4 * blur[0])
+        max_defocus = 1.0 + 0.08 * side
+        x0[8] = min(x0[8], 0.9 * max_defocus)
+        # the estimate can be wrong on real texture: the box holds both no blur and the estimate
+        bx_lo, bx_hi, by_lo, by_hi = min(0.0, bx) - tol, max(0.0, bx) + tol, min(0.0, by) - tol, max(0.0, by) + tol
+        lo = np.array([cx0 - reach, cy0 - reach, angle0 - 25, -0.25, -0.2, -0.2, bx_lo, by_lo, 0.0, 0.08])
+        hi = np.array([cx0 + reach, cy0 + reach, angle0 + 25, 0.25, 0.2, 0.2, bx_hi, by_hi, max_defocus, 0.45])
+        self.lo = np.r_[lo, gx - side, gy - side, math.log(0.05 * side + 0.5)]
+        self.hi = np.r_[hi, gx + side, gy + side, math.log(side + 1.0)]
+        self.x0 = np.clip(x0, self.lo, self.hi)  # (a start from an earlier fit may sit a rounding error outside)
+
+    def placed(self, p: np.ndarray) -> tuple[float, float, np.ndarray, float, float, float]:
+        """The renderer's arguments at ``p``: centre, affine, blur length and direction, defocus."""
+        cx, cy, ang, ls, e1, e2, vx, vy, dpx = p[:9]
+        A = marker_affine(self.base, ang, math.exp(ls), e1, e2)
+        return cx, cy, A, math.hypot(vx, vy), math.degrees(math.atan2(vy, vx)), abs(dpx)
+
+    def model(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self.fitted.bar = min(max(float(p[9]), 0.08), 0.45)
+        return self.fitted.render(*self.placed(p))
+
+    def spot(self, p: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The glare term at ``p`` on pixels (x, y). The glare is in the scene, so the camera's motion
+        smears it as it smears the target: the spot averaged along the same path (a spot narrower
+        than the blur makes a flat-topped streak, not a longer Gaussian)."""
+        var = math.exp(2 * p[12])
+        kernel = compiled("_glare_exponent")
+        path = self.path
+        if kernel is not None:
+            e = kernel(x.ravel().astype(float), y.ravel().astype(float), p[10], p[11], p[6], p[7], path[0], var)
+            result: np.ndarray = np.exp(e, out=e).mean(axis=1).reshape(x.shape)
+            return result
+        dx = x.ravel()[:, None] - p[10] + p[6] * path
+        dy = y.ravel()[:, None] - p[11] - p[7] * path
+        result = np.exp(-(dx * dx + dy * dy) / (2 * var)).mean(axis=1).reshape(x.shape)
+        return result
+
+    def terms(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The model (its value and share on each pixel) and the glare term (empty: none), kept."""
+        t, cover = kept_in(self.rendered, p[:10].tobytes(), lambda: self.model(p), 32)
+        return t, cover, self.glare_term(p)
+
+    def glare_term(self, p: np.ndarray) -> np.ndarray:
+        if not self.glare:
+            return self.no_spot
+        return kept_in(self.spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: self.spot(p, self.xf, self.yf), 32)
+
+    def design(self, p: np.ndarray) -> np.ndarray:
+        t, cover, g = self.terms(p)
+        cols = [t * cover, 1.0 - cover, np.ones_like(t)] if self.rim else [t, np.ones_like(t)]
+        return np.column_stack([*cols, g] if self.glare else cols)
+
+    def models(self, ps: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`model` at each of ``ps``, kept as :meth:`terms` keeps it; a coded marker's that
+        are not kept rendered in one call."""
+        rendered = self.rendered
+        keys = [p[:10].tobytes() for p in ps]
+        out = {key: rendered[key] for key in keys if key in rendered}
+        todo = {key: p for key, p in zip(keys, ps) if key not in out}
+        if todo:
+            if self.fitted.lut is not None:
+                made = self.fitted.render_rows([self.placed(p) for p in todo.values()])
+            else:
+                made = [self.model(p) for p in todo.values()]
+            out.update(zip(todo, made))
+            if len(rendered) + len(todo) > 32:
+                rendered.clear()
+            rendered.update(zip(todo, made))
+        return [out[key] for key in keys]
+
+    def residual_rows(self, qs: np.ndarray) -> np.ndarray:
+        """The residuals at each row of ``qs`` (free parameters): the Jacobian's columns and a
+        scan's points each in one compiled call of the render and one of the levels."""
+        ps = []
+        for q in qs:
+            p = self.x0.copy()
+            p[self.free] = q
+            ps.append(p)
+        seen, solved, censor = self.seen, self.solved, self.censor
+        kernel = compiled("_level_residuals", len(ps))
+        if kernel is None:
+            rows = []
+            for p in ps:
+                d = self.design(p)
+                # gain, offset (and glare amplitude) in closed form
+                coef, *_ = np.linalg.lstsq(d[solved], self.seen_solved, rcond=None)
+                r = d @ coef - seen
+                r[censor] = np.minimum(r[censor], 0.0)
+                rows.append(r / 8.0)
+            return np.array(rows)
+        looks = self.models(ps)
+        spots = [self.glare_term(p) for p in ps]
+        t, cover = np.array([m[0] for m in looks]), np.array([m[1] for m in looks])
+        result: np.ndarray = kernel(t, cover, np.array(spots).reshape(len(ps), -1), self.rim, seen, solved, censor)
+        return result
+
+    def residuals(self, q: np.ndarray) -> np.ndarray:
+        result: np.ndarray = self.residual_rows(q[None])[0]
+        return result
+
+    def batched(self, fun: Callable[[np.ndarray], np.ndarray], points: Iterable[np.ndarray]) -> np.ndarray:
+        # scipy's map for its finite differences, whose fun is the residuals: the points at once
+        return self.residual_rows(np.array(list(points)))
+
+    def solve(self, converge: bool, evaluations: int) -> np.ndarray:
+        """The fitted parameters: run to convergence (``converge``), or a short polish (scipy's
+        soft-L1 least squares); a coded marker then placed along its blur. The start where the
+        optimiser fails."""
+        from scipy.optimize import least_squares
+
+        x0, free, lo, hi = self.x0, self.free, self.lo, self.hi
+        try:
+            if converge:
+                p = _converge(self.residual_rows, x0, free, lo, hi, self.side, evaluations)
+                if self.rim:
+                    p = _along_blur(self.residual_rows, p, free, lo, hi)
+            else:
+                scales = np.array([0.3, 0.3, 2.0, 0.03, 0.03, 0.03, 1.0, 1.0, 0.3, 0.02, 1.0, 1.0, 0.1])
+                sol = least_squares(
+                    self.residuals,
+                    x0[free],
+                    bounds=(lo[free], hi[free]),
+                    loss="soft_l1",
+                    f_scale=2.0,
+                    diff_step=1e-3,
+                    max_nfev=80,
+                    xtol=POLISH_XTOL,
+                    x_scale=scales[free],
+                    workers=self.batched,
+                )
+                p = x0.copy()
+                p[free] = sol.x
+                if self.rim:  # the verdict's place too: a marker scored 1 px off along its blur scores low
+                    p = _along_blur(self.residual_rows, p, free, lo, hi)
+        except (ValueError, np.linalg.LinAlgError):
+            p = x0
+        return p
+
+    def glare_image(self, p: np.ndarray) -> tuple[int, int, np.ndarray] | None:
+        """The fitted glare over the patch (its corner, its image), to take off the pixels before
+        scoring; None without glare."""
+        if not self.glare:
+            return None
+        d = self.design(p)
+        coef, *_ = np.linalg.lstsq(d[self.solved], self.seen_solved, rcond=None)
+        gxx, gyy = self.xs.astype(float), self.ys.astype(float)
+        return (*self.origin, coef[-1] * self.spot(p, gxx, gyy))  # the last term
+
+
 def refine_fit(
     crop: np.ndarray,
     kind: str,
@@ -140,205 +370,10 @@ def refine_fit(
 ) -> tuple[tuple[float, ...], tuple[int, int, np.ndarray] | None]:
     """Least-squares fit of the model's geometry, blur and defocus to the pixels around ``start``
     (and ``shape``: scale, shape correction e1 and e2, defocus px), with its optimiser run to
-    convergence (``converge``; by default for :data:`CONVERGED` kinds)."""
-    # One piece: the model, its glare term, residuals and bounds are closures over the patch's
-    # pixels, mask and renderer; split, they would pass the same eight arrays to each other.
-    from scipy.optimize import least_squares
-
-    cx0, cy0, angle0 = start
-    half = target_half_extent(kind, cells)
-    reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.15 + blur[0] / 2 + 3))
-    gx0, gx1 = max(0, int(cx0) - reach), min(crop.shape[1], int(cx0) + reach + 1)
-    gy0, gy1 = max(0, int(cy0) - reach), min(crop.shape[0], int(cy0) + reach + 1)
-    ys, xs = np.mgrid[gy0:gy1, gx0:gx1]
-    pix = crop[gy0:gy1, gx0:gx1].ravel().astype(np.float64)
-    rend = Renderer(kind, cells, xs, ys)
-    A0 = marker_affine(base, angle0, 1.0, 0.0, 0.0)
-    # A coded marker's board (quiet zone included) stands on ground of its own: a blurred pixel at
-    # the board's rim is partly board, partly ground. The model gives the board's share and the
-    # ground beyond it is one more level, solved with the gain: the rims' ramps, where the border's
-    # edges are, then place the marker along the blur too. On six degraded small surveys (seeds 11
-    # and 5, three renderings each) a fit 3.0 px off is gone and the mean centre error falls by
-    # 0.01-0.05 px, recall within 2 markers of 90 either way. The other targets keep the pixels
-    # wholly on the model, on which their thresholds were calibrated.
-    rim = kind in CODED
-    if rim:
-        _, cover0 = rend.render(cx0, cy0, A0, blur[0], blur[1], 0.7)
-        use = (cover0 > 0.5) & (pix < SATURATED)
-    else:
-        _, cover0 = rend.render(cx0, cy0, A0 * 0.9, 0.0, 0.0, 0.0)
-        use = (cover0 > 0.999) & (pix < SATURATED)
-    if use.sum() < 12:
-        use = (cover0 > 0.5) & ~np.isnan(pix)
-    bx, by = blur[0] * math.cos(math.radians(blur[1])), blur[0] * math.sin(math.radians(blur[1]))
-    side = float(np.sqrt(abs(np.linalg.det(base))))
-    # A glare spot: an additive bright blob (its saturated core is masked), fitted as one more
-    # term where the patch has saturated pixels, started at their centroid.
-    hot = pix >= SATURATED
-    glare = bool(hot.any())
-    gx, gy = (xs.ravel()[hot].mean(), ys.ravel()[hot].mean()) if glare else (cx0, cy0)
-    # blur as a vector (x, y): no wrap-around of its direction for the optimiser
-    scale0, e10, e20, defocus0 = shape
-    x0 = np.array(
-        [cx0, cy0, angle0, math.log(scale0), e10, e20, bx, by, defocus0, CROSS_BAR, gx, gy, math.log(0.25 * side)]
-    )
-    free = [i for i in range(13) if (i != 9 or kind == "cross") and (i < 10 or glare)]
-    # Clipped pixels (white paint in sun, glare) are censored: they say the model is at least the
-    # clip there. Scored one-sided, they pull a model that is darker there, never a brighter one.
-    if rim:
-        use = use | ((cover0 > 0.5) & (pix >= SATURATED))
-    censor = hot[use] if rim else np.zeros(int(use.sum()), bool)
-    solved = ~censor  # the rows the levels are solved on
-    xf, yf = xs.ravel()[use].astype(float), ys.ravel()[use].astype(float)
-    # the fit renders only the pixels it uses (a pixel's value depends on no other): 30-48 % of
-    # the patch's square (median 42 %, the tiny degraded survey's 63 refinements)
-    fitted = Renderer(kind, cells, xf, yf, samples=samples)
-
-    def placed(p: np.ndarray) -> tuple[float, float, np.ndarray, float, float, float]:
-        """The renderer's arguments at ``p``: centre, affine, blur length and direction, defocus."""
-        cx, cy, ang, ls, e1, e2, vx, vy, dpx = p[:9]
-        A = marker_affine(base, ang, math.exp(ls), e1, e2)
-        return cx, cy, A, math.hypot(vx, vy), math.degrees(math.atan2(vy, vx)), abs(dpx)
-
-    def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        fitted.bar = min(max(float(p[9]), 0.08), 0.45)
-        return fitted.render(*placed(p))
-
-    path = subsample_offsets(samples)[2][None, :]  # the motion path's samples, as the target's (−½…½)
-
-    def spot(p: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        # the glare is in the scene, so the camera's motion smears it as it smears the target:
-        # the spot averaged along the same path (a spot narrower than the blur makes a flat-topped
-        # streak, not a longer Gaussian)
-        var = math.exp(2 * p[12])
-        kernel = compiled("_glare_exponent")
-        if kernel is not None:
-            e = kernel(x.ravel().astype(float), y.ravel().astype(float), p[10], p[11], p[6], p[7], path[0], var)
-            result: np.ndarray = np.exp(e, out=e).mean(axis=1).reshape(x.shape)
-            return result
-        dx = x.ravel()[:, None] - p[10] + p[6] * path
-        dy = y.ravel()[:, None] - p[11] - p[7] * path
-        result = np.exp(-(dx * dx + dy * dy) / (2 * var)).mean(axis=1).reshape(x.shape)
-        return result
-
-    # A difference step in one parameter moves the model or the glare term, never both (but for
-    # the blur's): each term is kept by the parameters it depends on, and a Jacobian's columns for
-    # the other term's reuse it (a glare fit's 13 columns: 3 renders and 8 spots saved).
-    rendered: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
-    spotted: dict[bytes, np.ndarray] = {}
-
-    no_spot = np.empty(0)
-
-    def terms(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The model (its value and share on each pixel) and the glare term (empty: none), kept."""
-        t, cover = kept_in(rendered, p[:10].tobytes(), lambda: model(p), 32)
-        return t, cover, glare_term(p)
-
-    def glare_term(p: np.ndarray) -> np.ndarray:
-        return kept_in(spotted, p[[6, 7, 10, 11, 12]].tobytes(), lambda: spot(p, xf, yf), 32) if glare else no_spot
-
-    def design(p: np.ndarray) -> np.ndarray:
-        t, cover, g = terms(p)
-        cols = [t * cover, 1.0 - cover, np.ones_like(t)] if rim else [t, np.ones_like(t)]
-        return np.column_stack([*cols, g] if glare else cols)
-
-    seen = pix[use]
-    seen_solved = seen[solved]
-
-    def models(ps: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """:func:`model` at each of ``ps``, kept as :func:`terms` keeps it; a coded marker's that
-        are not kept rendered in one call."""
-        keys = [p[:10].tobytes() for p in ps]
-        out = {key: rendered[key] for key in keys if key in rendered}
-        todo = {key: p for key, p in zip(keys, ps) if key not in out}
-        if todo:
-            if fitted.lut is not None:
-                made = fitted.render_rows([placed(p) for p in todo.values()])
-            else:
-                made = [model(p) for p in todo.values()]
-            out.update(zip(todo, made))
-            if len(rendered) + len(todo) > 32:
-                rendered.clear()
-            rendered.update(zip(todo, made))
-        return [out[key] for key in keys]
-
-    def residual_rows(qs: np.ndarray) -> np.ndarray:
-        """The residuals at each row of ``qs`` (free parameters): the Jacobian's columns and a
-        scan's points each in one compiled call of the render and one of the levels."""
-        ps = []
-        for q in qs:
-            p = x0.copy()
-            p[free] = q
-            ps.append(p)
-        kernel = compiled("_level_residuals", len(ps))
-        if kernel is None:
-            rows = []
-            for p in ps:
-                d = design(p)
-                # gain, offset (and glare amplitude) in closed form
-                coef, *_ = np.linalg.lstsq(d[solved], seen_solved, rcond=None)
-                r = d @ coef - seen
-                r[censor] = np.minimum(r[censor], 0.0)
-                rows.append(r / 8.0)
-            return np.array(rows)
-        looks = models(ps)
-        spots = [glare_term(p) for p in ps]
-        t, cover = np.array([m[0] for m in looks]), np.array([m[1] for m in looks])
-        result: np.ndarray = kernel(t, cover, np.array(spots).reshape(len(ps), -1), rim, seen, solved, censor)
-        return result
-
-    def residuals(q: np.ndarray) -> np.ndarray:
-        result: np.ndarray = residual_rows(q[None])[0]
-        return result
-
-    def batched(fun: Callable[[np.ndarray], np.ndarray], points: Iterable[np.ndarray]) -> np.ndarray:
-        # scipy's map for its finite differences, whose fun is the residuals: the points at once
-        return residual_rows(np.array(list(points)))
-
-    # Motion blur is the photo's (measured from its texture), so the target's stays near it, and
-    # defocus is a pixel or two: a model free to smear itself fits any texture.
-    tol = max(2.5, 0.4 * blur[0])
-    max_defocus = 1.0 + 0.08 * side
-    x0[8] = min(x0[8], 0.9 * max_defocus)
-    # the estimate can be wrong on real texture: the box holds both no blur and the estimate
-    bx_lo, bx_hi, by_lo, by_hi = min(0.0, bx) - tol, max(0.0, bx) + tol, min(0.0, by) - tol, max(0.0, by) + tol
-    lo = np.array([cx0 - reach, cy0 - reach, angle0 - 25, -0.25, -0.2, -0.2, bx_lo, by_lo, 0.0, 0.08])
-    hi = np.array([cx0 + reach, cy0 + reach, angle0 + 25, 0.25, 0.2, 0.2, bx_hi, by_hi, max_defocus, 0.45])
-    lo = np.r_[lo, gx - side, gy - side, math.log(0.05 * side + 0.5)]
-    hi = np.r_[hi, gx + side, gy + side, math.log(side + 1.0)]
-    x0 = np.clip(x0, lo, hi)  # (a start from an earlier fit may sit a rounding error outside)
-    try:
-        if (kind in CONVERGED) if converge is None else converge:
-            p = _converge(residual_rows, x0, free, lo, hi, side, evaluations)
-            if rim:
-                p = _along_blur(residual_rows, p, free, lo, hi)
-        else:
-            scales = np.array([0.3, 0.3, 2.0, 0.03, 0.03, 0.03, 1.0, 1.0, 0.3, 0.02, 1.0, 1.0, 0.1])
-            sol = least_squares(
-                residuals,
-                x0[free],
-                bounds=(lo[free], hi[free]),
-                loss="soft_l1",
-                f_scale=2.0,
-                diff_step=1e-3,
-                max_nfev=80,
-                xtol=POLISH_XTOL,
-                x_scale=scales[free],
-                workers=batched,
-            )
-            p = x0.copy()
-            p[free] = sol.x
-            if rim:  # the verdict's place too: a marker scored 1 px off along its blur scores low
-                p = _along_blur(residual_rows, p, free, lo, hi)
-    except (ValueError, np.linalg.LinAlgError):
-        p = x0
-    glare_img = None
-    if glare:
-        # the fitted glare, to take off the pixels before scoring
-        d = design(p)
-        coef, *_ = np.linalg.lstsq(d[solved], seen_solved, rcond=None)
-        gxx, gyy = xs.astype(float), ys.astype(float)
-        glare_img = coef[-1] * spot(p, gxx, gyy)  # the last term
+    convergence (``converge``; by default for :data:`CONVERGED` kinds): the parameters, and the
+    fitted glare (:meth:`TargetFit.glare_image`)."""
+    fit = TargetFit(crop, kind, base, cells, start, blur, shape, samples)
+    p = fit.solve((kind in CONVERGED) if converge is None else converge, evaluations)
     cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
     return (
         float(cx),
@@ -351,7 +386,7 @@ def refine_fit(
         float(math.degrees(math.atan2(vy, vx))),
         float(abs(dpx)),
         float(bar),
-    ), (None if glare_img is None else (gx0, gy0, glare_img))
+    ), fit.glare_image(p)
 
 
 #: Targets whose model is fitted to convergence. The others get a short polish from the coarse
