@@ -349,6 +349,7 @@ def test_a_dsm_far_larger_than_the_flight_is_read_only_under_it(tiny_survey, tmp
     from rasterio.transform import from_origin
 
     import geoortho.photos.footprint as fpmod
+    import geoortho.photos.photo_cameras as cameras
     from geoortho.core import surface as surf
 
     home = json.loads((tiny_survey.truth / "survey.json").read_text())["home"]
@@ -370,7 +371,7 @@ def test_a_dsm_far_larger_than_the_flight_is_read_only_under_it(tiny_survey, tmp
         shapes.append(s.grid.shape)
         return s
 
-    monkeypatch.setattr(fpmod, "read_surface", spy)
+    monkeypatch.setattr(cameras, "read_surface", spy)
     args = dict(takeoff_elevation_m=home["ground_z"])
     a = footprints(tiny_survey.images, tmp_path / "a.gpkg", dsm=tiny_survey.dsm, **args)
     b = footprints(tiny_survey.images, tmp_path / "b.gpkg", dsm=big, **args)
@@ -381,7 +382,8 @@ def test_a_dsm_far_larger_than_the_flight_is_read_only_under_it(tiny_survey, tmp
     assert a.n_photos == b.n_photos and list(ga.index) == list(gb.index)
     ious = [_iou(ga.geometry[n], gb.geometry[n]) for n in ga.index]
     assert min(ious) > 0.999, (ious, ga.outside_dsm.tolist(), gb.outside_dsm.tolist())
-    monkeypatch.setattr(fpmod, "DSM_MAX_CELLS", 10_000)
+    for module in (cameras, fpmod):  # the read under the flight, and what footprints says of it
+        monkeypatch.setattr(module, "DSM_MAX_CELLS", 10_000)
     fb = RecordingFeedback()
     c = footprints(tiny_survey.images, tmp_path / "c.gpkg", dsm=big, feedback=fb, **args)
     assert shapes[-1][0] * shapes[-1][1] <= 10_000
