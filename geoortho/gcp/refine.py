@@ -145,7 +145,7 @@ class TargetFit:
         shape: tuple[float, float, float, float],
         samples: int,
     ) -> None:
-        self.kind, self.base = kind, base
+        self.base = base
         cx0, cy0, angle0 = start
         half = target_half_extent(kind, cells)
         reach = int(math.ceil(np.abs(base).sum(axis=1).max() * half * 1.15 + blur[0] / 2 + 3))

@@ -352,6 +352,15 @@ def _mosaic(
     return result
 
 
+def _held_once(surface: Surface, folder: str | os.PathLike[str]) -> Surface:
+    """A DSM kept in a mapped file in ``folder`` (:meth:`GridSurface.mapped`), so that the pool
+    workers map the same pages instead of each holding a copy; flat ground as it is. Posix only:
+    Windows cannot remove a file still mapped when its folder goes."""
+    if isinstance(surface, GridSurface) and os.name == "posix":
+        return surface.mapped(folder)
+    return surface
+
+
 def _build_mosaic(
     placed: Any,
     surface: Surface,
@@ -374,10 +383,7 @@ def _build_mosaic(
     t0, times = clock
     output.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=temp_prefix(output.name), dir=output.parent) as work_dir:
-        if isinstance(surface, GridSurface) and os.name == "posix":
-            # the workers map one file of the DSM instead of each holding a copy (posix only: Windows
-            # cannot remove a file still mapped when the folder goes)
-            surface = surface.mapped(work_dir)
+        surface = _held_once(surface, work_dir)  # a direct mosaic() call's DSM: the workers share it
         vis = _visibility(placed, surface, options, Path(work_dir), st_vis)
         times["visibility"] = time.perf_counter() - t0
 
@@ -767,10 +773,7 @@ def ortho(
     )  # fmt: skip
     Path(output).parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=temp_prefix(Path(output).name), dir=Path(output).parent) as held:
-        if isinstance(surface, GridSurface) and os.name == "posix":
-            # the DSM held once from here on, in a mapped file: this process's own copy goes, and
-            # the workers map the same pages (posix only: see _build_mosaic)
-            surface = surface.mapped(held)
+        surface = _held_once(surface, held)  # from here on this process holds no copy of its own
         return mosaic(
             cams, surface, out_crs, output, resolution_m, options, preview=preview, poses=poses, notes=notes,
             skipped=skipped, dsm_source=source_path(dsm) if dsm is not None else None, dsm_offset_m=measured_offset,
