@@ -1001,13 +1001,13 @@ def test_a_blurred_markers_centre_is_found_along_its_blur(start_along_px):
     import math
 
     from geoortho.gcp.markers import marker_cells
-    from geoortho.gcp.refine import refine_fit
+    from geoortho.gcp.refine import TargetModel, refine_fit
 
     img, (cx, cy), A = _blurred_marker(7, 16.0, 9.0, seed=2)
     b = math.radians(30.0)  # _blurred_marker's blur direction, anticlockwise from x as seen
     start = (cx + start_along_px * math.cos(b), cy - start_along_px * math.sin(b), 0.0)
     fit, _ = refine_fit(
-        img.astype(float), "aruco", A, marker_cells("DICT_4X4_50", 7), start, (9.0, 30.0), converge=True
+        img.astype(float), TargetModel("aruco", A, marker_cells("DICT_4X4_50", 7)), start, (9.0, 30.0), converge=True
     )
     assert math.hypot(fit[0] - cx, fit[1] - cy) < 0.35, fit
 

@@ -85,21 +85,25 @@ def _cloud(p: Project) -> Path:
     return p.points if p.points is not None else p.folder("dense") / "dense.laz"
 
 
+def _surface(p: Project) -> Path:
+    """The DSM given, else the one the chain's dem makes."""
+    return p.dsm if p.dsm is not None else p.folder("dem") / "dsm.tif"
+
+
+def _given(p: Project, *names: str) -> dict[str, Any]:
+    """Project values a stage takes as they were given, under the same names."""
+    return {name: getattr(p, name) for name in names}
+
+
 STAGES: tuple[Stage, ...] = (
     Stage(
         "gcp-find",
         lambda p: p.gcp_file is not None,
         lambda p, d: {
-            "images": p.images,
-            "gcp_file": p.gcp_file,
+            **_given(p, "images", "gcp_file", "dsm", "crs", "takeoff_elevation_m", "flight_height_m", "workers"),
             "output": p.folder("gcp-find") / "gcp_list.txt",
             "detections": p.folder("gcp-find") / "detections.gpkg",
             "review": p.folder("gcp-find") / "review.png",
-            "dsm": p.dsm,
-            "crs": p.crs,
-            "takeoff_elevation_m": p.takeoff_elevation_m,
-            "flight_height_m": p.flight_height_m,
-            "workers": p.workers,
         },
         ("images", "gcp_file", "dsm"),
         weight=2,
@@ -108,13 +112,10 @@ STAGES: tuple[Stage, ...] = (
         "sfm",
         lambda p: True,
         lambda p, d: {
-            "images": p.images,
+            **_given(p, "images", "crs", "takeoff_elevation_m", "workers"),
             "output": p.folder("sfm"),
             "gcp_list": _gcp_observations(p, d),
             "checkpoints": _found_checkpoints(p, d),
-            "crs": p.crs,
-            "takeoff_elevation_m": p.takeoff_elevation_m,
-            "workers": p.workers,
             **({"positions": p.positions} if p.positions is not None else {}),
             # only when splitting: a one-block project's ledger (and so its resume) is unchanged
             **({"split": p.split} if p.split else {}),
@@ -127,10 +128,9 @@ STAGES: tuple[Stage, ...] = (
         "dense",
         lambda p: p.points is None,
         lambda p, d: {
+            **_given(p, "images", "workers"),
             "sfm": p.folder("sfm"),
-            "images": p.images,
             "output": p.folder("dense") / "dense.laz",
-            "workers": p.workers,
         },
         ("sfm", "images"),
         weight=5,
@@ -161,16 +161,13 @@ STAGES: tuple[Stage, ...] = (
         "footprints",
         lambda p: True,
         lambda p, d: {
-            "images": p.images,
+            **_given(
+                p, "images", "crs", "takeoff_elevation_m", "flight_height_m", "ground_elevation_m", "gps_altitude"
+            ),
             "output": p.folder("footprints") / "footprints.gpkg",
             "overlap": p.folder("footprints") / "overlap.tif",
             "sfm": p.folder("sfm"),
-            "dsm": p.dsm if p.dsm is not None else p.folder("dem") / "dsm.tif",
-            "crs": p.crs,
-            "takeoff_elevation_m": p.takeoff_elevation_m,
-            "flight_height_m": p.flight_height_m,
-            "ground_elevation_m": p.ground_elevation_m,
-            "gps_altitude": p.gps_altitude,
+            "dsm": _surface(p),
         },
         ("images", "sfm", "dsm"),
         weight=1,
@@ -179,13 +176,11 @@ STAGES: tuple[Stage, ...] = (
         "ortho",
         lambda p: True,
         lambda p, d: {
-            "images": p.images,
+            **_given(p, "images", "takeoff_elevation_m", "workers"),
             "output": p.folder("ortho") / "ortho.tif",
             "sfm": p.folder("sfm"),
-            "dsm": p.dsm if p.dsm is not None else p.folder("dem") / "dsm.tif",
+            "dsm": _surface(p),
             "preview": p.folder("ortho") / "ortho_preview.png",
-            "takeoff_elevation_m": p.takeoff_elevation_m,
-            "workers": p.workers,
         },
         ("images", "sfm", "dsm"),
         weight=4,

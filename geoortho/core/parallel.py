@@ -27,10 +27,13 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypedDict, TypeVar
 
 from geoortho.errors import ClusterError, DependencyError, InputError, WorkerError
 from geoortho.feedback import Feedback, as_feedback
+
+if TYPE_CHECKING:  # typing.Unpack is 3.11's; the annotations are not evaluated
+    from typing_extensions import Unpack
 
 __all__ = ["SCHEDULER_ENV", "active_client", "imap_ordered", "map_ordered", "process_pool", "use_scheduler"]
 
@@ -43,17 +46,18 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def map_ordered(
-    fn: Callable[[T], R],
-    items: Sequence[T],
-    *,
-    workers: int = 0,
-    initializer: Callable[..., Any] | None = None,
-    initargs: tuple[Any, ...] = (),
-    feedback: Feedback | None = None,
-    min_items_for_pool: int = 2,
-    executor: cf.Executor | None = None,
-) -> list[R]:
+class PoolOptions(TypedDict, total=False):
+    """How :func:`map_ordered` and :func:`imap_ordered` spread their items (see the latter)."""
+
+    workers: int
+    initializer: Callable[..., Any] | None
+    initargs: tuple[Any, ...]
+    feedback: Feedback | None
+    min_items_for_pool: int
+    executor: cf.Executor | None
+
+
+def map_ordered(fn: Callable[[T], R], items: Sequence[T], **pool: Unpack[PoolOptions]) -> list[R]:
     """``[fn(x) for x in items]`` on ``workers`` processes (0 = every core).
 
     In-process when one worker is asked for or there are fewer than
@@ -61,19 +65,7 @@ def map_ordered(
     Dask ``Client.get_executor()``; ``initializer`` is then not run).
     Every item is submitted at once: the caller wants the whole list anyway.
     """
-    return list(
-        imap_ordered(
-            fn,
-            items,
-            workers=workers,
-            initializer=initializer,
-            initargs=initargs,
-            feedback=feedback,
-            min_items_for_pool=min_items_for_pool,
-            executor=executor,
-            in_flight=max(1, len(items)),
-        )
-    )
+    return list(imap_ordered(fn, items, in_flight=max(1, len(items)), **pool))
 
 
 def imap_ordered(

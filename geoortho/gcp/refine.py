@@ -28,6 +28,15 @@ SATURATED = 250  # grey levels at or above: glare, not target
 POLISH_XTOL = 1e-5
 
 
+class TargetModel(NamedTuple):
+    """The target a fit looks for: its kind, its predicted frame (marker frame → pixel offsets,
+    before the fit's turn and scale) and, for a coded marker, its cells."""
+
+    kind: str
+    base: np.ndarray
+    cells: np.ndarray | None
+
+
 class FitCandidate(NamedTuple):
     """One refined fit in a window, with what acceptance asks of it."""
 
@@ -137,14 +146,13 @@ class TargetFit:
     def __init__(
         self,
         crop: np.ndarray,
-        kind: str,
-        base: np.ndarray,
-        cells: np.ndarray | None,
+        model: TargetModel,
         start: tuple[float, float, float],
         blur: tuple[float, float],
         shape: tuple[float, float, float, float],
         samples: int,
     ) -> None:
+        kind, base, cells = model
         self.base = base
         cx0, cy0, angle0 = start
         half = target_half_extent(kind, cells)
@@ -358,9 +366,7 @@ class TargetFit:
 
 def refine_fit(
     crop: np.ndarray,
-    kind: str,
-    base: np.ndarray,
-    cells: np.ndarray | None,
+    model: TargetModel,
     start: tuple[float, float, float],
     blur: tuple[float, float],
     converge: bool | None = None,
@@ -372,8 +378,8 @@ def refine_fit(
     (and ``shape``: scale, shape correction e1 and e2, defocus px), with its optimiser run to
     convergence (``converge``; by default for :data:`CONVERGED` kinds): the parameters, and the
     fitted glare (:meth:`TargetFit.glare_image`)."""
-    fit = TargetFit(crop, kind, base, cells, start, blur, shape, samples)
-    p = fit.solve((kind in CONVERGED) if converge is None else converge, evaluations)
+    fit = TargetFit(crop, model, start, blur, shape, samples)
+    p = fit.solve((model.kind in CONVERGED) if converge is None else converge, evaluations)
     cx, cy, ang, ls, e1, e2, vx, vy, dpx, bar = p[:10]
     return (
         float(cx),

@@ -47,6 +47,7 @@ from geoortho.gcp.markers import (
 from geoortho.gcp.refine import (
     SATURATED,
     FitCandidate,
+    TargetModel,
     along_reach,
     censored_fit,
     level_fit_of,
@@ -187,7 +188,7 @@ def fit_target(
     side = float(np.sqrt(abs(np.linalg.det(base))))
     scored: list[FitCandidate] = []
     for cx, cy, a, size_f, _ in coarse:
-        cand = _score(crop, kind, base * size_f, cells, (cx, cy, a), blur)
+        cand = _score(crop, TargetModel(kind, base * size_f, cells), (cx, cy, a), blur)
         if coded_id and cand.score >= min_score(kind) and cand.contrast >= min_contrast(kind):
             # a coded marker is proven by its id at its place: the first candidate (best coarse
             # match first) that passes is the marker, and the rest are not refined
@@ -332,13 +333,14 @@ def _centred(
     e1, e2 = 0.5 * (shape[0, 0] - shape[1, 1]), 0.5 * (shape[0, 1] + shape[1, 0])
     start, size = (cand.cx, cand.cy, cand.angle), (cand.scale, e1, e2, cand.dpx)
     blur = (cand.blen, cand.bdeg)
+    model = TargetModel(kind, base, cells)
     (cx, cy, ang, scale, e1, e2, blen, bdeg, dpx, _), _ = refine_fit(
-        crop, kind, base, cells, start, blur, converge=True, shape=size
+        crop, model, start, blur, converge=True, shape=size
     )
     # the model's 32 samples a pixel leave it a few grey levels off the exact integral, enough to
     # hold a centre 0.05-0.2 px from the optimum; a few steps with 256 take it there
     (cx, cy, *_), _ = refine_fit(
-        crop, kind, base, cells, (cx, cy, ang), (blen, bdeg), converge=True, shape=(scale, e1, e2, dpx),
+        crop, model, (cx, cy, ang), (blen, bdeg), converge=True, shape=(scale, e1, e2, dpx),
         samples=CENTRE_SUBSAMPLES, evaluations=CENTRE_EVALUATIONS,
     )  # fmt: skip
     dx, dy = cx - cand.cx, cy - cand.cy
@@ -391,16 +393,12 @@ def _passes(kind: str, f: FitCandidate, shape_margin: float) -> bool:
 
 
 def _score(
-    crop: np.ndarray,
-    kind: str,
-    base: np.ndarray,
-    cells: np.ndarray | None,
-    start: tuple[float, float, float],
-    blur: tuple[float, float],
+    crop: np.ndarray, model: TargetModel, start: tuple[float, float, float], blur: tuple[float, float]
 ) -> FitCandidate:
     """Refine from one candidate; its final score on every pixel the model covers (saturated ones
     out, but for a coded marker's clipped paint: :func:`censored_fit`)."""
-    fit, glare = refine_fit(crop, kind, base, cells, start, blur)
+    kind, base, cells = model
+    fit, glare = refine_fit(crop, model, start, blur)
     cx, cy, angle, scale, e1, e2, blen, bdeg, dpx, bar = fit
     crops = [crop]
     raw = crop

@@ -30,6 +30,10 @@ MARKER_SIZE = Param("marker_size_m", "number", unit="m", minimum=0.05, maximum=1
 RESOLUTION = Param("resolution_m", "number", unit="m", minimum=0.0, aliases=("resolution",))
 
 
+#: A synthetic survey's first values: where it goes, which scene, which seed (synth and demo).
+SURVEY = (Param("output", "folder", output=True), PRESET, SEED)
+
+
 def _advanced(p: Param) -> Param:
     from dataclasses import replace
 
@@ -43,9 +47,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         group="Testing",
         function_ref="geoortho.synthetic.survey:synth",
         params=(
-            Param("output", "folder", output=True),
-            PRESET,
-            SEED,
+            *SURVEY,
             Param("latitude_deg", "number", unit="deg", minimum=-80, maximum=84, advanced=True),
             Param("longitude_deg", "number", unit="deg", minimum=-180, maximum=180, advanced=True),
             _advanced(DICTIONARY),
@@ -458,12 +460,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         title="Demo: the whole chain on a synthetic survey",
         group="Testing",
         function_ref="geoortho.chain.demonstration:demo",
-        params=(
-            Param("output", "folder", output=True),
-            PRESET,
-            SEED,
-            Param("surface", "enum"),
-        ),
+        params=(*SURVEY, Param("surface", "enum")),
         outputs=(Output("output", "folder"), Output("products", "json")),
     ),
 )

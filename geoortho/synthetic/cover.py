@@ -20,7 +20,16 @@ from typing import Any
 import numpy as np
 from affine import Affine
 
-__all__ = ["CANOPY_STYLES", "CoverPatch", "add_canopy", "add_car_park", "add_hall", "add_hedge", "leaf_texture"]
+__all__ = [
+    "CANOPY_STYLES",
+    "CoverGround",
+    "CoverPatch",
+    "add_canopy",
+    "add_car_park",
+    "add_hall",
+    "add_hedge",
+    "leaf_texture",
+]
 
 CANOPY_STYLES = ("pattern", "blobs")
 SUN_AZIMUTH_DEG = 225.0  # from the south-west: shadows fall to the north-east
@@ -52,6 +61,22 @@ class CoverPatch:
         return {"x": self.x, "y": self.y, "half_w_m": self.half_w_m, "half_h_m": self.half_h_m, **self.detail}
 
 
+@dataclass(frozen=True)
+class CoverGround:
+    """The scene's grids a cover is drawn on (the DSM grid's cells), and what it must keep clear."""
+
+    transform: Affine
+    dsm: np.ndarray
+    dtm: np.ndarray
+    objects: np.ndarray  # (rows, cols, 3) colours of what stands
+    landcover: np.ndarray  # (rows, cols, 3) colours of the ground
+    flight_box: tuple[float, float, float, float]
+    markers_xy: list[tuple[float, float]]
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        return _centres(self.transform, self.dsm.shape)
+
+
 def _centres(transform: Affine, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     rows, cols = np.indices(shape)
     x = transform.c + (cols + 0.5) * transform.a + (rows + 0.5) * transform.b
@@ -60,25 +85,20 @@ def _centres(transform: Affine, shape: tuple[int, int]) -> tuple[np.ndarray, np.
 
 
 def _open_spot(
-    transform: Affine,
-    dsm: np.ndarray,
-    dtm: np.ndarray,
-    flight_box: tuple[float, float, float, float],
-    markers_xy: list[tuple[float, float]],
-    want_radius_m: float,
-    inset: float,
+    g: CoverGround, want_radius_m: float, inset: float, standing: np.ndarray | None = None
 ) -> tuple[float, float, float]:
     """The open-ground point of the flight area (inset by a share of it) farthest from anything
-    standing and from the markers, and the clear radius there (at most ``want_radius_m``)."""
+    standing and from the markers, and the clear radius there (at most ``want_radius_m``).
+    ``standing``: the surface whose objects count (default the DSM)."""
     from scipy.ndimage import distance_transform_edt
 
-    taken = (dsm - dtm) > 0.05
-    for mx, my in markers_xy:
-        c, r = ~transform * (mx, my)
+    taken = ((g.dsm if standing is None else standing) - g.dtm) > 0.05
+    for mx, my in g.markers_xy:
+        c, r = ~g.transform * (mx, my)
         taken[int(r), int(c)] = True
-    clear_m = np.asarray(distance_transform_edt(~taken)) * transform.a
-    xs, ys = _centres(transform, dsm.shape)
-    fx0, fy0, fx1, fy1 = flight_box
+    clear_m = np.asarray(distance_transform_edt(~taken)) * g.transform.a
+    xs, ys = g.centres()
+    fx0, fy0, fx1, fy1 = g.flight_box
     inside = (xs > fx0 + inset * (fx1 - fx0)) & (xs < fx1 - inset * (fx1 - fx0))
     inside &= (ys > fy0 + inset * (fy1 - fy0)) & (ys < fy1 - inset * (fy1 - fy0))
     best = int(np.argmax(np.where(inside, clear_m, -1.0)))
@@ -96,12 +116,7 @@ def _clear_of_markers(
 
 
 def add_canopy(
-    transform: Affine,
-    dsm: np.ndarray,
-    dtm: np.ndarray,
-    objects: np.ndarray,
-    flight_box: tuple[float, float, float, float],
-    markers_xy: list[tuple[float, float]],
+    g: CoverGround,
     rng: np.random.Generator,
     style: str = CANOPY_STYLES[0],
     radius_m: float | None = None,
@@ -109,20 +124,20 @@ def add_canopy(
     """A wood of overlapping crowns: the new DSM and object colours, the canopy mask, and where
     (its leaves drawn in ``style``, one of ``CANOPY_STYLES``). ``radius_m``: a wood that wide,
     placed over whatever stands there (default: on the open ground, as wide as it allows)."""
-    fx0, fy0, fx1, fy1 = flight_box
+    fx0, fy0, fx1, fy1 = g.flight_box
     if radius_m is None:
         want = 0.15 * min(fx1 - fx0, fy1 - fy0) + 1.5
-        cx, cy, radius = _open_spot(transform, dsm, dtm, flight_box, markers_xy, want, inset=0.3)
+        cx, cy, radius = _open_spot(g, want, inset=0.3)
         radius = max(radius, 2.0)
     else:  # a wood that wide covers what stands there: only the markers are kept clear
-        cx, cy, _ = _open_spot(transform, dtm, dtm, flight_box, markers_xy, radius_m, inset=0.35)
+        cx, cy, _ = _open_spot(g, standing=g.dtm, want_radius_m=radius_m, inset=0.35)
         radius = radius_m
-    xs, ys = _centres(transform, dsm.shape)
+    xs, ys = g.centres()
     near = np.hypot(xs - cx, ys - cy) < radius + 4.0
     r0, r1 = np.nonzero(near.any(axis=1))[0][[0, -1]]
     c0, c1 = np.nonzero(near.any(axis=0))[0][[0, -1]]
     win = np.s_[r0 : r1 + 1, c0 : c1 + 1]
-    X, Y, ground = xs[win], ys[win], dtm[win]
+    X, Y, ground = xs[win], ys[win], g.dtm[win]
     top = np.zeros_like(ground, dtype=np.float32)
     colour = np.zeros((*ground.shape, 3), np.float32)
     crown_id = np.full(ground.shape, -1, np.int32)
@@ -140,19 +155,19 @@ def add_canopy(
         colour = np.where(higher[..., None], greens[rng.integers(0, len(greens))] * rng.uniform(0.85, 1.15), colour)
     # leaf clumps: a rough crown surface, finer than a crown and coarser than a leaf
     rough = rng.normal(0.0, 0.12, top.shape).astype(np.float32)
-    crown = (top > 0.5) & _clear_of_markers(X, Y, markers_xy)  # a clearing round a marker
+    crown = (top > 0.5) & _clear_of_markers(X, Y, g.markers_xy)  # a clearing round a marker
     height = np.where(crown, top + rough, 0.0)
     # the sun on the crowns' slopes (and deep shade where a crown dips under its neighbour)
-    gy, gx = np.gradient(height, -transform.a, transform.a)  # rows run south
+    gy, gx = np.gradient(height, -g.transform.a, g.transform.a)  # rows run south
     sun_az, sun_el = math.radians(SUN_AZIMUTH_DEG), math.radians(SUN_ELEVATION_DEG)
     sun = np.array([math.sin(sun_az) * math.cos(sun_el), math.cos(sun_az) * math.cos(sun_el), math.sin(sun_el)])
     norm = np.sqrt(gx**2 + gy**2 + 1.0)
     lit = np.clip((-gx * sun[0] - gy * sun[1] + sun[2]) / norm, 0.15, 1.0)
     colour *= (0.35 + 0.75 * lit)[..., None].astype(np.float32)
-    new_dsm, new_objects = dsm.copy(), objects.copy()
-    new_dsm[win] = np.where(crown, np.maximum(dsm[win], ground + height), dsm[win])
-    new_objects[win] = np.where(crown[..., None], colour, objects[win])
-    mask = np.zeros(dsm.shape, bool)
+    new_dsm, new_objects = g.dsm.copy(), g.objects.copy()
+    new_dsm[win] = np.where(crown, np.maximum(g.dsm[win], ground + height), g.dsm[win])
+    new_objects[win] = np.where(crown[..., None], colour, g.objects[win])
+    mask = np.zeros(g.dsm.shape, bool)
     mask[win] = crown
     patch = CoverPatch("canopy", cx, cy, radius, radius, {"crowns": n_crowns, "style": style})
     return new_dsm.astype(np.float32), new_objects, mask, patch
@@ -174,20 +189,14 @@ def leaf_texture(style: str, x: np.ndarray, y: np.ndarray, noise: np.ndarray) ->
 
 
 def add_car_park(
-    transform: Affine,
-    dsm: np.ndarray,
-    dtm: np.ndarray,
-    objects: np.ndarray,
-    landcover: np.ndarray,
-    flight_box: tuple[float, float, float, float],
-    markers_xy: list[tuple[float, float]],
+    g: CoverGround,
     rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, CoverPatch]:
     """Two rows of bays on tarmac, most of them taken by a car with its shadow: the new DSM,
     object colours and ground colours, and where."""
-    fx0, fy0, fx1, fy1 = flight_box
+    fx0, fy0, fx1, fy1 = g.flight_box
     want = 0.25 * min(fx1 - fx0, fy1 - fy0) + 3.0
-    cx, cy, radius = _open_spot(transform, dsm, dtm, flight_box, markers_xy, want, inset=0.1)
+    cx, cy, radius = _open_spot(g, want, inset=0.1)
     radius = max(radius, 3.0)
     rows_of_bays = (-1, 1) if radius > 5.5 else (0,)  # two rows nose to nose, or one
     half_depth = (CAR_LENGTH_M + 0.5) * len(rows_of_bays) / 2
@@ -195,21 +204,21 @@ def add_car_park(
     half_len = n_bays * BAY_WIDTH_M / 2
     angle = rng.uniform(0, np.pi)
     ca, sa = math.cos(angle), math.sin(angle)
-    xs, ys = _centres(transform, dsm.shape)
+    xs, ys = g.centres()
     u = (xs - cx) * ca + (ys - cy) * sa  # along the rows
     v = -(xs - cx) * sa + (ys - cy) * ca  # across them
     tarmac = (np.abs(u) <= half_len + 0.5) & (np.abs(v) <= half_depth + 0.5)
-    ground = landcover.copy()
+    ground = g.landcover.copy()
     ground[tarmac] = TARMAC_RGB
-    bay_line = tarmac & (np.abs(np.mod(u + half_len, BAY_WIDTH_M)) < transform.a) & (np.abs(v) > 0.3)
+    bay_line = tarmac & (np.abs(np.mod(u + half_len, BAY_WIDTH_M)) < g.transform.a) & (np.abs(v) > 0.3)
     ground[bay_line] = (0.88, 0.88, 0.84)
-    height = np.zeros(dsm.shape, np.float32)
-    colour = np.zeros_like(objects)
-    shade = np.zeros(dsm.shape, bool)
+    height = np.zeros(g.dsm.shape, np.float32)
+    colour = np.zeros_like(g.objects)
+    shade = np.zeros(g.dsm.shape, bool)
     reach = CAR_ROOF_M / math.tan(math.radians(SUN_ELEVATION_DEG))
     sx, sy = -reach * math.sin(math.radians(SUN_AZIMUTH_DEG)), -reach * math.cos(math.radians(SUN_AZIMUTH_DEG))
     n_cars = 0
-    clear = _clear_of_markers(xs, ys, markers_xy)
+    clear = _clear_of_markers(xs, ys, g.markers_xy)
     for row in rows_of_bays:
         for b in range(n_bays):
             if rng.random() < 0.2:  # an empty bay
@@ -233,8 +242,8 @@ def add_car_park(
             n_cars += 1
     ground[shade & (height == 0)] *= SHADOW_GAIN
     standing = height > 0
-    new_dsm = np.where(standing, np.maximum(dsm, dtm + height), dsm).astype(np.float32)
-    new_objects = np.where(standing[..., None], colour, objects).astype(np.float32)
+    new_dsm = np.where(standing, np.maximum(g.dsm, g.dtm + height), g.dsm).astype(np.float32)
+    new_objects = np.where(standing[..., None], colour, g.objects).astype(np.float32)
     half_w = abs(half_len * ca) + abs(half_depth * sa) + 0.5
     half_h = abs(half_len * sa) + abs(half_depth * ca) + 0.5
     patch = CoverPatch(
@@ -253,12 +262,7 @@ HEDGE_M = (1.4, 1.2, 35.0)
 
 
 def add_hall(
-    transform: Affine,
-    dsm: np.ndarray,
-    dtm: np.ndarray,
-    objects: np.ndarray,
-    flight_box: tuple[float, float, float, float],
-    markers_xy: list[tuple[float, float]],
+    g: CoverGround,
     rng: np.random.Generator,
     pitched: bool,
     avoid: np.ndarray | None = None,
@@ -266,23 +270,23 @@ def add_hall(
     """A hall wider than any ground filter's window (40 x 24 m, or half the flight area's width):
     a flat roof, or one pitched along its width (``pitched``), over whatever stood there but the
     ``avoid`` cells; the markers are kept clear. The new DSM and object colours, and where."""
-    fx0, fy0, fx1, fy1 = flight_box
+    fx0, fy0, fx1, fy1 = g.flight_box
     length = min(HALL_SIZE_M[0], 0.5 * (fx1 - fx0))
     width = min(HALL_SIZE_M[1], 0.5 * (fy1 - fy0))
     # over whatever stands there but the cells to ``avoid`` (a wide wood)
-    taken = dtm if avoid is None else np.where(avoid, dtm + 1.0, dtm)
-    cx, cy, _ = _open_spot(transform, taken, dtm, flight_box, markers_xy, length / 2, inset=0.2)
+    taken = g.dtm if avoid is None else np.where(avoid, g.dtm + 1.0, g.dtm)
+    cx, cy, _ = _open_spot(g, standing=taken, want_radius_m=length / 2, inset=0.2)
     angle = float(rng.uniform(-0.3, 0.3))
-    xs, ys = _centres(transform, dsm.shape)
+    xs, ys = g.centres()
     u = (xs - cx) * math.cos(angle) + (ys - cy) * math.sin(angle)
     v = -(xs - cx) * math.sin(angle) + (ys - cy) * math.cos(angle)
-    inside = (np.abs(u) <= length / 2) & (np.abs(v) <= width / 2) & _clear_of_markers(xs, ys, markers_xy, 2.5)
-    base = float(dtm[inside].max()) if inside.any() else float(np.median(dtm))
+    inside = (np.abs(u) <= length / 2) & (np.abs(v) <= width / 2) & _clear_of_markers(xs, ys, g.markers_xy, 2.5)
+    base = float(g.dtm[inside].max()) if inside.any() else float(np.median(g.dtm))
     roof = base + HALL_EAVE_M + (HALL_PITCH_RISE_M * (0.5 + v / width) if pitched else 0.0)
-    new_dsm = np.where(inside, roof, dsm).astype(np.float32)
+    new_dsm = np.where(inside, roof, g.dsm).astype(np.float32)
     # a roof of panels: seams every 2.5 m give it texture to match
     panel = np.where(np.mod(u, 2.5) < 0.15, 0.8, 1.0)[..., None]
-    new_objects = np.where(inside[..., None], np.array(HALL_ROOF_RGB, np.float32) * panel, objects)
+    new_objects = np.where(inside[..., None], np.array(HALL_ROOF_RGB, np.float32) * panel, g.objects)
     detail = {"length_m": length, "width_m": width, "angle_deg": math.degrees(angle), "pitched": pitched}
     half_w = abs(length / 2 * math.cos(angle)) + abs(width / 2 * math.sin(angle))
     half_h = abs(length / 2 * math.sin(angle)) + abs(width / 2 * math.cos(angle))
@@ -290,32 +294,27 @@ def add_hall(
 
 
 def add_hedge(
-    transform: Affine,
-    dsm: np.ndarray,
-    dtm: np.ndarray,
-    objects: np.ndarray,
-    flight_box: tuple[float, float, float, float],
-    markers_xy: list[tuple[float, float]],
+    g: CoverGround,
     rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, CoverPatch]:
     """A hedge line across open ground (1.4 m high, 1.2 m wide, 35 m long or the flight area's
     width), its crown rough and leaf-textured: the new DSM, object colours, its canopy mask, and
     where."""
     height, width, length = HEDGE_M
-    fx0, fy0, fx1, fy1 = flight_box
+    fx0, fy0, fx1, fy1 = g.flight_box
     length = min(length, 0.7 * (fx1 - fx0))
-    cx, cy, _ = _open_spot(transform, dsm, dtm, flight_box, markers_xy, length / 2, inset=0.25)
+    cx, cy, _ = _open_spot(g, length / 2, inset=0.25)
     angle = float(rng.uniform(0, np.pi))
-    xs, ys = _centres(transform, dsm.shape)
+    xs, ys = g.centres()
     u = (xs - cx) * math.cos(angle) + (ys - cy) * math.sin(angle)
     v = -(xs - cx) * math.sin(angle) + (ys - cy) * math.cos(angle)
     q = 1.0 - (v / (width / 2)) ** 2
     along = np.clip((length / 2 - np.abs(u)) / 0.6, 0.0, 1.0)  # rounded ends
     top = np.where(q > 0, height * np.sqrt(np.clip(q, 0, 1)) * along, 0.0)
     top = top + np.where(top > 0, rng.normal(0.0, 0.06, top.shape), 0.0)
-    crown = (top > 0.2) & _clear_of_markers(xs, ys, markers_xy)
-    new_dsm = np.where(crown, np.maximum(dsm, dtm + top), dsm).astype(np.float32)
-    new_objects = np.where(crown[..., None], np.array([0.18, 0.33, 0.12], np.float32), objects)
+    crown = (top > 0.2) & _clear_of_markers(xs, ys, g.markers_xy)
+    new_dsm = np.where(crown, np.maximum(g.dsm, g.dtm + top), g.dsm).astype(np.float32)
+    new_objects = np.where(crown[..., None], np.array([0.18, 0.33, 0.12], np.float32), g.objects)
     detail = {"length_m": length, "angle_deg": math.degrees(angle), "height_m": height}
     half = length / 2 + width
     patch = CoverPatch("hedge", cx, cy, half, half, detail)

@@ -22,7 +22,7 @@ from geoortho.gcp.markers import (
     target_half_extent,
     target_reflectance,
 )
-from geoortho.synthetic.cover import add_canopy, add_car_park, add_hall, add_hedge, leaf_texture
+from geoortho.synthetic.cover import CoverGround, add_canopy, add_car_park, add_hall, add_hedge, leaf_texture
 from geoortho.synthetic.movers import Mover
 from geoortho.synthetic.presets import (
     BANK_M,
@@ -507,34 +507,29 @@ def add_cover(
     """The wood and the car park, each on the open ground left by what stands there already; a
     wide wood and a hall over it; a hedge on what is left."""
     markers_xy = [(m.x, m.y) for m in scene.markers]
+
+    def ground() -> CoverGround:  # as each cover before has left it
+        s = scene
+        return CoverGround(s.transform, s.dsm, s.dtm, s.objects, s.landcover, s.flight_box, markers_xy)
+
     if "wide-wood" in pathologies:
         scene.dsm, scene.objects, scene.canopy, patch = add_canopy(
-            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng, canopy_style,
-            radius_m=WIDE_WOOD_RADIUS_M,
-        )  # fmt: skip
+            ground(), rng, canopy_style, radius_m=WIDE_WOOD_RADIUS_M
+        )
         scene.canopy_style = str(patch.detail["style"])
         scene.cover["wide_wood"] = patch.record()
     if "hall" in pathologies:
-        scene.dsm, scene.objects, patch = add_hall(
-            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng, seed % 2 == 1,
-            avoid=scene.canopy,
-        )  # fmt: skip
+        scene.dsm, scene.objects, patch = add_hall(ground(), rng, seed % 2 == 1, avoid=scene.canopy)
         scene.cover["hall"] = patch.record()
     if "canopy" in pathologies:
-        scene.dsm, scene.objects, wood, patch = add_canopy(
-            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng, canopy_style
-        )
+        scene.dsm, scene.objects, wood, patch = add_canopy(ground(), rng, canopy_style)
         scene.canopy = wood if scene.canopy is None else (scene.canopy | wood)
         scene.canopy_style = str(patch.detail["style"])
         scene.cover["canopy"] = patch.record()
     if "cars" in pathologies:
-        scene.dsm, scene.objects, scene.landcover, patch = add_car_park(
-            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.landcover, scene.flight_box, markers_xy, rng
-        )
+        scene.dsm, scene.objects, scene.landcover, patch = add_car_park(ground(), rng)
         scene.cover["cars"] = patch.record()
     if "hedge" in pathologies:
-        scene.dsm, scene.objects, hedge, patch = add_hedge(
-            scene.transform, scene.dsm, scene.dtm, scene.objects, scene.flight_box, markers_xy, rng
-        )
+        scene.dsm, scene.objects, hedge, patch = add_hedge(ground(), rng)
         scene.canopy = hedge if scene.canopy is None else (scene.canopy | hedge)
         scene.cover["hedge"] = patch.record()
