@@ -226,23 +226,33 @@ def footprints(
     fp, cam_layer = layers_of_footprints(cams, table, heights, ground, work)
     overlap_path = write_layers(output, fp, cam_layer, work, crs, overlap, overlap_cell_m)
     s_write.progress(1.0)
-    median_gsd = float(np.nanmedian(table.gsd_m * 100))
-    fb.info(
-        f"{len(cams)} footprints, median GSD {median_gsd:.2f} cm, {int(table.clipped.sum())} clipped; "
-        f"{photos.summary()}"
-    )
-    return FootprintResult(
-        Path(output),
-        crs_to_text(crs or work),
-        len(cams),
-        len(photos.skipped),
-        median_gsd,
-        overlap_path,
-        f"{ground}; {heights.method}",
-        heights.datum,
-        tuple(heights.notes),
+    return _written(
+        output, crs or work, cams, photos, table, overlap_path, fb,
+        f"{int(table.clipped.sum())} clipped",
+        height_source=f"{ground}; {heights.method}",
+        vertical_datum=heights.datum,
+        notes=tuple(heights.notes),
         altitude_m=finite_median(table.altitude_m),
         altitude_metadata_m=finite_median(table.altitude_m),
+    )  # fmt: skip
+
+
+def _written(
+    output: Path,
+    crs: CRS,
+    cams: Sequence[PhotoCamera],
+    photos: PhotoSet,
+    table: FootprintTable,
+    overlap: Path | None,
+    fb: Feedback,
+    said: str,
+    **figures: Any,
+) -> FootprintResult:
+    """The result of footprints written, said in one line (``said``: what this way adds)."""
+    median_gsd_cm = float(np.nanmedian(table.gsd_m * 100))
+    fb.info(f"{len(cams)} footprints, median GSD {median_gsd_cm:.2f} cm, {said}; {photos.summary()}")
+    return FootprintResult(
+        Path(output), crs_to_text(crs), len(cams), len(photos.skipped), median_gsd_cm, overlap, **figures
     )
 
 
@@ -291,28 +301,19 @@ def _footprints_from_sfm(
     extra = {"left_out": left.layer} if left.layer is not None else {}
     overlap_path = write_layers(output, fp, cam_layer, work, out_crs, overlap, overlap_cell_m, extra)
     s_write.progress(1.0)
-    median_gsd = float(np.nanmedian(table.gsd_m * 100))
-    fb.info(
-        f"{len(cams)} footprints of the SfM cameras on the {ground}, median GSD {median_gsd:.2f} cm, "
-        f"{altitude_m:.1f} m above the ground; {photos.summary()}"
-    )
-    return FootprintResult(
-        Path(output),
-        crs_to_text(out_crs or work),
-        len(cams),
-        len(photos.skipped),
-        median_gsd,
-        overlap_path,
-        f"{ground}; SfM poses (measured)",
-        datum,
-        check.notes,
+    return _written(
+        output, out_crs or work, cams, photos, table, overlap_path, fb,
+        f"the SfM cameras' on the {ground}, {altitude_m:.1f} m above it",
+        height_source=f"{ground}; SfM poses (measured)",
+        vertical_datum=datum,
+        notes=check.notes,
         altitude_m=altitude_m,
         altitude_metadata_m=check.altitude_m,
         height_check=check.problem,
         n_left_out=len(unregistered),
         area_left_out_m2=left.area_m2,
         area_seen_m2=left.seen_m2,
-    )
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -152,6 +152,15 @@ REL_ALT_NOISE_SIGMA_M = 0.1  # barometric height above take-off is good
 
 ATTITUDE_NOISE_SIGMA_DEG = 0.2  # recorded gimbal angles vs the true ones
 
+#: The error model as survey.json records it.
+ERROR_MODEL = {
+    "gps_bias_sigma_m": GPS_BIAS_SIGMA_M,
+    "gps_noise_sigma_m": GPS_NOISE_SIGMA_M,
+    "gps_alt_bias_sigma_m": GPS_ALT_BIAS_SIGMA_M,
+    "relative_altitude_sigma_m": REL_ALT_NOISE_SIGMA_M,
+    "attitude_sigma_deg": ATTITUDE_NOISE_SIGMA_DEG,
+}
+
 
 TRUE_ATTITUDE_JITTER_DEG = 1.5  # how far the real camera wanders from the plan
 

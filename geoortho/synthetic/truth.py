@@ -22,21 +22,17 @@ from geoortho.elevation.grid import NODATA
 from geoortho.feedback import Feedback, split
 from geoortho.synthetic.flight import RTK_SIGMA_M, Shot, write_ppk_trajectory
 from geoortho.synthetic.presets import (
-    ATTITUDE_NOISE_SIGMA_DEG,
     CAMERA_MODEL,
+    ERROR_MODEL,
     FOCAL_35MM,
     FOCAL_MM,
-    GPS_ALT_BIAS_SIGMA_M,
-    GPS_BIAS_SIGMA_M,
     GPS_LAG_S,
     GPS_MINUS_UTC_S,
-    GPS_NOISE_SIGMA_M,
     MAKER_MAKE,
     MOUNT_TILT_AZIMUTH_DEG,
     MOUNT_TILT_DEG,
     PATHOLOGIES,
     PPK_LAG_S,
-    REL_ALT_NOISE_SIGMA_M,
     SENSOR_HEIGHT_MM,
     SENSOR_WIDTH_MM,
     SLOPE_AZIMUTH_DEG,
@@ -282,13 +278,7 @@ def _write_survey_json(
             "dictionary": scene.dictionary,
             "target": scene.target,
             "markers": [asdict(m) for m in scene.markers],
-            "error_model": {
-                "gps_bias_sigma_m": GPS_BIAS_SIGMA_M,
-                "gps_noise_sigma_m": GPS_NOISE_SIGMA_M,
-                "gps_alt_bias_sigma_m": GPS_ALT_BIAS_SIGMA_M,
-                "relative_altitude_sigma_m": REL_ALT_NOISE_SIGMA_M,
-                "attitude_sigma_deg": ATTITUDE_NOISE_SIGMA_DEG,
-            },
+            "error_model": dict(ERROR_MODEL),
         },
     )
 
