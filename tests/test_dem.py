@@ -49,7 +49,7 @@ def test_small_dsm_and_dtm_against_truth(small_survey, tmp_path):
         classified=tmp_path / "c.laz",
         hillshade=tmp_path / "hs.png",
     )
-    cell_m = r.resolution
+    cell_m = r.resolution_m
     assert cell_m == 0.5  # about two points per cell at 12 points/m²
     z, truth = _on_our_grid(small_survey.dsm, r.dsm)
     _, tmax = _on_our_grid(small_survey.dsm, r.dsm, Resampling.max)
@@ -165,7 +165,8 @@ def test_autzen_feet_and_ground_filter(tmp_path):
     path = real_data("pdal_las") / "autzen_trim.las"
     r = dem(path, tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", classified=tmp_path / "c.las")
     assert r.units == "horizontal foot, vertical foot"
-    assert r.resolution == pytest.approx(1 / 0.3048)  # 1 m cells, in feet
+    assert r.resolution_crs_units == pytest.approx(1 / 0.3048)  # 1 m cells, in feet
+    assert r.resolution_m == pytest.approx(1.0)
     with rasterio.open(r.dsm) as ds:
         assert ds.crs.linear_units in ("foot", "Foot") or "ft" in ds.crs.linear_units.lower()
         assert ds.units[0] == "ft"

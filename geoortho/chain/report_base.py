@@ -193,6 +193,16 @@ def as_cm(v: Any) -> str:
     return "–" if v is None else f"{100 * float(v):.1f} cm"
 
 
+def cell_size_text(dem: dict[str, Any]) -> str:
+    """dem's cell size in metres, and in its rasters' own units where they are not metres (a
+    project's ledger from before ``resolution_m``: as it was recorded, with its units)."""
+    units = str(dem.get("units", ""))
+    if dem.get("resolution_m") is None:
+        return f"{dem.get('resolution'):g} ({units})"
+    own = "" if "horizontal metre" in units else f" = {dem.get('resolution_crs_units'):g} ({units})"
+    return f"{float(dem['resolution_m']):g} m{own}"
+
+
 def missing_note(what: str) -> str:
     return f'<p class="muted">{html.escape(what)}</p>'
 

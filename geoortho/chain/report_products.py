@@ -15,6 +15,7 @@ from geoortho.chain.quality import as_number
 from geoortho.chain.report_base import (
     MAX_RASTER_PX,
     ReportContext,
+    cell_size_text,
     crs_label,
     furnish,
     key_values,
@@ -68,7 +69,7 @@ def elevation_section(ctx: ReportContext) -> str:
     pairs: list[tuple[str, Any]] = [
         ("Point cloud", "lidar (given)" if "dense" not in ctx.stages else "dense, from the photos"),
         ("Points / ground points", f"{d.get('n_points'):,} / {d.get('n_ground'):,}"),
-        ("Cell size", f"{d.get('resolution'):g} ({d.get('units', '')})"),
+        ("Cell size", cell_size_text(d)),
     ]
     if dense:
         pairs += [

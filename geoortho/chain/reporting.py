@@ -42,6 +42,7 @@ from geoortho.chain.report_base import (
     ReportContext,
     anchor_of,
     as_cm,
+    cell_size_text,
     crs_label,
     duration,
     furnish,
@@ -252,9 +253,7 @@ def _summary(ctx: ReportContext) -> str:
         pairs.append(("Orthophoto", f"{100 * float(o['resolution_m']):.2f} cm/pixel from {o.get('n_used')} photos"))
     d = ctx.done("dem")
     if d:
-        pairs.append(
-            ("DSM / DTM", f"cells of {d.get('resolution'):g} ({d.get('units', '')}), {d.get('n_points'):,} points")
-        )
+        pairs.append(("DSM / DTM", f"cells of {cell_size_text(d)}, {d.get('n_points'):,} points"))
         heights = heights_from_text(d.get("vertical_crs"))
         why = sfm.get("vertical_crs_from") if sfm else None
         said = heights_label(heights) + ((", from " if heights is not None else ": ") + why if why else "")

@@ -39,12 +39,14 @@ class DemResult:
         The cloud with ground as class 2 (None when not asked for).
     hillshade : Path
         Hillshade preview (None when not asked for).
-    resolution : float
-        Cell size in the CRS units (feet in a CRS in feet).
+    resolution_crs_units : float
+        Cell size in the CRS's horizontal units (feet in a CRS in feet): the rasters' own.
     crs : str
         CRS of the rasters.
     units : str
         Horizontal and vertical units.
+    resolution_m : float
+        Cell size in metres.
     n_points : int
         Points used.
     n_ground : int
@@ -96,7 +98,7 @@ class DemResult:
     dtm: Path | None
     classified: Path | None
     hillshade: Path | None
-    resolution: float  # cell size in the CRS units
+    resolution_crs_units: float
     crs: str
     units: str
     n_points: int
@@ -117,6 +119,15 @@ class DemResult:
     contours: Path | None = None
     contour_interval_m: float = math.nan
     vertical_crs: str | None = None
+    resolution_m: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "resolution_m", self.resolution_crs_units * _unit_m(self, "horizontal"))
+
+    @property
+    def resolution(self) -> float:
+        """The cell size in CRS units, by its former name (:attr:`resolution_crs_units`)."""
+        return self.resolution_crs_units
 
 
 def with_styles(result: DemResult) -> DemResult:
