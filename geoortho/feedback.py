@@ -8,6 +8,7 @@ progress.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -266,9 +267,9 @@ class JsonLinesFeedback(Feedback):
         self._last = -1.0
 
     def _emit(self, obj: dict[str, object]) -> None:
-        from geoortho.core.outputs import json_text  # (numpy: not at the CLI's start-up)
-
-        self._stream.write(json_text(obj) + "\n")
+        # plain values only (a progress, a message, a stage's name and numbers): the standard
+        # library's JSON, strict as the reader is
+        self._stream.write(json.dumps(obj, allow_nan=False) + "\n")
         self._stream.flush()
 
     def set_progress(self, fraction: float) -> None:

@@ -60,10 +60,10 @@ from geoortho.chain.report_base import (
 from geoortho.chain.report_products import elevation_section, ortho_section, seams_section
 from geoortho.chain.stages import REPORT_NAME, STAGES
 from geoortho.core.crs import heights_from_text, heights_label
+from geoortho.core.folders import refuse_writing_into
 from geoortho.core.outputs import write_json, write_text
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback
-from geoortho.processing.registry import refuse_writing_into
 from geoortho.version import __version__
 
 __all__ = ["ReportResult", "report"]

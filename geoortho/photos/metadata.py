@@ -28,6 +28,7 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
+from geoortho.core.folders import IMAGE_EXTENSIONS
 from geoortho.core.parallel import map_ordered
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback, warn_grouped
@@ -63,7 +64,6 @@ __all__ = [
     "sensor_width_from_table",
 ]
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff")
 #: Photos read per task: a pool (or the cluster) pays off from 4 chunks (256 photos) on
 PHOTOS_PER_CHUNK = 64
 

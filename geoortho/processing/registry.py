@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from geoortho.core.folders import path_inside, refuse_writing_into
 from geoortho.errors import ParameterError, shortened
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.processing.algorithms import ALGORITHMS
@@ -238,49 +239,12 @@ def refuse_overwrites(
         for in_name, in_path, in_dir in reads:  # after the inputs themselves: the message names the input file
             if in_dir and not out_dir:
                 refuse_writing_into(out_name, out_path, in_name, in_path)
-            elif writer and not in_dir and out_dir and _inside(in_path, out_path) is not None:
+            elif writer and not in_dir and out_dir and path_inside(in_path, out_path) is not None:
                 raise ParameterError(
                     in_name,
                     f"{in_path} lies in the output folder {out_path}, where {writer} writes its products: "
                     "move it out, or give another output",
                 )
-
-
-#: Output files that may replace their own earlier copy inside an input folder: the report of a
-#: project is written into the project it reads.
-_REWRITES_IN = {("output", "project"): (".html",)}
-
-
-def _inside(path: Path, folder: Path) -> Path | None:
-    """``path`` relative to ``folder`` when it lies in it (through symlinks), else None."""
-    for a, b in ((path.resolve(), folder.resolve()), (path.absolute(), folder.absolute())):
-        try:
-            return a.relative_to(b)
-        except ValueError:
-            continue
-    return None
-
-
-def refuse_writing_into(out_name: str, out_path: Path, in_name: str, in_folder: Path) -> None:
-    """Refuse an output file whose writing would change what an input folder holds: a file of it
-    replaced (photos are read from the folder itself, not below it), or a new image that the next
-    reading of a photo folder would take for a photo."""
-    from geoortho.photos.metadata import IMAGE_EXTENSIONS  # here: the EXIF readers are no part of --help
-
-    rel = _inside(out_path, in_folder)
-    if rel is None:
-        return
-    photos = in_name == "images"
-    if photos and len(rel.parts) > 1:
-        return  # below the photos' folder: a project folder kept beside the photos
-    why = ""
-    if out_path.exists():
-        if out_path.suffix.lower() not in _REWRITES_IN.get((out_name, in_name), ()):
-            why = "is a file of the input folder: writing it would destroy it"
-    elif photos and out_path.suffix.lower() in IMAGE_EXTENSIONS:
-        why = "would be read as a photo of the input folder"
-    if why:
-        raise ParameterError(out_name, f"{out_path} {why} (the input {in_name}): give a path outside that folder")
 
 
 def outputs_of(alg: Algorithm, result: Any) -> dict[str, Any]:
