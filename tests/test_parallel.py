@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures as cf
+import os
 import threading
 
 import pytest
@@ -206,3 +207,49 @@ def test_a_ctrl_c_while_a_worker_starts_waits_for_the_start():
     done = subprocess.run([sys.executable, "-c", _CTRL_C_AS_A_WORKER_STARTS], capture_output=True, text=True,
                           timeout=60, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
     assert done.stdout.strip() == "interrupted" and "Traceback" not in done.stderr, done.stderr[-2000:]
+
+
+def _one_opencv_thread() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def test_a_worker_initializer_run_here_leaves_opencv_its_threads():
+    """A batch too small for a pool runs here, after the workers' initializer: its OpenCV thread
+    count of one stayed this process's for every later stage of a run."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    assert before > 1 or (os.cpu_count() or 1) == 1
+    got = map_ordered(lambda x: cv2.getNumThreads(), [0], workers=2, initializer=_one_opencv_thread)
+    assert got == [1]  # the task saw the initializer's setting
+    assert cv2.getNumThreads() == before
+
+
+def test_exact_distances_are_the_same_on_one_opencv_thread_or_many():
+    """OpenCV's serial and parallel exact distance transforms differ in the last float32 place,
+    enough to move a DSM's gap fill (a roof edge cell by 6 m); the distances are whole roots."""
+    import cv2
+    import numpy as np
+
+    from geoortho.core.gapfill import distance_cells
+
+    rng = np.random.default_rng(0)
+    inside = np.ones((700, 900), bool)
+    for r, c in rng.integers(0, (700, 900), (120, 2)):
+        inside[max(0, r - 9) : r + 9, max(0, c - 14) : c + 14] = False
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        one = distance_cells(inside)
+        raw_one = cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        cv2.setNumThreads(max(2, before))
+        many = distance_cells(inside)
+        raw_many = cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    finally:
+        cv2.setNumThreads(before)
+    assert not np.array_equal(raw_one, raw_many)  # the pitfall is still there to guard against
+    assert np.array_equal(one, many)
+    squared = one.astype(np.float64) ** 2
+    assert np.abs(squared - np.rint(squared)).max() < 1e-3 and one.max() > 30

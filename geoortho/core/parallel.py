@@ -22,6 +22,7 @@ import functools
 import itertools
 import multiprocessing
 import os
+import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator, Sequence
@@ -172,9 +173,10 @@ def process_pool(
         return
     n_workers = workers or os.cpu_count() or 1
     if n_workers <= 1 or n_items < min_items_for_pool:
-        if initializer is not None:
-            initializer(*initargs)
-        yield None
+        with _opencv_threads_kept():
+            if initializer is not None:
+                initializer(*initargs)
+            yield None
         return
     ctx = multiprocessing.get_context("spawn")
     n_procs = min(n_workers, n_items)
@@ -257,6 +259,22 @@ def _workers_skip_main() -> Iterator[None]:
 #: The thread-count variables of the BLAS and OpenMP runtimes a worker's NumPy, SciPy and OpenCV
 #: read once, at their import.
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextmanager
+def _opencv_threads_kept() -> Iterator[None]:
+    """OpenCV's thread count as it was before the block. A worker's initializer sets it to one (a
+    process per core); run here instead, for a small batch, it set this process's for good: every
+    later stage of a run had one OpenCV thread, and some of OpenCV's serial paths round otherwise
+    than its parallel ones."""
+    cv2 = sys.modules.get("cv2")
+    before = cv2.getNumThreads() if cv2 is not None else -1  # -1: OpenCV's default
+    try:
+        yield
+    finally:
+        cv2 = sys.modules.get("cv2")
+        if cv2 is not None:
+            cv2.setNumThreads(before)
 
 
 @contextmanager

@@ -65,7 +65,6 @@ def min_module_px(dictionary: str = "DICT_4X4_50") -> float:
                 good = False
                 break
         ok_at.append(good)
-        cv2.setNumThreads(0)
     ok = np.array(ok_at)
     for i in range(len(sizes)):
         if ok[i:].all():
