@@ -24,6 +24,7 @@ _EXPORTS = {
     "gcp_find": "geoortho.gcp.find",
     "sfm": "geoortho.reconstruction.sparse",
     "dense": "geoortho.reconstruction.dense",
+    "copc": "geoortho.products3d.copc",
     "dem": "geoortho.elevation.gridding",
     "ortho": "geoortho.orthophoto.mosaic",
     "run": "geoortho.chain.pipeline",
@@ -37,6 +38,7 @@ _EXPORTS = {
     "GcpFindResult": "geoortho.gcp.find",
     "SfmResult": "geoortho.reconstruction.sparse",
     "DenseResult": "geoortho.reconstruction.dense",
+    "CopcResult": "geoortho.products3d.copc",
     "DemResult": "geoortho.elevation.gridding",
     "OrthoResult": "geoortho.orthophoto.mosaic",
     "RunResult": "geoortho.chain.pipeline",
@@ -63,7 +65,21 @@ __all__ = list(_EXPORTS)
 
 #: The algorithms, whose arguments are checked against their declared types at the call.
 _ALGORITHMS = frozenset(
-    {"synth", "footprints", "gcp_find", "sfm", "dense", "dem", "ortho", "run", "report", "demo", "plan", "check_plan"}
+    {
+        "synth",
+        "footprints",
+        "gcp_find",
+        "sfm",
+        "dense",
+        "copc",
+        "dem",
+        "ortho",
+        "run",
+        "report",
+        "demo",
+        "plan",
+        "check_plan",
+    }
 )
 
 

@@ -564,6 +564,15 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     assert json.loads(Path(r["REPORT"]).read_text())["points_written"] == r["N_POINTS"]
     ran.add("dense")
 
+    n_dense = r["N_POINTS"]
+    r = _run("copc", {"POINTS": str(tmp_path / "dense.laz"), "OUTPUT": str(tmp_path / "dense.copc.laz")})
+    from qgis.core import QgsPointCloudLayer
+
+    cloud = QgsPointCloudLayer(r["OUTPUT"], "dense", "copc")  # QGIS's own COPC reader: no PDAL, no index step
+    assert cloud.isValid() and cloud.pointCount() == r["N_POINTS"] == n_dense
+    assert cloud.crs().authid() == r["CRS"]
+    ran.add("copc")
+
     dsm_layer = QgsRasterLayer(str(tiny / "truth" / "dsm.tif"), "dsm")  # a layer, as the toolbox passes it
     r = _run(
         "ortho",
@@ -584,6 +593,13 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
         Path(p).exists() for p in r["PRODUCTS"].values() if isinstance(p, str)
     )
     ran.add("demo")
+    from qgis.core import QgsProject
+
+    demo_project = QgsProject()  # the demo's chain made the dense cloud: its COPC is a layer of the project
+    assert demo_project.read(str(tmp_path / "demo" / "project" / "project.qgz")), demo_project.error()
+    clouds = [x for x in demo_project.mapLayers().values() if x.name() == "dense cloud"]
+    assert len(clouds) == 1 and clouds[0].isValid() and clouds[0].pointCount() > 1000
+    assert clouds[0].crs().isValid() and clouds[0].renderer().type() == "rgb"  # its own colours, stretched
 
     # run: the chain on the tiny survey with its lidar cloud (no dense stage), then its report again
     project = tmp_path / "project"

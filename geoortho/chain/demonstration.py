@@ -167,6 +167,7 @@ PRODUCTS = {
     "sfm_cameras": "sfm/cameras.gpkg",
     "sfm_report": "sfm/report.json",
     "dense": "dense/dense.laz",
+    "dense_copc": "dense/dense.copc.laz",
     "dense_report": "dense/dense_report.json",
     "dsm": "dem/dsm.tif",
     "dtm": "dem/dtm.tif",

@@ -43,7 +43,7 @@ class _Layer:
 
     name: str
     path: Path  # absolute
-    kind: str  # "raster" or "vector"
+    kind: str  # "raster", "vector" or "pointcloud" (a COPC file: QGIS's own reader, no PDAL)
     pipe: ET.Element | None = None  # a raster's renderer
     renderer: ET.Element | None = None  # a vector's renderer
     layer: str = ""  # a GeoPackage's layer
@@ -104,6 +104,8 @@ def _groups(project: Path) -> list[tuple[str, list[_Layer]]]:
             ),
         )
     surfaces: list[_Layer] = []
+    if (p := project / "dense" / "dense.copc.laz").is_file():
+        surfaces.append(_Layer("dense cloud", p, "pointcloud", visible=False))
     if (p := project / "dem" / "contours.gpkg").is_file():
         surfaces.append(
             _Layer(
@@ -159,7 +161,7 @@ def _crs_and_extent(layers: list[_Layer]) -> tuple[str, str, tuple[float, float,
                     horizontal = horizontal_of(CRS.from_user_input(ds.crs.to_wkt()))
                     code = horizontal.to_epsg()
                     crs_wkt, authid = horizontal.to_wkt(), (f"EPSG:{code}" if code else ds.crs.to_string())
-        else:
+        elif layer.kind == "vector":
             info = pyogrio.read_info(layer.path, layer=layer.layer, force_total_bounds=True)
             if info.get("total_bounds") is not None and info.get("features"):
                 boxes.append(tuple(info["total_bounds"]))
@@ -207,7 +209,7 @@ def _own_crs(layer: _Layer) -> tuple[str, str] | None:
 
 
 def _map_layer(layer: _Layer, lid: str, project: Path, crs_wkt: str, authid: str) -> ET.Element:
-    attrs = {"type": layer.kind, "hasScaleBasedVisibilityFlag": 0}
+    attrs = {"type": "point-cloud" if layer.kind == "pointcloud" else layer.kind, "hasScaleBasedVisibilityFlag": 0}
     if layer.kind == "vector":
         attrs["geometry"] = layer.geometry
     e = element(
@@ -222,12 +224,33 @@ def _map_layer(layer: _Layer, lid: str, project: Path, crs_wkt: str, authid: str
         e.append(element("provider", {"encoding": "UTF-8"}, text="ogr"))
         assert layer.renderer is not None
         e.append(layer.renderer)
+    elif layer.kind == "pointcloud":
+        e.append(element("provider", text="copc"))
+        e.append(_cloud_colours())
     else:
         e.append(element("provider", text="gdal"))
         assert layer.pipe is not None
         e.append(layer.pipe)
     e.append(element("blendMode", text="6" if layer.blend_multiply else "0"))  # Qgis::BlendMode: 6 multiply
     return e
+
+
+def _cloud_colours() -> ET.Element:
+    """A coloured cloud drawn in its own colours: LAS colours are 16-bit, stretched from 0-65535
+    (without the stretch QGIS clips them at 255: a white cloud; without a renderer it draws only
+    the cloud's outline)."""
+
+    def stretch(band: str) -> ET.Element:
+        return element(
+            f"{band}ContrastEnhancement",
+            None,
+            element("minValue", text="0"),
+            element("maxValue", text="65535"),
+            element("algorithm", text="StretchToMinimumMaximum"),
+        )
+
+    attrs = {"type": "rgb", "red": "Red", "green": "Green", "blue": "Blue", "pointSize": 2, "pointSizeUnit": "Pixel"}
+    return element("renderer", attrs, stretch("red"), stretch("green"), stretch("blue"))
 
 
 def _project_xml(
@@ -252,7 +275,7 @@ def _project_xml(
             lid = _layer_id(layer, index)
             index += 1
             checked = "Qt::Checked" if layer.visible else "Qt::Unchecked"
-            provider = "ogr" if layer.kind == "vector" else "gdal"
+            provider = {"vector": "ogr", "pointcloud": "copc"}.get(layer.kind, "gdal")
             group.append(
                 element(
                     "layer-tree-layer",

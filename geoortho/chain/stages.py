@@ -131,6 +131,7 @@ STAGES: tuple[Stage, ...] = (
             **_given(p, "images", "workers"),
             "sfm": p.folder("sfm"),
             "output": p.folder("dense") / "dense.laz",
+            "copc": p.folder("dense") / "dense.copc.laz",  # what QGIS opens (it reads no plain LAZ here)
         },
         ("sfm", "images"),
         weight=5,

@@ -26,7 +26,7 @@ import numpy as np
 
 from geoortho.core.outputs import work_folder, write_json
 from geoortho.core.parallel import imap_ordered
-from geoortho.errors import InputError
+from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.reconstruction.dense_pairs import (
     COVER_STEP_PX,
@@ -65,6 +65,8 @@ class DenseResult:
         CRS of the cloud.
     notes : tuple of str
         What was assumed or checked, in words.
+    copc : Path
+        The cloud also as a COPC file, which QGIS opens and streams (None when not asked for).
     """
 
     output: Path
@@ -74,6 +76,7 @@ class DenseResult:
     n_points: int
     crs: str
     notes: tuple[str, ...] = field(default_factory=tuple)
+    copc: Path | None = None
 
 
 def dense(
@@ -85,6 +88,7 @@ def dense(
     min_views: int = 2,
     depth_tolerance: float = 0.003,
     workers: int = 0,
+    copc: Path | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> DenseResult:
@@ -109,6 +113,9 @@ def dense(
         baseline of a fifth of the height, working size 1024 px).
     workers : int
         Processes for the depth maps (0 = every core).
+    copc : Path
+        The cloud also as a Cloud-Optimized Point Cloud (its name ends in .copc.laz), which QGIS
+        opens as a layer and streams, with no indexing step.
     """
     # here, not at the top: the depth-map workers import this module and need none of these
     # (pycolmap, laspy: 0.3 -> 0.9 s a worker, with the DEM tiles they once took too; pyproj alone 70 ms)
@@ -122,6 +129,8 @@ def dense(
         raise InputError(f"need neighbours ({neighbours}) >= min_views ({min_views}) >= 1")
     if max_image_size < 256:
         raise InputError(f"max_image_size {max_image_size} px: give 256 or more")
+    if copc is not None and not Path(copc).name.lower().endswith(".copc.laz"):
+        raise ParameterError("copc", f"{copc}: a COPC file's name ends in .copc.laz")
     cams, crs, pts, skipped = cameras_from_sfm(sfm, images, local_frame_ok=True)
     notes = [f"{name}: {why}" for name, why in skipped]
     if crs is None:
@@ -135,7 +144,7 @@ def dense(
     if not work.jobs:
         raise InputError("no pair of photos overlaps with enough baseline for depth", path=sfm)
     seconds = {"plan": _lap(clock)}
-    s_maps, s_write = split(fb, [9, 1])
+    s_maps, s_write = split(fb, [9, 1] if copc is None else [9, 1.5])
     with work_folder(output) as spill:
         fusion = Fusion(work.voxel_m, spill_dir=Path(spill))
         maps = _depth_maps(work, fusion, workers, s_maps)
@@ -147,6 +156,13 @@ def dense(
         n_written, fallback = _write_cloud(output, fusion, pts, work.origin, cloud_crs, notes, fb)
         seconds["fusion"] = fusion.seconds  # merges, spills and (spilled) the tiles' merges
         seconds["write"] = time.perf_counter() - t_write  # a spilled cloud's tiles merged included
+        if copc is not None:
+            from geoortho.core.copc import write_copc  # not in the workers (see above)
+
+            t_copc = time.perf_counter()
+            written = write_copc(output, Path(copc))
+            seconds["copc"] = time.perf_counter() - t_copc
+            fb.info(f"dense: the cloud as COPC too: {written.n_nodes:,} octree nodes, {written.depth + 1} levels")
     s_write.progress(1.0)
     seconds["total"] = _lap(clock)
     notes.extend(_missing_maps_notes(maps, len(cams), fb))
@@ -174,7 +190,9 @@ def dense(
         f"dense: {n_written} points from {maps.n_maps} depth maps ({maps.n_matched} matched, "
         f"{maps.n_consistent} consistent) in {seconds['total']:.0f} s"
     )
-    return DenseResult(output, report, len(cams), maps.n_maps, n_written, crs_text, tuple(notes))
+    return DenseResult(
+        output, report, len(cams), maps.n_maps, n_written, crs_text, tuple(notes), None if copc is None else Path(copc)
+    )
 
 
 @dataclass(frozen=True)

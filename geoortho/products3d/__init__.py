@@ -1,0 +1,1 @@
+"""3D products that viewers open directly: the point cloud as COPC."""
