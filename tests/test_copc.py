@@ -87,3 +87,17 @@ def test_bad_names_are_refused_before_any_work(tmp_path):
     (tmp_path / "c.txt").write_text("1 2 3\n")
     with pytest.raises(InputError, match="LAS or LAZ"):
         geoortho.copc(tmp_path / "c.txt", tmp_path / "t.copc.laz")
+
+
+def test_dem_writes_the_classified_cloud_as_copc_when_named_so(tmp_path):
+    """Issue 80: the classified cloud too, ground as class 2, in a file QGIS streams."""
+    source = _cloud(tmp_path / "c.laz", n=40_000)
+    r = geoortho.dem(source, tmp_path / "dsm.tif", dtm=tmp_path / "dtm.tif", classified=tmp_path / "c.copc.laz")
+    out = laspy.read(r.classified)
+    assert len(out.points) == 40_000 and out.header.parse_crs().to_epsg() == 32629
+    with laspy.open(r.classified) as f:
+        assert ("copc", 1) in {(v.user_id, v.record_id) for v in f.header.vlrs}
+    ground = np.asarray(out.classification) == 2
+    on_block = (np.abs(np.asarray(out.x) - 483_100) < 13) & (np.abs(np.asarray(out.y) - 4_288_075) < 8)
+    assert ground[~on_block].mean() > 0.95 and ground[on_block].mean() < 0.05
+    assert sorted(p.name for p in tmp_path.iterdir() if "laz" in p.name) == ["c.copc.laz", "c.laz"]

@@ -132,7 +132,8 @@ def dem(
     smooth_px : int
         Median filter radius in cells after filling (0 = none).
     classified : Path
-        Also write the cloud with ground as class 2 (LAS/LAZ input only).
+        Also write the cloud with ground as class 2 (LAS/LAZ input only); a name ending in .copc.laz
+        writes it as COPC, which QGIS opens as a layer.
     hillshade : Path
         Also write a hillshade PNG preview (of the DTM when made, else the DSM).
     smrf_cell_m : float
@@ -499,7 +500,10 @@ class _ClassifiedWriter:
 
         assert src.path is not None
         self._stack = contextlib.ExitStack()
-        tmp = self._stack.enter_context(atomic_path(target))
+        # a COPC target (``.copc.laz``) is written as LAZ first, then made COPC from it at close
+        self._copc = Path(target) if Path(target).name.lower().endswith(".copc.laz") else None
+        self._laz = Path(target).with_name(f".{Path(target).name}.laz") if self._copc else Path(target)
+        tmp = self._stack.enter_context(atomic_path(self._laz))
         self._reader = self._stack.enter_context(laspy.open(str(src.path)))
         self._chunks = self._reader.chunk_iterator(CHUNK_POINTS)
         self._writer = self._stack.enter_context(
@@ -520,6 +524,13 @@ class _ClassifiedWriter:
     def close(self) -> None:
         self._done = True
         self._stack.close()  # writer, reader, then the rename
+        if self._copc is not None:
+            from geoortho.core.copc import write_copc
+
+            try:
+                write_copc(self._laz, self._copc)
+            finally:
+                self._laz.unlink(missing_ok=True)
 
     def abort(self) -> None:
         if not self._done:

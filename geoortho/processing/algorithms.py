@@ -165,7 +165,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             CRS,
             Param("max_gap_m", "number", unit="m", minimum=0.0),
             Param("smooth_px", "integer", minimum=0, maximum=20),
-            Param("classified", "pointcloud", output=True, extensions=(".laz", ".las")),
+            Param("classified", "pointcloud", output=True, extensions=(".laz", ".las", ".copc.laz")),
             Param("hillshade", "file", output=True, extensions=(".png",)),
             Param("smrf_cell_m", "number", unit="m", minimum=0.05, advanced=True),
             Param("smrf_slope", "number", minimum=0.0, advanced=True),
