@@ -105,6 +105,14 @@ def complete_to_photos(result: DemResult, src: PointSource, keep: Box | None, sf
         if warning:
             notes.append(warning)
             fb.warning(f"dem: {warning}")
+    else:
+        # the objects are the DTM's: without one the gaps beside them stay interpolated across (the
+        # demo's cloud against its true DSM: RMSE 0.299 m without a DTM, 0.274 m with one)
+        notes.append(
+            "DSM: no DTM was asked for, so the gaps beside and under objects are interpolated across, "
+            "not filled from their own side: give a DTM too for the better DSM"
+        )
+        fb.warning(f"dem: {notes[-1]}")
     write_cog(
         result.dsm, with_nodata(done.z), transform=new_t, crs=src.crs_with_heights, nodata=NODATA,
         band_names=("dsm",), units=unit,
