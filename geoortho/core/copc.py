@@ -31,15 +31,22 @@ from pathlib import Path
 import numpy as np
 
 from geoortho.core.outputs import atomic_path
-from geoortho.errors import InputError
+from geoortho.errors import GeoorthoError, InputError
 
-__all__ = ["CopcWritten", "write_copc"]
+__all__ = ["COPC_SUFFIX", "CopcWritten", "is_copc_path", "write_copc"]
+
+#: How a COPC file's name ends: what makes an output path a COPC file.
+COPC_SUFFIX = ".copc.laz"
 
 CELLS = 128  # grid cells to a node's side: a level's sample spacing is the node's side over this
 LEAF_POINTS = 50_000  # a node with at most this many points left under it takes them all
 SUBTREE_POINTS = 4_000_000  # the largest subtree held in memory (what ``split`` is chosen for)
 CHUNK_POINTS = 2_000_000  # points read from the source at a time
 MAX_DEPTH = 13  # 128 << 13 cells a side: the ids hold 21 bits an axis
+
+
+def is_copc_path(path: str | os.PathLike[str]) -> bool:
+    return Path(path).name.lower().endswith(COPC_SUFFIX)
 
 
 @dataclass(frozen=True)
@@ -224,8 +231,8 @@ def write_copc(source: Path, output: Path, *, crs_wkt: str | None = None) -> Cop
 
         def add(key: tuple[int, int, int, int], rows: np.ndarray) -> None:
             nonlocal n_nodes, depth
-            raw = np.ascontiguousarray(rows).view(np.int8)
-            writer.AddNode(copclib.VoxelKey(*key), copclib.VectorChar(memoryview(raw.tobytes()).cast("b")))
+            raw = np.ascontiguousarray(rows).view(np.int8)  # the records' bytes, as copc-lib's chars
+            writer.AddNode(copclib.VoxelKey(*key), copclib.VectorChar(raw))
             n_nodes += 1
             depth = max(depth, key[0])
 
@@ -267,4 +274,7 @@ def write_copc(source: Path, output: Path, *, crs_wkt: str | None = None) -> Cop
             _with_wkt_vlr(Path(written), Path(tmp), wkt)
         else:
             shutil.move(written, tmp)
+        with laspy.open(str(tmp)) as check:  # read back: every point of the source is in the file
+            if int(check.header.point_count) != n:
+                raise GeoorthoError(f"the COPC file holds {check.header.point_count:,} points of {n:,}: not kept")
     return CopcWritten(Path(output), n, n_nodes, depth, side / CELLS, wkt)

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
+from geoortho.core.copc import is_copc_path, write_copc
 from geoortho.core.crs import crs_to_text, heights_to_text, horizontal_of
 from geoortho.core.gapfill import fill_harmonic, gap_mask
 from geoortho.core.outputs import atomic_path, atomic_paths, work_folder, write_cog
@@ -501,7 +502,7 @@ class _ClassifiedWriter:
         assert src.path is not None
         self._stack = contextlib.ExitStack()
         # a COPC target (``.copc.laz``) is written as LAZ first, then made COPC from it at close
-        self._copc = Path(target) if Path(target).name.lower().endswith(".copc.laz") else None
+        self._copc = Path(target) if is_copc_path(target) else None
         self._laz = Path(target).with_name(f".{Path(target).name}.laz") if self._copc else Path(target)
         tmp = self._stack.enter_context(atomic_path(self._laz))
         self._reader = self._stack.enter_context(laspy.open(str(src.path)))
@@ -525,8 +526,6 @@ class _ClassifiedWriter:
         self._done = True
         self._stack.close()  # writer, reader, then the rename
         if self._copc is not None:
-            from geoortho.core.copc import write_copc
-
             try:
                 write_copc(self._laz, self._copc)
             finally:

@@ -3,7 +3,7 @@ Cloud, which QGIS (3.34 and later) opens as a point cloud layer and streams by i
 indexing step, and which web viewers (Potree, plas.io) read over HTTP.
 
 The octree and the file are :mod:`geoortho.core.copc`'s; here the algorithm checks what it is given,
-says what it made and checks it: the file read back has every point of the source.
+says what it made; the writer reads the file back and checks that it has every point of the source.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 
 from pyproj import CRS
 
-from geoortho.core.copc import write_copc
+from geoortho.core.copc import COPC_SUFFIX, is_copc_path, write_copc
 from geoortho.core.crs import crs_to_text
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback
@@ -77,8 +77,8 @@ def copc(
     """
     fb = as_feedback(feedback)
     started = time.perf_counter()
-    if not Path(output).name.lower().endswith(".copc.laz"):
-        raise ParameterError("output", f"{output}: a COPC file's name ends in .copc.laz")
+    if not is_copc_path(output):
+        raise ParameterError("output", f"{output}: a COPC file's name ends in {COPC_SUFFIX}")
     if Path(points).suffix.lower() not in (".las", ".laz"):
         raise InputError("a COPC file is made from a LAS or LAZ cloud", path=points)
     written = write_copc(Path(points), Path(output), crs_wkt=crs.to_wkt("WKT1_GDAL") if crs is not None else None)

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from geoortho.core.copc import COPC_SUFFIX, is_copc_path, write_copc
 from geoortho.core.outputs import work_folder, write_json
 from geoortho.core.parallel import imap_ordered
 from geoortho.errors import InputError, ParameterError
@@ -129,8 +130,8 @@ def dense(
         raise InputError(f"need neighbours ({neighbours}) >= min_views ({min_views}) >= 1")
     if max_image_size < 256:
         raise InputError(f"max_image_size {max_image_size} px: give 256 or more")
-    if copc is not None and not Path(copc).name.lower().endswith(".copc.laz"):
-        raise ParameterError("copc", f"{copc}: a COPC file's name ends in .copc.laz")
+    if copc is not None and not is_copc_path(copc):
+        raise ParameterError("copc", f"{copc}: a COPC file's name ends in {COPC_SUFFIX}")
     cams, crs, pts, skipped = cameras_from_sfm(sfm, images, local_frame_ok=True)
     notes = [f"{name}: {why}" for name, why in skipped]
     if crs is None:
@@ -157,8 +158,6 @@ def dense(
         seconds["fusion"] = fusion.seconds  # merges, spills and (spilled) the tiles' merges
         seconds["write"] = time.perf_counter() - t_write  # a spilled cloud's tiles merged included
         if copc is not None:
-            from geoortho.core.copc import write_copc  # not in the workers (see above)
-
             t_copc = time.perf_counter()
             written = write_copc(output, Path(copc))
             seconds["copc"] = time.perf_counter() - t_copc
