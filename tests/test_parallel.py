@@ -253,3 +253,16 @@ def test_exact_distances_are_the_same_on_one_opencv_thread_or_many():
     assert np.array_equal(one, many)
     squared = one.astype(np.float64) ** 2
     assert np.abs(squared - np.rint(squared)).max() < 1e-3 and one.max() > 30
+
+
+def test_a_pool_is_wholly_ended_when_its_block_ends():
+    """The pool's own thread was still closing its wake-up pipe after the block, and a short
+    command's exit hook wrote to it as it closed: a traceback on stderr after gcp-find."""
+    from geoortho.core.parallel import process_pool
+
+    for _ in range(3):
+        with process_pool(2, 4) as pool:
+            assert isinstance(pool, cf.ProcessPoolExecutor)
+            assert map_ordered(abs, [-1, -2, -3, -4], executor=pool) == [1, 2, 3, 4]
+            manager = pool._executor_manager_thread  # type: ignore[attr-defined]
+        assert manager is not None and not manager.is_alive()
