@@ -25,9 +25,9 @@ $(STAMP): pyproject.toml tools/make_venv.sh
 # PYTHONDONTWRITEBYTECODE is set every command and every pool worker would compile
 # geoortho from source at start-up (gcp-find on 35 photos: 12 % of its wall time).
 # And the compiled kernels (numba's cache: the target fits', the gap fills', the gridding's and the
-# orthophoto's line-of-sight march): 10 s once.
+# orthophoto's line-of-sight march, the mesh's rasterizer): 10 s once.
 BYTECODE = $(PY) -m compileall -q geoortho && $(PY) -c "$(WARM)"
-WARM = import geoortho.gcp.targets as a, geoortho.core.gapfill as b, geoortho.elevation.grid as c, geoortho.orthophoto.rectify as d; [m.warm() for m in (a, b, c, d)]
+WARM = import geoortho.gcp.targets as a, geoortho.core.gapfill as b, geoortho.elevation.grid as c, geoortho.orthophoto.rectify as d, geoortho.products3d.raster_mesh as e; [m.warm() for m in (a, b, c, d, e)]
 
 demo: $(STAMP)
 	@$(BYTECODE)

@@ -190,7 +190,7 @@ def test_run_makes_the_dsm_from_the_dense_cloud_unless_a_lidar_cloud_is_given(tm
 
     photos_only = Project(images=tmp_path, output=tmp_path)
     with_lidar = Project(images=tmp_path, output=tmp_path, points=tmp_path / "lidar.laz")
-    chain = ["sfm", "dense", "dem", "footprints", "ortho", "report"]
+    chain = ["sfm", "dense", "dem", "footprints", "ortho", "mesh", "report"]
     assert [s.name for s in STAGES if s.applies(photos_only)] == chain
     assert [s.name for s in STAGES if s.applies(with_lidar)] == [n for n in chain if n != "dense"]
     dem = next(s for s in STAGES if s.name == "dem")

@@ -26,7 +26,7 @@ from geoortho.feedback import Feedback
 
 FAST = {"sfm": {"max_image_size": 1024}, "dense": {"max_image_size": 512}}
 # footprints after dem: the SfM's cameras on the surface made (measured heights, GSD and area)
-CHAIN = ["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "report"]
+CHAIN = ["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "mesh", "report"]
 
 
 def _ledger(project):
@@ -186,7 +186,7 @@ def test_an_ortho_option_redoes_only_ortho_and_the_report(first_run, tiny_survey
     shutil.copytree(first_run.output, project)  # a moved project resumes: paths are PROJECT/...
     changed = json.dumps({**FAST, "ortho": {"resolution_m": 0.1}})
     r = _run(tiny_survey, project, checkpoints=checkpoint, stage_options=changed)
-    assert r.stages == {**dict.fromkeys(CHAIN[:-2], "reused"), "ortho": "ran", "report": "ran"}
+    assert r.stages == {**dict.fromkeys(CHAIN[:-3], "reused"), "ortho": "ran", "mesh": "ran", "report": "ran"}
     r = _run(tiny_survey, project, checkpoints=checkpoint, stage_options=changed, rerun_from="dem")
     assert r.stages == {**dict.fromkeys(CHAIN[:3], "reused"), **dict.fromkeys(CHAIN[3:], "ran")}
 
@@ -212,7 +212,7 @@ def test_a_run_killed_in_ortho_resumes_at_ortho(first_run, tiny_survey, checkpoi
     proc.wait()
     assert _ledger(project)["stages"]["ortho"]["status"] == "running"  # not done: will be re-done
     r = _run(tiny_survey, project, checkpoints=checkpoint, stage_options=changed)
-    assert r.stages == {**dict.fromkeys(CHAIN[:-2], "reused"), "ortho": "ran", "report": "ran"}
+    assert r.stages == {**dict.fromkeys(CHAIN[:-3], "reused"), "ortho": "ran", "mesh": "ran", "report": "ran"}
     assert _last_run(project) == r.stages
     assert not list(project.rglob(".*.tmp-*")), "the killed run's temporary file was kept"
     assert not (project / LOCK_NAME).exists(), "the killed run's lock outlived the run after it"
@@ -249,6 +249,7 @@ def test_a_failing_stage_keeps_earlier_products_and_the_report_says_which(
         "dem": "failed",
         "footprints": "not run",
         "ortho": "not run",
+        "mesh": "not run",
         "report": "ran",
     }
     assert (project / "sfm" / "report.json").is_file() and not (project / LOCK_NAME).exists()
@@ -376,7 +377,7 @@ def test_run_needs_no_flight_height_and_checks_a_wrong_one(unhinted, tmp_path):
     project = tmp_path / "project"
     r = _run(unhinted, project, gcp_file=None)
     assert r.stages == {"gcp-find": "skipped", "sfm": "ran", "dense": "ran", "dem": "ran",
-                        "footprints": "ran", "ortho": "ran", "report": "ran"}  # fmt: skip
+                        "footprints": "ran", "ortho": "ran", "mesh": "ran", "report": "ran"}  # fmt: skip
     ledger = _ledger(project)
     out = ledger["stages"]["footprints"]["outputs"]
     fp = gpd.read_file(project / "footprints" / "footprints.gpkg", layer="footprints")

@@ -2,7 +2,14 @@
 # Debian's Chromium, the headless browser the report test (tests/test_report_browser.py) loads
 # report.html in. Installed when missing (needs root and apt-get); without it the test fails
 # under CI and is skipped elsewhere, saying how to install it.
+# And the Khronos glTF validator (tests/test_mesh.py checks the mesh's .glb with it), from npm, in
+# tools/node_modules: installed once where node and npm are; without it that test is skipped.
 set -eu
+here=$(dirname "$0")
+if [ ! -d "$here/node_modules/gltf-validator" ] && command -v npm >/dev/null 2>&1; then
+    npm install --silent --no-audit --no-fund --no-save --prefix "$here" gltf-validator@2.0.0-dev.3.10 >/dev/null 2>&1 ||
+        echo "note: the glTF validator could not be installed (npm install gltf-validator)" >&2
+fi
 if command -v chromium >/dev/null 2>&1; then
     exit 0
 fi

@@ -180,6 +180,9 @@ PRODUCTS = {
     "ortho_report": "ortho/ortho_report.json",
     "ortho_source": "ortho/ortho_source.tif",
     "ortho_seamlines": "ortho/ortho_seamlines.gpkg",
+    "mesh": "mesh/mesh.glb",
+    "mesh_tileset": "mesh/tileset/tileset.json",
+    "mesh_view": "mesh/mesh_view.png",
     "ledger": "run.json",
     "qgis_project": "project.qgz",
 }

@@ -14,7 +14,7 @@ from geoortho.photos.heights import GpsAltitude
 
 REPORT_NAME = "report.html"
 
-StageName = Literal["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "report"]
+StageName = Literal["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "mesh", "report"]
 
 
 @dataclass(frozen=True)
@@ -185,6 +185,22 @@ STAGES: tuple[Stage, ...] = (
         },
         ("images", "sfm", "dsm"),
         weight=4,
+    ),
+    # The 3D products: the surface made (or given) coloured by the orthophoto, as glTF, and as
+    # 3D Tiles that the QGIS project opens; with an oblique picture for the report.
+    Stage(
+        "mesh",
+        lambda p: True,
+        lambda p, d: {
+            **_given(p, "workers"),
+            "dsm": _surface(p),
+            "ortho": p.folder("ortho") / "ortho.tif",
+            "output": p.folder("mesh") / "mesh.glb",
+            "tileset": p.folder("mesh") / "tileset" / "tileset.json",
+            "view": p.folder("mesh") / "mesh_view.png",
+        },
+        ("dsm", "ortho"),
+        weight=1,
     ),
     Stage(
         "report",

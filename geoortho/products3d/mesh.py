@@ -1,0 +1,270 @@
+"""``mesh``: a 2.5D textured mesh of the site from the DSM and the orthophoto, as glTF binary, as
+OBJ+MTL and as Cesium 3D Tiles with levels of detail (which QGIS opens as a tiled scene layer).
+
+The surface is :mod:`.raster_mesh`'s: the DSM's cells thinned by quadric edge collapse, a tile at
+a time, until each tile is within the error asked of the DSM (measured, and stated). The texture
+is the orthophoto: each ground cell already coloured by the photo that sees it most directly,
+with line of sight tested, colour-balanced, its seamlines on open ground. Walls take the colours
+of their tops' and feet's edges (a 2.5D mesh's faces are seen from above; a wall's own colours
+need an atlas of wall faces, not made yet).
+
+Choices of library: ``fast-simplification`` (quadric collapse with the border held, so tiles
+meet with no crack), ``pygltflib`` (a glTF binary as the spec lays it out: unlit, JPEG inside),
+``trimesh`` (OBJ), pyproj (the tiles' Earth frame); no ``xatlas``: the orthophoto is already the
+atlas of a 2.5D surface, and no ``py3dtiles``: see :mod:`.tiles3d`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from geoortho.core.crs import crs_to_text, heights_label, heights_of, horizontal_unit_m
+from geoortho.core.outputs import remove_stale_temporaries, write_json
+from geoortho.core.parallel import map_ordered
+from geoortho.errors import InputError, ParameterError
+from geoortho.feedback import Feedback, as_feedback, split
+from geoortho.products3d.raster_mesh import TILE_CELLS, DsmGrid, TileMesh, mesh_tile
+from geoortho.products3d.texture import ortho_texture, uv_of
+from geoortho.products3d.tileset import write_tileset
+
+__all__ = ["MeshResult", "mesh"]
+
+
+@dataclass(frozen=True)
+class MeshResult:
+    """The mesh made.
+
+    Attributes
+    ----------
+    output : Path
+        The glTF binary (local frame: x east, y up, z south, metres from ``offset``).
+    obj : Path | None
+        The OBJ (east, north, up from ``offset``), with its .mtl and .jpg beside it.
+    tileset : Path | None
+        The 3D Tiles' tileset.json.
+    view : Path | None
+        The oblique picture (PNG).
+    georeference : Path
+        The JSON beside the glTF that states its CRS and offset.
+    n_faces : int
+        Faces of the whole mesh.
+    n_vertices : int
+        Its vertices (a tile's border vertices once for each tile).
+    rmse_m : float
+        The mesh's heights against the DSM's, over every DSM cell with a height (metres).
+    max_error_m : float
+        The largest of those differences (at a wall, where the mesh's slope is one cell wide).
+    max_rmse_m : float
+        The error asked (each tile's RMSE is at most this).
+    faces_per_ha : float
+        Faces per hectare of the DSM's cells with a height.
+    mb_per_ha : float
+        The glTF binary's megabytes per hectare.
+    texture_px : tuple[int, int]
+        The glTF's texture, width and height.
+    texture_cell_m : float
+        Ground size of a texture pixel.
+    offset : tuple[float, float, float]
+        The local frame's origin in the CRS (x, y, z).
+    n_tiles : int
+        The 3D Tiles' tiles with content (0 without a tileset).
+    n_levels : int
+        Their levels of detail.
+    crs : str
+        CRS of the mesh's offset and of the DSM.
+    seconds : float
+        Time taken.
+    """
+
+    output: Path
+    obj: Path | None
+    tileset: Path | None
+    view: Path | None
+    georeference: Path
+    n_faces: int
+    n_vertices: int
+    rmse_m: float
+    max_error_m: float
+    max_rmse_m: float
+    faces_per_ha: float
+    mb_per_ha: float
+    texture_px: tuple[int, int]
+    texture_cell_m: float
+    offset: tuple[float, float, float]
+    n_tiles: int
+    n_levels: int
+    crs: str
+    seconds: float
+
+
+def mesh(
+    dsm: Path,
+    ortho: Path,
+    output: Path,
+    *,
+    obj: Path | None = None,
+    tileset: Path | None = None,
+    view: Path | None = None,
+    max_error_m: float | None = None,
+    texture_max_px: int = 8192,
+    workers: int = 0,
+    feedback: Feedback | None = None,
+) -> MeshResult:
+    """A textured 2.5D mesh of the DSM, coloured by the orthophoto.
+
+    Parameters
+    ----------
+    dsm : Path
+        The surface (GeoTIFF, north up, square cells).
+    ortho : Path
+        The orthophoto that colours it (same CRS; any resolution).
+    output : Path
+        The glTF binary (.glb); a JSON with its CRS and offset is written beside it.
+    obj : Path
+        Also an OBJ (with its .mtl and .jpg).
+    tileset : Path
+        Also Cesium 3D Tiles: the tileset.json (its tiles in a folder beside it).
+    view : Path
+        Also an oblique picture of the mesh (PNG).
+    max_error_m : float
+        Each tile's mesh within this RMSE of the DSM (metres; default half a DSM cell).
+    texture_max_px : int
+        The glTF's texture at most this many pixels a side (default 8192: what web viewers load).
+    workers : int
+        Processes for the tiles (0: one per core).
+    """
+    import rasterio
+
+    fb = as_feedback(feedback)
+    started = time.perf_counter()
+    output = Path(output)
+    if output.suffix.lower() != ".glb":
+        raise ParameterError("output", f"{output}: the mesh is written as glTF binary (.glb)")
+    if tileset is not None and Path(tileset).name.lower() != "tileset.json":
+        raise ParameterError("tileset", f"{tileset}: a 3D Tiles tileset is named tileset.json")
+    with rasterio.open(dsm) as ds:
+        if ds.crs is None:
+            raise InputError("the DSM has no CRS: a mesh must say where it is", path=dsm)
+        t = ds.transform
+        if t.b != 0 or t.d != 0 or t.e >= 0 or not math.isclose(t.a, -t.e, rel_tol=1e-6):
+            raise InputError("the DSM is not north up with square cells", path=dsm)
+        from pyproj import CRS
+
+        crs = CRS.from_user_input(ds.crs)
+        grid = DsmGrid(str(dsm), t.c + t.a / 2, t.f + t.e / 2, t.a, ds.height, ds.width)
+    with rasterio.open(ortho) as o:
+        if o.crs is None or CRS.from_user_input(o.crs) != crs and not _same_horizontal(o.crs, crs):
+            raise InputError(f"the orthophoto's CRS is not the DSM's ({crs_to_text(crs)})", path=ortho)
+        ortho_cell = abs(o.transform.a)
+    unit_m = horizontal_unit_m(crs)
+    max_rmse = (max_error_m / unit_m) if max_error_m else grid.cell / 2
+    if max_rmse <= 0:
+        raise ParameterError("max_error_m", "the mesh's error must be more than 0")
+
+    fb.info(f"meshing {grid.rows} x {grid.cols} cells, {TILE_CELLS} a tile (RMSE at most {max_rmse * unit_m:.3g} m)")
+    jobs = [(grid, r, c, max_rmse, 1) for r in range(0, max(grid.rows - 1, 1), TILE_CELLS)
+            for c in range(0, max(grid.cols - 1, 1), TILE_CELLS)]  # fmt: skip
+    fb_tiles, fb_set = split(fb, [1.0, 1.0 if tileset is not None else 0.0])
+    tiles = map_ordered(mesh_tile, jobs, workers=workers, feedback=fb_tiles)
+    sq = sum(tm.error_sq_sum for tm in tiles)
+    n_cells = sum(tm.n_cells for tm in tiles)
+    if n_cells == 0:
+        raise InputError("the DSM has no heights", path=dsm)
+    verts, faces = _joined(tiles)
+    rmse = math.sqrt(sq / n_cells) * unit_m
+    max_err = max(tm.max_error for tm in tiles) * unit_m
+
+    vmin, vmax = verts.min(axis=0), verts.max(axis=0)
+    offset = (round(float((vmin[0] + vmax[0]) / 2)), round(float((vmin[1] + vmax[1]) / 2)),
+              round(float(np.median(verts[:, 2]))))  # fmt: skip
+    bounds = (vmin[0] - grid.cell / 2, vmin[1] - grid.cell / 2, vmax[0] + grid.cell / 2, vmax[1] + grid.cell / 2)
+    texture, texture_cell = ortho_texture(ortho, bounds, texture_max_px, ortho_cell)
+    uv = uv_of(verts, bounds)
+    z_unit = _z_unit_m(crs)
+    local = (verts - offset) * np.array([unit_m, unit_m, z_unit])
+
+    from geoortho.products3d.gltf import encode_jpeg, write_glb, write_obj
+
+    remove_stale_temporaries(output.parent)
+    jpeg = encode_jpeg(texture)
+    georef = _georeference(crs, offset, unit_m, z_unit)
+    write_glb(output, local, faces, uv, jpeg, georef)
+    georef_path = write_json(output.with_name(output.stem + "_georeference.json"), georef)
+    if obj is not None:
+        write_obj(Path(obj), local, faces, uv, jpeg, _obj_header(georef))
+
+    n_tiles = n_levels = 0
+    if tileset is not None:
+        n_tiles, n_levels = write_tileset(Path(tileset), grid, crs, tiles, jobs, ortho, max_rmse, workers, fb_set)
+    if view is not None:
+        from geoortho.products3d.view import render_oblique, write_png
+
+        write_png(Path(view), render_oblique(local, faces, uv, texture))
+    fb.progress(1.0)
+    area_ha = n_cells * (grid.cell * unit_m) ** 2 / 1e4
+    size_mb = output.stat().st_size / 1e6
+    fb.info(
+        f"{len(faces):,} faces ({len(faces) / area_ha:,.0f} a hectare, {size_mb / area_ha:.2f} MB a hectare), "
+        f"RMSE {rmse:.3f} m against the DSM (max {max_err:.2f} m); texture {texture.shape[1]} x "
+        f"{texture.shape[0]} px at {texture_cell * unit_m:.3g} m: {output.name}"
+    )
+    return MeshResult(
+        output, Path(obj) if obj is not None else None, Path(tileset) if tileset is not None else None,
+        Path(view) if view is not None else None, georef_path, len(faces), len(verts), rmse, max_err,
+        max_rmse * unit_m, len(faces) / area_ha, size_mb / area_ha, (texture.shape[1], texture.shape[0]),
+        texture_cell * unit_m, offset, n_tiles, n_levels, crs_to_text(crs), time.perf_counter() - started,
+    )  # fmt: skip
+
+
+def _same_horizontal(a: Any, b: Any) -> bool:
+    from pyproj import CRS
+
+    from geoortho.core.crs import horizontal_of
+
+    return bool(horizontal_of(CRS.from_user_input(a)) == horizontal_of(CRS.from_user_input(b)))
+
+
+def _z_unit_m(crs: Any) -> float:
+    from geoortho.core.surface import height_unit
+
+    return height_unit(crs)[1]
+
+
+def _joined(tiles: list[TileMesh]) -> tuple[np.ndarray, np.ndarray]:
+    """The tiles' meshes as one (their shared border vertices are kept twice: they are the same
+    points, so the surface is whole)."""
+    verts, faces, base = [], [], 0
+    for tm in tiles:
+        verts.append(tm.vertices)
+        faces.append(tm.faces + base)
+        base += len(tm.vertices)
+    return np.concatenate(verts), np.concatenate(faces).astype(np.int32)
+
+
+def _georeference(crs: Any, offset: tuple[float, float, float], unit_m: float, z_unit_m: float) -> dict[str, Any]:
+    """What a reader needs to put the mesh back on the map."""
+    return {
+        "crs": crs_to_text(crs),
+        "crs_wkt": crs.to_wkt(),
+        "heights": heights_label(heights_of(crs)),
+        "offset": list(offset),
+        "offset_units": "the CRS's",
+        "units": "metre",
+        "axes": {"glb": "x east, y up, z south (glTF)", "obj": "x east, y north, z up"},
+        "to_crs": f"x_crs = offset_x + east / {unit_m:.10g}; y_crs = offset_y + north / {unit_m:.10g}; "
+        f"z = offset_z + up / {z_unit_m:.10g}",
+    }
+
+
+def _obj_header(georef: dict[str, Any]) -> str:
+    x, y, z = georef["offset"]
+    return (
+        f"geoortho mesh: x east, y north, z up, metres from the offset\n"
+        f"CRS: {georef['crs']}\noffset: {x} {y} {z}\nheights: {georef['heights']}"
+    )
