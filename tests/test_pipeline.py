@@ -886,3 +886,58 @@ def test_every_map_in_the_report_has_its_furniture(first_run, tmp_path, monkeypa
             assert gcps.loc[r["name"], "dx_m"] == pytest.approx(r["dx_m"]) and gcps.loc[r["name"], "role"] == r["role"]
     drawn = lines.length / lines["exaggeration"]
     assert np.allclose(drawn, lines["horizontal_m"], rtol=0.02), (drawn, lines["horizontal_m"])
+
+
+def test_the_runs_mesh_is_as_true_as_its_dsm_and_its_texture_as_its_orthophoto(first_run, tiny_survey):
+    """Issue 80: the mesh made in a run against the survey's truth, beside the products it is made of."""
+    import cv2
+    import numpy as np
+    import rasterio
+    from rasterio.warp import Resampling, reproject
+    from test_mesh import _glb_mesh
+
+    from geoortho.products3d.raster_mesh import draw_heights, rasterize
+
+    project = first_run.output
+    out = _ledger(project)["stages"]["mesh"]["outputs"]
+    pos, faces, uv, texture = _glb_mesh(project / "mesh" / "mesh.glb")
+    x0, y0, z0 = json.loads((project / "mesh" / "mesh_georeference.json").read_text())["offset"]
+    xyz = np.stack([pos[:, 0] + x0, -pos[:, 2] + y0, pos[:, 1] + z0], axis=1)
+    with rasterio.open(tiny_survey.truth / "dsm.tif") as t:
+        truth, tt = t.read(1).astype(float), t.transform
+        dsm = np.full(truth.shape, np.nan)
+        with rasterio.open(project / "dem" / "dsm.tif") as d:
+            reproject(rasterio.band(d, 1), dsm, dst_transform=tt, dst_crs=t.crs, resampling=Resampling.bilinear,
+                      dst_nodata=np.nan)  # fmt: skip
+    drawn = draw_heights(xyz, faces, tt.c + tt.a / 2, tt.f + tt.e / 2, tt.a, *truth.shape)
+    ok = np.isfinite(dsm) & np.isfinite(drawn) & np.isfinite(truth)
+    assert ok.sum() > 50_000  # (the truth's grid is larger than the flight)
+    rmse_dsm = float(np.sqrt(np.mean((dsm - truth)[ok] ** 2)))
+    rmse_mesh = float(np.sqrt(np.mean((drawn - truth)[ok] ** 2)))
+    ortho_report = json.loads((project / "ortho" / "ortho_report.json").read_text())
+    gsd_m = float(ortho_report["resolution_m"])
+    print(f"heights against the truth: DSM {rmse_dsm:.3f} m, mesh {rmse_mesh:.3f} m (GSD {gsd_m:.3f} m)")
+    assert rmse_mesh <= rmse_dsm + 0.5 * gsd_m
+    assert out["rmse_m"] <= out["max_rmse_m"]
+
+    # the texture seen from above and the orthophoto, each against the true orthophoto
+    with rasterio.open(tiny_survey.truth / "ortho.tif") as o:
+        true_rgb = np.moveaxis(o.read([1, 2, 3]), 0, -1).astype(float)
+        seen = o.read_masks(1) > 0
+        ot, ocrs = o.transform, o.crs
+        ours = np.zeros((3, *seen.shape))
+        with rasterio.open(project / "ortho" / "ortho.tif") as r:
+            reproject(rasterio.band(r, [1, 2, 3]), ours, dst_transform=ot, dst_crs=ocrs, resampling=Resampling.bilinear)
+            ours_alpha = np.zeros(seen.shape)
+            reproject(rasterio.band(r, 4), ours_alpha, dst_transform=ot, dst_crs=ocrs, resampling=Resampling.nearest)
+    screen = np.stack([(xyz[:, 0] - ot.c) / ot.a - 0.5, (xyz[:, 1] - ot.f) / ot.e - 0.5], axis=1)
+    _, at = rasterize(np.ascontiguousarray(screen), -xyz[:, 2].copy(), np.ascontiguousarray(uv), faces, *seen.shape)
+    mx = (at[:, :, 0] * texture.shape[1] - 0.5).astype(np.float32)
+    my = (at[:, :, 1] * texture.shape[0] - 0.5).astype(np.float32)
+    from_above = cv2.remap(texture, mx, my, cv2.INTER_LINEAR).astype(float)
+    both = seen & np.isfinite(at[:, :, 0]) & (ours_alpha > 0)
+    assert both.sum() > 100_000
+    err_mesh = float(np.abs(from_above - true_rgb)[both].mean())
+    err_ortho = float(np.abs(np.moveaxis(ours, 0, -1) - true_rgb)[both].mean())
+    print(f"colours against the true orthophoto: orthophoto {err_ortho:.1f} DN, mesh from above {err_mesh:.1f} DN")
+    assert err_mesh <= err_ortho + 2.0

@@ -588,6 +588,29 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     assert r["N_USED"] > 0
     ran.add("ortho")
 
+    # mesh: the 3D Tiles open as a tiled scene layer, on the Earth where the DSM is
+    from qgis.core import QgsCoordinateReferenceSystem, QgsCoordinateTransform, QgsProject, QgsTiledSceneLayer
+
+    r = _run(
+        "mesh",
+        {
+            "DSM": str(tiny / "truth" / "dsm.tif"),
+            "ORTHO": str(tmp_path / "ortho.tif"),
+            "OUTPUT": str(tmp_path / "mesh" / "mesh.glb"),
+            "TILESET": str(tmp_path / "mesh" / "tiles" / "tileset.json"),
+        },
+    )
+    assert Path(r["OUTPUT"]).is_file() and r["N_FACES"] > 1000 and r["N_TILES"] >= 1
+    scene = QgsTiledSceneLayer(r["TILESET"], "mesh", "cesiumtiles")
+    assert scene.isValid() and scene.crs().authid() == "EPSG:4979"
+    to_map = QgsCoordinateTransform(scene.crs(), QgsCoordinateReferenceSystem(r["CRS"]), QgsProject.instance())
+    extent = to_map.transformBoundingBox(scene.extent())
+    dsm_extent = dsm_layer.extent()
+    # the tileset covers the DSM's cells (their centres: half a cell in from the raster's edge)
+    assert abs(extent.xMinimum() - dsm_extent.xMinimum()) < 2 and abs(extent.yMaximum() - dsm_extent.yMaximum()) < 2
+    assert abs(extent.width() - dsm_extent.width()) < 3 and abs(extent.height() - dsm_extent.height()) < 3
+    ran.add("mesh")
+
     r = _run("demo", {"OUTPUT": str(tmp_path / "demo"), "PRESET": "tiny", "SEED": 3})
     assert isinstance(r["PRODUCTS"], dict) and all(
         Path(p).exists() for p in r["PRODUCTS"].values() if isinstance(p, str)
@@ -600,6 +623,8 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     clouds = [x for x in demo_project.mapLayers().values() if x.name() == "dense cloud"]
     assert len(clouds) == 1 and clouds[0].isValid() and clouds[0].pointCount() > 1000
     assert clouds[0].crs().isValid() and clouds[0].renderer().type() == "rgb"  # its own colours, stretched
+    scenes = [x for x in demo_project.mapLayers().values() if x.name() == "3D mesh (3D Tiles)"]
+    assert len(scenes) == 1 and scenes[0].isValid() and scenes[0].crs().authid() == "EPSG:4979"
 
     # run: the chain on the tiny survey with its lidar cloud (no dense stage), then its report again
     project = tmp_path / "project"

@@ -43,7 +43,7 @@ class _Layer:
 
     name: str
     path: Path  # absolute
-    kind: str  # "raster", "vector" or "pointcloud" (a COPC file: QGIS's own reader, no PDAL)
+    kind: str  # "raster", "vector", "pointcloud" (a COPC file: QGIS's own reader, no PDAL) or "tiledscene" (3D Tiles)
     pipe: ET.Element | None = None  # a raster's renderer
     renderer: ET.Element | None = None  # a vector's renderer
     layer: str = ""  # a GeoPackage's layer
@@ -104,6 +104,8 @@ def _groups(project: Path) -> list[tuple[str, list[_Layer]]]:
             ),
         )
     surfaces: list[_Layer] = []
+    if (p := project / "mesh" / "tileset" / "tileset.json").is_file():
+        surfaces.append(_Layer("3D mesh (3D Tiles)", p, "tiledscene", visible=False))
     if (p := project / "dense" / "dense.copc.laz").is_file():
         surfaces.append(_Layer("dense cloud", p, "pointcloud", visible=False))
     if (p := project / "dem" / "contours.gpkg").is_file():
@@ -191,11 +193,15 @@ def _layer_id(layer: _Layer, index: int) -> str:
 
 
 def _own_crs(layer: _Layer) -> tuple[str, str] | None:
-    """A raster's own CRS where it says more than the map's (a DEM's heights' datum), else None."""
+    """A raster's own CRS where it says more than the map's (a DEM's heights' datum), 3D Tiles'
+    (on the Earth's frame: QGIS gives them longitude, latitude and height), else None."""
+    from pyproj import CRS
+
+    if layer.kind == "tiledscene":
+        return CRS.from_epsg(4979).to_wkt(), "EPSG:4979"
     if layer.kind != "raster":
         return None
     import rasterio
-    from pyproj import CRS
 
     with rasterio.open(layer.path) as ds:
         if ds.crs is None:
@@ -209,7 +215,8 @@ def _own_crs(layer: _Layer) -> tuple[str, str] | None:
 
 
 def _map_layer(layer: _Layer, lid: str, project: Path, crs_wkt: str, authid: str) -> ET.Element:
-    attrs = {"type": "point-cloud" if layer.kind == "pointcloud" else layer.kind, "hasScaleBasedVisibilityFlag": 0}
+    kind = {"pointcloud": "point-cloud", "tiledscene": "tiled-scene"}.get(layer.kind, layer.kind)
+    attrs = {"type": kind, "hasScaleBasedVisibilityFlag": 0}
     if layer.kind == "vector":
         attrs["geometry"] = layer.geometry
     e = element(
@@ -220,6 +227,7 @@ def _map_layer(layer: _Layer, lid: str, project: Path, crs_wkt: str, authid: str
         element("layername", text=layer.name),
         element("srs", None, _srs(*(_own_crs(layer) or (crs_wkt, authid)))),
     )
+
     if layer.kind == "vector":
         e.append(element("provider", {"encoding": "UTF-8"}, text="ogr"))
         assert layer.renderer is not None
@@ -227,6 +235,8 @@ def _map_layer(layer: _Layer, lid: str, project: Path, crs_wkt: str, authid: str
     elif layer.kind == "pointcloud":
         e.append(element("provider", text="copc"))
         e.append(_cloud_colours())
+    elif layer.kind == "tiledscene":
+        e.append(element("provider", text="cesiumtiles"))
     else:
         e.append(element("provider", text="gdal"))
         assert layer.pipe is not None
@@ -275,7 +285,7 @@ def _project_xml(
             lid = _layer_id(layer, index)
             index += 1
             checked = "Qt::Checked" if layer.visible else "Qt::Unchecked"
-            provider = {"vector": "ogr", "pointcloud": "copc"}.get(layer.kind, "gdal")
+            provider = {"vector": "ogr", "pointcloud": "copc", "tiledscene": "cesiumtiles"}.get(layer.kind, "gdal")
             group.append(
                 element(
                     "layer-tree-layer",

@@ -143,6 +143,40 @@ def ortho_section(ctx: ReportContext) -> str:
     return "".join(parts)
 
 
+def mesh_section(ctx: ReportContext) -> str:
+    """The 3D mesh: an oblique picture, its size and its error against the DSM it was made from."""
+    m = ctx.done("mesh")
+    if m is None:
+        return missing_note("The mesh stage did not finish.")
+    view = ctx.path("mesh", "view")
+    parts = [png_file(view, "the textured mesh seen from the south-west")] if view is not None else []
+
+    def num(key: str) -> float:
+        v = m.get(key)
+        return float(v) if isinstance(v, (int, float)) else math.nan
+
+    tiles = f"{int(num('n_tiles'))} tiles in {int(num('n_levels'))} levels of detail" if m.get("tileset") else "none"
+    parts.append(
+        key_values(
+            [
+                (
+                    "Faces",
+                    f"{int(num('n_faces')):,} ({num('faces_per_ha'):,.0f} a hectare; "
+                    f"{num('mb_per_ha'):.2f} MB a hectare as glTF)",
+                ),  # fmt: skip
+                (
+                    "Heights against the DSM",
+                    f"RMSE {100 * num('rmse_m'):.1f} cm (asked: at most "
+                    f"{100 * num('max_rmse_m'):.1f} cm a tile); largest {num('max_error_m'):.2f} m, at a wall",
+                ),  # fmt: skip
+                ("Texture", f"the orthophoto at {100 * num('texture_cell_m'):.1f} cm a pixel"),
+                ("Files", f"{Path(str(m.get('output'))).name} (glTF), 3D Tiles: {tiles}"),
+            ]
+        )
+    )
+    return "".join(parts)
+
+
 def _ortho_sources_map(ctx: ReportContext, o: dict[str, Any]) -> str:
     """The orthophoto, greyed, with what was not plainly seen on a measured surface over it: the
     DSM interpolated (its source raster), ground seen by no photo, inpainted pixels."""

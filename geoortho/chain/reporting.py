@@ -57,7 +57,7 @@ from geoortho.chain.report_base import (
     read_raster,
     status_html,
 )
-from geoortho.chain.report_products import elevation_section, ortho_section, seams_section
+from geoortho.chain.report_products import elevation_section, mesh_section, ortho_section, seams_section
 from geoortho.chain.stages import REPORT_NAME, STAGES
 from geoortho.core.crs import heights_from_text, heights_label
 from geoortho.core.folders import refuse_writing_into
@@ -456,6 +456,7 @@ _SECTIONS: list[tuple[str, Callable[[ReportContext], str | None]]] = [
     ("DSM and DTM", elevation_section),
     ("Orthophoto", ortho_section),
     ("Seams and colour balance", seams_section),
+    ("3D mesh", mesh_section),
     ("Time and memory per stage", _timing),
     ("Notes and warnings", _notes),
     ("Parameters", _parameters),

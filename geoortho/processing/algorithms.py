@@ -318,6 +318,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("n_vertices", "integer"),
             Output("rmse_m", "number"),
             Output("max_error_m", "number"),
+            Output("max_rmse_m", "number"),
             Output("faces_per_ha", "number"),
             Output("mb_per_ha", "number"),
             Output("texture_cell_m", "number"),
