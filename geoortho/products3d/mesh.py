@@ -133,7 +133,8 @@ def mesh(
     view : Path
         Also an oblique picture of the mesh (PNG).
     max_error_m : float
-        Each tile's mesh within this RMSE of the DSM (metres; default half a DSM cell).
+        Each tile's mesh within this RMSE of the DSM (metres; default one DSM cell: a photogrammetric
+        DSM's noise on roofs is about that, and a mesh that follows it is twice as heavy).
     texture_max_px : int
         The glTF's texture at most this many pixels a side (default 8192: what web viewers load).
     workers : int
@@ -163,12 +164,12 @@ def mesh(
             raise InputError(f"the orthophoto's CRS is not the DSM's ({crs_to_text(crs)})", path=ortho)
         ortho_cell = abs(o.transform.a)
     unit_m = horizontal_unit_m(crs)
-    max_rmse = (max_error_m / unit_m) if max_error_m else grid.cell / 2
+    max_rmse = (max_error_m / unit_m) if max_error_m else grid.cell
     if max_rmse <= 0:
         raise ParameterError("max_error_m", "the mesh's error must be more than 0")
 
     fb.info(f"meshing {grid.rows} x {grid.cols} cells, {TILE_CELLS} a tile (RMSE at most {max_rmse * unit_m:.3g} m)")
-    jobs = [(grid, r, c, max_rmse, 1) for r in range(0, max(grid.rows - 1, 1), TILE_CELLS)
+    jobs = [(grid, r, c, max_rmse) for r in range(0, max(grid.rows - 1, 1), TILE_CELLS)
             for c in range(0, max(grid.cols - 1, 1), TILE_CELLS)]  # fmt: skip
     fb_tiles, fb_set = split(fb, [1.0, 1.0 if tileset is not None else 0.0])
     tiles = map_ordered(mesh_tile, jobs, workers=workers, feedback=fb_tiles)
@@ -201,7 +202,7 @@ def mesh(
 
     n_tiles = n_levels = 0
     if tileset is not None:
-        n_tiles, n_levels = write_tileset(Path(tileset), grid, crs, tiles, jobs, ortho, max_rmse, workers, fb_set)
+        n_tiles, n_levels = write_tileset(Path(tileset), grid, crs, tiles, jobs, ortho, workers, fb_set)
     if view is not None:
         from geoortho.products3d.view import render_oblique, write_png
 

@@ -1,7 +1,8 @@
 """The mesh as Cesium 3D Tiles with levels of detail: a quadtree whose leaves are the mesh's own
 tiles (full detail, the orthophoto at its resolution up to :data:`TILE_TEXTURE_PX`) and whose
-every level above covers four tiles of the level below with the DSM averaged two cells to one,
-meshed within twice the error, its texture a quarter as sharp, up to one root tile.
+every level above joins four tiles of the level below and thins them to a quarter of their faces
+(each tile then about as heavy to draw as any other), its texture a quarter as sharp, up to one
+root tile.
 
 A tile's geometric error is measured, not set: the 99th percentile of its heights' distance from
 the DSM's full-resolution cells (walls included), which is what a viewer shows wrong when it
@@ -23,7 +24,7 @@ from geoortho.core.parallel import map_ordered
 from geoortho.errors import DependencyError
 from geoortho.feedback import Feedback
 from geoortho.products3d.gltf import encode_jpeg, glb_bytes
-from geoortho.products3d.raster_mesh import TILE_CELLS, DsmGrid, TileMesh, draw_heights, mesh_tile, read_block
+from geoortho.products3d.raster_mesh import TILE_CELLS, DsmGrid, TileMesh, draw_heights, merged_mesh, read_block
 from geoortho.products3d.texture import ortho_texture, uv_of
 from geoortho.products3d.tiles3d import LocalFrame, Tile, local_frame, tileset_json, to_local
 
@@ -32,7 +33,11 @@ TILE_TEXTURE_PX = 2048
 #: The share of a tile's cells whose error its geometric error leaves out (a spike, not a wall).
 ERROR_PERCENTILE = 99.0
 
-Job = tuple[DsmGrid, int, int, float, int]
+#: A level's tiles keep this share of the faces of the four they are made of.
+LEVEL_SHARE = 0.25
+
+#: A tile of the tree: its first DSM row and column, and its DSM cells a side / TILE_CELLS.
+Key = tuple[int, int, int]
 
 
 def write_tileset(
@@ -40,9 +45,8 @@ def write_tileset(
     grid: DsmGrid,
     crs: CRS,
     leaves: list[TileMesh],
-    leaf_jobs: list[Job],
+    leaf_jobs: list[tuple[DsmGrid, int, int, float]],
     ortho: Path,
-    max_rmse: float,
     workers: int,
     fb: Feedback,
 ) -> tuple[int, int]:
@@ -59,14 +63,18 @@ def write_tileset(
     frame = local_frame(horizontal_of(crs), cx, cy, float(np.median(valid_z)) * z_unit)
     lift_m, lift_note = _ellipsoid_lift(crs, frame)
 
-    levels: list[list[tuple[Job, TileMesh]]] = [list(zip(leaf_jobs, leaves))]
+    levels: list[list[tuple[Key, TileMesh]]] = [[((r, c, 1), tm) for (_, r, c, _), tm in zip(leaf_jobs, leaves)]]
     step = 1
     while len(levels[-1]) > 1:
         step *= 2
         span = TILE_CELLS * step
-        jobs = [(grid, r, c, max_rmse * step, step) for r in range(0, max(grid.rows - 1, 1), span)
-                for c in range(0, max(grid.cols - 1, 1), span)]  # fmt: skip
-        levels.append(list(zip(jobs, map_ordered(mesh_tile, jobs, workers=workers))))
+        groups: dict[tuple[int, int], list[TileMesh]] = {}
+        for (r, c, _), tm in levels[-1]:
+            groups.setdefault((r // span * span, c // span * span), []).append(tm)
+        keys = [(r, c, step) for r, c in groups]
+        jobs = [(grid.x0 + c * grid.cell, grid.y0 - r * grid.cell, groups[(r, c)], LEVEL_SHARE) for r, c, _ in keys]
+        merged = map_ordered(merged_mesh, jobs, workers=workers)
+        levels.append([(k, TileMesh(v, f, 0.0, 0.0, 0.0, 0, 0)) for k, (v, f) in zip(keys, merged)])
 
     folder = path.parent
     folder.mkdir(parents=True, exist_ok=True)
@@ -75,9 +83,9 @@ def write_tileset(
         tmp = Path(tmp_name)
         made: dict[tuple[int, int, int], Tile] = {}
         for depth, level in enumerate(levels):
-            for job, tm in level:
-                _, r, c, _, step = job
-                tile = _write_tile(tmp, depth, job, tm, grid, crs, frame, z_unit, lift_m, ortho, ortho_cell)
+            for key, tm in level:
+                r, c, step = key
+                tile = _write_tile(tmp, depth, key, tm, grid, crs, frame, z_unit, lift_m, ortho, ortho_cell)
                 if depth > 0:  # its children: the tiles of the level below inside its cells
                     span = TILE_CELLS * step
                     kids = [t for (d, rr, cc), t in made.items() if d == depth - 1 and r <= rr < r + span
@@ -106,20 +114,16 @@ def write_tileset(
 
 
 def _write_tile(
-    folder: Path, depth: int, job: Job, tm: TileMesh, grid: DsmGrid, crs: CRS, frame: LocalFrame, z_unit: float,
+    folder: Path, depth: int, key: Key, tm: TileMesh, grid: DsmGrid, crs: CRS, frame: LocalFrame, z_unit: float,
     lift_m: float, ortho: Path, ortho_cell: float,
 ) -> Tile:  # fmt: skip
     """One tile's glTF (east, north, up in the tileset's frame) and its entry."""
-    _, r, c, _, step = job
+    r, c, step = key
     if len(tm.faces) == 0:
         return Tile(None, np.array([np.inf] * 3), np.array([-np.inf] * 3), 0.0)
-    half = grid.cell / 2
-    span = TILE_CELLS * step
-    west = grid.x0 + c * grid.cell - half
-    north = grid.y0 - r * grid.cell + half
-    east = min(west + span * grid.cell + grid.cell * step, grid.x0 + (grid.cols - 1) * grid.cell + half)
-    south = max(north - span * grid.cell - grid.cell * step, grid.y0 - (grid.rows - 1) * grid.cell - half)
-    bounds = (west, south, east, north)
+    half = grid.cell / 2  # the texture covers the tile's cells, whose centres are its vertices
+    lo, hi = tm.vertices[:, :2].min(axis=0), tm.vertices[:, :2].max(axis=0)
+    bounds = (lo[0] - half, lo[1] - half, hi[0] + half, hi[1] + half)
     texture, _ = ortho_texture(ortho, bounds, TILE_TEXTURE_PX, ortho_cell * step)
     xyz = tm.vertices * [1.0, 1.0, z_unit] + [0.0, 0.0, lift_m]
     enu = to_local(frame, horizontal_of(crs), xyz)
