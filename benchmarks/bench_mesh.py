@@ -55,7 +55,8 @@ def main() -> int:
         print(f"mesh: {t_mesh:.1f} s, peak {mb_mesh:.0f} MB; ratio mesh/ortho {t_mesh / t_ortho:.2f} (target <= 1)")
         print(f"  {r['n_faces']:,} faces: {r['faces_per_ha']:,.0f} a hectare, {r['mb_per_ha']:.2f} MB a hectare (glTF)")
         print(
-            f"  against the DSM: RMSE {r['rmse_m']:.3f} m (asked <= {r['max_rmse_m']:.3f}), max {r['max_error_m']:.2f} m"
+            f"  against the DSM: RMSE {r['rmse_m']:.3f} m (asked <= {r['max_rmse_m']:.3f}), "
+            f"max {r['max_error_m']:.2f} m"
         )
         print(f"  3D Tiles: {r['n_tiles']} tiles in {r['n_levels']} levels")
     return 0
