@@ -611,6 +611,31 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     assert abs(extent.width() - dsm_extent.width()) < 3 and abs(extent.height() - dsm_extent.height()) < 3
     ran.add("mesh")
 
+    # volume: over the whole DSM on a fixed base, as QGIS's own "Raster surface volume" measures it
+    import shapely
+
+    with rasterio.open(tiny / "truth" / "dsm.tif") as ds:
+        b, level = ds.bounds, float(np.nanpercentile(ds.read(1, masked=True).filled(np.nan), 30))
+    gpd.GeoDataFrame({"name": ["all"]}, geometry=[shapely.box(*b)], crs=r["CRS"]).to_file(tmp_path / "all.gpkg")
+    r = _run(
+        "volume",
+        {
+            "DSM": str(tiny / "truth" / "dsm.tif"),
+            "POLYGONS": str(tmp_path / "all.gpkg"),
+            "OUTPUT": str(tmp_path / "volumes.gpkg"),
+            "BASE": "fixed",
+            "BASE_ELEVATION_M": level,
+        },
+    )
+    import processing
+
+    above = processing.run("native:rastersurfacevolume", {"INPUT": str(tiny / "truth" / "dsm.tif"), "BAND": 1,
+                                                          "LEVEL": level, "METHOD": 0})["VOLUME"]  # fmt: skip
+    below = processing.run("native:rastersurfacevolume", {"INPUT": str(tiny / "truth" / "dsm.tif"), "BAND": 1,
+                                                          "LEVEL": level, "METHOD": 1})["VOLUME"]  # fmt: skip
+    assert r["CUT_M3"] == pytest.approx(above, rel=0.001) and r["FILL_M3"] == pytest.approx(abs(below), rel=0.001)
+    ran.add("volume")
+
     r = _run("demo", {"OUTPUT": str(tmp_path / "demo"), "PRESET": "tiny", "SEED": 3})
     assert isinstance(r["PRODUCTS"], dict) and all(
         Path(p).exists() for p in r["PRODUCTS"].values() if isinstance(p, str)
@@ -647,7 +672,6 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     ran.add("report")
 
     # plan: layers loaded in the project from the toolbox; then plan-check on it
-    import geopandas as gpd
     import shapely
 
     info = json.loads((tiny / "truth" / "survey.json").read_text())

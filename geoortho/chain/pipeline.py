@@ -538,6 +538,7 @@ def run(
     positions: Path | None = None,
     split: int = 0,
     split_overlap_m: float | None = None,
+    volumes: Path | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> RunResult:
@@ -545,7 +546,8 @@ def run(
 
     The stages that apply, in order: gcp-find (with a GCP file), sfm (on the found GCPs), dense
     (unless a lidar cloud is given), dem (DSM and DTM), footprints (of the SfM's cameras on the
-    DSM, with the heights given checked against them), ortho (on the DSM), report. No flight
+    DSM, with the heights given checked against them), ortho (on the DSM), mesh (3D), volume
+    (with volumes), report. No flight
     height is needed: the SfM measures it.
     Each writes into its own subfolder of the project at stable names; ``run.json`` records
     what each was run with. Run again and only the stages whose inputs or options changed are
@@ -606,6 +608,9 @@ def run(
         killed mid-way reuses the submodels already made.
     split_overlap_m : float
         Each submodel also takes its neighbours' photos within this distance (m; default: sfm's 30).
+    volumes : Path
+        Polygons (stockpiles, pits; any vector format): their volumes on the DSM (see volume), with
+        the run's own vertical accuracy, in the report and the QGIS project.
     """
     fb = as_feedback(feedback)
     t0 = time.perf_counter()
@@ -636,6 +641,7 @@ def run(
         positions=given(positions),
         split=int(split or 0),
         split_overlap_m=split_overlap_m,
+        volumes=given(volumes),
     )
     if project.gcp_file is not None and project.gcp_list is not None:
         raise InputError("give --gcp-file (markers to find) or --gcp-list (observations made), not both")

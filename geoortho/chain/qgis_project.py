@@ -84,6 +84,7 @@ def _groups(project: Path) -> list[tuple[str, list[_Layer]]]:
         (project / "gcp-find" / "detections.gpkg", "detections", "Point", "GCP detections"),
         (project / "footprints" / "footprints.gpkg", "footprints", "Polygon", "footprints"),
         (project / "ortho" / "ortho_seamlines.gpkg", "seamlines", "Polygon", "seamlines"),
+        (project / "volume" / "volumes.gpkg", "volumes", "Polygon", "volumes (stockpiles, pits)"),
     ):
         if path.is_file():
             renderer = product_renderer(layer)

@@ -18,6 +18,7 @@ from geoortho.chain.report_base import (
     cell_size_text,
     crs_label,
     furnish,
+    html_table,
     key_values,
     missing_note,
     new_figure,
@@ -175,6 +176,38 @@ def mesh_section(ctx: ReportContext) -> str:
         )
     )
     return "".join(parts)
+
+
+def volumes_section(ctx: ReportContext) -> str | None:
+    """The volumes over the polygons given: per polygon, cut, fill, net and its uncertainty, and what
+    of it stands on interpolated cells or off the surface."""
+    v = ctx.done("volume")
+    if v is None:
+        return None if "volume" not in ctx.stages else missing_note("The volume stage did not finish.")
+    path = ctx.path("volume", "output")
+    if path is None:
+        return missing_note("The volumes' GeoPackage is missing.")
+    import geopandas as gpd
+
+    table = gpd.read_file(path, layer="volumes")
+
+    def m3(x: Any) -> str:
+        return f"{float(x):,.1f}" if x is not None and math.isfinite(float(x)) else "–"
+
+    def share(x: Any) -> str:
+        return f"{100 * float(x):.1f} %" if x is not None and math.isfinite(float(x)) else "not known"
+
+    rows = [[r["name"], r["base_method"], f"{float(r['area_m2']):,.0f}", m3(r["cut_m3"]), m3(r["fill_m3"]),
+             f"{m3(r['net_m3'])} ± {m3(r['sigma_m3'])}", share(r["interpolated_share"]), share(r["uncovered_share"]),
+             r["note"] or ""] for _, r in table.iterrows()]  # fmt: skip
+    head = ["polygon", "base", "area m²", "cut m³", "fill m³", "net m³ (± 1σ)", "on interpolated cells",
+            "without surface", "note"]  # fmt: skip
+    said = html.escape(str(v.get("accuracy_source") or ""))
+    return html_table(head, rows) + (
+        f"<p>Cut: above the base; fill: below it. The uncertainty: {said}; a shift of the whole survey "
+        "counts over a fixed base only (a base drawn from the surface moves with it), the noise by "
+        "1 m patches, the base's own noise by its edge's patches.</p>"
+    )
 
 
 def _ortho_sources_map(ctx: ReportContext, o: dict[str, Any]) -> str:

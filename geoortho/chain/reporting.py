@@ -57,7 +57,13 @@ from geoortho.chain.report_base import (
     read_raster,
     status_html,
 )
-from geoortho.chain.report_products import elevation_section, mesh_section, ortho_section, seams_section
+from geoortho.chain.report_products import (
+    elevation_section,
+    mesh_section,
+    ortho_section,
+    seams_section,
+    volumes_section,
+)
 from geoortho.chain.stages import REPORT_NAME, STAGES
 from geoortho.core.crs import heights_from_text, heights_label
 from geoortho.core.folders import refuse_writing_into
@@ -457,6 +463,7 @@ _SECTIONS: list[tuple[str, Callable[[ReportContext], str | None]]] = [
     ("Orthophoto", ortho_section),
     ("Seams and colour balance", seams_section),
     ("3D mesh", mesh_section),
+    ("Volumes", volumes_section),
     ("Time and memory per stage", _timing),
     ("Notes and warnings", _notes),
     ("Parameters", _parameters),
@@ -520,7 +527,8 @@ def _page(ctx: ReportContext, sections: list[str]) -> str:
             f'<div class="banner good">Quality: GREEN. Every stage finished; each of the {len(measured)} items '
             "measured is within its green threshold; no problem found.</div>"
         )
-    toc = "".join(f'<li><a href="#{anchor_of(t)}">{html.escape(t)}</a></li>' for t, _ in _SECTIONS)
+    shown = [t for t, _ in _SECTIONS if any(f'<section id="{anchor_of(t)}">' in sec for sec in sections)]
+    toc = "".join(f'<li><a href="#{anchor_of(t)}">{html.escape(t)}</a></li>' for t in shown)  # no dead link
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>geoortho quality report: {html.escape(ctx.project.name)}</title>"

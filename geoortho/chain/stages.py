@@ -14,7 +14,7 @@ from geoortho.photos.heights import GpsAltitude
 
 REPORT_NAME = "report.html"
 
-StageName = Literal["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "mesh", "report"]
+StageName = Literal["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "mesh", "volume", "report"]
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,7 @@ class Project:
     positions: Path | None = None  # PPK/surveyed camera positions for the SfM
     split: int = 0  # split-merge SfM: submodels of at most this many photos (0: one block)
     split_overlap_m: float | None = None  # the submodels' overlap (None: sfm's default)
+    volumes: Path | None = None  # polygons to measure volumes over
 
     def folder(self, stage: str) -> Path:
         return self.output / stage
@@ -201,6 +202,14 @@ STAGES: tuple[Stage, ...] = (
         },
         ("dsm", "ortho"),
         weight=1,
+    ),
+    # Volumes over the polygons given, on the surface made (or given), with the run's accuracy.
+    Stage(
+        "volume",
+        lambda p: p.volumes is not None,
+        lambda p, d: {"dsm": _surface(p), "polygons": p.volumes, "output": p.folder("volume") / "volumes.gpkg"},
+        ("dsm", "polygons"),
+        weight=0.2,
     ),
     Stage(
         "report",

@@ -235,12 +235,13 @@ _VECTOR_LOOKS: dict[str, Callable[[], ET.Element]] = {
     "gcps": lambda: marker("#ff7f00", "triangle", 3.5),
     "residuals": lambda: line("#d7191c", 0.6),
     "contours": lambda: line("#5a3a1a", 0.2),
+    "volumes": lambda: outline("#984ea3", 0.6),  # stockpiles and pits measured
 }
 
 
 def product_renderer(layer: str) -> ET.Element:
     """The renderer of a product's vector layer, by the layer's name (``footprints``, ``left_out``, ``cameras``,
-    ``detections``, ``seamlines``, ``contours``, ``gcps``, ``residuals``)."""
+    ``detections``, ``seamlines``, ``contours``, ``gcps``, ``residuals``, ``volumes``)."""
     return _VECTOR_LOOKS[layer]()
 
 

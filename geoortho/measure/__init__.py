@@ -1,0 +1,1 @@
+"""Measurements on the products: volumes (and, to come, change between flights)."""
