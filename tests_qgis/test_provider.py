@@ -636,6 +636,25 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     assert r["CUT_M3"] == pytest.approx(above, rel=0.001) and r["FILL_M3"] == pytest.approx(abs(below), rel=0.001)
     ran.add("volume")
 
+    # change: a survey against itself moved 1.5 m east is brought back, with nothing changed
+    with rasterio.open(tiny / "truth" / "dsm.tif") as ds:
+        profile, data = ds.profile, ds.read()
+        moved_profile = {**profile, "transform": ds.transform * ds.transform.translation(1.5 / ds.transform.a, 0)}
+    with rasterio.open(tmp_path / "moved_dsm.tif", "w", **moved_profile) as w:
+        w.write(data)
+    r = _run(
+        "change",
+        {
+            "REFERENCE": str(tiny / "truth" / "dsm.tif"),
+            "COMPARE": str(tmp_path / "moved_dsm.tif"),
+            "OUTPUT": str(tmp_path / "change.tif"),
+            "POLYGONS": str(tmp_path / "change.gpkg"),
+        },
+    )
+    assert r["SHIFT_X_M"] == pytest.approx(1.5, abs=0.05) and r["N_CUT"] + r["N_FILL"] == 0
+    assert QgsRasterLayer(r["OUTPUT"], "change").isValid()
+    ran.add("change")
+
     r = _run("demo", {"OUTPUT": str(tmp_path / "demo"), "PRESET": "tiny", "SEED": 3})
     assert isinstance(r["PRODUCTS"], dict) and all(
         Path(p).exists() for p in r["PRODUCTS"].values() if isinstance(p, str)

@@ -1,0 +1,243 @@
+"""``change``: what changed between two surveys of one site (their DSMs):
+the second brought onto the first on the ground that did not change, their difference, a level of
+detection per cell from both surveys' noise and the fit's, and the cut and fill areas beyond it as
+polygons with their volumes.
+
+Fill is where the second survey is higher (material added), cut where it is lower (removed).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from geoortho.errors import InputError
+from geoortho.feedback import Feedback, as_feedback
+from geoortho.measure.coregister import Grid, coregister, moved
+
+__all__ = ["ChangeResult", "change"]
+
+#: 95 % of a normal error lies within this many sigma: the level of detection's factor.
+LOD_SIGMAS = 1.96
+#: The noise is taken as correlated over patches this wide (metres), for the volumes' uncertainty.
+NOISE_CORRELATION_M = 1.0
+
+
+@dataclass(frozen=True)
+class ChangeResult:
+    """What changed.
+
+    Attributes
+    ----------
+    output : Path
+        The difference (second minus first, after the fit), a GeoTIFF on the first's grid.
+    polygons : Path
+        The GeoPackage (layer ``change``): each area beyond the level of detection, its kind (cut or
+        fill), area_m2, volume_m3 (positive for fill, negative for cut) and sigma_m3.
+    shift_x_m : float
+        How far the second survey was moved east to sit on the first.
+    shift_y_m : float
+        North.
+    shift_z_m : float
+        Up.
+    rotation_deg : float
+        The turn about the vertical (counter-clockwise).
+    tilt_deg : float
+        The tilt taken out (the steepest of the two slopes).
+    residual_m : float
+        The difference's robust spread (NMAD) on the ground that did not change, after the fit.
+    stable_share : float
+        The share of the common cells that agreed (did not change).
+    lod_m : float
+        The level of detection (95 %): a difference smaller than this is not called change.
+    n_cut : int
+        Cut areas found (at least ``min_area_m2``).
+    n_fill : int
+        Fill areas found.
+    cut_m3 : float
+        Volume removed (positive, m³).
+    fill_m3 : float
+        Volume added (m³).
+    seconds : float
+        Time taken.
+    """
+
+    output: Path
+    polygons: Path
+    shift_x_m: float
+    shift_y_m: float
+    shift_z_m: float
+    rotation_deg: float
+    tilt_deg: float
+    residual_m: float
+    stable_share: float
+    lod_m: float
+    n_cut: int
+    n_fill: int
+    cut_m3: float
+    fill_m3: float
+    seconds: float
+
+
+def change(
+    reference: Path,
+    compare: Path,
+    output: Path,
+    polygons: Path,
+    *,
+    noise_m: float | None = None,
+    min_area_m2: float = 1.0,
+    feedback: Feedback | None = None,
+) -> ChangeResult:
+    """The change between two surveys of one site, the second brought onto the first.
+
+    Parameters
+    ----------
+    reference : Path
+        The first survey's DSM (a run's, PROJECT/dem/dsm.tif: its run's noise is read beside it).
+    compare : Path
+        The second survey's DSM. It may start metres away from the first and turned (two flights on
+        GPS alone; found to 2 cm from 13 m and 1 degree apart on an 80 m site): the fit runs coarse
+        to fine, and needs relief in more than one direction to fix the horizontal shift (a flat
+        field fixes only the height).
+    output : Path
+        The difference raster (GeoTIFF).
+    polygons : Path
+        The cut and fill areas (GeoPackage).
+    noise_m : float
+        Each survey's noise (1 sigma, metres). Default: the runs' dem measure where both are runs,
+        else the fit's residual on stable ground split between the two.
+    min_area_m2 : float
+        A cut or fill area smaller than this is left out (m²).
+    """
+    import rasterio
+    from pyproj import CRS
+
+    fb = as_feedback(feedback)
+    started = time.perf_counter()
+    a_path, b_path = _dsm_of(Path(reference)), _dsm_of(Path(compare))
+    with rasterio.open(a_path) as ds:
+        if ds.crs is None:
+            raise InputError("the DSM has no CRS", path=a_path)
+        crs = CRS.from_user_input(ds.crs)
+        ta = ds.transform
+        az = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+    with rasterio.open(b_path) as ds:
+        if ds.crs is None or CRS.from_user_input(ds.crs) != crs:
+            raise InputError(f"not in the first survey's CRS ({crs.to_string()}): give both in one CRS", path=b_path)
+        tb = ds.transform
+        bz = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+    for t, p in ((ta, a_path), (tb, b_path)):
+        if t.b != 0 or t.d != 0 or not math.isclose(t.a, -t.e, rel_tol=1e-6):
+            raise InputError("the DSM is not north up with square cells", path=p)
+    a = Grid.of(az, ta.c + ta.a / 2, ta.f + ta.e / 2, ta.a)
+    b = Grid.of(bz, tb.c + tb.a / 2, tb.f + tb.e / 2, tb.a)
+    fb.info("bringing the second survey onto the first on the ground that did not change ...")
+    fit = coregister(a, b)
+    fb.progress(0.6)
+    xs, ys, za = a.centres()
+    zb, _, _ = moved(b, xs, ys, fit.params, fit.centre)
+    diff = np.full(az.shape, np.nan)
+    rr, cc = np.nonzero(np.isfinite(az))
+    diff[rr, cc] = zb - za
+    common = np.isfinite(diff)
+    if common.sum() < 100:
+        raise InputError("the two surveys share almost no ground: not the same site?", path=b_path)
+    stable_share = float(fit.inliers[common].mean())
+    sigma_a, sigma_b, said = _noise(Path(reference), Path(compare), noise_m, fit.residual)
+    sigma_d = math.sqrt(sigma_a**2 + sigma_b**2 + fit.sigma[2] ** 2)
+    lod = LOD_SIGMAS * sigma_d
+    cell_m2 = ta.a * ta.a
+    frame, cut, fill = _areas(diff, lod, ta, crs, min_area_m2, cell_m2, sigma_d, fit.sigma[2])
+    from geoortho.core.outputs import write_cog, write_vector
+
+    write_cog(output, diff.astype(np.float32), transform=ta, crs=crs, nodata=float("nan"),
+              band_names=("second minus first",), units="metre")  # fmt: skip
+    write_vector(polygons, {"change": frame})
+    dx, dy, dz, turn, tx, ty = fit.params
+    tilt = math.degrees(math.atan(math.hypot(tx, ty)))
+    fb.info(
+        f"moved {dx:+.2f} m east, {dy:+.2f} m north, {dz:+.2f} m up, turned {math.degrees(turn):+.3f}°; "
+        f"stable ground {100 * stable_share:.0f} %, residual {fit.residual:.3f} m; level of detection "
+        f"{lod:.3f} m ({said}); {int((frame['kind'] == 'cut').sum())} cut, {int((frame['kind'] == 'fill').sum())} "
+        f"fill areas: cut {cut:,.1f} m³, fill {fill:,.1f} m³"
+    )
+    if max(abs(fit.sigma[0]), abs(fit.sigma[1])) > fit.residual * 10 or not np.isfinite(fit.sigma[:2]).all():
+        fb.warning("the horizontal shift is poorly fixed (too little relief in some direction): check the fit")
+    return ChangeResult(
+        Path(output), Path(polygons), float(dx), float(dy), float(dz), math.degrees(turn), tilt, fit.residual,
+        stable_share, lod, int((frame["kind"] == "cut").sum()), int((frame["kind"] == "fill").sum()), cut, fill,
+        time.perf_counter() - started,
+    )  # fmt: skip
+
+
+def _dsm_of(path: Path) -> Path:
+    """A DSM that is there."""
+    if not path.is_file():
+        raise InputError("no such file", path=path)
+    return path
+
+
+def _noise(a: Path, b: Path, noise_m: float | None, residual: float) -> tuple[float, float, str]:
+    """Each survey's noise: as given, the runs' own, else the fit's residual split between them."""
+    if noise_m is not None:
+        return float(noise_m), float(noise_m), "noise as given"
+    found = [_run_noise(p) for p in (a, b)]
+    if all(f is not None and math.isfinite(f) for f in found):
+        return float(found[0]), float(found[1]), "each run's noise on open ground"  # type: ignore[arg-type]
+    half = residual / math.sqrt(2.0)
+    return half, half, "the residual on stable ground, shared between the surveys"
+
+
+def _run_noise(path: Path) -> float | None:
+    project = path.parent.parent  # a run's DSM is PROJECT/dem/dsm.tif
+    try:
+        ledger = json.loads((project / "run.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    value = (((ledger.get("stages") or {}).get("dem") or {}).get("outputs") or {}).get("ground_noise_m")
+    return float(value) if isinstance(value, (int, float)) else None
+
+
+def _areas(
+    diff: np.ndarray, lod: float, transform: Any, crs: Any, min_area_m2: float, cell_m2: float, sigma_d: float,
+    sigma_z: float,
+) -> tuple[Any, float, float]:  # fmt: skip
+    """The cut and fill areas beyond the level of detection, as polygons with their volumes."""
+    import geopandas as gpd
+    import shapely
+    from rasterio.features import shapes
+    from scipy import ndimage
+
+    rows: list[dict[str, Any]] = []
+    geoms = []
+    patch_m2 = max(cell_m2, NOISE_CORRELATION_M**2)
+    for kind, mask in (("fill", diff > lod), ("cut", diff < -lod)):
+        mask = ndimage.binary_opening(np.nan_to_num(mask, nan=0).astype(bool))  # a lone cell is noise
+        labels, n = ndimage.label(mask)
+        if n == 0:
+            continue
+        counts = np.bincount(labels.ravel())
+        sums = ndimage.sum(np.nan_to_num(diff), labels, np.arange(1, n + 1))
+        keep = np.flatnonzero(counts[1:] * cell_m2 >= min_area_m2) + 1
+        kept = np.isin(labels, keep) & (labels > 0)
+        by_label: dict[int, list[Any]] = {}
+        for geom, value in shapes(labels.astype(np.int32), mask=kept, transform=transform):
+            by_label.setdefault(int(value), []).append(shapely.geometry.shape(geom))
+        for lab in keep:
+            area = float(counts[lab] * cell_m2)
+            vol = float(sums[lab - 1] * cell_m2)
+            sigma = math.sqrt((sigma_d * math.sqrt(area * patch_m2)) ** 2 + (sigma_z * area) ** 2)
+            geoms.append(shapely.union_all(by_label.get(int(lab), [])))
+            rows.append({"kind": kind, "area_m2": area, "volume_m3": vol, "sigma_m3": sigma})
+    frame = gpd.GeoDataFrame(rows or {"kind": [], "area_m2": [], "volume_m3": [], "sigma_m3": []},
+                             geometry=geoms, crs=crs)  # fmt: skip
+    cut = float(-frame.loc[frame["kind"] == "cut", "volume_m3"].sum()) if len(frame) else 0.0
+    fill = float(frame.loc[frame["kind"] == "fill", "volume_m3"].sum()) if len(frame) else 0.0
+    return frame, cut, fill
