@@ -55,7 +55,9 @@ class ChangeResult:
     stable_share : float
         The share of the common cells that agreed (did not change).
     lod_m : float
-        The level of detection (95 %): a difference smaller than this is not called change.
+        The level of detection on flat ground (95 %): a difference smaller than this is not called
+        change; on a slope it grows with the slope times how well the fit placed the surveys (at
+        least a cell over the square root of 12).
     n_cut : int
         Cut areas found (at least ``min_area_m2``).
     n_fill : int
@@ -152,9 +154,14 @@ def change(
     stable_share = float(fit.inliers[common].mean())
     sigma_a, sigma_b, said = _noise(Path(reference), Path(compare), noise_m, fit.residual)
     sigma_d = math.sqrt(sigma_a**2 + sigma_b**2 + fit.sigma[2] ** 2)
+    # where the ground is steep, a place known to a fraction of a cell is a height known to that
+    # times the slope: a wall's cells differ by metres for a millimetre's shift, and are no change
+    sigma_h = max(float(np.max(fit.sigma[:2])), ta.a / math.sqrt(12.0))
+    slope = np.hypot(a.slope_x, a.slope_y).astype(np.float64)
+    lod_cells = LOD_SIGMAS * np.sqrt(sigma_d**2 + (np.nan_to_num(slope) * sigma_h) ** 2)
     lod = LOD_SIGMAS * sigma_d
     cell_m2 = ta.a * ta.a
-    frame, cut, fill = _areas(diff, lod, ta, crs, min_area_m2, cell_m2, sigma_d, fit.sigma[2])
+    frame, cut, fill = _areas(diff, lod_cells, ta, crs, min_area_m2, cell_m2, sigma_d, fit.sigma[2])
     from geoortho.core.outputs import write_cog, write_vector
 
     write_cog(output, diff.astype(np.float32), transform=ta, crs=crs, nodata=float("nan"),
@@ -206,10 +213,10 @@ def _run_noise(path: Path) -> float | None:
 
 
 def _areas(
-    diff: np.ndarray, lod: float, transform: Any, crs: Any, min_area_m2: float, cell_m2: float, sigma_d: float,
+    diff: np.ndarray, lod: np.ndarray, transform: Any, crs: Any, min_area_m2: float, cell_m2: float, sigma_d: float,
     sigma_z: float,
 ) -> tuple[Any, float, float]:  # fmt: skip
-    """The cut and fill areas beyond the level of detection, as polygons with their volumes."""
+    """The cut and fill areas beyond each cell's level of detection, as polygons with their volumes."""
     import geopandas as gpd
     import shapely
     from rasterio.features import shapes

@@ -187,11 +187,17 @@ def volume(
                  styles=product_styles("volumes"))  # fmt: skip
     cut = float(sum(r["cut_m3"] for r in measured))
     fill = float(sum(r["fill_m3"] for r in measured))
-    systematic = sum(r["sigma_systematic_m3"] for r in measured)  # one shift for every polygon
-    rest = sum(r["sigma_random_m3"] ** 2 + r["sigma_base_m3"] ** 2 for r in measured)
-    sigma = math.sqrt(systematic**2 + rest)
+    # one shift for every polygon, and one way of placing walls; the noise is each polygon's own
+    systematic = float(np.nansum([r["sigma_systematic_m3"] for r in measured]))
+    walls = float(np.nansum([r["sigma_walls_m3"] for r in measured]))
+    rest = float(np.nansum([r["sigma_random_m3"] ** 2 + r["sigma_base_m3"] ** 2 for r in measured]))
+    sigma = math.sqrt(systematic**2 + walls**2 + rest)
     if not math.isfinite(accuracy.systematic_m):
         notes.append("the vertical accuracy is not known: give vertical_accuracy_m (the systematic part is left out)")
+    if not math.isfinite(accuracy.noise_m):
+        notes.append("the DSM's noise is not known: give noise_m (the random and base parts are left out)")
+    for n in notes:
+        fb.warning(n)
     fb.info(f"{len(measured)} polygon(s): cut {cut:,.1f} m³, fill {fill:,.1f} m³, net {cut - fill:,.1f} ± "
             f"{sigma:,.1f} m³ (1 sigma; {accuracy.source})")  # fmt: skip
     return VolumeResult(Path(output), len(measured), cut, fill, cut - fill, sigma, accuracy.source, notes,
