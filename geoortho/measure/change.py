@@ -8,7 +8,6 @@ Fill is where the second survey is higher (material added), cut where it is lowe
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -19,14 +18,13 @@ import numpy as np
 
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
+from geoortho.measure.accuracy import NOISE_CORRELATION_M, run_noise
 from geoortho.measure.coregister import Grid, coregister, moved
 
 __all__ = ["ChangeResult", "change"]
 
 #: 95 % of a normal error lies within this many sigma: the level of detection's factor.
 LOD_SIGMAS = 1.96
-#: The noise is taken as correlated over patches this wide (metres), for the volumes' uncertainty.
-NOISE_CORRELATION_M = 1.0
 
 
 @dataclass(frozen=True)
@@ -195,21 +193,11 @@ def _noise(a: Path, b: Path, noise_m: float | None, residual: float) -> tuple[fl
     """Each survey's noise: as given, the runs' own, else the fit's residual split between them."""
     if noise_m is not None:
         return float(noise_m), float(noise_m), "noise as given"
-    found = [_run_noise(p) for p in (a, b)]
-    if all(f is not None and math.isfinite(f) for f in found):
-        return float(found[0]), float(found[1]), "each run's noise on open ground"  # type: ignore[arg-type]
+    found = [run_noise(p) for p in (a, b)]
+    if all(math.isfinite(f) for f in found):
+        return found[0], found[1], "each run's noise on open ground"
     half = residual / math.sqrt(2.0)
     return half, half, "the residual on stable ground, shared between the surveys"
-
-
-def _run_noise(path: Path) -> float | None:
-    project = path.parent.parent  # a run's DSM is PROJECT/dem/dsm.tif
-    try:
-        ledger = json.loads((project / "run.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    value = (((ledger.get("stages") or {}).get("dem") or {}).get("outputs") or {}).get("ground_noise_m")
-    return float(value) if isinstance(value, (int, float)) else None
 
 
 def _areas(

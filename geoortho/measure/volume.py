@@ -25,7 +25,6 @@ The uncertainty (1 sigma) is said as three parts:
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -37,13 +36,12 @@ import numpy as np
 from geoortho.core.crs import horizontal_unit_m
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback
+from geoortho.measure.accuracy import NOISE_CORRELATION_M, run_noise, run_vertical_accuracy
 
 __all__ = ["VolumeResult", "volume"]
 
 Base = Literal["edge-triangulated", "edge-lowest", "edge-mean", "fixed", "dtm"]
 BASES: tuple[str, ...] = ("edge-triangulated", "edge-lowest", "edge-mean", "fixed", "dtm")
-#: The DSM's noise is taken as correlated over patches this wide (metres).
-NOISE_CORRELATION_M = 1.0
 #: A polygon whose area is more than this share interpolated is said to be (its volume there is none).
 INTERPOLATED_WARN = 0.2
 #: A surface steeper than this (rise over run) is a wall: where it stands is known to a cell.
@@ -228,42 +226,19 @@ def _read_polygons(path: Path, crs: Any) -> Any:
 
 
 def _accuracy(dsm: Path, vertical_accuracy_m: float | None, noise_m: float | None) -> _Accuracy:
-    """The DSM's vertical accuracy and noise: as given, else from the run that made it (its sfm
-    report's checkpoints, else GCPs; its dem stage's ground noise)."""
-    project = dsm.parent.parent
+    """The DSM's vertical accuracy and noise: as given, else from the run that made it."""
     said = []
-    systematic, noise = math.nan, math.nan
     if vertical_accuracy_m is not None:
-        systematic = float(vertical_accuracy_m)
-        said.append("vertical accuracy as given")
+        systematic, source = float(vertical_accuracy_m), "vertical accuracy as given"
     else:
-        report = _json(project / "sfm" / "report.json")
-        for key, label in (("checkpoint_accuracy", "checkpoints"), ("gcp_accuracy", "GCPs")):
-            acc = report.get(key) or {}
-            z = acc.get("rmse_z_m")
-            if isinstance(z, (int, float)) and math.isfinite(z) and int(acc.get("n") or 0) > 0:
-                systematic = float(z)
-                said.append(f"vertical accuracy from the run's {acc.get('n')} {label} (RMSE {z:.3f} m)")
-                break
+        systematic, source = run_vertical_accuracy(dsm)
+    said += [source] if source else []
+    noise = float(noise_m) if noise_m is not None else run_noise(dsm)
     if noise_m is not None:
-        noise = float(noise_m)
         said.append("noise as given")
-    else:
-        ledger = _json(project / "run.json")
-        out = ((ledger.get("stages") or {}).get("dem") or {}).get("outputs") or {}
-        g = out.get("ground_noise_m")
-        if isinstance(g, (int, float)) and math.isfinite(g):
-            noise = float(g)
-            said.append(f"noise from the run's DSM on open ground ({g:.3f} m)")
+    elif math.isfinite(noise):
+        said.append(f"noise from the run's DSM on open ground ({noise:.3f} m)")
     return _Accuracy(systematic, noise, "; ".join(said) or "no accuracy known")
-
-
-def _json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) else {}
 
 
 def _measure(
