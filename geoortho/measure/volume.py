@@ -272,10 +272,12 @@ def _measure(
     cell_m2 = abs(wt.a * wt.e) * unit * unit
     covered = inside & np.isfinite(z)
     n_in, n_cov = int(inside.sum()), int(covered.sum())
-    uncovered = 1.0 - n_cov / n_in
-    # the polygon's part off the DSM's grid counts as uncovered too
-    full_cells = geom.area / abs(wt.a * wt.e)
-    uncovered = max(uncovered, 1.0 - n_cov / max(full_cells, n_cov))
+    # the share without height: its cells on the grid with none, and its part off the grid
+    import shapely
+
+    on_grid = geom.intersection(shapely.box(*rasterio.transform.array_bounds(*z.shape, wt)))
+    off_share = 1.0 - on_grid.area / geom.area if geom.area > 0 else 0.0
+    uncovered = 1.0 - (1.0 - off_share) * n_cov / n_in
     if n_cov == 0:
         return {**empty, "note": "over the DSM's nodata only: not measured"}
     note = ""

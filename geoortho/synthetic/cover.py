@@ -28,6 +28,7 @@ __all__ = [
     "add_car_park",
     "add_hall",
     "add_hedge",
+    "add_stockpiles",
     "leaf_texture",
 ]
 
@@ -319,3 +320,76 @@ def add_hedge(
     half = length / 2 + width
     patch = CoverPatch("hedge", cx, cy, half, half, detail)
     return new_dsm, new_objects.astype(np.float32), crown, patch
+
+
+#: Stockpiles: a cone's radius at most (m) and its height over its radius (a 27 degree heap); a pit's
+#: depth at most.
+PILE_RADIUS_M = 6.0
+PILE_SLOPE = 0.5
+PIT_DEPTH_M = 1.5
+GRAVEL_RGB = (0.58, 0.53, 0.46)
+
+
+def add_stockpiles(
+    g: CoverGround,
+    rng: np.random.Generator,
+    lumpy: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, CoverPatch]:
+    """A graded yard on open ground: a cone of gravel, an irregular pile (two heaps run together:
+    smooth, or ``lumpy`` with spoil in its flanks) and a pit, each a part of the ground (DSM and DTM
+    alike).
+    The new DSM, DTM and ground colours, and where, with each one's true volume above (a pile) or
+    below (the pit) the ground that was there, summed over the grid's cells."""
+    cx, cy, clear = _open_spot(g, 6.2 * PILE_RADIUS_M, inset=0.2)
+    # the heap at the spot, the cone to its west and the pit to its south, each one's polygon (its
+    # foot and a margin of 0.4 r) clear of the others'
+    r = min(PILE_RADIUS_M, clear / 6.2)
+    margin = 0.4 * r
+    xs, ys = g.centres()
+    cell_m2 = abs(g.transform.a * g.transform.e)
+    # a yard is graded: its ground a plane (the terrain's own tilt kept, its curvature taken out) out
+    # to 5.2 r, past every polygon, met by the terrain by 6.2 r: a pile stands on ground its edge tells
+    d = np.hypot(xs - cx, ys - cy)
+    yard = d < 6.2 * r
+    coef, *_ = np.linalg.lstsq(np.column_stack([np.ones(yard.sum()), xs[yard] - cx, ys[yard] - cy]),
+                               g.dtm[yard].astype(np.float64), rcond=None)  # fmt: skip
+    plane = coef[0] + coef[1] * (xs - cx) + coef[2] * (ys - cy)
+    blend = np.clip((6.2 * r - d) / r, 0.0, 1.0)
+    graded = g.dtm + blend * (plane - g.dtm)
+    kx, ky = cx - 3.7 * r, cy
+    cone = np.clip(PILE_SLOPE * (r - np.hypot(xs - kx, ys - ky)), 0.0, None)
+    d1 = ((xs - cx + 0.35 * r) / 1.3) ** 2 + ((ys - cy) / 0.8) ** 2
+    d2 = ((xs - cx - 0.45 * r) / 0.9) ** 2 + ((ys - cy - 0.2 * r) / 1.1) ** 2
+    s2 = (0.33 * r) ** 2
+    heaps = PILE_SLOPE * r * (np.exp(-d1 / (2 * s2)) + 0.7 * np.exp(-d2 / (2 * s2)))
+    if lumpy:  # spoil tipped in loads: lumps a quarter of the pile's radius across
+        from scipy.ndimage import gaussian_filter
+
+        lumps = gaussian_filter(rng.normal(0.0, 1.0, heaps.shape), sigma=0.25 * r / abs(g.transform.a))
+        heaps = heaps * (1.0 + 0.35 * lumps / max(float(np.abs(lumps).max()), 1e-9))
+    heaps = np.where((heaps > 0.02 * r) & (np.hypot(xs - cx, ys - cy) < 1.9 * r), heaps, 0.0)  # its foot
+    qx, qy = cx, cy - 3.5 * r
+    rp = 0.8 * r
+    # dug with sides at the piles' slope, at most PIT_DEPTH_M deep (a narrower, steeper pit is one
+    # the dense matcher's window smooths: the volume then says less than was dug)
+    pit = -np.minimum(PILE_SLOPE * np.clip(rp - np.hypot(xs - qx, ys - qy), 0.0, None), PIT_DEPTH_M)
+    clear_xy = _clear_of_markers(xs, ys, g.markers_xy, 2.0)
+    delta = np.where(clear_xy, cone + heaps + pit, 0.0)
+    new_dtm = (graded + delta).astype(np.float32)
+    new_dsm = (g.dsm + (graded - g.dtm) + delta).astype(np.float32)
+    grain = 0.85 + 0.3 * rng.random(delta.shape)
+    tint = np.where((delta > 0)[..., None], np.array(GRAVEL_RGB, np.float32) * grain[..., None], g.landcover)
+    tint = np.where((delta < 0)[..., None], np.array([0.42, 0.33, 0.25], np.float32) * grain[..., None], tint)
+
+    def volume(part: np.ndarray, sign: float) -> float:
+        return float(sign * np.sum(np.where(clear_xy, part, 0.0)) * cell_m2)
+
+    items = [
+        {"name": "cone", "kind": "pile", "x": kx, "y": ky, "radius_m": r + margin, "volume_m3": volume(cone, 1.0)},
+        {"name": "heap", "kind": "pile", "x": cx, "y": cy, "radius_m": 1.9 * r + margin,
+         "volume_m3": volume(heaps, 1.0), "lumpy": lumpy},
+        {"name": "pit", "kind": "pit", "x": qx, "y": qy, "radius_m": rp + margin, "volume_m3": volume(pit, -1.0)},
+    ]  # fmt: skip
+    half = 6.2 * r
+    patch = CoverPatch("stockpiles", cx, cy, half, half, {"pile_radius_m": r, "items": items})
+    return new_dsm, new_dtm, tint.astype(np.float32), patch

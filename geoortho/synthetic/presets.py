@@ -241,6 +241,10 @@ PATHOLOGIES: dict[str, str] = {
     "hall": "a hall wider than any ground filter's window (40 x 24 m, or half the flight area), 7 m to its eaves: "
     "a flat roof for an even seed, one pitched across its width for an odd one; survey.json: cover.hall",
     "hedge": "a hedge line 1.4 m high and 1.2 m wide across open ground, leaf-textured; survey.json: cover.hedge",
+    "stockpiles": "a graded yard on open ground: a cone of gravel (27 deg), an irregular pile of two heaps run "
+    "together (smooth for an even seed, lumpy spoil for an odd one) and a pit dug at the same slope (at most 1.5 m "
+    "deep), parts of the ground (DSM and DTM); survey.json: cover.stockpiles.items, each with its centre, a radius "
+    "that takes in its foot, and its true volume",
     "breaklines": f"a bank {BANK_M[0]:g} m high across the scene (45 deg for an even seed, 30 for an odd one) and a "
     f"road cutting {CUTTING_M[1]:g} m wide, {CUTTING_M[0]:g} m deep with 45 deg sides: the ground's own sharp edges; "
     "survey.json: cover.breaklines",

@@ -22,7 +22,15 @@ from geoortho.gcp.markers import (
     target_half_extent,
     target_reflectance,
 )
-from geoortho.synthetic.cover import CoverGround, add_canopy, add_car_park, add_hall, add_hedge, leaf_texture
+from geoortho.synthetic.cover import (
+    CoverGround,
+    add_canopy,
+    add_car_park,
+    add_hall,
+    add_hedge,
+    add_stockpiles,
+    leaf_texture,
+)
 from geoortho.synthetic.movers import Mover
 from geoortho.synthetic.presets import (
     BANK_M,
@@ -505,7 +513,7 @@ def add_cover(
     scene: Scene, pathologies: Sequence[str], rng: np.random.Generator, canopy_style: str, seed: int = 0
 ) -> None:
     """The wood and the car park, each on the open ground left by what stands there already; a
-    wide wood and a hall over it; a hedge on what is left."""
+    wide wood and a hall over it; a hedge on what is left; a yard of stockpiles and a pit."""
     markers_xy = [(m.x, m.y) for m in scene.markers]
 
     def ground() -> CoverGround:  # as each cover before has left it
@@ -533,3 +541,6 @@ def add_cover(
         scene.dsm, scene.objects, hedge, patch = add_hedge(ground(), rng)
         scene.canopy = hedge if scene.canopy is None else (scene.canopy | hedge)
         scene.cover["hedge"] = patch.record()
+    if "stockpiles" in pathologies:
+        scene.dsm, scene.dtm, scene.landcover, patch = add_stockpiles(ground(), rng, lumpy=seed % 2 == 1)
+        scene.cover["stockpiles"] = patch.record()

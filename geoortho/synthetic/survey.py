@@ -169,7 +169,7 @@ def synth(
         Comma-separated pathologies to build in: no-relative-altitude, ellipsoidal-gps,
         altitude-drift, wrong-focal, dsm-datum, partial-dsm, exposure-steps, free-heading,
         water, no-attitude, slope, wrong-flight-height, poor-gps, canopy, cars, rtk, ppk,
-        factory-calibration, wrong-calibration, gps-lag, wide-wood, hall, hedge, breaklines,
+        factory-calibration, wrong-calibration, gps-lag, wide-wood, hall, hedge, stockpiles, breaklines,
         moving-cars, dropped-photo (truth/survey.json says what each did).
     plan : Path
         Fly this plan (a ``plan`` output folder or its plan.gpkg) instead of the preset's
@@ -308,7 +308,7 @@ def _scene(
         bank_deg=(45.0 if seed % 2 == 0 else 30.0) if "breaklines" in pathologies else 0.0,
     )
     scene.target = target
-    if any(k in pathologies for k in ("canopy", "cars", "wide-wood", "hall", "hedge")):
+    if any(k in pathologies for k in ("canopy", "cars", "wide-wood", "hall", "hedge", "stockpiles")):
         add_cover(scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)], seed)
     if "water" in pathologies:
         scene.water = place_water(scene)
