@@ -122,7 +122,8 @@ def volume(
     base : str
         The base surface: edge-triangulated (a surface through the polygon's edge: stockpiles),
         edge-lowest (the edge's lowest point), edge-mean (the edge's mean), fixed (base_elevation_m),
-        dtm (the DTM given).
+        dtm (the DTM given: for what stands on the ground; a stockpile is ground in a DTM made from the
+        same survey, so its volume over that DTM is about nothing).
     base_elevation_m : float
         The fixed base's elevation (the DSM's heights' datum and units: metres, or feet for a DSM in
         feet).
