@@ -288,6 +288,10 @@ def _run_stages(
     are unchanged, else run and recorded in the ledger; then the run itself is recorded."""
 
     ledger = Ledger(root / LEDGER_NAME, force=force)
+    for s in stages:  # a stage asked for before and not now: its record goes as a skipped one's does
+        if s.opt_in and not s.applies(project):
+            ledger.data["stages"].pop(s.name, None)
+    stages = [s for s in stages if s.applies(project) or not s.opt_in]
     state = _RunState(ledger, Hasher(ledger.data.get("hash_cache")), software_versions(), time.perf_counter())
     run_one = runner or (lambda name, values, f: run_algorithm(name, values, feedback=f))
     names = [s.name for s in stages]

@@ -58,6 +58,7 @@ class Stage:
     values: Callable[[Project, Done], dict[str, Any]]
     inputs: tuple[str, ...]  # the value names that are files or folders read (hashed)
     weight: float = 1.0  # share of a typical run's time, for the overall progress bar
+    opt_in: bool = False  # asked for (volumes): a run that did not ask does not list it at all
 
 
 def _gcp_observations(p: Project, done: Done) -> Path | None:
@@ -210,6 +211,7 @@ STAGES: tuple[Stage, ...] = (
         lambda p, d: {"dsm": _surface(p), "polygons": p.volumes, "output": p.folder("volume") / "volumes.gpkg"},
         ("dsm", "polygons"),
         weight=0.2,
+        opt_in=True,
     ),
     Stage(
         "report",
