@@ -52,8 +52,9 @@ def demo(
     Prints where each product and the quality report are. Before the flight, a plan over the
     survey's area with its GCPs (``OUTPUT/plan``); after it, the photos checked against the GCPs
     (``OUTPUT/plan/check``). The chain: footprints, GCP finding,
-    SfM (every third GCP held out as a checkpoint), the dense cloud, DSM/DTM, the orthophoto and
-    the report, in ``OUTPUT/project``; the survey and its truth are in ``OUTPUT/survey``. Run it
+    SfM (every third GCP held out as a checkpoint), the dense cloud, DSM/DTM, the orthophoto, the
+    3D mesh, the volumes of the survey's buildings (and stockpiles, where it has them) and the
+    report, in ``OUTPUT/project``; the survey and its truth are in ``OUTPUT/survey``. Run it
     again on the same folder and only what changed is re-done: the survey too is kept when it is
     complete and of the same preset and seed.
 
@@ -84,6 +85,7 @@ def demo(
     names = sorted(read_gcp_file(survey.gcp_file).by_name())
     fb.stage("plan and check", 2, 3, starts[1], starts[2] - starts[1])
     planned = _plan_and_check(survey, output / "plan", plan_step)
+    volumes = _volume_polygons(survey, output / "volumes.gpkg")
     fb.stage("run", 3, 3, starts[2], 1.0 - starts[2])
     result = run(
         survey.images,
@@ -94,6 +96,7 @@ def demo(
         takeoff_elevation_m=_takeoff_elevation(survey),
         # 1024 px features keep the demo quick
         stage_options=json.dumps({"sfm": {"max_image_size": 1024, "max_features": 4096}}),
+        volumes=volumes,
         feedback=run_step,
     )
     products: dict[str, str] = {
@@ -150,6 +153,41 @@ def _plan_and_check(survey: SynthResult, folder: Path, fb: Feedback) -> dict[str
     return {"plan": str(p.plan), "plan_summary": str(p.summary), "plan_kml": str(p.kml), "check": str(c.report)}
 
 
+#: A standing object larger than this (m²) is a building whose volume the demo measures.
+BUILDING_MIN_M2 = 30.0
+
+
+def _volume_polygons(survey: SynthResult, target: Path) -> Path | None:
+    """Polygons to measure volumes over: the survey's stockpiles and pit where it has them, and its
+    buildings (from its truth: what stands 2 m over the ground on 30 m² or more), each with 2 m of
+    ground round it; None when there is neither."""
+    import geopandas as gpd
+    import numpy as np
+    import rasterio
+    import shapely
+    from rasterio.features import shapes
+    from scipy import ndimage
+
+    info = json.loads((survey.truth / "survey.json").read_text())
+    names, geoms = [], []
+    for item in (info.get("cover") or {}).get("stockpiles", {}).get("items", []):
+        names.append(str(item["name"]))
+        geoms.append(shapely.Point(item["x"], item["y"]).buffer(float(item["radius_m"]), 64))
+    with rasterio.open(survey.dsm) as d, rasterio.open(survey.dtm) as t:
+        height, transform = d.read(1) - t.read(1), d.transform
+    labels, n = ndimage.label(height > 2.0)
+    cell_m2 = abs(transform.a * transform.e)
+    sizes = np.bincount(labels.ravel())
+    big = [k for k in range(1, n + 1) if sizes[k] * cell_m2 >= BUILDING_MIN_M2]
+    for geom, _ in shapes(labels.astype(np.int32), mask=np.isin(labels, big), transform=transform):
+        names.append(f"building {len([x for x in names if x.startswith('building')]) + 1}")
+        geoms.append(shapely.geometry.shape(geom).envelope.buffer(2.0, join_style="mitre"))
+    if not geoms:
+        return None
+    gpd.GeoDataFrame({"name": names}, geometry=geoms, crs=info["crs"]).to_file(target)
+    return target
+
+
 def _takeoff_elevation(survey: SynthResult) -> float:
     """The field crew knows where they took off: the survey's home point elevation."""
     return float(json.loads((survey.truth / "survey.json").read_text())["home"]["ground_z"])
@@ -180,6 +218,7 @@ PRODUCTS = {
     "ortho_report": "ortho/ortho_report.json",
     "ortho_source": "ortho/ortho_source.tif",
     "ortho_seamlines": "ortho/ortho_seamlines.gpkg",
+    "volumes": "volume/volumes.gpkg",
     "mesh": "mesh/mesh.glb",
     "mesh_tileset": "mesh/tileset/tileset.json",
     "mesh_view": "mesh/mesh_view.png",
