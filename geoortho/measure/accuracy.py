@@ -31,6 +31,12 @@ def run_noise(dsm: Path) -> float:
     return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else math.nan
 
 
+def run_dense_voxel_m(dsm: Path) -> float:
+    """The run's dense cloud's voxel (metres): how finely its matcher placed an edge; NaN when none."""
+    value = _json(dsm.parent.parent / "dense" / "dense_report.json").get("voxel_m")
+    return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else math.nan
+
+
 def _json(path: Path) -> dict[str, Any]:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
