@@ -577,6 +577,14 @@ def height_unit(crs: CRS) -> tuple[str, float]:
     return str(unit.unit_name), factor
 
 
+def refuse_unless_north_up(transform: Affine, path: Any) -> None:
+    """A grid its readers take as rows running south, columns east and cells as wide as they are
+    tall: refused otherwise, in one line naming the file."""
+    t = transform
+    if t.b != 0 or t.d != 0 or t.e >= 0 or not math.isclose(t.a, -t.e, rel_tol=1e-6):
+        raise InputError("the DSM is not north up with square cells", path=path)
+
+
 def refuse_image(ds: Any, path: Any) -> None:
     """An orthophoto or any picture given where heights are wanted: refused, not read as heights."""
     from rasterio.enums import ColorInterp

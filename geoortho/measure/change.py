@@ -133,9 +133,10 @@ def change(
             raise InputError(f"not in the first survey's CRS ({crs.to_string()}): give both in one CRS", path=b_path)
         tb = ds.transform
         bz = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+    from geoortho.core.surface import refuse_unless_north_up
+
     for t, p in ((ta, a_path), (tb, b_path)):
-        if t.b != 0 or t.d != 0 or not math.isclose(t.a, -t.e, rel_tol=1e-6):
-            raise InputError("the DSM is not north up with square cells", path=p)
+        refuse_unless_north_up(t, p)
     a = Grid.of(az, ta.c + ta.a / 2, ta.f + ta.e / 2, ta.a)
     b = Grid.of(bz, tb.c + tb.a / 2, tb.f + tb.e / 2, tb.a)
     fb.info("bringing the second survey onto the first on the ground that did not change ...")

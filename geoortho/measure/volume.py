@@ -143,6 +143,8 @@ def volume(
     import rasterio
     from pyproj import CRS
 
+    from geoortho.core.surface import height_unit
+
     fb = as_feedback(feedback)
     started = time.perf_counter()
     if base not in BASES:
@@ -161,8 +163,6 @@ def volume(
     frame = _read_polygons(Path(polygons), crs)
     accuracy = _accuracy(Path(dsm), vertical_accuracy_m, noise_m)
     unit = horizontal_unit_m(crs)
-    from geoortho.core.surface import height_unit
-
     z_unit = height_unit(crs)[1]
     source = Path(dsm).with_name(Path(dsm).stem + "_source.tif")
     notes: list[str] = []

@@ -149,18 +149,20 @@ def mesh(
         raise ParameterError("output", f"{output}: the mesh is written as glTF binary (.glb)")
     if tileset is not None and Path(tileset).name.lower() != "tileset.json":
         raise ParameterError("tileset", f"{tileset}: a 3D Tiles tileset is named tileset.json")
+    from pyproj import CRS
+
+    from geoortho.core.crs import horizontal_of
+    from geoortho.core.surface import height_unit, refuse_unless_north_up
+
     with rasterio.open(dsm) as ds:
         if ds.crs is None:
             raise InputError("the DSM has no CRS: a mesh must say where it is", path=dsm)
         t = ds.transform
-        if t.b != 0 or t.d != 0 or t.e >= 0 or not math.isclose(t.a, -t.e, rel_tol=1e-6):
-            raise InputError("the DSM is not north up with square cells", path=dsm)
-        from pyproj import CRS
-
+        refuse_unless_north_up(t, dsm)
         crs = CRS.from_user_input(ds.crs)
         grid = DsmGrid(str(dsm), t.c + t.a / 2, t.f + t.e / 2, t.a, ds.height, ds.width)
     with rasterio.open(ortho) as o:
-        if o.crs is None or CRS.from_user_input(o.crs) != crs and not _same_horizontal(o.crs, crs):
+        if o.crs is None or horizontal_of(CRS.from_user_input(o.crs)) != horizontal_of(crs):
             raise InputError(f"the orthophoto's CRS is not the DSM's ({crs_to_text(crs)})", path=ortho)
         ortho_cell = abs(o.transform.a)
     unit_m = horizontal_unit_m(crs)
@@ -187,7 +189,7 @@ def mesh(
     bounds = (vmin[0] - grid.cell / 2, vmin[1] - grid.cell / 2, vmax[0] + grid.cell / 2, vmax[1] + grid.cell / 2)
     texture, texture_cell = ortho_texture(ortho, bounds, texture_max_px, ortho_cell)
     uv = uv_of(verts, bounds)
-    z_unit = _z_unit_m(crs)
+    z_unit = height_unit(crs)[1]
     local = (verts - offset) * np.array([unit_m, unit_m, z_unit])
 
     from geoortho.products3d.gltf import encode_jpeg, write_glb, write_obj
@@ -202,7 +204,8 @@ def mesh(
 
     n_tiles = n_levels = 0
     if tileset is not None:
-        n_tiles, n_levels = write_tileset(Path(tileset), grid, crs, tiles, jobs, ortho, workers, fb_set)
+        origin = (offset[0], offset[1], offset[2] * z_unit)  # the glTF's offset: the tiles' frame too
+        n_tiles, n_levels = write_tileset(Path(tileset), grid, crs, tiles, jobs, ortho, origin, workers, fb_set)
     if view is not None:
         from geoortho.products3d.view import render_oblique, write_png
 
@@ -221,20 +224,6 @@ def mesh(
         max_rmse * unit_m, len(faces) / area_ha, size_mb / area_ha, (texture.shape[1], texture.shape[0]),
         texture_cell * unit_m, offset, n_tiles, n_levels, crs_to_text(crs), time.perf_counter() - started,
     )  # fmt: skip
-
-
-def _same_horizontal(a: Any, b: Any) -> bool:
-    from pyproj import CRS
-
-    from geoortho.core.crs import horizontal_of
-
-    return bool(horizontal_of(CRS.from_user_input(a)) == horizontal_of(CRS.from_user_input(b)))
-
-
-def _z_unit_m(crs: Any) -> float:
-    from geoortho.core.surface import height_unit
-
-    return height_unit(crs)[1]
 
 
 def _joined(tiles: list[TileMesh]) -> tuple[np.ndarray, np.ndarray]:

@@ -47,20 +47,21 @@ def write_tileset(
     leaves: list[TileMesh],
     leaf_jobs: list[tuple[DsmGrid, int, int, float]],
     ortho: Path,
+    origin: tuple[float, float, float],
     workers: int,
     fb: Feedback,
 ) -> tuple[int, int]:
     """The tileset.json at ``path`` and its tiles in ``tiles/`` beside it; returns (tiles with
-    content, levels). ``leaves`` are the mesh's tiles, made for ``leaf_jobs``."""
+    content, levels). ``leaves`` are the mesh's tiles, made for ``leaf_jobs``; ``origin`` (x, y in
+    the CRS, height in metres) the east-north-up frame's."""
     import rasterio
+
+    from geoortho.core.surface import height_unit
 
     with rasterio.open(ortho) as o:
         ortho_cell = abs(o.transform.a)
-    z_unit = _z_unit(crs)
-    valid_z = np.concatenate([tm.vertices[:, 2] for tm in leaves if len(tm.vertices)])
-    cx = grid.x0 + (grid.cols - 1) * grid.cell / 2
-    cy = grid.y0 - (grid.rows - 1) * grid.cell / 2
-    frame = local_frame(horizontal_of(crs), cx, cy, float(np.median(valid_z)) * z_unit)
+    z_unit = height_unit(crs)[1]
+    frame = local_frame(horizontal_of(crs), *origin)
     lift_m, lift_note = _ellipsoid_lift(crs, frame)
 
     levels: list[list[tuple[Key, TileMesh]]] = [[((r, c, 1), tm) for (_, r, c, _), tm in zip(leaf_jobs, leaves)]]
@@ -143,12 +144,6 @@ def _geometric_error(tm: TileMesh, grid: DsmGrid, r: int, c: int, size: int) -> 
     d = np.abs(drawn - z)
     d = d[np.isfinite(d)]
     return float(np.percentile(d, ERROR_PERCENTILE)) if d.size else 0.0
-
-
-def _z_unit(crs: CRS) -> float:
-    from geoortho.core.surface import height_unit
-
-    return height_unit(crs)[1]
 
 
 def _ellipsoid_lift(crs: CRS, frame: LocalFrame) -> tuple[float, str]:
