@@ -32,6 +32,7 @@ __all__ = [
     "write_layer_styles",
     "write_text",
     "write_json",
+    "write_png",
     "json_text",
     "strict",
     "VECTOR_DRIVERS",
@@ -134,6 +135,18 @@ def write_text(target: str | os.PathLike[str], text: str) -> Path:
 
 def write_json(target: str | os.PathLike[str], obj: Any) -> Path:
     return write_text(target, json_text(obj, indent=2) + "\n")
+
+
+def write_png(target: str | os.PathLike[str], image: np.ndarray) -> Path:
+    """An image (grey, BGR or BGRA: OpenCV's order) as PNG, atomically."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image))
+    if not ok:
+        raise InputError("cannot encode the image as PNG", path=Path(target))
+    with atomic_path(target) as tmp:
+        tmp.write_bytes(buf.tobytes())
+    return Path(target)
 
 
 def json_text(obj: Any, indent: int | None = None, sort_keys: bool = False) -> str:

@@ -9,9 +9,8 @@ import numpy as np
 from pyproj import CRS
 
 from geoortho.core.crs import crs_to_text, transformer
-from geoortho.core.outputs import atomic_path, write_text, write_vector
+from geoortho.core.outputs import write_png, write_text, write_vector
 from geoortho.core.styles import product_styles
-from geoortho.errors import InputError
 from geoortho.gcp.io import GcpSet
 from geoortho.gcp.verdicts import DETECTED, Observation
 
@@ -94,9 +93,4 @@ def write_review(
     rows = [tiles[i : i + columns] for i in range(0, len(tiles), columns)]
     blank = np.zeros_like(tiles[0])
     sheet = np.vstack([np.hstack(r + [blank] * (columns - len(r))) for r in rows])
-    with atomic_path(path) as tmp:
-        ok, buf = cv2.imencode(".png", sheet)
-        if not ok:
-            raise InputError("cannot encode the review sheet", path=path)
-        Path(tmp).write_bytes(buf.tobytes())
-    return Path(path)
+    return write_png(path, sheet)

@@ -27,7 +27,7 @@ from rasterio.windows import Window
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.crs import crs_to_text, horizontal_unit_m
-from geoortho.core.outputs import atomic_path, temp_prefix, write_json
+from geoortho.core.outputs import atomic_path, temp_prefix, write_json, write_png
 from geoortho.core.parallel import imap_ordered, map_ordered
 from geoortho.core.sfm_model import cameras_from_sfm
 from geoortho.core.surface import FlatSurface, GridSurface, Surface
@@ -625,13 +625,7 @@ def _write_preview(ortho_path: Path, target: Path, max_side_px: int = 2048) -> P
         h, w = max(1, int(src.height / scale)), max(1, int(src.width / scale))
         rgb = src.read((1, 2, 3), out_shape=(3, h, w), resampling=Resampling.average)
         alpha = src.dataset_mask(out_shape=(h, w))
-    bgra = np.dstack([rgb[2], rgb[1], rgb[0], alpha])
-    with atomic_path(target) as tmp:
-        ok, buf = cv2.imencode(".png", bgra)
-        if not ok:
-            raise OSError("PNG encoding failed")
-        Path(tmp).write_bytes(buf.tobytes())
-    return target
+    return write_png(target, np.dstack([rgb[2], rgb[1], rgb[0], alpha]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from geoortho.core.crs import crs_to_text, heights_label, heights_of, horizontal_unit_m
-from geoortho.core.outputs import remove_stale_temporaries, write_json
+from geoortho.core.outputs import remove_stale_temporaries, write_json, write_png
 from geoortho.core.parallel import map_ordered
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
@@ -207,9 +207,9 @@ def mesh(
         origin = (offset[0], offset[1], offset[2] * z_unit)  # the glTF's offset: the tiles' frame too
         n_tiles, n_levels = write_tileset(Path(tileset), grid, crs, tiles, jobs, ortho, origin, workers, fb_set)
     if view is not None:
-        from geoortho.products3d.view import render_oblique, write_png
+        from geoortho.products3d.view import render_oblique
 
-        write_png(Path(view), render_oblique(local, faces, uv, texture))
+        write_png(Path(view), render_oblique(local, faces, uv, texture)[:, :, ::-1])  # RGB to OpenCV's BGR
     fb.progress(1.0)
     area_ha = n_cells * (grid.cell * unit_m) ** 2 / 1e4
     size_mb = output.stat().st_size / 1e6

@@ -4,8 +4,6 @@ slope so that walls and roofs read as solids."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from geoortho.products3d.raster_mesh import rasterize
@@ -59,13 +57,3 @@ def render_oblique(
     colour = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     lit = colour.astype(np.float32) * np.where(drawn, out[:, :, 2], 1.0)[:, :, None]
     return np.where(drawn[:, :, None], np.clip(lit, 0, 255), 255).astype(np.uint8)
-
-
-def write_png(path: Path, rgb: np.ndarray) -> Path:
-    import cv2
-
-    from geoortho.core.outputs import atomic_path
-
-    with atomic_path(path) as tmp:
-        cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[:, :, ::-1]))
-    return Path(path)
