@@ -27,7 +27,7 @@ $(STAMP): pyproject.toml tools/make_venv.sh
 # And the compiled kernels (numba's cache: the target fits', the gap fills', the gridding's and the
 # orthophoto's line-of-sight march, the mesh's rasterizer): 10 s once.
 BYTECODE = $(PY) -m compileall -q geoortho && $(PY) -c "$(WARM)"
-WARM = import geoortho.gcp.targets as a, geoortho.core.gapfill as b, geoortho.elevation.grid as c, geoortho.orthophoto.rectify as d, geoortho.products3d.raster_mesh as e; [m.warm() for m in (a, b, c, d, e)]
+WARM = import geoortho.gcp.targets as a, geoortho.core.gapfill as b, geoortho.elevation.grid as c, geoortho.orthophoto.rectify as d, geoortho.products3d.raster_mesh as e, geoortho.core.surface as f; [m.warm() for m in (a, b, c, d, e, f)]
 
 demo: $(STAMP)
 	@$(BYTECODE)

@@ -118,6 +118,39 @@ def test_grid_intersect_misses_outside_and_reports_it():
     assert h.hit.tolist() == [False, True]
 
 
+@pytest.mark.parametrize("extend", [False, True])
+def test_grid_intersect_compiled_is_the_plain_march(monkeypatch, extend):
+    """A photo's worth of rays (over COMPILED_MIN_RAYS) is marched a ray at a time in a compiled loop:
+    the same landings as the numpy march over roofs, walls, a pit, holes and the grid's edge, to the
+    float32 rounding of the numpy path's steps (a ray grazing a wall may cross it a step apart)."""
+    from geoortho.core import kernels, surface
+
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:400, 0:400]
+    grid = (0.02 * xx + 1.5 * np.sin(yy / 30.0)).astype(np.float32)
+    for _ in range(25):  # blocks, some tall, and a pit
+        r, c, h, w = rng.integers(10, 380), rng.integers(10, 380), rng.integers(5, 30), rng.integers(5, 30)
+        grid[r : r + h, c : c + w] += rng.uniform(-4.0, 12.0)
+    grid[200:220, 50:80] = np.nan  # no data: rays pass
+    surf = GridSurface(grid, from_origin(1000.0, 5000.0, 0.25, 0.25), extend=extend)
+    n = 300_000
+    origins = np.c_[rng.uniform(990, 1110, n), rng.uniform(4890, 5010, n), rng.uniform(40, 90, n)]
+    dirs = np.c_[rng.normal(0, 0.5, n), rng.normal(0, 0.5, n), -np.ones(n)]
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    runs = {}
+    for floor in (10**12, 1):  # numpy, then compiled
+        monkeypatch.setattr(surface, "COMPILED_MIN_RAYS", floor)
+        runs[floor] = surf.intersect(origins, dirs, max_range_m=500.0, step_m=0.3)
+    a, b = runs[10**12], runs[1]
+    assert kernels.compiled(surface._march_each) is not None  # numba is here: both paths were taken
+    off_grid = a.extended if extend else ~a.hit  # rays that leave the grid or cross the hole
+    assert off_grid is not None and 0.0 < off_grid.mean() < 0.7
+    assert np.count_nonzero(a.hit != b.hit) <= n * 1e-4
+    both = a.hit & b.hit
+    off = np.linalg.norm(a.points[both] - b.points[both], axis=1)
+    assert np.quantile(off, 0.9999) < 1e-2 and np.count_nonzero(off > 1e-3) <= n * 1e-3
+
+
 def test_grid_surface_rejects_rotated_grids():
     with pytest.raises(ValueError, match="north-up"):
         GridSurface(np.zeros((2, 2)), from_origin(0, 0, 1, -1))

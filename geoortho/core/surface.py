@@ -14,6 +14,7 @@ from affine import Affine
 from pyproj import CRS
 
 from geoortho.core.crs import horizontal_of
+from geoortho.core.kernels import compiled
 from geoortho.errors import InputError
 
 __all__ = ["Surface", "FlatSurface", "GridSurface", "RayHits", "read_surface", "sample_grid"]
@@ -253,7 +254,9 @@ class GridSurface(Surface):
         t_end = np.full(n, float(max_range_m))
         hit = np.zeros(n, bool)
         active = np.nonzero(t1 > t0)[0]
-        if active.size:
+        if active.size >= COMPILED_MIN_RAYS and (kernel := compiled(_march_each)) is not None:
+            self._march_compiled(kernel, o, d, t0, t1, active, step, t_end, hit)
+        elif active.size:
             self._march(o, d, t0, t1, active, step, t_end, hit)
         pts = o + d * t_end[:, None]
         if hit.any():
@@ -303,6 +306,41 @@ class GridSurface(Surface):
             out = (np.where(np.isinf(m), np.nan, m).astype(np.float32), block)
         object.__setattr__(self, "_coarse", out)
         return out
+
+    def _march_compiled(
+        self,
+        kernel: Any,
+        o: np.ndarray,
+        d: np.ndarray,
+        t0: np.ndarray,
+        t1: np.ndarray,
+        active: np.ndarray,
+        step: float,
+        t_end: np.ndarray,
+        hit: np.ndarray,
+    ) -> None:
+        """:meth:`_march` a ray at a time in a compiled loop: each ray is sampled only until it lands,
+        where the numpy path samples every live ray at every step (a photo of 1.7 MP: 1.5 s → 0.3 s)."""
+        tr = self.transform
+        sub_o, sub_d = o[active], d[active]
+        rays = np.ascontiguousarray(
+            np.stack(
+                [
+                    (sub_o[:, 0] - tr.c) / tr.a - 0.5,
+                    (sub_o[:, 1] - tr.f) / tr.e - 0.5,
+                    sub_o[:, 2],
+                    sub_d[:, 0] / tr.a,
+                    sub_d[:, 1] / tr.e,
+                    sub_d[:, 2],
+                ]
+            )  # fmt: skip
+        )
+        coarse, block = self._coarse_max()
+        out_t = np.empty(active.size)
+        out_hit = np.zeros(active.size, np.bool_)
+        kernel(rays, t0[active], t1[active], self.grid, coarse, block, float(step), self.cell_m, out_t, out_hit)
+        t_end[active[out_hit]] = out_t[out_hit]
+        hit[active] = out_hit
 
     def _march(
         self,
@@ -411,6 +449,99 @@ class GridSurface(Surface):
 
 #: The march packs its rays again when fewer than this share of them are still marching.
 _PACK = 0.7
+
+#: Calls with at least this many rays to march take the compiled loop; below, a process that casts
+#: only a few rays never loads numba (0.4 s).
+COMPILED_MIN_RAYS = 100_000
+
+
+def _march_each(
+    rays: np.ndarray,
+    t0: np.ndarray,
+    t1: np.ndarray,
+    grid: np.ndarray,
+    coarse: np.ndarray,
+    block: int,
+    step: float,
+    cell_m: float,
+    t_end: np.ndarray,
+    hit: np.ndarray,
+) -> None:
+    """:meth:`GridSurface._march`, one ray at a time (compiled: see :func:`geoortho.core.kernels.compiled`).
+    ``rays`` rows: column, row, height of the origin, and their steps per metre of range. The same
+    passes: the origin under the surface; air skipped a coarse block at a time against the dilated
+    block maxima; steps of ``step`` to the first crossing; six bisections and a secant step."""
+    nr, nc = grid.shape
+    nrc, ncc = coarse.shape
+    c_step = block * cell_m
+
+    def _bilinear(grid: np.ndarray, col: float, row: float) -> float:
+        # as sample_grid reads it: NaN where any of the four cells is off the grid or without data
+        ic, ir = math.floor(col), math.floor(row)
+        if ic < 0 or ic + 1 >= nc or ir < 0 or ir + 1 >= nr:
+            return math.nan
+        wc, wr = col - ic, row - ir
+        top = grid[ir, ic] + (grid[ir, ic + 1] - grid[ir, ic]) * wc
+        bottom = grid[ir + 1, ic] + (grid[ir + 1, ic + 1] - grid[ir + 1, ic]) * wc
+        return float(top + (bottom - top) * wr)
+
+    for i in range(rays.shape[1]):
+        oc, orr, oz, dc, dr, dz = rays[0, i], rays[1, i], rays[2, i], rays[3, i], rays[4, i], rays[5, i]
+        lo, t_stop = t0[i], t1[i]
+        h = _bilinear(grid, oc + lo * dc, orr + lo * dr)
+        if not math.isnan(h) and oz + lo * dz - h <= 0:
+            t_end[i] = lo
+            hit[i] = True
+            continue
+        if block > 1:
+            while True:
+                t = min(lo + c_step, t_stop)
+                bc = math.floor((oc + t * dc) / block + 0.5 / block)
+                br = math.floor((orr + t * dr) / block + 0.5 / block)
+                hb = coarse[br, bc] if 0 <= bc < ncc and 0 <= br < nrc else math.nan
+                if not (math.isnan(hb) or oz + t * dz > hb):
+                    break
+                lo = t
+                if t >= t_stop:
+                    break
+            if lo >= t_stop:
+                continue
+        start, span = lo, t_stop - lo
+        n_steps = max(1, math.ceil(span / step))
+        for k in range(1, n_steps + 1):
+            hi = start + span * min(k / n_steps, 1.0)
+            h = _bilinear(grid, oc + hi * dc, orr + hi * dr)
+            if math.isnan(h) or oz + hi * dz - h > 0:
+                lo = hi
+                continue
+            a, b = lo, hi
+            fa = fb = 0.0
+            for _ in range(6):
+                m = 0.5 * (a + b)
+                hm = _bilinear(grid, oc + m * dc, orr + m * dr)
+                if math.isnan(hm) or oz + m * dz - hm > 0:
+                    a = m
+                else:
+                    b = m
+            ha = _bilinear(grid, oc + a * dc, orr + a * dr)
+            hb2 = _bilinear(grid, oc + b * dc, orr + b * dr)
+            fa = 1.0 if math.isnan(ha) else oz + a * dz - ha
+            fb = 1.0 if math.isnan(hb2) else oz + b * dz - hb2
+            w = fa / (fa - fb) if fa - fb > 0 else 0.5
+            t_end[i] = a + min(max(w, 0.0), 1.0) * (b - a)
+            hit[i] = True
+            break
+
+
+def warm() -> None:
+    """Compile the march into numba's cache (``make`` runs it ahead, so no command pays for it)."""
+    kernel = compiled(_march_each)
+    if kernel is None:
+        return
+    grid = np.zeros((8, 8), np.float32)
+    rays = np.array([[3.0], [3.0], [10.0], [0.1], [0.1], [-1.0]])
+    t_end, hit = np.zeros(1), np.zeros(1, np.bool_)
+    kernel(rays, np.zeros(1), np.full(1, 20.0), grid, grid, 1, 1.0, 1.0, t_end, hit)
 
 
 def _rebuilt_surface(file: str | None, state: dict[str, Any]) -> GridSurface:

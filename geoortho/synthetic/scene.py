@@ -81,7 +81,13 @@ class Scene:
 
     @property
     def surface(self) -> GridSurface:
-        return GridSurface(self.dsm, self.transform, self.crs)
+        """The DSM as a surface, kept while the DSM is the same array: its coarse maxima, which
+        every ray march needs, are then worked out once (at 1,000 photos, 45 s of the truth's)."""
+        kept = self.__dict__.get("_surface")
+        if kept is None or kept[0] is not self.dsm:
+            kept = (self.dsm, GridSurface(self.dsm, self.transform, self.crs))
+            self.__dict__["_surface"] = kept
+        return kept[1]
 
     def colrow(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = self.transform
@@ -116,7 +122,13 @@ class Scene:
     def _paint_markers(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
         s = self.marker_size_m
         reach = s * max(target_half_extent(self.target), target_half_extent("aruco")) * 1.5
+        if not len(x):
+            return
+        # only the markers whose reach meets these points' box: a photo sees a few of a wide survey's
+        x0, x1, y0, y1 = float(np.min(x)), float(np.max(x)), float(np.min(y)), float(np.max(y))
         for m in self.markers:
+            if m.x + reach < x0 or m.x - reach > x1 or m.y + reach < y0 or m.y - reach > y1:
+                continue
             near = (np.abs(x - m.x) < reach) & (np.abs(y - m.y) < reach) & (np.abs(z - m.z) < 0.2)
             if not near.any():
                 continue
@@ -265,6 +277,17 @@ class _SceneGrid:
     @property
     def local(self) -> tuple[np.ndarray, np.ndarray]:
         return self.X - self.e0, self.Y - self.n0
+
+    def window(self, x: float, y: float, radius_m: float) -> tuple[slice, slice]:
+        """The rows and columns whose cell centres may lie within ``radius_m`` of (x, y): an object
+        is drawn there alone, not over the whole grid (a 1,000-photo scene has a thousand objects)."""
+        reach = radius_m + self.cell
+        c0 = max(int(math.floor((x - reach - self.xmin) / self.cell)), 0)
+        c1 = min(int(math.ceil((x + reach - self.xmin) / self.cell)) + 1, self.cols)
+        top = self.ymin + self.rows * self.cell
+        r0 = max(int(math.floor((top - (y + reach)) / self.cell)), 0)
+        r1 = min(int(math.ceil((top - (y - reach)) / self.cell)) + 1, self.rows)
+        return slice(r0, max(r0, r1)), slice(c0, max(c0, c1))
 
 
 def _scene_grid(preset: SynthPreset, lat: float, lon: float) -> _SceneGrid:
@@ -416,10 +439,9 @@ def _buildings_and_trees(
     g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator, dtm: np.ndarray, taken: _Occupancy
 ) -> tuple[np.ndarray, np.ndarray]:
     """Buildings (gabled or flat) and trees, clear of each other and of the markers: colours and heights."""
-    X, Y = g.X, g.Y
     fx0, fy0, fx1, fy1 = g.flight_box
     objects = np.zeros((g.rows, g.cols, 3), np.float32)
-    height = np.zeros((g.rows, g.cols), np.float32)
+    height = np.zeros((g.rows, g.cols), np.float64)
     for _ in range(preset.n_buildings):
         for _try in range(50):
             bx, by = rng.uniform(fx0 - 5, fx1 + 5), rng.uniform(fy0 - 5, fy1 + 5)
@@ -430,6 +452,8 @@ def _buildings_and_trees(
             continue
         taken.take(bx, by, math.hypot(bl, bw) / 2)
         ba = rng.uniform(0, np.pi)
+        win = g.window(bx, by, math.hypot(bl, bw) / 2)
+        X, Y = g.X[win], g.Y[win]
         u = (X - bx) * np.cos(ba) + (Y - by) * np.sin(ba)
         v = -(X - bx) * np.sin(ba) + (Y - by) * np.cos(ba)
         inside = (np.abs(u) <= bl / 2) & (np.abs(v) <= bw / 2)
@@ -438,14 +462,14 @@ def _buildings_and_trees(
             roof = eave + rng.uniform(1.5, 3.0) * (1 - np.abs(v) / (bw / 2))
         else:
             roof = np.full_like(u, eave)
-        ground_top = float(dtm[inside].max()) if inside.any() else _BASE_Z
-        h = ground_top + roof - dtm
-        height = np.where(inside, np.maximum(height, h), height)
+        ground_top = float(dtm[win][inside].max()) if inside.any() else _BASE_Z
+        h = ground_top + roof - dtm[win]
+        height[win] = np.where(inside, np.maximum(height[win], h), height[win])
         rc = np.array(
             rng.choice([[0.62, 0.30, 0.22], [0.45, 0.45, 0.48], [0.70, 0.68, 0.62], [0.35, 0.30, 0.28]]), np.float32
         )
         shade = np.where(v > 0, 1.0, 0.82)[..., None].astype(np.float32)  # gable sides lit differently
-        objects = np.where(inside[..., None], rc * shade, objects)
+        objects[win] = np.where(inside[..., None], rc * shade, objects[win])
     for _ in range(preset.n_trees):
         for _try in range(50):
             tx, ty = rng.uniform(fx0 - 10, fx1 + 10), rng.uniform(fy0 - 10, fy1 + 10)
@@ -456,10 +480,14 @@ def _buildings_and_trees(
             continue
         taken.take(tx, ty, tr)
         th = rng.uniform(5, 9)
-        bump = th * np.exp(-0.5 * ((X - tx) ** 2 + (Y - ty) ** 2) / (tr / 1.6) ** 2)
+        # the crown (bump > 0.3) ends where exp(-d²/2σ²) = 0.3/th: within σ·sqrt(2 ln(th/0.3))
+        sigma = tr / 1.6
+        win = g.window(tx, ty, sigma * math.sqrt(2 * math.log(th / 0.3)))
+        X, Y = g.X[win], g.Y[win]
+        bump = th * np.exp(-0.5 * ((X - tx) ** 2 + (Y - ty) ** 2) / sigma**2)
         crown = bump > 0.3
-        height = np.where(crown, np.maximum(height, bump), height)
-        objects = np.where(crown[..., None], np.array([0.20, 0.34, 0.14], np.float32), objects)
+        height[win] = np.where(crown, np.maximum(height[win], bump), height[win])
+        objects[win] = np.where(crown[..., None], np.array([0.20, 0.34, 0.14], np.float32), objects[win])
     return objects, height
 
 
@@ -468,12 +496,17 @@ def _marker_pads(
 ) -> tuple[np.ndarray, list[Marker]]:
     """Flat pads under the markers, blending into the terrain over 2 m; the markers at their pads' height."""
     placed = []
+    dtm = np.array(dtm, dtype=np.float64)
     for m in markers:
-        r = np.hypot(g.X - m.x, g.Y - m.y)
-        z_pad = float(sample_grid(dtm.astype(np.float32), *_cr(g.transform, m.x, m.y))[0])
+        win = g.window(m.x, m.y, pad_r + 2.0)
+        r = np.hypot(g.X[win] - m.x, g.Y[win] - m.y)
+        # the bilinear sample reads the 2 x 2 cells round the marker, all inside its window; the
+        # whole grid's float32 position less a whole number of cells is exact, so the same sample
+        col, row = (v.astype(np.float32) for v in _cr(g.transform, m.x, m.y))
+        z_pad = float(sample_grid(dtm[win].astype(np.float32), col - win[1].start, row - win[0].start)[0])
         w = np.clip((r - pad_r) / 2.0, 0.0, 1.0)
         w = w * w * (3 - 2 * w)
-        dtm = np.where(r < pad_r + 2.0, z_pad * (1 - w) + dtm * w, dtm)
+        dtm[win] = np.where(r < pad_r + 2.0, z_pad * (1 - w) + dtm[win] * w, dtm[win])
         placed.append(replace(m, z=z_pad))
     return dtm.astype(np.float32), placed
 
