@@ -219,6 +219,39 @@ def test_a_pair_that_cannot_be_searched_is_skipped_not_fatal():
     assert got is not None  # a searchable pair still gives points
 
 
+@pytest.mark.parametrize("width_px", [344, 359, 367, 520, 534, 614])
+def test_the_relief_probe_searches_a_small_photos_pair_whatever_its_rounding(width_px):
+    """A roof with no tie point on it, nearer than the tie points' depths, is found by the probe on
+    every canvas width (the tiny survey's widths). The probe's range was worked out for the full
+    canvas; on the half-size one it searches, rounded up to 16 disparities, it was too wide on most
+    widths and the probe was skipped: the tiny survey's building stood in the DSM in one run of two."""
+    from scipy.ndimage import gaussian_filter
+
+    from geoortho.reconstruction.stereo import _probe_near
+
+    f, baseline, zmin, zmax = 341.0, 11.8, 26.4, 30.9  # the tiny survey's pairs at 512 px
+    z_ground, z_roof = 28.5, 23.0
+    d_ground, d_roof = round(f * baseline / z_ground), round(f * baseline / z_roof)
+    rng = np.random.default_rng(width_px)
+    h = 240
+    world = gaussian_filter(rng.uniform(0, 255, (h, width_px + 2 * d_roof, 3)), (0.8, 0.8, 0)).astype(np.uint8)
+    left = world[:, d_roof : d_roof + width_px].copy()
+    right = np.zeros_like(left)
+    right[:, : width_px - d_ground] = left[:, d_ground:]  # the ground: right(x) = left(x + d)
+    roof = np.zeros((h, width_px), bool)
+    roof[70:170, d_roof + 20 : min(width_px - 20, d_roof + 100)] = True  # a roof the right photo sees too
+    rr, cc = np.nonzero(roof)
+    right[rr, cc - d_roof] = left[rr, cc]
+    valid = np.full((h, width_px), 255, np.uint8)
+    z_near = _probe_near(left, right, valid, f, baseline, zmin, zmax)
+    assert z_near <= z_roof * 1.01  # the roof's depth is searched
+    assert z_near >= (1.0 - 0.45) * zmax  # no nearer than the relief the probe may search
+    # and nothing is found where nothing stands nearer
+    flat = np.zeros_like(left)
+    flat[:, : width_px - d_ground] = left[:, d_ground:]
+    assert _probe_near(left, flat, valid, f, baseline, zmin, zmax) == zmin
+
+
 def test_ground_seen_by_two_photos_at_a_strips_end_gets_a_pair_that_measures_it():
     """Breaklines survey: each reference's best pairs were the photo beside it and the next strip's,
     which see its outer half once; at a strip's end, ground three photos saw had no depth map and

@@ -80,16 +80,25 @@ def _probe_near(
     The depth range comes from the SfM's tie points, and a wood or a car park may have none:
     searched only there, its crowns matched the ground below and were dropped as inconsistent
     (the synthetic wood: 5 % of its cells measured, the DSM 9.6 m low over it)."""
-    z_probe = max((1.0 - _MAX_RELIEF_SHARE) * zmax, _nearest_searchable(left.shape[1], f, baseline, zmax))
-    if z_probe >= zmin * 0.97:
-        return zmin
     small_l = cv2.resize(left, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
     small_r = cv2.resize(right, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-    small_v = cv2.resize(valid, (small_l.shape[1], small_l.shape[0]), interpolation=cv2.INTER_NEAREST) > 0
-    fh = 0.5 * f
-    min_d, n_d = _disparity_range(fh, baseline, z_probe, zmax)
-    if n_d > small_l.shape[1] // 2 or min_d + n_d >= small_l.shape[1]:
+    fh, width = 0.5 * f, small_l.shape[1]
+    # as near as the half-size canvas can search (and the full one, which searches the answer):
+    # worked out for the full canvas alone, the half one's range, rounded up to 16 disparities, was
+    # wider than it on most pairs of a small photo and the probe was skipped, so whether a roof
+    # without tie points stood in the DSM turned on a rounding (the tiny survey: in one run of two)
+    z_probe = max(
+        (1.0 - _MAX_RELIEF_SHARE) * zmax,
+        _nearest_searchable(width, fh, baseline, zmax),
+        _nearest_searchable(left.shape[1], f, baseline, zmax),
+    )
+    if z_probe >= zmin * 0.97:
         return zmin
+    min_d, n_d = _disparity_range(fh, baseline, z_probe, zmax)
+    n_d = min(n_d, (width // 2) // 16 * 16)  # the rounding's last 16, where z_probe is the canvas's limit
+    if n_d < 16 or min_d + n_d >= width:
+        return zmin
+    small_v = cv2.resize(valid, (width, small_l.shape[0]), interpolation=cv2.INTER_NEAREST) > 0
     disp = _sgbm(small_l, small_r, min_d, n_d)
     ok = (disp > 0) & small_v
     z = fh * baseline / disp[ok]
