@@ -51,6 +51,7 @@ from geoortho.chain.run_checks import (
     parse_stage_options,
 )
 from geoortho.chain.stages import REPORT_NAME, STAGES, Done, Project, Stage, StageName
+from geoortho.core.folders import project_dsm
 from geoortho.errors import GeoorthoError, InputError, interrupted
 from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.gcp.io import read_gcp_file
@@ -543,6 +544,7 @@ def run(
     split: int = 0,
     split_overlap_m: float | None = None,
     volumes: Path | None = None,
+    change_from: Path | None = None,
     *,
     feedback: Feedback | None = None,
 ) -> RunResult:
@@ -551,7 +553,7 @@ def run(
     The stages that apply, in order: gcp-find (with a GCP file), sfm (on the found GCPs), dense
     (unless a lidar cloud is given), dem (DSM and DTM), footprints (of the SfM's cameras on the
     DSM, with the heights given checked against them), ortho (on the DSM), mesh (3D), volume
-    (with volumes), report. No flight
+    (with volumes), change (with an earlier survey), report. No flight
     height is needed: the SfM measures it.
     Each writes into its own subfolder of the project at stable names; ``run.json`` records
     what each was run with. Run again and only the stages whose inputs or options changed are
@@ -615,6 +617,11 @@ def run(
     volumes : Path
         Polygons (stockpiles, pits; any vector format): their volumes on the DSM (see volume), with
         the run's own vertical accuracy, in the report and the QGIS project.
+    change_from : Path
+        An earlier survey of the site: its run project's folder or its DSM. What changed since (see
+        change): its surface brought onto this one's on the ground that did not change, the
+        difference, and the cut and fill areas beyond the level of detection with their volumes, in
+        the report and the QGIS project.
     """
     fb = as_feedback(feedback)
     t0 = time.perf_counter()
@@ -646,6 +653,7 @@ def run(
         split=int(split or 0),
         split_overlap_m=split_overlap_m,
         volumes=given(volumes),
+        change_from=given(project_dsm(Path(change_from)) if change_from is not None else None),
     )
     if project.gcp_file is not None and project.gcp_list is not None:
         raise InputError("give --gcp-file (markers to find) or --gcp-list (observations made), not both")

@@ -21,6 +21,7 @@ import numpy as np
 from geoortho.core.outputs import atomic_path
 from geoortho.core.styles import (
     QGIS_VERSION,
+    difference,
     element,
     hillshade,
     overlap,
@@ -85,12 +86,15 @@ def _groups(project: Path) -> list[tuple[str, list[_Layer]]]:
         (project / "footprints" / "footprints.gpkg", "footprints", "Polygon", "footprints"),
         (project / "ortho" / "ortho_seamlines.gpkg", "seamlines", "Polygon", "seamlines"),
         (project / "volume" / "volumes.gpkg", "volumes", "Polygon", "volumes (stockpiles, pits)"),
+        (project / "change" / "change.gpkg", "change", "Polygon", "change: cut and fill areas"),
     ):
         if path.is_file():
             renderer = product_renderer(layer)
             visible = layer not in ("seamlines", "footprints")
             survey.append(_Layer(name, path, "vector", renderer=renderer, layer=layer, geometry=geom, visible=visible))
     ortho: list[_Layer] = []
+    if (p := project / "change" / "change.tif").is_file():
+        ortho.append(_Layer("change since the earlier survey (m)", p, "raster", pipe=difference(p)))
     if (p := project / "ortho" / "ortho.tif").is_file():
         ortho.append(_Layer("orthophoto", p, "raster", pipe=rgba()))
     if (p := project / "ortho" / "ortho_source.tif").is_file():

@@ -210,6 +210,84 @@ def volumes_section(ctx: ReportContext) -> str | None:
     )
 
 
+#: The change section lists at most this many areas, the largest volumes first.
+CHANGE_ROWS = 12
+
+
+def change_section(ctx: ReportContext) -> str | None:
+    """What changed since the earlier survey: the fit that brought it onto this one, the difference
+    map with the cut and fill areas outlined, and the areas' volumes."""
+    c = ctx.done("change")
+    if c is None:
+        return None if "change" not in ctx.stages else missing_note("The change stage did not finish.")
+    diff_path, poly_path = ctx.path("change", "output"), ctx.path("change", "polygons")
+    if diff_path is None or poly_path is None:
+        return missing_note("The change products are missing.")
+    import geopandas as gpd
+    import matplotlib
+    from matplotlib.colors import LinearSegmentedColormap, Normalize
+
+    from geoortho.core.styles import DIVERGING
+
+    areas = gpd.read_file(poly_path, layer="change")
+    data, valid, extent, unit = read_raster(diff_path, [1])
+    d = np.where(valid, data[0], np.nan).astype(float)
+    m = float(np.nanpercentile(np.abs(d), 98)) if np.isfinite(d).any() else 1.0
+    m = max(m, 2 * as_number(c.get("lod_m")) if math.isfinite(as_number(c.get("lod_m"))) else m, 0.01)
+    fig = new_figure(7.0, 5.0)
+    ax = fig.add_subplot()
+    cmap = LinearSegmentedColormap.from_list("change", list(DIVERGING))
+    norm = Normalize(-m, m)
+    ax.imshow(np.ma.masked_invalid(d), extent=extent, cmap=cmap, norm=norm, interpolation="nearest")
+    for kind, colour in (("cut", DIVERGING[0]), ("fill", DIVERGING[-1])):
+        part = areas[areas["kind"] == kind]
+        if len(part):
+            part.boundary.plot(ax=ax, color=colour, linewidth=1.0)
+    cbar = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.8)
+    cbar.set_label("this survey minus the earlier (m)")
+    ax.set_aspect("equal")
+    furnish(ax, crs_label(ctx), unit_symbol(unit))
+    reference = Path(str(ctx.values("change").get("reference") or ""))
+    project = reference.parent.parent if reference.parent.name == "dem" else reference.parent
+
+    def num(k: str, scale: float = 1.0, digits: int = 2) -> str:
+        v = as_number(c.get(k))
+        return f"{v * scale:,.{digits}f}" if math.isfinite(v) else "–"
+
+    pairs: list[tuple[str, Any]] = [
+        ("Earlier survey", f"{project.name} ({reference})"),
+        (
+            "Brought onto this one by",
+            f"{num('shift_x_m')} m east, {num('shift_y_m')} m north, {num('shift_z_m')} m up; turned "
+            f"{num('rotation_deg', digits=3)}°, tilt {num('tilt_deg', digits=3)}° taken out",
+        ),
+        (
+            "On the ground that did not change",
+            f"{num('stable_share', 100, 0)} % of the common ground; residual {num('residual_m', 100, 1)} cm (NMAD)",
+        ),  # fmt: skip
+        ("Level of detection (95 %, flat ground)", f"{num('lod_m', 100, 1)} cm; more on slopes"),
+        (
+            "Cut (removed) / fill (added)",
+            f"{num('cut_m3', digits=1)} m³ in {c.get('n_cut')} areas / "
+            f"{num('fill_m3', digits=1)} m³ in {c.get('n_fill')} areas",
+        ),  # fmt: skip
+    ]
+    rows = []
+    if len(areas):
+        top = areas.assign(size=areas["volume_m3"].abs()).sort_values("size", ascending=False).head(CHANGE_ROWS)
+        rows = [
+            [r["kind"], f"{float(r['area_m2']):,.1f}", f"{float(r['volume_m3']):+,.1f} ± {float(r['sigma_m3']):,.1f}"]
+            for _, r in top.iterrows()
+        ]
+    table = (
+        html_table(["area", "m²", "volume m³ (± 1σ)"], rows)
+        if rows
+        else "<p>No change beyond the level of detection.</p>"
+    )
+    more = f"<p>The {CHANGE_ROWS} largest of {len(areas)} areas.</p>" if len(areas) > CHANGE_ROWS else ""
+    return png_img(fig, "change since the earlier survey") + key_values(pairs) + table + more
+
+
 def _ortho_sources_map(ctx: ReportContext, o: dict[str, Any]) -> str:
     """The orthophoto, greyed, with what was not plainly seen on a measured surface over it: the
     DSM interpolated (its source raster), ground seen by no photo, inpainted pixels."""

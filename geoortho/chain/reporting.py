@@ -58,6 +58,7 @@ from geoortho.chain.report_base import (
     status_html,
 )
 from geoortho.chain.report_products import (
+    change_section,
     elevation_section,
     mesh_section,
     ortho_section,
@@ -464,6 +465,7 @@ _SECTIONS: list[tuple[str, Callable[[ReportContext], str | None]]] = [
     ("Seams and colour balance", seams_section),
     ("3D mesh", mesh_section),
     ("Volumes", volumes_section),
+    ("Change since the earlier survey", change_section),
     ("Time and memory per stage", _timing),
     ("Notes and warnings", _notes),
     ("Parameters", _parameters),

@@ -11,6 +11,7 @@ from typing import Any
 
 from geoortho.chain.ledger import LEDGER_NAME
 from geoortho.chain.stages import STAGES, Project, Stage
+from geoortho.core.folders import path_inside
 from geoortho.core.pointcloud import check_las_header
 from geoortho.core.surface import refuse_image
 from geoortho.errors import InputError
@@ -34,14 +35,20 @@ def check_given(project: Project) -> None:
     from rasterio.errors import RasterioIOError
 
     list_images(project.images)
-    if project.dsm is not None:
+    for dsm in (project.dsm, project.change_from):
+        if dsm is None:
+            continue
         try:
-            with rasterio.open(project.dsm) as ds:
+            with rasterio.open(dsm) as ds:
                 if ds.crs is None:
-                    raise InputError("the DSM has no CRS", path=project.dsm)
-                refuse_image(ds, project.dsm)
+                    raise InputError("the DSM has no CRS", path=dsm)
+                refuse_image(ds, dsm)
         except RasterioIOError as e:
-            raise InputError(f"not an elevation raster ({e})", path=project.dsm) from None
+            raise InputError(f"not an elevation raster ({e})", path=dsm) from None
+    if project.change_from is not None and path_inside(project.change_from, project.output) is not None:
+        raise InputError(
+            "the earlier survey is this project's own: give another run's folder or DSM", path=project.change_from
+        )
     if project.points is not None and project.points.suffix.lower() in (".las", ".laz"):
         if not project.points.is_file():
             raise InputError("no such file", path=project.points)
@@ -103,7 +110,7 @@ def check_run_paths(project: Project) -> None:
         (name, Path(path), False)
         for name, path in (
             ("gcp_file", project.gcp_file), ("gcp_list", project.gcp_list), ("points", project.points),
-            ("dsm", project.dsm), ("positions", project.positions),
+            ("dsm", project.dsm), ("positions", project.positions), ("change_from", project.change_from),
         )
         if path is not None
     ]  # fmt: skip

@@ -14,7 +14,7 @@ from geoortho.photos.heights import GpsAltitude
 
 REPORT_NAME = "report.html"
 
-StageName = Literal["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "mesh", "volume", "report"]
+StageName = Literal["gcp-find", "sfm", "dense", "dem", "footprints", "ortho", "mesh", "volume", "change", "report"]
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,7 @@ class Project:
     split: int = 0  # split-merge SfM: submodels of at most this many photos (0: one block)
     split_overlap_m: float | None = None  # the submodels' overlap (None: sfm's default)
     volumes: Path | None = None  # polygons to measure volumes over
+    change_from: Path | None = None  # an earlier survey's DSM (a run project's dem/dsm.tif): what changed since
 
     def folder(self, stage: str) -> Path:
         return self.output / stage
@@ -210,6 +211,21 @@ STAGES: tuple[Stage, ...] = (
         lambda p: p.volumes is not None,
         lambda p, d: {"dsm": _surface(p), "polygons": p.volumes, "output": p.folder("volume") / "volumes.gpkg"},
         ("dsm", "polygons"),
+        weight=0.2,
+        opt_in=True,
+    ),
+    # What changed since an earlier survey of the site: its DSM brought onto this one's, the
+    # difference, and the cut and fill areas with their volumes.
+    Stage(
+        "change",
+        lambda p: p.change_from is not None,
+        lambda p, d: {
+            "reference": p.change_from,
+            "compare": _surface(p),
+            "output": p.folder("change") / "change.tif",
+            "polygons": p.folder("change") / "change.gpkg",
+        },
+        ("reference", "compare"),
         weight=0.2,
         opt_in=True,
     ),

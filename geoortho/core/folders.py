@@ -8,17 +8,29 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from geoortho.errors import ParameterError
+from geoortho.errors import InputError, ParameterError
 
-__all__ = ["IMAGE_EXTENSIONS", "path_inside", "refuse_writing_into"]
+__all__ = ["IMAGE_EXTENSIONS", "PROJECT_DSM", "path_inside", "project_dsm", "refuse_writing_into"]
 
 
 #: What the reading of a photo folder takes for a photo.
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff")
 
+#: A run project's DSM, inside its folder: what a project given for a surface stands for (change).
+PROJECT_DSM = "dem/dsm.tif"
+
 #: Output files that may replace their own earlier copy inside an input folder: the report of a
 #: project is written into the project it reads.
 _REWRITES_IN = {("output", "project"): (".html",)}
+
+
+def project_dsm(path: Path) -> Path:
+    """A surface given as a file, or as a run project's folder: its :data:`PROJECT_DSM`."""
+    if not path.is_dir():
+        return path
+    if not (path / PROJECT_DSM).is_file():
+        raise InputError(f"a folder without {PROJECT_DSM}: give a DSM or a run project", path=path)
+    return path / PROJECT_DSM
 
 
 def path_inside(path: Path, folder: Path) -> Path | None:

@@ -200,6 +200,26 @@ def line(colour: str, width_mm: float) -> ET.Element:
     return _single("line", "SimpleLine", {"line_color": _rgb(colour), "line_width": width_mm, "line_style": "solid"})
 
 
+#: A difference of two surfaces: lower (removed, cut) red, higher (added, fill) blue, no change white.
+DIVERGING = ("#d7191c", "#fdae61", "#f7f7f7", "#abd9e9", "#2c7bb6")
+
+
+def difference(path: Path) -> ET.Element:
+    """A difference raster (second minus first) on a ramp symmetric about zero, to its 98th
+    percentile of the magnitude: no change white, whatever the sign of the larger change."""
+    lo, hi = percentiles(path)
+    m = max(abs(lo), abs(hi), 0.01)
+    attrs = {
+        "type": "singlebandpseudocolor",
+        "band": 1,
+        "opacity": 1,
+        "alphaBand": -1,
+        "classificationMin": -m,
+        "classificationMax": m,
+    }
+    return pipe(element("rasterrenderer", attrs, ramp(-m, m, DIVERGING, " m")))
+
+
 def raster_qml(raster_pipe: ET.Element) -> str:
     """A raster layer's style document (a ``.qml``) for its pipe."""
     doc = element(
@@ -236,12 +256,41 @@ _VECTOR_LOOKS: dict[str, Callable[[], ET.Element]] = {
     "residuals": lambda: line("#d7191c", 0.6),
     "contours": lambda: line("#5a3a1a", 0.2),
     "volumes": lambda: outline("#984ea3", 0.6),  # stockpiles and pits measured
+    "change": lambda: categorized("kind", {"cut": DIVERGING[0], "fill": DIVERGING[-1]}),  # removed, added
 }
+
+
+def categorized(attribute: str, looks: dict[str, str]) -> ET.Element:
+    """Polygons filled by the value of ``attribute`` (value → colour), half transparent."""
+    categories = element("categories")
+    symbols = element("symbols")
+    for i, (value, colour) in enumerate(looks.items()):
+        categories.append(element("category", {"value": value, "symbol": i, "label": value, "render": "true"}))
+        fill = {
+            "color": _rgb(colour).rsplit(",", 1)[0] + ",110",
+            "style": "solid",
+            "outline_color": _rgb(colour),
+            "outline_width": 0.4,
+            "outline_style": "solid",
+        }
+        symbols.append(
+            element(
+                "symbol",
+                {"type": "fill", "name": i, "alpha": 1, "clip_to_extent": 1, "force_rhr": 0},
+                element("layer", {"class": "SimpleFill", "enabled": 1, "locked": 0, "pass": 0}, _options(fill)),
+            )
+        )
+    return element(
+        "renderer-v2",
+        {"type": "categorizedSymbol", "attr": attribute, "symbollevels": 0, "enableorderby": 0, "forceraster": 0},
+        categories,
+        symbols,
+    )
 
 
 def product_renderer(layer: str) -> ET.Element:
     """The renderer of a product's vector layer, by the layer's name (``footprints``, ``left_out``, ``cameras``,
-    ``detections``, ``seamlines``, ``contours``, ``gcps``, ``residuals``, ``volumes``)."""
+    ``detections``, ``seamlines``, ``contours``, ``gcps``, ``residuals``, ``volumes``, ``change``)."""
     return _VECTOR_LOOKS[layer]()
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from geoortho.core.folders import project_dsm
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
 from geoortho.measure.accuracy import NOISE_CORRELATION_M, run_noise
@@ -100,12 +101,13 @@ def change(
     Parameters
     ----------
     reference : Path
-        The first survey's DSM (a run's, PROJECT/dem/dsm.tif: its run's noise is read beside it).
+        The first survey's DSM, or its run project's folder (its dem/dsm.tif; a run's noise is read
+        beside its DSM).
     compare : Path
-        The second survey's DSM. It may start metres away from the first and turned (two flights on
-        GPS alone; found to 2 cm from 13 m and 1 degree apart on an 80 m site): the fit runs coarse
-        to fine, and needs relief in more than one direction to fix the horizontal shift (a flat
-        field fixes only the height).
+        The second survey's DSM, or its run project's folder. It may start metres away from the
+        first and turned (two flights on GPS alone; found to 2 cm from 13 m and 1 degree apart on
+        an 80 m site): the fit runs coarse to fine, and needs relief in more than one direction to
+        fix the horizontal shift (a flat field fixes only the height).
     output : Path
         The difference raster (GeoTIFF).
     polygons : Path
@@ -151,7 +153,7 @@ def change(
     if common.sum() < 100:
         raise InputError("the two surveys share almost no ground: not the same site?", path=b_path)
     stable_share = float(fit.inliers[common].mean())
-    sigma_a, sigma_b, said = _noise(Path(reference), Path(compare), noise_m, fit.residual)
+    sigma_a, sigma_b, said = _noise(a_path, b_path, noise_m, fit.residual)
     sigma_d = math.sqrt(sigma_a**2 + sigma_b**2 + fit.sigma[2] ** 2)
     # where the ground is steep, a place known to a fraction of a cell is a height known to that
     # times the slope: a wall's cells differ by metres for a millimetre's shift, and are no change
@@ -162,10 +164,12 @@ def change(
     cell_m2 = ta.a * ta.a
     frame, cut, fill = _areas(diff, lod_cells, ta, crs, min_area_m2, cell_m2, sigma_d, fit.sigma[2])
     from geoortho.core.outputs import write_cog, write_vector
+    from geoortho.core.styles import difference, product_styles, write_raster_style
 
     write_cog(output, diff.astype(np.float32), transform=ta, crs=crs, nodata=float("nan"),
               band_names=("second minus first",), units="metre")  # fmt: skip
-    write_vector(polygons, {"change": frame})
+    write_raster_style(output, difference(Path(output)))
+    write_vector(polygons, {"change": frame}, styles=product_styles("change"))
     dx, dy, dz, turn, tx, ty = fit.params
     tilt = math.degrees(math.atan(math.hypot(tx, ty)))
     fb.info(
@@ -184,7 +188,8 @@ def change(
 
 
 def _dsm_of(path: Path) -> Path:
-    """A DSM that is there."""
+    """A DSM that is there: the file, or a run project's."""
+    path = project_dsm(path)
     if not path.is_file():
         raise InputError("no such file", path=path)
     return path

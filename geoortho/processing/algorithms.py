@@ -8,6 +8,7 @@ registry (``--help``, ``describe --json``, the QGIS provider) stays quick.
 
 from __future__ import annotations
 
+from geoortho.core.folders import PROJECT_DSM
 from geoortho.processing.spec import Algorithm, Output, Param
 
 # -- shared parameters: one declaration each ---------------------------------
@@ -360,8 +361,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
         group="Measure",
         function_ref="geoortho.measure.change:change",
         params=(
-            Param("reference", "file", extensions=(".tif", ".tiff")),
-            Param("compare", "file", extensions=(".tif", ".tiff")),
+            Param("reference", "file", extensions=(".tif", ".tiff"), project_file=PROJECT_DSM),
+            Param("compare", "file", extensions=(".tif", ".tiff"), project_file=PROJECT_DSM),
             Param("output", "raster", output=True, extensions=(".tif",)),
             Param("polygons", "vector", output=True, extensions=(".gpkg",)),
             Param("noise_m", "number", unit="m", minimum=0.0, advanced=True),
@@ -459,6 +460,7 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("split", "integer", minimum=0, advanced=True),
             Param("split_overlap_m", "number", unit="m", minimum=0.0, advanced=True),
             Param("volumes", "vector"),
+            Param("change_from", "file", extensions=(".tif", ".tiff"), project_file=PROJECT_DSM),
         ),
         outputs=(
             Output("output", "folder"),

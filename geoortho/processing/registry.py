@@ -36,6 +36,10 @@ def _path_in(p: Param, v: Any, *, want_dir: bool) -> Path:
         raise ParameterError(p.name, f"no such {'folder' if want_dir else 'file'}: {path}")
     if want_dir and not path.is_dir():
         raise ParameterError(p.name, f"not a folder: {path}")
+    if not want_dir and path.is_dir() and p.project_file:
+        if not (path / p.project_file).is_file():
+            raise ParameterError(p.name, f"is a folder without {p.project_file} (a run project's): {path}")
+        return path / p.project_file
     if not want_dir and path.is_dir():
         # a product's folder for its one file of the kind (plan's folder for its plan.gpkg)
         inside = sorted(f for f in path.iterdir() if f.is_file() and f.suffix.lower() in p.extensions)

@@ -73,6 +73,8 @@ class Param:
     output: bool = False
     advanced: bool = False
     aliases: tuple[str, ...] = ()
+    #: a folder given for this file stands for this file in it (a run project: its dem/dsm.tif)
+    project_file: str = ""
     # filled in from the core function
     default: Any = _FROM_SIGNATURE
     choices: tuple[str, ...] = ()
