@@ -14,7 +14,7 @@ The cars stand in rows on tarmac with their shadows cast on it (the sun in the s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -393,3 +393,92 @@ def add_stockpiles(
     half = 6.2 * r
     patch = CoverPatch("stockpiles", cx, cy, half, half, {"pile_radius_m": r, "items": items})
     return new_dsm, new_dtm, tint.astype(np.float32), patch
+
+
+#: The second epoch's changes at most (m): a pile's radius, a trench's length, width at the bottom and
+#: depth (its sides at the piles' slope: a trench with vertical sides is narrower than the dense
+#: matcher's window, which smooths it), a new building's length, width and height.
+EPOCH_PILE_RADIUS_M = 4.0
+EPOCH_TRENCH_M = (14.0, 2.0, 1.0)
+EPOCH_BUILDING_M = (9.0, 6.0, 4.0)
+#: The second flight's GPS is off the first's by this much (east, north, up; m): two flights on
+#: consumer GPS alone, the normal case between epochs.
+EPOCH_GPS_OFFSET_M = (1.6, -1.2, 0.5)
+EPOCH_ROOF_RGB = (0.66, 0.36, 0.28)
+
+
+def add_second_epoch(
+    g: CoverGround, rng: np.random.Generator, stockpiles: dict[str, Any] | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, CoverPatch]:
+    """The site as a second flight finds it: a pile moved (the stockpiles' cone, where the yard has
+    one, else a new pile), a trench dug and a new building, each on open ground and clear of the
+    markers. The new DSM, DTM, object and ground colours, and each change with its true volume
+    (positive: added; negative: removed), summed over the grid's cells."""
+    xs, ys = g.centres()
+    cell_m2 = abs(g.transform.a * g.transform.e)
+    clear_xy = _clear_of_markers(xs, ys, g.markers_xy, 2.0)
+    dsm, dtm = g.dsm.astype(np.float64), g.dtm.astype(np.float64)
+    objects, landcover = g.objects.copy(), g.landcover.copy()
+    changed = np.zeros(dsm.shape, bool)
+    items: list[dict[str, Any]] = []
+
+    def spot(radius_m: float) -> tuple[float, float, float]:
+        # open ground away from what stands and from the changes made already
+        return _open_spot(replace(g, dsm=np.where(changed, dtm + 1.0, dsm)), radius_m, inset=0.15)
+
+    def volume(delta: np.ndarray) -> float:
+        return float(np.sum(np.where(clear_xy, delta, 0.0)) * cell_m2)
+
+    def ground(delta: np.ndarray, rgb: tuple[float, float, float]) -> None:
+        nonlocal dsm, dtm, landcover
+        delta = np.where(clear_xy, delta, 0.0)
+        dsm, dtm = dsm + delta, dtm + delta
+        grain = 0.85 + 0.3 * rng.random(delta.shape)
+        landcover = np.where((delta != 0)[..., None], np.array(rgb, np.float32) * grain[..., None], landcover)
+        changed[delta != 0] = True
+
+    if stockpiles:  # the yard's cone carted off (the ground it stood on is the yard's plane)
+        cone_item = next(i for i in stockpiles["items"] if i["name"] == "cone")
+        r0 = float(stockpiles["pile_radius_m"])
+        old = np.clip(PILE_SLOPE * (r0 - np.hypot(xs - cone_item["x"], ys - cone_item["y"])), 0.0, None)
+        ground(-old, (0.45, 0.40, 0.33))
+        items.append({"name": "cone removed", "kind": "cut", "x": cone_item["x"], "y": cone_item["y"],
+                      "radius_m": r0 * 1.4, "volume_m3": -volume(old)})  # fmt: skip
+    px, py, clear = spot(2.5 * EPOCH_PILE_RADIUS_M)
+    r = max(1.5, min(EPOCH_PILE_RADIUS_M, clear / 2.5))
+    pile = np.clip(PILE_SLOPE * (r - np.hypot(xs - px, ys - py)), 0.0, None)
+    ground(pile, GRAVEL_RGB)
+    items.append({"name": "pile moved here" if stockpiles else "pile", "kind": "fill", "x": px, "y": py,
+                  "radius_m": r * 1.4, "volume_m3": volume(pile)})  # fmt: skip
+    length, width, depth = EPOCH_TRENCH_M
+    tx, ty, clear = spot(0.6 * length)
+    length = max(4.0, min(length, 2.0 * clear - 2.0))
+    angle = float(rng.uniform(0, np.pi))
+    u = (xs - tx) * math.cos(angle) + (ys - ty) * math.sin(angle)
+    v = -(xs - tx) * math.sin(angle) + (ys - ty) * math.cos(angle)
+    # a floor ``width`` across, its sides rising at the piles' slope to the ground
+    beyond = np.maximum(np.abs(v) - width / 2, 0.0) + np.maximum(np.abs(u) - length / 2, 0.0)
+    trench = -np.clip(depth - PILE_SLOPE * beyond, 0.0, depth)
+    ground(trench, (0.42, 0.33, 0.25))
+    reach = width / 2 + depth / PILE_SLOPE
+    items.append({"name": "trench", "kind": "cut", "x": tx, "y": ty, "radius_m": length / 2 + reach + 0.5,
+                  "volume_m3": volume(trench)})  # fmt: skip
+    bl, bw, bh = EPOCH_BUILDING_M
+    bx, by, clear = spot(0.7 * bl)
+    bl = max(4.0, min(bl, 1.4 * clear - 1.0))
+    bw = min(bw, bl)
+    ba = float(rng.uniform(0, np.pi))
+    u = (xs - bx) * math.cos(ba) + (ys - by) * math.sin(ba)
+    v = -(xs - bx) * math.sin(ba) + (ys - by) * math.cos(ba)
+    inside = (np.abs(u) <= bl / 2) & (np.abs(v) <= bw / 2) & clear_xy
+    roof = float(dtm[inside].max()) + bh if inside.any() else float(np.median(dtm)) + bh
+    added = np.where(inside, roof - dsm, 0.0)
+    dsm = dsm + added
+    objects = np.where(inside[..., None], np.array(EPOCH_ROOF_RGB, np.float32), objects)
+    items.append({"name": "new building", "kind": "fill", "x": bx, "y": by, "radius_m": math.hypot(bl, bw) / 2 + 1.0,
+                  "volume_m3": float(np.sum(added) * cell_m2)})  # fmt: skip
+    detail = {"gps_offset_m": list(EPOCH_GPS_OFFSET_M), "items": items}
+    fx0, fy0, fx1, fy1 = g.flight_box
+    patch = CoverPatch("second_epoch", (fx0 + fx1) / 2, (fy0 + fy1) / 2, (fx1 - fx0) / 2, (fy1 - fy0) / 2, detail)
+    return (dsm.astype(np.float32), dtm.astype(np.float32), objects.astype(np.float32),
+            landcover.astype(np.float32), patch)  # fmt: skip

@@ -16,6 +16,7 @@ from pyproj import CRS
 from geoortho.core.camera import Intrinsics, rotation_from_ypr, ypr_from_rotation
 from geoortho.core.crs import grid_north, transformer
 from geoortho.errors import InputError
+from geoortho.synthetic.cover import EPOCH_GPS_OFFSET_M
 from geoortho.synthetic.presets import (
     ATTITUDE_NOISE_SIGMA_DEG,
     CAMERA_MODEL,
@@ -372,6 +373,15 @@ def apply_pathologies(
                 yaw_deg=_wrap180(s.yaw_deg + turn),
                 rec_yaw_deg=_wrap180(s.rec_yaw_deg + turn),
                 flight_yaw_deg=_wrap180(s.flight_yaw_deg + turn),
+            )
+        if "second-epoch" in pathologies:  # another day's GPS: the whole flight off by one offset
+            east, north, up = EPOCH_GPS_OFFSET_M
+            s = replace(
+                s,
+                rec_lat=s.rec_lat + north / 111_320.0,
+                rec_lon=s.rec_lon + east / (111_320.0 * math.cos(math.radians(s.rec_lat))),
+                rec_gps_alt_m=s.rec_gps_alt_m + up,
+                rec_abs_alt_m=s.rec_abs_alt_m + up,
             )
         if "poor-gps" in pathologies:
             east, north = rng.normal(0.0, POOR_GPS_SIGMA_M, 2)

@@ -245,6 +245,11 @@ PATHOLOGIES: dict[str, str] = {
     "together (smooth for an even seed, lumpy spoil for an odd one) and a pit dug at the same slope (at most 1.5 m "
     "deep), parts of the ground (DSM and DTM); survey.json: cover.stockpiles.items, each with its centre, a radius "
     "that takes in its foot, and its true volume",
+    "second-epoch": "the same site flown again later (the same seed gives the same scene): a pile moved (the "
+    "stockpiles' cone carted off, where the yard has one, else a new pile), a trench dug (sides at 27 deg, 1 m deep) "
+    "and a new building, on open ground; and the flight's GPS 1.6 m east, 1.2 m south and 0.5 m up of the first's; "
+    "survey.json: cover.second_epoch (gps_offset_m, and items, each with its kind, cut or fill, centre, a radius "
+    "that takes it in, and its true volume)",
     "breaklines": f"a bank {BANK_M[0]:g} m high across the scene (45 deg for an even seed, 30 for an odd one) and a "
     f"road cutting {CUTTING_M[1]:g} m wide, {CUTTING_M[0]:g} m deep with 45 deg sides: the ground's own sharp edges; "
     "survey.json: cover.breaklines",

@@ -28,6 +28,7 @@ from geoortho.synthetic.cover import (
     add_car_park,
     add_hall,
     add_hedge,
+    add_second_epoch,
     add_stockpiles,
     leaf_texture,
 )
@@ -577,3 +578,8 @@ def add_cover(
     if "stockpiles" in pathologies:
         scene.dsm, scene.dtm, scene.landcover, patch = add_stockpiles(ground(), rng, lumpy=seed % 2 == 1)
         scene.cover["stockpiles"] = patch.record()
+    if "second-epoch" in pathologies:
+        scene.dsm, scene.dtm, scene.objects, scene.landcover, patch = add_second_epoch(
+            ground(), rng, scene.cover.get("stockpiles")
+        )
+        scene.cover["second_epoch"] = patch.record()

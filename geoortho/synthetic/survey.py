@@ -308,7 +308,7 @@ def _scene(
         bank_deg=(45.0 if seed % 2 == 0 else 30.0) if "breaklines" in pathologies else 0.0,
     )
     scene.target = target
-    if any(k in pathologies for k in ("canopy", "cars", "wide-wood", "hall", "hedge", "stockpiles")):
+    if any(k in pathologies for k in ("canopy", "cars", "wide-wood", "hall", "hedge", "stockpiles", "second-epoch")):
         add_cover(scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)], seed)
     if "water" in pathologies:
         scene.water = place_water(scene)
