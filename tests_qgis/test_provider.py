@@ -669,6 +669,12 @@ def test_every_algorithm_runs_through_qgis(provider, description, tiny, tmp_path
     assert clouds[0].crs().isValid() and clouds[0].renderer().type() == "rgb"  # its own colours, stretched
     scenes = [x for x in demo_project.mapLayers().values() if x.name() == "3D mesh (3D Tiles)"]
     assert len(scenes) == 1 and scenes[0].isValid() and scenes[0].crs().authid() == "EPSG:4979"
+    # the change since the survey's lidar-like DSM: the difference on a ramp about zero, the areas by kind
+    changes = {x.name(): x for x in demo_project.mapLayers().values() if x.name().startswith("change")}
+    assert set(changes) == {"change since the earlier survey (m)", "change: cut and fill areas"}
+    assert all(x.isValid() and x.crs().isValid() for x in changes.values())
+    assert changes["change since the earlier survey (m)"].renderer().type() == "singlebandpseudocolor"
+    assert changes["change: cut and fill areas"].renderer().type() == "categorizedSymbol"
 
     # run: the chain on the tiny survey with its lidar cloud (no dense stage), then its report again
     project = tmp_path / "project"

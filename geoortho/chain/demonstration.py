@@ -53,9 +53,10 @@ def demo(
     survey's area with its GCPs (``OUTPUT/plan``); after it, the photos checked against the GCPs
     (``OUTPUT/plan/check``). The chain: footprints, GCP finding,
     SfM (every third GCP held out as a checkpoint), the dense cloud, DSM/DTM, the orthophoto, the
-    3D mesh, the volumes of the survey's buildings (and stockpiles, where it has them) and the
-    report, in ``OUTPUT/project``; the survey and its truth are in ``OUTPUT/survey``. Run it
-    again on the same folder and only what changed is re-done: the survey too is kept when it is
+    3D mesh, the volumes of the survey's buildings (and stockpiles, where it has them), what the
+    photos' surface shows otherwise than the survey's lidar-like DSM (a change) and the report,
+    in ``OUTPUT/project``; the survey and its truth are in ``OUTPUT/survey``. Run it again on the
+    same folder and only what changed is re-done: the survey too is kept when it is
     complete and of the same preset and seed.
 
     Parameters
@@ -97,6 +98,9 @@ def demo(
         # 1024 px features keep the demo quick
         stage_options=json.dumps({"sfm": {"max_image_size": 1024, "max_features": 4096}}),
         volumes=volumes,
+        # the site as its lidar measured it: what the photos' surface shows otherwise, beyond the
+        # level of detection (crowns, walls), in the report's change section and the QGIS project
+        change_from=survey.dsm if surface == "dense" else None,
         feedback=run_step,
     )
     products: dict[str, str] = {
@@ -219,6 +223,8 @@ PRODUCTS = {
     "ortho_source": "ortho/ortho_source.tif",
     "ortho_seamlines": "ortho/ortho_seamlines.gpkg",
     "volumes": "volume/volumes.gpkg",
+    "change": "change/change.tif",
+    "change_areas": "change/change.gpkg",
     "mesh": "mesh/mesh.glb",
     "mesh_tileset": "mesh/tileset/tileset.json",
     "mesh_view": "mesh/mesh_view.png",

@@ -265,7 +265,13 @@ def change_section(ctx: ReportContext) -> str | None:
             "On the ground that did not change",
             f"{num('stable_share', 100, 0)} % of the common ground; residual {num('residual_m', 100, 1)} cm (NMAD)",
         ),  # fmt: skip
-        ("Level of detection (95 %, flat ground)", f"{num('lod_m', 100, 1)} cm; more on slopes"),
+        (
+            "Level of detection (95 %, flat ground)",
+            f"{num('lod_m', 100, 1)} cm a cell, more on slopes; "
+            f"{num('area_lod_m', 100, 1)} cm of an area's mean (how far a metre's patch strays where nothing "
+            "changed)",
+        ),  # fmt: skip
+        ("Left out: on interpolated surface", f"{c.get('n_interpolated', 0)} area(s)"),
         (
             "Cut (removed) / fill (added)",
             f"{num('cut_m3', digits=1)} m³ in {c.get('n_cut')} areas / "

@@ -81,6 +81,17 @@ class Grid:
         return self.x0 + cc * self.cell, self.y0 - rr * self.cell, self.z[rr, cc].astype(np.float64)
 
 
+def cells_of(
+    b: Grid, xs: np.ndarray, ys: np.ndarray, params: np.ndarray, centre: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where points (xs, ys) of the first surface fall on the second's grid once it is moved by
+    ``params``: fractional (column, row) of its cell centres."""
+    dx, dy, _, turn, _, _ = params
+    u, v = xs - centre[0], ys - centre[1]
+    c, s = math.cos(turn), math.sin(turn)
+    return (centre[0] + c * u - s * v + dx - b.x0) / b.cell, (b.y0 - (centre[1] + s * u + c * v + dy)) / b.cell
+
+
 def moved(b: Grid, xs: np.ndarray, ys: np.ndarray, params: np.ndarray, centre: tuple[float, float]) -> tuple[
     np.ndarray, np.ndarray, np.ndarray
 ]:  # fmt: skip
@@ -90,9 +101,7 @@ def moved(b: Grid, xs: np.ndarray, ys: np.ndarray, params: np.ndarray, centre: t
 
     dx, dy, dz, turn, tx, ty = params
     u, v = xs - centre[0], ys - centre[1]
-    c, s = math.cos(turn), math.sin(turn)
-    cols = (centre[0] + c * u - s * v + dx - b.x0) / b.cell
-    rows = (b.y0 - (centre[1] + s * u + c * v + dy)) / b.cell
+    cols, rows = cells_of(b, xs, ys, params, centre)
     z = sample_grid(b.z, cols, rows).astype(np.float64) - dz - tx * u - ty * v
     return (
         z,

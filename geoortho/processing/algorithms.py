@@ -379,6 +379,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("residual_m", "number"),
             Output("stable_share", "number"),
             Output("lod_m", "number"),
+            Output("area_lod_m", "number"),
+            Output("n_interpolated", "integer"),
             Output("n_cut", "integer"),
             Output("n_fill", "integer"),
             Output("cut_m3", "number"),
