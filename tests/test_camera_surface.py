@@ -121,8 +121,8 @@ def test_grid_intersect_misses_outside_and_reports_it():
 @pytest.mark.parametrize("extend", [False, True])
 def test_grid_intersect_compiled_is_the_plain_march(monkeypatch, extend):
     """A photo's worth of rays (over COMPILED_MIN_RAYS) is marched a ray at a time in a compiled loop:
-    the same landings as the numpy march over roofs, walls, a pit, holes and the grid's edge, to the
-    float32 rounding of the numpy path's steps (a ray grazing a wall may cross it a step apart)."""
+    the same landings as the numpy march, bit for bit, over roofs, walls, a pit, holes and the grid's
+    edge (a synthetic survey rendered either way is the same survey)."""
     from geoortho.core import kernels, surface
 
     rng = np.random.default_rng(5)
@@ -145,10 +145,8 @@ def test_grid_intersect_compiled_is_the_plain_march(monkeypatch, extend):
     assert kernels.compiled(surface._march_each) is not None  # numba is here: both paths were taken
     off_grid = a.extended if extend else ~a.hit  # rays that leave the grid or cross the hole
     assert off_grid is not None and 0.0 < off_grid.mean() < 0.7
-    assert np.count_nonzero(a.hit != b.hit) <= n * 1e-4
-    both = a.hit & b.hit
-    off = np.linalg.norm(a.points[both] - b.points[both], axis=1)
-    assert np.quantile(off, 0.9999) < 1e-2 and np.count_nonzero(off > 1e-3) <= n * 1e-3
+    assert np.array_equal(a.hit, b.hit) and np.array_equal(a.range_m, b.range_m)
+    assert np.array_equal(a.points, b.points)
 
 
 def test_grid_surface_rejects_rotated_grids():

@@ -323,17 +323,18 @@ class GridSurface(Surface):
         where the numpy path samples every live ray at every step (a photo of 1.7 MP: 1.5 s → 0.3 s)."""
         tr = self.transform
         sub_o, sub_d = o[active], d[active]
+        # packed as the numpy path packs them (float32), so both march the same rays
         rays = np.ascontiguousarray(
             np.stack(
                 [
-                    (sub_o[:, 0] - tr.c) / tr.a - 0.5,
-                    (sub_o[:, 1] - tr.f) / tr.e - 0.5,
-                    sub_o[:, 2],
-                    sub_d[:, 0] / tr.a,
-                    sub_d[:, 1] / tr.e,
-                    sub_d[:, 2],
+                    ((sub_o[:, 0] - tr.c) / tr.a - 0.5).astype(np.float32),
+                    ((sub_o[:, 1] - tr.f) / tr.e - 0.5).astype(np.float32),
+                    sub_o[:, 2].astype(np.float32),
+                    (sub_d[:, 0] / tr.a).astype(np.float32),
+                    (sub_d[:, 1] / tr.e).astype(np.float32),
+                    sub_d[:, 2].astype(np.float32),
                 ]
-            )  # fmt: skip
+            )
         )
         coarse, block = self._coarse_max()
         out_t = np.empty(active.size)
@@ -467,66 +468,74 @@ def _march_each(
     t_end: np.ndarray,
     hit: np.ndarray,
 ) -> None:
-    """:meth:`GridSurface._march`, one ray at a time (compiled: see :func:`geoortho.core.kernels.compiled`).
-    ``rays`` rows: column, row, height of the origin, and their steps per metre of range. The same
-    passes: the origin under the surface; air skipped a coarse block at a time against the dilated
-    block maxima; steps of ``step`` to the first crossing; six bisections and a secant step."""
+    """:meth:`GridSurface._march`, one ray at a time (compiled: see :func:`geoortho.core.kernels.compiled`),
+    bit for bit: ``rays`` rows (float32, as the numpy path packs them): column, row, height of the
+    origin, and their steps per metre of range. The same passes in the same precisions: the origin
+    under the surface and the coarse skip in float32; the steps, six bisections and a secant step in
+    float64; the grid read as ``sample_grid`` reads it (OpenCV's remap: float32 positions and
+    weights, lerps that are fused multiply-adds; nearest rounds half to even)."""
     nr, nc = grid.shape
     nrc, ncc = coarse.shape
-    c_step = block * cell_m
+    f32 = np.float32
+    c_step = f32(block * cell_m)
+    half_block = f32(0.5 / block)
 
-    def _bilinear(grid: np.ndarray, col: float, row: float) -> float:
-        # as sample_grid reads it: NaN where any of the four cells is off the grid or without data
+    def height(col64: float, row64: float) -> float:
+        col, row = f32(col64), f32(row64)
         ic, ir = math.floor(col), math.floor(row)
         if ic < 0 or ic + 1 >= nc or ir < 0 or ir + 1 >= nr:
             return math.nan
-        wc, wr = col - ic, row - ir
-        top = grid[ir, ic] + (grid[ir, ic + 1] - grid[ir, ic]) * wc
-        bottom = grid[ir + 1, ic] + (grid[ir + 1, ic + 1] - grid[ir + 1, ic]) * wc
-        return float(top + (bottom - top) * wr)
+        # the weights as float64 differences (exact): written as a float32 difference widened, the
+        # compiler narrowed the lerps to float32 products, a rounding off the remap's in 1 ray of 2,000
+        wc, wr = float(col) - ic, float(row) - ir
+        g00, g01, g10, g11 = grid[ir, ic], grid[ir, ic + 1], grid[ir + 1, ic], grid[ir + 1, ic + 1]
+        # each lerp a float32 fused multiply-add (a float32 product is exact in float64)
+        top = f32(float(g01 - g00) * wc + float(g00))
+        bottom = f32(float(g11 - g10) * wc + float(g10))
+        return float(f32(float(bottom - top) * wr + float(top)))
+
+    def above(oc: float, orr: float, oz: float, dc: float, dr: float, dz: float, t: float) -> float:
+        # the numpy path's f in float64 (a float32 ray times a float64 range): > 0 above the surface
+        h = height(oc + t * dc, orr + t * dr)
+        return 1.0 if math.isnan(h) else oz + t * dz - h
 
     for i in range(rays.shape[1]):
         oc, orr, oz, dc, dr, dz = rays[0, i], rays[1, i], rays[2, i], rays[3, i], rays[4, i], rays[5, i]
-        lo, t_stop = t0[i], t1[i]
-        h = _bilinear(grid, oc + lo * dc, orr + lo * dr)
-        if not math.isnan(h) and oz + lo * dz - h <= 0:
+        lo, t_stop = f32(t0[i]), f32(t1[i])
+        h = height(oc + lo * dc, orr + lo * dr)  # float32 products and sums, as numpy's
+        if not math.isnan(h) and float(oz + lo * dz) - h <= 0:
             t_end[i] = lo
             hit[i] = True
             continue
         if block > 1:
+            clo = lo
             while True:
-                t = min(lo + c_step, t_stop)
-                bc = math.floor((oc + t * dc) / block + 0.5 / block)
-                br = math.floor((orr + t * dr) / block + 0.5 / block)
+                t = min(f32(clo + c_step), t_stop)
+                bc = round(float((oc + t * dc) / f32(block) - f32(0.5) + half_block))
+                br = round(float((orr + t * dr) / f32(block) - f32(0.5) + half_block))
                 hb = coarse[br, bc] if 0 <= bc < ncc and 0 <= br < nrc else math.nan
-                if not (math.isnan(hb) or oz + t * dz > hb):
+                clear = math.isnan(hb) or oz + t * dz > hb
+                if not (clear and t < t_stop):
+                    lo = f32(lo + f32((t if clear else clo) - lo))
                     break
-                lo = t
-                if t >= t_stop:
-                    break
-            if lo >= t_stop:
+                clo = t
+            if not lo < t_stop:
                 continue
-        start, span = lo, t_stop - lo
-        n_steps = max(1, math.ceil(span / step))
+        start, span = float(lo), float(f32(t_stop - lo))
+        n_steps = max(1, int(math.ceil(f32(f32(span) / f32(step)))))
+        a = float(lo)
         for k in range(1, n_steps + 1):
-            hi = start + span * min(k / n_steps, 1.0)
-            h = _bilinear(grid, oc + hi * dc, orr + hi * dr)
-            if math.isnan(h) or oz + hi * dz - h > 0:
-                lo = hi
+            b = start + span * min(float(f32(k)) / n_steps, 1.0)
+            if above(oc, orr, oz, dc, dr, dz, b) > 0:
+                a = b
                 continue
-            a, b = lo, hi
-            fa = fb = 0.0
             for _ in range(6):
                 m = 0.5 * (a + b)
-                hm = _bilinear(grid, oc + m * dc, orr + m * dr)
-                if math.isnan(hm) or oz + m * dz - hm > 0:
+                if above(oc, orr, oz, dc, dr, dz, m) > 0:
                     a = m
                 else:
                     b = m
-            ha = _bilinear(grid, oc + a * dc, orr + a * dr)
-            hb2 = _bilinear(grid, oc + b * dc, orr + b * dr)
-            fa = 1.0 if math.isnan(ha) else oz + a * dz - ha
-            fb = 1.0 if math.isnan(hb2) else oz + b * dz - hb2
+            fa, fb = above(oc, orr, oz, dc, dr, dz, a), above(oc, orr, oz, dc, dr, dz, b)
             w = fa / (fa - fb) if fa - fb > 0 else 0.5
             t_end[i] = a + min(max(w, 0.0), 1.0) * (b - a)
             hit[i] = True
@@ -539,7 +548,7 @@ def warm() -> None:
     if kernel is None:
         return
     grid = np.zeros((8, 8), np.float32)
-    rays = np.array([[3.0], [3.0], [10.0], [0.1], [0.1], [-1.0]])
+    rays = np.array([[3.0], [3.0], [10.0], [0.1], [0.1], [-1.0]], np.float32)
     t_end, hit = np.zeros(1), np.zeros(1, np.bool_)
     kernel(rays, np.zeros(1), np.full(1, 20.0), grid, grid, 1, 1.0, 1.0, t_end, hit)
 

@@ -291,7 +291,7 @@ def _march_rays(
                 ic, ir = math.floor(col), math.floor(row)
                 height = math.nan
                 if 0 <= ic and ic + 1 < nc and 0 <= ir and ir + 1 < nr:
-                    wc, wr = float(col - np.float32(ic)), float(row - np.float32(ir))
+                    wc, wr = float(col) - ic, float(row) - ir  # exact; see core.surface._march_each
                     # a float32 fused multiply-add: the product of two float32 is exact in float64
                     g00, g01, g10, g11 = grid[ir, ic], grid[ir, ic + 1], grid[ir + 1, ic], grid[ir + 1, ic + 1]
                     top = np.float32(float(g01 - g00) * wc + float(g00))
