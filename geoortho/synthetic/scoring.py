@@ -22,7 +22,16 @@ from scipy import ndimage
 from geoortho.elevation.artefacts import roughness_m
 from geoortho.elevation.coverage import UNDER_OBJECT, seen_count
 
-__all__ = ["GhostScores", "OrthoScores", "SurfaceScores", "score_movers", "score_ortho", "score_surfaces"]
+__all__ = [
+    "ChangeScores",
+    "GhostScores",
+    "OrthoScores",
+    "SurfaceScores",
+    "score_changes",
+    "score_movers",
+    "score_ortho",
+    "score_surfaces",
+]
 
 OBJECT_M = 0.2
 NEAR_M = 3.0
@@ -358,3 +367,30 @@ def score_movers(truth: Path, ortho: Path, kinds: tuple[str, ...] = ("car", "per
     whole = sum(w for _, w, _ in per)
     ghosts = sum(p + max(0, w - 1) for _, w, p in per)
     return GhostScores(movers=len(movers), whole=whole, ghosts=ghosts, per_mover=tuple(per))
+
+
+@dataclass(frozen=True)
+class ChangeScores:
+    """A change's areas against the second epoch's true changes: per change, its name, the volume
+    found over it and its true volume (m³); and the areas over no true change (count, m²)."""
+
+    per_change: tuple[tuple[str, float, float], ...]
+    n_other: int
+    other_m2: float
+
+
+def score_changes(truth: Path, polygons: Path) -> ChangeScores:
+    """``change``'s cut and fill areas (their GeoPackage) against synth's second epoch (``truth``: its
+    survey.json): an area counts for the true change whose circle holds a point of it."""
+    import geopandas as gpd
+
+    items = json.loads((truth / "survey.json").read_text())["cover"]["second_epoch"]["items"]
+    areas = gpd.read_file(polygons, layer="change")
+    centre = areas.geometry.representative_point()
+    claimed = np.zeros(len(areas), bool)
+    per = []
+    for i in items:
+        mine = np.hypot(centre.x - i["x"], centre.y - i["y"]).to_numpy() <= i["radius_m"]
+        claimed |= mine
+        per.append((str(i["name"]), float(areas.loc[mine, "volume_m3"].sum()), float(i["volume_m3"])))
+    return ChangeScores(tuple(per), int((~claimed).sum()), float(areas.loc[~claimed, "area_m2"].sum()))
