@@ -289,12 +289,19 @@ def write_layer_styles(gpkg: str | os.PathLike[str], styles: dict[str, str]) -> 
             )
 
 
-def write_vector(target: str | os.PathLike[str], layers: dict[str, Any], styles: dict[str, str] | None = None) -> Path:
+def write_vector(
+    target: str | os.PathLike[str],
+    layers: dict[str, Any],
+    styles: dict[str, str] | None = None,
+    empty_as: dict[str, str] | None = None,
+) -> Path:
     """Write one or more GeoDataFrames (layer name → frame) atomically.
 
     The format follows the extension; several layers need a multi-layer format
     (GeoPackage). ``styles`` (layer name → QGIS style document) go into a GeoPackage as the layers'
     default styles (:func:`write_layer_styles`); other formats have no place for them.
+    ``empty_as`` (layer name → geometry type): a layer with no feature gets this type, not
+    "Unknown", which QGIS opens with no renderer (its style unused).
     """
     target = Path(target)
     driver = VECTOR_DRIVERS.get(target.suffix.lower())
@@ -314,6 +321,8 @@ def write_vector(target: str | os.PathLike[str], layers: dict[str, Any], styles:
                 kwargs["GEOMETRY"] = "AS_WKT"  # the CSV driver writes no geometry otherwise
             if i > 0:
                 kwargs["mode"] = "a"
+            if not len(frame) and empty_as and name in empty_as:
+                kwargs["geometry_type"] = empty_as[name]
             with warnings.catch_warnings():
                 # Shapefile: field names are cut to 10 characters, as the format has it; said once
                 # per field by geopandas and by pyogrio, to stderr, it is noise

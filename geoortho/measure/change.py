@@ -182,7 +182,7 @@ def change(
     write_cog(output, diff.astype(np.float32), transform=ta, crs=crs, nodata=float("nan"),
               band_names=("second minus first",), units="metre")  # fmt: skip
     write_raster_style(output, difference(Path(output)))
-    write_vector(polygons, {"change": frame}, styles=product_styles("change"))
+    write_vector(polygons, {"change": frame}, styles=product_styles("change"), empty_as={"change": "Polygon"})
     dx, dy, dz, turn, tx, ty = fit.params
     tilt = math.degrees(math.atan(math.hypot(tx, ty)))
     fb.info(
