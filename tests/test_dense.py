@@ -368,6 +368,10 @@ def test_a_match_under_the_ground_at_a_tilted_photos_near_side_is_dropped(tmp_pa
         return xyz, np.full((len(xyz), 3), 128, np.uint8), rng[0]
 
     monkeypatch.setattr(fusion, "pair_points", pair)
+    import cv2
+
+    # a task sets its process's OpenCV threads to one (its worker's); run here, this one's are restored
+    monkeypatch.setattr(cv2, "setNumThreads", lambda n: None)
 
     def fused(floor_z):
         job = dense_pairs.DepthJob(ref, (b, c), ((lo, hi), (lo, hi)), (floor_z, floor_z), 2, 0.01, 0.5, 2, (b, c))
