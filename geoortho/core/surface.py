@@ -254,9 +254,7 @@ class GridSurface(Surface):
         t_end = np.full(n, float(max_range_m))
         hit = np.zeros(n, bool)
         active = np.nonzero(t1 > t0)[0]
-        if active.size >= COMPILED_MIN_RAYS and (kernel := compiled(_march_each)) is not None:
-            self._march_compiled(kernel, o, d, t0, t1, active, step, t_end, hit)
-        elif active.size:
+        if active.size:
             self._march(o, d, t0, t1, active, step, t_end, hit)
         pts = o + d * t_end[:, None]
         if hit.any():
@@ -320,29 +318,6 @@ class GridSurface(Surface):
             sub_d[:, 2].astype(np.float32),
         )
 
-    def _march_compiled(
-        self,
-        kernel: Any,
-        o: np.ndarray,
-        d: np.ndarray,
-        t0: np.ndarray,
-        t1: np.ndarray,
-        active: np.ndarray,
-        step: float,
-        t_end: np.ndarray,
-        hit: np.ndarray,
-    ) -> None:
-        """:meth:`_march` a ray at a time in a compiled loop: each ray is sampled only until it lands,
-        where the numpy path samples every live ray at every step (a photo of 1.7 MP: 1.5 s → 0.3 s)."""
-        r = self._grid_rays(o, d, active)  # as the numpy path packs them: both march the same rays
-        rays = np.ascontiguousarray(np.stack([r.oc, r.orr, r.oz, r.dc, r.dr, r.dz]))
-        coarse, block = self._coarse_max()
-        out_t = np.empty(active.size)
-        out_hit = np.zeros(active.size, np.bool_)
-        kernel(rays, t0[active], t1[active], self.grid, coarse, block, float(step), self.cell_m, out_t, out_hit)
-        t_end[active[out_hit]] = out_t[out_hit]
-        hit[active] = out_hit
-
     def _march(
         self,
         o: np.ndarray,
@@ -362,6 +337,16 @@ class GridSurface(Surface):
         # packed again only when a third of them have finished: a gather of every array at
         # every step cost more than the march's own arithmetic.
         ray = self._grid_rays(o, d, active)
+        if active.size >= COMPILED_MIN_RAYS and (kernel := compiled(_march_each)) is not None:
+            # a ray at a time: each is sampled only until it lands, where the numpy path below samples
+            # every live ray at every step (a photo of 1.7 MP: 1.3 s -> 0.7 s), the same rays bit for bit
+            rays = np.ascontiguousarray(np.stack([ray.oc, ray.orr, ray.oz, ray.dc, ray.dr, ray.dz]))
+            coarse, block = self._coarse_max()
+            out_t, out_hit = np.empty(active.size), np.zeros(active.size, np.bool_)
+            kernel(rays, t0[active], t1[active], self.grid, coarse, block, float(step), self.cell_m, out_t, out_hit)
+            t_end[active[out_hit]] = out_t[out_hit]
+            hit[active] = out_hit
+            return
         grid = self.grid
 
         def f(r: _Rays, t: np.ndarray) -> np.ndarray:

@@ -310,7 +310,7 @@ def _area_lod(diff: np.ndarray, lod: np.ndarray, cell_m: float) -> float:
     AREA_LOD_QUANTILE of its magnitude. Two photogrammetric surfaces differ there by patches a
     matching window wide, not by independent cells: on the tiny survey flown twice (512 px depth
     maps) the cells' NMAD was 0.015 m but 1 % of the 1 m patches stood 0.13 m off, and the per-cell
-    level of detection (0.05 m) called 30 such patches of 1-9 m² change."""
+    level of detection (0.05 m) called 33 such areas of 1-25 m² change."""
     from scipy.ndimage import binary_dilation, uniform_filter
 
     ok = np.isfinite(diff)

@@ -244,15 +244,17 @@ def _stale_fixes(shots: list[Shot], lag_s: float, interval_s: float = 2.0) -> li
         j = i - 1 if i > 0 else 1
         dx, dy = shots[j].x - s.x, shots[j].y - s.y
         share = (lag_s / interval_s) * (1.0 if i > 0 else -1.0)
-        east, north = dx * share, dy * share
-        out.append(
-            replace(
-                s,
-                rec_lat=s.rec_lat + north / 111_320.0,
-                rec_lon=s.rec_lon + east / (111_320.0 * math.cos(math.radians(s.rec_lat))),
-            )
-        )
+        out.append(_fix_moved(s, dx * share, dy * share))
     return out
+
+
+def _fix_moved(s: Shot, east_m: float, north_m: float) -> Shot:
+    """The photo with its recorded GPS fix moved east and north by so many metres."""
+    return replace(
+        s,
+        rec_lat=s.rec_lat + north_m / 111_320.0,
+        rec_lon=s.rec_lon + east_m / (111_320.0 * math.cos(math.radians(s.rec_lat))),
+    )
 
 
 def _stamped_early(s: Shot, lag_s: float) -> Shot:
@@ -377,19 +379,11 @@ def apply_pathologies(
         if "second-epoch" in pathologies:  # another day's GPS: the whole flight off by one offset
             east, north, up = EPOCH_GPS_OFFSET_M
             s = replace(
-                s,
-                rec_lat=s.rec_lat + north / 111_320.0,
-                rec_lon=s.rec_lon + east / (111_320.0 * math.cos(math.radians(s.rec_lat))),
-                rec_gps_alt_m=s.rec_gps_alt_m + up,
-                rec_abs_alt_m=s.rec_abs_alt_m + up,
+                _fix_moved(s, east, north), rec_gps_alt_m=s.rec_gps_alt_m + up, rec_abs_alt_m=s.rec_abs_alt_m + up
             )
         if "poor-gps" in pathologies:
             east, north = rng.normal(0.0, POOR_GPS_SIGMA_M, 2)
-            s = replace(
-                s,
-                rec_lat=s.rec_lat + float(north) / 111_320.0,
-                rec_lon=s.rec_lon + float(east) / (111_320.0 * math.cos(math.radians(s.rec_lat))),
-            )
+            s = _fix_moved(s, float(east), float(north))
         if "no-attitude" in pathologies:
             # the true camera tilted towards one fixed direction; nothing of it in the metadata
             yaw, pitch, roll = ypr_from_rotation(mount @ rotation_from_ypr(s.yaw_deg, s.pitch_deg, s.roll_deg))
