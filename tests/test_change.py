@@ -84,6 +84,15 @@ def test_the_known_changes_are_found_with_their_volumes(found):
     assert pile["volume_m3"] == pytest.approx(pile_m3, rel=0.02)
     assert -trench["volume_m3"] == pytest.approx(trench_m3, rel=0.02)
     assert r.cut_m3 == pytest.approx(trench_m3, rel=0.02)
+    # the trench's 1.5 m walls (44 m of them) are placed to a cell over the square root of 12 in each
+    # survey: their part of the sigma is that times their rise; the cone's flanks are no walls (a few
+    # noisy cells aside)
+    walls_m3 = 44.0 * 1.5 * math.hypot(CELL, CELL) / math.sqrt(12.0)
+    assert trench["sigma_walls_m3"] == pytest.approx(walls_m3, rel=0.25) and pile["sigma_walls_m3"] < 0.001 * pile_m3
+    assert (
+        trench["sigma_m3"] >= trench["sigma_walls_m3"]
+        and abs(-trench["volume_m3"] - trench_m3) < 2 * trench["sigma_m3"]
+    )
 
 
 def test_no_false_change_on_stable_ground_and_the_difference_raster(found):

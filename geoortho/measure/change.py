@@ -19,7 +19,7 @@ import numpy as np
 from geoortho.core.folders import project_dsm
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, as_feedback
-from geoortho.measure.accuracy import NOISE_CORRELATION_M, run_noise
+from geoortho.measure.accuracy import NOISE_CORRELATION_M, run_noise, wall_place_m, walls_sigma_m3
 from geoortho.measure.coregister import Grid, cells_of, coregister, moved
 
 __all__ = ["ChangeResult", "change"]
@@ -38,7 +38,9 @@ class ChangeResult:
         The difference (second minus first, after the fit), a GeoTIFF on the first's grid.
     polygons : Path
         The GeoPackage (layer ``change``): each area beyond the level of detection, its kind (cut or
-        fill), area_m2, volume_m3 (positive for fill, negative for cut) and sigma_m3.
+        fill), area_m2, volume_m3 (positive for fill, negative for cut), sigma_m3 (1 sigma: the
+        surveys' noise over its patches, the fit's vertical sigma over its area and its walls') and
+        sigma_walls_m3 (the walls' part: where each survey put the walls of what was built or dug).
     shift_x_m : float
         How far the second survey was moved east to sit on the first.
     shift_y_m : float
@@ -173,8 +175,10 @@ def change(
     cell_m2 = ta.a * ta.a
     guessed = np.zeros(az.shape, bool)
     guessed[rr, cc] = _interpolated(a_path, None, xs, ys) | _interpolated(b_path, (b, fit.params, fit.centre), xs, ys)
+    # a new or removed object's walls stand where each survey's dense cloud put them
+    place_m = math.hypot(wall_place_m(a_path, ta.a), wall_place_m(b_path, ta.a))
     frame, cut, fill, area_lod, n_guessed = _areas(
-        diff, lod_cells, guessed, ta, crs, min_area_m2, cell_m2, sigma_d, fit.sigma[2]
+        diff, lod_cells, guessed, ta, crs, min_area_m2, cell_m2, (sigma_d, fit.sigma[2], place_m)
     )
     from geoortho.core.outputs import write_cog, write_vector
     from geoortho.core.styles import difference, product_styles, write_raster_style
@@ -257,10 +261,15 @@ def _interpolated(
 
 def _areas(
     diff: np.ndarray, lod: np.ndarray, guessed: np.ndarray, transform: Any, crs: Any, min_area_m2: float,
-    cell_m2: float, sigma_d: float, sigma_z: float,
+    cell_m2: float, sigmas: tuple[float, float, float],
 ) -> tuple[Any, float, float, float, int]:  # fmt: skip
     """The cut and fill areas beyond each cell's level of detection, as polygons with their volumes;
-    the level of detection of an area's mean; how many areas stood on interpolated surface."""
+    the level of detection of an area's mean; how many areas stood on interpolated surface.
+
+    ``sigmas``: the difference's noise per cell (m), the fit's vertical sigma (m), and how far the
+    two surveys may each have put a wall, together (m). An area's sigma_m3 joins the noise over its
+    patches, the vertical fit over its area, and its walls (sigma_walls_m3: the steep cells of the
+    difference around it, each as far off as that)."""
     import geopandas as gpd
     import shapely
     from rasterio.features import shapes
@@ -271,6 +280,8 @@ def _areas(
     patch_m2 = max(cell_m2, NOISE_CORRELATION_M**2)
     area_lod = _area_lod(diff, lod, math.sqrt(cell_m2))
     n_guessed = 0
+    sigma_d, sigma_z, place_m = sigmas
+    cell_m = math.sqrt(cell_m2)
     for kind, mask in (("fill", diff > lod), ("cut", diff < -lod)):
         mask = ndimage.binary_opening(np.nan_to_num(mask, nan=0).astype(bool))  # a lone cell is noise
         labels, n = ndimage.label(mask)
@@ -288,17 +299,33 @@ def _areas(
         by_label: dict[int, list[Any]] = {}
         for geom, value in shapes(labels.astype(np.int32), mask=kept, transform=transform):
             by_label.setdefault(int(value), []).append(shapely.geometry.shape(geom))
+        boxes = ndimage.find_objects(labels)
         for lab in keep:
             area = float(counts[lab] * cell_m2)
             vol = float(sums[lab - 1] * cell_m2)
-            sigma = math.sqrt((sigma_d * math.sqrt(area * patch_m2)) ** 2 + (sigma_z * area) ** 2)
+            walls = _walls_sigma(diff, labels, int(lab), boxes[lab - 1], cell_m, place_m)
+            sigma = math.sqrt((sigma_d * math.sqrt(area * patch_m2)) ** 2 + (sigma_z * area) ** 2 + walls**2)
             geoms.append(shapely.union_all(by_label.get(int(lab), [])))
-            rows.append({"kind": kind, "area_m2": area, "volume_m3": vol, "sigma_m3": sigma})
-    frame = gpd.GeoDataFrame(rows or {"kind": [], "area_m2": [], "volume_m3": [], "sigma_m3": []},
-                             geometry=geoms, crs=crs)  # fmt: skip
+            rows.append({"kind": kind, "area_m2": area, "volume_m3": vol, "sigma_m3": sigma, "sigma_walls_m3": walls})
+    columns: dict[str, list[Any]] = {"kind": [], "area_m2": [], "volume_m3": [], "sigma_m3": [], "sigma_walls_m3": []}
+    frame = gpd.GeoDataFrame(rows or columns, geometry=geoms, crs=crs)
     cut = float(-frame.loc[frame["kind"] == "cut", "volume_m3"].sum()) if len(frame) else 0.0
     fill = float(frame.loc[frame["kind"] == "fill", "volume_m3"].sum()) if len(frame) else 0.0
     return frame, cut, fill, area_lod, n_guessed
+
+
+def _walls_sigma(
+    diff: np.ndarray, labels: np.ndarray, label: int, box: tuple[slice, slice], cell_m: float, place_m: float
+) -> float:
+    """An area's volume uncertainty from its walls (m³): the difference's steep cells over the area
+    and a cell around it (a new building's wall stands on its edge), each wall as far off as
+    ``place_m``."""
+    from scipy import ndimage
+
+    rows = slice(max(box[0].start - 2, 0), box[0].stop + 2)
+    cols = slice(max(box[1].start - 2, 0), box[1].stop + 2)
+    region = ndimage.binary_dilation(labels[rows, cols] == label)
+    return walls_sigma_m3(diff[rows, cols], region, cell_m, place_m)
 
 
 #: The share of the stable ground's patches whose mean difference an area's mean must exceed.

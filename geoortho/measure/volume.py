@@ -36,19 +36,21 @@ import numpy as np
 from geoortho.core.crs import horizontal_unit_m
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback
-from geoortho.measure.accuracy import NOISE_CORRELATION_M, run_dense_voxel_m, run_noise, run_vertical_accuracy
+from geoortho.measure.accuracy import (
+    NOISE_CORRELATION_M,
+    WALL_VOXELS,
+    run_dense_voxel_m,
+    run_noise,
+    run_vertical_accuracy,
+    walls_sigma_m3,
+)
 
 __all__ = ["VolumeResult", "volume"]
 
 Base = Literal["edge-triangulated", "edge-lowest", "edge-mean", "fixed", "dtm"]
 BASES: tuple[str, ...] = ("edge-triangulated", "edge-lowest", "edge-mean", "fixed", "dtm")
-#: A photogrammetric DSM puts a wall within this many of its dense cloud's voxels (the demo survey's
-#: seven buildings: their volumes 0.2-15 % off, within 2 sigma with 2 voxels, up to 2.6 sigma with 1.4).
-WALL_VOXELS = 2.0
 #: A polygon whose area is more than this share interpolated is said to be (its volume there is none).
 INTERPOLATED_WARN = 0.2
-#: A surface steeper than this (rise over run) is a wall: where it stands is known to a cell.
-WALL_SLOPE = 1.0
 #: dsm_source.tif's code for a cell interpolated across (geoortho.elevation.coverage).
 INTERPOLATED = 2
 
@@ -321,7 +323,7 @@ def _measure(
                 "there is not measured, and the uncertainty does not cover it"
             )
     sys_m3, rand_m3, base_m3 = _sigmas(acc, base, area, cell_m2, b.weights * cell_m2, b.along_m * unit)
-    walls_m3 = _walls_sigma(z * z_unit, inside, abs(wt.a) * unit, acc.walls_m)
+    walls_m3 = walls_sigma_m3(z * z_unit, inside, abs(wt.a) * unit, acc.walls_m)
     return {
         "base_method": base, "base_m": base_m, "area_m2": area, "cut_m3": cut, "fill_m3": fill, "net_m3": cut - fill,
         "sigma_m3": math.sqrt(np.nansum([sys_m3**2, rand_m3**2, base_m3**2, walls_m3**2])),
@@ -426,16 +428,6 @@ def _sample(raster: Path, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
             return np.full(len(xs), np.nan)
         grid = ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True).astype(np.float32).filled(np.nan)
     return np.asarray(sample_grid(grid, np.asarray(cols) - c0 - 0.5, np.asarray(rows) - r0 - 0.5), np.float64)
-
-
-def _walls_sigma(z_m: np.ndarray, inside: np.ndarray, cell_m: float, place_m: float) -> float:
-    """The volume's uncertainty from where the DSM puts its walls (m³): the steep cells' rise,
-    each wall's place uncertain by ``place_m`` (at least ``cell / sqrt(12)``), all together."""
-    gy, gx = np.gradient(z_m, cell_m)
-    slope = np.hypot(gx, gy)
-    steep = inside & np.isfinite(slope) & (slope > WALL_SLOPE)
-    place = max(cell_m / math.sqrt(12.0), place_m if math.isfinite(place_m) else 0.0)
-    return float(slope[steep].sum() * cell_m * cell_m * place)
 
 
 def _sigmas(
