@@ -34,9 +34,10 @@ demo: $(STAMP)
 	$(PY) -m geoortho demo --output $(DEMO_OUTPUT)
 
 # The test files run on one pytest-xdist worker per core (at most 4; a file stays on one worker,
-# so its module fixtures are made once); tests/conftest.py makes each session fixture once per run.
+# so its module fixtures are made once; the longest files first: tests/conftest.py); tests/conftest.py
+# makes each session fixture once per run.
 # The slowest are listed at the end: the suite's time is watched against CI's 25-minute budget.
-TEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile --durations=30
+TEST_WORKERS ?= -n auto --maxprocesses 4 --dist loadfile --no-loadscope-reorder --durations=30
 
 test: $(STAMP)
 	@sh tools/browser_setup.sh

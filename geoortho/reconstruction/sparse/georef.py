@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pyproj import CRS
 
 from geoortho.core.camera import rotation_from_ypr
 from geoortho.core.colmap import load_pycolmap
@@ -191,7 +192,7 @@ class GcpState:
 
 
 def _gcp_states(
-    gcps: GcpSet, crs: Any, offset: np.ndarray, checkpoints: set[str], registered: set[str], fb: Feedback
+    gcps: GcpSet, crs: CRS, offset: np.ndarray, checkpoints: set[str], registered: set[str], fb: Feedback
 ) -> list[GcpState]:
     to_local = transformer(gcps.crs, crs)
     by_name = gcps.by_name()
@@ -412,6 +413,7 @@ def _georeference_by_gcps(
         return gps
     notes = list(gps.notes)
     georef, gcp_obs_used, heights_usable = gps.how, 0, True
+    assert inputs.out_crs is not None  # a GCP file always gives the model its grid (_output_crs)
     states = _gcp_states(inputs.gcps, inputs.out_crs, inputs.priors.offset, set(inputs.held_out), set(registered), fb)
     zs = np.array([s.surveyed[2] for s in states])
     if heights_are_placeholders(zs):

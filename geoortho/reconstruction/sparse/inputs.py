@@ -112,7 +112,7 @@ def colmap_camera_params(body: Body, model: str) -> str:
 class Priors:
     """GPS camera positions in the local frame (CRS minus ``offset``), by image name."""
 
-    crs: Any
+    crs: CRS | None
     offset: np.ndarray  # (3,) added back to local coordinates
     positions: dict[str, np.ndarray]
     heights: str
@@ -129,7 +129,7 @@ class Priors:
         return float(np.median(values)) if values else default_m
 
 
-def gps_priors(photos: Sequence[Photo], names: dict[Path, str], crs: Any, takeoff_elevation_m: float | None) -> Priors:
+def gps_priors(photos: Sequence[Photo], names: dict[Path, str], crs: CRS, takeoff_elevation_m: float | None) -> Priors:
     """Camera positions from the metadata, heights per :mod:`geoortho.photos.heights`.
 
     SfM needs no height above ground, only camera elevations in one datum: a flight without
@@ -226,7 +226,7 @@ class Inputs:
     names: dict[Path, str]  # photo path -> COLMAP image name
     gcps: GcpSet | None
     held_out: frozenset[str]  # checkpoint names
-    out_crs: Any
+    out_crs: CRS | None
     priors: Priors
     bodies: tuple[Body, ...]
     notes: tuple[str, ...]
@@ -258,7 +258,11 @@ def _read_gcps(gcp_list: Path | None, checkpoints: str, photos: list[Photo], not
 
 
 def _priors_for(
-    photos: list[Photo], names: Any, out_crs: Any, takeoff_elevation_m: float | None, gcps: Any
+    photos: list[Photo],
+    names: dict[Path, str],
+    out_crs: CRS | None,
+    takeoff_elevation_m: float | None,
+    gcps: GcpSet | None,
 ) -> tuple[Priors, list[str]]:
     """The photos' GPS as pose priors in the output CRS (its local frame's origin: the GCPs'
     median where no photo has GPS), and what their heights are, in words."""
@@ -270,7 +274,7 @@ def _priors_for(
     notes = [f"heights: {priors.heights}", *priors.notes]
     if gcps is not None and priors.positions and out_crs is not None:
         _check_gcps_near_photos(gcps, priors, out_crs)
-    if gcps is not None and not priors.positions:
+    if gcps is not None and not priors.positions and out_crs is not None:
         to_local = transformer(gcps.crs, out_crs)
         xy = np.array([to_local.transform(g.x, g.y) for g in gcps.points])
         priors = Priors(out_crs, np.array([*np.round(np.median(xy, axis=0), -2), 0.0]), {}, "no GPS")
@@ -408,7 +412,7 @@ def _rtk_block(photos: Sequence[Photo]) -> bool:
 GCP_FAR_M = 1000.0
 
 
-def _check_gcps_near_photos(gcps: GcpSet, priors: Priors, crs: Any) -> None:
+def _check_gcps_near_photos(gcps: GcpSet, priors: Priors, crs: CRS) -> None:
     """Refuse GCPs that lie kilometres from the photos' GPS positions: the model would follow
     them there (a wrong CRS line, a wrong UTM zone, another site's file), silently."""
     pos = np.array(list(priors.positions.values()))[:, :2] + priors.offset[:2]

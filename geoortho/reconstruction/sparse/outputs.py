@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pyproj import CRS
 
 from geoortho.core.camera import ypr_from_rotation
 from geoortho.core.crs import (
@@ -37,7 +38,7 @@ def _reprojection_errors(rec: Any) -> dict[int, tuple[float, int]]:
     return out
 
 
-def _write_points(path: Path, rec: Any, offset: np.ndarray, crs: Any) -> int:
+def _write_points(path: Path, rec: Any, offset: np.ndarray, crs: CRS) -> int:
     ids = list(rec.point3D_ids())
     xyz = np.array([rec.point3D(p).xyz for p in ids]).reshape(-1, 3) + offset
     rgb = np.array([rec.point3D(p).color for p in ids], float).reshape(-1, 3) / 255.0
@@ -51,7 +52,7 @@ def _write_cameras(
     photos: Sequence[Photo],
     names: dict[Path, str],
     priors: Priors,
-    crs: Any,
+    crs: CRS,
     reasons: dict[str, str],
     submodel: dict[str, int] | None = None,
 ) -> None:

@@ -8,6 +8,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+from pyproj import Transformer
 
 from geoortho.core.colmap import load_pycolmap
 from geoortho.core.crs import (
@@ -41,13 +42,13 @@ def refine_time_lag(mapped: Mapped, inputs: Inputs, notes: list[str]) -> tuple[I
     if pf.trajectory is None or pf.trajectory.is_events:
         return inputs, None  # positions at the exposures already (events, a CSV)
     free = _free_network(mapped.rec, refine_distortion=not mapped.distortion_held)
-    to_crs = transformer(WGS84, inputs.out_crs)
+    to_model = transformer(WGS84, inputs.out_crs)
     total, sigma, steps, priors, photos = 0.0, math.nan, 0, inputs.priors, inputs.photos
     while steps < 8:
         steps += 1
         if align_to_gps(free, priors, 1.0)[0] is None:
             return inputs, None
-        got = _lag_step(free, inputs, priors, pf, total, to_crs)
+        got = _lag_step(free, inputs, priors, pf, total, to_model)
         if got is None:
             return inputs, None
         delta, sigma = got
@@ -160,7 +161,7 @@ def _lag_of_own_gps(mapped: Mapped, inputs: Inputs, notes: list[str]) -> tuple[I
 
 
 def _lag_step(
-    rec: Any, inputs: Inputs, priors: Priors, pf: PositionFile, lag_s: float, to_crs: Any
+    rec: Any, inputs: Inputs, priors: Priors, pf: PositionFile, lag_s: float, to_model: Transformer
 ) -> tuple[float, float] | None:
     """The further lag (s) the residuals show along the velocities, and its standard error."""
     assert pf.trajectory is not None
@@ -175,8 +176,8 @@ def _lag_step(
         a, b = traj.at(t + lag_s - 0.1), traj.at(t + lag_s + 0.1)
         if a is None or b is None:
             continue
-        xa, ya = to_crs.transform(a.longitude_deg, a.latitude_deg)
-        xb, yb = to_crs.transform(b.longitude_deg, b.latitude_deg)
+        xa, ya = to_model.transform(a.longitude_deg, a.latitude_deg)
+        xb, yb = to_model.transform(b.longitude_deg, b.latitude_deg)
         v.append([(xb - xa) / 0.2, (yb - ya) / 0.2])
         r.append((centres[name] - priors.positions[name])[:2])
     if len(r) < 5:
