@@ -1068,5 +1068,7 @@ def test_the_site_flown_again_shows_its_known_changes_from_the_photos(first_run,
         assert found == pytest.approx(true, rel=0.12)
     print(f"elsewhere: {got.n_other} areas, {got.other_m2:.1f} m²; left out on interpolated surface: "
           f"{out['n_interpolated']}; area level of detection {out['area_lod_m']:.3f} m")  # fmt: skip
-    # was 33 areas, 100 m², before the area test; measured since: 0, 1 and 3 areas (0, 3.8, 7.8 m²)
-    assert got.n_other <= 4 and got.other_m2 < 15.0
+    # was 33 areas, 100 m², before the area test; 0-7 areas (up to 14.6 m²) with the area level at a
+    # quantile of the stable ground's patches; none in two sites (seeds 3 and 5) since it is their
+    # largest on flat ground and an area must stand out of its own sigma
+    assert got.n_other <= 1 and got.other_m2 < 5.0
