@@ -44,11 +44,16 @@ def run_dense_voxel_m(dsm: Path) -> float:
     return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else math.nan
 
 
-def wall_place_m(dsm: Path, cell_m: float) -> float:
+def run_wall_place_m(dsm: Path) -> float:
     """How far the run that made ``dsm`` may have put a wall from where it stands (metres):
-    WALL_VOXELS of its dense cloud's voxels, a cell over the square root of 12 at least."""
-    voxel_m = run_dense_voxel_m(dsm)
-    return max(cell_m / math.sqrt(12.0), WALL_VOXELS * voxel_m if math.isfinite(voxel_m) else 0.0)
+    WALL_VOXELS of its dense cloud's voxels; NaN where no run says."""
+    return WALL_VOXELS * run_dense_voxel_m(dsm)
+
+
+def wall_place_m(dsm: Path, cell_m: float) -> float:
+    """:func:`run_wall_place_m`, a cell over the square root of 12 at least (and where no run says)."""
+    place_m = run_wall_place_m(dsm)
+    return max(cell_m / math.sqrt(12.0), place_m if math.isfinite(place_m) else 0.0)
 
 
 def walls_sigma_m3(z_m: np.ndarray, inside: np.ndarray, cell_m: float, place_m: float) -> float:

@@ -281,10 +281,10 @@ def _areas(
     rows: list[dict[str, Any]] = []
     geoms = []
     patch_m2 = max(cell_m2, NOISE_CORRELATION_M**2)
-    area_lod = _area_lod(diff, lod, math.sqrt(cell_m2))
+    cell_m = math.sqrt(cell_m2)
+    area_lod = _area_lod(diff, lod, cell_m)
     n_guessed = n_within = 0
     sigma_d, sigma_z, place_m = sigmas
-    cell_m = math.sqrt(cell_m2)
     for kind, mask in (("fill", diff > lod), ("cut", diff < -lod)):
         mask = ndimage.binary_opening(np.nan_to_num(mask, nan=0).astype(bool))  # a lone cell is noise
         labels, n = ndimage.label(mask)

@@ -39,9 +39,9 @@ from geoortho.feedback import Feedback, as_feedback
 from geoortho.measure.accuracy import (
     NOISE_CORRELATION_M,
     WALL_VOXELS,
-    run_dense_voxel_m,
     run_noise,
     run_vertical_accuracy,
+    run_wall_place_m,
     walls_sigma_m3,
 )
 
@@ -245,7 +245,7 @@ def _accuracy(dsm: Path, vertical_accuracy_m: float | None, noise_m: float | Non
         said.append("noise as given")
     elif math.isfinite(noise):
         said.append(f"noise from the run's DSM on open ground ({noise:.3f} m)")
-    walls = WALL_VOXELS * run_dense_voxel_m(dsm)
+    walls = run_wall_place_m(dsm)
     if math.isfinite(walls):
         said.append(f"walls placed to {walls:.2f} m ({WALL_VOXELS:g} of the dense cloud's voxels)")
     return _Accuracy(systematic, noise, "; ".join(said) or "no accuracy known", walls)
