@@ -17,7 +17,14 @@ from typing import Any
 import pytest
 from realdata import real_data  # noqa: F401 (tests import it from here)
 
+from geoortho.core.parallel import WORKERS_ENV
 from geoortho.feedback import Feedback
+
+# Under pytest-xdist the test files already run side by side, a process a core: each algorithm's
+# default pool (a process a core again) is then start-up and contention, not speed (a tiny run:
+# 47 s of CPU on pools, 37 s in-process). Tests of the pools themselves give their workers.
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    os.environ.setdefault(WORKERS_ENV, "1")
 
 
 def made_once(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], Any]) -> Any:

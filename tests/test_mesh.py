@@ -32,7 +32,8 @@ def made(tiny_survey, tmp_path_factory):
 
 
 def _glb_mesh(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """A glTF binary read back with pygltflib: vertices as written (glTF axes), faces, uv, texture."""
+    """A glTF binary read back with pygltflib: vertices as written (glTF axes), faces, uv, texture;
+    its primitives (the ground, the walls) as one, their textures side by side."""
     import cv2
     import pygltflib
 
@@ -44,14 +45,27 @@ def _glb_mesh(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
         bv = g.bufferViews[a.bufferView]
         return np.frombuffer(blob, dtype, a.count * width, bv.byteOffset).reshape(a.count, width)
 
-    prim = g.meshes[0].primitives[0]
-    pos = view(prim.attributes.POSITION, np.float32, 3).astype(float)
-    uv = view(prim.attributes.TEXCOORD_0, np.float32, 2).astype(float)
-    faces = view(prim.indices, np.uint32, 1).reshape(-1, 3).astype(np.int64)
-    bv = g.bufferViews[g.images[0].bufferView]
-    jpeg = np.frombuffer(blob, np.uint8, bv.byteLength, bv.byteOffset)
-    texture = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)[:, :, ::-1]
-    return pos, faces, uv, texture
+    parts = []
+    for prim in g.meshes[0].primitives:
+        pos = view(prim.attributes.POSITION, np.float32, 3).astype(float)
+        uv = view(prim.attributes.TEXCOORD_0, np.float32, 2).astype(float)
+        faces = view(prim.indices, np.uint32, 1).reshape(-1, 3).astype(np.int64)
+        image = g.images[g.textures[g.materials[prim.material].pbrMetallicRoughness.baseColorTexture.index].source]
+        bv = g.bufferViews[image.bufferView]
+        jpeg = np.frombuffer(blob, np.uint8, bv.byteLength, bv.byteOffset)
+        parts.append((pos, faces, uv, cv2.imdecode(jpeg, cv2.IMREAD_COLOR)[:, :, ::-1]))
+    height = max(p[3].shape[0] for p in parts)
+    width = sum(p[3].shape[1] for p in parts)
+    texture = np.zeros((height, width, 3), np.uint8)
+    pos_all, faces_all, uv_all, base, left = [], [], [], 0, 0
+    for pos, faces, uv, tex in parts:
+        texture[: tex.shape[0], left : left + tex.shape[1]] = tex
+        pos_all.append(pos)
+        faces_all.append(faces + base)
+        uv_all.append(np.stack([(uv[:, 0] * tex.shape[1] + left) / width, uv[:, 1] * tex.shape[0] / height], axis=1))
+        base += len(pos)
+        left += tex.shape[1]
+    return np.concatenate(pos_all), np.concatenate(faces_all), np.concatenate(uv_all), texture
 
 
 def _in_crs(made) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -80,6 +94,7 @@ def test_the_mesh_is_the_true_surface_within_the_error_it_states(made):
     # re-measured from the file, it is the figure stated; and within the error asked
     assert rmse == pytest.approx(r.rmse_m, rel=0.05, abs=0.002)
     assert rmse <= r.max_rmse_m == pytest.approx(t.a)  # one cell, by default
+    assert r.wall_faces == 0 and r.n_vertices == len(xyz)  # no photos given: one part, the orthophoto's
     # thinned where flat: far fewer faces than the grid's two a cell
     assert r.n_faces < 0.25 * 2 * ok.sum()
     assert r.faces_per_ha > 0 and r.mb_per_ha > 0
@@ -191,22 +206,28 @@ def test_the_oblique_view_shows_the_mesh(made):
     assert 0.2 < drawn.mean() < 0.9 and img[drawn].std() > 10  # a textured picture, not a blank
 
 
-@pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")
-def test_the_glb_passes_the_khronos_validator(made, tmp_path):
-    r, _ = made
+def khronos_issues(glb: Path, tmp_path: Path) -> dict | None:
+    """The Khronos glTF validator's report on a glTF binary (None where node or it is not installed)."""
     validator = Path(__file__).resolve().parents[1] / "tools" / "node_modules" / "gltf-validator"
-    if not validator.is_dir():
-        pytest.skip("the glTF validator is not installed: sh tools/browser_setup.sh")
+    if shutil.which("node") is None or not validator.is_dir():
+        return None
     script = tmp_path / "validate.js"
     script.write_text(
         "const v = require(process.argv[2]); const fs = require('fs');\n"
         "v.validateBytes(new Uint8Array(fs.readFileSync(process.argv[3])))"
         ".then(r => console.log(JSON.stringify(r.issues)), e => { console.error(e); process.exit(1); });\n"
     )
+    p = subprocess.run(["node", str(script), str(validator), str(glb)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    return json.loads(p.stdout)
+
+
+def test_the_glb_passes_the_khronos_validator(made, tmp_path):
+    r, _ = made
     for glb in [r.output, next(r.tileset.parent.rglob("*.glb"))]:
-        p = subprocess.run(["node", str(script), str(validator), str(glb)], capture_output=True, text=True, timeout=120)
-        assert p.returncode == 0, p.stderr
-        issues = json.loads(p.stdout)
+        issues = khronos_issues(glb, tmp_path)
+        if issues is None:
+            pytest.skip("node or the glTF validator is not installed: sh tools/browser_setup.sh")
         assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
 
 
@@ -223,3 +244,77 @@ def test_mesh_refuses_an_orthophoto_of_another_crs(made, tmp_path):
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert "ortho_wrong.tif" in p.stderr and "CRS" in p.stderr
     assert not list(tmp_path.glob("*.glb"))
+
+
+@pytest.fixture(scope="module", params=[4, 5], ids=["windows", "courses"])
+def facades(request, tmp_path_factory):
+    """A tiny survey whose buildings' walls are painted as facades (two styles, by the seed's parity)."""
+    from geoortho.synthetic.survey import synth
+
+    return synth(tmp_path_factory.mktemp("facades"), preset="tiny", seed=request.param, pathology="facades", workers=1)
+
+
+def _on_facade(pts: np.ndarray, buildings: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Points within 0.5 m of a building's outline (truth), and that building's eave height there."""
+    near = np.zeros(len(pts), bool)
+    eave = np.full(len(pts), np.nan)
+    for b in buildings:
+        a = np.radians(b["angle_deg"])
+        dx, dy = pts[:, 0] - b["x"], pts[:, 1] - b["y"]
+        u, v = dx * np.cos(a) + dy * np.sin(a), -dx * np.sin(a) + dy * np.cos(a)
+        out_u, out_v = np.abs(u) - b["length_m"] / 2, np.abs(v) - b["width_m"] / 2
+        on = (np.maximum(out_u, out_v) < 0.5) & (np.maximum(out_u, out_v) > -0.5)
+        near |= on
+        eave[on] = b["eave_m"]
+    return near, eave
+
+
+def test_walls_take_their_own_colours_from_the_photos(facades, tmp_path):
+    """The walls' atlas, coloured from the photos that see them, against the facades' true colours:
+    both styles' patterns (which change with the height, as no roof's do) are there, where the
+    orthophoto's colours stretched down a wall have none of them."""
+    from test_ortho import _true_cameras
+
+    from geoortho.core.surface import read_surface
+    from geoortho.products3d.mesh import mesh
+    from geoortho.products3d.texture import ortho_texture
+    from geoortho.products3d.walls import colour_under, photo_walls, wall_mask
+    from geoortho.synthetic.scene import facade_colour
+
+    t = facades.truth
+    info = json.loads((t / "survey.json").read_text())["facades"]
+    r = mesh(t / "dsm.tif", t / "ortho.tif", tmp_path / "m.glb", workers=1)
+    xyz, faces, _, _ = _in_crs((r, t))
+    wall = wall_mask(xyz, faces)
+    bounds = (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max())
+    ortho_rgb, _ = ortho_texture(t / "ortho.tif", bounds, 8192, 0.05)
+    walls = photo_walls(xyz, faces[wall], _true_cameras(facades), read_surface(t / "dsm.tif"), {}, 0.05, 8192,
+                        (ortho_rgb, bounds))  # fmt: skip
+    assert walls is not None and walls.n_photos >= 2
+    assert walls.photo_area_m2 > 0.5 * walls.area_m2  # nadir photos see most of a wall's face
+    h, w = walls.image.shape[:2]
+    screen = np.ascontiguousarray(walls.uv * (w, h) - 0.5)
+    _, at = rasterize(screen, np.zeros(len(screen)), np.ascontiguousarray(walls.vertices, float),
+                      np.ascontiguousarray(walls.faces, np.int64), h, w)  # fmt: skip
+    drawn = np.isfinite(at[:, :, 0])
+    pts = at[drawn]
+    height_m = pts[:, 2] - read_surface(t / "dtm.tif").elevation(pts[:, 0], pts[:, 1])
+    near, eave = _on_facade(pts, info["buildings"])
+    facade = near & (height_m > 0.5) & (height_m < eave - 0.5)
+    assert facade.sum() > 20_000
+    true = facade_colour(info["style"], height_m, pts[:, 0], pts[:, 1]).mean(axis=1)[facade]
+    stretched = colour_under(pts, ortho_rgb, bounds).astype(float)
+    got = walls.image[drawn].astype(float)
+    from_photo = facade & (np.abs(got - stretched).sum(axis=1) > 0)
+    # the mean over each 0.2 m of height (the photos' texture and the rendering's noise averaged out)
+    level = np.floor(height_m[facade] / 0.2).astype(np.int64)
+
+    def profile(lum: np.ndarray) -> np.ndarray:
+        return np.bincount(level, lum) / np.maximum(np.bincount(level), 1)
+
+    kept = np.bincount(level) >= 200
+    truth_profile = profile(true)[kept]
+    corr_walls = np.corrcoef(profile(got.mean(axis=1)[facade])[kept], truth_profile)[0, 1]
+    corr_stretched = np.corrcoef(profile(stretched.mean(axis=1)[facade])[kept], truth_profile)[0, 1]
+    print(info["style"], facade.sum(), from_photo.sum(), kept.sum(), corr_walls, corr_stretched)
+    assert corr_walls > 0.85 and corr_walls > corr_stretched + 0.4

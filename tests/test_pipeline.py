@@ -888,13 +888,13 @@ def test_every_map_in_the_report_has_its_furniture(first_run, tmp_path, monkeypa
     assert np.allclose(drawn, lines["horizontal_m"], rtol=0.02), (drawn, lines["horizontal_m"])
 
 
-def test_the_runs_mesh_is_as_true_as_its_dsm_and_its_texture_as_its_orthophoto(first_run, tiny_survey):
+def test_the_runs_mesh_is_as_true_as_its_dsm_and_its_texture_as_its_orthophoto(first_run, tiny_survey, tmp_path):
     """Issue 80: the mesh made in a run against the survey's truth, beside the products it is made of."""
     import cv2
     import numpy as np
     import rasterio
     from rasterio.warp import Resampling, reproject
-    from test_mesh import _glb_mesh
+    from test_mesh import _glb_mesh, khronos_issues
 
     from geoortho.products3d.raster_mesh import draw_heights, rasterize
 
@@ -919,6 +919,10 @@ def test_the_runs_mesh_is_as_true_as_its_dsm_and_its_texture_as_its_orthophoto(f
     print(f"heights against the truth: DSM {rmse_dsm:.3f} m, mesh {rmse_mesh:.3f} m (GSD {gsd_m:.3f} m)")
     assert rmse_mesh <= rmse_dsm + 0.5 * gsd_m
     assert out["rmse_m"] <= out["max_rmse_m"]
+    # the walls on their own atlas, coloured from the SfM's photos (tests/test_mesh.py: against the truth)
+    assert out["wall_faces"] > 100 and out["wall_photo_share"] > 0.4
+    issues = khronos_issues(project / "mesh" / "mesh.glb", tmp_path)  # two primitives: the ground, the walls
+    assert issues is None or (issues["numErrors"] == 0 and issues["numWarnings"] == 0), issues["messages"][:5]
 
     # the texture seen from above and the orthophoto, each against the true orthophoto
     with rasterio.open(tiny_survey.truth / "ortho.tif") as o:

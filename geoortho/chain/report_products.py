@@ -171,11 +171,24 @@ def mesh_section(ctx: ReportContext) -> str:
                     f"{100 * num('max_rmse_m'):.1f} cm a tile); largest {num('max_error_m'):.2f} m, at a wall",
                 ),  # fmt: skip
                 ("Texture", f"the orthophoto at {100 * num('texture_cell_m'):.1f} cm a pixel"),
+                ("Walls", _walls_text(num("wall_faces"), num("wall_photo_share"))),
                 ("Files", f"{Path(str(m.get('output'))).name} (glTF), 3D Tiles: {tiles}"),
             ]
         )
     )
     return "".join(parts)
+
+
+def _walls_text(faces: float, photo_share: float) -> str:
+    """What coloured the mesh's walls (faces steeper than 60 degrees, which the orthophoto sees edge-on)."""
+    if not math.isfinite(faces) or faces <= 0:
+        return "the orthophoto's colours at their tops and feet (no walls on their own atlas)"
+    if not math.isfinite(photo_share):
+        return f"{int(faces):,} faces on their own atlas"
+    return (
+        f"{int(faces):,} faces on their own atlas, {100 * photo_share:.0f} % of their area coloured from the photo "
+        "that sees it most directly; the rest, which no photo sees, from the orthophoto"
+    )
 
 
 def volumes_section(ctx: ReportContext) -> str | None:

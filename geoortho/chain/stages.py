@@ -189,20 +189,21 @@ STAGES: tuple[Stage, ...] = (
         ("images", "sfm", "dsm"),
         weight=4,
     ),
-    # The 3D products: the surface made (or given) coloured by the orthophoto, as glTF, and as
-    # 3D Tiles that the QGIS project opens; with an oblique picture for the report.
+    # The 3D products: the surface made (or given) coloured by the orthophoto and its walls by the
+    # photos, as glTF, and as 3D Tiles that the QGIS project opens; with an oblique picture for the report.
     Stage(
         "mesh",
         lambda p: True,
         lambda p, d: {
-            **_given(p, "workers"),
+            **_given(p, "images", "workers"),
             "dsm": _surface(p),
             "ortho": p.folder("ortho") / "ortho.tif",
             "output": p.folder("mesh") / "mesh.glb",
             "tileset": p.folder("mesh") / "tileset" / "tileset.json",
             "view": p.folder("mesh") / "mesh_view.png",
+            "sfm": p.folder("sfm"),  # its walls coloured from the photos
         },
-        ("dsm", "ortho"),
+        ("dsm", "ortho", "images", "sfm"),
         weight=1,
     ),
     # Volumes over the polygons given, on the surface made (or given), with the run's accuracy.

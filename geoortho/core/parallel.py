@@ -36,10 +36,17 @@ from geoortho.feedback import Feedback, as_feedback
 if TYPE_CHECKING:  # typing.Unpack is 3.11's; the annotations are not evaluated
     from typing_extensions import Unpack
 
-__all__ = ["SCHEDULER_ENV", "active_client", "imap_ordered", "map_ordered", "process_pool", "use_scheduler"]
+__all__ = [
+    "SCHEDULER_ENV", "WORKERS_ENV", "active_client", "cores", "imap_ordered", "map_ordered", "process_pool",
+    "use_scheduler",
+]  # fmt: skip
 
 #: The environment variable naming a Dask scheduler, for runs not given ``--scheduler``.
 SCHEDULER_ENV = "GEOORTHO_SCHEDULER"
+#: The environment variable that caps "every core" (``workers`` 0): a shared machine's share, or 1
+#: where processes run side by side already (the test suite's workers: a pool's start-up is then
+#: work, not speed; a tiny run took 47 s of CPU on pools, 37 s in-process).
+WORKERS_ENV = "GEOORTHO_WORKERS"
 CONNECT_TIMEOUT_S = 10.0  # a scheduler that does not answer in this time is reported, not waited on
 _client: contextvars.ContextVar[Any] = contextvars.ContextVar("geoortho_dask_client", default=None)
 
@@ -56,6 +63,20 @@ class PoolOptions(TypedDict, total=False):
     feedback: Feedback | None
     min_items_for_pool: int
     executor: cf.Executor | None
+
+
+def cores() -> int:
+    """What ``workers`` 0 means: every core, or :data:`WORKERS_ENV`'s number when it is set."""
+    given = os.environ.get(WORKERS_ENV, "").strip()
+    if given:
+        try:
+            n = int(given)
+        except ValueError:
+            raise InputError(f"{WORKERS_ENV}={given!r} is not a whole number of processes") from None
+        if n >= 1:
+            return n
+        raise InputError(f"{WORKERS_ENV}={given!r}: give at least 1 process")
+    return os.cpu_count() or 1
 
 
 def map_ordered(fn: Callable[[T], R], items: Sequence[T], **pool: Unpack[PoolOptions]) -> list[R]:
@@ -85,7 +106,7 @@ def imap_ordered(
     with at most ``in_flight`` items submitted and not yet yielded (default two per worker): memory
     stays bounded by that window, not by the number of items (tiles of a mosaic)."""
     fb = as_feedback(feedback)
-    window = in_flight or 2 * (workers or os.cpu_count() or 1)
+    window = in_flight or 2 * (workers or cores())
     if executor is None and active_client() is not None and len(items) >= min_items_for_pool:
         with process_pool(
             workers, len(items), initializer=initializer, initargs=initargs, min_items_for_pool=min_items_for_pool
@@ -171,7 +192,7 @@ def process_pool(
         finally:
             ex.shutdown(wait=False, cancel_futures=True)
         return
-    n_workers = workers or os.cpu_count() or 1
+    n_workers = workers or cores()
     if n_workers <= 1 or n_items < min_items_for_pool:
         with _opencv_threads_kept():
             if initializer is not None:

@@ -6,7 +6,6 @@ marker was still missed, placed by the photos that decoded it.
 from __future__ import annotations
 
 import math
-import os
 import re
 from collections.abc import Sequence
 from concurrent.futures import Executor
@@ -20,7 +19,7 @@ from pyproj import CRS
 from geoortho.core.camera import in_frame, pixel_rays
 from geoortho.core.crs import crs_to_text, transformer
 from geoortho.core.gsd import marker_gsd_m
-from geoortho.core.parallel import map_ordered
+from geoortho.core.parallel import cores, map_ordered
 from geoortho.core.surface import FlatSurface, Surface, read_surface
 from geoortho.errors import InputError
 from geoortho.feedback import Feedback, split
@@ -542,7 +541,7 @@ def _pilot_images(
 ) -> list[str]:
     """The photos searched first to measure the flight's offset: those with the most
     predictions well inside the frame (``times`` as many). All when the flight is too small to gain."""
-    n = times * max(4, 2 * (workers or os.cpu_count() or 1))
+    n = times * max(4, 2 * (workers or cores()))
     if len(images) < 3 * n:
         return list(images)
 

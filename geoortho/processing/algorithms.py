@@ -307,6 +307,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Param("view", "file", output=True, extensions=(".png",)),
             Param("max_error_m", "number", unit="m", minimum=0.0),
             Param("texture_max_px", "integer", unit="px", minimum=256, maximum=16384, advanced=True),
+            Param("sfm", "folder"),
+            Param("images", "folder"),
             WORKERS,
         ),
         outputs=(
@@ -325,6 +327,8 @@ ALGORITHMS: tuple[Algorithm, ...] = (
             Output("texture_cell_m", "number"),
             Output("n_tiles", "integer"),
             Output("n_levels", "integer"),
+            Output("wall_faces", "integer"),
+            Output("wall_photo_share", "number"),
             Output("crs", "string"),
             Output("seconds", "number"),
         ),

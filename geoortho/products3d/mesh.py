@@ -4,14 +4,15 @@ OBJ+MTL and as Cesium 3D Tiles with levels of detail (which QGIS opens as a tile
 The surface is :mod:`.raster_mesh`'s: the DSM's cells thinned by quadric edge collapse, a tile at
 a time, until each tile is within the error asked of the DSM (measured, and stated). The texture
 is the orthophoto: each ground cell already coloured by the photo that sees it most directly,
-with line of sight tested, colour-balanced, its seamlines on open ground. Walls take the colours
-of their tops' and feet's edges (a 2.5D mesh's faces are seen from above; a wall's own colours
-need an atlas of wall faces, not made yet).
+with line of sight tested, colour-balanced, its seamlines on open ground. The orthophoto sees a
+wall edge-on: given the sfm and the photos, the walls are coloured from the photos on an atlas of
+their own (:mod:`.walls`); without them, and in the 3D Tiles, they take the colours of their
+tops' and feet's edges.
 
 Choices of library: ``fast-simplification`` (quadric collapse with the border held, so tiles
 meet with no crack), ``pygltflib`` (a glTF binary as the spec lays it out: unlit, JPEG inside),
-``trimesh`` (OBJ), pyproj (the tiles' Earth frame); no ``xatlas``: the orthophoto is already the
-atlas of a 2.5D surface, and no ``py3dtiles``: see :mod:`.tiles3d`.
+``xatlas`` (the walls' charts and their packing), pyproj (the tiles' Earth frame); the OBJ is
+written here (:mod:`.gltf` says why); no ``py3dtiles``: see :mod:`.tiles3d`.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from geoortho.feedback import Feedback, as_feedback, split
 from geoortho.products3d.raster_mesh import TILE_CELLS, DsmGrid, TileMesh, mesh_tile
 from geoortho.products3d.texture import ortho_texture, uv_of
 from geoortho.products3d.tileset import write_tileset
+from geoortho.products3d.walls import WallTexture, ortho_gains, photo_walls, wall_mask, wall_summary
 
 __all__ = ["MeshResult", "mesh"]
 
@@ -76,6 +78,12 @@ class MeshResult:
         The 3D Tiles' tiles with content (0 without a tileset).
     n_levels : int
         Their levels of detail.
+    wall_faces : int
+        Faces steeper than 60 degrees on the walls' own atlas, coloured from the photos (0 without
+        ``sfm`` and ``images``: the walls then take the orthophoto's colours).
+    wall_photo_share : float
+        The share of those faces' area a photo sees (the rest: the orthophoto's colours); NaN
+        without them.
     crs : str
         CRS of the mesh's offset and of the DSM.
     seconds : float
@@ -99,6 +107,8 @@ class MeshResult:
     offset: tuple[float, float, float]
     n_tiles: int
     n_levels: int
+    wall_faces: int
+    wall_photo_share: float
     crs: str
     seconds: float
 
@@ -113,6 +123,8 @@ def mesh(
     view: Path | None = None,
     max_error_m: float | None = None,
     texture_max_px: int = 8192,
+    sfm: Path | None = None,
+    images: Path | None = None,
     workers: int = 0,
     feedback: Feedback | None = None,
 ) -> MeshResult:
@@ -137,6 +149,13 @@ def mesh(
         DSM's noise on roofs is about that, and a mesh that follows it is twice as heavy).
     texture_max_px : int
         The glTF's texture at most this many pixels a side (default 8192: what web viewers load).
+    sfm : Path
+        The sfm output whose cameras took ``images``: with both, the walls (faces steeper than 60
+        degrees, which the orthophoto sees edge-on) are coloured from the photos that see them
+        most directly, on an atlas of their own; without, they take the orthophoto's colours at
+        their tops and feet.
+    images : Path
+        The photos' folder.
     workers : int
         Processes for the tiles (0: one per core).
     """
@@ -188,19 +207,26 @@ def mesh(
               round(float(np.median(verts[:, 2]))))  # fmt: skip
     bounds = (vmin[0] - grid.cell / 2, vmin[1] - grid.cell / 2, vmax[0] + grid.cell / 2, vmax[1] + grid.cell / 2)
     texture, texture_cell = ortho_texture(ortho, bounds, texture_max_px, ortho_cell)
-    uv = uv_of(verts, bounds)
     z_unit = height_unit(crs)[1]
-    local = (verts - offset) * np.array([unit_m, unit_m, z_unit])
+    scale = np.array([unit_m, unit_m, z_unit])
+    walls = None
+    ground = faces
+    if sfm is not None and images is not None:
+        walls, ground = _photo_walls(verts, faces, scale, Path(sfm), Path(images), dsm, crs, ortho,
+                                     texture_cell, texture_max_px, (texture, bounds), fb)  # fmt: skip
+    from geoortho.products3d.gltf import Part, encode_jpeg, write_glb, write_obj
 
-    from geoortho.products3d.gltf import encode_jpeg, write_glb, write_obj
+    gv, gf = _compact(verts, ground)
+    parts = [Part("ground", (gv - offset) * scale, gf, uv_of(gv, bounds), encode_jpeg(texture))]
+    if walls is not None:
+        parts.append(Part("walls", (walls.vertices - offset) * scale, walls.faces, walls.uv, encode_jpeg(walls.image)))
 
     remove_stale_temporaries(output.parent)
-    jpeg = encode_jpeg(texture)
     georef = _georeference(crs, offset, unit_m, z_unit)
-    write_glb(output, local, faces, uv, jpeg, georef)
+    write_glb(output, parts, georef)
     georef_path = write_json(output.with_name(output.stem + "_georeference.json"), georef)
     if obj is not None:
-        write_obj(Path(obj), local, faces, uv, jpeg, _obj_header(georef))
+        write_obj(Path(obj), parts, _obj_header(georef))
 
     n_tiles = n_levels = 0
     if tileset is not None:
@@ -209,7 +235,8 @@ def mesh(
     if view is not None:
         from geoortho.products3d.view import render_oblique
 
-        write_png(Path(view), render_oblique(local, faces, uv, texture)[:, :, ::-1])  # RGB to OpenCV's BGR
+        textures = [texture] + ([walls.image] if walls is not None else [])
+        write_png(Path(view), render_oblique(parts, textures)[:, :, ::-1])  # RGB to OpenCV's BGR
     fb.progress(1.0)
     area_ha = n_cells * (grid.cell * unit_m) ** 2 / 1e4
     size_mb = output.stat().st_size / 1e6
@@ -220,10 +247,57 @@ def mesh(
     )
     return MeshResult(
         output, Path(obj) if obj is not None else None, Path(tileset) if tileset is not None else None,
-        Path(view) if view is not None else None, georef_path, len(faces), len(verts), rmse, max_err,
+        Path(view) if view is not None else None, georef_path, len(faces), sum(len(p.enu) for p in parts), rmse,
+        max_err,
         max_rmse * unit_m, len(faces) / area_ha, size_mb / area_ha, (texture.shape[1], texture.shape[0]),
-        texture_cell * unit_m, offset, n_tiles, n_levels, crs_to_text(crs), time.perf_counter() - started,
+        texture_cell * unit_m, offset, n_tiles, n_levels, *wall_summary(walls), crs_to_text(crs),
+        time.perf_counter() - started,
     )  # fmt: skip
+
+
+def _photo_walls(
+    verts: np.ndarray,
+    faces: np.ndarray,
+    scale: np.ndarray,
+    sfm: Path,
+    images: Path,
+    dsm: Path,
+    crs: Any,
+    ortho: Path,
+    texel: float,
+    max_px: int,
+    fallback: tuple[np.ndarray, tuple[float, float, float, float]],
+    fb: Feedback,
+) -> tuple[WallTexture | None, np.ndarray]:
+    """The walls on their own atlas coloured from the photos, and the faces left to the orthophoto."""
+    from geoortho.core.sfm_model import cameras_from_sfm
+    from geoortho.core.surface import read_surface
+
+    wall = wall_mask(verts * scale, faces)
+    if not wall.any():
+        return None, faces
+    if np.any(scale != 1.0):
+        # the cameras are posed in metres: a DSM in feet keeps the orthophoto's colours on its walls
+        fb.info("walls: the DSM is not in metres; they take the orthophoto's colours")
+        return None, faces
+    cams, _, _, _ = cameras_from_sfm(sfm, images, crs)
+    surface = read_surface(dsm, crs)
+    walls = photo_walls(verts, faces[wall], cams, surface, ortho_gains(ortho), texel, max_px, fallback)
+    if walls is not None:
+        fb.info(
+            f"walls: {len(walls.faces):,} faces, {walls.area_m2:,.0f} m², {walls.photo_area_m2 / walls.area_m2:.0%} "
+            f"of it coloured from {walls.n_photos} photos ({walls.image.shape[1]} x {walls.image.shape[0]} px at "
+            f"{walls.texel_m:.3g} m), the rest from the orthophoto"
+        )
+    return walls, faces[~wall]
+
+
+def _compact(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices ``faces`` use, and the faces renumbered onto them."""
+    used = np.unique(faces)
+    renumber = np.full(len(verts), -1, np.int64)
+    renumber[used] = np.arange(len(used))
+    return verts[used], renumber[faces].astype(np.int32)
 
 
 def _joined(tiles: list[TileMesh]) -> tuple[np.ndarray, np.ndarray]:

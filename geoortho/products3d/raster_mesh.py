@@ -193,13 +193,20 @@ def draw_heights(
 
 
 def rasterize(
-    screen: np.ndarray, depth: np.ndarray, attrs: np.ndarray, faces: np.ndarray, rows: int, cols: int
+    screen: np.ndarray,
+    depth: np.ndarray,
+    attrs: np.ndarray,
+    faces: np.ndarray,
+    rows: int,
+    cols: int,
+    dtype: type = np.float64,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Triangles drawn onto a grid of pixel centres (pixel (r, c) at screen (c, r)), the nearest
     (least ``depth``) kept, with their vertex ``attrs`` interpolated: (depth (rows, cols), attrs
-    (rows, cols, k)), inf and NaN where nothing is drawn."""
-    zbuf = np.full((rows, cols), np.inf)
-    out = np.full((rows, cols, attrs.shape[1]), np.nan)
+    (rows, cols, k)), inf and NaN where nothing is drawn; both of ``dtype`` (float32 halves a
+    large atlas' memory)."""
+    zbuf: np.ndarray = np.full((rows, cols), np.inf, dtype)
+    out: np.ndarray = np.full((rows, cols, attrs.shape[1]), np.nan, dtype)
     kernel = compiled(_rasterize) or _rasterize
     kernel(screen, depth, attrs, faces, zbuf, out)
     return zbuf, out
@@ -246,5 +253,6 @@ def warm() -> None:
     if kernel is None:
         return
     screen = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.0]])
-    kernel(screen, np.zeros(3), np.zeros((3, 1)), np.array([[0, 1, 2]], np.int64),
-           np.full((3, 3), np.inf), np.zeros((3, 3, 1)))  # fmt: skip
+    for dtype in (np.float64, np.float32):  # the mesh's and the walls' atlas'
+        kernel(screen, np.zeros(3), np.zeros((3, 1)), np.array([[0, 1, 2]], np.int64),
+               np.full((3, 3), np.inf, dtype), np.zeros((3, 3, 1), dtype))  # fmt: skip

@@ -23,7 +23,7 @@ from geoortho.core.outputs import atomic_path, json_text, work_folder
 from geoortho.core.parallel import map_ordered
 from geoortho.errors import DependencyError
 from geoortho.feedback import Feedback
-from geoortho.products3d.gltf import encode_jpeg, glb_bytes
+from geoortho.products3d.gltf import Part, encode_jpeg, glb_bytes
 from geoortho.products3d.raster_mesh import TILE_CELLS, DsmGrid, TileMesh, draw_heights, merged_mesh, read_block
 from geoortho.products3d.texture import ortho_texture, uv_of
 from geoortho.products3d.tiles3d import LocalFrame, Tile, local_frame, tileset_json, to_local
@@ -130,8 +130,8 @@ def _write_tile(
     enu = to_local(frame, horizontal_of(crs), xyz)
     name = f"tiles/{depth}/{r}_{c}.glb"
     (folder / name).parent.mkdir(parents=True, exist_ok=True)
-    (folder / name).write_bytes(glb_bytes(enu, tm.faces, uv_of(tm.vertices, bounds), encode_jpeg(texture),
-                                          {"level": depth}))  # fmt: skip
+    part = Part("ground", enu, tm.faces, uv_of(tm.vertices, bounds), encode_jpeg(texture))
+    (folder / name).write_bytes(glb_bytes([part], {"level": depth}))
     error = 0.0 if step == 1 else _geometric_error(tm, grid, r, c, TILE_CELLS * step + 1) * z_unit
     return Tile(name, enu.min(axis=0), enu.max(axis=0), error)
 

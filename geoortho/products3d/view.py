@@ -4,8 +4,11 @@ slope so that walls and roofs read as solids."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
+from geoortho.products3d.gltf import Part
 from geoortho.products3d.raster_mesh import rasterize
 
 #: The viewer's direction: from the south-west, looking down at this angle (degrees).
@@ -26,11 +29,26 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.where(norm > 0, vn / np.where(norm > 0, norm, 1.0), [0.0, 0.0, 1.0])
 
 
-def render_oblique(
-    vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, texture: np.ndarray, width_px: int = 1600
-) -> np.ndarray:
-    """The mesh (``vertices`` east, north, up in metres) seen obliquely: an (h, w, 3) uint8 RGB
-    picture, white where nothing is drawn. ``uv``: (0, 0) the texture's top-left."""
+def render_oblique(parts: Sequence[Part], textures: Sequence[np.ndarray], width_px: int = 1600) -> np.ndarray:
+    """The mesh's parts (east, north, up in metres) seen obliquely, each with its texture (RGB):
+    an (h, w, 3) uint8 RGB picture, white where nothing is drawn."""
+    # the parts drawn at once (one depth buffer), their textures side by side
+    widths = [t.shape[1] for t in textures]
+    texture = np.zeros((max(t.shape[0] for t in textures), sum(widths), 3), np.uint8)
+    vertices, faces_list, uv_list, base, left = [], [], [], 0, 0
+    for part, tex in zip(parts, textures):
+        texture[: tex.shape[0], left : left + tex.shape[1]] = tex
+        vertices.append(part.enu)
+        faces_list.append(part.faces + base)
+        uv_list.append(np.column_stack([(part.uv[:, 0] * tex.shape[1] + left) / texture.shape[1],
+                                        part.uv[:, 1] * tex.shape[0] / texture.shape[0]]))  # fmt: skip
+        base += len(part.enu)
+        left += tex.shape[1]
+    vertices_m, faces, uv = np.concatenate(vertices), np.concatenate(faces_list), np.concatenate(uv_list)
+    return _render(vertices_m, faces, uv, texture, width_px)
+
+
+def _render(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, texture: np.ndarray, width_px: int) -> np.ndarray:
     import cv2
 
     az, el = np.radians(AZIMUTH_DEG), np.radians(ELEVATION_DEG)

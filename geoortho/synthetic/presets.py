@@ -253,6 +253,11 @@ PATHOLOGIES: dict[str, str] = {
     "breaklines": f"a bank {BANK_M[0]:g} m high across the scene (45 deg for an even seed, 30 for an odd one) and a "
     f"road cutting {CUTTING_M[1]:g} m wide, {CUTTING_M[0]:g} m deep with 45 deg sides: the ground's own sharp edges; "
     "survey.json: cover.breaklines",
+    "facades": "the buildings' walls painted as facades, their colours changing with the height above the "
+    "ground as no roof's or ground's do: storeys of windows (plaster, windows 1.2 m wide and 1.35 m high, "
+    "2.4 m apart, in each 3 m storey) for an even seed, cladding in courses (red and dark brown, each 1 m high, "
+    "pale joints) for an odd one; survey.json: facades (the style, and each building's rectangle: centre, length "
+    "along its angle, width, eave height); the truth's ortho and DSM are unchanged",
     "moving-cars": "four cars (4.4 x 1.8 x 1.45 m, 4 m/s) and two people (1.7 m, 1.4 m/s) going to and fro along "
     "30 m tracks on open ground while the drone flies: each photo shows them where they were then, drawn as a car "
     "with a windscreen (even seed) or a box with a roof stripe (odd); the truth is the static scene without them; "

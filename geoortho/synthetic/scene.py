@@ -79,6 +79,9 @@ class Scene:
     canopy_style: str = "pattern"  # how the leaves are drawn (cover.CANOPY_STYLES)
     cover: dict[str, dict[str, Any]] = field(default_factory=dict)  # canopy/cars: where they are
     movers: tuple[Mover, ...] = ()  # moving cars and people (not in the truth's rasters)
+    buildings: np.ndarray | None = None  # (rows, cols) bool on the DSM grid: the buildings' cells
+    building_records: tuple[dict[str, float], ...] = ()  # each building's rectangle and eave height
+    facade_style: str = ""  # how walls are painted (FACADE_STYLES); "": as their roofs
 
     @property
     def surface(self) -> GridSurface:
@@ -113,12 +116,31 @@ class Scene:
             leafy[above] = self.canopy[ri, ci]
             if leafy.any():
                 base[leafy] *= leaf_texture(self.canopy_style, x[leafy], y[leafy], self.noise[1])[:, None]
+        if self.facade_style and above.any():
+            wall = above & self._on_wall(c, r, z)
+            if wall.any():
+                base[wall] = facade_colour(self.facade_style, z[wall] - ground[wall], x[wall], y[wall])
         out = base * detail[:, None]
         if self.water is not None:
             wx, wy, wr = self.water
             out[(x - wx) ** 2 + (y - wy) ** 2 <= wr * wr] = WATER_RGB
         self._paint_markers(x, y, z, out)
         return np.clip(out, 0.0, 1.0)
+
+    def _on_wall(self, c: np.ndarray, r: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Points on a building's wall: beside a building's cell and more than a quarter metre under
+        the highest of the four cell centres round them (the DSM steps there; on a roof it does not)."""
+        assert self.buildings is not None
+        rows, cols = self.dsm.shape
+        c0 = np.clip(np.floor(c).astype(np.int64), 0, cols - 2)
+        r0 = np.clip(np.floor(r).astype(np.int64), 0, rows - 2)
+        top = np.full(len(c), -np.inf, np.float32)
+        near = np.zeros(len(c), bool)
+        for dr in (0, 1):
+            for dc in (0, 1):
+                top = np.maximum(top, self.dsm[r0 + dr, c0 + dc])
+                near |= self.buildings[r0 + dr, c0 + dc]
+        return np.asarray(near & (top - z > 0.25))
 
     def _paint_markers(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
         s = self.marker_size_m
@@ -142,6 +164,27 @@ class Scene:
             painted = np.isfinite(refl)
             idx = np.nonzero(near)[0][painted]
             out[idx] = (0.08 + 0.84 * refl[painted]).astype(np.float32)[:, None]
+
+
+#: How the facades pathology paints walls: storeys of windows, or cladding in courses.
+FACADE_STYLES = ("windows", "courses")
+
+
+def facade_colour(style: str, height_m: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A facade's colour (N, 3) float 0..1 at points ``height_m`` above the ground (and x, y: where
+    along the wall, for the windows)."""
+    if style == "windows":
+        storey = np.mod(height_m, 3.0) / 3.0
+        along = np.mod(x + y, 2.4) / 2.4
+        window = (storey > 0.35) & (storey < 0.8) & (along > 0.25) & (along < 0.75)
+        out = np.where(window[:, None], [0.12, 0.16, 0.24], [0.86, 0.80, 0.66])
+    elif style == "courses":
+        course = np.mod(height_m, 2.0)
+        out = np.where((course < 1.0)[:, None], [0.70, 0.34, 0.22], [0.30, 0.16, 0.12])
+        out = np.where((np.mod(height_m, 1.0) < 0.12)[:, None], [0.88, 0.86, 0.80], out)  # the joints
+    else:
+        raise ValueError(f"unknown facade style {style!r}")
+    return np.asarray(out, np.float32)
 
 
 def remap3(img: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -198,7 +241,7 @@ def build_scene(
     landcover, n_fields = _landcover(g, preset, rng)
     taken = _Occupancy()
     markers, pad_r = _place_markers(g, preset, rng, dictionary, marker_size_m, taken)
-    objects, height = _buildings_and_trees(g, preset, rng, dtm, taken)
+    objects, height, buildings, records = _buildings_and_trees(g, preset, rng, dtm, taken)
     dtm, markers = _marker_pads(g, dtm, markers, pad_r)
     dsm = (dtm + height).astype(np.float32)
     noise_cells = (0.02, 0.09, 0.45)
@@ -221,6 +264,7 @@ def build_scene(
         (hx, hy, home_z),
     )
     scene.marker_cells = {m.marker_id: marker_cells(dictionary, m.marker_id) for m in markers}
+    scene.buildings, scene.building_records = buildings, tuple(records)
     if breaks:
         scene.cover["breaklines"] = breaks
     return scene
@@ -438,11 +482,15 @@ def _place_markers(
 
 def _buildings_and_trees(
     g: _SceneGrid, preset: SynthPreset, rng: np.random.Generator, dtm: np.ndarray, taken: _Occupancy
-) -> tuple[np.ndarray, np.ndarray]:
-    """Buildings (gabled or flat) and trees, clear of each other and of the markers: colours and heights."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, float]]]:
+    """Buildings (gabled or flat) and trees, clear of each other and of the markers: colours,
+    heights, the buildings' cells and their rectangles (centre, length, width, angle, eave height
+    above the ground)."""
     fx0, fy0, fx1, fy1 = g.flight_box
     objects = np.zeros((g.rows, g.cols, 3), np.float32)
     height = np.zeros((g.rows, g.cols), np.float64)
+    buildings = np.zeros((g.rows, g.cols), bool)
+    records: list[dict[str, float]] = []
     for _ in range(preset.n_buildings):
         for _try in range(50):
             bx, by = rng.uniform(fx0 - 5, fx1 + 5), rng.uniform(fy0 - 5, fy1 + 5)
@@ -466,6 +514,9 @@ def _buildings_and_trees(
         ground_top = float(dtm[win][inside].max()) if inside.any() else _BASE_Z
         h = ground_top + roof - dtm[win]
         height[win] = np.where(inside, np.maximum(height[win], h), height[win])
+        buildings[win] |= inside
+        records.append({"x": bx, "y": by, "length_m": bl, "width_m": bw, "angle_deg": math.degrees(ba),
+                        "eave_m": eave})  # fmt: skip
         rc = np.array(
             rng.choice([[0.62, 0.30, 0.22], [0.45, 0.45, 0.48], [0.70, 0.68, 0.62], [0.35, 0.30, 0.28]]), np.float32
         )
@@ -489,7 +540,8 @@ def _buildings_and_trees(
         crown = bump > 0.3
         height[win] = np.where(crown, np.maximum(height[win], bump), height[win])
         objects[win] = np.where(crown[..., None], np.array([0.20, 0.34, 0.14], np.float32), objects[win])
-    return objects, height
+        buildings[win] &= ~crown
+    return objects, height, buildings, records
 
 
 def _marker_pads(

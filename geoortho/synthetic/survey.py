@@ -68,7 +68,7 @@ from geoortho.synthetic.presets import (
     parse_pathologies,
 )
 from geoortho.synthetic.render import init_render_worker, render_task
-from geoortho.synthetic.scene import Scene, add_cover, build_scene, place_water
+from geoortho.synthetic.scene import FACADE_STYLES, Scene, add_cover, build_scene, place_water
 from geoortho.synthetic.truth import renderer_digest, write_truth
 
 __all__ = ["PRESETS", "PATHOLOGIES", "SynthPreset", "SynthResult", "synth", "build_scene", "plan_flight"]
@@ -310,6 +310,8 @@ def _scene(
     scene.target = target
     if any(k in pathologies for k in ("canopy", "cars", "wide-wood", "hall", "hedge", "stockpiles", "second-epoch")):
         add_cover(scene, pathologies, np.random.default_rng([seed, 17]), CANOPY_STYLES[seed % len(CANOPY_STYLES)], seed)
+    if "facades" in pathologies:
+        scene.facade_style = FACADE_STYLES[seed % len(FACADE_STYLES)]
     if "water" in pathologies:
         scene.water = place_water(scene)
     if "moving-cars" in pathologies:

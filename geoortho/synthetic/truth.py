@@ -246,6 +246,11 @@ def _write_survey_json(
             "pathologies": {k: PATHOLOGIES[k] for k in pathologies},
             **({"water": dict(zip(("x", "y", "radius_m"), scene.water))} if scene.water is not None else {}),
             **({"cover": scene.cover} if scene.cover else {}),
+            **(
+                {"facades": {"style": scene.facade_style, "buildings": list(scene.building_records)}}
+                if scene.facade_style
+                else {}
+            ),
             **({"movers": [m.record() for m in scene.movers]} if scene.movers else {}),
             **(
                 {"mount_tilt": {"deg": MOUNT_TILT_DEG, "azimuth_deg": MOUNT_TILT_AZIMUTH_DEG}}
