@@ -45,9 +45,10 @@ def main() -> int:
         ortho_args = ["geoortho", "ortho", "--images", str(images), "--sfm", str(project / "sfm"), "--dsm", str(dsm),
                       "--output", str(scratch / "ortho.tif"), "--quiet", "--json"]  # fmt: skip
         t_ortho, _, _, mb_ortho = child_with_tree(OURS, ortho_args)
+        # as run makes it: its walls coloured from the photos
         mesh_args = ["geoortho", "mesh", "--dsm", str(dsm), "--ortho", str(scratch / "ortho.tif"), "--output",
-                     str(scratch / "mesh.glb"), "--tileset", str(scratch / "tiles" / "tileset.json"), "--quiet",
-                     "--json"]  # fmt: skip
+                     str(scratch / "mesh.glb"), "--tileset", str(scratch / "tiles" / "tileset.json"), "--sfm",
+                     str(project / "sfm"), "--images", str(images), "--quiet", "--json"]  # fmt: skip
         t_mesh, out, _, mb_mesh = child_with_tree(OURS, mesh_args)
         r = json.loads(out[out.index("{") :])
         print(f"survey: {project}")
@@ -59,6 +60,7 @@ def main() -> int:
             f"max {r['max_error_m']:.2f} m"
         )
         print(f"  3D Tiles: {r['n_tiles']} tiles in {r['n_levels']} levels")
+        print(f"  walls: {r['wall_faces']:,} faces on their atlas, {r['wall_photo_share']:.0%} of their area by photo")
     return 0
 
 

@@ -15,6 +15,8 @@ from geoortho.products3d.raster_mesh import rasterize
 AZIMUTH_DEG = 225.0
 ELEVATION_DEG = 40.0
 #: The light: from the north-west, as a hillshade's, high.
+#: Each texture at most this many pixels a side in the picture.
+VIEW_TEXTURE_PX = 2048
 LIGHT = np.array([-0.5, 0.5, 0.9]) / np.linalg.norm([-0.5, 0.5, 0.9])
 
 
@@ -32,6 +34,9 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def render_oblique(parts: Sequence[Part], textures: Sequence[np.ndarray], width_px: int = 1600) -> np.ndarray:
     """The mesh's parts (east, north, up in metres) seen obliquely, each with its texture (RGB):
     an (h, w, 3) uint8 RGB picture, white where nothing is drawn."""
+
+    # a picture 1,600 px wide shows no texture finer than this (an 8,192 px atlas cost 0.4 GB here)
+    textures = [_at_most(t, VIEW_TEXTURE_PX) for t in textures]
     # the parts drawn at once (one depth buffer), their textures side by side
     widths = [t.shape[1] for t in textures]
     texture = np.zeros((max(t.shape[0] for t in textures), sum(widths), 3), np.uint8)
@@ -46,6 +51,16 @@ def render_oblique(parts: Sequence[Part], textures: Sequence[np.ndarray], width_
         left += tex.shape[1]
     vertices_m, faces, uv = np.concatenate(vertices), np.concatenate(faces_list), np.concatenate(uv_list)
     return _render(vertices_m, faces, uv, texture, width_px)
+
+
+def _at_most(texture: np.ndarray, side_px: int) -> np.ndarray:
+    import cv2
+
+    scale = side_px / max(texture.shape[:2])
+    if scale >= 1.0:
+        return texture
+    size = (max(1, round(texture.shape[1] * scale)), max(1, round(texture.shape[0] * scale)))
+    return np.asarray(cv2.resize(texture, size, interpolation=cv2.INTER_AREA))
 
 
 def _render(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, texture: np.ndarray, width_px: int) -> np.ndarray:

@@ -30,6 +30,8 @@ MAX_VIEW_ANGLE_DEG = 80.0
 #: A line of sight may meet the DSM this many cells short of the face (the mesh is within about
 #: a cell of the DSM, and a wall's foot is where the ray meets the ground).
 SIGHT_TOLERANCE_CELLS = 2.0
+#: The lens' cone a face is looked for in, this much wider than the frame's diagonal (distortion).
+CONE_MARGIN_DEG = 5.0
 #: Photos tried for a face, in the order they face it, before it is left to the orthophoto.
 MAX_TRIES = 4
 #: Faces that face one way: their horizontal normals within one of this many sectors.
@@ -140,46 +142,57 @@ def _atlas(
     (vertices, faces, uv, width, height, texel size, each vertex's photo).
 
     A chart is a group's faces that take one photo, flattened onto the upright plane across the
-    group's mean normal (a wall's own plane; a crown's flank within a sector of it), so ``xatlas``
-    only packs (its own charting takes minutes at 300,000 faces; this, seconds). Vertices are
-    split by chart, so each carries its chart's photo."""
-    import xatlas
-
-    n_groups = int(group.max()) + 1
-    chart = group * (len(np.unique(choice)) + 1) + np.searchsorted(np.unique(choice), choice)
-    across = np.zeros((n_groups, 2))
+    group's mean normal (a wall's own plane; a crown's flank within a sector of it): an upright
+    strip, whose box wastes little. The boxes are packed in shelves, tallest first, with a gutter
+    of :data:`PADDING_PX` round each. Vertices are split by chart, so each carries its chart's photo."""
+    photos = np.unique(choice)
+    chart = group * len(photos) + np.searchsorted(photos, choice)
+    _, chart = np.unique(chart, return_inverse=True)
+    n_charts = int(chart.max()) + 1
+    across = np.zeros((int(group.max()) + 1, 2))
     np.add.at(across, group, normal[:, :2] * area[:, None])
     across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-12)
-    keys, inverse = np.unique((f.astype(np.int64) * (chart.max() + 1) + chart[:, None]).ravel(), return_inverse=True)
-    vertex, vertex_chart = keys // (chart.max() + 1), keys % (chart.max() + 1)
+    keys, inverse = np.unique((f.astype(np.int64) * n_charts + chart[:, None]).ravel(), return_inverse=True)
+    vertex, vertex_chart = keys // n_charts, keys % n_charts
     faces = inverse.reshape(-1, 3)
-    first_face = np.zeros(chart.max() + 1, np.int64)
+    first_face = np.zeros(n_charts, np.int64)
     first_face[chart[::-1]] = np.arange(len(chart))[::-1]  # any face of each chart: its group and photo
     vertex_group, photo = group[first_face[vertex_chart]], choice[first_face[vertex_chart]]
     points = v[vertex]
     along = np.stack([-across[vertex_group, 1], across[vertex_group, 0]], axis=1)
     flat = np.stack([(points[:, :2] * along).sum(axis=1), points[:, 2]], axis=1)
-    flat -= flat.min(axis=0)
-    # the texel that fits the charts' area (and half as much again for the packing's gaps)
-    texel = max(texel_m, math.sqrt(1.5 * float(area.sum())) / max_px)
-    for _ in range(4):
-        atlas = xatlas.Atlas()
-        atlas.add_mesh((points - points.mean(axis=0)).astype(np.float32), faces.astype(np.uint32), None,
-                       flat.astype(np.float32))  # fmt: skip
-        options = xatlas.ChartOptions()
-        options.use_input_mesh_uvs = True
-        pack = xatlas.PackOptions()
-        pack.padding = PADDING_PX
-        pack.texels_per_unit = 1.0 / texel
-        pack.bilinear = True
-        atlas.generate(options, pack)
-        side = max(atlas.width, atlas.height)
-        if side <= max_px:
+    low = np.full((n_charts, 2), np.inf)
+    high = np.full((n_charts, 2), -np.inf)
+    np.minimum.at(low, vertex_chart, flat)
+    np.maximum.at(high, vertex_chart, flat)
+    texel = texel_m
+    while True:
+        box = np.ceil((high - low) / texel).astype(np.int64) + 1 + 2 * PADDING_PX
+        origin, width, height = _shelves(box, max_px)
+        if width <= max_px and height <= max_px:
             break
-        texel *= side / max_px * 1.05
-    mapping, indices, uv = atlas[0]
-    return (points[mapping], np.asarray(indices, np.int64), np.asarray(uv, np.float64), atlas.width, atlas.height,
-            texel, photo[mapping])  # fmt: skip
+        texel *= 1.1 * math.sqrt(max(width, height) / max_px)
+    texels = (flat - low[vertex_chart]) / texel + PADDING_PX + origin[vertex_chart]
+    uv = texels / (width, height)
+    return points, faces, uv, width, height, texel, photo
+
+
+def _shelves(box: np.ndarray, max_px: int) -> tuple[np.ndarray, int, int]:
+    """Boxes (n, 2: width, height in texels) packed in rows, the tallest first, in a square about
+    their total area: each box's (x, y) and the atlas' width and height."""
+    width = max(
+        int(box[:, 0].max()), min(max_px, int(math.ceil(math.sqrt(1.1 * float((box[:, 0] * box[:, 1]).sum())))))
+    )
+    origin = np.zeros_like(box)
+    x = y = row_height = 0
+    for i in np.argsort(-box[:, 1], kind="stable").tolist():
+        w, h = int(box[i, 0]), int(box[i, 1])
+        if x + w > width:
+            x, y, row_height = 0, y + row_height, 0
+        origin[i] = (x, y)
+        x += w
+        row_height = max(row_height, h)
+    return origin, width, y + row_height
 
 
 def _colour(
@@ -229,11 +242,19 @@ def _facing(centre: np.ndarray, normal: np.ndarray, cams: list[PosedCamera]) -> 
     out = np.zeros((len(centre), len(cams)), np.float32)
     for k, cam in enumerate(cams):
         to_cam = cam.pose.center - centre
-        cos = np.einsum("ij,ij->i", to_cam, normal) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-9)
-        px, depth = cam.project(centre)
-        ok = (cos > cos_min) & (depth > 0)
-        ok &= np.asarray(in_frame(px[:, 0], px[:, 1], cam.intrinsics.width_px, cam.intrinsics.height_px))
-        out[ok, k] = cos[ok]
+        dist = np.maximum(np.linalg.norm(to_cam, axis=1), 1e-9)
+        cos = np.einsum("ij,ij->i", to_cam, normal) / dist
+        # the lens' cone first (a dot product a face), then the camera model for what is in it
+        intr = cam.intrinsics
+        half_diagonal = math.atan(math.hypot(intr.width_px, intr.height_px) / 2 / intr.focal_px)
+        axis = cam.pose.rotation[:, 2]
+        cone = -(to_cam @ axis) / dist > math.cos(min(half_diagonal + math.radians(CONE_MARGIN_DEG), math.pi / 2))
+        idx = np.nonzero((cos > cos_min) & cone)[0]
+        if not len(idx):
+            continue
+        px, depth = cam.project(centre[idx])
+        ok = (depth > 0) & np.asarray(in_frame(px[:, 0], px[:, 1], intr.width_px, intr.height_px))
+        out[idx[ok], k] = cos[idx[ok]]
     return out
 
 
@@ -315,15 +336,24 @@ _ROW = 4096
 
 
 def _fill_gutters(image: np.ndarray, filled: np.ndarray) -> None:
-    """Texels outside every chart take the nearest chart texel's colour (the gutters: bilinear
-    sampling and mip levels read across a chart's edge)."""
-    from scipy import ndimage
+    """The gutters round the charts take their edges' colours, :data:`PADDING_PX` texels out and
+    one more (bilinear sampling reads across a chart's edge); the atlas' unused rest, its mean
+    colour (the coarser mip levels average it in)."""
+    import cv2
 
     if filled.all() or not filled.any():
         return
-    _, (rr, cc) = ndimage.distance_transform_edt(~filled, return_indices=True)
-    empty = ~filled
-    image[empty] = image[rr[empty], cc[empty]]
+    image[~filled] = image[filled].mean(axis=0).astype(np.uint8)
+    kernel = np.ones((3, 3), np.uint8)
+    mask = filled.astype(np.uint8)
+    for _ in range(PADDING_PX + 1):
+        grown = cv2.dilate(mask, kernel)
+        new = (grown > 0) & (mask == 0)
+        if not new.any():
+            break
+        # each new texel: its charted neighbours' colour (their largest, a channel at a time)
+        image[new] = cv2.dilate(image * mask[:, :, None], kernel)[new]
+        mask = np.asarray(grown, np.uint8)
 
 
 def wall_summary(walls: WallTexture | None) -> tuple[int, float]:

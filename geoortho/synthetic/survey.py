@@ -170,7 +170,7 @@ def synth(
         altitude-drift, wrong-focal, dsm-datum, partial-dsm, exposure-steps, free-heading,
         water, no-attitude, slope, wrong-flight-height, poor-gps, canopy, cars, rtk, ppk,
         factory-calibration, wrong-calibration, gps-lag, wide-wood, hall, hedge, stockpiles, breaklines,
-        moving-cars, dropped-photo, second-epoch (truth/survey.json says what each did).
+        moving-cars, dropped-photo, second-epoch, facades (truth/survey.json says what each did).
     plan : Path
         Fly this plan (a ``plan`` output folder or its plan.gpkg) instead of the preset's
         flight, over the preset's scene: the round trip that checks a plan. The plan's camera
