@@ -11,8 +11,8 @@ tops' and feet's edges.
 
 Choices of library: ``fast-simplification`` (quadric collapse with the border held, so tiles
 meet with no crack), ``pygltflib`` (a glTF binary as the spec lays it out: unlit, JPEG inside),
-``xatlas`` (the walls' charts and their packing), pyproj (the tiles' Earth frame); the OBJ is
-written here (:mod:`.gltf` says why); no ``py3dtiles``: see :mod:`.tiles3d`.
+pyproj (the tiles' Earth frame); the OBJ is written here (:mod:`.gltf` says why); no ``xatlas``:
+see :mod:`.walls`; no ``py3dtiles``: see :mod:`.tiles3d`.
 """
 
 from __future__ import annotations

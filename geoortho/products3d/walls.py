@@ -1,13 +1,18 @@
 """A mesh's walls coloured from the photos that see them.
 
 Seen from above a wall is a line: the orthophoto has no colour for it. Its faces (steeper than
-:data:`WALL_SLOPE_DEG`) are laid out on a texture atlas of their own (``xatlas``: charts cut where
-the surface folds, packed with a gutter), and each atlas texel is coloured from one photo, chosen
-as the orthophoto chooses: the one that sees the face most directly, with its line of sight to
-the face tested against the DSM. A run of faces that face one way on one object (a wall's side, a
-crown's flank) takes one photo, the one that sees them best in all, so that a facade is not a
-patchwork; a face that photo does not see takes its own best. The photo's colours are scaled by
-the orthophoto's own gain for it (its report's ``gains_bgr``), so walls and roofs match.
+:data:`WALL_SLOPE_DEG`) are laid out on a texture atlas of their own, and each atlas texel is
+coloured from one photo, chosen as the orthophoto chooses: the one that sees the face most
+directly, with its line of sight to the face tested against the DSM. A run of faces that face one
+way on one object (a wall's side, a crown's flank) takes one photo, the one that sees them best in
+all, so that a facade is not a patchwork; a face that photo does not see takes its own best. The
+photo's colours are scaled by the orthophoto's own gain for it (its report's ``gains_bgr``), so
+walls and roofs match.
+
+The atlas: each such run flattened onto its own upright plane (a wall is one already) and the
+runs' boxes packed in shelves. Not ``xatlas``: on toledo's 300,000 wall faces (its crowns' flanks)
+it took 21 s a pass to pack the same charts (and minutes to cut its own), where the shelves take
+under a second; upright strips waste little of their boxes.
 """
 
 from __future__ import annotations
@@ -268,6 +273,10 @@ def _first_seen(
     chosen = np.full(len(centre), -1, np.int64)
     todo, candidate = np.arange(len(centre)), first
     for _ in range(MAX_TRIES):
+        # a face its run's photo does not face takes the one that faces it best
+        other = cos_view[todo, candidate] <= 0
+        candidate = candidate.copy()
+        candidate[other] = np.argmax(cos_view[todo[other]], axis=1)
         facing = cos_view[todo, candidate] > 0
         todo, candidate = todo[facing], candidate[facing]
         if not len(todo):
