@@ -18,6 +18,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from geoortho.products3d.raster_mesh import draw_heights, rasterize
+from geoortho.products3d.view import side_by_side
 
 
 @pytest.fixture(scope="module")
@@ -54,18 +55,7 @@ def _glb_mesh(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
         bv = g.bufferViews[image.bufferView]
         jpeg = np.frombuffer(blob, np.uint8, bv.byteLength, bv.byteOffset)
         parts.append((pos, faces, uv, cv2.imdecode(jpeg, cv2.IMREAD_COLOR)[:, :, ::-1]))
-    height = max(p[3].shape[0] for p in parts)
-    width = sum(p[3].shape[1] for p in parts)
-    texture = np.zeros((height, width, 3), np.uint8)
-    pos_all, faces_all, uv_all, base, left = [], [], [], 0, 0
-    for pos, faces, uv, tex in parts:
-        texture[: tex.shape[0], left : left + tex.shape[1]] = tex
-        pos_all.append(pos)
-        faces_all.append(faces + base)
-        uv_all.append(np.stack([(uv[:, 0] * tex.shape[1] + left) / width, uv[:, 1] * tex.shape[0] / height], axis=1))
-        base += len(pos)
-        left += tex.shape[1]
-    return np.concatenate(pos_all), np.concatenate(faces_all), np.concatenate(uv_all), texture
+    return side_by_side([p[:3] for p in parts], [p[3] for p in parts])
 
 
 def _in_crs(made) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

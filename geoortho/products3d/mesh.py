@@ -30,8 +30,8 @@ from geoortho.core.outputs import remove_stale_temporaries, write_json, write_pn
 from geoortho.core.parallel import map_ordered
 from geoortho.errors import InputError, ParameterError
 from geoortho.feedback import Feedback, as_feedback, split
-from geoortho.products3d.raster_mesh import TILE_CELLS, DsmGrid, TileMesh, mesh_tile
-from geoortho.products3d.texture import ortho_texture, uv_of
+from geoortho.products3d.raster_mesh import TILE_CELLS, DsmGrid, TileMesh, mesh_tile, used_vertices
+from geoortho.products3d.texture import Bounds, ortho_texture, uv_of
 from geoortho.products3d.tileset import write_tileset
 from geoortho.products3d.walls import WallTexture, ortho_gains, photo_walls, wall_mask, wall_summary
 
@@ -216,7 +216,7 @@ def mesh(
                                      texture_cell, texture_max_px, (texture, bounds), fb)  # fmt: skip
     from geoortho.products3d.gltf import Part, encode_jpeg, write_glb, write_obj
 
-    gv, gf = _compact(verts, ground)
+    gv, gf = used_vertices(verts, ground)
     parts = [Part("ground", (gv - offset) * scale, gf, uv_of(gv, bounds), encode_jpeg(texture))]
     if walls is not None:
         parts.append(Part("walls", (walls.vertices - offset) * scale, walls.faces, walls.uv, encode_jpeg(walls.image)))
@@ -266,7 +266,7 @@ def _photo_walls(
     ortho: Path,
     texel: float,
     max_px: int,
-    fallback: tuple[np.ndarray, tuple[float, float, float, float]],
+    fallback: tuple[np.ndarray, Bounds],
     fb: Feedback,
 ) -> tuple[WallTexture | None, np.ndarray]:
     """The walls on their own atlas coloured from the photos, and the faces left to the orthophoto."""
@@ -290,14 +290,6 @@ def _photo_walls(
             f"{walls.texel_m:.3g} m), the rest from the orthophoto"
         )
     return walls, faces[~wall]
-
-
-def _compact(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The vertices ``faces`` use, and the faces renumbered onto them."""
-    used = np.unique(faces)
-    renumber = np.full(len(verts), -1, np.int64)
-    renumber[used] = np.arange(len(used))
-    return verts[used], renumber[faces].astype(np.int32)
 
 
 def _joined(tiles: list[TileMesh]) -> tuple[np.ndarray, np.ndarray]:

@@ -107,7 +107,7 @@ def tile_mesh(
     while True:
         target = max(int(len(full) * share), 2)
         if share >= 1.0 or target >= len(full):
-            v, f = _used(verts, full)
+            v, f = used_vertices(verts, full)
         else:
             v, f = fast_simplification.simplify(verts, full, target_count=target, agg=AGGRESSIVENESS,
                                                 preserve_border=True)  # fmt: skip
@@ -170,8 +170,8 @@ def read_block(grid: DsmGrid, r: int, c: int, size: int) -> np.ndarray:
         return np.asarray(ds.read(1, window=Window(c, r, w, h), masked=True).astype(np.float64).filled(np.nan))
 
 
-def _used(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The vertices faces use, renumbered."""
+def used_vertices(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices faces use, and the faces renumbered onto them."""
     used = np.unique(faces)
     remap = np.full(len(verts), -1, np.int64)
     remap[used] = np.arange(len(used))

@@ -15,9 +15,9 @@ from geoortho.products3d.raster_mesh import rasterize
 AZIMUTH_DEG = 225.0
 ELEVATION_DEG = 40.0
 #: The light: from the north-west, as a hillshade's, high.
+LIGHT = np.array([-0.5, 0.5, 0.9]) / np.linalg.norm([-0.5, 0.5, 0.9])
 #: Each texture at most this many pixels a side in the picture.
 VIEW_TEXTURE_PX = 2048
-LIGHT = np.array([-0.5, 0.5, 0.9]) / np.linalg.norm([-0.5, 0.5, 0.9])
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -37,20 +37,28 @@ def render_oblique(parts: Sequence[Part], textures: Sequence[np.ndarray], width_
 
     # a picture 1,600 px wide shows no texture finer than this (an 8,192 px atlas cost 0.4 GB here)
     textures = [_at_most(t, VIEW_TEXTURE_PX) for t in textures]
-    # the parts drawn at once (one depth buffer), their textures side by side
-    widths = [t.shape[1] for t in textures]
-    texture = np.zeros((max(t.shape[0] for t in textures), sum(widths), 3), np.uint8)
-    vertices, faces_list, uv_list, base, left = [], [], [], 0, 0
-    for part, tex in zip(parts, textures):
+    # the parts drawn at once (one depth buffer)
+    vertices, faces, uv, texture = side_by_side([(p.enu, p.faces, p.uv) for p in parts], textures)
+    return _render(vertices, faces, uv, texture, width_px)
+
+
+def side_by_side(
+    pieces: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], textures: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Textured pieces (vertices, faces, uv; each with its texture) as one: their vertices and faces
+    joined, their textures side by side in one image and their uv moved onto it."""
+    height = max(t.shape[0] for t in textures)
+    width = sum(t.shape[1] for t in textures)
+    texture = np.zeros((height, width, 3), np.uint8)
+    vertices, faces, uv, base, left = [], [], [], 0, 0
+    for (v, f, t_uv), tex in zip(pieces, textures):
         texture[: tex.shape[0], left : left + tex.shape[1]] = tex
-        vertices.append(part.enu)
-        faces_list.append(part.faces + base)
-        uv_list.append(np.column_stack([(part.uv[:, 0] * tex.shape[1] + left) / texture.shape[1],
-                                        part.uv[:, 1] * tex.shape[0] / texture.shape[0]]))  # fmt: skip
-        base += len(part.enu)
+        vertices.append(v)
+        faces.append(f + base)
+        uv.append(np.column_stack([(t_uv[:, 0] * tex.shape[1] + left) / width, t_uv[:, 1] * tex.shape[0] / height]))
+        base += len(v)
         left += tex.shape[1]
-    vertices_m, faces, uv = np.concatenate(vertices), np.concatenate(faces_list), np.concatenate(uv_list)
-    return _render(vertices_m, faces, uv, texture, width_px)
+    return np.concatenate(vertices), np.concatenate(faces), np.concatenate(uv), texture
 
 
 def _at_most(texture: np.ndarray, side_px: int) -> np.ndarray:

@@ -26,7 +26,8 @@ import numpy as np
 
 from geoortho.core.camera import PosedCamera
 from geoortho.core.surface import GridSurface
-from geoortho.products3d.raster_mesh import rasterize
+from geoortho.products3d.raster_mesh import rasterize, used_vertices
+from geoortho.products3d.texture import Bounds, uv_of
 
 #: A face steeper than this is a wall (a 2.5D mesh's roof or bank is rarely over 60 degrees).
 WALL_SLOPE_DEG = 60.0
@@ -57,7 +58,6 @@ class WallTexture:
     uv: np.ndarray
     image: np.ndarray
     texel_m: float
-    n_photo_faces: int  # faces coloured by a photo
     n_photos: int  # photos used
     area_m2: float  # the walls' area
     photo_area_m2: float  # of which coloured by a photo
@@ -65,15 +65,16 @@ class WallTexture:
 
 def wall_mask(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Faces steeper than :data:`WALL_SLOPE_DEG` (vertices in metres)."""
-    n = _normals(vertices, faces)
+    n, _ = _normals_and_areas(vertices, faces)
     return np.asarray(np.abs(n[:, 2]) < math.cos(math.radians(WALL_SLOPE_DEG)))
 
 
-def _normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def _normals_and_areas(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each face's unit normal (up for a face counter-clockwise from above) and its area."""
     a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
     n = np.cross(b - a, c - a)
     length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.asarray(n / np.where(length > 0, length, 1.0))
+    return np.asarray(n / np.where(length > 0, length, 1.0)), 0.5 * length[:, 0]
 
 
 def ortho_gains(ortho: Path) -> dict[str, np.ndarray]:
@@ -94,7 +95,7 @@ def photo_walls(
     gains: dict[str, np.ndarray],
     texel_m: float,
     max_px: int,
-    fallback: tuple[np.ndarray, tuple[float, float, float, float]],
+    fallback: tuple[np.ndarray, Bounds],
 ) -> WallTexture | None:
     """The wall faces of a mesh (``vertices`` in the DSM's CRS, metres) on an atlas coloured from
     ``cams``' photos; None when the mesh has no wall. A texel no photo sees takes the colour of the
@@ -102,14 +103,10 @@ def photo_walls(
     from scipy import sparse
     from scipy.sparse.csgraph import connected_components
 
-    used = np.unique(faces)
-    if not len(used):
+    if not len(faces):
         return None
-    renumber = np.full(len(vertices), -1, np.int64)
-    renumber[used] = np.arange(len(used))
-    v, f = vertices[used], renumber[faces]
-    normal = _normals(v, f)
-    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    v, f = used_vertices(vertices, faces)
+    normal, area = _normals_and_areas(v, f)
     centre = v[f].mean(axis=1)
 
     cos_view = _facing(centre, normal, cams)  # (faces, cams), 0 where behind or out of frame
@@ -128,7 +125,7 @@ def photo_walls(
     image = _colour(av, auv, af, photo, width, height, cams, gains, fallback, texel)
     seen = choice >= 0
     return WallTexture(
-        av, af.astype(np.int32), auv, image, texel, int(seen.sum()), len(set(choice[seen].tolist())),
+        av, af.astype(np.int32), auv, image, texel, len(set(choice[seen].tolist())),
         float(area.sum()), float(area[seen].sum()),
     )  # fmt: skip
 
@@ -209,7 +206,7 @@ def _colour(
     height: int,
     cams: list[PosedCamera],
     gains: dict[str, np.ndarray],
-    fallback: tuple[np.ndarray, tuple[float, float, float, float]],
+    fallback: tuple[np.ndarray, Bounds],
     texel_m: float,
 ) -> np.ndarray:
     """The atlas' texels coloured, each from its chart's photo (``photo`` -1: the fallback texture)."""
@@ -225,8 +222,9 @@ def _colour(
     image = np.zeros((height * width, 3), np.uint8)
     which = np.rint(texels[:, 3]).astype(np.int64)
     order = np.argsort(which, kind="stable")
-    bounds_at = np.searchsorted(which[order], np.unique(which))
-    for k, lo, hi in zip(np.unique(which), bounds_at, [*bounds_at[1:], len(order)]):
+    photos = np.unique(which)
+    starts = np.searchsorted(which[order], photos)
+    for k, lo, hi in zip(photos, starts, [*starts[1:], len(order)]):
         idx = order[lo:hi]
         pts = texels[idx, :3].astype(np.float64) + centre
         cam = cams[int(k)] if k >= 0 else None
@@ -318,13 +316,11 @@ def _from_photo(cam: PosedCamera, pts: np.ndarray, gain_bgr: np.ndarray | None, 
     return np.asarray(sampled[:, ::-1])
 
 
-def colour_under(pts: np.ndarray, texture: np.ndarray, bounds: tuple[float, float, float, float]) -> np.ndarray:
+def colour_under(pts: np.ndarray, texture: np.ndarray, bounds: Bounds) -> np.ndarray:
     """The colour of a north-up texture over ``bounds`` under world points."""
-    west, south, east, north = bounds
     h, w = texture.shape[:2]
-    return _sample(
-        texture, (pts[:, 0] - west) / (east - west) * w - 0.5, (north - pts[:, 1]) / (north - south) * h - 0.5
-    )
+    at = uv_of(pts, bounds) * (w, h) - 0.5
+    return _sample(texture, at[:, 0], at[:, 1])
 
 
 def _sample(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
